@@ -1,0 +1,97 @@
+"""What every estimator shares: state, prediction and the local step.
+
+An algorithm is two pure functions per tick, split at the single exchange
+round (Algorithm 1, step 2):
+
+    local(state, k, y, has)          -> (state, Message)   before sending
+    fuse(state, own, senders, nbhd)  -> (state, Output)    after receiving
+
+Arrays carry leading batch axes (seeds, agents). The in-process engine calls
+them on every agent at once; an agent process calls them on a batch of one,
+with the messages it actually received as ``senders``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .. import equations as eq
+from ..messages import Message, Neighbourhood, Output
+from ..model import LinearModel, Params, Sensors
+
+
+@dataclass(frozen=True)
+class State:
+    x: np.ndarray      # (..., n)   x_bar_{k|k}, the fused estimate
+    P: np.ndarray      # (..., n, n)
+    since: np.ndarray  # (...,) ticks since the observation window was refreshed
+
+
+@dataclass(frozen=True)
+class Local:
+    """Quantities of the local step, shared by all algorithms."""
+
+    x_pred: np.ndarray
+    P_pred: np.ndarray
+    U: np.ndarray
+    u: np.ndarray
+    x_upd: np.ndarray
+    P_upd: np.ndarray
+
+
+class Algorithm:
+    """Base class; subclasses set ``name`` and implement ``local``/``fuse``."""
+
+    name = "base"
+    label = "base"
+
+    def __init__(self, model: LinearModel, sensors: Sensors, params: Params | None = None):
+        self.model = model
+        self.sensors = sensors
+        self.params = params or Params()
+
+    # -- helpers ---------------------------------------------------------
+    def init(self, batch: tuple) -> State:
+        """Every agent starts from the common prior (x0, P0) (Algorithm 1)."""
+        n = self.model.n
+        x = np.broadcast_to(self.model.x0, batch + (n,)).astype(float).copy()
+        P = np.broadcast_to(self.model.P0, batch + (n, n)).astype(float).copy()
+        return State(x, P, np.zeros(batch, dtype=np.int64))
+
+    def local_kf(self, state: State, k: int, y, has) -> Local:
+        """Prediction (info_kf_prediction0) and local update (info_kf_update0)."""
+        x_pred, P_pred = eq.predict(state.x, state.P, self.model.A_at(k), self.model.Q)
+        U, u = eq.measurement_information(self.sensors.H, self.sensors.R, y, has)
+        x_upd, P_upd = eq.local_update(x_pred, P_pred, U, u, has)
+        return Local(x_pred, P_pred, U, u, x_upd, P_upd)
+
+    def local_input(self, loc: Local, allowed=None):
+        """The agent's own RKF input estimate (input_estimation)."""
+        return eq.input_estimate(loc.x_pred, loc.P_pred, loc.U, loc.u, self.model.G, allowed)
+
+    @staticmethod
+    def message(loc: Local, d, S, valid, x_upd=None, P_upd=None) -> Message:
+        return Message(
+            loc.x_pred, loc.P_pred,
+            loc.x_upd if x_upd is None else x_upd,
+            loc.P_upd if P_upd is None else P_upd,
+            d, S, valid,
+        )
+
+    # -- interface -------------------------------------------------------
+    def local(self, state: State, k: int, y, has):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):  # pragma: no cover
+        raise NotImplementedError
+
+
+def uniform_weights(adj: np.ndarray) -> np.ndarray:
+    """Row-normalised adjacency: equal weight to every fused neighbour."""
+    deg = adj.sum(axis=-1, keepdims=True)
+    return adj / np.where(deg > 0, deg, 1.0)
+
+
+def with_since(state: State, since) -> State:
+    return replace(state, since=since)

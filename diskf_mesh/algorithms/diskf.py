@@ -1,0 +1,35 @@
+"""DISKF, Algorithm 1 of the paper, on top of ``equations``."""
+from __future__ import annotations
+
+import numpy as np
+
+from .. import equations as eq
+from ..messages import Message, Neighbourhood, Output
+from .base import Algorithm, State
+
+
+class DISKF(Algorithm):
+    name = "diskf"
+    label = "DISKF"
+
+    def local(self, state: State, k: int, y, has):
+        """Step 1: prediction, local update, windowed input estimation."""
+        loc = self.local_kf(state, k, y, has)
+        since = state.since + 1
+        allowed = eq.window_allows(since, self.params.window)
+        d, S, valid = self.local_input(loc, allowed)
+        since = np.where(has, 0, since)
+        return State(state.x, state.P, since), self.message(loc, d, S, valid)
+
+    def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
+        """Steps 3 and 4: input fusion, state fusion, state compensation."""
+        p = self.params
+        d_bar, S_bar, has = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
+        x_star = eq.input_prediction(own.x_pred, self.model.G, d_bar, has)
+        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd)
+        x_bar, P_bar = eq.state_fusion(nb.adj, x_star, own.P_pred, dy, dY)
+        if p.compensation != "none" and p.eps != 0.0:
+            gain = eq.compensation_gain(P_bar, p.compensation)
+            x_bar = eq.compensation_state(nb.adj, x_bar, gain, own.x_pred, senders.x_pred, p.eps)
+        since = np.where(has, 0, state.since) if p.reset else state.since
+        return State(x_bar, P_bar, since), Output(x_bar, P_bar, d_bar, has)

@@ -1,0 +1,237 @@
+"""The equations of the paper (``shared/paper/diskf.tex``), one function each.
+
+Every function is pure, works on numpy arrays with any leading batch axes
+(seeds x agents, or a single agent as a batch of one) and names the equation
+label it implements. Nothing here knows about transport, timing or faults.
+
+Notation (per agent i, tick k):
+    x_pred, P_pred   x^_{k|k-1}, P^_{k|k-1}     prediction without input
+    x_upd,  P_upd    x~_{k|k},  P~_{k|k}        local Kalman update
+    d, S             d^_{k-1},  S^_k            local input estimate
+    d_bar, S_bar     fused input (covariance intersection)
+    x_bar, P_bar     fused state
+    U, u             H^T R^-1 H and H^T R^-1 y  (measurement information)
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .linalg import T, inv_spd, mv, nbr_sum, sym
+
+
+# --------------------------------------------------------------------------
+# Step 1: individual estimation
+# --------------------------------------------------------------------------
+def predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Q: np.ndarray):
+    """Eq. (info_kf_prediction0): x^ = A x_bar,  P^ = A P_bar A^T + Q."""
+    x_pred = mv(A, x)
+    P_pred = sym(np.matmul(np.matmul(A, P), T(A)) + Q)
+    return x_pred, P_pred
+
+
+def measurement_information(H: np.ndarray, R: np.ndarray, y: np.ndarray, has: np.ndarray):
+    """Information of one measurement: U = H^T R^-1 H, u = H^T R^-1 y.
+
+    These are the per-agent terms of the unpacked sums below eq. (state_fusion).
+    H: (..., p, n), R: (..., p, p), y: (..., p), has: (...) bool.
+    Rows of H that are zero (padding of a shorter sensor) contribute nothing,
+    so sensors of different p^i share one padded array. An agent that measured
+    nothing (has=False) contributes zero information.
+    """
+    HtRi = T(np.linalg.solve(R, H))  # (R^-1 H)^T = H^T R^-1 (R symmetric)
+    m = np.asarray(has, dtype=float)
+    U = sym(np.matmul(HtRi, H)) * m[..., None, None]
+    u = mv(HtRi, np.where(np.asarray(has)[..., None], y, 0.0)) * m[..., None]
+    return U, u
+
+
+def local_update(x_pred: np.ndarray, P_pred: np.ndarray, U: np.ndarray, u: np.ndarray, has=None):
+    """Eq. (info_kf_update0), information form of the local Kalman update.
+
+    P~^-1 = P^^-1 + H^T R^-1 H,   x~ = P~ (P^^-1 x^ + H^T R^-1 y)
+    (equal to x^ + L (y - H x^) with L = P~ H^T R^-1).
+    Where ``has`` is False the update is the prediction, bit for bit, so a
+    neighbour that measured nothing contributes exactly zero information.
+    """
+    Y = inv_spd(P_pred)
+    P_upd = inv_spd(Y + U)
+    x_upd = mv(P_upd, mv(Y, x_pred) + u)
+    if has is not None:
+        has = np.asarray(has, dtype=bool)
+        x_upd = np.where(has[..., None], x_upd, x_pred)
+        P_upd = np.where(has[..., None, None], P_upd, P_pred)
+    return x_upd, P_upd
+
+
+def input_estimate(x_pred, P_pred, U, u, G, allowed=None, rank_rtol: float = 1e-9):
+    """Eqs. (input_estimation), (input_estimation_mk1), (input_estimation_mk2),
+    the covariance S^ below them and the rank condition (eq10).
+
+        R~ = H P^ H^T + R
+        M  = [(HG)^T R~^-1 (HG)]^-1 (HG)^T R~^-1
+        d^ = M (y - H x^),     S^ = [(HG)^T R~^-1 (HG)]^-1
+
+    Computed from the measurement information (U, u) with the Woodbury
+    identity, so the same function serves one sensor (DISKF, L-DRKF, the
+    comparison input of KCF/DiffKF/GDKF) and a stacked neighbourhood (C-DRKF)
+    without ever forming the p x p matrix R~:
+
+        H^T R~^-1 H          = Y J^-1 U,       J = P^^-1 + U,  Y = P^^-1
+        H^T R~^-1 (y - H x^) = Y J^-1 (u - U x^)
+
+    Returns (d, S, valid). ``valid`` is False where the rank condition
+    rank(H G) = m fails (this includes "no measurement"), or where ``allowed``
+    (the observation time window) forbids input estimation; there d = 0 and
+    S = I as inert placeholders.
+    """
+    Y = inv_spd(P_pred)
+    Ji = inv_spd(Y + U)
+    YJi = np.matmul(Y, Ji)
+    C = sym(np.matmul(YJi, U))                     # H^T R~^-1 H
+    c = mv(YJi, u - mv(U, x_pred))                 # H^T R~^-1 (y - H x^)
+    F_info = sym(np.matmul(np.matmul(T(G), C), G))  # (HG)^T R~^-1 (HG), m x m
+    # rank(HG) = m  <=>  G^T U G = (HG)^T R^-1 (HG) is positive definite.
+    # Judged against the total information G^T J G, so that round-off in a
+    # neighbour's (P~^-1 - P^^-1) is not mistaken for a measurement.
+    GUG = sym(np.matmul(np.matmul(T(G), U), G))
+    scale = np.linalg.eigvalsh(sym(np.matmul(np.matmul(T(G), Y + U), G)))[..., -1]
+    valid = np.linalg.eigvalsh(GUG)[..., 0] > rank_rtol * scale
+    if allowed is not None:
+        valid &= np.asarray(allowed, dtype=bool)
+    m = G.shape[-1]
+    F_safe = np.where(valid[..., None, None], F_info, np.eye(m))
+    S = inv_spd(F_safe)
+    d = mv(S, mv(T(G), c))
+    d = np.where(valid[..., None], d, 0.0)
+    S = np.where(valid[..., None, None], S, np.eye(m))
+    return d, S, valid
+
+
+# --------------------------------------------------------------------------
+# Step 3: input fusion by fast covariance intersection
+# --------------------------------------------------------------------------
+def input_fusion(adj, d, S, valid):
+    """Eqs. (input_fusion) and (input_fusion_p), trace-weighted fast CI.
+
+        w_j   = (1/tr S_j) / sum_n (1/tr S_n)        over valid j in N_i
+        S_bar = (sum_j w_j S_j^-1)^-1
+        d_bar = S_bar sum_j w_j S_j^-1 d_j
+
+    adj: (..., R, S) 0/1 neighbourhood (self included); d, S, valid per sender.
+    Returns (d_bar, S_bar, has) per receiver; has=False where no neighbour
+    (self included) had a valid input estimate.
+    """
+    w = np.where(valid, 1.0 / np.trace(S, axis1=-2, axis2=-1), 0.0)
+    W = adj * w[..., None, :]
+    tot = W.sum(axis=-1)
+    has = tot > 0
+    Wn = W / np.where(has, tot, 1.0)[..., None]
+    Si = inv_spd(S)
+    info = nbr_sum(Wn, Si, 2)
+    vec = nbr_sum(Wn, mv(Si, d), 1)
+    m = d.shape[-1]
+    S_bar = inv_spd(np.where(has[..., None, None], info, np.eye(m)))
+    d_bar = np.where(has[..., None], mv(S_bar, vec), 0.0)
+    S_bar = np.where(has[..., None, None], S_bar, np.eye(m))
+    return d_bar, S_bar, has
+
+
+# --------------------------------------------------------------------------
+# Step 4: state fusion by information-filter decomposition
+# --------------------------------------------------------------------------
+def information_contribution(x_pred, P_pred, x_upd, P_upd):
+    """What a neighbour's local update added, in information form.
+
+    dY_j = P~_j^-1 - P^_j^-1           (= H_j^T R_j^-1 H_j)
+    dy_j = P~_j^-1 x~_j - P^_j^-1 x^_j (= H_j^T R_j^-1 y_j)
+    The terms inside the sums of eqs. (state_fusion) and (state_fusion_p).
+    """
+    Yp = inv_spd(P_pred)
+    Yu = inv_spd(P_upd)
+    return mv(Yu, x_upd) - mv(Yp, x_pred), sym(Yu - Yp)
+
+
+def input_prediction(x_pred, G, d_bar, has):
+    """Eq. (info_kf_prediction): x^* = A x_bar + G d_bar = x^ + G d_bar.
+
+    The covariance is unchanged (P^* = P^), as the paper states. Where no fused
+    input exists the prediction is left without input.
+    """
+    return x_pred + np.where(has[..., None], mv(G, d_bar), 0.0)
+
+
+def state_fusion(adj, x_star, P_pred, dy, dY):
+    """Eqs. (state_fusion) and (state_fusion_p).
+
+        P_bar^-1 = P^*^-1 + sum_j (P~_j^-1 - P^_j^-1)
+        x_bar    = P_bar [ sum_j (P~_j^-1 x~_j - P^_j^-1 x^_j) + P^*^-1 x^* ]
+
+    adj: (..., R, S); x_star, P_pred per receiver; dy, dY per sender.
+    """
+    Ystar = inv_spd(P_pred)
+    Y_bar = Ystar + nbr_sum(adj, dY, 2)
+    P_bar = inv_spd(sym(Y_bar))
+    x_bar = mv(P_bar, nbr_sum(adj, dy, 1) + mv(Ystar, x_star))
+    return x_bar, P_bar
+
+
+def compensation_gain(P_bar, form: str = "normalized"):
+    """The gain M_i of eq. (compensation_state).
+
+    ``paper``:      M_i = P_bar, as printed. Not scale-free: after a long
+                    unobserved stretch P_bar grows without bound and
+                    eps * P_bar * sum_j(...) overshoots the neighbours'
+                    predictions it is meant to pull towards, and can diverge.
+    ``normalized``: M_i = P_bar / (1 + ||P_bar||_F), the normalisation
+                    Olfati-Saber uses for the Kalman consensus filter for the
+                    same reason. Its norm stays below 1, so the step is at most
+                    eps * |N_i| times the disagreement: a contraction for
+                    eps * |N_i| < 1, while for small P_bar it equals the paper's.
+    ``none``:       no compensation (ablation).
+    """
+    if form == "paper":
+        return P_bar
+    if form == "normalized":
+        nrm = np.linalg.norm(P_bar, axis=(-2, -1))
+        return P_bar / (1.0 + nrm)[..., None, None]
+    if form == "none":
+        return np.zeros_like(P_bar)
+    raise ValueError(f"unknown compensation form {form!r}")
+
+
+def compensation_state(adj, x_bar, gain, x_pred_recv, x_pred_send, eps: float):
+    """Eq. (compensation_state):
+
+        x_bar_i += eps M_i sum_{j in N_i} (x^*_j - x^*_i)
+
+    With one exchange round the neighbour's fused input d_bar_j is not known
+    when i fuses, so every x^*_j is formed with i's own d_bar_i; the G d_bar_i
+    terms cancel and the difference is that of the published predictions
+    x^_j - x^_i. The pairwise difference is formed before the sum, so that
+    identical predictions give an exact zero (all-to-all communication).
+    """
+    diff = np.expand_dims(x_pred_send, -3) - np.expand_dims(x_pred_recv, -2)  # (..., R, S, n)
+    total = (adj[..., None] * diff).sum(axis=-2)
+    return x_bar + eps * mv(gain, total)
+
+
+# --------------------------------------------------------------------------
+# Observation time window
+# --------------------------------------------------------------------------
+def window_allows(since: np.ndarray, window):
+    """Observation time window: input estimation is allowed only when the gap
+    since the last refresh (own measurement, or with reset a valid fused input
+    from the neighbourhood) is at most ``window`` ticks. ``window=None``
+    disables the window."""
+    if window is None:
+        return np.ones(np.shape(since), dtype=bool)
+    return since <= window
+
+
+def window_advance(since, has_measurement, fused_valid, reset: bool):
+    """Counter update after a tick: zero after an own measurement; with
+    ``reset``, also zero when input fusion had a valid input to fuse."""
+    since = np.where(has_measurement, 0, since)
+    if reset:
+        since = np.where(fused_valid, 0, since)
+    return since

@@ -1,0 +1,110 @@
+"""Component vocabulary: the shared motion model, the agents' sensors, the
+estimator parameters. Plain frozen dataclasses over numpy arrays."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LinearModel:
+    """x_k = A_{k-1} x_{k-1} + G d_{k-1} + w_{k-1},  w ~ N(0, Q)  (eq1).
+
+    A: (K, n, n), A[k-1] is A_{k-1}, used to go from tick k-1 to tick k
+       (k = 1..K). A time-invariant model repeats one matrix.
+    """
+
+    A: np.ndarray
+    G: np.ndarray
+    Q: np.ndarray
+    x0: np.ndarray
+    P0: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.G.shape[0]
+
+    @property
+    def m(self) -> int:
+        return self.G.shape[1]
+
+    @property
+    def steps(self) -> int:
+        return self.A.shape[0]
+
+    def A_at(self, k: int) -> np.ndarray:
+        """A_{k-1}: the transition into tick k (k >= 1)."""
+        return self.A[k - 1]
+
+
+@dataclass(frozen=True)
+class Sensors:
+    """Heterogeneous sensors y^i = H^i x + v^i, v^i ~ N(0, R^i)  (eq2).
+
+    Sensors of different p^i are padded to p_max rows: zero rows in H and an
+    identity block in R, which adds no information (see
+    ``equations.measurement_information``). ``p[i]`` is agent i's true p^i.
+    """
+
+    ids: tuple
+    H: np.ndarray  # (N, p_max, n)
+    R: np.ndarray  # (N, p_max, p_max)
+    p: np.ndarray  # (N,)
+
+    @classmethod
+    def from_list(cls, ids, Hs, Rs) -> "Sensors":
+        Hs = [np.atleast_2d(np.asarray(h, dtype=float)) for h in Hs]
+        Rs = [np.atleast_2d(np.asarray(r, dtype=float)) for r in Rs]
+        n = Hs[0].shape[1]
+        pmax = max(h.shape[0] for h in Hs)
+        N = len(Hs)
+        H = np.zeros((N, pmax, n))
+        R = np.broadcast_to(np.eye(pmax), (N, pmax, pmax)).copy()
+        for i, (h, r) in enumerate(zip(Hs, Rs)):
+            H[i, : h.shape[0]] = h
+            R[i, : h.shape[0], : h.shape[0]] = r
+        return cls(tuple(ids), H, R, np.array([h.shape[0] for h in Hs]))
+
+    @property
+    def N(self) -> int:
+        return self.H.shape[0]
+
+    def select(self, idx) -> "Sensors":
+        idx = np.atleast_1d(idx)
+        return Sensors(tuple(self.ids[i] for i in idx), self.H[idx], self.R[idx], self.p[idx])
+
+    def pad(self, y_i, i: int) -> np.ndarray:
+        """One agent's length-p^i measurement as a padded length-p_max vector."""
+        out = np.zeros(self.H.shape[1])
+        out[: self.p[i]] = y_i
+        return out
+
+
+COMPENSATION_FORMS = ("normalized", "paper", "none")
+
+
+@dataclass(frozen=True)
+class Params:
+    """Estimator hyper-parameters.
+
+    window:        observation time window in ticks (None: no window)
+    reset:         reset the window counter when input fusion had a valid input
+    eps:           state compensation step (the paper's epsilon = 0.05)
+    compensation:  gain form of eq. (compensation_state): normalized|paper|none
+    consensus_eps: KCF consensus step (Olfati-Saber's epsilon)
+    """
+
+    window: int | None = 5
+    reset: bool = True
+    eps: float = 0.05
+    compensation: str = "normalized"
+    consensus_eps: float = 0.1
+
+    def __post_init__(self):
+        if self.window is not None and (int(self.window) != self.window or self.window < 0):
+            raise ValueError(f"window: must be a non-negative integer or None, got {self.window!r}")
+        if not np.isfinite(self.eps) or self.eps < 0:
+            raise ValueError(f"eps: must be a finite non-negative number, got {self.eps!r}")
+        if self.compensation not in COMPENSATION_FORMS:
+            raise ValueError(f"compensation: must be one of {', '.join(COMPENSATION_FORMS)}, got {self.compensation!r}")

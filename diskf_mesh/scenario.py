@@ -1,0 +1,364 @@
+"""Scenarios: TOML files describing the world, and their simulation.
+
+A scenario is a TOML file (shipped ones live in ``diskf_mesh/scenarios``;
+users pass a path to their own). ``load_scenario`` parses and validates it
+into a ``Scenario``; ``simulate`` draws ground truth and measurements for a
+batch of seeds into a ``Trace`` (see ``diskf_mesh.trace``).
+
+Format (see ``scenarios/quadrants.toml`` for a commented example):
+
+    name, description, steps
+    [model]     dynamics = "rotation" (omega, rad/tick) | "matrix" (A)
+                G, Q, x0, P0, position_dims
+    [input]     kind = "step" (at, before, after) | "constant" (value)
+    [estimator] window, reset, eps, compensation, consensus_eps
+    [topology]  kind = "all" | "ring" | "none" | "range"; range
+    [[agents]]  id, H, R, sense = "quadrant" | "always" | "range" (sense_range)
+                position = [x, y]                     a static agent, or
+                path = [[x, y], ...], period = ticks  a closed piecewise-linear
+                                                      loop, start phase ``phase``
+    [generate]  kind = "random-geometric": agents are generated instead of
+                listed (agents, box, sense_range, layout_seed)
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field, replace
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .model import LinearModel, Params, Sensors
+from .trace import Trace
+from .validate import matrix, spd, vector
+
+TOPOLOGIES = ("all", "ring", "none", "range")
+SENSE_KINDS = ("quadrant", "always", "range")
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    id: int
+    H: np.ndarray
+    R: np.ndarray
+    sense: str = "quadrant"
+    sense_range: float = np.inf
+    position: np.ndarray | None = None      # static
+    path: np.ndarray | None = None          # (W, 2) closed loop
+    period: float = 1.0
+    phase: float = 0.0
+
+    @property
+    def mobile(self) -> bool:
+        return self.path is not None
+
+    def position_at(self, ticks: np.ndarray) -> np.ndarray:
+        """Position (len(ticks), 2) at the given ticks."""
+        ticks = np.asarray(ticks, dtype=float)
+        if self.path is None:
+            return np.broadcast_to(self.position, ticks.shape + (2,)).copy()
+        pts = np.vstack([self.path, self.path[:1]])
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        s = ((ticks / self.period + self.phase) % 1.0) * cum[-1]
+        return np.stack([np.interp(s, cum, pts[:, 0]), np.interp(s, cum, pts[:, 1])], axis=-1)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    steps: int
+    A: np.ndarray            # (n, n) constant, or (K, n, n)
+    G: np.ndarray
+    Q: np.ndarray
+    x0: np.ndarray
+    P0: np.ndarray
+    position_dims: tuple
+    input_kind: str
+    input_at: int
+    input_before: np.ndarray
+    input_after: np.ndarray
+    params: Params
+    topology: str
+    comm_range: float
+    agents: tuple
+    faults: dict = field(default_factory=dict)
+
+    @property
+    def N(self) -> int:
+        return len(self.agents)
+
+    def sensors(self) -> Sensors:
+        return Sensors.from_list([a.id for a in self.agents], [a.H for a in self.agents], [a.R for a in self.agents])
+
+    def model(self, steps: int | None = None) -> LinearModel:
+        K = steps or self.steps
+        A = self.A if self.A.ndim == 3 else np.broadcast_to(self.A, (K,) + self.A.shape)
+        if A.shape[0] < K:
+            raise InputError("steps", f"the scenario's A sequence has {A.shape[0]} entries, {K} requested")
+        return LinearModel(np.ascontiguousarray(A[:K]), self.G, self.Q, self.x0, self.P0)
+
+    def inputs(self, steps: int) -> np.ndarray:
+        """d_k for k = 0..steps-1 (d[k] acts between tick k and k+1)."""
+        k = np.arange(steps)[:, None]
+        if self.input_kind == "constant":
+            return np.broadcast_to(self.input_after, (steps, len(self.input_after))).copy()
+        return np.where(k >= self.input_at, self.input_after, self.input_before)
+
+    def positions(self, steps: int) -> np.ndarray:
+        """Agent positions (steps, N, 2) at ticks 1..steps."""
+        ticks = np.arange(1, steps + 1)
+        return np.stack([a.position_at(ticks) for a in self.agents], axis=1)
+
+    def with_overrides(self, topology=None, comm_range=None, steps=None, params=None) -> "Scenario":
+        out = self
+        if topology is not None:
+            if topology not in TOPOLOGIES:
+                raise InputError("topology", f"must be one of {', '.join(TOPOLOGIES)}, got {topology!r}")
+            out = replace(out, topology=topology)
+        if comm_range is not None:
+            if not np.isfinite(comm_range) and comm_range != np.inf or comm_range < 0:
+                raise InputError("range", f"must be a non-negative number, got {comm_range!r}")
+            out = replace(out, comm_range=float(comm_range), topology="range" if topology is None else out.topology)
+        if steps is not None:
+            if int(steps) < 1:
+                raise InputError("steps", f"must be a positive integer, got {steps!r}")
+            out = replace(out, steps=int(steps))
+        if params is not None:
+            out = replace(out, params=params)
+        return out
+
+
+# --------------------------------------------------------------------------
+# loading
+# --------------------------------------------------------------------------
+def shipped_scenarios() -> list[str]:
+    root = resources.files("diskf_mesh") / "scenarios"
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def scenario_path(name_or_path: str) -> Path:
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise InputError("scenario", f"no such file: {name_or_path}")
+        return p
+    root = resources.files("diskf_mesh") / "scenarios" / f"{name_or_path}.toml"
+    if not root.is_file():
+        raise InputError("scenario", f"unknown scenario {name_or_path!r}; shipped: {', '.join(shipped_scenarios())}, or give a .toml path")
+    return Path(str(root))
+
+
+def load_scenario(name_or_path: str, agents: int | None = None) -> Scenario:
+    """Load and validate a scenario by shipped name or path.
+
+    ``agents`` overrides the agent count of a generated scenario."""
+    path = scenario_path(name_or_path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError("scenario", f"cannot read {path}: {e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError("scenario", f"{path} is not valid TOML: {e}") from None
+    return parse_scenario(raw, agents=agents)
+
+
+def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
+    mdl = raw.get("model", {})
+    G = matrix(mdl.get("G"), "model.G")
+    n, m = G.shape
+    dyn = mdl.get("dynamics", "matrix")
+    if dyn == "rotation":
+        if n != 2:
+            raise InputError("model.dynamics", "rotation needs a 2-dimensional state")
+        w = float(mdl.get("omega", 0.0))
+        A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    elif dyn == "matrix":
+        A = matrix(mdl.get("A"), "model.A", (n, n))
+    else:
+        raise InputError("model.dynamics", f"must be 'rotation' or 'matrix', got {dyn!r}")
+    Q = spd(matrix(mdl.get("Q"), "model.Q", (n, n)), "model.Q")
+    P0 = spd(matrix(mdl.get("P0"), "model.P0", (n, n)), "model.P0")
+    x0 = vector(mdl.get("x0"), "model.x0", n)
+    pos_dims = tuple(int(i) for i in mdl.get("position_dims", range(min(n, 2))))
+
+    inp = raw.get("input", {})
+    kind = inp.get("kind", "step")
+    if kind not in ("step", "constant"):
+        raise InputError("input.kind", f"must be 'step' or 'constant', got {kind!r}")
+    before = vector(inp.get("before", [0.0] * m), "input.before", m)
+    after = vector(inp.get("after", inp.get("value", [0.0] * m)), "input.after", m)
+
+    est = raw.get("estimator", {})
+    try:
+        window = est.get("window", 5)
+        params = Params(
+            window=None if window in (None, "none", -1) else int(window),
+            reset=bool(est.get("reset", True)),
+            eps=float(est.get("eps", 0.05)),
+            compensation=str(est.get("compensation", "normalized")),
+            consensus_eps=float(est.get("consensus_eps", 0.1)),
+        )
+    except ValueError as e:
+        raise InputError("estimator", str(e)) from None
+
+    topo = raw.get("topology", {})
+    topology = topo.get("kind", "all")
+    if topology not in TOPOLOGIES:
+        raise InputError("topology.kind", f"must be one of {', '.join(TOPOLOGIES)}, got {topology!r}")
+
+    gen = raw.get("generate")
+    if gen is not None:
+        specs = _generate_agents(gen, n, agents)
+    else:
+        if agents is not None:
+            raise InputError("agents", "--agents applies only to generated scenarios (random-geometric)")
+        specs = tuple(_parse_agent(a, i, n) for i, a in enumerate(raw.get("agents", [])))
+    if not specs:
+        raise InputError("agents", "a scenario needs at least one agent")
+    ids = [a.id for a in specs]
+    if len(set(ids)) != len(ids):
+        raise InputError("agents.id", "agent ids must be unique")
+
+    steps = int(raw.get("steps", 200))
+    if steps < 1:
+        raise InputError("steps", "must be a positive integer")
+    return Scenario(
+        name=str(raw.get("name", "custom")),
+        description=str(raw.get("description", "")),
+        steps=steps, A=A, G=G, Q=Q, x0=x0, P0=P0, position_dims=pos_dims,
+        input_kind=kind, input_at=int(inp.get("at", 0)), input_before=before, input_after=after,
+        params=params, topology=topology, comm_range=float(topo.get("range", np.inf)),
+        agents=specs, faults=dict(raw.get("faults", {})),
+    )
+
+
+def _parse_agent(a: dict, i: int, n: int) -> AgentSpec:
+    where = f"agents[{i}]"
+    H = matrix(a.get("H"), f"{where}.H")
+    if H.shape[1] != n:
+        raise InputError(f"{where}.H", f"must have {n} columns (the state dimension), got {H.shape[1]}")
+    R = spd(matrix(a.get("R"), f"{where}.R", (H.shape[0], H.shape[0])), f"{where}.R")
+    sense = a.get("sense", "quadrant")
+    if sense not in SENSE_KINDS:
+        raise InputError(f"{where}.sense", f"must be one of {', '.join(SENSE_KINDS)}, got {sense!r}")
+    path = a.get("path")
+    position = a.get("position", [0.0, 0.0])
+    return AgentSpec(
+        id=int(a.get("id", i + 1)), H=H, R=R, sense=sense,
+        sense_range=float(a.get("sense_range", np.inf)),
+        position=None if path is not None else vector(position, f"{where}.position", 2),
+        path=None if path is None else matrix(path, f"{where}.path", (None, 2)),
+        period=float(a.get("period", 1.0)), phase=float(a.get("phase", 0.0)),
+    )
+
+
+def _generate_agents(gen: dict, n: int, agents: int | None) -> tuple:
+    kind = gen.get("kind")
+    if kind != "random-geometric":
+        raise InputError("generate.kind", f"only 'random-geometric' is known, got {kind!r}")
+    N = int(agents if agents is not None else gen.get("agents", 100))
+    if N < 1:
+        raise InputError("agents", f"must be a positive integer, got {N}")
+    box = float(gen.get("box", 300.0))
+    rng = np.random.default_rng(int(gen.get("layout_seed", 0)))
+    pos = rng.uniform(-box, box, size=(N, 2))
+    r = float(gen.get("R", 2.0))
+    kinds = [np.eye(n)[[0]], np.eye(n)[[1]], np.eye(n)[:2]]  # sees x, sees y, sees both
+    out = []
+    for i in range(N):
+        H = kinds[i % 3]
+        out.append(AgentSpec(id=i + 1, H=H, R=r * np.eye(H.shape[0]), sense="range",
+                             sense_range=float(gen.get("sense_range", 150.0)), position=pos[i]))
+    return tuple(out)
+
+
+# --------------------------------------------------------------------------
+# simulation
+# --------------------------------------------------------------------------
+def static_links(kind: str, N: int) -> np.ndarray:
+    """(N, N) bool adjacency of a fixed topology, diagonal True."""
+    eye = np.eye(N, dtype=bool)
+    if kind == "all":
+        return np.ones((N, N), dtype=bool)
+    if kind == "none":
+        return eye
+    if kind == "ring":
+        i = np.arange(N)
+        L = eye.copy()
+        L[i, (i + 1) % N] = True
+        L[i, (i - 1) % N] = True
+        return L
+    raise InputError("topology", f"no static adjacency for {kind!r}")
+
+
+def range_links(positions: np.ndarray, comm_range: float) -> np.ndarray:
+    """(..., N, N) bool: agents within ``comm_range`` of each other (inclusive),
+    diagonal True. Symmetric by construction."""
+    diff = positions[..., :, None, :] - positions[..., None, :, :]
+    return np.einsum("...k,...k->...", diff, diff) <= comm_range * comm_range
+
+
+def sensing(scn: Scenario, target: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(B, K, N) bool: which agent measures the target at which tick.
+
+    target: (B, K, 2) target position; positions: (K, N, 2)."""
+    t = target[:, :, None, :]
+    p = positions[None]
+    out = np.zeros(t.shape[:2] + (scn.N,), dtype=bool)
+    for i, a in enumerate(scn.agents):
+        if a.sense == "always":
+            out[:, :, i] = True
+        elif a.sense == "quadrant":
+            out[:, :, i] = np.all(np.sign(t[:, :, 0]) == np.sign(p[:, :, i]), axis=-1)
+        else:
+            out[:, :, i] = np.linalg.norm(t[:, :, 0] - p[:, :, i], axis=-1) <= a.sense_range
+    return out
+
+
+def links_for(scn: Scenario, positions: np.ndarray) -> np.ndarray:
+    """(K, N, N) bool links at every tick."""
+    K = positions.shape[0]
+    if scn.topology == "range":
+        return range_links(positions, scn.comm_range)
+    return np.broadcast_to(static_links(scn.topology, scn.N), (K, scn.N, scn.N))
+
+
+def simulate(scn: Scenario, seeds, steps: int | None = None) -> Trace:
+    """Ground truth, measurements and links for every seed: a ``Trace`` with
+    a leading seed axis. Seed s draws its process and measurement noise from
+    ``numpy.random.default_rng(s)``."""
+    seeds = tuple(int(s) for s in np.atleast_1d(seeds))
+    K = int(steps or scn.steps)
+    model = scn.model(K)
+    sensors = scn.sensors()
+    n, m, N, pmax = model.n, model.m, sensors.N, sensors.H.shape[1]
+    B = len(seeds)
+    Lq = np.linalg.cholesky(model.Q)
+    Lr = np.linalg.cholesky(sensors.R)  # (N, p, p)
+    W = np.empty((B, K, n))
+    V = np.empty((B, K, N, pmax))
+    for b, s in enumerate(seeds):
+        rng = np.random.default_rng(s)
+        W[b] = rng.standard_normal((K, n)) @ Lq.T
+        V[b] = np.einsum("iab,kib->kia", Lr, rng.standard_normal((K, N, pmax)))
+    d = scn.inputs(K)
+    x = np.empty((B, K, n))
+    prev = np.broadcast_to(model.x0, (B, n))
+    for k in range(1, K + 1):
+        prev = prev @ model.A_at(k).T + d[k - 1] @ model.G.T + W[:, k - 1]
+        x[:, k - 1] = prev
+    positions = scn.positions(K)
+    has = sensing(scn, x[..., list(scn.position_dims)], positions)
+    y = np.einsum("ipn,bkn->bkip", sensors.H, x) + V
+    valid_rows = np.arange(pmax)[None, :] < sensors.p[:, None]  # (N, p)
+    y = np.where(valid_rows & has[..., None], y, 0.0)
+    links = links_for(scn, positions)[None]
+    return Trace(
+        model=model, sensors=sensors, y=y, has=has, links=links,
+        truth_x=x, truth_d=np.broadcast_to(d, (B, K, m)).copy(),
+        positions=positions, seeds=seeds, position_dims=scn.position_dims,
+    )
