@@ -1,0 +1,55 @@
+"""The ``diskf-mesh`` command line.
+
+Each subcommand lives in its own module under ``diskf_mesh.commands`` (or
+``sim``/``agents``) exposing ``register(subparsers)``, which adds a parser and
+sets ``func``. User errors raise ``InputError`` and end as one line
+``error: <field>: <message>`` with exit status 2, never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from .errors import InputError
+
+COMMAND_MODULES = (
+    "diskf_mesh.commands.experiment",
+    "diskf_mesh.commands.replay",
+    "diskf_mesh.commands.simulate",
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse's own usage errors: one line, status 2
+        self.exit(2, f"error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="diskf-mesh", description="Decentralized input and state estimation (DISKF) on a Zenoh mesh")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    for mod in COMMAND_MODULES:
+        try:
+            m = importlib.import_module(mod)
+        except ModuleNotFoundError as e:
+            if e.name == mod:
+                continue  # subcommand not built yet
+            raise
+        m.register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
