@@ -175,22 +175,30 @@ def state_fusion(adj, x_star, P_pred, dy, dY):
     return x_bar, P_bar
 
 
-def compensation_gain(P_bar, form: str = "normalized"):
+def compensation_gain(P_bar, form: str = "bounded", eps: float = 0.05, n_neighbours=None):
     """The gain M_i of eq. (compensation_state).
 
     ``paper``:      M_i = P_bar, as printed. Not scale-free: after a long
-                    unobserved stretch P_bar grows without bound and
-                    eps * P_bar * sum_j(...) overshoots the neighbours'
+                    unobserved stretch P_bar grows without bound, the step
+                    eps * P_bar * sum_j (x^_j - x^_i) overshoots the neighbours'
                     predictions it is meant to pull towards, and can diverge.
-    ``normalized``: M_i = P_bar / (1 + ||P_bar||_F), the normalisation
-                    Olfati-Saber uses for the Kalman consensus filter for the
-                    same reason. Its norm stays below 1, so the step is at most
-                    eps * |N_i| times the disagreement: a contraction for
-                    eps * |N_i| < 1, while for small P_bar it equals the paper's.
+    ``bounded``:    M_i = P_bar (I + eps |N_i| P_bar)^-1  (our default), where
+                    |N_i| counts the neighbours other than i. For small P_bar it
+                    is the paper's gain; for any P_bar the step matrix
+                    eps |N_i| M_i has eigenvalues lambda/(1+lambda) < 1 (lambda
+                    those of eps |N_i| P_bar), so the correction moves x_bar at
+                    most to the neighbours' mean prediction and never past it.
+    ``normalized``: M_i = P_bar / (1 + ||P_bar||_F), the normalisation of
+                    Olfati-Saber's Kalman-consensus filter (used by our KCF).
+                    Stable, but it shrinks the gain even where P_bar is small.
     ``none``:       no compensation (ablation).
     """
     if form == "paper":
         return P_bar
+    if form == "bounded":
+        k = eps * np.asarray(n_neighbours, dtype=float)[..., None, None]
+        n = P_bar.shape[-1]
+        return sym(np.linalg.solve(np.eye(n) + k * P_bar, P_bar))
     if form == "normalized":
         nrm = np.linalg.norm(P_bar, axis=(-2, -1))
         return P_bar / (1.0 + nrm)[..., None, None]

@@ -81,7 +81,7 @@ class Sensors:
         return out
 
 
-COMPENSATION_FORMS = ("normalized", "paper", "none")
+COMPENSATION_FORMS = ("bounded", "paper", "normalized", "none")
 
 
 @dataclass(frozen=True)
@@ -91,14 +91,14 @@ class Params:
     window:        observation time window in ticks (None: no window)
     reset:         reset the window counter when input fusion had a valid input
     eps:           state compensation step (the paper's epsilon = 0.05)
-    compensation:  gain form of eq. (compensation_state): normalized|paper|none
+    compensation:  gain form of eq. (compensation_state): bounded|paper|normalized|none
     consensus_eps: KCF consensus step (Olfati-Saber's epsilon)
     """
 
     window: int | None = 5
     reset: bool = True
     eps: float = 0.05
-    compensation: str = "normalized"
+    compensation: str = "bounded"
     consensus_eps: float = 0.1
 
     def __post_init__(self):

@@ -199,7 +199,7 @@ def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
             window=None if window in (None, "none", -1) else int(window),
             reset=bool(est.get("reset", True)),
             eps=float(est.get("eps", 0.05)),
-            compensation=str(est.get("compensation", "normalized")),
+            compensation=str(est.get("compensation", "bounded")),
             consensus_eps=float(est.get("consensus_eps", 0.1)),
         )
     except ValueError as e:

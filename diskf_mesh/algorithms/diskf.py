@@ -29,7 +29,8 @@ class DISKF(Algorithm):
         dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd)
         x_bar, P_bar = eq.state_fusion(nb.adj, x_star, own.P_pred, dy, dY)
         if p.compensation != "none" and p.eps != 0.0:
-            gain = eq.compensation_gain(P_bar, p.compensation)
+            n_nbrs = nb.adj.sum(axis=-1) - (nb.adj * nb.self_mask).sum(axis=-1)
+            gain = eq.compensation_gain(P_bar, p.compensation, p.eps, n_nbrs)
             x_bar = eq.compensation_state(nb.adj, x_bar, gain, own.x_pred, senders.x_pred, p.eps)
         since = np.where(has, 0, state.since) if p.reset else state.since
         return State(x_bar, P_bar, since), Output(x_bar, P_bar, d_bar, has)
