@@ -5,11 +5,14 @@
     {"format": "diskf-trace/1",
      "A": n x n  |  "A_seq": K x n x n,   "G": n x m,  "Q": n x n,
      "x0": n,  "P0": n x n,
-     "agents": [{"id": 1, "H": p_i x n, "R": p_i x p_i}, ...],
+     "agents": [{"id": 1, "H": p_i x n, "R": p_i x p_i}, ...],   (ids: distinct
+                                                  non-negative integers)
      "y": K entries, each a list with one item per agent: p_i floats or null,
      "links": N x N (static) | K x N x N (dynamic), 0/1, diagonal 1,
      "truth": {"x": K x n, "d": K x m}          (optional; d[k-1] acts
-                                                  between tick k-1 and k)}
+                                                  between tick k-1 and k),
+     "seed": S              (optional, >= 0; seeds GDKF's gossip draws),
+     "position_dims": [0, 1] (optional; state components of the position)}
 
 ``diskf-estimates/1`` (output of ``replay``)::
 
@@ -89,6 +92,8 @@ def trace_from_json(doc: dict) -> Trace:
         raise InputError("format", f"expected {TRACE_FORMAT!r}, got {fmt!r}")
     G = matrix(doc.get("G"), "G")
     n, m = G.shape
+    if n == 0 or m == 0:
+        raise InputError("G", f"must be n x m with n, m >= 1, got {n}x{m}")
     Q = spd(matrix(doc.get("Q"), "Q", (n, n)), "Q")
     P0 = spd(matrix(doc.get("P0"), "P0", (n, n)), "P0")
     x0 = vector(doc.get("x0"), "x0", n)
@@ -118,7 +123,7 @@ def trace_from_json(doc: dict) -> Trace:
             raise InputError(f"agents[{i}]", "must be an object {id, H, R}")
         H = matrix(a.get("H"), f"agents[{i}].H", (None, n))
         R = spd(matrix(a.get("R"), f"agents[{i}].R", (H.shape[0], H.shape[0])), f"agents[{i}].R")
-        ids.append(a.get("id", i + 1))
+        ids.append(_agent_id(a.get("id", i + 1), f"agents[{i}].id"))
         Hs.append(H)
         Rs.append(R)
     if len(set(map(str, ids))) != len(ids):
@@ -138,6 +143,8 @@ def trace_from_json(doc: dict) -> Trace:
             y[0, k, i, : sensors.p[i]] = vv
             has[0, k, i] = True
 
+    if doc.get("links") is None:
+        raise InputError("links", "is missing (an N x N 0/1 matrix, or K of them)")
     try:
         L = np.asarray(doc.get("links"), dtype=float)
     except (TypeError, ValueError):
@@ -160,8 +167,31 @@ def trace_from_json(doc: dict) -> Trace:
         truth_x = matrix(truth.get("x"), "truth.x", (K, n))[None]
         truth_d = matrix(truth.get("d"), "truth.d", (K, m))[None]
     model = LinearModel(np.ascontiguousarray(A), G, Q, x0, P0)
-    return Trace(model, sensors, y, has, links, truth_x, truth_d, None, (int(doc.get("seed", 0)),),
-                 tuple(doc.get("position_dims", range(min(n, 2)))))
+    seed = doc.get("seed", 0)
+    if not _is_int(seed) or seed < 0:
+        raise InputError("seed", f"must be a non-negative integer, got {seed!r}")
+    return Trace(model, sensors, y, has, links, truth_x, truth_d, None, (int(seed),),
+                 _position_dims(doc.get("position_dims", list(range(min(n, 2)))), n))
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _agent_id(v, field: str) -> int:
+    """Agent ids seed the per-agent gossip streams (``gossip_draws``), so
+    they must be non-negative integers."""
+    if not _is_int(v) or v < 0:
+        raise InputError(field, f"must be a non-negative integer, got {v!r}")
+    return v
+
+
+def _position_dims(v, n: int) -> tuple:
+    """State components that make the position (for the state metrics)."""
+    if (not isinstance(v, list) or not v or not all(_is_int(i) and 0 <= i < n for i in v)
+            or len(set(v)) != len(v)):
+        raise InputError("position_dims", f"must be a non-empty list of distinct indices in 0..{n - 1}, got {v!r}")
+    return tuple(v)
 
 
 def load_trace(path) -> Trace:
