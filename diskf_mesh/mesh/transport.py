@@ -1,0 +1,213 @@
+"""The transport: the only place a mesh process touches the network.
+
+A ``Transport`` publishes bytes on a key, delivers the samples of a key
+expression to a callback, declares liveliness tokens and reports tokens
+appearing and going. ``ZenohTransport`` is the real one; ``LocalBus`` hands
+samples between threads of one process (for tests of the protocol).
+
+Callbacks run on the transport's own threads: they must only hand the sample
+over, e.g. to an ``Inbox``, which the process's main loop reads with a
+timeout. This one narrow interface is where faults go in (issue 6): a
+wrapper ``Transport`` that takes the inner transport and, per incoming sample
+on an agent-message key, drops, delays (latency + jitter, by a timer thread),
+duplicates or reorders it before calling the real callback, with one seeded
+random stream per link (sender id from the key, receiver id known to the
+wrapper). Nothing above this layer changes.
+"""
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from typing import Callable
+
+OnSample = Callable[[str, bytes], None]
+OnToken = Callable[[str, bool], None]
+
+
+class MeshError(RuntimeError):
+    """The run cannot go on (a timeout, a peer gone, a mismatch); the command
+    prints ``error: <message>`` and exits with status 1."""
+
+
+class Transport:
+    """Interface; see the module docstring."""
+
+    def put(self, key: str, payload: bytes) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def subscribe(self, key_expr: str, on_sample: OnSample) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def declare_token(self, key: str) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def watch_tokens(self, key_expr: str, on_change: OnToken) -> None:  # pragma: no cover
+        """``on_change(key, alive)`` for tokens matching ``key_expr``, those
+        already declared included."""
+        raise NotImplementedError
+
+    def close(self) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class Inbox:
+    """Samples and token changes handed from transport threads to the main
+    loop, in arrival order. ``get`` waits at most ``timeout`` seconds."""
+
+    def __init__(self):
+        self._q = queue.SimpleQueue()
+
+    def push(self, key: str, payload) -> None:
+        self._q.put((key, payload, time.monotonic()))
+
+    def get(self, timeout: float):
+        """(key, payload, arrival time) or None after ``timeout``."""
+        try:
+            return self._q.get(timeout=max(float(timeout), 0.0))
+        except queue.Empty:
+            return None
+
+
+# --------------------------------------------------------------------------
+# zenoh
+# --------------------------------------------------------------------------
+class ZenohTransport(Transport):
+    """One zenoh session. Publishers are declared once per key, reliable,
+    blocking on congestion (a fault-free run loses nothing) and express (sent
+    at once, not batched: a tick is latency bound)."""
+
+    def __init__(self, options):
+        import zenoh
+
+        self._zenoh = zenoh
+        zenoh.init_log_from_env_or("error")
+        conf = options.to_config()
+        try:
+            self._session = zenoh.open(conf)
+        except zenoh.ZError as e:
+            raise MeshError(f"cannot open a zenoh session: {e}") from None
+        self._publishers = {}
+        self._entities = []
+
+    def put(self, key, payload):
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._session.declare_publisher(
+                key, congestion_control=self._zenoh.CongestionControl.BLOCK, express=True)
+            self._publishers[key] = pub
+        pub.put(payload)
+
+    def subscribe(self, key_expr, on_sample):
+        def cb(sample):
+            on_sample(str(sample.key_expr), sample.payload.to_bytes())
+
+        self._entities.append(self._session.declare_subscriber(key_expr, cb))
+
+    def declare_token(self, key):
+        self._entities.append(self._session.liveliness().declare_token(key))
+
+    def watch_tokens(self, key_expr, on_change):
+        put = self._zenoh.SampleKind.PUT
+
+        def cb(sample):
+            on_change(str(sample.key_expr), sample.kind == put)
+
+        self._entities.append(self._session.liveliness().declare_subscriber(key_expr, cb, history=True))
+
+    def close(self):
+        if self._session.is_closed():
+            return
+        for e in self._entities + list(self._publishers.values()):
+            try:
+                e.undeclare()
+            except Exception:  # already gone with the session: nothing to release
+                pass
+        self._session.close()
+
+
+# --------------------------------------------------------------------------
+# in-process
+# --------------------------------------------------------------------------
+def key_matches(expr: str, key: str) -> bool:
+    """Key expression matching for ``*`` (one chunk) and ``**`` (any chunks)."""
+    def match(e, k):
+        if not e:
+            return not k
+        if e[0] == "**":
+            return any(match(e[1:], k[i:]) for i in range(len(k) + 1))
+        return bool(k) and (e[0] == "*" or e[0] == k[0]) and match(e[1:], k[1:])
+
+    return match(expr.split("/"), key.split("/"))
+
+
+class LocalBus:
+    """A zenoh stand-in inside one process: ``bus.transport()`` per node.
+    Delivery is synchronous on the publisher's thread."""
+
+    def __init__(self):
+        self._lock = threading.RLock()
+        self._subs = []      # (owner, expr, callback)
+        self._watchers = []  # (owner, expr, callback)
+        self._tokens = {}    # key -> owner count
+
+    def transport(self) -> "LocalTransport":
+        return LocalTransport(self)
+
+
+class LocalTransport(Transport):
+    def __init__(self, bus: LocalBus):
+        self._bus = bus
+        self._tokens = []
+        self._closed = False
+
+    def put(self, key, payload):
+        with self._bus._lock:
+            targets = [cb for _, e, cb in self._bus._subs if key_matches(e, key)]
+        for cb in targets:
+            cb(key, bytes(payload))
+
+    def subscribe(self, key_expr, on_sample):
+        with self._bus._lock:
+            self._bus._subs.append((self, key_expr, on_sample))
+
+    def _token_event(self, key, alive):
+        with self._bus._lock:
+            targets = [cb for _, e, cb in self._bus._watchers if key_matches(e, key)]
+        for cb in targets:
+            cb(key, alive)
+
+    def declare_token(self, key):
+        with self._bus._lock:
+            self._bus._tokens[key] = self._bus._tokens.get(key, 0) + 1
+            self._tokens.append(key)
+        self._token_event(key, True)
+
+    def watch_tokens(self, key_expr, on_change):
+        with self._bus._lock:
+            self._bus._watchers.append((self, key_expr, on_change))
+            present = [k for k in self._bus._tokens if key_matches(key_expr, k)]
+        for k in present:
+            on_change(k, True)
+
+    def close(self):
+        if self._closed:
+            return
+        self._closed = True
+        with self._bus._lock:
+            self._bus._subs = [s for s in self._bus._subs if s[0] is not self]
+            self._bus._watchers = [w for w in self._bus._watchers if w[0] is not self]
+            gone = []
+            for k in self._tokens:
+                self._bus._tokens[k] -= 1
+                if not self._bus._tokens[k]:
+                    del self._bus._tokens[k]
+                    gone.append(k)
+        for k in gone:
+            self._token_event(k, False)

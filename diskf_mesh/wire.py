@@ -1,0 +1,344 @@
+"""The wire format: what travels between the processes of a mesh run, as msgpack.
+
+Every payload is one msgpack map with short keys. Common to all kinds:
+
+    "v"   schema version (``SCHEMA``)
+    "k"   kind: "msg" | "report" | "tick" | "meas" | "stop"
+    "run" run id (the key prefix diskf/<run-id>/ carries it too)
+    "t"   tick k >= 1 ("stop": the last tick)
+
+Float arrays travel as one msgpack ``bin`` of little-endian float64
+(``"dt": "<f8"``), concatenated in a fixed order and row-major; their shapes
+follow from the state and input dimensions ``"n"`` and ``"m"`` carried in the
+same map. Matrices are sent whole (not as triangles): a receiver then fuses
+bit for bit what the sender computed.
+
+kind "msg" (agent -> neighbours, one per agent and tick; ``Message``)::
+
+    "s" sender id, "n", "m", "dt", "dv" d_valid (bool),
+    "a" x_pred (n), P_pred (n x n), x_upd (n), P_upd (n x n), d (m), S (m x m)
+
+  It never carries a raw measurement, an H or an R. For n = 2, m = 1 it is
+  about 160 bytes.
+
+kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
+
+    "s", "n", "m", "dt", "dv", "a" x (n), P (n x n), d (m),
+    "c" the agent's counters so far {name: int} (see ``mesh.agent_loop``)
+
+kind "tick" (world -> everyone, opens tick k; ``Tick``)::
+
+    "K" ticks in the run, "seed", "alg", "topo", "range" (float, may be inf),
+    "pos" positions of every agent at tick k, (N x 2) float64 in scenario order,
+    "live" ids of the agents the world counts as alive
+
+kind "meas" (world -> one agent on its own key; ``Measurement``)::
+
+    "to" agent id, "has" bool, "y" p_i float64 (empty when has is false)
+
+kind "stop" (world -> everyone): "why" a short text.
+
+``decode_*`` either returns a dataclass or raises ``Rejected`` with one of
+``REASONS``, never anything else, whatever the bytes.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import msgpack
+import numpy as np
+
+from .messages import Message
+
+SCHEMA = 1
+DTYPE = "<f8"
+MAX_DIM = 64  # largest n, m (or p) a decoder accepts
+MAX_BYTES = 1 << 20  # largest payload a decoder looks at
+
+REASONS = (
+    "not-msgpack",  # not a msgpack document at all
+    "schema",       # wrong version, kind, or a missing or mistyped field
+    "run",          # belongs to another run
+    "sender",       # the key names another agent than the body, or an unknown one
+    "shape",        # dimensions or array lengths not the expected ones
+    "dtype",        # arrays not little-endian float64
+    "non-finite",   # NaN or infinity
+    "not-spd",      # a covariance that is not symmetric positive definite
+)
+
+
+class Rejected(ValueError):
+    """A payload the decoder refuses; ``reason`` is one of ``REASONS``."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        assert reason in REASONS, reason
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+        self.detail = detail
+
+
+@dataclass(frozen=True)
+class WireMessage:
+    """A decoded "msg": ``message`` holds unbatched arrays, x_pred (n,) ..."""
+
+    run_id: str
+    sender: int
+    tick: int
+    message: Message
+
+
+@dataclass(frozen=True)
+class Report:
+    run_id: str
+    sender: int
+    tick: int
+    x: np.ndarray        # (n,)
+    P: np.ndarray        # (n, n)
+    d: np.ndarray        # (m,)
+    d_valid: bool
+    counters: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Tick:
+    run_id: str
+    tick: int
+    ticks: int
+    seed: int
+    algorithm: str
+    topology: str
+    comm_range: float
+    positions: np.ndarray  # (N, 2)
+    live: tuple
+
+
+@dataclass(frozen=True)
+class Measurement:
+    run_id: str
+    tick: int
+    agent: int
+    has: bool
+    y: np.ndarray          # (p_i,), empty when not has
+
+
+@dataclass(frozen=True)
+class Stop:
+    run_id: str
+    tick: int
+    why: str
+
+
+# --------------------------------------------------------------------------
+# encoding
+# --------------------------------------------------------------------------
+def _f8(*arrays) -> bytes:
+    return b"".join(np.ascontiguousarray(a, dtype=DTYPE).tobytes() for a in arrays)
+
+
+def _pack(doc: dict) -> bytes:
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+def _dims(x: np.ndarray, d: np.ndarray) -> tuple:
+    return int(np.shape(x)[-1]), int(np.shape(d)[-1])
+
+
+def encode(run_id: str, sender: int, tick: int, msg: Message) -> bytes:
+    """One agent's message; ``msg`` arrays may keep leading batch axes of size 1."""
+    n, m = _dims(msg.x_pred, msg.d)
+    blob = _f8(msg.x_pred, msg.P_pred, msg.x_upd, msg.P_upd, msg.d, msg.S)
+    if len(blob) != 8 * (2 * n + 2 * n * n + m + m * m):
+        raise ValueError("encode: a message must hold one agent's arrays")
+    return _pack({"v": SCHEMA, "k": "msg", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
+                  "dt": DTYPE, "dv": bool(np.asarray(msg.d_valid).reshape(-1)[0]), "a": blob})
+
+
+def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None) -> bytes:
+    n, m = _dims(x, d)
+    blob = _f8(x, P, d)
+    if len(blob) != 8 * (n + n * n + m):
+        raise ValueError("encode_report: a report must hold one agent's arrays")
+    return _pack({"v": SCHEMA, "k": "report", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
+                  "dt": DTYPE, "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
+                  "c": {str(k): int(v) for k, v in (counters or {}).items()}})
+
+
+def encode_tick(t: Tick) -> bytes:
+    return _pack({"v": SCHEMA, "k": "tick", "run": t.run_id, "t": int(t.tick), "K": int(t.ticks),
+                  "seed": int(t.seed), "alg": t.algorithm, "topo": t.topology, "range": float(t.comm_range),
+                  "dt": DTYPE, "pos": _f8(t.positions), "live": [int(i) for i in t.live]})
+
+
+def encode_measurement(run_id: str, tick: int, agent: int, has: bool, y) -> bytes:
+    return _pack({"v": SCHEMA, "k": "meas", "run": run_id, "t": int(tick), "to": int(agent), "has": bool(has),
+                  "dt": DTYPE, "y": _f8(y) if has else b""})
+
+
+def encode_stop(run_id: str, tick: int, why: str) -> bytes:
+    return _pack({"v": SCHEMA, "k": "stop", "run": run_id, "t": int(tick), "why": str(why)})
+
+
+# --------------------------------------------------------------------------
+# decoding
+# --------------------------------------------------------------------------
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _field(doc: dict, key: str, kind):
+    v = doc.get(key)
+    ok = _is_int(v) if kind is int else isinstance(v, kind)
+    if not ok:
+        raise Rejected("schema", f"field {key!r} missing or not {getattr(kind, '__name__', kind)}")
+    return v
+
+
+def _open(data, kind: str, run_id: str | None) -> dict:
+    """Unpack, check version, kind, run and tick."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise Rejected("not-msgpack", "payload is not bytes")
+    if len(data) > MAX_BYTES:
+        raise Rejected("shape", f"payload of {len(data)} bytes, at most {MAX_BYTES}")
+    try:
+        doc = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
+    except Exception as e:  # msgpack raises several unrelated types on garbage
+        raise Rejected("not-msgpack", type(e).__name__) from None
+    if not isinstance(doc, dict):
+        raise Rejected("schema", "not a map")
+    if doc.get("v") != SCHEMA or isinstance(doc.get("v"), bool):
+        raise Rejected("schema", f"version {doc.get('v')!r}, expected {SCHEMA}")
+    if doc.get("k") != kind:
+        raise Rejected("schema", f"kind {doc.get('k')!r}, expected {kind!r}")
+    run = _field(doc, "run", str)
+    if run_id is not None and run != run_id:
+        raise Rejected("run", f"run {run!r}, expected {run_id!r}")
+    if _field(doc, "t", int) < 0:
+        raise Rejected("schema", "negative tick")
+    return doc
+
+
+def _floats(doc: dict, key: str, count: int) -> np.ndarray:
+    if doc.get("dt", DTYPE) != DTYPE:
+        raise Rejected("dtype", f"dtype {doc.get('dt')!r}, expected {DTYPE!r}")
+    blob = doc.get(key)
+    if not isinstance(blob, bytes):
+        raise Rejected("dtype", f"field {key!r} is not a float64 byte string")
+    if len(blob) != 8 * count:
+        raise Rejected("shape", f"field {key!r} holds {len(blob)} bytes, expected {8 * count}")
+    a = np.frombuffer(blob, dtype=DTYPE).astype(float)
+    if not np.isfinite(a).all():
+        raise Rejected("non-finite", f"field {key!r}")
+    return a
+
+
+def _dims_of(doc: dict, n: int | None, m: int | None) -> tuple:
+    dn, dm = _field(doc, "n", int), _field(doc, "m", int)
+    if not (1 <= dn <= MAX_DIM and 1 <= dm <= MAX_DIM):
+        raise Rejected("shape", f"n={dn}, m={dm} out of range")
+    if (n is not None and dn != n) or (m is not None and dm != m):
+        raise Rejected("shape", f"n={dn}, m={dm}, expected n={n}, m={m}")
+    return dn, dm
+
+
+def _check_sender(doc: dict, sender: int | None) -> int:
+    s = _field(doc, "s", int)
+    if sender is not None and s != sender:
+        raise Rejected("sender", f"body says sender {s}, key says {sender}")
+    return s
+
+
+def _spd(*mats, rtol: float = 1e-9) -> None:
+    """Symmetric to ``rtol`` of the largest entry, and a Cholesky factor exists
+    (cheaper than ``linalg.is_spd``'s eigenvalues, which matters per message)."""
+    for M in mats:
+        scale = np.abs(M).max()
+        if np.abs(M - np.swapaxes(M, -1, -2)).max() > rtol * scale:
+            raise Rejected("not-spd", "a covariance is not symmetric")
+        try:
+            np.linalg.cholesky(M)
+        except np.linalg.LinAlgError:
+            raise Rejected("not-spd", "a covariance is not positive definite") from None
+
+
+def _split(a: np.ndarray, shapes) -> list:
+    out, i = [], 0
+    for shp in shapes:
+        size = math.prod(shp)
+        out.append(a[i:i + size].reshape(shp))
+        i += size
+    return out
+
+
+def decode(data, *, run_id: str | None = None, sender: int | None = None,
+           n: int | None = None, m: int | None = None) -> WireMessage:
+    """A neighbour's "msg"; checks everything a receiver relies on.
+
+    ``sender`` is the id the key names, ``n``/``m`` the receiver's dimensions."""
+    doc = _open(data, "msg", run_id)
+    s = _check_sender(doc, sender)
+    n, m = _dims_of(doc, n, m)
+    dv = doc.get("dv")
+    if not isinstance(dv, bool):
+        raise Rejected("schema", "field 'dv' missing or not bool")
+    a = _floats(doc, "a", 2 * n + 2 * n * n + m + m * m)
+    x_pred, P_pred, x_upd, P_upd, d, S = _split(a, [(n,), (n, n), (n,), (n, n), (m,), (m, m)])
+    _spd(P_pred, P_upd, S)
+    return WireMessage(doc["run"], s, doc["t"], Message(x_pred, P_pred, x_upd, P_upd, d, S, np.array(dv)))
+
+
+def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
+                  n: int | None = None, m: int | None = None) -> Report:
+    doc = _open(data, "report", run_id)
+    s = _check_sender(doc, sender)
+    n, m = _dims_of(doc, n, m)
+    dv = doc.get("dv")
+    if not isinstance(dv, bool):
+        raise Rejected("schema", "field 'dv' missing or not bool")
+    x, P, d = _split(_floats(doc, "a", n + n * n + m), [(n,), (n, n), (m,)])
+    _spd(P)
+    c = doc.get("c", {})
+    if not isinstance(c, dict) or not all(isinstance(k, str) and _is_int(v) for k, v in c.items()):
+        raise Rejected("schema", "field 'c' is not a map of counters")
+    return Report(doc["run"], s, doc["t"], x, P, d, dv, c)
+
+
+def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -> Tick:
+    doc = _open(data, "tick", run_id)
+    K, seed = _field(doc, "K", int), _field(doc, "seed", int)
+    alg, topo = _field(doc, "alg", str), _field(doc, "topo", str)
+    rng = doc.get("range")
+    if not isinstance(rng, (float, int)) or isinstance(rng, bool) or math.isnan(rng):
+        raise Rejected("schema", "field 'range' missing or not a number")
+    live = _field(doc, "live", list)
+    if not all(_is_int(i) for i in live):
+        raise Rejected("schema", "field 'live' is not a list of ids")
+    blob = doc.get("pos")
+    if not isinstance(blob, bytes) or len(blob) % 16:
+        raise Rejected("shape", "field 'pos' is not N x 2 float64")
+    N = len(blob) // 16
+    if agents is not None and N != agents:
+        raise Rejected("shape", f"{N} positions, expected {agents}")
+    pos = _floats(doc, "pos", 2 * N).reshape(N, 2)
+    return Tick(doc["run"], doc["t"], K, seed, alg, topo, float(rng), pos, tuple(live))
+
+
+def decode_measurement(data, *, run_id: str | None = None, agent: int | None = None,
+                       p: int | None = None) -> Measurement:
+    doc = _open(data, "meas", run_id)
+    to = _field(doc, "to", int)
+    if agent is not None and to != agent:
+        raise Rejected("sender", f"measurement for agent {to}, this is agent {agent}")
+    has = doc.get("has")
+    if not isinstance(has, bool):
+        raise Rejected("schema", "field 'has' missing or not bool")
+    blob = doc.get("y")
+    size = (len(blob) // 8) if isinstance(blob, bytes) else 0
+    want = (p if p is not None else size) if has else 0
+    y = _floats(doc, "y", want)
+    return Measurement(doc["run"], doc["t"], to, has, y)
+
+
+def decode_stop(data, *, run_id: str | None = None) -> Stop:
+    doc = _open(data, "stop", run_id)
+    return Stop(doc["run"], doc["t"], str(doc.get("why", "")))
