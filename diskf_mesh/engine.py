@@ -4,17 +4,34 @@ Per tick it calls the algorithm's ``local`` on the whole (seeds x agents)
 batch, lets every agent "hear" the messages allowed by the links, and calls
 ``fuse``. There is no Python loop over agents or seeds; the agent process
 (``agents/``) calls the very same two functions on a batch of one.
+
+Two ways to hand the messages to ``fuse``, same numbers:
+
+dense    one (B, N, N) adjacency over all agents as senders. Best for small
+         or densely linked networks (the paper's four agents).
+gather   every receiver is a batch of one (as in an agent process) with its
+         own padded list of D senders, D the largest neighbourhood: the work
+         is O(N D) instead of O(N^2), for large sparse networks (a random
+         geometric graph of 1,000 agents). Senders are listed in id order, so
+         each receiver sums its neighbours in the same order as ``dense``;
+         padding slots carry weight 0.
+
+``run_many`` stacks several traces of one scenario (e.g. the three
+topologies of Table II) into one batch, so the per-tick Python overhead is
+paid once for all of them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 from . import algorithms
-from .messages import Neighbourhood
+from .messages import Message, Neighbourhood, Output
 from .model import Params
 from .trace import Trace
+
+NEIGHBOURS = ("auto", "dense", "gather")
 
 
 @dataclass(frozen=True)
@@ -27,6 +44,10 @@ class Estimates:
     d: np.ndarray
     d_valid: np.ndarray
 
+    def take(self, index) -> "Estimates":
+        """Select seeds (the leading axis)."""
+        return Estimates(self.x[index], self.P[index], self.d[index], self.d_valid[index])
+
 
 def gossip_stream(trace: Trace) -> np.ndarray:
     """(B, K, N) uniform draws, the per-agent streams of ``gossip_draws``."""
@@ -34,26 +55,132 @@ def gossip_stream(trace: Trace) -> np.ndarray:
     return np.stack([algorithms.gossip_draws(s, trace.sensors.ids, K).T for s in trace.seeds])
 
 
-def run(trace: Trace, algorithm: str, params: Params | None = None, progress=None) -> Estimates:
+# --------------------------------------------------------------------------
+# who hears whom at one tick
+# --------------------------------------------------------------------------
+class DenseLinks:
+    """All N agents as senders of every receiver, weighted by the links."""
+
+    def __init__(self, links: np.ndarray, B: int):
+        N = links.shape[-1]
+        self.adj = np.broadcast_to(links, (B, N, N)).astype(float)
+        self.self_mask = np.broadcast_to(np.eye(N, dtype=bool), (B, N, N))
+
+    def fuse(self, alg, state, msg: Message, gossip_u):
+        return alg.fuse(state, msg, msg, Neighbourhood(self.adj, self.self_mask, gossip_u))
+
+
+class GatheredLinks:
+    """Each receiver a batch of one with its D senders gathered in id order."""
+
+    def __init__(self, links: np.ndarray, B: int):
+        N = links.shape[-1]
+        D = int(links.sum(axis=-1).max())
+        idx = np.argsort(~links, axis=-1, kind="stable")[..., :D]      # (b, N, D), neighbours first, in id order
+        linked = np.take_along_axis(links, idx, axis=-1)
+        self.flat = (np.arange(B)[:, None, None] * N + idx).reshape(-1)  # into (B*N) rows
+        self.shape = (B, N, D)
+        self.adj = np.broadcast_to(linked[..., None, :].astype(float), (B, N, 1, D))
+        is_self = linked & (idx == np.arange(N)[:, None])
+        self.self_mask = np.broadcast_to(is_self[..., None, :], (B, N, 1, D))
+
+    def gather(self, a: np.ndarray) -> np.ndarray:
+        """(B, N, ...) per sender -> (B, N, D, ...) per receiver and slot."""
+        rows = a.reshape((-1,) + a.shape[2:])
+        return np.take(rows, self.flat, axis=0).reshape(self.shape + a.shape[2:])
+
+    def fuse(self, alg, state, msg: Message, gossip_u):
+        own = Message(**{f.name: getattr(msg, f.name)[:, :, None] for f in fields(Message)})
+        senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
+        u = None if gossip_u is None else gossip_u[:, :, None]
+        st = replace(state, x=state.x[:, :, None], P=state.P[:, :, None], since=state.since[:, :, None])
+        st, out = alg.fuse(st, own, senders, Neighbourhood(self.adj, self.self_mask, u))
+        squeeze = lambda a: a[:, :, 0]  # noqa: E731
+        st = replace(st, x=squeeze(st.x), P=squeeze(st.P), since=squeeze(st.since))
+        return st, Output(squeeze(out.x), squeeze(out.P), squeeze(out.d), squeeze(out.d_valid))
+
+
+def choose_links(links: np.ndarray, B: int, mode: str = "auto"):
+    """The neighbour representation for one tick's links ``(1 or B, N, N)``.
+
+    ``auto`` gathers when the network is large and sparse (N >= 32 and no
+    neighbourhood holds more than half of the agents)."""
+    if mode not in NEIGHBOURS:
+        raise ValueError(f"neighbours: must be one of {', '.join(NEIGHBOURS)}, got {mode!r}")
+    N = links.shape[-1]
+    if mode == "auto":
+        mode = "gather" if N >= 32 and 2 * int(links.sum(axis=-1).max()) <= N else "dense"
+    return GatheredLinks(links, B) if mode == "gather" else DenseLinks(links, B)
+
+
+# --------------------------------------------------------------------------
+# running
+# --------------------------------------------------------------------------
+def run(trace: Trace, algorithm: str, params: Params | None = None, progress=None,
+        neighbours: str = "auto") -> Estimates:
     """Run one algorithm on every seed of ``trace``.
 
-    ``progress``, if given, is called with the number of ticks done."""
+    ``progress``, if given, is called with the number of ticks done.
+    ``neighbours`` picks the message layout (see the module docstring);
+    all give the same estimates."""
     alg = algorithms.get(algorithm)(trace.model, trace.sensors, params)
     B, K, N = trace.has.shape
     n, m = trace.model.n, trace.model.m
     state = alg.init((B, N))
-    self_mask = np.broadcast_to(np.eye(N, dtype=bool), (B, N, N))
     gossip = gossip_stream(trace) if algorithm == "gdkf" else None
     xs = np.empty((B, K, N, n))
     Ps = np.empty((B, K, N, n, n))
     ds = np.empty((B, K, N, m))
     dv = np.empty((B, K, N), dtype=bool)
+    prev, view = None, None
     for k in range(1, K + 1):
         state, msg = alg.local(state, k, trace.y[:, k - 1], trace.has[:, k - 1])
-        adj = np.broadcast_to(trace.links[:, k - 1], (B, N, N)).astype(float)
-        nb = Neighbourhood(adj, self_mask, None if gossip is None else gossip[:, k - 1])
-        state, out = alg.fuse(state, msg, msg, nb)
+        links = trace.links[:, k - 1]
+        if prev is None or not (links is prev or np.array_equal(links, prev)):
+            prev, view = links, choose_links(links, B, neighbours)
+        state, out = view.fuse(alg, state, msg, None if gossip is None else gossip[:, k - 1])
         xs[:, k - 1], Ps[:, k - 1], ds[:, k - 1], dv[:, k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)
     return Estimates(xs, Ps, ds, dv)
+
+
+def stackable(traces) -> bool:
+    """Whether traces share model, sensors and horizon (only seeds, noise and
+    links differ), so that ``run_many`` can batch them."""
+    first = traces[0]
+    for t in traces[1:]:
+        if t.has.shape[1:] != first.has.shape[1:] or t.sensors.ids != first.sensors.ids:
+            return False
+        pairs = [(getattr(t.model, f), getattr(first.model, f)) for f in ("A", "G", "Q", "x0", "P0")]
+        pairs += [(t.sensors.H, first.sensors.H), (t.sensors.R, first.sensors.R)]
+        if not all(a.shape == b.shape and np.array_equal(a, b) for a, b in pairs):
+            return False
+    return True
+
+
+def stack(traces) -> Trace:
+    """One trace whose seed axis is the concatenation of the traces' seeds."""
+    first = traces[0]
+    K, N = first.has.shape[1:]
+    cat = lambda f: np.concatenate([getattr(t, f) for t in traces])  # noqa: E731
+    links = np.concatenate([np.broadcast_to(t.links, (t.has.shape[0], K, N, N)) for t in traces])
+    has_truth = all(t.truth_x is not None for t in traces)
+    return replace(
+        first, y=cat("y"), has=cat("has"), links=links,
+        truth_x=cat("truth_x") if has_truth else None,
+        truth_d=cat("truth_d") if has_truth else None,
+        seeds=tuple(s for t in traces for s in t.seeds),
+    )
+
+
+def run_many(traces, algorithm: str, params: Params | None = None, progress=None) -> list[Estimates]:
+    """``run`` on each trace, batched into one run when they are ``stackable``.
+
+    Returns one ``Estimates`` per trace, equal to running each alone."""
+    traces = list(traces)
+    if len(traces) == 1 or not stackable(traces):
+        return [run(t, algorithm, params, progress) for t in traces]
+    est = run(stack(traces), algorithm, params, progress)
+    bounds = np.cumsum([0] + [t.has.shape[0] for t in traces])
+    return [est.take(slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]

@@ -320,10 +320,16 @@ def sensing(scn: Scenario, target: np.ndarray, positions: np.ndarray) -> np.ndar
 
 
 def links_for(scn: Scenario, positions: np.ndarray) -> np.ndarray:
-    """(K, N, N) bool links at every tick."""
+    """(K, N, N) bool links at every tick.
+
+    Range links are formed one tick at a time (never a (K, N, N, 2) array of
+    differences), and once only when no agent moves: a read-only broadcast
+    then stands for all K ticks, so 1,000 static agents cost one N x N."""
     K = positions.shape[0]
     if scn.topology == "range":
-        return range_links(positions, scn.comm_range)
+        if not any(a.mobile for a in scn.agents):
+            return np.broadcast_to(range_links(positions[0], scn.comm_range), (K, scn.N, scn.N))
+        return np.stack([range_links(p, scn.comm_range) for p in positions])
     return np.broadcast_to(static_links(scn.topology, scn.N), (K, scn.N, scn.N))
 
 

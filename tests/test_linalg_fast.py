@@ -1,0 +1,81 @@
+"""Fast paths of ``linalg`` and ``engine`` against their general forms."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diskf_mesh import algorithms, engine
+from diskf_mesh.linalg import inv_spd, inv_spd_cholesky, mv, nbr_sum
+from diskf_mesh.scenario import load_scenario, simulate
+
+
+def random_spd(rng, shape, n, cond=1e3):
+    Qm, _ = np.linalg.qr(rng.standard_normal(shape + (n, n)))
+    scale = 10.0 ** rng.uniform(-3, 3, shape)[..., None]
+    eig = scale * np.exp(rng.uniform(0, np.log(cond), shape + (n,)))
+    return (Qm * eig[..., None, :]) @ np.swapaxes(Qm, -1, -2)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_inv_spd_closed_form_matches_cholesky(n):
+    a = random_spd(np.random.default_rng(n), (50, 7), n)
+    fast, ref = inv_spd(a), inv_spd_cholesky(a)
+    scale = np.abs(ref).max(axis=(-2, -1), keepdims=True)
+    assert np.max(np.abs(fast - ref) / scale) < 1e-12
+    assert (fast == np.swapaxes(fast, -1, -2)).all()
+
+
+@pytest.mark.parametrize("bad", [[[1.0, 2.0], [2.0, 1.0]], [[-1.0, 0.0], [0.0, 1.0]], [[0.0]], [[-2.0]]])
+def test_inv_spd_rejects_non_positive_definite(bad):
+    a = np.asarray(bad)
+    with pytest.raises(np.linalg.LinAlgError):
+        inv_spd_cholesky(a)
+    with pytest.raises(np.linalg.LinAlgError):
+        inv_spd(np.stack([np.eye(len(a)), a]))
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_inv_spd_propagates_nan_like_cholesky(n):
+    a = np.eye(n)
+    a[0, 0] = np.nan
+    assert np.isnan(inv_spd_cholesky(a)).any() and np.isnan(inv_spd(a)).any()
+
+
+@pytest.mark.parametrize("cols", [1, 2, 3])
+def test_mv_matches_matmul(cols):
+    rng = np.random.default_rng(cols)
+    a, v = rng.standard_normal((6, 5, 2, cols)), rng.standard_normal((6, 5, cols))
+    np.testing.assert_allclose(mv(a, v), (a @ v[..., None])[..., 0], rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("core", [1, 2])
+def test_nbr_sum_is_broadcast_sum_and_row_deterministic(core):
+    rng = np.random.default_rng(core)
+    adj = (rng.random((3, 40, 40)) < 0.3).astype(float) * rng.random((3, 40, 40))
+    adj[:, 5] = adj[:, 9]  # receivers 5 and 9 hear the same senders
+    x = rng.standard_normal((3, 40) + (2,) * core) * 10.0 ** rng.uniform(-8, 8, (3, 40) + (2,) * core)
+    want = (adj.reshape(adj.shape + (1,) * core) * np.expand_dims(x, -core - 2)).sum(axis=-core - 1)
+    got = nbr_sum(adj, x, core)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got[:, 5], got[:, 9])
+
+
+@pytest.mark.parametrize("name", algorithms.NAMES)
+def test_gathered_neighbours_match_dense(name):
+    scn = load_scenario("random-geometric", agents=40).with_overrides(steps=40)
+    trace = simulate(scn, [0, 1])
+    dense = engine.run(trace, name, neighbours="dense")
+    gathered = engine.run(trace, name, neighbours="gather")
+    np.testing.assert_array_equal(dense.d_valid, gathered.d_valid)
+    for f in ("x", "P", "d"):
+        np.testing.assert_allclose(getattr(gathered, f), getattr(dense, f), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["diskf", "gdkf"])
+def test_run_many_equals_separate_runs(name):
+    scn = load_scenario("quadrants").with_overrides(steps=50)
+    traces = [simulate(scn.with_overrides(topology=t), [0, 1]) for t in ("all", "ring", "none")]
+    for est, tr in zip(engine.run_many(traces, name), traces):
+        alone = engine.run(tr, name)
+        for f in ("x", "P", "d", "d_valid"):
+            np.testing.assert_array_equal(getattr(est, f), getattr(alone, f))
