@@ -6,7 +6,7 @@ appearing and going. ``ZenohTransport`` is the real one; ``LocalBus`` hands
 samples between threads of one process (for tests of the protocol).
 
 Callbacks run on the transport's own threads: they must only hand the sample
-over, e.g. to an ``Inbox``, which the process's main loop reads with a
+over, e.g. to a ``Mailbox``, which the process's main loop reads with a
 timeout. This one narrow interface is where faults go in (issue 6): a
 wrapper ``Transport`` that takes the inner transport and, per incoming sample
 on an agent-message key, drops, delays (latency + jitter, by a timer thread),
@@ -57,7 +57,7 @@ class Transport:
         self.close()
 
 
-class Inbox:
+class Mailbox:
     """Samples and token changes handed from transport threads to the main
     loop, in arrival order. ``get`` waits at most ``timeout`` seconds."""
 
