@@ -145,10 +145,18 @@ def run(trace: Trace, algorithm: str, params: Params | None = None, progress=Non
     return Estimates(xs, Ps, ds, dv)
 
 
+STACK_LINKS_MAX = 1 << 26  # bytes of per-seed links a stacked batch may hold
+
+
 def stackable(traces) -> bool:
     """Whether traces share model, sensors and horizon (only seeds, noise and
-    links differ), so that ``run_many`` can batch them."""
+    links differ), so that ``run_many`` can batch them, and are small enough
+    that the stacked per-seed links stay under ``STACK_LINKS_MAX`` (large
+    networks gain nothing from stacking: their ticks are not overhead-bound)."""
     first = traces[0]
+    B, (K, N) = sum(t.has.shape[0] for t in traces), first.has.shape[1:]
+    if B * K * N * N > STACK_LINKS_MAX:
+        return False
     for t in traces[1:]:
         if t.has.shape[1:] != first.has.shape[1:] or t.sensors.ids != first.sensors.ids:
             return False

@@ -60,35 +60,56 @@ def settings_for(topologies, comm_range: float | None = None) -> list[Setting]:
     return out
 
 
+def summarize(trace, est) -> dict:
+    """{metric: pooled value, metric_std: spread over seeds} of one run."""
+    row = metrics.compute(trace, est)
+    spread = metrics.per_seed(trace, est)
+    row.update({f"{k}_std": float(np.nanstd(v)) if np.isfinite(v).any() else float("nan")
+                for k, v in spread.items()})
+    return row
+
+
 def run_setting(scn: Scenario, setting: Setting, algorithms, seeds, steps=None, params: Params | None = None,
                 progress=None):
     """{algorithm: {metric: pooled value, metric_std: spread over seeds}}"""
-    s = setting.apply(scn, steps)
-    trace = simulate(s, seeds)
-    out = {}
-    for name in algorithms:
-        est = engine.run(trace, name, params or s.params)
-        row = metrics.compute(trace, est)
-        spread = metrics.per_seed(trace, est)
-        row.update({f"{k}_std": float(np.nanstd(v)) if np.isfinite(v).any() else float("nan")
-                    for k, v in spread.items()})
-        out[name] = row
-        if progress is not None:
-            progress(1)
-    return out
+    return {a: rows[setting.label] for a, rows in
+            run_experiment(scn, [setting], algorithms, seeds, steps, params, progress).items()}
+
+
+def batches(scns, seeds, params: Params | None = None):
+    """[(params, setting indices)] that run as one batch: settings sharing
+    estimator parameters, all together when their stacked links stay small
+    (``engine.STACK_LINKS_MAX``), one at a time otherwise (large networks,
+    whose ticks are not overhead-bound and whose traces are big)."""
+    K, N = scns[0].steps, scns[0].N
+    small = len(seeds) * len(scns) * K * N * N <= engine.STACK_LINKS_MAX
+    groups = {}
+    for i, s in enumerate(scns):
+        p = params or s.params
+        groups.setdefault((p, None if small else i), []).append(i)
+    return [(p, idx) for (p, _), idx in groups.items()]
 
 
 def run_experiment(scn: Scenario, settings, algorithms, seeds, steps=None, params: Params | None = None,
                    progress=None) -> dict:
     """{algorithm: {setting label: {metric: value}}} over all settings.
 
-    ``progress``, if given, is called with 1 after every (setting, algorithm)."""
-    results = {a: {} for a in algorithms}
-    for st in settings:
-        rows = run_setting(scn, st, algorithms, seeds, steps, params, progress)
-        for a, row in rows.items():
-            results[a][st.label] = row
-    return results
+    Settings of one algorithm run as one batch where they can (``batches``,
+    ``engine.run_many``), so the per-tick overhead is paid once; the numbers
+    are those of separate runs. ``progress``, if given, is called with 1
+    after every (setting, algorithm)."""
+    settings = list(settings)
+    seeds = list(seeds)
+    scns = [st.apply(scn, steps) for st in settings]
+    rows = {}
+    for p, idx in batches(scns, seeds, params):
+        traces = [simulate(scns[i], seeds) for i in idx]
+        for name in algorithms:
+            for i, trace, est in zip(idx, traces, engine.run_many(traces, name, p)):
+                rows[name, i] = summarize(trace, est)
+                if progress is not None:
+                    progress(1)
+    return {a: {st.label: rows[a, i] for i, st in enumerate(settings)} for a in algorithms}
 
 
 def _cell(v: float, best: bool) -> str:
