@@ -17,6 +17,8 @@ COMMAND_MODULES = (
     "diskf_mesh.commands.experiment",
     "diskf_mesh.commands.replay",
     "diskf_mesh.commands.simulate",
+    "diskf_mesh.commands.figures",
+    "diskf_mesh.commands.report",
 )
 
 

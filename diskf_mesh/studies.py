@@ -82,9 +82,10 @@ def metric_row(trace, est) -> dict:
     return row
 
 
-def run_variants(scn: Scenario, variants, cfg: StudyConfig, bar=None):
-    """Every variant on one simulated trace: ({label: row}, {label: Estimates})."""
-    trace = simulate(scn, cfg.seed_range)
+def run_variants(scn: Scenario, variants, cfg: StudyConfig, bar=None, trace=None):
+    """Every variant on one trace (simulated unless given):
+    ({label: row}, {label: Estimates})."""
+    trace = simulate(scn, cfg.seed_range) if trace is None else trace
     rows, ests = {}, {}
     for v in variants:
         ests[v.label] = est = engine.run(trace, v.algorithm, v.params)
@@ -211,7 +212,7 @@ def input_zero(A: np.ndarray, G: np.ndarray, H: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(Z))))
 
 
-def _sensor_groups(scn: Scenario) -> dict:
+def sensor_groups(scn: Scenario) -> dict:
     """{label: agent mask} by measured state component, e.g. "x", "y"."""
     names = ("x", "y", "z")
     groups: dict = {}
@@ -222,17 +223,20 @@ def _sensor_groups(scn: Scenario) -> dict:
     return groups
 
 
+def sensor_zeros(scn: Scenario) -> dict:
+    """{sensor type: ``input_zero``} with the scenario's first A."""
+    A0 = scn.model(1).A[0]
+    return {g: input_zero(A0, scn.G, scn.agents[int(np.flatnonzero(mask)[0])].H)
+            for g, mask in sensor_groups(scn).items()}
+
+
 def sensor_split(cfg: StudyConfig, name: str, setting: Setting, algs=("diskf", "cdrkf", "kcf")) -> dict:
-    """{alg: {sensor type: {mae_state, mae_input}}}: errors of the agents
-    of each sensor type, and the invariant zero of that type."""
+    """{"zero": {type: zero}, alg: {sensor type: metrics}}: errors of the
+    agents of each sensor type, and the invariant zero of that type."""
     scn = cfg.scenario(name, setting)
     tr = simulate(scn, cfg.seed_range)
-    groups = _sensor_groups(scn)
-    out: dict = {"zero": {}}
-    A0 = scn.model(scn.steps).A[0]
-    for g, mask in groups.items():
-        H = scn.agents[int(np.flatnonzero(mask)[0])].H
-        out["zero"][g] = input_zero(A0, scn.G, H)
+    groups = sensor_groups(scn)
+    out: dict = {"zero": sensor_zeros(scn)}
     for alg in algs:
         e_state, e_in, nees = metrics.errors(tr, engine.run(tr, alg, scn.params))
         out[alg] = {g: metrics.summarize(e_state, e_in, nees, np.broadcast_to(mask, e_state.shape))
@@ -257,7 +261,7 @@ def dynamic_variants(cfg: StudyConfig, comm_range: float = PAPER_RANGE) -> dict:
                 Variant("DiffKF", "diffkf", p)]
     last = scn.agents[-1]
     flipped = swap_sensor(scn, last.id, last.H[:, ::-1])
-    other = next(g for g in _sensor_groups(flipped) if _sensor_groups(flipped)[g][-1])
+    other = next(g for g in sensor_groups(flipped) if sensor_groups(flipped)[g][-1])
     with cfg.bar(len(variants) + 2, "diagnostics") as bar:
         rows, _ = run_variants(scn, variants, cfg, bar)
         swapped, _ = run_variants(flipped, [Variant(f"{lab}, agent {last.id} measures {other}", alg, p)

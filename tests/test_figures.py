@@ -1,0 +1,52 @@
+"""The figure and report commands write their files on a short run."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+from cli_helpers import run_cli
+
+SHORT = ["--seeds", "2", "--steps", "30", "--quiet"]
+FIGURES = {
+    "scenario_dynamic.png", "scenario_stationary.png", "trajectories_stationary_ring.png",
+    "trajectories_dynamic_120.png", "inputs_stationary_ring.png", "inputs_dynamic_120.png",
+    "states_stationary_ring.png", "states_dynamic_120.png", "error_vs_range.png", "dynamic_bars.png",
+    "isolated_by_sensor.png", "window_stationary_ring.png", "window_dynamic_120.png",
+}
+
+
+def is_png(path: Path) -> bool:
+    return path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_figures_command_writes_every_png(tmp_path, capsys):
+    out = tmp_path / "figs"
+    code, stdout, err = run_cli(["figures", "--out", out, *SHORT], capsys)
+    assert code == 0, err
+    assert {p.name for p in out.iterdir()} == FIGURES
+    assert all(is_png(p) and p.stat().st_size > 5000 for p in out.iterdir())
+    assert "13 figures" in stdout
+
+
+def test_report_command_writes_markdown_figures_and_json(tmp_path, capsys):
+    code, stdout, err = run_cli(["report", "--out", tmp_path, *SHORT], capsys)
+    assert code == 0, err
+    md = (tmp_path / "reproduction.md").read_text()
+    for heading in ("Table II", "Fig. 5", "Fig. 6", "Table I", "Fig. 3", "not the best", "Differences"):
+        assert heading in md, heading
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
+    assert {Path(l).name for l in links} == FIGURES
+    assert all((tmp_path / l).is_file() for l in links)
+    doc = json.loads((tmp_path / "results.json").read_text())
+    assert set(doc) >= {"table_ii", "dynamic", "sweep", "compensation", "window", "diagnostics"}
+    assert doc["compensation"]["dynamic"]["all-to-all"]["bit_identical"] is True
+    assert "2 seeds" in md and "30 ticks" in md
+
+
+def test_out_that_is_a_file_is_bad_input(tmp_path, capsys):
+    f = tmp_path / "taken"
+    f.write_text("x")
+    code, _, err = run_cli(["figures", "--out", f, *SHORT], capsys)
+    assert code == 2
+    assert err.startswith("error: out:") and len(err.strip().splitlines()) == 1
