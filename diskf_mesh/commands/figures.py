@@ -7,21 +7,14 @@ the observation-window variants and the isolated-sensor diagnosis.
 """
 from __future__ import annotations
 
-import argparse
-
 from ..figures import make_figures
-from .options import add_command
-from .study_options import add_study_options, out_dir, study_config
+from .study_options import add_study_command
+
+
+def figures(cfg, out) -> str:
+    return f"{len(make_figures(cfg, out))} figures -> {out}"
 
 
 def register(subparsers) -> None:
-    p = add_command(subparsers, "figures", "write every figure of the report (PNG)", __doc__)
-    add_study_options(p, "folder for the PNG files (created)")
-    p.set_defaults(func=run)
-
-
-def run(args: argparse.Namespace) -> int:
-    out = out_dir(args.out)
-    paths = make_figures(study_config(args), out)
-    print(f"{len(paths)} figures -> {out}")
-    return 0
+    add_study_command(subparsers, "figures", "write every figure of the report (PNG)", __doc__,
+                      "folder for the PNG files (created)", figures)

@@ -1,4 +1,5 @@
-"""Options shared by ``figures`` and ``report``: output folder, seeds, horizon."""
+"""What ``figures`` and ``report`` share: options (output folder, seeds,
+horizon, quiet) and the command skeleton around one action."""
 from __future__ import annotations
 
 import argparse
@@ -7,18 +8,23 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..studies import StudyConfig
-from .options import positive_int
+from .options import add_command, positive_int
 
 
-def add_study_options(parser: argparse.ArgumentParser, out_help: str) -> None:
-    parser.add_argument("--out", required=True, metavar="DIR", help=out_help)
-    parser.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
-    parser.add_argument("--steps", type=positive_int, metavar="K", help="horizon in ticks (default: the scenarios')")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: str, action) -> None:
+    """A subcommand running ``action(config, out_dir) -> message``."""
+    p = add_command(subparsers, name, summary, doc)
+    p.add_argument("--out", required=True, metavar="DIR", help=out_help)
+    p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
+    p.add_argument("--steps", type=positive_int, metavar="K", help="horizon in ticks (default: the scenarios')")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=lambda args: _run(args, action))
 
 
-def study_config(args: argparse.Namespace) -> StudyConfig:
-    return StudyConfig(seeds=args.seeds, steps=args.steps, quiet=args.quiet or not sys.stderr.isatty())
+def _run(args: argparse.Namespace, action) -> int:
+    cfg = StudyConfig(seeds=args.seeds, steps=args.steps, quiet=args.quiet or not sys.stderr.isatty())
+    print(action(cfg, out_dir(args.out)))
+    return 0
 
 
 def out_dir(text: str) -> Path:
