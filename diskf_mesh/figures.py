@@ -265,10 +265,12 @@ def plot_window(run: Run, path: Path, node: int = 0, seed: int = 0) -> Path:
     tr = run.trace
     t = np.arange(1, tr.shape[1] + 1)
     ax_d.plot(t, tr.truth_d[seed, :, 0], "k--", lw=1.2, label="truth")
-    for (name, est), c in zip(run.ests.items(), ("tab:gray", "tab:orange", "tab:blue", "tab:green")):
-        ax_d.plot(t, np.where(est.d_valid[seed, :, node], est.d[seed, :, node, 0], np.nan), color=c, lw=1, label=name)
+    # wide grey first, so a variant that coincides with "no window" stays visible on top of it
+    styles = (("tab:gray", 3.0), ("tab:orange", 1.2), ("tab:blue", 1.0), ("tab:green", 1.0))
+    for (name, est), (c, lw) in zip(run.ests.items(), styles):
+        ax_d.plot(t, np.where(est.d_valid[seed, :, node], est.d[seed, :, node, 0], np.nan), color=c, lw=lw, label=name)
         e_state, _, _ = metrics.errors(tr, est)
-        ax_x.plot(t, e_state.mean(axis=(0, 2)), color=c, lw=1.2, label=name)
+        ax_x.plot(t, e_state.mean(axis=(0, 2)), color=c, lw=lw, label=name)
     ax_d.set_ylim(-30, 50)
     ax_d.set_title(f"DISKF input estimate, node {run.scn.agents[node].id}, seed {seed}")
     ax_x.set_yscale("log")

@@ -38,6 +38,9 @@ def num(v, digits: int = 2) -> str:
 
 
 def pm(row: dict, key: str) -> str:
+    """"mean ± std", or "-" where there is no value."""
+    if not math.isfinite(row[key]):
+        return "-"
     return f"{num(row[key])} ± {num(row.get(f'{key}_std'))}"
 
 
@@ -322,7 +325,8 @@ def variants_note(var: dict) -> str:
     return (f"Without any input estimation DISKF's MAE(state) is {num(noin)} instead of {num(base)}: at this "
             "range the input estimates, formed from stale predictions, "
             + ("cost more state accuracy than they bring" if noin < base else "still help the state")
-            + (f"; the rest of the gap to DiffKF ({num(diff)}) is the fusion of priors that DISKF does not do."
+            + (f"; we attribute the rest of the gap to DiffKF ({num(diff)}) to the fusion of priors that DISKF "
+               "does not do."
                if noin > diff else f", and without them DISKF is below DiffKF ({num(diff)})."))
 
 
