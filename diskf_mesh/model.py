@@ -93,6 +93,11 @@ class Params:
     eps:           state compensation step (the paper's epsilon = 0.05)
     compensation:  gain form of eq. (compensation_state): bounded|paper|normalized|none
     consensus_eps: KCF consensus step (Olfati-Saber's epsilon)
+    hold_input:    DISKF extension, off by default (the paper's algorithm):
+                   when no neighbour has an input estimate, predict with the
+                   last fused input instead of with none. Helps a lasting
+                   input seen intermittently; hurts isolated agents whose own
+                   estimate is poor (see docs/reproduction.md).
     """
 
     window: int | None = 5
@@ -100,6 +105,7 @@ class Params:
     eps: float = 0.05
     compensation: str = "bounded"
     consensus_eps: float = 0.1
+    hold_input: bool = False
 
     def __post_init__(self):
         if self.window is not None and (int(self.window) != self.window or self.window < 0):

@@ -201,6 +201,7 @@ def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
             eps=float(est.get("eps", 0.05)),
             compensation=str(est.get("compensation", "bounded")),
             consensus_eps=float(est.get("consensus_eps", 0.1)),
+            hold_input=bool(est.get("hold_input", False)),
         )
     except ValueError as e:
         raise InputError("estimator", str(e)) from None

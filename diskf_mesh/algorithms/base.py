@@ -26,6 +26,8 @@ class State:
     x: np.ndarray      # (..., n)   x_bar_{k|k}, the fused estimate
     P: np.ndarray      # (..., n, n)
     since: np.ndarray  # (...,) ticks since the observation window was refreshed
+    d_hold: np.ndarray | None = None  # (..., m) last fused input (DISKF, hold_input)
+    held: np.ndarray | None = None    # (...,) whether d_hold holds an estimate
 
 
 @dataclass(frozen=True)
@@ -57,7 +59,8 @@ class Algorithm:
         n = self.model.n
         x = np.broadcast_to(self.model.x0, batch + (n,)).astype(float).copy()
         P = np.broadcast_to(self.model.P0, batch + (n, n)).astype(float).copy()
-        return State(x, P, np.zeros(batch, dtype=np.int64))
+        m = self.model.m
+        return State(x, P, np.zeros(batch, dtype=np.int64), np.zeros(batch + (m,)), np.zeros(batch, dtype=bool))
 
     def local_kf(self, state: State, k: int, y, has) -> Local:
         """Prediction (info_kf_prediction0) and local update (info_kf_update0)."""

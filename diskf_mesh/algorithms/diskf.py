@@ -5,7 +5,7 @@ import numpy as np
 
 from .. import equations as eq
 from ..messages import Message, Neighbourhood, Output
-from .base import Algorithm, State
+from .base import Algorithm, State, with_since
 
 
 class DISKF(Algorithm):
@@ -19,13 +19,22 @@ class DISKF(Algorithm):
         allowed = eq.window_allows(since, self.params.window)
         d, S, valid = self.local_input(loc, allowed)
         since = np.where(has, 0, since)
-        return State(state.x, state.P, since), self.message(loc, d, S, valid)
+        return with_since(state, since), self.message(loc, d, S, valid)
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
         """Steps 3 and 4: input fusion, state fusion, state compensation."""
         p = self.params
         d_bar, S_bar, has = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
-        x_star = eq.input_prediction(own.x_pred, self.model.G, d_bar, has)
+        d_hold, held = state.d_hold, state.held
+        if p.hold_input:
+            # Our extension (off by default): with no input to fuse this tick,
+            # predict with the last fused input instead of none. Suits a
+            # persistent input (a fault, a step manoeuvre); see Params.
+            d_hold = np.where(has[..., None], d_bar, d_hold)
+            held = has | held
+            x_star = eq.input_prediction(own.x_pred, self.model.G, d_hold, held)
+        else:
+            x_star = eq.input_prediction(own.x_pred, self.model.G, d_bar, has)
         dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd)
         x_bar, P_bar = eq.state_fusion(nb.adj, x_star, own.P_pred, dy, dY)
         if p.compensation != "none" and p.eps != 0.0:
@@ -33,4 +42,4 @@ class DISKF(Algorithm):
             gain = eq.compensation_gain(P_bar, p.compensation, p.eps, n_nbrs)
             x_bar = eq.compensation_state(nb.adj, x_bar, gain, own.x_pred, senders.x_pred, p.eps)
         since = np.where(has, 0, state.since) if p.reset else state.since
-        return State(x_bar, P_bar, since), Output(x_bar, P_bar, d_bar, has)
+        return State(x_bar, P_bar, since, d_hold, held), Output(x_bar, P_bar, d_bar, has)
