@@ -194,6 +194,20 @@ def window_ablation(cfg: StudyConfig) -> dict:
     return _ablation(cfg, window_variants, "Fig. 3", cells=cells)
 
 
+def hold_variants(base: Params) -> list[Variant]:
+    return [Variant("paper (no hold)", "diskf", replace(base, hold_input=False)),
+            Variant("hold last fused input", "diskf", replace(base, hold_input=True))]
+
+
+def hold_ablation(cfg: StudyConfig) -> dict:
+    """Our extension ``Params.hold_input`` against the paper's algorithm, in
+    every communication setting of both scenarios."""
+    cells = (("stationary", "all-to-all", STATIONARY, ALL), ("stationary", "1-hop", STATIONARY, RING),
+             ("stationary", "none", STATIONARY, NONE), ("dynamic", "all-to-all", DYNAMIC, ALL),
+             ("dynamic", "1-hop", DYNAMIC, range_setting(PAPER_RANGE)), ("dynamic", "none", DYNAMIC, NONE))
+    return _ablation(cfg, hold_variants, "hold input", cells=cells)
+
+
 # --------------------------------------------------------------------------
 # diagnostics
 # --------------------------------------------------------------------------
@@ -292,6 +306,7 @@ class Results:
     topology: dict = field(default_factory=dict)
     compensation: dict = field(default_factory=dict)
     window: dict = field(default_factory=dict)
+    hold: dict = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -303,5 +318,5 @@ def run_all(cfg: StudyConfig) -> Results:
         config={"seeds": cfg.seeds, "steps": cfg.steps, "algorithms": list(cfg.algorithms)},
         table_ii=table_ii(cfg), dynamic=dynamic_table(cfg), sweep=range_sweep(cfg),
         topology=topology_stats(cfg), compensation=compensation_ablation(cfg),
-        window=window_ablation(cfg), diagnostics=diagnostics(cfg),
+        window=window_ablation(cfg), hold=hold_ablation(cfg), diagnostics=diagnostics(cfg),
     )
