@@ -6,26 +6,34 @@ Counted on the receiving side, per agent, over the whole run:
     sent        neighbours' well-formed messages that entered this agent's
                 links (after the guard, before the fault layer)
     lost        of those, dropped by the link (no copy arrived)
-    received    of those, arrived (the first copy; counted once)
-    duplicate   extra copies that arrived (a duplicate is fused once)
-    fused       received in time for their tick and fused
-    late        received after this agent fused their tick (or when the run
+    received    of those, arrived (counted at the first copy)
+    arrived     copies that arrived: one per received message, plus the
+                link's extra copies (duplication)
+    duplicate   arrived copies of a (sender, tick) that had already arrived:
+                the link's duplicates, or a sender repeating itself. A
+                duplicate is fused at most once.
+    fused       arrived in time for their tick and fused
+    late        arrived after this agent fused their tick (or when the run
                 ended), dropped
-    unlinked    received in time, but the sender was not within range (or not
+    unlinked    arrived in time, but the sender was not within range (or not
                 alive) at that tick, so not fused
+    out_of_range  messages from agents not within range (or not alive) at
+                their tick, dropped by the radio-range gate before a link:
+                never sent on one
     rejected    payloads the decoder or guard refused, by reason
                 (``wire.REASONS`` and ``guard.REASONS``); never fused
 
 The books balance at the end of a run (``Counters.imbalance`` is empty):
 
-    sent     = received + lost
-    received = fused + late + unlinked
+    sent    = received + lost
+    arrived = fused + late + unlinked + duplicate
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
-SCALARS = ("published", "sent", "lost", "received", "duplicate", "fused", "late", "unlinked")
+SCALARS = ("published", "sent", "lost", "received", "arrived", "duplicate", "fused", "late", "unlinked",
+           "out_of_range")
 REJECTED_PREFIX = "rejected."
 
 
@@ -35,10 +43,12 @@ class Counters:
     sent: int = 0
     lost: int = 0
     received: int = 0
+    arrived: int = 0
     duplicate: int = 0
     fused: int = 0
     late: int = 0
     unlinked: int = 0
+    out_of_range: int = 0
     rejected: dict = field(default_factory=dict)
 
     def reject(self, reason: str, count: int = 1) -> None:
@@ -50,15 +60,17 @@ class Counters:
 
     def imbalance(self, in_flight: int = 0, pending: int = 0) -> list:
         """The identities that do not hold, as text (empty: the books balance).
-        ``in_flight``: copies still on a link; ``pending``: received messages
-        waiting for their tick."""
+        ``in_flight``: messages still on a link (no copy arrived yet);
+        ``pending``: arrived copies waiting for their tick."""
         out = []
         if self.sent != self.received + self.lost + in_flight:
             out.append(f"sent {self.sent} != received {self.received} + lost {self.lost}"
                        + (f" + in flight {in_flight}" if in_flight else ""))
-        if self.received != self.fused + self.late + self.unlinked + pending:
-            out.append(f"received {self.received} != fused {self.fused} + late {self.late}"
-                       f" + unlinked {self.unlinked}" + (f" + pending {pending}" if pending else ""))
+        if self.arrived != self.fused + self.late + self.unlinked + self.duplicate + pending:
+            out.append(f"arrived {self.arrived} != fused {self.fused} + late {self.late} + unlinked {self.unlinked}"
+                       f" + duplicate {self.duplicate}" + (f" + pending {pending}" if pending else ""))
+        if self.arrived < self.received:
+            out.append(f"arrived {self.arrived} < received {self.received}")
         return out
 
     def to_dict(self) -> dict:

@@ -3,9 +3,9 @@
 The estimator fuses only what arrived in time for its tick:
 
     ``offer(sender, tick, message)``  a copy that arrived: the first copy of
-                                      (sender, tick) is received; a later one
-                                      is a duplicate (fused at most once);
-                                      one for a tick already fused is late
+                                      (sender, tick) is held; a later one is a
+                                      duplicate (fused at most once); one for
+                                      a tick already fused is late
     ``take(tick, linked)``            the messages of ``tick`` from the senders
                                       in ``linked``, sorted by sender id (so
                                       fusion sums in a fixed order); every
@@ -16,7 +16,7 @@ The estimator fuses only what arrived in time for its tick:
     ``close()``                       the run is over: whatever is still held
                                       never made it into fusion, late
 
-Counts go to a ``Counters`` (received, duplicate, fused, late, unlinked).
+Counts go to a ``Counters`` (arrived, duplicate, fused, late, unlinked).
 Thread-safe: a transport may offer from its own threads.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from .counters import Counters
 class Inbox:
     def __init__(self, counters: Counters | None = None):
         self.counters = counters if counters is not None else Counters()
-        self._seen: set = set()      # (sender, tick) received so far
+        self._seen: set = set()      # (sender, tick) arrived so far
         self._held: dict = {}        # tick -> {sender: message}
         self._closed_through = 0     # ticks <= this were fused
         self._closed = False         # the run is over: everything is late
@@ -39,11 +39,11 @@ class Inbox:
         """Returns what happened: "held", "duplicate" or "late"."""
         with self._lock:
             c = self.counters
+            c.arrived += 1
             if (sender, tick) in self._seen:
                 c.duplicate += 1
                 return "duplicate"
             self._seen.add((sender, tick))
-            c.received += 1
             if self._closed or tick <= self._closed_through:
                 c.late += 1
                 return "late"

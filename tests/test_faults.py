@@ -146,8 +146,8 @@ def test_inbox_fuses_a_duplicate_once_and_counts_late_and_unlinked():
     assert box.take(3, linked={2}) == []       # tick 2 was skipped: its message is late
     box.close()
     assert box.offer(5, 9, "after the end") == "late"
-    assert (c.received, c.duplicate, c.fused, c.unlinked, c.late) == (6, 2, 2, 1, 3)
-    c.sent, c.lost = 7, 1
+    assert (c.arrived, c.duplicate, c.fused, c.unlinked, c.late) == (8, 2, 2, 1, 3)
+    c.sent, c.received, c.lost = 7, 6, 1
     assert c.imbalance() == []
 
 
@@ -159,5 +159,5 @@ def test_counters_round_trip_and_sum():
     assert a.to_json()["rejected"] == {"not-spd": 1, "tick-past": 2}
     s = total([a, a])
     assert (s.sent, s.rejected) == (10, {"not-spd": 2, "tick-past": 4})
-    assert Counters(sent=2, received=1).imbalance() == ["sent 2 != received 1 + lost 0",
-                                                        "received 1 != fused 0 + late 0 + unlinked 0"]
+    assert Counters(sent=2, received=1, arrived=1).imbalance() == [
+        "sent 2 != received 1 + lost 0", "arrived 1 != fused 0 + late 0 + unlinked 0 + duplicate 0"]

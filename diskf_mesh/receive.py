@@ -1,0 +1,112 @@
+"""The receive path of one agent: guard, then the link's faults, then the inbox.
+
+    payload on a neighbour's key
+      -> ``Guard.admit``      rejected (counted by reason), or a decoded message
+      -> sent += 1
+      -> ``FaultModel.plan``  lost (lost += 1), or one or two copies with delays
+      -> ``DelayLine``        holds each copy until it is due
+      -> received += 1 at the message's first copy
+      -> ``Inbox.offer``      every copy: held (later fused or unlinked),
+                              duplicate or late
+
+A transport calls ``on_payload`` from its subscriber callback and, per tick,
+``wait(tick, expected, deadline)`` then ``take(tick, linked)``. Without a
+fault model (or with an inactive one) a copy goes straight to the inbox in
+the caller's thread, so a fault-free run is exactly the run without this layer.
+"""
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+
+from .counters import Counters
+from .delayline import DelayLine
+from .faults import PERFECT, FaultModel
+from .guard import Guard
+from .inbox import Inbox
+
+
+class Receiver:
+    def __init__(self, guard: Guard, faults: FaultModel | None = None, on_arrival=None):
+        """``on_arrival()``, if given, is called (from the delay line's thread)
+        after a delayed copy reached the inbox, e.g. to wake a waiting loop."""
+        self.guard = guard
+        self.me = guard.config.me
+        self.counters: Counters = guard.counters
+        self.faults = faults if faults is not None and faults.config.active else None
+        self.inbox = Inbox(self.counters)
+        self._arrived = threading.Condition()
+        self._delay = DelayLine(self._arrive_later)
+        self._lock = threading.Lock()  # fault streams and counters are touched from zenoh threads
+        self._copies_left: dict = {}   # send event -> copies not yet arrived
+        self._heard: set = set()       # send events of which a copy arrived
+        self._events = itertools.count()
+        self.tick = 0                  # the agent's current tick, for the guard's window
+        self._on_arrival = on_arrival
+
+    def on_payload(self, key: str, payload) -> None:
+        with self._lock:
+            wm = self.guard.admit(key, payload, self.tick)
+            if wm is None:
+                return
+            self.counters.sent += 1
+            plan = PERFECT if self.faults is None else self.faults.plan(wm.sender, self.me, wm.tick)
+            if not plan:
+                self.counters.lost += 1
+                return
+            event = next(self._events)
+            self._copies_left[event] = len(plan)
+        for d in plan:
+            if d.delay_s > 0:
+                self._delay.submit((event, wm), d.delay_s)
+            else:
+                self._arrive((event, wm))
+
+    def _arrive_later(self, item) -> None:
+        self._arrive(item)
+        if self._on_arrival is not None:
+            self._on_arrival()
+
+    def _arrive(self, item) -> None:
+        event, wm = item
+        with self._lock:
+            if event not in self._heard:
+                self._heard.add(event)
+                self.counters.received += 1
+            self._copies_left[event] -= 1
+            if not self._copies_left[event]:
+                del self._copies_left[event]
+                self._heard.discard(event)
+        self.inbox.offer(wm.sender, wm.tick, wm.message)
+        with self._arrived:
+            self._arrived.notify_all()
+
+    @property
+    def in_flight(self) -> int:
+        """Messages sent on a link of which no copy has arrived yet."""
+        with self._lock:
+            return sum(1 for e in self._copies_left if e not in self._heard)
+
+    def wait(self, tick: int, expected, deadline: float, clock=time.monotonic) -> set:
+        """Block until every sender in ``expected`` was heard for ``tick`` or the
+        monotonic ``deadline`` passes; returns who was heard."""
+        expected = set(expected)
+        with self._arrived:
+            while True:
+                heard = self.inbox.senders(tick)
+                left = deadline - clock()
+                if expected <= heard or left <= 0:
+                    return heard
+                self._arrived.wait(min(left, 0.05))
+
+    def take(self, tick: int, linked) -> list:
+        """[(sender, message)] to fuse at ``tick``, sorted by sender id."""
+        return self.inbox.take(tick, linked)
+
+    def close(self) -> Counters:
+        """End of run: copies still in flight or held arrive too late to count as fused."""
+        self.inbox.close()
+        for item in self._delay.close():
+            self._arrive(item)
+        return self.counters
