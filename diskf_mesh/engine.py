@@ -128,21 +128,33 @@ def run(trace: Trace, algorithm: str, params: Params | None = None, progress=Non
     n, m = trace.model.n, trace.model.m
     state = alg.init((B, N))
     gossip = gossip_stream(trace) if algorithm == "gdkf" else None
-    xs = np.empty((B, K, N, n))
-    Ps = np.empty((B, K, N, n, n))
-    ds = np.empty((B, K, N, m))
-    dv = np.empty((B, K, N), dtype=bool)
-    prev, view = None, None
+    # tick-major buffers: each tick writes one contiguous block
+    xs = np.empty((K, B, N, n))
+    Ps = np.empty((K, B, N, n, n))
+    ds = np.empty((K, B, N, m))
+    dv = np.empty((K, B, N), dtype=bool)
+    y, has = np.moveaxis(trace.y, 1, 0), np.moveaxis(trace.has, 1, 0)
+    changed = link_changes(trace.links)
+    view = None
     for k in range(1, K + 1):
-        state, msg = alg.local(state, k, trace.y[:, k - 1], trace.has[:, k - 1])
-        links = trace.links[:, k - 1]
-        if prev is None or not (links is prev or np.array_equal(links, prev)):
-            prev, view = links, choose_links(links, B, neighbours)
+        state, msg = alg.local(state, k, y[k - 1], has[k - 1])
+        if changed[k - 1]:
+            view = choose_links(trace.links[:, k - 1], B, neighbours)
         state, out = view.fuse(alg, state, msg, None if gossip is None else gossip[:, k - 1])
-        xs[:, k - 1], Ps[:, k - 1], ds[:, k - 1], dv[:, k - 1] = out.x, out.P, out.d, out.d_valid
+        xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)
-    return Estimates(xs, Ps, ds, dv)
+    return Estimates(*(np.moveaxis(a, 0, 1) for a in (xs, Ps, ds, dv)))
+
+
+def link_changes(links: np.ndarray) -> np.ndarray:
+    """(K,) bool: the links of tick k differ from those of tick k-1 (True at k=1)."""
+    K = links.shape[1]
+    if links.strides[1] == 0:  # one matrix broadcast over the ticks (a static network)
+        return np.arange(K) == 0
+    out = np.ones(K, dtype=bool)
+    out[1:] = (links[:, 1:] != links[:, :-1]).any(axis=(0, 2, 3))
+    return out
 
 
 STACK_LINKS_MAX = 1 << 26  # bytes of per-seed links a stacked batch may hold

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import T, inv_spd, mv, nbr_sum, sym
+from .linalg import T, congruence, eigvalsh, inv_spd, mv, nbr_sum, nbr_sum_pair, solve, sym
 
 
 # --------------------------------------------------------------------------
@@ -38,7 +38,7 @@ def measurement_information(H: np.ndarray, R: np.ndarray, y: np.ndarray, has: np
     so sensors of different p^i share one padded array. An agent that measured
     nothing (has=False) contributes zero information.
     """
-    HtRi = T(np.linalg.solve(R, H))  # (R^-1 H)^T = H^T R^-1 (R symmetric)
+    HtRi = T(solve(R, H))  # (R^-1 H)^T = H^T R^-1 (R symmetric)
     m = np.asarray(has, dtype=float)
     U = sym(np.matmul(HtRi, H)) * m[..., None, None]
     u = mv(HtRi, np.where(np.asarray(has)[..., None], y, 0.0)) * m[..., None]
@@ -89,13 +89,13 @@ def input_estimate(x_pred, P_pred, U, u, G, allowed=None, rank_rtol: float = 1e-
     YJi = np.matmul(Y, Ji)
     C = sym(np.matmul(YJi, U))                     # H^T R~^-1 H
     c = mv(YJi, u - mv(U, x_pred))                 # H^T R~^-1 (y - H x^)
-    F_info = sym(np.matmul(np.matmul(T(G), C), G))  # (HG)^T R~^-1 (HG), m x m
+    F_info = congruence(G, C)                      # (HG)^T R~^-1 (HG), m x m
     # rank(HG) = m  <=>  G^T U G = (HG)^T R^-1 (HG) is positive definite.
     # Judged against the total information G^T J G, so that round-off in a
     # neighbour's (P~^-1 - P^^-1) is not mistaken for a measurement.
-    GUG = sym(np.matmul(np.matmul(T(G), U), G))
-    scale = np.linalg.eigvalsh(sym(np.matmul(np.matmul(T(G), Y + U), G)))[..., -1]
-    valid = np.linalg.eigvalsh(GUG)[..., 0] > rank_rtol * scale
+    GUG = congruence(G, U)
+    scale = eigvalsh(congruence(G, Y + U))[..., -1]
+    valid = eigvalsh(GUG)[..., 0] > rank_rtol * scale
     if allowed is not None:
         valid &= np.asarray(allowed, dtype=bool)
     m = G.shape[-1]
@@ -169,9 +169,10 @@ def state_fusion(adj, x_star, P_pred, dy, dY):
     adj: (..., R, S); x_star, P_pred per receiver; dy, dY per sender.
     """
     Ystar = inv_spd(P_pred)
-    Y_bar = Ystar + nbr_sum(adj, dY, 2)
+    sum_dY, sum_dy = nbr_sum_pair(adj, dY, dy)
+    Y_bar = Ystar + sum_dY
     P_bar = inv_spd(sym(Y_bar))
-    x_bar = mv(P_bar, nbr_sum(adj, dy, 1) + mv(Ystar, x_star))
+    x_bar = mv(P_bar, sum_dy + mv(Ystar, x_star))
     return x_bar, P_bar
 
 
@@ -198,7 +199,7 @@ def compensation_gain(P_bar, form: str = "bounded", eps: float = 0.05, n_neighbo
     if form == "bounded":
         k = eps * np.asarray(n_neighbours, dtype=float)[..., None, None]
         n = P_bar.shape[-1]
-        return sym(np.linalg.solve(np.eye(n) + k * P_bar, P_bar))
+        return sym(solve(np.eye(n) + k * P_bar, P_bar))
     if form == "normalized":
         nrm = np.linalg.norm(P_bar, axis=(-2, -1))
         return P_bar / (1.0 + nrm)[..., None, None]
@@ -219,7 +220,7 @@ def compensation_state(adj, x_bar, gain, x_pred_recv, x_pred_send, eps: float):
     identical predictions give an exact zero (all-to-all communication).
     """
     diff = np.expand_dims(x_pred_send, -3) - np.expand_dims(x_pred_recv, -2)  # (..., R, S, n)
-    total = (adj[..., None] * diff).sum(axis=-2)
+    total = np.einsum("...rs,...rsn->...rn", adj, diff)  # sum_s adj[r, s] diff[r, s], row-deterministic like nbr_sum
     return x_bar + eps * mv(gain, total)
 
 

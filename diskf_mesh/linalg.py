@@ -13,12 +13,12 @@ import numpy as np
 
 def T(a: np.ndarray) -> np.ndarray:
     """Transpose of the trailing two axes."""
-    return np.swapaxes(a, -1, -2)
+    return a.swapaxes(-1, -2)
 
 
 def sym(a: np.ndarray) -> np.ndarray:
     """Symmetric part, used after every covariance product to keep it symmetric."""
-    return 0.5 * (a + T(a))
+    return 0.5 * (a + a.swapaxes(-1, -2))
 
 
 def mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -65,7 +65,7 @@ def _not_pd() -> np.linalg.LinAlgError:
 
 
 def _inv_spd_1(a: np.ndarray) -> np.ndarray:
-    if np.any(a <= 0):  # NaN propagates, as through numpy's Cholesky
+    if (a <= 0).any():  # NaN propagates, as through numpy's Cholesky
         raise _not_pd()
     return 1.0 / a
 
@@ -73,15 +73,70 @@ def _inv_spd_1(a: np.ndarray) -> np.ndarray:
 def _inv_spd_2(a: np.ndarray) -> np.ndarray:
     """[[p, q], [q, r]]^-1 = [[r, -q], [-q, p]] / (p r - q^2), q from the lower
     triangle; positive definite iff p > 0 and p r - q^2 > 0 (Sylvester)."""
-    p, q, r = a[..., 0, 0], a[..., 1, 0], a[..., 1, 1]
+    flat = a.reshape(-1, 4)
+    p, q, r = flat[:, 0], flat[:, 2], flat[:, 3]
     det = p * r - q * q
-    if np.any(p <= 0) or np.any(det <= 0):  # NaN propagates, as through numpy's Cholesky
+    if (np.minimum(p, det) <= 0).any():  # NaN propagates, as through numpy's Cholesky
         raise _not_pd()
-    out = np.empty(a.shape)
-    out[..., 0, 0] = r / det
-    out[..., 1, 1] = p / det
-    out[..., 0, 1] = out[..., 1, 0] = -q / det
-    return out
+    out = np.empty(flat.shape)
+    np.divide(r, det, out=out[:, 0])
+    np.divide(p, det, out=out[:, 3])
+    np.divide(q, det, out=out[:, 1])
+    np.negative(out[:, 1], out=out[:, 1])
+    out[:, 2] = out[:, 1]
+    return out.reshape(a.shape)
+
+
+def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Stacked ``np.linalg.solve(a, b)`` for a (..., n, n), b (..., n, k).
+
+    1x1 and 2x2 systems go through the closed-form inverse (adjugate over
+    determinant; LAPACK's per-matrix overhead dominates such stacks). Like
+    LAPACK, an exactly singular matrix raises numpy.linalg.LinAlgError."""
+    n = a.shape[-1]
+    if n > 2 or b.ndim < 2 or a.shape[-2] != n or b.shape[-2] != n:
+        return np.linalg.solve(a, b)
+    if n == 1:
+        if (a == 0).any():
+            raise np.linalg.LinAlgError("Singular matrix")
+        return b / a
+    flat = a.reshape(-1, 4)
+    det = flat[:, 0] * flat[:, 3] - flat[:, 1] * flat[:, 2]
+    if (det == 0).any():
+        raise np.linalg.LinAlgError("Singular matrix")
+    inv = np.take(flat, _ADJUGATE, axis=1)  # [[d, -b], [-c, a]] / det
+    inv *= _ADJUGATE_SIGN
+    inv /= det[:, None]
+    return np.matmul(inv.reshape(a.shape), b)
+
+
+_ADJUGATE = np.array([3, 1, 2, 0])  # flat 2x2 [a, b, c, d] -> [d, b, c, a]
+_ADJUGATE_SIGN = np.array([1.0, -1.0, -1.0, 1.0])
+
+
+def congruence(G: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """sym(G^T X G) for one (n, m) matrix G and a stack X (..., n, n).
+
+    With m = 1 it is the single number sum_ij X_ij g_i g_j, one ``einsum``
+    instead of two broadcast matrix products."""
+    if G.shape[-1] == 1:
+        g = G[:, 0]
+        return np.einsum("...ij,ij->...", X, np.outer(g, g))[..., None, None]
+    return sym(np.matmul(np.matmul(T(G), X), G))
+
+
+def eigvalsh(a: np.ndarray) -> np.ndarray:
+    """Stacked ``np.linalg.eigvalsh(a)`` (ascending, lower triangle), closed
+    form for 1x1 and 2x2."""
+    n = a.shape[-1]
+    if n == 1:
+        return a[..., 0].copy()
+    if n == 2:
+        p, q, r = a[..., 0, 0], a[..., 1, 0], a[..., 1, 1]
+        mid, half = 0.5 * (p + r), 0.5 * (p - r)
+        rad = np.hypot(half, q)
+        return np.stack([mid - rad, mid + rad], axis=-1)
+    return np.linalg.eigvalsh(a)
 
 
 def is_spd(a: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
@@ -113,3 +168,12 @@ def nbr_sum(adj: np.ndarray, x: np.ndarray, core_ndim: int) -> np.ndarray:
     """
     core = "ijkl"[:core_ndim]
     return np.einsum(f"...rs,...s{core}->...r{core}", adj, x, optimize=False)
+
+
+def nbr_sum_pair(adj: np.ndarray, M: np.ndarray, v: np.ndarray):
+    """(nbr_sum(adj, M, 2), nbr_sum(adj, v, 1)) for M (..., S, n, n) and
+    v (..., S, n), in one pass over the senders (bit for bit the same sums:
+    each entry is reduced over the senders in the same order). Pays for
+    n >= 2; with 1x1 matrices two ``nbr_sum`` calls are faster."""
+    both = nbr_sum(adj, np.concatenate([M, v[..., None]], axis=-1), 2)
+    return both[..., :-1], both[..., -1]

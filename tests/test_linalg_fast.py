@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from diskf_mesh import algorithms, engine
-from diskf_mesh.linalg import inv_spd, inv_spd_cholesky, mv, nbr_sum
+from diskf_mesh.linalg import T, congruence, eigvalsh, inv_spd, inv_spd_cholesky, mv, nbr_sum, nbr_sum_pair, solve, sym
 from diskf_mesh.scenario import load_scenario, simulate
 
 
@@ -48,6 +48,31 @@ def test_mv_matches_matmul(cols):
     np.testing.assert_allclose(mv(a, v), (a @ v[..., None])[..., 0], rtol=1e-14, atol=1e-14)
 
 
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_solve_matches_lapack(n):
+    rng = np.random.default_rng(10 + n)
+    a = random_spd(rng, (40,), n) + rng.standard_normal((40, n, n)) * 0.1  # not symmetric
+    b = rng.standard_normal((40, n, 3))
+    want = np.linalg.solve(a, b)
+    np.testing.assert_allclose(solve(a, b), want, rtol=1e-11, atol=1e-12 * np.abs(want).max())
+    with pytest.raises(np.linalg.LinAlgError):
+        solve(np.zeros((2, n, n)), b[:2])
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_eigvalsh_matches_lapack(n):
+    a = random_spd(np.random.default_rng(20 + n), (40,), n)
+    want = np.linalg.eigvalsh(a)
+    np.testing.assert_allclose(eigvalsh(a), want, rtol=1e-12, atol=1e-13 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("m", [1, 2])
+def test_congruence_is_sym_gt_x_g(m):
+    rng = np.random.default_rng(30 + m)
+    G, X = rng.standard_normal((3, m)), rng.standard_normal((7, 3, 3))
+    np.testing.assert_allclose(congruence(G, X), sym(T(G) @ X @ G), rtol=1e-13, atol=1e-13)
+
+
 @pytest.mark.parametrize("core", [1, 2])
 def test_nbr_sum_is_broadcast_sum_and_row_deterministic(core):
     rng = np.random.default_rng(core)
@@ -58,6 +83,14 @@ def test_nbr_sum_is_broadcast_sum_and_row_deterministic(core):
     got = nbr_sum(adj, x, core)
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(got[:, 5], got[:, 9])
+
+
+def test_nbr_sum_pair_is_two_nbr_sums():
+    rng = np.random.default_rng(5)
+    adj, M, v = rng.random((3, 6, 6)), rng.standard_normal((3, 6, 2, 2)), rng.standard_normal((3, 6, 2))
+    got_M, got_v = nbr_sum_pair(adj, M, v)
+    np.testing.assert_array_equal(got_M, nbr_sum(adj, M, 2))
+    np.testing.assert_array_equal(got_v, nbr_sum(adj, v, 1))
 
 
 @pytest.mark.parametrize("name", algorithms.NAMES)

@@ -1,0 +1,164 @@
+"""Engine speed: the batched engine beside the plain DISKF oracle, the full
+Table II, and a 1,000-agent random geometric network.
+
+    python benchmarks/engine_bench.py              # the README table
+    python benchmarks/engine_bench.py --quick      # smaller, for a smoke run
+
+Prints markdown tables. Rates are agent-steps (one agent, one tick) per
+second of CPU time. On a shared, noisy machine only numbers measured side by
+side in one run compare: engine and oracle timings are interleaved and the
+best of ``--repeat`` rounds is kept for each. The large-network runs each happen in a
+fresh child process, so their peak resident memory is their own.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+import tracemalloc
+
+from diskf_mesh import algorithms, engine, experiment, oracle
+from diskf_mesh.scenario import load_scenario, simulate
+
+TOPOLOGIES = ("all", "ring", "none")
+
+
+def best_time(fn, repeat: int) -> float:
+    """Shortest CPU time (this process, all threads) of ``repeat`` calls of
+    fn(). CPU rather than wall time: on a shared machine wall time also counts
+    the time other processes held the cores."""
+    best = float("inf")
+    for _ in range(repeat):
+        t = time.process_time()
+        fn()
+        best = min(best, time.process_time() - t)
+    return best
+
+
+def agent_steps(traces) -> int:
+    return sum(t.has.size for t in traces)
+
+
+def rates_table(seeds: int, steps: int, oracle_seeds: int, repeat: int) -> str:
+    """Per algorithm: engine on the Table II batch (3 topologies x seeds),
+    and the plain oracle (DISKF) on a few seeds of the same scenario."""
+    scn = load_scenario("quadrants").with_overrides(steps=steps)
+    traces = [simulate(scn.with_overrides(topology=t), range(seeds)) for t in TOPOLOGIES]
+    small = [simulate(scn.with_overrides(topology=t), range(oracle_seeds)) for t in TOPOLOGIES]
+    engine_t = {a: float("inf") for a in algorithms.NAMES}
+    oracle_t = float("inf")
+    for _ in range(repeat):  # interleaved rounds: engine and oracle see the same machine load
+        for a in algorithms.NAMES:
+            engine_t[a] = min(engine_t[a], best_time(lambda: engine.run_many(traces, a, scn.params), 1))
+        oracle_t = min(oracle_t, best_time(lambda: [oracle.run_diskf(t, scn.params) for t in small], 1))
+    n_engine, n_oracle = agent_steps(traces), agent_steps(small)
+    oracle_rate = n_oracle / oracle_t
+    lines = [
+        f"Quadrants (4 agents), {len(TOPOLOGIES)} topologies x {seeds} seeds x {steps} ticks = {n_engine:,} agent-steps "
+        f"per algorithm (engine); oracle: {len(TOPOLOGIES)} x {oracle_seeds} seeds = {n_oracle:,} agent-steps.",
+        "",
+        "| algorithm | engine CPU (s) | engine agent-steps/s | plain oracle agent-steps/s | speed-up |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for a in algorithms.NAMES:
+        rate = n_engine / engine_t[a]
+        if a == "diskf":
+            lines.append(f"| {experiment.PAPER_LABELS[a]} | {engine_t[a]:.3f} | {rate:,.0f} | {oracle_rate:,.0f} "
+                         f"| {rate / oracle_rate:.0f}x |")
+        else:
+            lines.append(f"| {experiment.PAPER_LABELS[a]} | {engine_t[a]:.3f} | {rate:,.0f} | (DISKF only) | - |")
+    lines.append(f"| all six | {sum(engine_t.values()):.3f} | {6 * n_engine / sum(engine_t.values()):,.0f} | | |")
+    return "\n".join(lines)
+
+
+def table2_line(seeds: int, steps: int, repeat: int) -> str:
+    """The whole Table II through ``experiment.run_experiment``: simulation,
+    six algorithms, three topologies, metrics."""
+    scn = load_scenario("quadrants")
+    settings = experiment.settings_for(TOPOLOGIES)
+    wall, cpu = float("inf"), float("inf")
+    for _ in range(repeat):
+        t, c = time.perf_counter(), time.process_time()
+        experiment.run_experiment(scn, settings, list(algorithms.NAMES), range(seeds), steps)
+        wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - c)
+    return (f"Full Table II (6 algorithms x 3 topologies x {seeds} seeds x {steps} ticks, simulation and metrics "
+            f"included): **{wall:.2f} s** wall, {cpu:.2f} s CPU (best of {repeat}).")
+
+
+def big_child(algorithm: str, agents: int, steps: int) -> dict:
+    """One large run in this (fresh) process: simulate, engine, peak memory."""
+    t, c = time.perf_counter(), time.process_time()
+    scn = load_scenario("random-geometric", agents=agents).with_overrides(steps=steps)
+    trace = simulate(scn, [0])
+    t_sim, c_sim = time.perf_counter() - t, time.process_time() - c
+    t, c = time.perf_counter(), time.process_time()
+    engine.run(trace, algorithm, scn.params)
+    t_run, c_run = time.perf_counter() - t, time.process_time() - c
+    tracemalloc.start()  # a second, traced run for the peak of numpy allocations
+    engine.run(trace, algorithm, scn.params)
+    traced_peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    links = trace.links[0, 0]
+    return {
+        "sim": t_sim, "run": t_run, "cpu": c_sim + c_run, "maxrss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "traced_peak": traced_peak, "degree": float(links.sum(axis=1).mean()), "max_degree": int(links.sum(axis=1).max()),
+        "has": float(trace.has.mean()),
+    }
+
+
+def big_table(names, agents: int, steps: int) -> str:
+    lines = [
+        f"Random geometric network (`--scenario random-geometric --agents {agents}`), {steps} ticks, one seed; "
+        "each row a fresh process; simulate and engine columns are wall time, agent-steps/s is of the engine.",
+        "",
+        "| algorithm | simulate (s) | engine (s) | total wall (s) | total CPU (s) | agent-steps/s | peak RSS (MiB) "
+        "| peak numpy, traced (MiB) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    info = None
+    for a in names:
+        cmd = [sys.executable, os.path.abspath(__file__), "--child", a, "--agents", str(agents), "--steps", str(steps)]
+        info = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
+        total = info["sim"] + info["run"]
+        lines.append(f"| {experiment.PAPER_LABELS[a]} | {info['sim']:.2f} | {info['run']:.2f} | {total:.2f} "
+                     f"| {info['cpu']:.2f} "
+                     f"| {agents * steps / info['run']:,.0f} | {info['maxrss'] / 2**20:.0f} "
+                     f"| {info['traced_peak'] / 2**20:.0f} |")
+    if info is not None:
+        lines += ["", f"Mean neighbourhood {info['degree']:.1f} agents (max {info['max_degree']}, self included); "
+                      f"{100 * info['has']:.1f}% of agent-ticks have a measurement."]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--oracle-seeds", type=int, default=2, help="seeds per topology for the (slow) plain oracle")
+    ap.add_argument("--repeat", type=int, default=3, help="rounds; the best of them is reported")
+    ap.add_argument("--agents", type=int, default=1000)
+    ap.add_argument("--big", default="all", help="algorithms for the large network: 'all', a list, or 'none'")
+    ap.add_argument("--quick", action="store_true", help="5 seeds, 1 round, 300 agents")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        print(json.dumps(big_child(args.child, args.agents, args.steps)))
+        return 0
+    if args.quick:
+        args.seeds, args.repeat, args.agents = 5, 1, 300
+    print(f"numpy engine benchmark, {os.cpu_count()} CPUs, python {sys.version.split()[0]}\n")
+    print(rates_table(args.seeds, args.steps, args.oracle_seeds, args.repeat))
+    print()
+    print(table2_line(args.seeds, args.steps, args.repeat))
+    if args.big != "none":
+        print()
+        print(big_table(algorithms.parse_list(args.big), args.agents, args.steps))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
