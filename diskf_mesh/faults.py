@@ -207,3 +207,26 @@ class FaultModel:
         if reordered:
             ms += c.reorder_ms
         return Delivery(ms / 1000.0, copy, reordered)
+
+
+def delivered_links(links: np.ndarray, ids, config: FaultConfig, seed: int, deadline_s: float = math.inf) -> np.ndarray:
+    """The links of a run after the faults: ``links`` (K, N, N) bool,
+    [tick - 1, receiver, sender], with every off-diagonal link kept only where
+    ``FaultModel(config, seed)`` delivers the sender's message of that tick to
+    the receiver within ``deadline_s`` (a copy with a smaller delay).
+
+    This is what an agent process fuses when every copy that is due before
+    its collection deadline arrives in time, so an in-process run on these
+    links (``engine.run`` on ``trace.with_links``) is the mesh run under the
+    same faults and seed; with latency 0 it is exact (tested)."""
+    links = np.asarray(links, dtype=bool)
+    model = FaultModel(config, seed)
+    out = links.copy()
+    K, N, _ = links.shape
+    for k in range(1, K + 1):
+        for r in range(N):
+            for s in range(N):
+                if r != s and links[k - 1, r, s]:
+                    plan = model.plan(ids[s], ids[r], k)
+                    out[k - 1, r, s] = any(d.delay_s < deadline_s for d in plan)
+    return out

@@ -161,3 +161,23 @@ def test_counters_round_trip_and_sum():
     assert (s.sent, s.rejected) == (10, {"not-spd": 2, "tick-past": 4})
     assert Counters(sent=2, received=1, arrived=1).imbalance() == [
         "sent 2 != received 1 + lost 0", "arrived 1 != fused 0 + late 0 + unlinked 0 + duplicate 0"]
+
+
+def test_delivered_links_follow_the_link_plans():
+    from diskf_mesh.faults import delivered_links
+    K, N, ids = 30, 4, (3, 5, 8, 9)
+    links = np.ones((K, N, N), dtype=bool)
+    links[:, 0, 3] = links[:, 3, 0] = False
+    cfg = FaultConfig(loss=0.3, latency_ms=10, jitter_ms=10)
+    got = delivered_links(links, ids, cfg, seed=4, deadline_s=0.012)
+    m = FaultModel(cfg, seed=4)
+    for k in range(1, K + 1):
+        for r in range(N):
+            assert got[k - 1, r, r]
+            for s in range(N):
+                if r != s:
+                    plan = m.plan(ids[s], ids[r], k)
+                    want = links[k - 1, r, s] and bool(plan) and plan[0].delay_s < 0.012
+                    assert got[k - 1, r, s] == want
+    assert not got[:, 0, 3].any()
+    assert np.array_equal(delivered_links(links, ids, FaultConfig(), seed=4), links)
