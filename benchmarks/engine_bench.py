@@ -75,6 +75,49 @@ def rates_table(seeds: int, steps: int, oracle_seeds: int, repeat: int) -> str:
     return "\n".join(lines)
 
 
+def batch_scaling_table(seed_counts, steps: int, oracle_seeds: int, repeat: int) -> str:
+    """DISKF engine rate against batch size (quadrants, three topologies
+    stacked), beside the oracle: the engine pays a fixed cost per tick, so
+    its rate, unlike the oracle's, grows with the batch."""
+    scn = load_scenario("quadrants").with_overrides(steps=steps)
+    small = [simulate(scn.with_overrides(topology=t), range(oracle_seeds)) for t in TOPOLOGIES]
+    batches = {s: [simulate(scn.with_overrides(topology=t), range(s)) for t in TOPOLOGIES] for s in seed_counts}
+    engine_t = {s: float("inf") for s in seed_counts}
+    oracle_t = float("inf")
+    for _ in range(repeat):
+        for s, traces in batches.items():
+            engine_t[s] = min(engine_t[s], best_time(lambda: engine.run_many(traces, "diskf", scn.params), 1))
+        oracle_t = min(oracle_t, best_time(lambda: [oracle.run_diskf(t, scn.params) for t in small], 1))
+    o_rate = agent_steps(small) / oracle_t
+    lines = ["DISKF on quadrants, 3 topologies stacked, by seeds per topology (filters advanced per tick = 12 x seeds).",
+             "", "| seeds | filters per tick | engine agent-steps/s | plain oracle agent-steps/s | speed-up |",
+             "|---:|---:|---:|---:|---:|"]
+    for s, traces in batches.items():
+        rate = agent_steps(traces) / engine_t[s]
+        lines.append(f"| {s} | {12 * s} | {rate:,.0f} | {o_rate:,.0f} | {rate / o_rate:.0f}x |")
+    return "\n".join(lines)
+
+
+def large_ratio_table(agents: int, engine_steps: int, oracle_steps: int, repeat: int) -> str:
+    """DISKF on the random geometric network, engine and oracle side by side
+    (the oracle on fewer ticks: it needs about a millisecond per agent-step)."""
+    scn = load_scenario("random-geometric", agents=agents)
+    tr_engine = simulate(scn.with_overrides(steps=engine_steps), [0])
+    tr_oracle = simulate(scn.with_overrides(steps=oracle_steps), [0])
+    engine_t = oracle_t = float("inf")
+    for _ in range(repeat):
+        engine_t = min(engine_t, best_time(lambda: engine.run(tr_engine, "diskf", scn.params), 1))
+        oracle_t = min(oracle_t, best_time(lambda: oracle.run_diskf(tr_oracle, scn.params), 1))
+    e_rate, o_rate = tr_engine.has.size / engine_t, tr_oracle.has.size / oracle_t
+    return "\n".join([
+        f"Random geometric network, {agents} agents, one seed: engine {engine_steps} ticks, oracle {oracle_steps} ticks.",
+        "",
+        "| algorithm | engine agent-steps/s | plain oracle agent-steps/s | speed-up |",
+        "|---|---:|---:|---:|",
+        f"| DISKF | {e_rate:,.0f} | {o_rate:,.0f} | {e_rate / o_rate:.0f}x |",
+    ])
+
+
 def table2_line(seeds: int, steps: int, repeat: int) -> str:
     """The whole Table II through ``experiment.run_experiment``: simulation,
     six algorithms, three topologies, metrics."""
@@ -86,7 +129,7 @@ def table2_line(seeds: int, steps: int, repeat: int) -> str:
         experiment.run_experiment(scn, settings, list(algorithms.NAMES), range(seeds), steps)
         wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - c)
     return (f"Full Table II (6 algorithms x 3 topologies x {seeds} seeds x {steps} ticks, simulation and metrics "
-            f"included): **{wall:.2f} s** wall, {cpu:.2f} s CPU (best of {repeat}).")
+            f"included): **{cpu:.2f} s CPU**, {wall:.2f} s wall (best of {repeat}).")
 
 
 def big_child(algorithm: str, agents: int, steps: int) -> dict:
@@ -141,6 +184,7 @@ def main(argv=None) -> int:
     ap.add_argument("--oracle-seeds", type=int, default=2, help="seeds per topology for the (slow) plain oracle")
     ap.add_argument("--repeat", type=int, default=3, help="rounds; the best of them is reported")
     ap.add_argument("--agents", type=int, default=1000)
+    ap.add_argument("--ratio-steps", type=int, default=20, help="engine ticks of the large-network speed-up row")
     ap.add_argument("--big", default="all", help="algorithms for the large network: 'all', a list, or 'none'")
     ap.add_argument("--quick", action="store_true", help="5 seeds, 1 round, 300 agents")
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -152,6 +196,10 @@ def main(argv=None) -> int:
         args.seeds, args.repeat, args.agents = 5, 1, 300
     print(f"numpy engine benchmark, {os.cpu_count()} CPUs, python {sys.version.split()[0]}\n")
     print(rates_table(args.seeds, args.steps, args.oracle_seeds, args.repeat))
+    print()
+    print(batch_scaling_table(sorted({1, args.seeds, 5 * args.seeds}), args.steps, args.oracle_seeds, args.repeat))
+    print()
+    print(large_ratio_table(args.agents, args.ratio_steps, 2, args.repeat))
     print()
     print(table2_line(args.seeds, args.steps, args.repeat))
     if args.big != "none":

@@ -5,7 +5,8 @@ batch, lets every agent "hear" the messages allowed by the links, and calls
 ``fuse``. There is no Python loop over agents or seeds; the agent process
 (``agents/``) calls the very same two functions on a batch of one.
 
-Two ways to hand the messages to ``fuse``, same numbers:
+Two ways to hand the messages to ``fuse``, the same numbers to round-off
+(``tests/test_linalg_fast.py``):
 
 dense    one (B, N, N) adjacency over all agents as senders. Best for small
          or densely linked networks (the paper's four agents).
@@ -14,7 +15,10 @@ gather   every receiver is a batch of one (as in an agent process) with its
          is O(N D) instead of O(N^2), for large sparse networks (a random
          geometric graph of 1,000 agents). Senders are listed in id order, so
          each receiver sums its neighbours in the same order as ``dense``;
-         padding slots carry weight 0.
+         padding slots carry weight 0. Receivers with the same neighbours
+         still get bit-identical sums. What a sender contributes (e.g. its
+         P^-1) is recomputed in each of its receivers' slots: D times the
+         per-sender work, still far below the dense O(N^2).
 
 ``run_many`` stacks several traces of one scenario (e.g. the three
 topologies of Table II) into one batch, so the per-tick Python overhead is

@@ -12,8 +12,10 @@ import numpy as np
 
 
 def T(a: np.ndarray) -> np.ndarray:
-    """Transpose of the trailing two axes."""
-    return a.swapaxes(-1, -2)
+    """Transpose of the trailing two axes. A single matrix (a model constant
+    such as A or G) is copied contiguous: stacked products with a transposed
+    view take numpy's slow strided path."""
+    return np.ascontiguousarray(a.T) if a.ndim == 2 else a.swapaxes(-1, -2)
 
 
 def sym(a: np.ndarray) -> np.ndarray:

@@ -4,8 +4,9 @@ Deliberately naive: explicit Python loops over seeds, ticks, agents and
 neighbours, one agent's matrices at a time, and the paper's textbook formulas
 written out directly (gain form of the Kalman update, the direct
 M = (F^T R~^-1 F)^-1 F^T R~^-1 of the input estimate with R~ = H P H^T + R, no
-information-form shortcuts). It shares nothing with ``equations`` or
-``linalg``, so ``tests/test_oracle.py`` comparing the two checks the batched
+information-form shortcuts). It shares no code with ``equations`` or
+``linalg`` (only the ``Message`` container, one agent's at a time), so
+``tests/test_oracle.py`` comparing the two checks the batched
 engine against the paper, not against itself.
 
 Semantics follow ``algorithms/diskf.py`` exactly: the observation window
@@ -15,25 +16,11 @@ the update is the prediction".
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from .messages import Message
 from .model import Params
 from .trace import Trace
-
-
-@dataclass
-class AgentMessage:
-    """What agent j publishes at one tick (Algorithm 1, step 2)."""
-
-    x_pred: np.ndarray
-    P_pred: np.ndarray
-    x_upd: np.ndarray
-    P_upd: np.ndarray
-    d: np.ndarray
-    S: np.ndarray
-    valid: bool
 
 
 def predict(x, P, A, Q):
@@ -64,7 +51,7 @@ def estimate_input(x_pred, P_pred, H, R, G, y):
 def fuse_inputs(msgs):
     """Eqs. (input_fusion), (input_fusion_p) over the valid neighbours.
     Returns (d_bar, S_bar) or None when no neighbour had a valid estimate."""
-    valid = [mj for mj in msgs if mj.valid]
+    valid = [mj for mj in msgs if mj.d_valid]
     if not valid:
         return None
     inv_tr = [1.0 / np.trace(mj.S) for mj in valid]
@@ -80,7 +67,7 @@ def fuse_inputs(msgs):
     return S_bar @ vec, S_bar
 
 
-def fuse_states(own: AgentMessage, msgs, x_star):
+def fuse_states(own: Message, msgs, x_star):
     """Eqs. (state_fusion), (state_fusion_p) with P^* = P^ (info_kf_prediction)."""
     Y_star = np.linalg.inv(own.P_pred)
     Y = Y_star.copy()
@@ -134,7 +121,7 @@ def run_diskf(trace: Trace, params: Params | None = None):
                 msg, since[i] = local_step(x[i], P[i], since[i], model, k, Hs[i], Rs[i], y, p)
                 msgs.append(msg)
             for i in range(N):
-                nbrs = [msgs[j] for j in range(N) if links[k - 1, i, j]]
+                nbrs = [msgs[j] for j in np.flatnonzero(links[k - 1, i])]  # in id order, itself included
                 x[i], P[i], d_bar, has = fuse_step(msgs[i], nbrs, model.G, p)
                 if p.reset and has:
                     since[i] = 0
@@ -160,10 +147,10 @@ def local_step(x, P, since: int, model, k: int, H, R, y, p: Params):
         d, S, valid = np.zeros(m), np.eye(m), False
     if y is not None:
         since = 0
-    return AgentMessage(x_pred, P_pred, x_upd, P_upd, d, S, valid), since
+    return Message(x_pred, P_pred, x_upd, P_upd, d, S, valid), since
 
 
-def fuse_step(own: AgentMessage, nbrs, G, p: Params):
+def fuse_step(own: Message, nbrs, G, p: Params):
     """Steps 3 and 4 of Algorithm 1 for one receiver. ``nbrs`` includes itself."""
     fused = fuse_inputs(nbrs)
     x_star = own.x_pred if fused is None else own.x_pred + G @ fused[0]

@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import T, inv_spd, mv, sym
+from .linalg import T, congruence, inv_spd, mv, sym
 
 
 def rkf_update(x_pred, P_pred, U, u, G, valid):
     Y = inv_spd(P_pred)
     YG = np.matmul(Y, G)
-    GYG = sym(np.matmul(T(G), YG))
+    GYG = congruence(G, Y)
     Y_free = sym(Y - np.matmul(np.matmul(YG, inv_spd(GYG)), T(YG)))
     Y_prior = np.where(np.asarray(valid)[..., None, None], Y_free, Y)
     P = inv_spd(sym(Y_prior + U))

@@ -14,9 +14,9 @@ from diskf_mesh.scenario import load_scenario, parse_scenario, simulate
 TOL = 1e-9
 
 
-def assert_matches_oracle(trace, params: Params):
+def assert_matches_oracle(trace, params: Params, neighbours: str = "auto"):
     x, P, d, d_valid = oracle.run_diskf(trace, params)
-    est = engine.run(trace, "diskf", params)
+    est = engine.run(trace, "diskf", params, neighbours=neighbours)
     np.testing.assert_array_equal(est.d_valid, d_valid)
     np.testing.assert_allclose(est.x, x, rtol=TOL, atol=TOL)
     np.testing.assert_allclose(est.P, P, rtol=TOL, atol=TOL)
@@ -41,11 +41,12 @@ def test_estimator_variants_match_oracle(params):
     assert_matches_oracle(simulate(scn, [3]), params)
 
 
-def test_random_geometric_matches_oracle():
+@pytest.mark.parametrize("neighbours", ["dense", "gather"])
+def test_random_geometric_matches_oracle(neighbours):
     scn = load_scenario("random-geometric", agents=15).with_overrides(steps=60, comm_range=220.0)
     trace = simulate(scn, [0])
     assert trace.has.any() and not trace.links.all()
-    assert_matches_oracle(trace, scn.params)
+    assert_matches_oracle(trace, scn.params, neighbours)
 
 
 def test_mobile_agents_match_oracle():
