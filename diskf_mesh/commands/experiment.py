@@ -44,7 +44,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.json == "":
         raise InputError("json", "needs a file name")
-    scn = load_scenario(args.scenario)
+    scn = load_scenario(args.scenario, agents=args.agents)
     if args.topology is None:
         args.topology = ["range"] if args.comm_range is not None else list(DEFAULT_TOPOLOGIES)
     settings = experiment.settings_for(args.topology, args.comm_range)

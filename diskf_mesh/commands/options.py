@@ -90,6 +90,8 @@ def add_scenario_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--range", type=range_value, metavar="R", dest="comm_range",
                         help="communication radius of the 'range' topology")
     parser.add_argument("--steps", type=positive_int, metavar="K", help="horizon in ticks (default: the scenario's)")
+    parser.add_argument("--agents", type=positive_int, metavar="N",
+                        help="agent count of a generated scenario (e.g. random-geometric; default: the scenario's)")
 
 
 def add_estimator_options(parser: argparse.ArgumentParser) -> None:

@@ -23,7 +23,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    scn = load_scenario(args.scenario)
+    scn = load_scenario(args.scenario, agents=args.agents)
     topology = args.topology or ("range" if args.comm_range is not None else scn.topology)
     setting, = settings_for([topology], args.comm_range)
     scn = setting.apply(scn, args.steps)
