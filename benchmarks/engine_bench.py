@@ -43,58 +43,49 @@ def agent_steps(traces) -> int:
     return sum(t.has.size for t in traces)
 
 
-def rates_table(seeds: int, steps: int, oracle_seeds: int, repeat: int) -> str:
-    """Per algorithm: engine on the Table II batch (3 topologies x seeds),
-    and the plain oracle (DISKF) on a few seeds of the same scenario."""
+def quadrant_tables(seeds: int, scaling_seeds, steps: int, oracle_seeds: int, repeat: int) -> str:
+    """Engine rates on quadrants beside the plain oracle (DISKF), measured in
+    the same interleaved rounds so that both see the same machine load:
+
+    * every algorithm on the Table II batch (3 topologies x ``seeds``);
+    * DISKF by batch size (``scaling_seeds`` per topology): the engine pays a
+      fixed cost per tick, so its rate, unlike the oracle's, grows with the
+      batch.
+    """
     scn = load_scenario("quadrants").with_overrides(steps=steps)
-    traces = [simulate(scn.with_overrides(topology=t), range(seeds)) for t in TOPOLOGIES]
-    small = [simulate(scn.with_overrides(topology=t), range(oracle_seeds)) for t in TOPOLOGIES]
-    engine_t = {a: float("inf") for a in algorithms.NAMES}
-    oracle_t = float("inf")
-    for _ in range(repeat):  # interleaved rounds: engine and oracle see the same machine load
-        for a in algorithms.NAMES:
-            engine_t[a] = min(engine_t[a], best_time(lambda: engine.run_many(traces, a, scn.params), 1))
-        oracle_t = min(oracle_t, best_time(lambda: [oracle.run_diskf(t, scn.params) for t in small], 1))
-    n_engine, n_oracle = agent_steps(traces), agent_steps(small)
-    oracle_rate = n_oracle / oracle_t
+    batch = lambda n: [simulate(scn.with_overrides(topology=t), range(n)) for t in TOPOLOGIES]  # noqa: E731
+    table2, small = batch(seeds), batch(oracle_seeds)
+    scaling = {n: batch(n) for n in scaling_seeds}
+    runs = {("alg", a): (table2, a) for a in algorithms.NAMES}
+    runs.update({("seeds", n): (traces, "diskf") for n, traces in scaling.items()})
+    t_engine = {key: float("inf") for key in runs}
+    t_oracle = float("inf")
+    for _ in range(repeat):
+        for key, (traces, a) in runs.items():
+            t_engine[key] = min(t_engine[key], best_time(lambda: engine.run_many(traces, a, scn.params), 1))
+        t_oracle = min(t_oracle, best_time(lambda: [oracle.run_diskf(t, scn.params) for t in small], 1))
+    o_rate = agent_steps(small) / t_oracle
+    n2 = agent_steps(table2)
     lines = [
-        f"Quadrants (4 agents), {len(TOPOLOGIES)} topologies x {seeds} seeds x {steps} ticks = {n_engine:,} agent-steps "
-        f"per algorithm (engine); oracle: {len(TOPOLOGIES)} x {oracle_seeds} seeds = {n_oracle:,} agent-steps.",
+        f"Quadrants (4 agents), {len(TOPOLOGIES)} topologies x {seeds} seeds x {steps} ticks = {n2:,} agent-steps "
+        f"per algorithm (engine); plain oracle: DISKF on {len(TOPOLOGIES)} x {oracle_seeds} seeds "
+        f"= {agent_steps(small):,} agent-steps. Best of {repeat} interleaved rounds, CPU time.",
         "",
         "| algorithm | engine CPU (s) | engine agent-steps/s | plain oracle agent-steps/s | speed-up |",
         "|---|---:|---:|---:|---:|",
     ]
     for a in algorithms.NAMES:
-        rate = n_engine / engine_t[a]
-        if a == "diskf":
-            lines.append(f"| {experiment.PAPER_LABELS[a]} | {engine_t[a]:.3f} | {rate:,.0f} | {oracle_rate:,.0f} "
-                         f"| {rate / oracle_rate:.0f}x |")
-        else:
-            lines.append(f"| {experiment.PAPER_LABELS[a]} | {engine_t[a]:.3f} | {rate:,.0f} | (DISKF only) | - |")
-    lines.append(f"| all six | {sum(engine_t.values()):.3f} | {6 * n_engine / sum(engine_t.values()):,.0f} | | |")
-    return "\n".join(lines)
-
-
-def batch_scaling_table(seed_counts, steps: int, oracle_seeds: int, repeat: int) -> str:
-    """DISKF engine rate against batch size (quadrants, three topologies
-    stacked), beside the oracle: the engine pays a fixed cost per tick, so
-    its rate, unlike the oracle's, grows with the batch."""
-    scn = load_scenario("quadrants").with_overrides(steps=steps)
-    small = [simulate(scn.with_overrides(topology=t), range(oracle_seeds)) for t in TOPOLOGIES]
-    batches = {s: [simulate(scn.with_overrides(topology=t), range(s)) for t in TOPOLOGIES] for s in seed_counts}
-    engine_t = {s: float("inf") for s in seed_counts}
-    oracle_t = float("inf")
-    for _ in range(repeat):
-        for s, traces in batches.items():
-            engine_t[s] = min(engine_t[s], best_time(lambda: engine.run_many(traces, "diskf", scn.params), 1))
-        oracle_t = min(oracle_t, best_time(lambda: [oracle.run_diskf(t, scn.params) for t in small], 1))
-    o_rate = agent_steps(small) / oracle_t
-    lines = ["DISKF on quadrants, 3 topologies stacked, by seeds per topology (filters advanced per tick = 12 x seeds).",
-             "", "| seeds | filters per tick | engine agent-steps/s | plain oracle agent-steps/s | speed-up |",
-             "|---:|---:|---:|---:|---:|"]
-    for s, traces in batches.items():
-        rate = agent_steps(traces) / engine_t[s]
-        lines.append(f"| {s} | {12 * s} | {rate:,.0f} | {o_rate:,.0f} | {rate / o_rate:.0f}x |")
+        t = t_engine["alg", a]
+        cells = f"{o_rate:,.0f} | {n2 / t / o_rate:.0f}x" if a == "diskf" else "(DISKF only) | -"
+        lines.append(f"| {experiment.PAPER_LABELS[a]} | {t:.3f} | {n2 / t:,.0f} | {cells} |")
+    total = sum(t_engine["alg", a] for a in algorithms.NAMES)
+    lines += [f"| all six | {total:.3f} | {6 * n2 / total:,.0f} | | |", "",
+              "DISKF by batch size: seeds per topology, 3 topologies stacked (12 x seeds filters per tick).", "",
+              "| seeds | filters per tick | engine agent-steps/s | plain oracle agent-steps/s | speed-up |",
+              "|---:|---:|---:|---:|---:|"]
+    for n, traces in scaling.items():
+        rate = agent_steps(traces) / t_engine["seeds", n]
+        lines.append(f"| {n} | {12 * n} | {rate:,.0f} | {o_rate:,.0f} | {rate / o_rate:.0f}x |")
     return "\n".join(lines)
 
 
@@ -182,7 +173,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--oracle-seeds", type=int, default=2, help="seeds per topology for the (slow) plain oracle")
-    ap.add_argument("--repeat", type=int, default=3, help="rounds; the best of them is reported")
+    ap.add_argument("--repeat", type=int, default=5, help="rounds; the best of them is reported")
     ap.add_argument("--agents", type=int, default=1000)
     ap.add_argument("--ratio-steps", type=int, default=20, help="engine ticks of the large-network speed-up row")
     ap.add_argument("--big", default="all", help="algorithms for the large network: 'all', a list, or 'none'")
@@ -195,9 +186,7 @@ def main(argv=None) -> int:
     if args.quick:
         args.seeds, args.repeat, args.agents = 5, 1, 300
     print(f"numpy engine benchmark, {os.cpu_count()} CPUs, python {sys.version.split()[0]}\n")
-    print(rates_table(args.seeds, args.steps, args.oracle_seeds, args.repeat))
-    print()
-    print(batch_scaling_table(sorted({1, args.seeds, 5 * args.seeds}), args.steps, args.oracle_seeds, args.repeat))
+    print(quadrant_tables(args.seeds, sorted({1, 5 * args.seeds}), args.steps, args.oracle_seeds, args.repeat))
     print()
     print(large_ratio_table(args.agents, args.ratio_steps, 2, args.repeat))
     print()
