@@ -19,6 +19,9 @@ COMMAND_MODULES = (
     "diskf_mesh.commands.simulate",
     "diskf_mesh.commands.figures",
     "diskf_mesh.commands.report",
+    "sim.world",
+    "agents.agent",
+    "sim.launcher",
 )
 
 
@@ -27,10 +30,10 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"error: {message}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(modules=COMMAND_MODULES) -> argparse.ArgumentParser:
     parser = _Parser(prog="diskf-mesh", description="Decentralized input and state estimation (DISKF) on a Zenoh mesh")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    for mod in COMMAND_MODULES:
+    for mod in modules:
         try:
             m = importlib.import_module(mod)
         except ModuleNotFoundError as e:
@@ -41,8 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv=None, modules=COMMAND_MODULES) -> int:
+    """Run one command; ``modules`` limits the subcommands loaded (a mesh
+    process loads only its own, to start fast)."""
+    args = build_parser(modules).parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except InputError as e:
@@ -51,6 +56,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def run_one(command: str, module: str, argv=None) -> int:
+    """``python -m <module>``: only the subcommand ``command`` that ``module``
+    registers, with the same error handling as ``diskf-mesh``."""
+    return main([command, *(sys.argv[1:] if argv is None else argv)], modules=(module,))
 
 
 if __name__ == "__main__":

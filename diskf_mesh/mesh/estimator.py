@@ -36,10 +36,7 @@ class AgentEstimator:
         return int(self.sensors.p[0])
 
     def neighbours(self, positions: np.ndarray) -> tuple:
-        """Ids linked to this agent at a tick (itself included), from every
-        agent's position (N, 2) and the scenario's topology and range."""
-        row = links_for(self.scenario, positions[None])[0, self.index]
-        return tuple(i for i, linked in zip(self.ids, row) if linked)
+        return neighbours(self.scenario, self.agent_id, positions)
 
     def local(self, k: int, has: bool, y) -> Message:
         """Step 1 on this agent's own measurement (length p, ignored when not has)."""
@@ -61,3 +58,11 @@ class AgentEstimator:
         nb = Neighbourhood(np.ones((1, 1, J)), self_mask, u)
         self.state, out = self.alg.fuse(self.state, own, senders, nb)
         return out
+
+
+def neighbours(scn: Scenario, agent_id: int, positions: np.ndarray) -> tuple:
+    """Ids linked to ``agent_id`` at a tick (itself included), from every
+    agent's position (N, 2) and the scenario's topology and range."""
+    ids = [a.id for a in scn.agents]
+    row = links_for(scn, positions[None])[0, ids.index(agent_id)]
+    return tuple(i for i, linked in zip(ids, row) if linked)

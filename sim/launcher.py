@@ -1,0 +1,281 @@
+"""``diskf-mesh up``: a whole mesh run on this host, one process per agent.
+
+It starts the world and every agent of the scenario as separate processes
+(``python -m sim.world``, ``python -m agents.agent``), shows the ticks as a
+progress bar, prints the metrics table and writes the results. If any child
+fails, or on Ctrl-C, it stops every child it started and says which one
+failed and why (exit code, last line of its stderr; full logs in --logs).
+
+Without zenoh flags the processes meet on loopback only: the world listens on
+a free port of 127.0.0.1 and every agent connects to it (no multicast
+scouting). With zenoh flags (``--mode``, ``--connect``, ``--listen``,
+``--no-multicast-scouting``, ``--zenoh-config``, ``--cfg``) every child gets
+exactly those.
+"""
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import os
+import queue
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from diskf_mesh.commands.options import positive_int, seed_value
+from diskf_mesh.errors import InputError
+from diskf_mesh.mesh import runspec, zenoh_config
+from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.zenoh_config import ZenohOptions
+
+STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def loopback_options(port: int) -> tuple:
+    """(world, agent) zenoh options for a run confined to 127.0.0.1."""
+    world = ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",), no_multicast_scouting=True)
+    agent = ZenohOptions(connect=(f"tcp/127.0.0.1:{port}",), listen=("tcp/127.0.0.1:0",),
+                         no_multicast_scouting=True)
+    return world, agent
+
+
+@dataclass
+class Child:
+    name: str
+    argv: list
+    log: Path
+    proc: subprocess.Popen | None = None
+
+    def last_error_line(self) -> str:
+        try:
+            lines = [ln for ln in self.log.read_text(errors="replace").splitlines() if ln.strip()]
+        except OSError:
+            return ""
+        return lines[-1] if lines else ""
+
+
+def _die_with_parent() -> None:
+    """In the child: get SIGTERM when the launcher dies (Linux), so that a
+    killed launcher never leaves processes behind."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+class Launcher:
+    """Starts, watches and stops the children of one run."""
+
+    def __init__(self, world: Child, agents: list, progress=None, first_tick=None):
+        self.world = world
+        self.agents = agents
+        self.children = [world, *agents]
+        self.progress = progress
+        self.first_tick = first_tick
+        self._lines = queue.SimpleQueue()
+
+    def _spawn(self, child: Child, stdout) -> None:
+        with open(child.log, "wb") as err:
+            child.proc = subprocess.Popen(child.argv, stdin=subprocess.DEVNULL, stdout=stdout, stderr=err,
+                                          start_new_session=True, preexec_fn=_die_with_parent)
+
+    def start(self) -> None:
+        self._spawn(self.world, subprocess.PIPE)
+        threading.Thread(target=self._read_world, daemon=True).start()
+        for a in self.agents:
+            self._spawn(a, subprocess.DEVNULL)
+
+    def _read_world(self) -> None:
+        for line in self.world.proc.stdout:
+            self._lines.put(line.decode(errors="replace"))
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                line = self._lines.get_nowait()
+            except queue.Empty:
+                return
+            parts = line.split()
+            if len(parts) == 3 and parts[0] == "tick":
+                k = int(parts[1])
+                if k == 1 and self.first_tick is not None:
+                    self.first_tick()
+                if self.progress is not None:
+                    self.progress(k, int(parts[2]))
+
+    def wait(self, timeout: float) -> None:
+        """Until the world ends; raises ``ChildFailed`` on the first failure."""
+        deadline = time.monotonic() + timeout
+        while True:
+            self._drain()
+            rc = self.world.proc.poll()
+            if rc is not None:
+                self._drain()
+                if rc != 0:
+                    raise ChildFailed(self.world, rc)
+                return
+            for a in self.agents:
+                rc = a.proc.poll()
+                if rc:  # an agent exits 0 only on the world's stop
+                    raise ChildFailed(a, rc)
+            if time.monotonic() > deadline:
+                raise ChildFailed(self.world, None, f"still running after {timeout:g} s")
+            time.sleep(0.02)
+
+    def finish(self, timeout: float = 5.0) -> list:
+        """After the world: agents leave on its stop. Returns the agents that
+        did not exit 0 in time (they are stopped)."""
+        deadline = time.monotonic() + timeout
+        bad = []
+        for a in self.agents:
+            try:
+                rc = a.proc.wait(max(deadline - time.monotonic(), 0.01))
+            except subprocess.TimeoutExpired:
+                rc = None
+            if rc != 0:
+                bad.append(a)
+        self.stop_all()
+        return bad
+
+    def stop_all(self) -> None:
+        """SIGTERM every running child, SIGKILL what is left after a grace."""
+        live = [c for c in self.children if c.proc is not None and c.proc.poll() is None]
+        for c in live:
+            _signal(c.proc, signal.SIGTERM)
+        deadline = time.monotonic() + STOP_GRACE_S
+        for c in live:
+            try:
+                c.proc.wait(max(deadline - time.monotonic(), 0.01))
+            except subprocess.TimeoutExpired:
+                _signal(c.proc, signal.SIGKILL)
+                c.proc.wait(STOP_GRACE_S)
+        if self.world.proc is not None and self.world.proc.stdout:
+            self.world.proc.stdout.close()
+
+
+def _signal(proc: subprocess.Popen, sig) -> None:
+    try:
+        proc.send_signal(sig)
+    except ProcessLookupError:
+        pass
+
+
+class ChildFailed(RuntimeError):
+    def __init__(self, child: Child, rc, why: str = ""):
+        self.child, self.rc = child, rc
+        how = why or (f"exit code {rc}" if rc is not None and rc >= 0 else f"killed by signal {-rc}")
+        last = child.last_error_line()
+        super().__init__(f"{child.name} failed ({how})" + (f": {last}" if last else "") + f" [log: {child.log}]")
+
+
+# --------------------------------------------------------------------------
+# command line
+# --------------------------------------------------------------------------
+def build_children(spec: RunSpec, ticks: int, seed: int, ids, logs: Path, world_zenoh: ZenohOptions,
+                   agent_zenoh: ZenohOptions, world_extra=(), agent_extra=()) -> tuple:
+    world = Child("world", runspec.world_command(spec, ticks, seed, world_zenoh, world_extra), logs / "world.log")
+    agents = [Child(f"agent {i}", runspec.agent_command(spec, i, agent_zenoh, agent_extra), logs / f"agent-{i}.log")
+              for i in ids]
+    return world, agents
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("up", help="run the world and every agent as separate processes over Zenoh",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    runspec.add_arguments(p, run_id_default=None)
+    p.add_argument("--ticks", type=positive_int, metavar="K", help="ticks to run (default: the scenario's steps)")
+    p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
+    p.add_argument("--json", metavar="OUT", help="results file (default: results/up-<run-id>.json)")
+    p.add_argument("--estimates", metavar="OUT", help="also write every agent's fused estimates")
+    p.add_argument("--logs", metavar="DIR", help="children's stderr logs (default: a temporary directory)")
+    p.add_argument("--startup-timeout", type=float, default=30.0, metavar="S",
+                   help="seconds for every agent to come up (default %(default)s)")
+    p.add_argument("--tick-timeout", type=float, default=10.0, metavar="S",
+                   help="world: seconds to wait for the reports of a tick (default %(default)s)")
+    p.add_argument("--collect-timeout", type=float, default=5.0, metavar="S",
+                   help="agents: seconds to wait for neighbours' messages (default %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    zenoh_config.add_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from diskf_mesh.experiment import format_table
+
+    spec = runspec.from_args(args, run_id=args.run_id or secrets.token_hex(4))
+    scn = spec.load(args.ticks)
+    ticks = scn.steps
+    ids = [a.id for a in scn.agents]
+    out = Path(args.json or f"results/up-{spec.run_id}.json")
+    logs = Path(args.logs or tempfile.mkdtemp(prefix=f"diskf-up-{spec.run_id}-"))
+    try:
+        logs.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
+    zopts = zenoh_config.from_args(args)
+    world_z, agent_z = loopback_options(free_port()) if zopts.is_default else (zopts, zopts)
+    world_extra = ["--progress", "lines", "--json", str(out), "--startup-timeout", str(args.startup_timeout),
+                   "--tick-timeout", str(args.tick_timeout)]
+    if args.estimates:
+        world_extra += ["--estimates", args.estimates]
+    agent_extra = ["--collect-timeout", str(args.collect_timeout),
+                   "--world-timeout", str(args.startup_timeout + 2 * args.tick_timeout)]
+    world, agents = build_children(spec, ticks, args.seed, ids, logs, world_z, agent_z, world_extra, agent_extra)
+
+    quiet = args.quiet or not sys.stderr.isatty()
+    bar = tqdm(total=ticks, desc=f"{spec.algorithm} x {len(ids)} agents", unit="tick", file=sys.stderr,
+               disable=quiet)
+    t0 = time.monotonic()
+    timing = {}
+
+    def progress(k, K):
+        bar.update(k - bar.n)
+
+    launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()))
+    try:
+        launcher.start()
+        launcher.wait(args.startup_timeout + ticks * args.tick_timeout + 30.0)
+    except ChildFailed as e:
+        bar.close()
+        launcher.stop_all()
+        print(f"error: {e}; stopped {len(launcher.children)} processes", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        bar.close()
+        launcher.stop_all()
+        print(f"interrupted: stopped {len(launcher.children)} processes", file=sys.stderr)
+        return 130
+    bar.close()
+    t_end = time.monotonic()
+    bad = launcher.finish()
+    for a in bad:
+        print(f"warning: {a.name} did not leave cleanly after the run: {a.last_error_line()}", file=sys.stderr)
+    results = json.loads(out.read_text())
+    first = timing.get("first", t_end) - t0
+    print(f"{scn.name}: {len(ids)} agent processes + world, {ticks} ticks, seed {args.seed}, run {spec.run_id}; "
+          f"first tick after {first:.2f} s, {ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
+    print(format_table(results))
+    print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "") + f", logs: {logs}")
+    return 0
+
+
+if __name__ == "__main__":
+    from diskf_mesh import cli
+
+    sys.exit(cli.run_one("up", __spec__.name))

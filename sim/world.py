@@ -1,0 +1,282 @@
+"""``diskf-mesh world``: the world process of a mesh run.
+
+It owns the ground truth (``scenario.simulate`` with ``--seed``) and the
+agents' motion. It waits until every agent of the scenario is ready (their
+liveliness tokens; it fails after ``--startup-timeout`` naming the missing
+ones), then runs the ticks in lockstep: for tick k it sends each live agent
+its own measurement (or none) on that agent's key, broadcasts every agent's
+position and the live set, and waits for every live agent's fused estimate
+of tick k, or ``--tick-timeout`` seconds. A report of a past tick is counted
+("stale") and dropped. At the end it says stop, computes the metrics and
+writes the same result JSON as ``experiment``:
+``{algorithm: {setting: {mae_state, ...}}}``; ``--estimates`` writes every
+agent's fused estimates, what was missing, and every agent's counters.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from diskf_mesh import metrics, wire
+from diskf_mesh.commands.options import positive_int, save_json, seed_value
+from diskf_mesh.engine import Estimates
+from diskf_mesh.mesh import runspec, zenoh_config
+from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.log import Log
+from diskf_mesh.mesh.transport import Mailbox, MeshError, Transport, ZenohTransport
+from diskf_mesh.scenario import Scenario, simulate
+from diskf_mesh.trace import Trace, estimates_to_json
+
+ESTIMATES_FORMAT = "diskf-mesh-estimates/1"
+
+
+@dataclass(frozen=True)
+class WorldTiming:
+    startup_timeout: float = 30.0  # for every agent to be ready
+    tick_timeout: float = 10.0     # for the reports of one tick
+    leave_timeout: float = 2.0     # after stop, for the agents to leave
+
+
+@dataclass
+class WorldRecord:
+    """What the world heard. Arrays (K, N, ...), NaN where no report came."""
+
+    ids: tuple
+    x: np.ndarray
+    P: np.ndarray
+    d: np.ndarray
+    d_valid: np.ndarray
+    reported: np.ndarray                       # (K, N) bool
+    agent_counters: dict = field(default_factory=dict)   # id -> counters of its last report
+    counters: Counter = field(default_factory=Counter)   # the world's own
+    startup_s: float = 0.0                     # start to tick 1
+    ticks_s: float = 0.0                       # tick 1 to the last report
+
+    def estimates(self, fill: bool = False) -> Estimates:
+        """Batch of one; with ``fill`` missing entries are x = 0, P = I (for
+        metrics, which mask them out)."""
+        x, P, d = self.x, self.P, self.d
+        if fill:
+            miss = ~self.reported
+            x, d = np.where(miss[..., None], 0.0, x), np.where(miss[..., None], 0.0, d)
+            P = np.where(miss[..., None, None], np.eye(P.shape[-1]), P)
+        return Estimates(x[None], P[None], d[None], self.d_valid[None])
+
+
+class World:
+    def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
+                 timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None):
+        self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
+        self.keys, self.transport, self.timing = keys, transport, timing
+        self.progress = progress
+        self.log = log or Log("world")
+        self.ids = tuple(a.id for a in scn.agents)
+        self.p = scn.sensors().p
+        self.inbox = Mailbox()
+        self.alive, self.ready = set(), set()
+        K, N = trace.has.shape[1:]
+        n, m = trace.model.n, trace.model.m
+        self.record = WorldRecord(self.ids, np.full((K, N, n), np.nan), np.full((K, N, n, n), np.nan),
+                                  np.full((K, N, m), np.nan), np.zeros((K, N), dtype=bool),
+                                  np.zeros((K, N), dtype=bool))
+        self.k = 0
+
+    # -- inbox -----------------------------------------------------------
+    def _next(self, until: float) -> None:
+        item = self.inbox.get(until - time.monotonic())
+        if item is None:
+            return
+        key, payload, _ = item
+        kind, who = self.keys.parse(key)
+        if kind in ("alive", "ready") and who is not None:
+            group = self.alive if kind == "alive" else self.ready
+            (group.add if payload else group.discard)(who)
+            if kind == "alive" and not payload:
+                self.ready.discard(who)
+        elif kind == "report":
+            try:
+                self._on_report(who, payload)
+            except wire.Rejected as e:
+                self.record.counters[f"rejected:{e.reason}"] += 1
+                self.log.once(("report", who, e.reason), f"rejected a report from {key}: {e}")
+
+    def _on_report(self, sender, payload) -> None:
+        if sender not in self.ids:
+            raise wire.Rejected("sender", f"unknown agent {sender}")
+        r = wire.decode_report(payload, run_id=self.keys.run_id, sender=sender,
+                               n=self.trace.model.n, m=self.trace.model.m)
+        i = self.ids.index(sender)
+        if r.tick < self.k:
+            self.record.counters["stale"] += 1
+        elif r.tick > self.k or self.record.reported[r.tick - 1, i]:
+            self.record.counters["unexpected"] += 1
+        else:
+            rec = self.record
+            rec.x[r.tick - 1, i], rec.P[r.tick - 1, i], rec.d[r.tick - 1, i] = r.x, r.P, r.d
+            rec.d_valid[r.tick - 1, i] = r.d_valid
+            rec.reported[r.tick - 1, i] = True
+            rec.agent_counters[sender] = r.counters
+
+    # -- protocol ----------------------------------------------------------
+    def start(self) -> None:
+        self.transport.subscribe(f"{self.keys.root}/agent/*/report", self.inbox.push)
+        self.transport.watch_tokens(f"{self.keys.root}/*/agent/*", self.inbox.push)
+        self.transport.declare_token(self.keys.alive_world)
+
+    def wait_agents(self) -> None:
+        t0 = time.monotonic()
+        deadline = t0 + self.timing.startup_timeout
+        while not self.ready >= set(self.ids):
+            if time.monotonic() >= deadline:
+                absent = [i for i in self.ids if i not in self.alive]
+                stuck = [i for i in self.ids if i in self.alive and i not in self.ready]
+                parts = []
+                if absent:
+                    parts.append(f"no agent process for id {', '.join(map(str, absent))} (no liveliness token)")
+                if stuck:
+                    parts.append(f"agent {', '.join(map(str, stuck))} up but not connected to every peer")
+                raise MeshError(f"after {self.timing.startup_timeout:g} s waiting for the agents: "
+                                + "; ".join(parts))
+            self._next(deadline)
+
+    def run_tick(self, k: int) -> None:
+        self.k = k
+        tr, run = self.trace, self.keys.run_id
+        live = [i for i in self.ids if i in self.ready]
+        for i in live:
+            j = self.ids.index(i)
+            has = bool(tr.has[0, k - 1, j])
+            self.transport.put(self.keys.meas(i), wire.encode_measurement(
+                run, k, i, has, tr.y[0, k - 1, j, : self.p[j]]))
+        self.transport.put(self.keys.tick, wire.encode_tick(wire.Tick(
+            run, k, tr.has.shape[1], self.seed, self.algorithm, self.scn.topology, self.scn.comm_range,
+            tr.positions[k - 1], tuple(live))))
+        deadline = time.monotonic() + self.timing.tick_timeout
+        col = [self.ids.index(i) for i in live]
+        while True:
+            waiting = [i for i, j in zip(live, col) if not self.record.reported[k - 1, j] and i in self.ready]
+            if not waiting or time.monotonic() >= deadline:
+                break
+            self._next(deadline)
+        for i in waiting:
+            self.record.counters["missing-report"] += 1
+            self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
+
+    def stop(self, why: str) -> None:
+        self.transport.put(self.keys.stop, wire.encode_stop(self.keys.run_id, self.k, why))
+        deadline = time.monotonic() + self.timing.leave_timeout
+        while self.alive and time.monotonic() < deadline:
+            self._next(deadline)
+
+    def run(self) -> WorldRecord:
+        t0 = time.monotonic()
+        self.start()
+        self.wait_agents()
+        t1 = time.monotonic()
+        self.record.startup_s = t1 - t0
+        K = self.trace.has.shape[1]
+        try:
+            for k in range(1, K + 1):
+                self.run_tick(k)
+                if self.progress is not None:
+                    self.progress(k)
+        finally:
+            self.record.ticks_s = time.monotonic() - t1
+            self.stop("done" if self.k == K else "world stopped")
+        return self.record
+
+
+# --------------------------------------------------------------------------
+# results
+# --------------------------------------------------------------------------
+def result_metrics(trace: Trace, rec: WorldRecord) -> dict:
+    """The metrics of ``experiment`` over the agent-ticks that were reported
+    (a single seed, so every spread ``<metric>_std`` is 0)."""
+    row = metrics.summarize(*metrics.errors(trace, rec.estimates(fill=True)), mask=rec.reported[None])
+    row.update({f"{k}_std": 0.0 for k in metrics.METRIC_KEYS})
+    return row
+
+
+def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, run_id: str, row: dict) -> dict:
+    doc = estimates_to_json(rec.estimates(), algorithm, metrics=row)
+    doc.update(format=ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(rec.ids),
+               reported=rec.reported.tolist(), agent_counters={str(k): v for k, v in rec.agent_counters.items()},
+               world_counters=dict(rec.counters), startup_s=rec.startup_s, ticks_s=rec.ticks_s)
+    return doc
+
+
+# --------------------------------------------------------------------------
+# command line
+# --------------------------------------------------------------------------
+PROGRESS = ("bar", "lines", "none")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("world", help="the world process of a mesh run (ground truth, lockstep)",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    runspec.add_arguments(p)
+    p.add_argument("--ticks", type=positive_int, metavar="K", help="ticks to run (default: the scenario's steps)")
+    p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
+    p.add_argument("--json", metavar="OUT", help="write the results {algorithm: {setting: metrics}}")
+    p.add_argument("--estimates", metavar="OUT", help="write every agent's fused estimates and counters")
+    p.add_argument("--startup-timeout", type=float, default=WorldTiming.startup_timeout, metavar="S",
+                   help="seconds to wait for every agent (default %(default)s)")
+    p.add_argument("--tick-timeout", type=float, default=WorldTiming.tick_timeout, metavar="S",
+                   help="seconds to wait for the reports of one tick (default %(default)s)")
+    p.add_argument("--progress", choices=PROGRESS, default="bar",
+                   help="progress bar on stderr, 'tick k K' lines on stdout, or none")
+    zenoh_config.add_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from diskf_mesh.experiment import format_table
+
+    spec = runspec.from_args(args)
+    scn = spec.load(args.ticks)
+    trace = simulate(scn, [args.seed])
+    K = trace.has.shape[1]
+    log = Log("world")
+    bar = tqdm(total=K, desc=f"world {spec.algorithm}", unit="tick", file=sys.stderr,
+               disable=args.progress != "bar" or not sys.stderr.isatty())
+
+    def progress(k):
+        if args.progress == "lines":
+            print(f"tick {k} {K}", flush=True)
+        bar.update(1)
+
+    try:
+        with ZenohTransport(zenoh_config.from_args(args)) as transport:
+            world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
+                          WorldTiming(args.startup_timeout, args.tick_timeout), progress, log)
+            rec = world.run()
+    except MeshError as e:
+        log.error(str(e))
+        return 1
+    finally:
+        bar.close()
+    row = result_metrics(trace, rec)
+    results = {spec.algorithm: {runspec.setting_label(scn): row}}
+    if args.json:
+        save_json(args.json, results, "json")
+    if args.estimates:
+        save_json(args.estimates, estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row), "estimates")
+    missing = int((~rec.reported).sum())
+    if missing:
+        log.info(f"{missing} of {rec.reported.size} agent-ticks had no report; metrics cover the rest")
+    if args.progress != "lines":
+        print(format_table(results))
+    return 0
+
+
+if __name__ == "__main__":
+    from diskf_mesh import cli
+
+    sys.exit(cli.run_one("world", __spec__.name))
