@@ -1,0 +1,49 @@
+"""Shared by the mesh tests: run mesh processes, compare with the engine."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from diskf_mesh import engine
+from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.scenario import simulate
+
+TOL = 1e-9
+
+
+def up(tmp_path: Path, *args, timeout: float = 120.0) -> tuple:
+    """``diskf-mesh up`` as a child process; returns (completed, estimates
+    doc or None, results doc or None)."""
+    est, res = tmp_path / "estimates.json", tmp_path / "results.json"
+    cmd = [sys.executable, "-m", "sim.launcher", *args, "--estimates", str(est), "--json", str(res),
+           "--logs", str(tmp_path / "logs"), "--quiet"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    load = lambda p: json.loads(p.read_text()) if p.exists() else None  # noqa: E731
+    return done, load(est), load(res)
+
+
+def reference(spec: RunSpec, ticks: int, seed: int):
+    """(trace, engine estimates) of the same run in-process."""
+    scn = spec.load(ticks)
+    trace = simulate(scn, [seed])
+    return trace, engine.run(trace, spec.algorithm, scn.params)
+
+
+def assert_same(doc: dict, ref: engine.Estimates, tol: float = TOL) -> None:
+    """Every agent's fused x, P, and d (where valid) equal the engine's."""
+    assert np.array(doc["reported"]).all(), "some agent-ticks had no report"
+    x, P = np.array(doc["x"], dtype=float), np.array(doc["P"], dtype=float)
+    np.testing.assert_allclose(x, ref.x[0], rtol=0, atol=tol)
+    np.testing.assert_allclose(P, ref.P[0], rtol=0, atol=tol)
+    valid = np.array([[row is not None for row in tick] for tick in doc["d"]])
+    np.testing.assert_array_equal(valid, ref.d_valid[0])
+    d = np.array([[row if row is not None else [np.nan] * ref.d.shape[-1] for row in tick] for tick in doc["d"]])
+    np.testing.assert_allclose(d[valid], ref.d[0][valid], rtol=0, atol=tol)
+
+
+def run_checked(cmd, **kw) -> str:
+    return subprocess.run(cmd, check=True, capture_output=True, text=True, **kw).stdout
