@@ -94,8 +94,14 @@ class Launcher:
                                           start_new_session=True, preexec_fn=_die_with_parent)
 
     def start(self) -> None:
+        self.start_world()
+        self.start_agents()
+
+    def start_world(self) -> None:
         self._spawn(self.world, subprocess.PIPE)
         threading.Thread(target=self._read_world, daemon=True).start()
+
+    def start_agents(self) -> None:
         for a in self.agents:
             self._spawn(a, subprocess.DEVNULL)
 

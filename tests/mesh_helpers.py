@@ -11,6 +11,7 @@ import numpy as np
 from diskf_mesh import engine
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.scenario import simulate
+from sim.launcher import Launcher, build_children, free_port, loopback_options
 
 TOL = 1e-9
 
@@ -47,3 +48,30 @@ def assert_same(doc: dict, ref: engine.Estimates, tol: float = TOL) -> None:
 
 def run_checked(cmd, **kw) -> str:
     return subprocess.run(cmd, check=True, capture_output=True, text=True, **kw).stdout
+
+
+class Mesh(Launcher):
+    """World and agents started by the tests themselves (explicit endpoints)."""
+
+    world_endpoints: tuple = ()
+
+
+def start_mesh(spec: RunSpec, ticks: int, seed: int, tmp_path: Path, world_zenoh=None, agent_zenoh=None,
+               world_extra=(), agent_extra=(), wrap=None) -> Mesh:
+    """Start the world (agents: ``mesh.start_agents()``). Default endpoints:
+    loopback, the world listening on a free port. ``wrap(name, argv)`` may
+    prefix a child's command line (e.g. ``ip netns exec``)."""
+    if world_zenoh is None:
+        world_zenoh, agent_zenoh = loopback_options(free_port())
+    logs = tmp_path / "logs"
+    logs.mkdir(exist_ok=True)
+    world, agents = build_children(spec, ticks, seed, [a.id for a in spec.load(ticks).agents], logs, world_zenoh,
+                                   agent_zenoh, ["--progress", "none", "--estimates", str(tmp_path / "est.json"),
+                                                 *world_extra], agent_extra)
+    if wrap is not None:
+        for c in (world, *agents):
+            c.argv = wrap(c.name, c.argv)
+    mesh = Mesh(world, agents)
+    mesh.world_endpoints = tuple(world_zenoh.listen)
+    mesh.start_world()
+    return mesh

@@ -1,0 +1,144 @@
+"""The wire format: round trip, size, every rejection reason, and what is on
+the wire in a real run (never a measurement, an H or an R)."""
+from __future__ import annotations
+
+import queue
+import re
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from diskf_mesh import wire
+from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.transport import ZenohTransport
+from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.messages import Message
+from diskf_mesh.scenario import scenario_path, simulate
+
+from mesh_helpers import start_mesh
+
+pytestmark = pytest.mark.mesh
+
+RUN = "wire-test"
+
+
+def _message(n=2, m=1, valid=True, seed=0) -> Message:
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((n, n))
+    P = A @ A.T + n * np.eye(n)
+    return Message(rng.standard_normal((1, 1, n)), P[None, None], rng.standard_normal((1, 1, n)),
+                   (0.5 * P)[None, None], rng.standard_normal((1, 1, m)), (np.eye(m) * 0.3)[None, None],
+                   np.array([[valid]]))
+
+
+def _doc(msg=None) -> dict:
+    return msgpack.unpackb(wire.encode(RUN, 3, 12, msg or _message()))
+
+
+def _rejects(doc_or_bytes, reason: str, **kw) -> None:
+    data = doc_or_bytes if isinstance(doc_or_bytes, bytes) else msgpack.packb(doc_or_bytes)
+    with pytest.raises(wire.Rejected) as e:
+        wire.decode(data, **kw)
+    assert e.value.reason == reason
+
+
+def test_round_trip_is_exact_and_small():
+    for n, m in [(2, 1), (4, 2), (6, 3)]:
+        msg = _message(n, m, valid=(n != 4))
+        data = wire.encode(RUN, 3, 12, msg)
+        w = wire.decode(data, run_id=RUN, sender=3, n=n, m=m)
+        assert (w.run_id, w.sender, w.tick) == (RUN, 3, 12)
+        for f in Message.ARRAY_FIELDS:
+            np.testing.assert_array_equal(getattr(w.message, f), getattr(msg, f)[0, 0])  # bit for bit
+        assert bool(w.message.d_valid) == (n != 4)
+    assert len(wire.encode("a1b2c3d4", 9, 200, _message(2, 1))) < 200
+
+
+def test_every_rejection_reason():
+    _rejects(b"\xc1\xc1 not msgpack", "not-msgpack")
+    _rejects(b"", "not-msgpack")
+    _rejects([1, 2, 3], "schema")
+    _rejects({**_doc(), "v": 2}, "schema")
+    _rejects({**_doc(), "k": "report"}, "schema")
+    _rejects({k: v for k, v in _doc().items() if k != "t"}, "schema")
+    _rejects({**_doc(), "s": "3"}, "schema")
+    _rejects(_doc(), "run", run_id="another-run")
+    _rejects(_doc(), "sender", sender=4)
+    _rejects(_doc(), "shape", n=3)
+    _rejects({**_doc(), "a": _doc()["a"][:-8]}, "shape")
+    _rejects({**_doc(), "dt": ">f8"}, "dtype")
+    _rejects({**_doc(), "a": [1.0] * 14}, "dtype")
+    bad = np.frombuffer(_doc()["a"], "<f8").copy()
+    bad[0] = np.nan
+    _rejects({**_doc(), "a": bad.tobytes()}, "non-finite")
+    bad[0] = np.inf
+    _rejects({**_doc(), "a": bad.tobytes()}, "non-finite")
+    not_pd = _message()
+    not_pd = Message(**{**not_pd.__dict__, "P_upd": np.array([[[[1.0, 2.0], [2.0, 1.0]]]])})
+    _rejects(wire.encode(RUN, 3, 12, not_pd), "not-spd")
+    asym = Message(**{**_message().__dict__, "P_pred": np.array([[[[2.0, 0.5], [0.4, 2.0]]]])})
+    _rejects(wire.encode(RUN, 3, 12, asym), "not-spd")
+    assert set(wire.REASONS) >= {"not-msgpack", "schema", "run", "sender", "shape", "dtype", "non-finite",
+                                 "not-spd"}
+
+
+def test_world_payloads_round_trip():
+    pos = np.arange(8.0).reshape(4, 2)
+    t = wire.decode_tick(wire.encode_tick(wire.Tick(RUN, 5, 30, 7, "diskf", "range", float("inf"), pos,
+                                                    (1, 2, 4))), run_id=RUN, agents=4)
+    assert (t.tick, t.ticks, t.seed, t.live, t.comm_range) == (5, 30, 7, (1, 2, 4), float("inf"))
+    np.testing.assert_array_equal(t.positions, pos)
+    mm = wire.decode_measurement(wire.encode_measurement(RUN, 5, 2, True, [1.5]), run_id=RUN, agent=2, p=1)
+    assert mm.has and mm.y.tolist() == [1.5]
+    with pytest.raises(wire.Rejected):
+        wire.decode_measurement(wire.encode_measurement(RUN, 5, 2, True, [1.5]), agent=3)
+    r = wire.decode_report(wire.encode_report(RUN, 2, 5, [1.0, 2.0], np.eye(2), [0.5], True, {"fused": 3}),
+                           run_id=RUN, sender=2, n=2, m=1)
+    assert r.counters == {"fused": 3} and r.d_valid
+
+
+def _distinctive_scenario(tmp_path):
+    """Scenario 1 with H and R values that cannot appear by chance."""
+    text = scenario_path("quadrants").read_text()
+    text = text.replace("H = [[1.0, 0.0]]", "H = [[1.2345678, 0.0]]").replace("H = [[0.0, 1.0]]",
+                                                                            "H = [[0.0, 1.2345678]]")
+    text = text.replace("R = [[2.0]]", "R = [[2.718281828]]")
+    path = tmp_path / "distinct.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def test_no_measurement_h_or_r_on_the_wire(tmp_path):
+    """Sniff every agent message of a real run and look for the bytes of H,
+    R and every measurement."""
+    spec = RunSpec(_distinctive_scenario(tmp_path), "diskf", run_id="sniffed", topology="all")
+    ticks, seed = 20, 4
+    captured = queue.SimpleQueue()
+    mesh = start_mesh(spec, ticks, seed, tmp_path)
+    try:
+        sniffer = ZenohTransport(ZenohOptions(connect=mesh.world_endpoints, no_multicast_scouting=True,
+                                              listen=("tcp/127.0.0.1:0",)))
+        sniffer.subscribe(Keys(spec.run_id).msg("*"), lambda k, p: captured.put((k, p)))
+        mesh.start_agents()
+        mesh.wait(60)
+    finally:
+        mesh.stop_all()
+    time.sleep(0.2)
+    sniffer.close()
+    payloads = []
+    while not captured.empty():
+        payloads.append(captured.get())
+    assert len(payloads) >= 4 * (ticks - 5), "the sniffer heard too little"
+    trace = simulate(spec.load(ticks), [seed])
+    secrets = {np.float64(v).tobytes() for v in (1.2345678, 2.718281828, 1 / 2.718281828)}
+    secrets |= {np.float64(v).tobytes() for v in trace.y[trace.has].ravel()}
+    for key, data in payloads:
+        assert re.fullmatch(r"diskf/sniffed/agent/\d/msg", key)
+        assert len(data) < 200
+        doc = msgpack.unpackb(data)
+        assert set(doc) == {"v", "k", "run", "s", "t", "n", "m", "dt", "dv", "a"}
+        for s in secrets:
+            assert s not in data
