@@ -97,11 +97,17 @@ class GatheredLinks:
         own = Message(**{f.name: getattr(msg, f.name)[:, :, None] for f in fields(Message)})
         senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
         u = None if gossip_u is None else gossip_u[:, :, None]
-        st = replace(state, x=state.x[:, :, None], P=state.P[:, :, None], since=state.since[:, :, None])
-        st, out = alg.fuse(st, own, senders, Neighbourhood(self.adj, self.self_mask, u))
+        st, out = alg.fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders,
+                           Neighbourhood(self.adj, self.self_mask, u))
         squeeze = lambda a: a[:, :, 0]  # noqa: E731
-        st = replace(st, x=squeeze(st.x), P=squeeze(st.P), since=squeeze(st.since))
-        return st, Output(squeeze(out.x), squeeze(out.P), squeeze(out.d), squeeze(out.d_valid))
+        return per_receiver(st, squeeze), Output(squeeze(out.x), squeeze(out.P), squeeze(out.d), squeeze(out.d_valid))
+
+
+def per_receiver(state, fn):
+    """``state`` with ``fn`` applied to every array field (whatever fields the
+    algorithm's state carries), e.g. to add or drop the receiver-batch axis."""
+    return replace(state, **{f.name: fn(v) for f in fields(state)
+                             if isinstance(v := getattr(state, f.name), np.ndarray)})
 
 
 def choose_links(links: np.ndarray, B: int, mode: str = "auto"):

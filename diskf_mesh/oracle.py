@@ -11,8 +11,8 @@ engine against the paper, not against itself.
 
 Semantics follow ``algorithms/diskf.py`` exactly: the observation window
 counter, its reset on a valid fused input, the compensation gain forms, the
-difference of published predictions in the compensation, and "no measurement:
-the update is the prediction".
+difference of published predictions in the compensation, "no measurement:
+the update is the prediction", and the optional ``hold_input`` extension.
 """
 from __future__ import annotations
 
@@ -112,6 +112,7 @@ def run_diskf(trace: Trace, params: Params | None = None):
         x = [np.array(model.x0, dtype=float) for _ in range(N)]
         P = [np.array(model.P0, dtype=float) for _ in range(N)]
         since = [0] * N
+        hold = [None] * N  # last fused input (Params.hold_input), None before the first
         links = trace.links[min(b, trace.links.shape[0] - 1)]
         for k in range(1, K + 1):
             msgs = []
@@ -122,7 +123,7 @@ def run_diskf(trace: Trace, params: Params | None = None):
                 msgs.append(msg)
             for i in range(N):
                 nbrs = [msgs[j] for j in np.flatnonzero(links[k - 1, i])]  # in id order, itself included
-                x[i], P[i], d_bar, has = fuse_step(msgs[i], nbrs, model.G, p)
+                x[i], P[i], d_bar, has, hold[i] = fuse_step(msgs[i], nbrs, model.G, p, hold[i])
                 if p.reset and has:
                     since[i] = 0
                 xs[b, k - 1, i], Ps[b, k - 1, i], ds[b, k - 1, i], dv[b, k - 1, i] = x[i], P[i], d_bar, has
@@ -150,14 +151,21 @@ def local_step(x, P, since: int, model, k: int, H, R, y, p: Params):
     return Message(x_pred, P_pred, x_upd, P_upd, d, S, valid), since
 
 
-def fuse_step(own: Message, nbrs, G, p: Params):
-    """Steps 3 and 4 of Algorithm 1 for one receiver. ``nbrs`` includes itself."""
+def fuse_step(own: Message, nbrs, G, p: Params, hold=None):
+    """Steps 3 and 4 of Algorithm 1 for one receiver. ``nbrs`` includes itself.
+
+    ``hold`` is the last fused input, used in the prediction when nothing is
+    fused this tick if ``p.hold_input`` (our extension, off by default).
+    Returns (x_bar, P_bar, d_bar, fused or not, hold for the next tick)."""
     fused = fuse_inputs(nbrs)
-    x_star = own.x_pred if fused is None else own.x_pred + G @ fused[0]
+    if fused is not None:
+        hold = fused[0]
+    d_star = (hold if p.hold_input else None) if fused is None else fused[0]
+    x_star = own.x_pred if d_star is None else own.x_pred + G @ d_star
     x_bar, P_bar = fuse_states(own, nbrs, x_star)
     if p.compensation != "none" and p.eps != 0.0:
         total = sum(mj.x_pred - own.x_pred for mj in nbrs)
         gain = compensation_gain(P_bar, p.compensation, p.eps, len(nbrs) - 1)
         x_bar = x_bar + p.eps * gain @ total
     d_bar = np.zeros(G.shape[1]) if fused is None else fused[0]
-    return x_bar, P_bar, d_bar, fused is not None
+    return x_bar, P_bar, d_bar, fused is not None, hold

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import tomllib
+from dataclasses import replace
 from importlib import resources
 
 import numpy as np
@@ -35,18 +36,20 @@ def test_quadrants_matches_oracle(topology):
     Params(compensation="none"),
     Params(window=None),
     Params(window=0, reset=False),
-], ids=["paper-gain", "normalized-gain", "no-compensation", "no-window", "window0-noreset"])
+    Params(hold_input=True),
+], ids=["paper-gain", "normalized-gain", "no-compensation", "no-window", "window0-noreset", "hold-input"])
 def test_estimator_variants_match_oracle(params):
     scn = load_scenario("quadrants").with_overrides(topology="ring", steps=80)
     assert_matches_oracle(simulate(scn, [3]), params)
 
 
 @pytest.mark.parametrize("neighbours", ["dense", "gather"])
-def test_random_geometric_matches_oracle(neighbours):
+@pytest.mark.parametrize("hold", [False, True])
+def test_random_geometric_matches_oracle(neighbours, hold):
     scn = load_scenario("random-geometric", agents=15).with_overrides(steps=60, comm_range=220.0)
     trace = simulate(scn, [0])
     assert trace.has.any() and not trace.links.all()
-    assert_matches_oracle(trace, scn.params, neighbours)
+    assert_matches_oracle(trace, replace(scn.params, hold_input=hold), neighbours)
 
 
 def test_mobile_agents_match_oracle():
