@@ -130,9 +130,25 @@ def run(trace: Trace, algorithm: str, params: Params | None = None, progress=Non
         neighbours: str = "auto") -> Estimates:
     """Run one algorithm on every seed of ``trace``.
 
-    ``progress``, if given, is called with the number of ticks done.
+    ``progress``, if given, is called with the number of ticks done (counted
+    over all seed chunks when a large run is split, see ``seeds_per_chunk``).
     ``neighbours`` picks the message layout (see the module docstring);
     all give the same estimates."""
+    B = trace.has.shape[0]
+    chunk = seeds_per_chunk(trace)
+    if chunk >= B:
+        return run_batch(trace, algorithm, params, progress, neighbours)
+    K = trace.has.shape[1]
+    parts = []
+    for c, start in enumerate(range(0, B, chunk)):
+        report = None if progress is None else (lambda k, done=c * K: progress(done + k))
+        parts.append(run_batch(take_seeds(trace, slice(start, start + chunk)), algorithm, params, report, neighbours))
+    return Estimates(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Estimates)))
+
+
+def run_batch(trace: Trace, algorithm: str, params: Params | None = None, progress=None,
+              neighbours: str = "auto") -> Estimates:
+    """``run`` on all seeds of ``trace`` as one batch."""
     alg = algorithms.get(algorithm)(trace.model, trace.sensors, params)
     B, K, N = trace.has.shape
     n, m = trace.model.n, trace.model.m
@@ -155,6 +171,32 @@ def run(trace: Trace, algorithm: str, params: Params | None = None, progress=Non
         if progress is not None:
             progress(k)
     return Estimates(*(np.moveaxis(a, 0, 1) for a in (xs, Ps, ds, dv)))
+
+
+TICK_BYTES_MAX = 1 << 28  # working set one tick of a batch may take (256 MiB)
+TICK_BYTES_PER_SLOT = 12 * 8  # ~12 live float arrays of (receiver, sender slot, n, n)
+
+
+def seeds_per_chunk(trace: Trace) -> int:
+    """How many seeds run together so that one tick's working set, about
+    ``TICK_BYTES_PER_SLOT`` n^2 bytes per (seed, receiver, sender slot), stays
+    under ``TICK_BYTES_MAX``: all of them unless the network is large (1,000
+    agents and 20 seeds would take ~700 MB in one batch)."""
+    B, K, N = trace.has.shape
+    per_slot = TICK_BYTES_PER_SLOT * trace.model.n ** 2
+    if B * N * N * per_slot <= TICK_BYTES_MAX:  # even all-to-all fits
+        return B
+    links = trace.links[:, link_changes(trace.links)]
+    slots = N * int(links.sum(axis=-1).max())
+    return int(np.clip(TICK_BYTES_MAX // (slots * per_slot), 1, B))
+
+
+def take_seeds(trace: Trace, index) -> Trace:
+    """The trace restricted to some seeds (the leading axis)."""
+    pick = lambda a: None if a is None else a[index]  # noqa: E731
+    links = trace.links if trace.links.shape[0] == 1 else trace.links[index]
+    return replace(trace, y=trace.y[index], has=trace.has[index], links=links, truth_x=pick(trace.truth_x),
+                   truth_d=pick(trace.truth_d), seeds=tuple(np.asarray(trace.seeds)[index].tolist()))
 
 
 def link_changes(links: np.ndarray) -> np.ndarray:

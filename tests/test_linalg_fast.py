@@ -112,3 +112,16 @@ def test_run_many_equals_separate_runs(name):
         alone = engine.run(tr, name)
         for f in ("x", "P", "d", "d_valid"):
             np.testing.assert_array_equal(getattr(est, f), getattr(alone, f))
+
+
+@pytest.mark.parametrize("name", ["diskf", "gdkf"])
+def test_seed_chunks_equal_one_batch(name, monkeypatch):
+    trace = simulate(load_scenario("random-geometric", agents=40).with_overrides(steps=20), [0, 1, 2])
+    whole = engine.run_batch(trace, name)
+    monkeypatch.setattr(engine, "TICK_BYTES_MAX", 1)  # one seed per chunk
+    assert engine.seeds_per_chunk(trace) == 1
+    ticks = []
+    chunked = engine.run(trace, name, progress=ticks.append)
+    assert ticks == list(range(1, 61))
+    for f in ("x", "P", "d", "d_valid"):
+        np.testing.assert_array_equal(getattr(chunked, f), getattr(whole, f))
