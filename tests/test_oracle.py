@@ -74,3 +74,21 @@ def test_all_to_all_agents_agree_bit_for_bit():
     for name in ("diskf", "cdrkf"):
         est = engine.run(trace, name)
         assert (est.x == est.x[:, :, :1]).all() and (est.P == est.P[:, :, :1]).all(), name
+
+
+def test_three_states_two_inputs_match_oracle():
+    """n = 3, m = 2 and sensors of 1 to 3 rows: the engine's general (not
+    closed-form) linear algebra, and an agent whose rank(H G) < m."""
+    agents = [[[1, 0, 0], [0, 1, 0]], [[0, 1, 0], [0, 0, 1]], [[1, 0, 0], [0, 0, 1], [0, 1, 0]], [[1, 0, 0]],
+              [[0, 0, 1], [1, 1, 0]]]
+    raw = {
+        "steps": 40,
+        "model": {"dynamics": "matrix", "A": [[1, 0.1, 0], [0, 1, 0.1], [0, 0, 0.95]], "G": [[1, 0], [0, 1], [1, 1]],
+                  "Q": np.diag([0.1, 0.1, 0.1]).tolist(), "x0": [0, 0, 0], "P0": np.eye(3).tolist()},
+        "input": {"kind": "step", "at": 5, "before": [0, 0], "after": [1, -1]},
+        "topology": {"kind": "ring"},
+        "agents": [{"id": i + 1, "H": H, "R": np.eye(len(H)).tolist(), "sense": "always", "position": [0, 0]}
+                   for i, H in enumerate(agents)],
+    }
+    scn = parse_scenario(raw)
+    assert_matches_oracle(simulate(scn, [0, 1]), scn.params)
