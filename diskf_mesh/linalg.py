@@ -43,8 +43,8 @@ def inv_spd(a: np.ndarray) -> np.ndarray:
     A = L L^T  =>  A^-1 = L^-T L^-1, symmetric by construction.
     Raises numpy.linalg.LinAlgError if any matrix is not positive definite.
     Like the Cholesky factorisation, only the lower triangle is read.
-    1x1 and 2x2 stacks take a closed form (same result to round-off, about
-    ten times faster on the small stacks of the estimators).
+    1x1 and 2x2 stacks take a closed form (same result to round-off; on 240
+    2x2 matrices about 9 us instead of 90 us).
     """
     n = a.shape[-1]
     if n == 1:
