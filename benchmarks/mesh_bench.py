@@ -76,7 +76,8 @@ def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workd
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--agents", default="4,9,25,50", help="comma list of agent counts")
+    p.add_argument("--agents", default="4,9,25,50",
+                   help="comma list of agent counts, or 'scenario' for a listed scenario's own agents")
     p.add_argument("--ticks", type=int, default=200)
     p.add_argument("--scenario", default="random-geometric",
                    help="a generated scenario (takes --agents), default random-geometric")
@@ -86,7 +87,8 @@ def main(argv=None) -> int:
     size = message_bytes()
     rows = []
     with tempfile.TemporaryDirectory(prefix="mesh-bench-") as tmp:
-        for n in [int(a) for a in args.agents.split(",")]:
+        counts = [None] if args.agents == "scenario" else [int(a) for a in args.agents.split(",")]
+        for n in counts:
             row = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp))
             row["message_bytes"] = size
             rows.append(row)

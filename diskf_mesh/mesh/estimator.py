@@ -66,3 +66,15 @@ def neighbours(scn: Scenario, agent_id: int, positions: np.ndarray) -> tuple:
     ids = [a.id for a in scn.agents]
     row = links_for(scn, positions[None])[0, ids.index(agent_id)]
     return tuple(i for i, linked in zip(ids, row) if linked)
+
+
+def fixed_neighbours(scn: Scenario, agent_id: int) -> tuple | None:
+    """The agents ``agent_id`` can ever be linked to, when the links cannot
+    change during a run (a static topology, or range links between agents
+    that never move), else None. An agent process then listens to these
+    agents' keys only, instead of every agent's: the per-message cost of the
+    transport is what limits a large mesh."""
+    if scn.topology == "all" or (scn.topology == "range" and any(a.mobile for a in scn.agents)):
+        return None
+    positions = np.stack([a.position_at(np.array([1]))[0] for a in scn.agents])
+    return tuple(j for j in neighbours(scn, agent_id, positions) if j != agent_id)
