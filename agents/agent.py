@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from diskf_mesh import wire
 from diskf_mesh.guard import Guard, GuardConfig
 from diskf_mesh.mesh import runspec, zenoh_config
-from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
+from diskf_mesh.mesh.estimator import AgentEstimator, fixed_neighbours, neighbours
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.transport import Mailbox, MeshError, Transport, ZenohTransport
@@ -167,7 +167,9 @@ class Agent:
         k = self.keys
         for key in (k.tick, k.meas(self.id), k.stop):
             self.transport.subscribe(key, self.mailbox.push)
-        self.transport.subscribe(k.msg("*"), self.mailbox.push)
+        fixed = fixed_neighbours(self.scn, self.id)
+        for key in [k.msg("*")] if fixed is None else [k.msg(j) for j in fixed]:
+            self.transport.subscribe(key, self.mailbox.push)
         self.transport.watch_tokens(f"{k.root}/alive/**", self.mailbox.push)
         self.transport.declare_token(k.alive(self.id))
 
