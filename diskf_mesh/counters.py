@@ -23,17 +23,22 @@ Counted on the receiving side, per agent, over the whole run:
     rejected    payloads the decoder or guard refused, by reason
                 (``wire.REASONS`` and ``guard.REASONS``); never fused
 
-The books balance at the end of a run (``Counters.imbalance`` is empty):
+and two gauges, the state when the counters were read (a report mid-run):
 
-    sent    = received + lost
-    arrived = fused + late + unlinked + duplicate
+    in_flight   messages on a link of which no copy has arrived yet
+    pending     arrived copies held for a tick not fused yet
+
+The books balance at any report (``Counters.imbalance`` is empty):
+
+    sent    = received + lost + in_flight
+    arrived = fused + late + unlinked + duplicate + pending
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
 SCALARS = ("published", "sent", "lost", "received", "arrived", "duplicate", "fused", "late", "unlinked",
-           "out_of_range")
+           "out_of_range", "in_flight", "pending")
 REJECTED_PREFIX = "rejected."
 
 
@@ -49,6 +54,8 @@ class Counters:
     late: int = 0
     unlinked: int = 0
     out_of_range: int = 0
+    in_flight: int = 0
+    pending: int = 0
     rejected: dict = field(default_factory=dict)
 
     def reject(self, reason: str, count: int = 1) -> None:
@@ -58,10 +65,9 @@ class Counters:
     def rejected_total(self) -> int:
         return sum(self.rejected.values())
 
-    def imbalance(self, in_flight: int = 0, pending: int = 0) -> list:
-        """The identities that do not hold, as text (empty: the books balance).
-        ``in_flight``: messages still on a link (no copy arrived yet);
-        ``pending``: arrived copies waiting for their tick."""
+    def imbalance(self) -> list:
+        """The identities that do not hold, as text (empty: the books balance)."""
+        in_flight, pending = self.in_flight, self.pending
         out = []
         if self.sent != self.received + self.lost + in_flight:
             out.append(f"sent {self.sent} != received {self.received} + lost {self.lost}"

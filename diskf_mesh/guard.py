@@ -27,6 +27,9 @@ rejected, with one reason, when
                     algorithms that fuse information, ``information_check``)
     error           anything else the checks raised (should never happen;
                     the fuzz test asserts it does not)
+    fusion          (counted by the agent, per message of the tick) fusion of
+                    messages that all passed failed anyway; the agent fused
+                    its own message alone (see ``fuse_checked``)
 
 Each rejection is counted per reason in ``Counters.rejected`` and per
 (sender, reason) in ``Guard.by_sender``, and logged (``logging``, logger
@@ -56,7 +59,7 @@ from .messages import Message, Neighbourhood
 from .mesh.keys import Keys
 
 REASONS = wire.REASONS + ("key", "unknown-sender", "tick-past", "tick-future", "magnitude", "ill-conditioned",
-                          "information", "error")
+                          "information", "error", "fusion")
 LOGGER = logging.getLogger("diskf_mesh.guard")
 
 

@@ -119,9 +119,22 @@ class Receiver:
                 del self._lost[t]
         return self.inbox.take(tick, linked)
 
+    def use_faults(self, faults: FaultModel | None) -> None:
+        """Set the link faults once the run's seed is known (before any
+        neighbour's message was let through)."""
+        with self._lock:
+            self.faults = faults if faults is not None and faults.config.active else None
+
+    def snapshot(self) -> dict:
+        """The counters with the gauges (in flight, pending) filled in, flat."""
+        self.counters.in_flight = self.in_flight
+        self.counters.pending = self.inbox.pending
+        return self.counters.to_dict()
+
     def close(self) -> Counters:
         """End of run: copies still in flight or held arrive too late to count as fused."""
         self.inbox.close()
         for item in self._delay.close():
             self._arrive(item)
+        self.counters.in_flight = self.counters.pending = 0
         return self.counters

@@ -1,0 +1,291 @@
+"""Faults on the real mesh (issue 6): lossy, slow, duplicating and reordering
+links, agents killed and restarted, the world killed, another run on the same
+network. Every run completes (or ends as it must), the message counters add up,
+and the estimates are those of the in-process engine on what was delivered."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from diskf_mesh import engine, wire
+from diskf_mesh.counters import Counters
+from diskf_mesh.faults import FaultConfig, delivered_links
+from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.runspec import RunSpec, agent_command
+from diskf_mesh.mesh.transport import ZenohTransport
+from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.scenario import simulate
+from sim.launcher import Child, free_port
+
+from mesh_helpers import assert_same, reference, start_mesh, up
+from message_factory import tick_view
+
+pytestmark = pytest.mark.mesh
+
+SCENARIO = "dynamic"
+SETTING = "range=120"
+
+
+def on_delivered_links(spec: RunSpec, ticks: int, seed: int, faults: FaultConfig, deadline_s=np.inf):
+    """Engine estimates on the links the seeded fault layer delivers."""
+    scn = spec.load(ticks)
+    trace = simulate(scn, [seed])
+    links = delivered_links(trace.links[0], trace.sensors.ids, faults, seed, deadline_s)
+    return trace, engine.run(trace.with_links(links[None]), spec.algorithm, scn.params)
+
+
+def counters_of(res: dict, algorithm="diskf") -> dict:
+    row = res[algorithm][SETTING]
+    return {int(i): Counters.from_dict({k: v for k, v in c.items() if k != "rejected"}
+                                       | {f"rejected.{r}": n for r, n in c["rejected"].items()})
+            for i, c in row["counters"].items()}
+
+
+def assert_books_balance(cs: dict, ticks: int, n_agents: int) -> None:
+    for i, c in cs.items():
+        assert c.imbalance() == [], (i, c)
+        assert c.published == ticks
+        # every message of every other agent was sent on a link to this one or was out of range (those
+        # of the last tick from agents it did not wait for may come after its last report)
+        assert (n_agents - 1) * (ticks - 1) <= c.sent + c.out_of_range <= (n_agents - 1) * ticks, (i, c)
+
+
+@pytest.mark.parametrize("loss", [0.0, 0.1, 0.3, 0.5])
+def test_lossy_links(tmp_path, loss):
+    ticks, seed = 40, 3
+    spec = RunSpec(SCENARIO, "diskf")
+    done, est, res = up(tmp_path, "--scenario", SCENARIO, "--ticks", str(ticks), "--seed", str(seed),
+                        "--loss", str(loss))
+    assert done.returncode == 0, done.stderr
+    cs = counters_of(res)
+    assert_books_balance(cs, ticks, len(cs))
+    sent, lost = sum(c.sent for c in cs.values()), sum(c.lost for c in cs.values())
+    assert sum(c.fused for c in cs.values()) == sent - lost          # nothing late: no latency
+    assert abs(lost / sent - loss) < 0.08
+    assert res["diskf"][SETTING]["faults"]["loss"] == loss
+    _, ref = on_delivered_links(spec, ticks, seed, FaultConfig(loss=loss))
+    assert_same(est, ref)   # the agents fused exactly what the fault layer delivered
+
+
+def test_latency_beyond_the_tick_deadline(tmp_path):
+    """Every neighbour's message arrives 400 ms after it was sent, agents
+    collect for 150 ms: all late, counted, dropped; each agent fuses alone."""
+    ticks, seed = 12, 1
+    faults = FaultConfig(latency_ms=400)
+    done, est, res = up(tmp_path, "--scenario", SCENARIO, "--ticks", str(ticks), "--seed", str(seed),
+                        "--latency-ms", "400", "--collect-timeout", "0.15")
+    assert done.returncode == 0, done.stderr
+    cs = counters_of(res)
+    assert_books_balance(cs, ticks, len(cs))
+    assert all(c.fused == 0 for c in cs.values())
+    assert sum(c.late for c in cs.values()) > 0
+    _, ref = on_delivered_links(RunSpec(SCENARIO, "diskf"), ticks, seed, faults, deadline_s=0.15)
+    assert_same(est, ref)
+
+
+def test_duplicates_and_reordering(tmp_path):
+    """Duplicated, jittered and reordered copies: each message is fused once,
+    in time, in scenario order: the estimates are the fault-free ones."""
+    ticks, seed = 30, 2
+    done, est, res = up(tmp_path, "--scenario", SCENARIO, "--ticks", str(ticks), "--seed", str(seed),
+                        "--duplicate", "0.3", "--reorder", "0.3", "--reorder-ms", "20", "--latency-ms", "2",
+                        "--jitter-ms", "2")
+    assert done.returncode == 0, done.stderr
+    cs = counters_of(res)
+    assert_books_balance(cs, ticks, len(cs))
+    assert sum(c.duplicate for c in cs.values()) > 0
+    assert all(c.fused == c.received and c.lost == 0 and c.late == 0 for c in cs.values())
+    assert_same(est, reference(RunSpec(SCENARIO, "diskf"), ticks, seed)[1])
+
+
+# --------------------------------------------------------------------------
+# node faults
+# --------------------------------------------------------------------------
+class Progress:
+    def __init__(self, mesh):
+        self.mesh, self.tick = mesh, 0
+        mesh.progress = self._on
+
+    def _on(self, k, K):
+        self.tick = k
+
+    def wait_for(self, k: int, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while self.tick < k:
+            self.mesh._drain()
+            assert self.mesh.world.proc.poll() is None, f"world ended at tick {self.tick}"
+            assert time.monotonic() < deadline, f"tick {k} not reached in {timeout} s (at {self.tick})"
+            time.sleep(0.01)
+
+
+def spawn(child: Child) -> Child:
+    with open(child.log, "wb") as err:
+        child.proc = subprocess.Popen(child.argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                                      start_new_session=True)
+    return child
+
+
+def test_kill_9_and_rejoin(tmp_path):
+    spec = RunSpec(SCENARIO, "diskf", run_id="rejoin")
+    ticks, seed, victim = 200, 4, 5
+    mesh = start_mesh(spec, ticks, seed, tmp_path, world_extra=["--progress", "lines", "--json",
+                                                                 str(tmp_path / "res.json")],
+                      agent_extra=["--collect-timeout", "1", "--world-timeout", "20"])
+    extra = []
+    try:
+        progress = Progress(mesh)
+        mesh.start_agents()
+        progress.wait_for(15, 30)
+        old = next(a for a in mesh.agents if a.name == f"agent {victim}")
+        os.kill(old.proc.pid, signal.SIGKILL)
+        assert old.proc.wait(5) == -signal.SIGKILL
+        killed_at = progress.tick
+        restarted = spawn(Child(f"agent {victim} (restarted)", old.argv, tmp_path / "logs" / "agent-restarted.log"))
+        extra.append(restarted)
+        while mesh.world.proc.poll() is None:
+            mesh._drain()
+            time.sleep(0.02)
+            assert restarted.proc.poll() in (None, 0), restarted.last_error_line()
+        assert mesh.world.proc.wait(60) == 0, mesh.world.last_error_line()
+        assert restarted.proc.wait(10) == 0, restarted.last_error_line()
+        assert all(a.proc.wait(10) == 0 for a in mesh.agents if a is not old)
+    finally:
+        mesh.stop_all()
+        for c in extra:
+            if c.proc.poll() is None:
+                c.proc.kill()
+                c.proc.wait(5)
+    est = json.loads((tmp_path / "est.json").read_text())
+    res = json.loads((tmp_path / "res.json").read_text())
+    reported = np.array(est["reported"])
+    j = est["ids"].index(victim)
+    others = np.delete(reported, j, axis=1)
+    assert others.all(), "the other agents missed ticks"
+    gap = np.flatnonzero(~reported[:, j]) + 1
+    assert len(gap) > 0 and gap[0] >= killed_at - 1 and (np.diff(gap) == 1).all(), gap
+    assert reported[gap[-1]:, j].all(), "the restarted agent did not report to the end"
+    assert res["diskf"][SETTING]["missing_ticks"] == {str(victim): gap.tolist()}
+    log = restarted.log.read_text()
+    assert "rejoining" in log and "re-initialised from" in log
+    assert f"agent {victim} is gone" in mesh.world.log.read_text()
+    # the estimates of the agents that never left are finite and reported all along
+    x = np.array(est["x"], dtype=float)
+    assert np.isfinite(np.delete(x, j, axis=1)).all()
+
+
+def test_world_death_ends_every_agent_in_one_line(tmp_path):
+    spec = RunSpec(SCENARIO, "diskf", run_id="worlddeath")
+    mesh = start_mesh(spec, 400, 0, tmp_path, world_extra=["--progress", "lines"],
+                      agent_extra=["--world-timeout", "30"])
+    try:
+        progress = Progress(mesh)
+        mesh.start_agents()
+        progress.wait_for(10, 30)
+        os.kill(mesh.world.proc.pid, signal.SIGKILL)
+        t0 = time.monotonic()
+        rcs = [a.proc.wait(15) for a in mesh.agents]
+        took = time.monotonic() - t0
+    finally:
+        mesh.stop_all()
+    assert rcs == [1] * len(mesh.agents)
+    assert took < 10
+    for a in mesh.agents:
+        lines = [ln for ln in a.log.read_text().splitlines() if ln.strip()]
+        errors = [ln for ln in lines if ln.startswith("error:")]
+        assert len(errors) == 1 and "the world is gone" in errors[0], lines
+
+
+def _pids_of(run_id: str) -> list:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                cmd = (d / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if run_id.encode() in cmd:
+                out.append((int(d.name), [c.decode(errors="replace") for c in cmd]))
+    return out
+
+
+def test_up_names_the_child_that_died(tmp_path):
+    run_id = f"upkill{os.getpid()}"
+    up_proc = subprocess.Popen([sys.executable, "-m", "sim.launcher", "--scenario", SCENARIO, "--ticks", "100000",
+                                "--run-id", run_id, "--quiet", "--json", str(tmp_path / "r.json"),
+                                "--logs", str(tmp_path / "logs")],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        victim = None
+        while victim is None and time.monotonic() < deadline:
+            victim = next((pid for pid, cmd in _pids_of(run_id)
+                           if "agents.agent" in cmd and cmd[cmd.index("--id") + 1] == "7"), None)
+            time.sleep(0.2)
+        assert victim is not None, "agent 7 never started"
+        time.sleep(4)  # let the run get going
+        os.kill(victim, signal.SIGKILL)
+        _, err = up_proc.communicate(timeout=30)
+    finally:
+        if up_proc.poll() is None:
+            up_proc.kill()
+            up_proc.communicate(timeout=10)
+    assert up_proc.returncode == 1
+    assert "agent 7 failed (killed by signal 9)" in err and "stopped 10 processes" in err, err
+    time.sleep(0.5)
+    assert _pids_of(run_id) == [], "children left behind"
+
+
+# --------------------------------------------------------------------------
+# access: another run on the same network
+# --------------------------------------------------------------------------
+def test_another_run_cannot_feed_this_one(tmp_path):
+    """Run A (Scenario 2) and run B (Scenario 1: agent ids 1-4 again, other run
+    id and seed) on one zenoh network, plus a process publishing run B's
+    messages and garbage on run A's agent keys. Run A's agents, through their
+    real subscriptions, never fuse any of it: run A equals the engine, and
+    what reached its keys was rejected by reason."""
+    ticks = 40
+    a_spec, b_spec = RunSpec(SCENARIO, "diskf", run_id="run-a"), RunSpec("quadrants", "diskf", run_id="run-b")
+    pa, pb = free_port(), free_port()
+    a_dir, b_dir = tmp_path / "a", tmp_path / "b"
+    a_dir.mkdir()
+    b_dir.mkdir()
+    z = lambda listen, *connect: ZenohOptions(listen=(listen,), connect=connect, no_multicast_scouting=True)  # noqa
+    a_ep, b_ep = f"tcp/127.0.0.1:{pa}", f"tcp/127.0.0.1:{pb}"
+    a = start_mesh(a_spec, ticks, 11, a_dir, z(a_ep), z("tcp/127.0.0.1:0", a_ep),
+                   world_extra=["--json", str(a_dir / "res.json")])
+    b = start_mesh(b_spec, ticks, 12, b_dir, z(b_ep, a_ep), z("tcp/127.0.0.1:0", b_ep, a_ep))
+    joined = z("tcp/127.0.0.1:0", a_ep)
+    try:
+        time.sleep(1.0)
+        a.start_agents()
+        b.start_agents()
+        view = tick_view("diskf", tick=5)  # real, well-formed messages, but of run B
+        keys_a = Keys(a_spec.run_id)
+        with ZenohTransport(joined) as rogue:
+            t_end, it = time.monotonic() + 60, 0
+            while a.world.proc.poll() is None and time.monotonic() < t_end:
+                k = it % ticks + 1
+                for i in view.ids:
+                    rogue.put(keys_a.msg(i), wire.encode(b_spec.run_id, i, k, view.messages[i]))
+                rogue.put(keys_a.msg(3), b"\x00garbage")
+                it += 1
+                time.sleep(0.05)
+        assert a.world.proc.wait(60) == 0, a.world.last_error_line()
+        assert b.world.proc.wait(60) == 0, b.world.last_error_line()
+    finally:
+        a.stop_all()
+        b.stop_all()
+    est = json.loads((a_dir / "est.json").read_text())
+    assert_same(est, reference(a_spec, ticks, 11)[1])
+    cs = counters_of(json.loads((a_dir / "res.json").read_text()))
+    rejected = sum((c.rejected.get("run", 0) for c in cs.values()))
+    assert rejected > 0 and all(c.imbalance() == [] for c in cs.values())

@@ -1,0 +1,39 @@
+"""A restarted agent's re-initialisation (``agents.rejoin``), without zenoh."""
+from __future__ import annotations
+
+import numpy as np
+
+from agents.rejoin import reinitialise
+from diskf_mesh import wire
+from diskf_mesh.mesh.estimator import AgentEstimator
+from diskf_mesh.scenario import load_scenario
+
+
+def report(sender, scale, x=(1.0, 2.0)):
+    return wire.Report("r", sender, 9, np.array(x), scale * np.eye(2), np.zeros(1), False)
+
+
+def estimator():
+    scn = load_scenario("dynamic")
+    est = AgentEstimator(scn, 5, "diskf", 50, 0)
+    est.state = type(est.state)(est.state.x, est.state.P, np.full_like(est.state.since, 3), est.state.d_hold,
+                                est.state.held)
+    return scn, est
+
+
+def test_takes_the_most_certain_linked_neighbour():
+    _, est = estimator()
+    reports = {1: report(1, 4.0), 2: report(2, 0.5, (7.0, 8.0)), 3: report(3, 2.0, (5.0, 6.0))}
+    assert reinitialise(est, reports, linked={1, 3}) == 3   # 2 is more certain but not linked
+    assert est.state.x.shape == (1, 1, 2) and est.state.P.shape == (1, 1, 2, 2)
+    np.testing.assert_array_equal(est.state.x[0, 0], [5.0, 6.0])
+    np.testing.assert_array_equal(est.state.P[0, 0], 2.0 * np.eye(2))
+    assert (est.state.since == 0).all()
+
+
+def test_no_linked_neighbour_keeps_the_prior():
+    scn, est = estimator()
+    before = est.state
+    assert reinitialise(est, {1: report(1, 1.0)}, linked={2}) is None
+    assert est.state is before
+    np.testing.assert_array_equal(est.state.x[0, 0], scn.x0)
