@@ -32,6 +32,9 @@ from pathlib import Path
 
 from diskf_mesh.commands.options import positive_int, seed_value
 from diskf_mesh.errors import InputError
+from diskf_mesh.faults import FaultConfig
+from diskf_mesh.faults import add_arguments as add_fault_arguments
+from diskf_mesh.faults import from_args as faults_from_args
 from diskf_mesh.mesh import runspec, zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
@@ -215,6 +218,7 @@ def register(subparsers) -> None:
     p.add_argument("--collect-timeout", type=float, default=5.0, metavar="S",
                    help="agents: seconds to wait for neighbours' messages (default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_fault_arguments(p)
     zenoh_config.add_arguments(p)
     p.set_defaults(func=run)
 
@@ -242,6 +246,10 @@ def run(args: argparse.Namespace) -> int:
         world_extra += ["--estimates", args.estimates]
     agent_extra = ["--collect-timeout", str(args.collect_timeout),
                    "--world-timeout", str(args.startup_timeout + 2 * args.tick_timeout)]
+    faults = faults_from_args(args, scn.faults)
+    if faults != FaultConfig.from_mapping(scn.faults):  # flags given: every child gets them
+        world_extra += faults.to_argv()
+        agent_extra += faults.to_argv()
     world, agents = build_children(spec, ticks, args.seed, ids, logs, world_z, agent_z, world_extra, agent_extra)
 
     quiet = args.quiet or not sys.stderr.isatty()

@@ -9,8 +9,15 @@ position and the live set, and waits for every live agent's fused estimate
 of tick k, or ``--tick-timeout`` seconds. A report of a past tick is counted
 ("stale") and dropped. At the end it says stop, computes the metrics and
 writes the same result JSON as ``experiment``:
-``{algorithm: {setting: {mae_state, ...}}}``; ``--estimates`` writes every
-agent's fused estimates, what was missing, and every agent's counters.
+``{algorithm: {setting: {mae_state, ...}}}``, plus, per setting, the link
+faults of the run, every agent's message counters (``diskf_mesh.counters``)
+and the ticks each agent did not report (``missing_ticks``: killed, or
+rejoining); ``--estimates`` writes every agent's fused estimates, what was
+missing, and every agent's counters.
+
+An agent whose liveliness token goes (a crash, ``kill -9``) drops out of the
+live set from the next tick on; the world goes on with the others. An agent
+that comes back (same id) is live again from the tick after it is ready.
 """
 from __future__ import annotations
 
@@ -24,6 +31,10 @@ import numpy as np
 
 from diskf_mesh import metrics, wire
 from diskf_mesh.commands.options import positive_int, save_json, seed_value
+from diskf_mesh.counters import Counters
+from diskf_mesh.faults import FaultConfig
+from diskf_mesh.faults import add_arguments as add_fault_arguments
+from diskf_mesh.faults import from_args as faults_from_args
 from diskf_mesh.engine import Estimates
 from diskf_mesh.mesh import runspec, zenoh_config
 from diskf_mesh.mesh.keys import Keys
@@ -85,6 +96,7 @@ class World:
                                   np.full((K, N, m), np.nan), np.zeros((K, N), dtype=bool),
                                   np.zeros((K, N), dtype=bool))
         self.k = 0
+        self.stopping = False
 
     # -- inbox -----------------------------------------------------------
     def _next(self, until: float) -> None:
@@ -94,6 +106,9 @@ class World:
         key, payload, _ = item
         kind, who = self.keys.parse(key)
         if kind in ("alive", "ready") and who is not None:
+            if kind == "alive" and self.k and not self.stopping and (who in self.alive) != payload:
+                self.log.info(f"tick {self.k}: agent {who} " + ("is back" if payload else "is gone (its liveliness "
+                                                                                           "token went)"))
             group = self.alive if kind == "alive" else self.ready
             (group.add if payload else group.discard)(who)
             if kind == "alive" and not payload:
@@ -168,6 +183,7 @@ class World:
             self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
 
     def stop(self, why: str) -> None:
+        self.stopping = True
         self.transport.put(self.keys.stop, wire.encode_stop(self.keys.run_id, self.k, why))
         deadline = time.monotonic() + self.timing.leave_timeout
         while self.alive and time.monotonic() < deadline:
@@ -180,6 +196,7 @@ class World:
         t1 = time.monotonic()
         self.record.startup_s = t1 - t0
         K = self.trace.has.shape[1]
+        self.transport.declare_token(self.keys.ticking)  # an agent starting from now on is rejoining
         try:
             for k in range(1, K + 1):
                 self.run_tick(k)
@@ -200,6 +217,21 @@ def result_metrics(trace: Trace, rec: WorldRecord) -> dict:
     row = metrics.summarize(*metrics.errors(trace, rec.estimates(fill=True)), mask=rec.reported[None])
     row.update({f"{k}_std": 0.0 for k in metrics.METRIC_KEYS})
     return row
+
+
+def run_summary(rec: WorldRecord, faults: FaultConfig) -> dict:
+    """The run's faults, every agent's counters (its last report's; a
+    restarted agent's count from its restart) and the ticks it did not report."""
+    out = {"faults": faults.to_dict(), "counters": {}, "missing_ticks": {}}
+    for j, i in enumerate(rec.ids):
+        c = Counters.from_dict(rec.agent_counters.get(i, {}))
+        out["counters"][str(i)] = c.to_json()
+        if c.imbalance():
+            out["counters"][str(i)]["imbalance"] = c.imbalance()
+        missing = (1 + np.flatnonzero(~rec.reported[:, j])).tolist()
+        if missing:
+            out["missing_ticks"][str(i)] = missing
+    return out
 
 
 def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, run_id: str, row: dict) -> dict:
@@ -230,6 +262,7 @@ def register(subparsers) -> None:
                    help="seconds to wait for the reports of one tick (default %(default)s)")
     p.add_argument("--progress", choices=PROGRESS, default="bar",
                    help="progress bar on stderr, 'tick k K' lines on stdout, or none")
+    add_fault_arguments(p)
     zenoh_config.add_arguments(p)
     p.set_defaults(func=run)
 
@@ -241,6 +274,7 @@ def run(args: argparse.Namespace) -> int:
 
     spec = runspec.from_args(args)
     scn = spec.load(args.ticks)
+    faults = faults_from_args(args, scn.faults)  # the agents apply them; the world records them
     trace = simulate(scn, [args.seed])
     K = trace.has.shape[1]
     log = Log("world")
@@ -263,11 +297,17 @@ def run(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     row = result_metrics(trace, rec)
-    results = {spec.algorithm: {runspec.setting_label(scn): row}}
+    summary = run_summary(rec, faults)
+    results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
     if args.json:
         save_json(args.json, results, "json")
     if args.estimates:
-        save_json(args.estimates, estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row), "estimates")
+        doc = estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row)
+        doc.update(faults=summary["faults"], missing_ticks=summary["missing_ticks"])
+        save_json(args.estimates, doc, "estimates")
+    for i, c in summary["counters"].items():
+        if "imbalance" in c:
+            log.info(f"agent {i}'s message counters do not add up: {'; '.join(c['imbalance'])}")
     missing = int((~rec.reported).sum())
     if missing:
         log.info(f"{missing} of {rec.reported.size} agent-ticks had no report; metrics cover the rest")

@@ -12,6 +12,9 @@ letters, digits, ``-`` and ``_``):
     diskf/<run>/agent/<id>/msg         agent -> agents   its one message of tick k ("msg")
     diskf/<run>/agent/<id>/report      agent -> world    its fused estimate of tick k ("report")
     diskf/<run>/alive/world            liveliness token  the world is up
+    diskf/<run>/ticking/world          liveliness token  the world has started tick 1: an agent
+                                                         that sees it before it is ready is a
+                                                         restart joining a run in progress
     diskf/<run>/alive/agent/<id>       liveliness token  agent id is up and subscribed
     diskf/<run>/ready/agent/<id>       liveliness token  agent id sees the world and every other
                                                          agent of the scenario (so its message
@@ -73,6 +76,10 @@ class Keys:
     def alive_world(self) -> str:
         return f"{self.root}/alive/world"
 
+    @property
+    def ticking(self) -> str:
+        return f"{self.root}/ticking/world"
+
     def alive(self, agent) -> str:
         return f"{self.root}/alive/agent/{agent}"
 
@@ -113,6 +120,7 @@ _SHAPES = {
     ("agent", "#", "msg"): "msg",
     ("agent", "#", "report"): "report",
     ("alive", "world"): "alive-world",
+    ("ticking", "world"): "ticking",
     ("alive", "agent", "#"): "alive",
     ("ready", "agent", "#"): "ready",
 }
