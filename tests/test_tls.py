@@ -16,9 +16,14 @@ import time
 
 import pytest
 
+from diskf_mesh import wire
+from diskf_mesh.counters import Counters
 from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.transport import MeshError, ZenohTransport
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from mesh_helpers import assert_same, reference, start_mesh
+from message_factory import tick_view
 from tls_certs import CertificateAuthority
 
 RUN = "tls-test"
@@ -32,7 +37,8 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def tls_config(path, leaf=None, root=None, listen=(), connect=(), protocols=("tls",), multicast=None) -> ZenohOptions:
+def tls_config(path, leaf=None, root=None, listen=(), connect=(), protocols=("tls",), multicast=None,
+               gossip=False) -> ZenohOptions:
     """A zenoh JSON5 configuration file as docs/security.md describes it."""
     tls = {"enable_mtls": True, "verify_name_on_connect": True}
     if root is not None:
@@ -48,7 +54,7 @@ def tls_config(path, leaf=None, root=None, listen=(), connect=(), protocols=("tl
         "listen": {"endpoints": list(listen)},
         "connect": {"endpoints": list(connect)},
         "scouting": {"multicast": {"enabled": multicast is not None, **({"address": multicast} if multicast else {})},
-                     "gossip": {"enabled": False}},
+                     "gossip": {"enabled": gossip}},
         "transport": {"link": link},
     }
     path.write_text(json.dumps(conf, indent=2))
@@ -149,3 +155,54 @@ def test_multicast_scouting_needs_the_protocol_whitelist(pki, tmp_path):
     assert delivered[True] == 0
     if delivered[False] == 0:  # pragma: no cover - depends on multicast on this host
         pytest.skip("multicast scouting does not work here: the control case could not be made")
+
+
+@pytest.mark.mesh
+def test_a_mesh_run_over_tls_keeps_impostors_out(pki, tmp_path):
+    """World and agents as processes, every one with the run's certificate
+    (``--zenoh-config`` as in docs/security.md, endpoints from the flags).
+    Meanwhile two impostors, one with another CA's certificate and one over
+    plain TCP, publish well-formed messages of this very run (forged agent
+    messages that would change the estimates if fused). The run equals the
+    engine, and not one impostor payload reached an agent."""
+    spec = RunSpec("quadrants", "diskf", run_id="tls-run", topology="ring")
+    ticks, seed = 30, 3
+    port = free_port()
+    host = tls_config(tmp_path / "host.json5", pki["world"], pki["ca"], gossip=True)
+    world_z = ZenohOptions(config_file=host.config_file, listen=(f"tls/127.0.0.1:{port}",))
+    agent_z = ZenohOptions(config_file=host.config_file, connect=(f"tls/127.0.0.1:{port}",),
+                           listen=("tls/127.0.0.1:0",))
+    mesh = start_mesh(spec, ticks, seed, tmp_path, world_z, agent_z, world_extra=["--json", str(tmp_path / "r.json")])
+    forged = tick_view("diskf", tick=5)  # real arrays, n = 2, m = 1 as in Scenario 1
+    impostors = [
+        tls_config(tmp_path / "other-ca.json5", pki["intruder"], pki["ca"], connect=[f"tls/127.0.0.1:{port}"]),
+        tls_config(tmp_path / "tcp.json5", None, None, connect=[f"tcp/127.0.0.1:{port}"], protocols=None),
+    ]
+    sessions = []
+    try:
+        for opts in impostors:
+            try:
+                sessions.append(ZenohTransport(opts))
+            except MeshError:
+                pass
+        mesh.start_agents()
+        keys, it = Keys(spec.run_id), 0
+        deadline = time.monotonic() + 90
+        while mesh.world.proc.poll() is None and time.monotonic() < deadline:
+            k = it % ticks + 1
+            for t in sessions:
+                for i in (1, 2, 3, 4):
+                    t.put(keys.msg(i), wire.encode(spec.run_id, i, k, forged.messages[forged.ids[i]]))
+            it += 1
+            time.sleep(0.02)
+        assert mesh.world.proc.wait(30) == 0, mesh.world.last_error_line()
+    finally:
+        for t in sessions:
+            t.close()
+        mesh.stop_all()
+    est = json.loads((tmp_path / "est.json").read_text())
+    assert_same(est, reference(spec, ticks, seed)[1])
+    row = json.loads((tmp_path / "r.json").read_text())["diskf"]["ring"]
+    for i, c in row["counters"].items():
+        assert c["rejected"] == {} and c["duplicate"] == 0, (i, c)
+        assert c["sent"] + c["out_of_range"] <= 3 * ticks  # nothing but the three other agents' messages
