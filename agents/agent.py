@@ -169,7 +169,7 @@ class Agent:
                 self.out_of_range += 1
         elif t is not None and self.k <= t <= self.k + HOLD_TICKS:
             self.held.setdefault(t, []).append((key, sender, payload))
-        elif self.rejoining and self.est is None:  # a tick from before this agent (re)joined the run
+        elif self.est is None and t is not None:  # a tick from before this agent (re)joined the run
             self.out_of_range += 1
         else:
             self.receiver.on_payload(key, payload)
