@@ -138,7 +138,9 @@ def test_kill_9_and_rejoin(tmp_path):
     ticks, seed, victim = 200, 4, 5
     mesh = start_mesh(spec, ticks, seed, tmp_path, world_extra=["--progress", "lines", "--json",
                                                                  str(tmp_path / "res.json")],
-                      agent_extra=["--collect-timeout", "1", "--world-timeout", "20"])
+                      # 25 ms link latency paces the run (about 40 ticks/s at most), so that the
+                      # restarted process, which needs a few seconds to start, rejoins well before the end
+                      agent_extra=["--collect-timeout", "1", "--world-timeout", "20", "--latency-ms", "25"])
     extra = []
     try:
         progress = Progress(mesh)
