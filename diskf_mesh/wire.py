@@ -310,17 +310,23 @@ def peek_tick(data) -> int | None:
     return t if _is_int(t) else None
 
 
-def decode(data, *, run_id: str | None = None, sender: int | None = None,
-           n: int | None = None, m: int | None = None) -> WireMessage:
-    """A neighbour's "msg"; checks everything a receiver relies on.
-
-    ``sender`` is the id the key names, ``n``/``m`` the receiver's dimensions."""
-    doc = _open(data, "msg", run_id)
+def _estimate_head(data, kind: str, run_id, sender, n, m) -> tuple:
+    """(doc, sender, n, m, d_valid) of a "msg" or "report", checked."""
+    doc = _open(data, kind, run_id)
     s = _check_sender(doc, sender)
     n, m = _dims_of(doc, n, m)
     dv = doc.get("dv")
     if not isinstance(dv, bool):
         raise Rejected("schema", "field 'dv' missing or not bool")
+    return doc, s, n, m, dv
+
+
+def decode(data, *, run_id: str | None = None, sender: int | None = None,
+           n: int | None = None, m: int | None = None) -> WireMessage:
+    """A neighbour's "msg"; checks everything a receiver relies on.
+
+    ``sender`` is the id the key names, ``n``/``m`` the receiver's dimensions."""
+    doc, s, n, m, dv = _estimate_head(data, "msg", run_id, sender, n, m)
     a = _floats(doc, "a", 2 * n + 2 * n * n + m + m * m)
     x_pred, P_pred, x_upd, P_upd, d, S = _split(a, [(n,), (n, n), (n,), (n, n), (m,), (m, m)])
     _spd(P_pred, P_upd, S)
@@ -329,12 +335,7 @@ def decode(data, *, run_id: str | None = None, sender: int | None = None,
 
 def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
                   n: int | None = None, m: int | None = None) -> Report:
-    doc = _open(data, "report", run_id)
-    s = _check_sender(doc, sender)
-    n, m = _dims_of(doc, n, m)
-    dv = doc.get("dv")
-    if not isinstance(dv, bool):
-        raise Rejected("schema", "field 'dv' missing or not bool")
+    doc, s, n, m, dv = _estimate_head(data, "report", run_id, sender, n, m)
     x, P, d = _split(_floats(doc, "a", n + n * n + m), [(n,), (n, n), (m,)])
     _spd(P)
     c = doc.get("c", {})

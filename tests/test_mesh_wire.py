@@ -115,7 +115,7 @@ def test_no_measurement_h_or_r_on_the_wire(tmp_path):
     """Sniff every agent message of a real run and look for the bytes of H,
     R and every measurement."""
     spec = RunSpec(_distinctive_scenario(tmp_path), "diskf", run_id="sniffed", topology="all")
-    ticks, seed = 20, 4
+    ticks, seed = 100, 4
     captured = queue.SimpleQueue()
     mesh = start_mesh(spec, ticks, seed, tmp_path)
     try:
@@ -131,7 +131,10 @@ def test_no_measurement_h_or_r_on_the_wire(tmp_path):
     payloads = []
     while not captured.empty():
         payloads.append(captured.get())
-    assert len(payloads) >= 4 * (ticks - 5), "the sniffer heard too little"
+    # the sniffer joins the mesh by gossip while the run goes on: it may miss
+    # the first ticks, never all of them
+    assert len(payloads) >= ticks, "the sniffer heard too little"
+    assert {k.split("/")[3] for k, _ in payloads} == {"1", "2", "3", "4"}
     trace = simulate(spec.load(ticks), [seed])
     secrets = {np.float64(v).tobytes() for v in (1.2345678, 2.718281828, 1 / 2.718281828)}
     secrets |= {np.float64(v).tobytes() for v in trace.y[trace.has].ravel()}
