@@ -69,9 +69,11 @@ class DenseLinks:
         N = links.shape[-1]
         self.adj = np.broadcast_to(links, (B, N, N)).astype(float)
         self.self_mask = np.broadcast_to(np.eye(N, dtype=bool), (B, N, N))
+        self.nb = Neighbourhood(self.adj, self.self_mask)  # one per link change: caches what it derives
 
     def fuse(self, alg, state, msg: Message, gossip_u):
-        return alg.fuse(state, msg, msg, Neighbourhood(self.adj, self.self_mask, gossip_u))
+        nb = self.nb if gossip_u is None else Neighbourhood(self.adj, self.self_mask, gossip_u)
+        return alg.fuse(state, msg, msg, nb)
 
 
 class GatheredLinks:
@@ -87,6 +89,7 @@ class GatheredLinks:
         self.adj = np.broadcast_to(linked[..., None, :].astype(float), (B, N, 1, D))
         is_self = linked & (idx == np.arange(N)[:, None])
         self.self_mask = np.broadcast_to(is_self[..., None, :], (B, N, 1, D))
+        self.nb = Neighbourhood(self.adj, self.self_mask)
 
     def gather(self, a: np.ndarray) -> np.ndarray:
         """(B, N, ...) per sender -> (B, N, D, ...) per receiver and slot."""
@@ -96,9 +99,8 @@ class GatheredLinks:
     def fuse(self, alg, state, msg: Message, gossip_u):
         own = Message(**{f.name: getattr(msg, f.name)[:, :, None] for f in fields(Message)})
         senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
-        u = None if gossip_u is None else gossip_u[:, :, None]
-        st, out = alg.fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders,
-                           Neighbourhood(self.adj, self.self_mask, u))
+        nb = self.nb if gossip_u is None else Neighbourhood(self.adj, self.self_mask, gossip_u[:, :, None])
+        st, out = alg.fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders, nb)
         squeeze = lambda a: a[:, :, 0]  # noqa: E731
         return per_receiver(st, squeeze), Output(squeeze(out.x), squeeze(out.P), squeeze(out.d), squeeze(out.d_valid))
 

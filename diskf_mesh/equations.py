@@ -16,7 +16,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import T, congruence, eigvalsh, inv_spd, mv, nbr_sum, nbr_sum_pair, solve, sym
+from functools import lru_cache
+
+from .linalg import (T, congruence_const, congruence_each, eigvalsh, inv_spd, inv_spd_each, mv, nbr_sum, nbr_sum_pair, solve,
+                     sum_order, sym, sym_of_inverses)
+
+
+@lru_cache(maxsize=None)
+def _eye(m: int) -> np.ndarray:
+    """A read-only m x m identity, made once (a placeholder in ``np.where``)."""
+    eye = np.eye(m)
+    eye.flags.writeable = False
+    return eye
 
 
 # --------------------------------------------------------------------------
@@ -25,11 +36,19 @@ from .linalg import T, congruence, eigvalsh, inv_spd, mv, nbr_sum, nbr_sum_pair,
 def predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Q: np.ndarray):
     """Eq. (info_kf_prediction0): x^ = A x_bar,  P^ = A P_bar A^T + Q."""
     x_pred = mv(A, x)
-    P_pred = sym(np.matmul(np.matmul(A, P), T(A)) + Q)
+    P_pred = sym(congruence_const(A, P) + Q)
     return x_pred, P_pred
 
 
-def measurement_information(H: np.ndarray, R: np.ndarray, y: np.ndarray, has: np.ndarray):
+def sensor_information(H: np.ndarray, R: np.ndarray):
+    """The sensor's constant factors of the measurement information below eq.
+    (state_fusion): (H^T R^-1, H^T R^-1 H). Computed once per sensor, not per
+    tick; ``measurement_information`` takes them as ``info``."""
+    HtRi = T(solve(R, H))  # (R^-1 H)^T = H^T R^-1 (R symmetric)
+    return HtRi, sym(np.matmul(HtRi, H))
+
+
+def measurement_information(H: np.ndarray, R: np.ndarray, y: np.ndarray, has: np.ndarray, *, info=None):
     """Information of one measurement: U = H^T R^-1 H, u = H^T R^-1 y.
 
     These are the per-agent terms of the unpacked sums below eq. (state_fusion).
@@ -37,24 +56,29 @@ def measurement_information(H: np.ndarray, R: np.ndarray, y: np.ndarray, has: np
     Rows of H that are zero (padding of a shorter sensor) contribute nothing,
     so sensors of different p^i share one padded array. An agent that measured
     nothing (has=False) contributes zero information.
+    ``info``: ``sensor_information(H, R)`` if already known (the same numbers).
     """
-    HtRi = T(solve(R, H))  # (R^-1 H)^T = H^T R^-1 (R symmetric)
-    m = np.asarray(has, dtype=float)
-    U = sym(np.matmul(HtRi, H)) * m[..., None, None]
-    u = mv(HtRi, np.where(np.asarray(has)[..., None], y, 0.0)) * m[..., None]
+    HtRi, HtRiH = sensor_information(H, R) if info is None else info
+    has = np.asarray(has)
+    U = HtRiH * has[..., None, None]
+    u = mv(HtRi, np.where(has[..., None], y, 0.0))  # exactly zero where nothing was measured
     return U, u
 
 
-def local_update(x_pred: np.ndarray, P_pred: np.ndarray, U: np.ndarray, u: np.ndarray, has=None):
+def local_update(x_pred: np.ndarray, P_pred: np.ndarray, U: np.ndarray, u: np.ndarray, has=None, *,
+                 Y=None, Ji=None):
     """Eq. (info_kf_update0), information form of the local Kalman update.
 
     P~^-1 = P^^-1 + H^T R^-1 H,   x~ = P~ (P^^-1 x^ + H^T R^-1 y)
     (equal to x^ + L (y - H x^) with L = P~ H^T R^-1).
     Where ``has`` is False the update is the prediction, bit for bit, so a
     neighbour that measured nothing contributes exactly zero information.
+    ``Y`` = inv_spd(P_pred) and ``Ji`` = inv_spd(Y + U), if already computed
+    (``input_estimate`` needs the same two inverses), give the same numbers.
     """
-    Y = inv_spd(P_pred)
-    P_upd = inv_spd(Y + U)
+    if Y is None:
+        Y = inv_spd(P_pred)
+    P_upd = inv_spd(Y + U) if Ji is None else Ji
     x_upd = mv(P_upd, mv(Y, x_pred) + u)
     if has is not None:
         has = np.asarray(has, dtype=bool)
@@ -63,7 +87,7 @@ def local_update(x_pred: np.ndarray, P_pred: np.ndarray, U: np.ndarray, u: np.nd
     return x_upd, P_upd
 
 
-def input_estimate(x_pred, P_pred, U, u, G, allowed=None, rank_rtol: float = 1e-9):
+def input_estimate(x_pred, P_pred, U, u, G, allowed=None, rank_rtol: float = 1e-9, *, Y=None, Ji=None):
     """Eqs. (input_estimation), (input_estimation_mk1), (input_estimation_mk2),
     the covariance S^ below them and the rank condition (eq10).
 
@@ -83,27 +107,33 @@ def input_estimate(x_pred, P_pred, U, u, G, allowed=None, rank_rtol: float = 1e-
     rank(H G) = m fails (this includes "no measurement"), or where ``allowed``
     (the observation time window) forbids input estimation; there d = 0 and
     S = I as inert placeholders.
+    ``Y`` = inv_spd(P_pred) and ``Ji`` = inv_spd(Y + U), if already computed
+    (``local_update`` needs the same two inverses), give the same numbers.
     """
-    Y = inv_spd(P_pred)
-    Ji = inv_spd(Y + U)
+    if Y is None:
+        Y = inv_spd(P_pred)
+    J = Y + U
+    if Ji is None:
+        Ji = inv_spd(J)
     YJi = np.matmul(Y, Ji)
     C = sym(np.matmul(YJi, U))                     # H^T R~^-1 H
     c = mv(YJi, u - mv(U, x_pred))                 # H^T R~^-1 (y - H x^)
-    F_info = congruence(G, C)                      # (HG)^T R~^-1 (HG), m x m
+    # F_info = (HG)^T R~^-1 (HG), m x m.
     # rank(HG) = m  <=>  G^T U G = (HG)^T R^-1 (HG) is positive definite.
     # Judged against the total information G^T J G, so that round-off in a
     # neighbour's (P~^-1 - P^^-1) is not mistaken for a measurement.
-    GUG = congruence(G, U)
-    scale = eigvalsh(congruence(G, Y + U))[..., -1]
-    valid = eigvalsh(GUG)[..., 0] > rank_rtol * scale
+    F_info, GUG, GJG = congruence_each(G, C, U, J)
+    m = G.shape[-1]
+    if m == 1:  # the 1 x 1 matrices are their own eigenvalues
+        valid = GUG[..., 0, 0] > rank_rtol * GJG[..., 0, 0]
+    else:
+        valid = eigvalsh(GUG)[..., 0] > rank_rtol * eigvalsh(GJG)[..., -1]
     if allowed is not None:
         valid &= np.asarray(allowed, dtype=bool)
-    m = G.shape[-1]
-    F_safe = np.where(valid[..., None, None], F_info, np.eye(m))
-    S = inv_spd(F_safe)
+    # the inverse of an identity placeholder is exactly the identity
+    S = inv_spd(np.where(valid[..., None, None], F_info, _eye(m)))
     d = mv(S, mv(T(G), c))
-    d = np.where(valid[..., None], d, 0.0)
-    S = np.where(valid[..., None, None], S, np.eye(m))
+    d *= valid[..., None]  # exact: d is finite (S = I where not valid)
     return d, S, valid
 
 
@@ -121,34 +151,38 @@ def input_fusion(adj, d, S, valid):
     Returns (d_bar, S_bar, has) per receiver; has=False where no neighbour
     (self included) had a valid input estimate.
     """
-    w = np.where(valid, 1.0 / np.trace(S, axis1=-2, axis2=-1), 0.0)
-    W = adj * w[..., None, :]
+    m = d.shape[-1]
+    Si = inv_spd(S)
+    inv_tr = Si[..., 0, 0] if m == 1 else 1.0 / np.einsum("...ii->...", S)  # 1 x 1: 1/tr S is S^-1
+    W = adj * (inv_tr * valid)[..., None, :]  # 1/tr S_j of valid senders, else 0 (exact: tr S_j > 0)
     tot = W.sum(axis=-1)
     has = tot > 0
     Wn = W / np.where(has, tot, 1.0)[..., None]
-    Si = inv_spd(S)
     info = nbr_sum(Wn, Si, 2)
     vec = nbr_sum(Wn, mv(Si, d), 1)
-    m = d.shape[-1]
-    S_bar = inv_spd(np.where(has[..., None, None], info, np.eye(m)))
-    d_bar = np.where(has[..., None], mv(S_bar, vec), 0.0)
-    S_bar = np.where(has[..., None, None], S_bar, np.eye(m))
+    # Where no sender is valid, every weight is 0, so vec = 0, and the
+    # identity placeholder's inverse is exactly I: d_bar = 0 and S_bar = I.
+    S_bar = inv_spd(np.where(has[..., None, None], info, _eye(m)))
+    d_bar = mv(S_bar, vec)
     return d_bar, S_bar, has
 
 
 # --------------------------------------------------------------------------
 # Step 4: state fusion by information-filter decomposition
 # --------------------------------------------------------------------------
-def information_contribution(x_pred, P_pred, x_upd, P_upd):
+def information_contribution(x_pred, P_pred, x_upd, P_upd, *, Yp=None, Yu=None):
     """What a neighbour's local update added, in information form.
 
     dY_j = P~_j^-1 - P^_j^-1           (= H_j^T R_j^-1 H_j)
     dy_j = P~_j^-1 x~_j - P^_j^-1 x^_j (= H_j^T R_j^-1 y_j)
     The terms inside the sums of eqs. (state_fusion) and (state_fusion_p).
+    ``Yp`` = inv_spd(P_pred), ``Yu`` = inv_spd(P_upd) if already computed.
     """
-    Yp = inv_spd(P_pred)
-    Yu = inv_spd(P_upd)
-    return mv(Yu, x_upd) - mv(Yp, x_pred), sym(Yu - Yp)
+    if Yp is None:
+        Yp = inv_spd(P_pred)
+    if Yu is None:
+        Yu = inv_spd(P_upd)
+    return mv(Yu, x_upd) - mv(Yp, x_pred), sym_of_inverses(Yu - Yp)
 
 
 def input_prediction(x_pred, G, d_bar, has):
@@ -160,20 +194,32 @@ def input_prediction(x_pred, G, d_bar, has):
     return x_pred + np.where(has[..., None], mv(G, d_bar), 0.0)
 
 
-def state_fusion(adj, x_star, P_pred, dy, dY):
+def state_fusion(adj, x_star, P_pred, dy, dY, *, Ystar=None, gain_shift=None):
     """Eqs. (state_fusion) and (state_fusion_p).
 
         P_bar^-1 = P^*^-1 + sum_j (P~_j^-1 - P^_j^-1)
         x_bar    = P_bar [ sum_j (P~_j^-1 x~_j - P^_j^-1 x^_j) + P^*^-1 x^* ]
 
     adj: (..., R, S); x_star, P_pred per receiver; dy, dY per sender.
+    ``Ystar`` = inv_spd(P_pred) if already computed.
+
+    ``gain_shift`` (k, one per receiver), if given: also return
+    (P_bar^-1 + k I)^-1, inverted in the same stacked call as P_bar. With
+    k = eps |N_i| that is the bounded gain M_i of eq. (compensation_state)
+    (see ``compensation_gain``), from the information matrix at hand.
+    Returns (x_bar, P_bar), or (x_bar, P_bar, M) with ``gain_shift``.
     """
-    Ystar = inv_spd(P_pred)
+    if Ystar is None:
+        Ystar = inv_spd(P_pred)
     sum_dY, sum_dy = nbr_sum_pair(adj, dY, dy)
-    Y_bar = Ystar + sum_dY
-    P_bar = inv_spd(sym(Y_bar))
+    Y_bar = sym_of_inverses(Ystar + sum_dY)  # dY as information_contribution gives it
+    if gain_shift is None:
+        P_bar = inv_spd(Y_bar)
+    else:
+        k = np.asarray(gain_shift, dtype=float)[..., None, None]
+        P_bar, M = inv_spd_each(Y_bar, Y_bar + k * _eye(Y_bar.shape[-1]))
     x_bar = mv(P_bar, sum_dy + mv(Ystar, x_star))
-    return x_bar, P_bar
+    return (x_bar, P_bar) if gain_shift is None else (x_bar, P_bar, M)
 
 
 def compensation_gain(P_bar, form: str = "bounded", eps: float = 0.05, n_neighbours=None):
@@ -184,7 +230,10 @@ def compensation_gain(P_bar, form: str = "bounded", eps: float = 0.05, n_neighbo
                     eps * P_bar * sum_j (x^_j - x^_i) overshoots the neighbours'
                     predictions it is meant to pull towards, and can diverge.
     ``bounded``:    M_i = P_bar (I + eps |N_i| P_bar)^-1  (our default), where
-                    |N_i| counts the neighbours other than i. For small P_bar it
+                    |N_i| counts the neighbours other than i. Computed as
+                    (P_bar^-1 + eps |N_i| I)^-1, the same matrix, symmetric
+                    positive definite by construction (``state_fusion`` with
+                    ``gain_shift`` gives it from its P_bar^-1). For small P_bar it
                     is the paper's gain; for any P_bar the step matrix
                     eps |N_i| M_i has eigenvalues lambda/(1+lambda) < 1 (lambda
                     those of eps |N_i| P_bar), so the correction moves x_bar at
@@ -198,8 +247,7 @@ def compensation_gain(P_bar, form: str = "bounded", eps: float = 0.05, n_neighbo
         return P_bar
     if form == "bounded":
         k = eps * np.asarray(n_neighbours, dtype=float)[..., None, None]
-        n = P_bar.shape[-1]
-        return sym(solve(np.eye(n) + k * P_bar, P_bar))
+        return sym(solve(_eye(P_bar.shape[-1]) + k * P_bar, P_bar))
     if form == "normalized":
         nrm = np.linalg.norm(P_bar, axis=(-2, -1))
         return P_bar / (1.0 + nrm)[..., None, None]
@@ -219,8 +267,10 @@ def compensation_state(adj, x_bar, gain, x_pred_recv, x_pred_send, eps: float):
     x^_j - x^_i. The pairwise difference is formed before the sum, so that
     identical predictions give an exact zero (all-to-all communication).
     """
-    diff = np.expand_dims(x_pred_send, -3) - np.expand_dims(x_pred_recv, -2)  # (..., R, S, n)
-    total = np.einsum("...rs,...rsn->...rn", adj, diff)  # sum_s adj[r, s] diff[r, s], row-deterministic like nbr_sum
+    # (..., R, S, n); in the order of nbr_sum's output (the same numbers, faster)
+    order = sum_order(x_pred_send, 1)
+    diff = np.subtract(x_pred_send[..., None, :, :], x_pred_recv[..., :, None, :], order=order)
+    total = np.einsum("...rs,...rsn->...rn", adj, diff, order=order)  # sum_s adj[r, s] diff[r, s], like nbr_sum
     return x_bar + eps * mv(gain, total)
 
 

@@ -8,6 +8,8 @@ is not positive definite raises instead of silently producing garbage.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -20,7 +22,11 @@ def T(a: np.ndarray) -> np.ndarray:
 
 def sym(a: np.ndarray) -> np.ndarray:
     """Symmetric part, used after every covariance product to keep it symmetric."""
-    return 0.5 * (a + a.swapaxes(-1, -2))
+    out = a + a.swapaxes(-1, -2)
+    if out.dtype.kind != "f":
+        return 0.5 * out
+    out *= 0.5  # in place: the same numbers as 0.5 * (a + a^T)
+    return out
 
 
 def mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -33,8 +39,29 @@ def mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     if cols == 1:
         return a[..., 0] * v[..., 0, None]
     if cols == 2:
-        return a[..., 0] * v[..., 0, None] + a[..., 1] * v[..., 1, None]
+        out = a[..., 0] * v[..., 0, None]
+        out += a[..., 1] * v[..., 1, None]
+        return out
     return np.matmul(a, v[..., None])[..., 0]
+
+
+def matmul_right(X: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """X @ B for a stack X (..., r, k) and one matrix B (k, c), as ONE BLAS
+    product of the stacked rows (np.matmul calls BLAS once per matrix of the
+    stack: on hundreds of 2x2 matrices that call is most of the time). Every
+    entry is the same k-term dot product in the same kernel, so the result
+    equals np.matmul(X, B) bit for bit (``tests/test_linalg_fast.py``)."""
+    X = np.ascontiguousarray(X)
+    return (X.reshape(-1, X.shape[-1]) @ B).reshape(X.shape[:-1] + B.shape[-1:])
+
+
+def congruence_const(A: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """A @ P @ A^T for one (n, n) matrix A and a stack P, equal to
+    np.matmul(np.matmul(A, P), A.T) bit for bit, in two BLAS products:
+    (A P)^T = P^T A^T, then A P A^T = (A P) A^T."""
+    AT = T(A)
+    APt = matmul_right(P.swapaxes(-1, -2), AT)
+    return matmul_right(APt.swapaxes(-1, -2), AT)
 
 
 def inv_spd(a: np.ndarray) -> np.ndarray:
@@ -67,26 +94,44 @@ def _not_pd() -> np.linalg.LinAlgError:
 
 
 def _inv_spd_1(a: np.ndarray) -> np.ndarray:
-    if (a <= 0).any():  # NaN propagates, as through numpy's Cholesky
+    # fmin skips NaN: a NaN propagates, as through numpy's Cholesky
+    if a.size and np.fmin.reduce(a, axis=None) <= 0:
         raise _not_pd()
     return 1.0 / a
 
 
 def _inv_spd_2(a: np.ndarray) -> np.ndarray:
     """[[p, q], [q, r]]^-1 = [[r, -q], [-q, p]] / (p r - q^2), q from the lower
-    triangle; positive definite iff p > 0 and p r - q^2 > 0 (Sylvester)."""
+    triangle; positive definite iff p > 0 and p r - q^2 > 0 (Sylvester).
+    (-q)/det is -(q/det) exactly, so the output is exactly symmetric."""
     flat = a.reshape(-1, 4)
     p, q, r = flat[:, 0], flat[:, 2], flat[:, 3]
     det = p * r - q * q
-    if (np.minimum(p, det) <= 0).any():  # NaN propagates, as through numpy's Cholesky
+    if flat.size and np.fmin.reduce(np.fmin(p, det), axis=None) <= 0:  # fmin skips NaN (it propagates)
         raise _not_pd()
-    out = np.empty(flat.shape)
-    np.divide(r, det, out=out[:, 0])
-    np.divide(p, det, out=out[:, 3])
-    np.divide(q, det, out=out[:, 1])
-    np.negative(out[:, 1], out=out[:, 1])
-    out[:, 2] = out[:, 1]
+    out = flat.take(_INV_2, axis=1)  # [r, q, q, p]
+    out *= _ADJUGATE_SIGN
+    out /= det[:, None]
     return out.reshape(a.shape)
+
+
+_INV_2 = np.array([3, 2, 2, 0])  # flat symmetric 2x2 [p, q', q, r] (q lower) -> [r, q, q, p]
+
+
+def inv_spd_each(*stacks: np.ndarray) -> tuple:
+    """``inv_spd`` of several stacks of n x n matrices (any leading shapes)
+    in one call: the fixed cost of a stacked inverse is paid once. Each
+    matrix's inverse is the one ``inv_spd`` gives it alone, bit for bit."""
+    if len(stacks) == 1:
+        return (inv_spd(stacks[0]),)
+    n = stacks[0].shape[-1]
+    inv = inv_spd(np.concatenate([s.reshape(-1, n, n) for s in stacks]))
+    out, start = [], 0
+    for s in stacks:
+        count = s.size // (n * n)
+        out.append(inv[start:start + count].reshape(s.shape))
+        start += count
+    return tuple(out)
 
 
 def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -104,9 +149,9 @@ def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return b / a
     flat = a.reshape(-1, 4)
     det = flat[:, 0] * flat[:, 3] - flat[:, 1] * flat[:, 2]
-    if (det == 0).any():
+    if not det.all():
         raise np.linalg.LinAlgError("Singular matrix")
-    inv = np.take(flat, _ADJUGATE, axis=1)  # [[d, -b], [-c, a]] / det
+    inv = flat.take(_ADJUGATE, axis=1)  # [[d, -b], [-c, a]] / det
     inv *= _ADJUGATE_SIGN
     inv /= det[:, None]
     return np.matmul(inv.reshape(a.shape), b)
@@ -123,8 +168,25 @@ def congruence(G: np.ndarray, X: np.ndarray) -> np.ndarray:
     instead of two broadcast matrix products."""
     if G.shape[-1] == 1:
         g = G[:, 0]
-        return np.einsum("...ij,ij->...", X, np.outer(g, g))[..., None, None]
+        return np.einsum("...ij,ij->...", X, g[:, None] * g)[..., None, None]  # g g^T, as np.outer
     return sym(np.matmul(np.matmul(T(G), X), G))
+
+
+def congruence_each(G: np.ndarray, *Xs: np.ndarray) -> tuple:
+    """``congruence(G, X)`` for each X (stacks of one shape), bit for bit;
+    with m = 1 in one ``einsum`` over the stacked Xs."""
+    if G.shape[-1] != 1 or len(Xs) == 1:
+        return tuple(congruence(G, X) for X in Xs)
+    g = G[:, 0]
+    both = np.einsum("...ij,ij->...", np.concatenate([X[None] for X in Xs]), g[:, None] * g)[..., None, None]
+    return tuple(both)
+
+
+def sym_of_inverses(a: np.ndarray) -> np.ndarray:
+    """``sym(a)`` for a sum or difference of ``inv_spd`` outputs (and of
+    such sums). For n <= 2 the closed-form inverses are exactly symmetric, so
+    ``a`` already is and is returned as it is (the same bits ``sym`` gives)."""
+    return a if a.shape[-1] <= 2 else sym(a)
 
 
 def eigvalsh(a: np.ndarray) -> np.ndarray:
@@ -169,7 +231,25 @@ def nbr_sum(adj: np.ndarray, x: np.ndarray, core_ndim: int) -> np.ndarray:
     (``tests/test_linalg_fast.py``), at a fraction of its temporaries.
     """
     core = "ijkl"[:core_ndim]
-    return np.einsum(f"...rs,...s{core}->...r{core}", adj, x, optimize=False)
+    return np.einsum(f"...rs,...s{core}->...r{core}", adj, x, optimize=False, order=sum_order(x, core_ndim))
+
+
+def sum_order(x: np.ndarray, core_ndim: int) -> str:
+    """Memory order of a neighbour sum's output that makes ``einsum`` fast.
+
+    ``einsum`` loops innermost over the output's fastest axis. In C order that
+    is a tiny core axis (2 for a 2-vector), and with many small stacks most of
+    the time goes into the loop overhead. For a big batch of small
+    neighbourhoods (the paper's four agents over many seeds) Fortran order
+    puts the batch innermost: 2-3x faster. Either way every output entry is
+    accumulated over the senders one by one in sender order (the inner loop
+    runs over independent entries), so both orders give the same bits
+    (``tests/test_linalg_fast.py``). A one-entry core keeps C order: there
+    the inner loop is the sender sum itself, and changing it would change
+    the rounding."""
+    core = math.prod(x.shape[x.ndim - core_ndim:])
+    senders = x.shape[x.ndim - core_ndim - 1]
+    return "F" if core > 1 and senders <= 16 and x.size >= 8 * senders * core else "C"
 
 
 def nbr_sum_pair(adj: np.ndarray, M: np.ndarray, v: np.ndarray):

@@ -15,6 +15,7 @@ Fields (tick k):
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import numpy as np
 
@@ -52,6 +53,12 @@ class Neighbourhood:
     adj: np.ndarray
     self_mask: np.ndarray
     gossip_u: np.ndarray | None = None
+
+    @cached_property
+    def n_neighbours(self) -> np.ndarray:
+        """(..., R) how many senders each receiver fuses besides itself
+        (|N_i| of the compensation gain), computed once per neighbourhood."""
+        return self.adj.sum(axis=-1) - (self.adj * self.self_mask).sum(axis=-1)
 
 
 @dataclass(frozen=True)

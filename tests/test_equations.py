@@ -185,6 +185,12 @@ def test_compensation_exactly_zero_for_identical_predictions():
     x = np.arange(10.0).reshape(5, 2)
     out = eq.compensation_state(np.ones((5, 5)), x, np.broadcast_to(np.eye(2), (5, 2, 2)), x_pred, x_pred, 0.05)
     assert np.array_equal(out, x)
+    # a large batch of small all-to-all neighbourhoods (the sum runs batch-innermost)
+    rng = np.random.default_rng(0)
+    x_pred = np.broadcast_to(rng.standard_normal((60, 1, 2)) * 100, (60, 4, 2))
+    x = rng.standard_normal((60, 4, 2))
+    out = eq.compensation_state(np.ones((60, 4, 4)), x, np.broadcast_to(np.eye(2), (60, 4, 2, 2)), x_pred, x_pred, 0.05)
+    assert np.array_equal(out, x)
 
 
 def test_window():

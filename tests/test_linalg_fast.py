@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from diskf_mesh import algorithms, engine
-from diskf_mesh.linalg import T, congruence, eigvalsh, inv_spd, inv_spd_cholesky, mv, nbr_sum, nbr_sum_pair, solve, sym
+from diskf_mesh.linalg import (T, congruence, congruence_const, congruence_each, eigvalsh, inv_spd, inv_spd_cholesky,
+                               inv_spd_each, matmul_right, mv, nbr_sum, nbr_sum_pair, solve, sum_order, sym)
 from diskf_mesh.scenario import load_scenario, simulate
 
 
@@ -83,6 +84,44 @@ def test_nbr_sum_is_broadcast_sum_and_row_deterministic(core):
     got = nbr_sum(adj, x, core)
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(got[:, 5], got[:, 9])
+
+
+@pytest.mark.parametrize("core", [1, 2])
+def test_nbr_sum_batch_innermost_order_is_the_same_sum(core):
+    """Many small neighbourhoods (the Table II batch): ``nbr_sum`` runs its
+    einsum in Fortran order, and still equals the broadcast sum bit for bit,
+    receivers that hear the same senders included."""
+    rng = np.random.default_rng(10 + core)
+    adj = (rng.random((60, 4, 4)) < 0.6) * rng.random((60, 4, 4))
+    adj[:, 2] = adj[:, 0]
+    x = rng.standard_normal((60, 4) + (2,) * core) * 10.0 ** rng.uniform(-8, 8, (60, 4) + (2,) * core)
+    assert sum_order(x, core) == "F"
+    want = (adj.reshape(adj.shape + (1,) * core) * np.expand_dims(x, -core - 2)).sum(axis=-core - 1)
+    got = nbr_sum(adj, x, core)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got[:, 2], got[:, 0])
+    for b in (1, 7, 33):  # and whatever the batch, as the seeds run alone
+        np.testing.assert_array_equal(nbr_sum(adj[:b], x[:b], core), want[:b])
+
+
+@pytest.mark.parametrize("shape", [(60, 4), (3, 9), (1, 1000), (7,)])
+@pytest.mark.parametrize("n", [2, 3])
+def test_one_blas_call_equals_stacked_matmul(shape, n):
+    rng = np.random.default_rng(n)
+    X, A = rng.standard_normal(shape + (n, n)) * 10.0 ** rng.uniform(-6, 6, shape + (n, n)), rng.standard_normal((n, n))
+    np.testing.assert_array_equal(matmul_right(X, A), np.matmul(X, A))
+    np.testing.assert_array_equal(congruence_const(A, X), np.matmul(np.matmul(A, X), T(A)))
+
+
+def test_stacked_helpers_equal_one_at_a_time():
+    rng = np.random.default_rng(3)
+    a, b = random_spd(rng, (6, 4), 2), random_spd(rng, (5,), 2)
+    for got, want in zip(inv_spd_each(a, b), (inv_spd(a), inv_spd(b))):
+        np.testing.assert_array_equal(got, want)
+    for m in (1, 2):
+        G, Xs = rng.standard_normal((2, m)), [rng.standard_normal((6, 4, 2, 2)) for _ in range(3)]
+        for got, X in zip(congruence_each(G, *Xs), Xs):
+            np.testing.assert_array_equal(got, congruence(G, X))
 
 
 def test_nbr_sum_pair_is_two_nbr_sums():

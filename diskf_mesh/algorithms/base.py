@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import equations as eq
+from ..linalg import inv_spd
 from ..messages import Message, Neighbourhood, Output
 from ..model import LinearModel, Params, Sensors
 
@@ -40,6 +41,8 @@ class Local:
     u: np.ndarray
     x_upd: np.ndarray
     P_upd: np.ndarray
+    Y: np.ndarray | None = None   # P^^-1, computed once for the whole local step
+    Ji: np.ndarray | None = None  # (P^^-1 + U)^-1, P~ before the "no measurement" mask
 
 
 class Algorithm:
@@ -52,6 +55,7 @@ class Algorithm:
         self.model = model
         self.sensors = sensors
         self.params = params or Params()
+        self.sensor_info = eq.sensor_information(sensors.H, sensors.R)  # constant per agent
 
     # -- helpers ---------------------------------------------------------
     def init(self, batch: tuple) -> State:
@@ -65,13 +69,15 @@ class Algorithm:
     def local_kf(self, state: State, k: int, y, has) -> Local:
         """Prediction (info_kf_prediction0) and local update (info_kf_update0)."""
         x_pred, P_pred = eq.predict(state.x, state.P, self.model.A_at(k), self.model.Q)
-        U, u = eq.measurement_information(self.sensors.H, self.sensors.R, y, has)
-        x_upd, P_upd = eq.local_update(x_pred, P_pred, U, u, has)
-        return Local(x_pred, P_pred, U, u, x_upd, P_upd)
+        U, u = eq.measurement_information(self.sensors.H, self.sensors.R, y, has, info=self.sensor_info)
+        Y = inv_spd(P_pred)
+        Ji = inv_spd(Y + U)
+        x_upd, P_upd = eq.local_update(x_pred, P_pred, U, u, has, Y=Y, Ji=Ji)
+        return Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji)
 
     def local_input(self, loc: Local, allowed=None):
         """The agent's own RKF input estimate (input_estimation)."""
-        return eq.input_estimate(loc.x_pred, loc.P_pred, loc.U, loc.u, self.model.G, allowed)
+        return eq.input_estimate(loc.x_pred, loc.P_pred, loc.U, loc.u, self.model.G, allowed, Y=loc.Y, Ji=loc.Ji)
 
     @staticmethod
     def message(loc: Local, d, S, valid, x_upd=None, P_upd=None) -> Message:

@@ -4,8 +4,9 @@ from __future__ import annotations
 import numpy as np
 
 from .. import equations as eq
+from ..linalg import inv_spd_each
 from ..messages import Message, Neighbourhood, Output
-from .base import Algorithm, State, with_since
+from .base import Algorithm, State
 
 
 class DISKF(Algorithm):
@@ -19,7 +20,7 @@ class DISKF(Algorithm):
         allowed = eq.window_allows(since, self.params.window)
         d, S, valid = self.local_input(loc, allowed)
         since = np.where(has, 0, since)
-        return with_since(state, since), self.message(loc, d, S, valid)
+        return State(state.x, state.P, since, state.d_hold, state.held), self.message(loc, d, S, valid)
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
         """Steps 3 and 4: input fusion, state fusion, state compensation."""
@@ -35,11 +36,16 @@ class DISKF(Algorithm):
             x_star = eq.input_prediction(own.x_pred, self.model.G, d_hold, held)
         else:
             x_star = eq.input_prediction(own.x_pred, self.model.G, d_bar, has)
-        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd)
-        x_bar, P_bar = eq.state_fusion(nb.adj, x_star, own.P_pred, dy, dY)
+        if senders is own:  # every receiver is also a sender (the engine's dense layout)
+            Ystar, Yu = inv_spd_each(own.P_pred, own.P_upd)
+            Yp = Ystar
+        else:
+            Ystar, Yp, Yu = inv_spd_each(own.P_pred, senders.P_pred, senders.P_upd)
+        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
+                                             Yp=Yp, Yu=Yu)
+        x_bar, P_bar = eq.state_fusion(nb.adj, x_star, own.P_pred, dy, dY, Ystar=Ystar)
         if p.compensation != "none" and p.eps != 0.0:
-            n_nbrs = nb.adj.sum(axis=-1) - (nb.adj * nb.self_mask).sum(axis=-1)
-            gain = eq.compensation_gain(P_bar, p.compensation, p.eps, n_nbrs)
+            gain = eq.compensation_gain(P_bar, p.compensation, p.eps, nb.n_neighbours)
             x_bar = eq.compensation_state(nb.adj, x_bar, gain, own.x_pred, senders.x_pred, p.eps)
         since = np.where(has, 0, state.since) if p.reset else state.since
         return State(x_bar, P_bar, since, d_hold, held), Output(x_bar, P_bar, d_bar, has)
