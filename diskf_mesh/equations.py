@@ -66,20 +66,21 @@ def measurement_information(H: np.ndarray, R: np.ndarray, y: np.ndarray, has: np
 
 
 def local_update(x_pred: np.ndarray, P_pred: np.ndarray, U: np.ndarray, u: np.ndarray, has=None, *,
-                 Y=None, Ji=None):
+                 Y=None, Ji=None, Yx=None):
     """Eq. (info_kf_update0), information form of the local Kalman update.
 
     P~^-1 = P^^-1 + H^T R^-1 H,   x~ = P~ (P^^-1 x^ + H^T R^-1 y)
     (equal to x^ + L (y - H x^) with L = P~ H^T R^-1).
     Where ``has`` is False the update is the prediction, bit for bit, so a
     neighbour that measured nothing contributes exactly zero information.
-    ``Y`` = inv_spd(P_pred) and ``Ji`` = inv_spd(Y + U), if already computed
-    (``input_estimate`` needs the same two inverses), give the same numbers.
+    ``Y`` = inv_spd(P_pred), ``Ji`` = inv_spd(Y + U) and ``Yx`` = Y x^, if
+    already computed (``input_estimate`` needs the same two inverses), give
+    the same numbers.
     """
     if Y is None:
         Y = inv_spd(P_pred)
     P_upd = inv_spd(Y + U) if Ji is None else Ji
-    x_upd = mv(P_upd, mv(Y, x_pred) + u)
+    x_upd = mv(P_upd, (mv(Y, x_pred) if Yx is None else Yx) + u)
     if has is not None:
         has = np.asarray(has, dtype=bool)
         x_upd = np.where(has[..., None], x_upd, x_pred)
@@ -170,19 +171,20 @@ def input_fusion(adj, d, S, valid):
 # --------------------------------------------------------------------------
 # Step 4: state fusion by information-filter decomposition
 # --------------------------------------------------------------------------
-def information_contribution(x_pred, P_pred, x_upd, P_upd, *, Yp=None, Yu=None):
+def information_contribution(x_pred, P_pred, x_upd, P_upd, *, Yp=None, Yu=None, Ypx=None):
     """What a neighbour's local update added, in information form.
 
     dY_j = P~_j^-1 - P^_j^-1           (= H_j^T R_j^-1 H_j)
     dy_j = P~_j^-1 x~_j - P^_j^-1 x^_j (= H_j^T R_j^-1 y_j)
     The terms inside the sums of eqs. (state_fusion) and (state_fusion_p).
-    ``Yp`` = inv_spd(P_pred), ``Yu`` = inv_spd(P_upd) if already computed.
+    ``Yp`` = inv_spd(P_pred), ``Yu`` = inv_spd(P_upd), ``Ypx`` = Yp x^ if
+    already computed.
     """
     if Yp is None:
         Yp = inv_spd(P_pred)
     if Yu is None:
         Yu = inv_spd(P_upd)
-    return mv(Yu, x_upd) - mv(Yp, x_pred), sym_of_inverses(Yu - Yp)
+    return mv(Yu, x_upd) - (mv(Yp, x_pred) if Ypx is None else Ypx), sym_of_inverses(Yu - Yp)
 
 
 def input_prediction(x_pred, G, d_bar, has):

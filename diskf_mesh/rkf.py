@@ -23,8 +23,10 @@ import numpy as np
 from .linalg import T, congruence, inv_spd, mv, sym
 
 
-def rkf_update(x_pred, P_pred, U, u, G, valid):
-    Y = inv_spd(P_pred)
+def rkf_update(x_pred, P_pred, U, u, G, valid, *, Y=None):
+    """The update above; ``Y`` = inv_spd(P_pred) if already computed."""
+    if Y is None:
+        Y = inv_spd(P_pred)
     YG = np.matmul(Y, G)
     GYG = congruence(G, Y)
     Y_free = sym(Y - np.matmul(np.matmul(YG, inv_spd(GYG)), T(YG)))

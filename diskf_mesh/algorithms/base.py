@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import equations as eq
-from ..linalg import inv_spd
+from ..linalg import inv_spd, inv_spd_each, mv
 from ..messages import Message, Neighbourhood, Output
 from ..model import LinearModel, Params, Sensors
 
@@ -29,6 +29,10 @@ class State:
     since: np.ndarray  # (...,) ticks since the observation window was refreshed
     d_hold: np.ndarray | None = None  # (..., m) last fused input (DISKF, hold_input)
     held: np.ndarray | None = None    # (...,) whether d_hold holds an estimate
+    # Set by ``local`` for the ``fuse`` of the same tick, which then need not
+    # invert the agent's own P^ again: P^^-1 and P^^-1 x^ (None otherwise).
+    Y_pred: np.ndarray | None = None
+    Yx_pred: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -41,8 +45,9 @@ class Local:
     u: np.ndarray
     x_upd: np.ndarray
     P_upd: np.ndarray
-    Y: np.ndarray | None = None   # P^^-1, computed once for the whole local step
+    Y: np.ndarray | None = None   # P^^-1, computed once for the whole tick
     Ji: np.ndarray | None = None  # (P^^-1 + U)^-1, P~ before the "no measurement" mask
+    Yx: np.ndarray | None = None  # P^^-1 x^
 
 
 class Algorithm:
@@ -72,8 +77,37 @@ class Algorithm:
         U, u = eq.measurement_information(self.sensors.H, self.sensors.R, y, has, info=self.sensor_info)
         Y = inv_spd(P_pred)
         Ji = inv_spd(Y + U)
-        x_upd, P_upd = eq.local_update(x_pred, P_pred, U, u, has, Y=Y, Ji=Ji)
-        return Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji)
+        Yx = mv(Y, x_pred)
+        x_upd, P_upd = eq.local_update(x_pred, P_pred, U, u, has, Y=Y, Ji=Ji, Yx=Yx)
+        return Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji, Yx)
+
+    @staticmethod
+    def for_fuse(state: State, loc: Local, since=None) -> State:
+        """``state`` after the local step: the window counter ``since`` if
+        given, and the local step's P^^-1, P^^-1 x^ for ``fusion_inverses``."""
+        return State(state.x, state.P, state.since if since is None else since, state.d_hold, state.held,
+                     loc.Y, loc.Yx)
+
+    @staticmethod
+    def fusion_inverses(state: State, own: Message, senders: Message):
+        """(P^*^-1 of each receiver, P^_j^-1 and P~_j^-1 of each sender,
+        P^_j^-1 x^_j or None), every one inverted once per tick.
+
+        A receiver's own P^^-1 comes from its local step (``State.Y_pred``);
+        when the senders are the receivers themselves (the engine's dense
+        layout), so do theirs. Otherwise they are inverted, in one stacked
+        call, from the messages (as an agent process receives them)."""
+        Y = state.Y_pred
+        if Y is None:
+            if senders is own:
+                Y, Yu = inv_spd_each(own.P_pred, own.P_upd)
+                return Y, Y, Yu, None
+            Y, Yp, Yu = inv_spd_each(own.P_pred, senders.P_pred, senders.P_upd)
+            return Y, Yp, Yu, None
+        if senders is own:
+            return Y, Y, inv_spd(own.P_upd), state.Yx_pred
+        Yp, Yu = inv_spd_each(senders.P_pred, senders.P_upd)
+        return Y, Yp, Yu, None
 
     def local_input(self, loc: Local, allowed=None):
         """The agent's own RKF input estimate (input_estimation)."""

@@ -29,7 +29,7 @@ class _Consensus(Algorithm):
     def local(self, state: State, k: int, y, has):
         loc = self.local_kf(state, k, y, has)
         d, S, valid = self.local_input(loc)
-        return state, self.message(loc, d, S, valid)
+        return self.for_fuse(state, loc), self.message(loc, d, S, valid)
 
 
 class KCF(_Consensus):
@@ -37,19 +37,23 @@ class KCF(_Consensus):
     label = "KCF"
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
-        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd)
-        x, M = eq.state_fusion(nb.adj, own.x_pred, own.P_pred, dy, dY)
+        Ystar, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
+        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
+                                             Yp=Yp, Yu=Yu, Ypx=Ypx)
+        x, M = eq.state_fusion(nb.adj, own.x_pred, own.P_pred, dy, dY, Ystar=Ystar)
         gain = eq.compensation_gain(M, "normalized")
         x = eq.compensation_state(nb.adj, x, gain, own.x_pred, senders.x_pred, self.params.consensus_eps)
         return State(x, M, state.since), Output(x, M, own.d, own.d_valid)
 
 
-def diffusion_update(adj, own: Message, senders: Message):
+def diffusion_update(adj, own: Message, senders: Message, inverses=(None, None, None, None)):
     """Combine the neighbours' priors with equal weights, then adapt with
-    their measurement information."""
+    their measurement information. ``inverses``: ``fusion_inverses``, if known."""
+    Ystar, Yp, Yu, Ypx = inverses
     x_comb = nbr_sum(uniform_weights(adj), senders.x_pred, 1)
-    dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd)
-    return eq.state_fusion(adj, x_comb, own.P_pred, dy, dY)
+    dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
+                                         Yp=Yp, Yu=Yu, Ypx=Ypx)
+    return eq.state_fusion(adj, x_comb, own.P_pred, dy, dY, Ystar=Ystar)
 
 
 class DiffKF(_Consensus):
@@ -57,7 +61,7 @@ class DiffKF(_Consensus):
     label = "DiffKF"
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
-        x, P = diffusion_update(nb.adj, own, senders)
+        x, P = diffusion_update(nb.adj, own, senders, self.fusion_inverses(state, own, senders))
         return State(x, P, state.since), Output(x, P, own.d, own.d_valid)
 
 
@@ -86,5 +90,5 @@ class GDKF(_Consensus):
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
         adj = gossip_adjacency(nb.adj, nb.self_mask, nb.gossip_u)
-        x, P = diffusion_update(adj, own, senders)
+        x, P = diffusion_update(adj, own, senders, self.fusion_inverses(state, own, senders))
         return State(x, P, state.since), Output(x, P, own.d, own.d_valid)

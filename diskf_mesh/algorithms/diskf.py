@@ -4,7 +4,6 @@ from __future__ import annotations
 import numpy as np
 
 from .. import equations as eq
-from ..linalg import inv_spd_each
 from ..messages import Message, Neighbourhood, Output
 from .base import Algorithm, State
 
@@ -19,8 +18,7 @@ class DISKF(Algorithm):
         since = state.since + 1
         allowed = eq.window_allows(since, self.params.window)
         d, S, valid = self.local_input(loc, allowed)
-        since = np.where(has, 0, since)
-        return State(state.x, state.P, since, state.d_hold, state.held), self.message(loc, d, S, valid)
+        return self.for_fuse(state, loc, np.where(has, 0, since)), self.message(loc, d, S, valid)
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
         """Steps 3 and 4: input fusion, state fusion, state compensation."""
@@ -36,13 +34,9 @@ class DISKF(Algorithm):
             x_star = eq.input_prediction(own.x_pred, self.model.G, d_hold, held)
         else:
             x_star = eq.input_prediction(own.x_pred, self.model.G, d_bar, has)
-        if senders is own:  # every receiver is also a sender (the engine's dense layout)
-            Ystar, Yu = inv_spd_each(own.P_pred, own.P_upd)
-            Yp = Ystar
-        else:
-            Ystar, Yp, Yu = inv_spd_each(own.P_pred, senders.P_pred, senders.P_upd)
+        Ystar, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
         dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
-                                             Yp=Yp, Yu=Yu)
+                                             Yp=Yp, Yu=Yu, Ypx=Ypx)
         x_bar, P_bar = eq.state_fusion(nb.adj, x_star, own.P_pred, dy, dY, Ystar=Ystar)
         if p.compensation != "none" and p.eps != 0.0:
             gain = eq.compensation_gain(P_bar, p.compensation, p.eps, nb.n_neighbours)

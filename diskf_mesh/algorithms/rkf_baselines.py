@@ -25,15 +25,17 @@ class CDRKF(Algorithm):
     def local(self, state: State, k: int, y, has):
         loc = self.local_kf(state, k, y, has)
         d, S, valid = self.local_input(loc)
-        return state, self.message(loc, d, S, valid)
+        return self.for_fuse(state, loc), self.message(loc, d, S, valid)
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
-        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd)
+        Y, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
+        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
+                                             Yp=Yp, Yu=Yu, Ypx=Ypx)
         U = nbr_sum(nb.adj, dY, 2)
         u = nbr_sum(nb.adj, dy, 1)
         G = self.model.G
-        d, _, valid = eq.input_estimate(own.x_pred, own.P_pred, U, u, G)
-        x, P = rkf_update(own.x_pred, own.P_pred, U, u, G, valid)
+        d, _, valid = eq.input_estimate(own.x_pred, own.P_pred, U, u, G, Y=Y)
+        x, P = rkf_update(own.x_pred, own.P_pred, U, u, G, valid, Y=Y)
         return State(x, P, state.since), Output(x, P, d, valid)
 
 
