@@ -18,8 +18,8 @@ import numpy as np
 
 from functools import lru_cache
 
-from .linalg import (T, congruence_const, congruence_each, eigvalsh, inv_spd, inv_spd_each, mv, nbr_sum, nbr_sum_pair, solve,
-                     sum_order, sym, sym_of_inverses)
+from .linalg import (T, congruence_const, congruence_each, eigvalsh, inv_spd, mv, nbr_sum, nbr_sum_pair, solve, sum_order,
+                     sym, sym_of_inverses)
 
 
 @lru_cache(maxsize=None)
@@ -187,16 +187,20 @@ def information_contribution(x_pred, P_pred, x_upd, P_upd, *, Yp=None, Yu=None, 
     return mv(Yu, x_upd) - (mv(Yp, x_pred) if Ypx is None else Ypx), sym_of_inverses(Yu - Yp)
 
 
-def input_prediction(x_pred, G, d_bar, has):
+def input_prediction(x_pred, G, d_bar, has=None):
     """Eq. (info_kf_prediction): x^* = A x_bar + G d_bar = x^ + G d_bar.
 
     The covariance is unchanged (P^* = P^), as the paper states. Where no fused
-    input exists the prediction is left without input.
+    input exists (``has`` False) the prediction is left without input;
+    ``has=None`` when d_bar is already exactly zero there (as ``input_fusion``
+    returns it): x^ + 0 is x^.
     """
+    if has is None:
+        return x_pred + mv(G, d_bar)
     return x_pred + np.where(has[..., None], mv(G, d_bar), 0.0)
 
 
-def state_fusion(adj, x_star, P_pred, dy, dY, *, Ystar=None, gain_shift=None):
+def state_fusion(adj, x_star, P_pred, dy, dY, *, Ystar=None):
     """Eqs. (state_fusion) and (state_fusion_p).
 
         P_bar^-1 = P^*^-1 + sum_j (P~_j^-1 - P^_j^-1)
@@ -204,24 +208,14 @@ def state_fusion(adj, x_star, P_pred, dy, dY, *, Ystar=None, gain_shift=None):
 
     adj: (..., R, S); x_star, P_pred per receiver; dy, dY per sender.
     ``Ystar`` = inv_spd(P_pred) if already computed.
-
-    ``gain_shift`` (k, one per receiver), if given: also return
-    (P_bar^-1 + k I)^-1, inverted in the same stacked call as P_bar. With
-    k = eps |N_i| that is the bounded gain M_i of eq. (compensation_state)
-    (see ``compensation_gain``), from the information matrix at hand.
-    Returns (x_bar, P_bar), or (x_bar, P_bar, M) with ``gain_shift``.
     """
     if Ystar is None:
         Ystar = inv_spd(P_pred)
     sum_dY, sum_dy = nbr_sum_pair(adj, dY, dy)
     Y_bar = sym_of_inverses(Ystar + sum_dY)  # dY as information_contribution gives it
-    if gain_shift is None:
-        P_bar = inv_spd(Y_bar)
-    else:
-        k = np.asarray(gain_shift, dtype=float)[..., None, None]
-        P_bar, M = inv_spd_each(Y_bar, Y_bar + k * _eye(Y_bar.shape[-1]))
+    P_bar = inv_spd(Y_bar)
     x_bar = mv(P_bar, sum_dy + mv(Ystar, x_star))
-    return (x_bar, P_bar) if gain_shift is None else (x_bar, P_bar, M)
+    return x_bar, P_bar
 
 
 def compensation_gain(P_bar, form: str = "bounded", eps: float = 0.05, n_neighbours=None):
@@ -232,10 +226,7 @@ def compensation_gain(P_bar, form: str = "bounded", eps: float = 0.05, n_neighbo
                     eps * P_bar * sum_j (x^_j - x^_i) overshoots the neighbours'
                     predictions it is meant to pull towards, and can diverge.
     ``bounded``:    M_i = P_bar (I + eps |N_i| P_bar)^-1  (our default), where
-                    |N_i| counts the neighbours other than i. Computed as
-                    (P_bar^-1 + eps |N_i| I)^-1, the same matrix, symmetric
-                    positive definite by construction (``state_fusion`` with
-                    ``gain_shift`` gives it from its P_bar^-1). For small P_bar it
+                    |N_i| counts the neighbours other than i. For small P_bar it
                     is the paper's gain; for any P_bar the step matrix
                     eps |N_i| M_i has eigenvalues lambda/(1+lambda) < 1 (lambda
                     those of eps |N_i| P_bar), so the correction moves x_bar at
@@ -248,8 +239,10 @@ def compensation_gain(P_bar, form: str = "bounded", eps: float = 0.05, n_neighbo
     if form == "paper":
         return P_bar
     if form == "bounded":
-        k = eps * np.asarray(n_neighbours, dtype=float)[..., None, None]
-        return sym(solve(_eye(P_bar.shape[-1]) + k * P_bar, P_bar))
+        a = P_bar * (eps * np.asarray(n_neighbours, dtype=float))[..., None, None]
+        for i in range(a.shape[-1]):  # I + k P_bar, the diagonal in place
+            a[..., i, i] += 1.0
+        return sym(solve(a, P_bar))
     if form == "normalized":
         nrm = np.linalg.norm(P_bar, axis=(-2, -1))
         return P_bar / (1.0 + nrm)[..., None, None]

@@ -103,19 +103,18 @@ def _inv_spd_1(a: np.ndarray) -> np.ndarray:
 def _inv_spd_2(a: np.ndarray) -> np.ndarray:
     """[[p, q], [q, r]]^-1 = [[r, -q], [-q, p]] / (p r - q^2), q from the lower
     triangle; positive definite iff p > 0 and p r - q^2 > 0 (Sylvester).
-    (-q)/det is -(q/det) exactly, so the output is exactly symmetric."""
+    The output is exactly symmetric."""
     flat = a.reshape(-1, 4)
     p, q, r = flat[:, 0], flat[:, 2], flat[:, 3]
     det = p * r - q * q
     if flat.size and np.fmin.reduce(np.fmin(p, det), axis=None) <= 0:  # fmin skips NaN (it propagates)
         raise _not_pd()
-    out = flat.take(_INV_2, axis=1)  # [r, q, q, p]
-    out *= _ADJUGATE_SIGN
-    out /= det[:, None]
+    out = np.empty(flat.shape)  # column by column: long loops, faster than broadcasting over rows of 4
+    np.divide(r, det, out=out[:, 0])
+    np.divide(q, np.negative(det), out=out[:, 1])
+    out[:, 2] = out[:, 1]
+    np.divide(p, det, out=out[:, 3])
     return out.reshape(a.shape)
-
-
-_INV_2 = np.array([3, 2, 2, 0])  # flat symmetric 2x2 [p, q', q, r] (q lower) -> [r, q, q, p]
 
 
 def inv_spd_each(*stacks: np.ndarray) -> tuple:
@@ -151,14 +150,13 @@ def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     det = flat[:, 0] * flat[:, 3] - flat[:, 1] * flat[:, 2]
     if not det.all():
         raise np.linalg.LinAlgError("Singular matrix")
-    inv = flat.take(_ADJUGATE, axis=1)  # [[d, -b], [-c, a]] / det
-    inv *= _ADJUGATE_SIGN
-    inv /= det[:, None]
+    inv = np.empty(flat.shape)  # [[d, -b], [-c, a]] / det, column by column
+    minus_det = np.negative(det)
+    np.divide(flat[:, 3], det, out=inv[:, 0])
+    np.divide(flat[:, 1], minus_det, out=inv[:, 1])
+    np.divide(flat[:, 2], minus_det, out=inv[:, 2])
+    np.divide(flat[:, 0], det, out=inv[:, 3])
     return np.matmul(inv.reshape(a.shape), b)
-
-
-_ADJUGATE = np.array([3, 1, 2, 0])  # flat 2x2 [a, b, c, d] -> [d, b, c, a]
-_ADJUGATE_SIGN = np.array([1.0, -1.0, -1.0, 1.0])
 
 
 def congruence(G: np.ndarray, X: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ with the messages it actually received as ``senders``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -134,7 +134,3 @@ def uniform_weights(adj: np.ndarray) -> np.ndarray:
     """Row-normalised adjacency: equal weight to every fused neighbour."""
     deg = adj.sum(axis=-1, keepdims=True)
     return adj / np.where(deg > 0, deg, 1.0)
-
-
-def with_since(state: State, since) -> State:
-    return replace(state, since=since)

@@ -33,7 +33,7 @@ class DISKF(Algorithm):
             held = has | held
             x_star = eq.input_prediction(own.x_pred, self.model.G, d_hold, held)
         else:
-            x_star = eq.input_prediction(own.x_pred, self.model.G, d_bar, has)
+            x_star = eq.input_prediction(own.x_pred, self.model.G, d_bar)  # d_bar = 0 where not has
         Ystar, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
         dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
                                              Yp=Yp, Yu=Yu, Ypx=Ypx)
