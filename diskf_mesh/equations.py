@@ -16,18 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from functools import lru_cache
-
-from .linalg import (T, congruence_const, congruence_each, eigvalsh, inv_spd, mv, nbr_sum, nbr_sum_pair, solve, sum_order,
-                     sym, sym_of_inverses)
-
-
-@lru_cache(maxsize=None)
-def _eye(m: int) -> np.ndarray:
-    """A read-only m x m identity, made once (a placeholder in ``np.where``)."""
-    eye = np.eye(m)
-    eye.flags.writeable = False
-    return eye
+from .linalg import (T, congruence_const, congruence_each, eigvalsh, identity, inv_spd, mv, nbr_sum, nbr_sum_pair, solve,
+                     sum_order, sym, sym_of_inverses)
 
 
 # --------------------------------------------------------------------------
@@ -132,7 +122,7 @@ def input_estimate(x_pred, P_pred, U, u, G, allowed=None, rank_rtol: float = 1e-
     if allowed is not None:
         valid &= np.asarray(allowed, dtype=bool)
     # the inverse of an identity placeholder is exactly the identity
-    S = inv_spd(np.where(valid[..., None, None], F_info, _eye(m)))
+    S = inv_spd(np.where(valid[..., None, None], F_info, identity(m)))
     d = mv(S, mv(T(G), c))
     d *= valid[..., None]  # exact: d is finite (S = I where not valid)
     return d, S, valid
@@ -163,7 +153,7 @@ def input_fusion(adj, d, S, valid):
     vec = nbr_sum(Wn, mv(Si, d), 1)
     # Where no sender is valid, every weight is 0, so vec = 0, and the
     # identity placeholder's inverse is exactly I: d_bar = 0 and S_bar = I.
-    S_bar = inv_spd(np.where(has[..., None, None], info, _eye(m)))
+    S_bar = inv_spd(np.where(has[..., None, None], info, identity(m)))
     d_bar = mv(S_bar, vec)
     return d_bar, S_bar, has
 

@@ -6,7 +6,8 @@ import pytest
 
 from diskf_mesh import algorithms, engine
 from diskf_mesh.linalg import (T, congruence, congruence_const, congruence_each, eigvalsh, inv_spd, inv_spd_cholesky,
-                               inv_spd_each, matmul_right, mv, nbr_sum, nbr_sum_pair, solve, sum_order, sym)
+                               inv_spd_each, matmul_right, mv, nbr_sum, nbr_sum_pair, solve, sum_order, sym,
+                               transposed)
 from diskf_mesh.scenario import load_scenario, simulate
 
 
@@ -111,6 +112,14 @@ def test_one_blas_call_equals_stacked_matmul(shape, n):
     X, A = rng.standard_normal(shape + (n, n)) * 10.0 ** rng.uniform(-6, 6, shape + (n, n)), rng.standard_normal((n, n))
     np.testing.assert_array_equal(matmul_right(X, A), np.matmul(X, A))
     np.testing.assert_array_equal(congruence_const(A, X), np.matmul(np.matmul(A, X), T(A)))
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_transposed_and_sym(n):
+    a = np.random.default_rng(n).standard_normal((6, 4, n, n))
+    np.testing.assert_array_equal(transposed(a), np.swapaxes(a, -1, -2))
+    assert transposed(a).flags.c_contiguous
+    np.testing.assert_array_equal(sym(a), 0.5 * (a + np.swapaxes(a, -1, -2)))
 
 
 def test_stacked_helpers_equal_one_at_a_time():
