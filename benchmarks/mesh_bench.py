@@ -1,25 +1,42 @@
 """Mesh benchmark: ``diskf-mesh up`` with 4, 9, 25 and 50 agent processes in
-lockstep. Prints a markdown table; not a test.
+lockstep. Prints markdown tables; not a test.
 
     python benchmarks/mesh_bench.py [--agents 4,9,25,50] [--ticks 200]
                                     [--scenario random-geometric] [--algorithm diskf]
+                                    [--profile] [--repeat R]
 
-Columns:
+Columns of the first table:
     first tick   seconds from starting ``up`` to the world opening tick 1
                  (process start, imports, zenoh sessions, discovery)
     ticks/s      ticks per second from tick 1 to the last report
     CPU ms/tick  CPU time of all processes (world, agents, launcher) over
-                 the whole run, per tick: what bounds ticks/s on a loaded
-                 machine (2 cores give at most 2000 CPU ms per second)
+                 the whole run (start-up included), per tick
     msg bytes    size of one agent message on the wire (n = 2, m = 1)
     fused/tick   neighbour messages an agent fused per tick, on average
+    heard/tick   neighbour messages that reached an agent process per tick
+                 (fused or not: out of range, late), on average
 
-Other work on the machine slows every figure but the message size; run it
-on an idle machine.
+With ``--profile`` every process measures where its ticks go
+(``up --profile``, ``diskf_mesh.mesh.profile``) and the benchmark adds:
+
+* how the tick rate falls as agents are added: the CPU all processes spend
+  per tick once ticking (start-up excluded), split into agents and world,
+  and the rate two cores could sustain at that CPU per tick
+  (2000 ms / CPU ms per tick): where the measured rate is close to it, the
+  run is bound by CPU, and the per-phase tables say whose;
+* per agent count, one per-phase table for an average agent and one for
+  the world (wall and CPU ms per tick: waiting, decode, guard, local, fuse,
+  encode, publish, other; and the process CPU outside them: zenoh's own
+  threads and the kernel).
+
+``--repeat R`` runs every agent count R times, interleaved, and reports the
+run with the median rate: the machine is shared and noisy, so compare
+figures of one invocation, not across invocations.
 """
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import re
 import resource
@@ -32,7 +49,10 @@ from pathlib import Path
 import numpy as np
 
 from diskf_mesh import wire
+from diskf_mesh.mesh import profile
 from diskf_mesh.messages import Message
+
+CORES = 2
 
 
 def message_bytes(n: int = 2, m: int = 1) -> int:
@@ -47,13 +67,17 @@ def cpu_seconds() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workdir: Path) -> dict:
-    est, res = workdir / f"est-{agents}.json", workdir / f"res-{agents}.json"
+def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workdir: Path,
+            with_profile: bool = False) -> dict:
+    tag = f"{agents}-{time.monotonic_ns()}"
+    est, res, prof = workdir / f"est-{tag}.json", workdir / f"res-{tag}.json", workdir / f"prof-{tag}"
     cmd = [sys.executable, "-m", "sim.launcher", "--scenario", scenario, "--ticks", str(ticks),
            "--algorithm", algorithm, "--estimates", str(est), "--json", str(res), "--quiet",
-           "--logs", str(workdir / f"logs-{agents}"), "--startup-timeout", "120"]
+           "--logs", str(workdir / f"logs-{tag}"), "--startup-timeout", "120"]
     if agents is not None:
         cmd += ["--agents", str(agents)]
+    if with_profile:
+        cmd += ["--profile", str(prof)]
     cpu0, t0 = cpu_seconds(), time.monotonic()
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
     wall, cpu = time.monotonic() - t0, cpu_seconds() - cpu0
@@ -61,8 +85,8 @@ def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workd
         return {"agents": agents, "error": (done.stderr.strip().splitlines() or ["?"])[-1]}
     doc = json.loads(est.read_text())
     first = re.search(r"first tick after ([0-9.]+) s", done.stdout)
-    counters = doc["agent_counters"].values()
-    return {
+    counters = list(doc["agent_counters"].values())
+    row = {
         "agents": len(doc["ids"]),
         "ticks": ticks,
         "first_tick_s": float(first.group(1)) if first else float("nan"),
@@ -70,8 +94,35 @@ def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workd
         "cpu_ms_per_tick": 1000.0 * cpu / ticks,
         "wall_s": wall,
         "fused_per_tick": float(np.mean([c["fused"] for c in counters])) / ticks,
+        "heard_per_tick": float(np.mean([c["sent"] + c["out_of_range"] for c in counters])) / ticks,
         "complete": bool(np.array(doc["reported"]).all()),
     }
+    if with_profile:
+        agents_p = [json.loads(Path(f).read_text()) for f in sorted(glob.glob(str(prof / "agent-*.json")))]
+        world_p = json.loads((prof / "world.json").read_text())
+        row["profile"] = {"agent": profile.merge(agents_p), "world": profile.merge([world_p])}
+        agent_cpu = sum(1e3 * s["process_cpu_s"] / max(s["ticks"], 1) for s in agents_p)
+        world_cpu = 1e3 * world_p["process_cpu_s"] / max(world_p["ticks"], 1)
+        row["ticking_cpu_ms_per_tick"] = agent_cpu + world_cpu
+        row["world_cpu_ms_per_tick"] = world_cpu
+        row["agent_cpu_ms_per_tick"] = agent_cpu / max(len(agents_p), 1)
+        row["cpu_bound_ticks_per_s"] = CORES * 1000.0 / (agent_cpu + world_cpu)
+    return row
+
+
+def bound_note(r: dict) -> str:
+    """What bounds the rate of one profiled run, in words."""
+    share = r["ticks_per_s"] / r["cpu_bound_ticks_per_s"]
+    a = r["profile"]["agent"]
+    zenoh = a["process_cpu_ms_per_tick"] - a["python_cpu_ms_per_tick"]
+    math_ms = a["phases"]["local"]["cpu_ms_per_tick"] + a["phases"]["fuse"]["cpu_ms_per_tick"]
+    what = ("CPU: the processes' work per tick fills both cores" if share > 0.75 else
+            "latency more than CPU: the cores idle while a tick waits on its slowest path")
+    return (f"{r['agents']} agents: {r['ticks_per_s']:.0f} ticks/s = {100 * share:.0f} % of the {CORES}-core CPU bound "
+            f"({r['cpu_bound_ticks_per_s']:.0f}/s at {r['ticking_cpu_ms_per_tick']:.1f} CPU ms/tick); {what}. "
+            f"An agent spends {a['process_cpu_ms_per_tick']:.2f} CPU ms/tick: math {math_ms:.2f}, the rest of "
+            f"its Python {a['python_cpu_ms_per_tick'] - math_ms:.2f}, zenoh and the kernel {zenoh:.2f}; "
+            f"it hears {r['heard_per_tick']:.1f} neighbour messages a tick and fuses {r['fused_per_tick']:.1f}.")
 
 
 def main(argv=None) -> int:
@@ -82,26 +133,56 @@ def main(argv=None) -> int:
     p.add_argument("--scenario", default="random-geometric",
                    help="a generated scenario (takes --agents), default random-geometric")
     p.add_argument("--algorithm", default="diskf")
+    p.add_argument("--profile", action="store_true",
+                   help="also measure where each tick's time goes, per phase, and what bounds the rate")
+    p.add_argument("--repeat", type=int, default=1, help="runs per agent count, the median rate is kept")
     p.add_argument("--json", help="also write the rows as JSON")
     args = p.parse_args(argv)
     size = message_bytes()
-    rows = []
+    counts = [None] if args.agents == "scenario" else [int(a) for a in args.agents.split(",")]
+    runs = {n: [] for n in counts}
     with tempfile.TemporaryDirectory(prefix="mesh-bench-") as tmp:
-        counts = [None] if args.agents == "scenario" else [int(a) for a in args.agents.split(",")]
-        for n in counts:
-            row = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp))
-            row["message_bytes"] = size
-            rows.append(row)
-            print(json.dumps(row), file=sys.stderr, flush=True)
-    print(f"\n{args.algorithm} on {args.scenario}, {args.ticks} ticks, one process per agent, zenoh on loopback\n")
-    print("| agents | first tick (s) | ticks/s | CPU ms/tick | msg bytes | fused/tick | complete |")
-    print("|---:|---:|---:|---:|---:|---:|:---:|")
+        for _ in range(max(args.repeat, 1)):
+            for n in counts:
+                row = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), args.profile)
+                row["message_bytes"] = size
+                runs[n].append(row)
+                print(json.dumps({k: v for k, v in row.items() if k != "profile"}), file=sys.stderr, flush=True)
+    rows = []
+    for n in counts:
+        ok = sorted((r for r in runs[n] if "error" not in r), key=lambda r: r["ticks_per_s"])
+        rows.append(ok[len(ok) // 2] if ok else runs[n][-1])
+    print(f"\n{args.algorithm} on {args.scenario}, {args.ticks} ticks, one process per agent, zenoh on loopback"
+          + (f", median of {args.repeat} runs" if args.repeat > 1 else "") + "\n")
+    print("| agents | first tick (s) | ticks/s | CPU ms/tick | msg bytes | fused/tick | heard/tick | complete |")
+    print("|---:|---:|---:|---:|---:|---:|---:|:---:|")
     for r in rows:
         if "error" in r:
-            print(f"| {r['agents']} | failed: {r['error']} | | | | | |")
+            print(f"| {r['agents']} | failed: {r['error']} | | | | | | |")
             continue
         print(f"| {r['agents']} | {r['first_tick_s']:.2f} | {r['ticks_per_s']:.0f} | {r['cpu_ms_per_tick']:.1f} "
-              f"| {r['message_bytes']} | {r['fused_per_tick']:.1f} | {'yes' if r['complete'] else 'no'} |")
+              f"| {r['message_bytes']} | {r['fused_per_tick']:.1f} | {r['heard_per_tick']:.1f} "
+              f"| {'yes' if r['complete'] else 'no'} |")
+    profiled = [r for r in rows if "profile" in r]
+    if profiled:
+        print("\nOnce ticking (start-up excluded): CPU per tick of all processes, and the rate two cores could "
+              "sustain at that CPU\n")
+        print("| agents | ticks/s | CPU ms/tick | agent CPU ms/tick | world CPU ms/tick | 2-core bound ticks/s "
+              "| share of bound |")
+        print("|---:|---:|---:|---:|---:|---:|---:|")
+        for r in profiled:
+            print(f"| {r['agents']} | {r['ticks_per_s']:.0f} | {r['ticking_cpu_ms_per_tick']:.1f} "
+                  f"| {r['agent_cpu_ms_per_tick']:.2f} | {r['world_cpu_ms_per_tick']:.2f} "
+                  f"| {r['cpu_bound_ticks_per_s']:.0f} | {100 * r['ticks_per_s'] / r['cpu_bound_ticks_per_s']:.0f} % |")
+        print()
+        for r in profiled:
+            print("- " + bound_note(r))
+        for r in profiled:
+            print()
+            print(profile.format_table(r["profile"]["agent"], f"{r['agents']} agents: one agent (mean of "
+                                                                f"{r['profile']['agent']['processes']})"))
+            print()
+            print(profile.format_table(r["profile"]["world"], f"{r['agents']} agents: the world"))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

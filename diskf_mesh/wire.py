@@ -43,7 +43,9 @@ kind "stop" (world -> everyone): "why" a short text.
 """
 from __future__ import annotations
 
+import functools
 import math
+import struct
 from dataclasses import dataclass, field
 
 import msgpack
@@ -226,10 +228,24 @@ def _floats(doc: dict, key: str, count: int) -> np.ndarray:
         raise Rejected("dtype", f"field {key!r} is not a float64 byte string")
     if len(blob) != 8 * count:
         raise Rejected("shape", f"field {key!r} holds {len(blob)} bytes, expected {8 * count}")
+    if count <= _SMALL:  # the usual message: Python floats are faster than numpy calls on a few numbers
+        values = _struct(count).unpack(blob)
+        # NaN and infinity make the sum non-finite (so may huge finite values: then look at each)
+        if not math.isfinite(sum(values)) and not all(map(math.isfinite, values)):
+            raise Rejected("non-finite", f"field {key!r}")
+        return np.array(values, dtype=float)
     a = np.frombuffer(blob, dtype=DTYPE).astype(float)
     if not np.isfinite(a).all():
         raise Rejected("non-finite", f"field {key!r}")
     return a
+
+
+_SMALL = 64
+
+
+@functools.lru_cache(maxsize=None)
+def _struct(count: int) -> struct.Struct:
+    return struct.Struct(f"<{count}d")
 
 
 def _dims_of(doc: dict, n: int | None, m: int | None) -> tuple:
@@ -267,6 +283,16 @@ def _spd(*mats, rtol: float = 1e-9) -> None:
         if k == 1:
             if not M[0, 0] > 0.0:
                 raise Rejected("not-spd", "a variance is not positive")
+            continue
+        if k == 2:  # the same arithmetic as _cholesky_ok, unrolled
+            (p, q), (s, r) = M.tolist()
+            if abs(q - s) > rtol * max(abs(p), abs(q), abs(s), abs(r)):
+                raise Rejected("not-spd", "a covariance is not symmetric")
+            if not p > 0.0:
+                raise Rejected("not-spd", "a covariance is not positive definite")
+            low = s / p ** 0.5
+            if not r - low * low > 0.0:
+                raise Rejected("not-spd", "a covariance is not positive definite")
             continue
         a = M.tolist()
         scale = max(abs(v) for row in a for v in row)

@@ -218,6 +218,9 @@ def register(subparsers) -> None:
     p.add_argument("--collect-timeout", type=float, default=5.0, metavar="S",
                    help="agents: seconds to wait for neighbours' messages (default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--profile", metavar="DIR",
+                   help="world and agents measure where each tick's time goes: DIR/world.json, "
+                        "DIR/agent-<id>.json (benchmarks/mesh_bench.py --profile prints them)")
     add_fault_arguments(p)
     zenoh_config.add_arguments(p)
     p.set_defaults(func=run)
@@ -244,8 +247,12 @@ def run(args: argparse.Namespace) -> int:
                    "--tick-timeout", str(args.tick_timeout)]
     if args.estimates:
         world_extra += ["--estimates", args.estimates]
+    if args.profile:
+        world_extra += ["--profile", args.profile]
     agent_extra = ["--collect-timeout", str(args.collect_timeout),
                    "--world-timeout", str(args.startup_timeout + 2 * args.tick_timeout)]
+    if args.profile:
+        agent_extra += ["--profile", args.profile]
     faults = faults_from_args(args, scn.faults)
     if faults != FaultConfig.from_mapping(scn.faults):  # flags given: every child gets them
         world_extra += faults.to_argv()

@@ -22,7 +22,9 @@ that comes back (same id) is live again from the tick after it is ready.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -39,7 +41,8 @@ from diskf_mesh.engine import Estimates
 from diskf_mesh.mesh import runspec, zenoh_config
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.log import Log
-from diskf_mesh.mesh.transport import Mailbox, MeshError, Transport, ZenohTransport
+from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
+from diskf_mesh.mesh.transport import MeshError, Transport, ZenohTransport
 from diskf_mesh.scenario import Scenario, simulate
 from diskf_mesh.trace import Trace, estimates_to_json
 
@@ -79,54 +82,94 @@ class WorldRecord:
         return Estimates(x[None], P[None], d[None], self.d_valid[None])
 
 
+POLL_S = 0.5  # the main thread looks at the tick's deadline at least this often
+
+
 class World:
+    """The lockstep over a ``Transport``. ``run`` returns the ``WorldRecord``.
+
+    Reports and liveliness changes are handled in the transport's callback
+    (zenoh's network thread) under one lock (``_cv``): the report that
+    completes tick k closes it and opens tick k+1 right there (measurements
+    and tick out), with no hop to another thread. The main thread waits for
+    the agents at the start, for a tick's deadline (``--tick-timeout``: the
+    reports that did not come are counted missing), for the end and for the
+    agents to leave after the stop."""
+
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
-                 timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None):
+                 timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None,
+                 profile: Phases = NO_PHASES):
         self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
+        self.prof = profile
         self.keys, self.transport, self.timing = keys, transport, timing
         self.progress = progress
         self.log = log or Log("world")
         self.ids = tuple(a.id for a in scn.agents)
         self.p = scn.sensors().p
-        self.inbox = Mailbox()
         self.alive, self.ready = set(), set()
         K, N = trace.has.shape[1:]
+        self.K = K
         n, m = trace.model.n, trace.model.m
         self.record = WorldRecord(self.ids, np.full((K, N, n), np.nan), np.full((K, N, n, n), np.nan),
                                   np.full((K, N, m), np.nan), np.zeros((K, N), dtype=bool),
                                   np.zeros((K, N), dtype=bool))
         self.k = 0
         self.stopping = False
+        self.done = False              # tick K is closed
+        self.failure: BaseException | None = None  # raised in a callback, re-raised by the main thread
+        self._cv = threading.Condition(threading.RLock())  # everything above, shared with the callbacks
+        self._open = 0                 # k while the reports of tick k are being collected
+        self._waiting = set()          # live (ready) agents whose report of tick k has not come yet
+        self._deadline = math.inf      # end of tick k's collection (monotonic)
+        self._main_looks_at = 0.0      # when the main thread looks at the deadline next
+        self._kinds = {keys.report(i): ("report", i) for i in self.ids}
 
-    # -- inbox -----------------------------------------------------------
-    def _next(self, until: float) -> None:
-        item = self.inbox.get(until - time.monotonic())
-        if item is None:
-            return
-        key, payload, _ = item
-        kind, who = self.keys.parse(key)
-        if kind in ("alive", "ready") and who is not None:
-            if kind == "alive" and self.k and not self.stopping and (who in self.alive) != payload:
-                self.log.info(f"tick {self.k}: agent {who} " + ("is back" if payload else "is gone (its liveliness "
-                                                                                           "token went)"))
-            group = self.alive if kind == "alive" else self.ready
-            (group.add if payload else group.discard)(who)
-            if kind == "alive" and not payload:
-                self.ready.discard(who)
-        elif kind == "report":
-            try:
-                self._on_report(who, payload)
-            except wire.Rejected as e:
-                self.record.counters[f"rejected:{e.reason}"] += 1
-                self.log.once(("report", who, e.reason), f"rejected a report from {key}: {e}")
+    # -- transport callbacks ---------------------------------------------------
+    def _on_sample(self, key: str, payload) -> None:
+        """A report, or a liveliness change (``payload`` True or False)."""
+        self.prof.begin()
+        try:
+            with self._cv:
+                kind, who = self._kinds.get(key) or self.keys.parse(key)
+                if kind == "report":
+                    try:
+                        self._on_report(who, payload)
+                    except wire.Rejected as e:
+                        self.record.counters[f"rejected:{e.reason}"] += 1
+                        self.log.once(("report", who, e.reason), f"rejected a report from {key}: {e}")
+                elif kind in ("alive", "ready") and who is not None:
+                    self._on_token(kind, who, payload)
+                self._advance()
+        except BaseException as e:  # noqa: BLE001 - a callback must not swallow a failure
+            with self._cv:
+                self.failure = self.failure or e
+                self._cv.notify_all()
+        finally:
+            self.prof.end("other")
+
+    def _on_token(self, kind: str, who: int, alive: bool) -> None:
+        if kind == "alive" and self.k and not self.stopping and (who in self.alive) != alive:
+            self.log.info(f"tick {self.k}: agent {who} " + ("is back" if alive else "is gone (its liveliness "
+                                                                                     "token went)"))
+        group = self.alive if kind == "alive" else self.ready
+        (group.add if alive else group.discard)(who)
+        if kind == "alive" and not alive:
+            self.ready.discard(who)
+        if who not in self.ready:
+            self._waiting.discard(who)  # gone: the tick does not wait for it
+        self._cv.notify_all()
 
     def _on_report(self, sender, payload) -> None:
         if sender not in self.ids:
             raise wire.Rejected("sender", f"unknown agent {sender}")
-        r = wire.decode_report(payload, run_id=self.keys.run_id, sender=sender,
-                               n=self.trace.model.n, m=self.trace.model.m)
+        self.prof.begin()
+        try:
+            r = wire.decode_report(payload, run_id=self.keys.run_id, sender=sender,
+                                   n=self.trace.model.n, m=self.trace.model.m)
+        finally:
+            self.prof.end("decode")
         i = self.ids.index(sender)
-        if r.tick < self.k:
+        if r.tick < self.k or (r.tick == self.k and not self._open):
             self.record.counters["stale"] += 1
         elif r.tick > self.k or self.record.reported[r.tick - 1, i]:
             self.record.counters["unexpected"] += 1
@@ -136,58 +179,108 @@ class World:
             rec.d_valid[r.tick - 1, i] = r.d_valid
             rec.reported[r.tick - 1, i] = True
             rec.agent_counters[sender] = r.counters
+            self._waiting.discard(sender)
+
+    # -- the ticks (lock held) ---------------------------------------------------
+    def _advance(self) -> None:
+        """Close every tick whose reports are all in, opening the next."""
+        while self._open and not self._waiting and self.failure is None:
+            self._close_tick()
+
+    def _open_tick(self, k: int) -> None:
+        """Send each live agent its measurement of tick k, then the tick."""
+        tr, run, prof = self.trace, self.keys.run_id, self.prof
+        live = [i for i in self.ids if i in self.ready]
+        self.k = self._open = k
+        self._waiting = set(live)
+        prof.begin()
+        out = [(self.keys.meas(i), wire.encode_measurement(run, k, i, bool(tr.has[0, k - 1, j]),
+                                                           tr.y[0, k - 1, j, : self.p[j]]))
+               for i, j in ((i, self.ids.index(i)) for i in live)]
+        out.append((self.keys.tick, wire.encode_tick(wire.Tick(
+            run, k, tr.has.shape[1], self.seed, self.algorithm, self.scn.topology, self.scn.comm_range,
+            tr.positions[k - 1], tuple(live)))))
+        prof.end("encode")
+        prof.begin()
+        for key, payload in out:
+            self.transport.put(key, payload)
+        prof.end("publish")
+        prof.waiting = "wait-reports"
+        self._deadline = time.monotonic() + self.timing.tick_timeout
+        if self._deadline < self._main_looks_at:
+            self._cv.notify_all()
+
+    def _close_tick(self) -> None:
+        """Tick k is over (every live agent reported, or its deadline passed):
+        what did not come is missing; open tick k+1, or end."""
+        k = self.k
+        for i in sorted(self._waiting):
+            self.record.counters["missing-report"] += 1
+            self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
+        self._open, self._waiting, self._deadline = 0, set(), math.inf
+        self.prof.tick()
+        if self.progress is not None:
+            self.progress(k)
+        if k < self.K:
+            self._open_tick(k + 1)
+        else:
+            self.done = True
+            self._cv.notify_all()
+
+    def _wait(self, until: float) -> None:
+        """Main thread, lock held: sleep until notified or ``until``, at most ``POLL_S``."""
+        now = time.monotonic()
+        timeout = max(min(until, now + POLL_S), now) - now
+        self._main_looks_at = now + timeout
+        self._cv.wait(timeout)
+        if self.failure is not None:
+            raise self.failure
 
     # -- protocol ----------------------------------------------------------
     def start(self) -> None:
-        self.transport.subscribe(f"{self.keys.root}/agent/*/report", self.inbox.push)
-        self.transport.watch_tokens(f"{self.keys.root}/*/agent/*", self.inbox.push)
+        self.transport.subscribe(f"{self.keys.root}/agent/*/report", self._on_sample)
+        self.transport.watch_tokens(f"{self.keys.root}/*/agent/*", self._on_sample)
         self.transport.declare_token(self.keys.alive_world)
 
     def wait_agents(self) -> None:
         t0 = time.monotonic()
         deadline = t0 + self.timing.startup_timeout
-        while not self.ready >= set(self.ids):
-            if time.monotonic() >= deadline:
-                absent = [i for i in self.ids if i not in self.alive]
-                stuck = [i for i in self.ids if i in self.alive and i not in self.ready]
-                parts = []
-                if absent:
-                    parts.append(f"no agent process for id {', '.join(map(str, absent))} (no liveliness token)")
-                if stuck:
-                    parts.append(f"agent {', '.join(map(str, stuck))} up but not connected to every peer")
-                raise MeshError(f"after {self.timing.startup_timeout:g} s waiting for the agents: "
-                                + "; ".join(parts))
-            self._next(deadline)
+        with self._cv:
+            while not self.ready >= set(self.ids):
+                if time.monotonic() >= deadline:
+                    absent = [i for i in self.ids if i not in self.alive]
+                    stuck = [i for i in self.ids if i in self.alive and i not in self.ready]
+                    parts = []
+                    if absent:
+                        parts.append(f"no agent process for id {', '.join(map(str, absent))} (no liveliness token)")
+                    if stuck:
+                        parts.append(f"agent {', '.join(map(str, stuck))} up but not connected to every peer")
+                    raise MeshError(f"after {self.timing.startup_timeout:g} s waiting for the agents: "
+                                    + "; ".join(parts))
+                self._wait(deadline)
 
-    def run_tick(self, k: int) -> None:
-        self.k = k
-        tr, run = self.trace, self.keys.run_id
-        live = [i for i in self.ids if i in self.ready]
-        for i in live:
-            j = self.ids.index(i)
-            has = bool(tr.has[0, k - 1, j])
-            self.transport.put(self.keys.meas(i), wire.encode_measurement(
-                run, k, i, has, tr.y[0, k - 1, j, : self.p[j]]))
-        self.transport.put(self.keys.tick, wire.encode_tick(wire.Tick(
-            run, k, tr.has.shape[1], self.seed, self.algorithm, self.scn.topology, self.scn.comm_range,
-            tr.positions[k - 1], tuple(live))))
-        deadline = time.monotonic() + self.timing.tick_timeout
-        col = [self.ids.index(i) for i in live]
-        while True:
-            waiting = [i for i, j in zip(live, col) if not self.record.reported[k - 1, j] and i in self.ready]
-            if not waiting or time.monotonic() >= deadline:
-                break
-            self._next(deadline)
-        for i in waiting:
-            self.record.counters["missing-report"] += 1
-            self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
+    def run_ticks(self) -> None:
+        """Tick 1 to K, in lockstep (the callbacks drive it; the main thread
+        closes a tick at its deadline)."""
+        with self._cv:
+            self._open_tick(1)
+            self._advance()
+            while not self.done:
+                if time.monotonic() >= self._deadline:
+                    self._close_tick()
+                    self._advance()
+                    continue
+                self._wait(self._deadline)
 
     def stop(self, why: str) -> None:
-        self.stopping = True
+        with self._cv:
+            self.stopping = True
+            self._open = 0
         self.transport.put(self.keys.stop, wire.encode_stop(self.keys.run_id, self.k, why))
         deadline = time.monotonic() + self.timing.leave_timeout
-        while self.alive and time.monotonic() < deadline:
-            self._next(deadline)
+        with self._cv:
+            while self.alive and time.monotonic() < deadline:
+                self._cv.wait(max(0.0, min(deadline - time.monotonic(), POLL_S)))
 
     def run(self) -> WorldRecord:
         t0 = time.monotonic()
@@ -195,16 +288,14 @@ class World:
         self.wait_agents()
         t1 = time.monotonic()
         self.record.startup_s = t1 - t0
-        K = self.trace.has.shape[1]
         self.transport.declare_token(self.keys.ticking)  # an agent starting from now on is rejoining
+        self.prof.start()
         try:
-            for k in range(1, K + 1):
-                self.run_tick(k)
-                if self.progress is not None:
-                    self.progress(k)
+            self.run_ticks()
         finally:
+            self.prof.stop()
             self.record.ticks_s = time.monotonic() - t1
-            self.stop("done" if self.k == K else "world stopped")
+            self.stop("done" if self.done else "world stopped")
         return self.record
 
 
@@ -262,6 +353,9 @@ def register(subparsers) -> None:
                    help="seconds to wait for the reports of one tick (default %(default)s)")
     p.add_argument("--progress", choices=PROGRESS, default="bar",
                    help="progress bar on stderr, 'tick k K' lines on stdout, or none")
+    p.add_argument("--profile", metavar="DIR",
+                   help="measure where each tick's time goes (wait for reports, decode, encode, publish) and "
+                        "write DIR/world.json at exit")
     add_fault_arguments(p)
     zenoh_config.add_arguments(p)
     p.set_defaults(func=run)
@@ -286,16 +380,19 @@ def run(args: argparse.Namespace) -> int:
             print(f"tick {k} {K}", flush=True)
         bar.update(1)
 
+    prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
     try:
         with ZenohTransport(zenoh_config.from_args(args)) as transport:
             world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
-                          WorldTiming(args.startup_timeout, args.tick_timeout), progress, log)
+                          WorldTiming(args.startup_timeout, args.tick_timeout), progress, log, prof)
             rec = world.run()
     except MeshError as e:
         log.error(str(e))
         return 1
     finally:
         bar.close()
+        if prof:
+            prof.write(args.profile, "world")
     row = result_metrics(trace, rec)
     summary = run_summary(rec, faults)
     results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}

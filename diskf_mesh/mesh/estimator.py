@@ -62,10 +62,18 @@ class AgentEstimator:
 
 def neighbours(scn: Scenario, agent_id: int, positions: np.ndarray) -> tuple:
     """Ids linked to ``agent_id`` at a tick (itself included), from every
-    agent's position (N, 2) and the scenario's topology and range."""
+    agent's position (N, 2) and the scenario's topology and range.
+
+    Range links: this agent's row of ``scenario.range_links`` only, with the
+    same arithmetic (bit for bit the same squared distances), not all N x N."""
     ids = [a.id for a in scn.agents]
-    row = links_for(scn, positions[None])[0, ids.index(agent_id)]
-    return tuple(i for i, linked in zip(ids, row) if linked)
+    i = ids.index(agent_id)
+    if scn.topology == "range":
+        diff = positions[i] - positions
+        row = np.einsum("...k,...k->...", diff, diff) <= scn.comm_range * scn.comm_range
+    else:
+        row = links_for(scn, positions[None])[0, i]
+    return tuple(j for j, linked in zip(ids, row.tolist()) if linked)
 
 
 def fixed_neighbours(scn: Scenario, agent_id: int) -> tuple | None:
@@ -78,3 +86,60 @@ def fixed_neighbours(scn: Scenario, agent_id: int) -> tuple | None:
         return None
     positions = np.stack([a.position_at(np.array([1]))[0] for a in scn.agents])
     return tuple(j for j in neighbours(scn, agent_id, positions) if j != agent_id)
+
+
+# a link is assumed possible up to this much beyond the range (relative), so
+# that rounding in positions along a path can never hide a real link
+RANGE_SLACK = 1e-6
+
+
+def possible_neighbours(scn: Scenario, agent_id: int) -> tuple | None:
+    """The agents ``agent_id`` may be linked to at some tick of a run (not
+    itself), or None where that may be every agent (listen to them all).
+
+    With range links between moving agents the links change, but an agent
+    moves only along its path (a closed polyline; a static agent is a point),
+    so two agents whose paths never come within the range of each other are
+    never linked, whatever the ticks, periods and phases. This bound keeps
+    every agent that might be linked (a superset of the real links, with
+    ``RANGE_SLACK``); the range gate at each tick decides the rest. In
+    Scenario 2 a static agent listens to the five moving agents only."""
+    fixed = fixed_neighbours(scn, agent_id)
+    if fixed is not None or scn.topology != "range":
+        return fixed
+    ids = [a.id for a in scn.agents]
+    mine = _path_segments(scn.agents[ids.index(agent_id)])
+    reach = scn.comm_range * (1.0 + RANGE_SLACK)
+    out = tuple(a.id for a in scn.agents
+                if a.id != agent_id and _segments_distance(mine, _path_segments(a)) <= reach)
+    return None if len(out) == len(ids) - 1 else out
+
+
+def _path_segments(agent) -> np.ndarray:
+    """(S, 2, 2) the segments an agent's position can be on."""
+    if agent.path is None:
+        p = np.asarray(agent.position, dtype=float)
+        return np.stack([p, p])[None]
+    pts = np.asarray(agent.path, dtype=float)
+    return np.stack([pts, np.roll(pts, -1, axis=0)], axis=1)
+
+
+def _segments_distance(A: np.ndarray, B: np.ndarray) -> float:
+    """Smallest distance between any segment of A (S, 2, 2) and of B (T, 2, 2)."""
+    a0, a1 = A[:, None, 0], A[:, None, 1]
+    b0, b1 = B[None, :, 0], B[None, :, 1]
+
+    def to_segment(p, s0, s1):
+        d = s1 - s0
+        dd = np.einsum("...k,...k->...", d, d)
+        t = np.clip(np.einsum("...k,...k->...", p - s0, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+        return np.linalg.norm(s0 + t[..., None] * d - p, axis=-1)
+
+    def cross(u, v):
+        return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+    dist = np.minimum(np.minimum(to_segment(a0, b0, b1), to_segment(a1, b0, b1)),
+                      np.minimum(to_segment(b0, a0, a1), to_segment(b1, a0, a1)))
+    crossing = ((cross(a1 - a0, b0 - a0) * cross(a1 - a0, b1 - a0) < 0)
+                & (cross(b1 - b0, a0 - b0) * cross(b1 - b0, a1 - b0) < 0))
+    return float(np.where(crossing, 0.0, dist).min())

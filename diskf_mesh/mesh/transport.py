@@ -5,20 +5,21 @@ expression to a callback, declares liveliness tokens and reports tokens
 appearing and going. ``ZenohTransport`` is the real one; ``LocalBus`` hands
 samples between threads of one process (for tests of the protocol).
 
-Callbacks run on the transport's own threads: they must only hand the sample
-over, e.g. to a ``Mailbox``, which the process's main loop reads with a
-timeout. This one narrow interface is where faults go in (issue 6): a
-wrapper ``Transport`` that takes the inner transport and, per incoming sample
-on an agent-message key, drops, delays (latency + jitter, by a timer thread),
+Callbacks run on the transport's own threads (zenoh's network thread, one
+``LocalTransport`` thread), never inside the publisher's ``put``: a mesh
+process does its per-message work right there, under its own lock, and wakes
+its main thread only for what that thread does (start-up, timeouts, the
+end). This one narrow interface is where faults go in (issue 6): a wrapper
+``Transport`` that takes the inner transport and, per incoming sample on an
+agent-message key, drops, delays (latency + jitter, by a timer thread),
 duplicates or reorders it before calling the real callback, with one seeded
 random stream per link (sender id from the key, receiver id known to the
 wrapper). Nothing above this layer changes.
 """
 from __future__ import annotations
 
-import queue
+import collections
 import threading
-import time
 from typing import Callable
 
 OnSample = Callable[[str, bytes], None]
@@ -57,31 +58,15 @@ class Transport:
         self.close()
 
 
-class Mailbox:
-    """Samples and token changes handed from transport threads to the main
-    loop, in arrival order. ``get`` waits at most ``timeout`` seconds."""
-
-    def __init__(self):
-        self._q = queue.SimpleQueue()
-
-    def push(self, key: str, payload) -> None:
-        self._q.put((key, payload, time.monotonic()))
-
-    def get(self, timeout: float):
-        """(key, payload, arrival time) or None after ``timeout``."""
-        try:
-            return self._q.get(timeout=max(float(timeout), 0.0))
-        except queue.Empty:
-            return None
-
-
 # --------------------------------------------------------------------------
 # zenoh
 # --------------------------------------------------------------------------
 class ZenohTransport(Transport):
     """One zenoh session. Publishers are declared once per key, reliable,
-    blocking on congestion (a fault-free run loses nothing) and express (sent
-    at once, not batched: a tick is latency bound)."""
+    blocking on congestion (a fault-free run loses nothing), express (sent
+    at once, not batched: a tick is latency bound) and for other sessions
+    only (a process does not hear its own messages: zenoh would call its
+    subscriber inside ``put``)."""
 
     def __init__(self, options):
         import zenoh
@@ -100,14 +85,16 @@ class ZenohTransport(Transport):
         pub = self._publishers.get(key)
         if pub is None:
             pub = self._session.declare_publisher(
-                key, congestion_control=self._zenoh.CongestionControl.BLOCK, express=True)
+                key, congestion_control=self._zenoh.CongestionControl.BLOCK, express=True,
+                allowed_destination=self._zenoh.Locality.REMOTE)
             self._publishers[key] = pub
         pub.put(payload)
 
     def _direct(self, fn):
         """Run ``fn`` on zenoh's own network thread, not on an extra Python
         thread per subscriber: one thread hop less per sample, which is most
-        of a small message's cost. Callbacks here only hand samples over."""
+        of a small message's cost. A callback may ``put`` (never to its own
+        session: publishers reach other sessions only)."""
         return self._zenoh.handlers.Callback(fn, indirect=False)
 
     def subscribe(self, key_expr, on_sample):
@@ -155,7 +142,10 @@ def key_matches(expr: str, key: str) -> bool:
 
 class LocalBus:
     """A zenoh stand-in inside one process: ``bus.transport()`` per node.
-    Delivery is synchronous on the publisher's thread."""
+
+    As with zenoh, a sample is delivered on the receiving node's own thread
+    (one per ``LocalTransport``), in the order it was put, never on the
+    publisher's: a callback may publish without re-entering itself."""
 
     def __init__(self):
         self._lock = threading.RLock()
@@ -172,12 +162,33 @@ class LocalTransport(Transport):
         self._bus = bus
         self._tokens = []
         self._closed = False
+        self._queue = collections.deque()
+        self._ready = threading.Condition(threading.Lock())
+        self._thread = threading.Thread(target=self._deliver, name="localbus", daemon=True)
+        self._thread.start()
+
+    def _post(self, callback, *args) -> None:
+        with self._ready:
+            if self._closed:
+                return
+            self._queue.append((callback, args))
+            self._ready.notify()
+
+    def _deliver(self) -> None:
+        while True:
+            with self._ready:
+                while not self._queue and not self._closed:
+                    self._ready.wait()
+                if not self._queue:
+                    return
+                callback, args = self._queue.popleft()
+            callback(*args)
 
     def put(self, key, payload):
         with self._bus._lock:
-            targets = [cb for _, e, cb in self._bus._subs if key_matches(e, key)]
-        for cb in targets:
-            cb(key, bytes(payload))
+            targets = [(owner, cb) for owner, e, cb in self._bus._subs if key_matches(e, key)]
+        for owner, cb in targets:
+            owner._post(cb, key, bytes(payload))
 
     def subscribe(self, key_expr, on_sample):
         with self._bus._lock:
@@ -185,9 +196,9 @@ class LocalTransport(Transport):
 
     def _token_event(self, key, alive):
         with self._bus._lock:
-            targets = [cb for _, e, cb in self._bus._watchers if key_matches(e, key)]
-        for cb in targets:
-            cb(key, alive)
+            targets = [(owner, cb) for owner, e, cb in self._bus._watchers if key_matches(e, key)]
+        for owner, cb in targets:
+            owner._post(cb, key, alive)
 
     def declare_token(self, key):
         with self._bus._lock:
@@ -200,12 +211,11 @@ class LocalTransport(Transport):
             self._bus._watchers.append((self, key_expr, on_change))
             present = [k for k in self._bus._tokens if key_matches(key_expr, k)]
         for k in present:
-            on_change(k, True)
+            self._post(on_change, k, True)
 
     def close(self):
         if self._closed:
             return
-        self._closed = True
         with self._bus._lock:
             self._bus._subs = [s for s in self._bus._subs if s[0] is not self]
             self._bus._watchers = [w for w in self._bus._watchers if w[0] is not self]
@@ -217,3 +227,8 @@ class LocalTransport(Transport):
                     gone.append(k)
         for k in gone:
             self._token_event(k, False)
+        with self._ready:
+            self._closed = True
+            self._ready.notify()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(5.0)
