@@ -31,7 +31,9 @@ With ``--profile`` every process measures where its ticks go
 
 ``--repeat R`` runs every agent count R times, interleaved, and reports the
 run with the median rate: the machine is shared and noisy, so compare
-figures of one invocation, not across invocations.
+figures of one invocation, not across invocations. ``--baseline DIR`` runs
+the same from another checkout (e.g. ``git archive REV | tar -x -C DIR``)
+right after each run of this one and prints both rates and their ratio.
 """
 from __future__ import annotations
 
@@ -68,7 +70,8 @@ def cpu_seconds() -> float:
 
 
 def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workdir: Path,
-            with_profile: bool = False) -> dict:
+            with_profile: bool = False, tree: Path | None = None) -> dict:
+    """One ``up`` run; ``tree``: the checkout to run it from (default: this one)."""
     tag = f"{agents}-{time.monotonic_ns()}"
     est, res, prof = workdir / f"est-{tag}.json", workdir / f"res-{tag}.json", workdir / f"prof-{tag}"
     cmd = [sys.executable, "-m", "sim.launcher", "--scenario", scenario, "--ticks", str(ticks),
@@ -79,7 +82,7 @@ def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workd
     if with_profile:
         cmd += ["--profile", str(prof)]
     cpu0, t0 = cpu_seconds(), time.monotonic()
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=1800, cwd=tree)
     wall, cpu = time.monotonic() - t0, cpu_seconds() - cpu0
     if done.returncode != 0:
         return {"agents": agents, "error": (done.stderr.strip().splitlines() or ["?"])[-1]}
@@ -110,6 +113,12 @@ def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workd
     return row
 
 
+def median_run(runs: list) -> dict:
+    """The run with the median rate (the last failure if none completed)."""
+    ok = sorted((r for r in runs if "error" not in r), key=lambda r: r["ticks_per_s"])
+    return ok[len(ok) // 2] if ok else runs[-1]
+
+
 def bound_note(r: dict) -> str:
     """What bounds the rate of one profiled run, in words."""
     share = r["ticks_per_s"] / r["cpu_bound_ticks_per_s"]
@@ -136,11 +145,14 @@ def main(argv=None) -> int:
     p.add_argument("--profile", action="store_true",
                    help="also measure where each tick's time goes, per phase, and what bounds the rate")
     p.add_argument("--repeat", type=int, default=1, help="runs per agent count, the median rate is kept")
+    p.add_argument("--baseline", metavar="DIR", type=Path,
+                   help="another checkout to run the same from, interleaved, for a side-by-side ratio")
     p.add_argument("--json", help="also write the rows as JSON")
     args = p.parse_args(argv)
     size = message_bytes()
     counts = [None] if args.agents == "scenario" else [int(a) for a in args.agents.split(",")]
     runs = {n: [] for n in counts}
+    base_runs = {n: [] for n in counts}
     with tempfile.TemporaryDirectory(prefix="mesh-bench-") as tmp:
         for _ in range(max(args.repeat, 1)):
             for n in counts:
@@ -148,10 +160,11 @@ def main(argv=None) -> int:
                 row["message_bytes"] = size
                 runs[n].append(row)
                 print(json.dumps({k: v for k, v in row.items() if k != "profile"}), file=sys.stderr, flush=True)
-    rows = []
-    for n in counts:
-        ok = sorted((r for r in runs[n] if "error" not in r), key=lambda r: r["ticks_per_s"])
-        rows.append(ok[len(ok) // 2] if ok else runs[n][-1])
+                if args.baseline:
+                    base = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), tree=args.baseline)
+                    base_runs[n].append(base)
+                    print("baseline " + json.dumps(base), file=sys.stderr, flush=True)
+    rows = [median_run(runs[n]) for n in counts]
     print(f"\n{args.algorithm} on {args.scenario}, {args.ticks} ticks, one process per agent, zenoh on loopback"
           + (f", median of {args.repeat} runs" if args.repeat > 1 else "") + "\n")
     print("| agents | first tick (s) | ticks/s | CPU ms/tick | msg bytes | fused/tick | heard/tick | complete |")
@@ -163,6 +176,18 @@ def main(argv=None) -> int:
         print(f"| {r['agents']} | {r['first_tick_s']:.2f} | {r['ticks_per_s']:.0f} | {r['cpu_ms_per_tick']:.1f} "
               f"| {r['message_bytes']} | {r['fused_per_tick']:.1f} | {r['heard_per_tick']:.1f} "
               f"| {'yes' if r['complete'] else 'no'} |")
+    if args.baseline:
+        print(f"\nSide by side with {args.baseline} (run right after each run of this tree)\n")
+        print("| agents | baseline ticks/s | ticks/s | ratio | baseline CPU ms/tick | CPU ms/tick |")
+        print("|---:|---:|---:|---:|---:|---:|")
+        for n, r in zip(counts, rows):
+            b = median_run(base_runs[n])
+            if "error" in r or "error" in b:
+                print(f"| {r['agents']} | {b.get('error', '')} | {r.get('error', '')} | | | |")
+                continue
+            print(f"| {r['agents']} | {b['ticks_per_s']:.0f} | {r['ticks_per_s']:.0f} "
+                  f"| {r['ticks_per_s'] / b['ticks_per_s']:.2f} | {b['cpu_ms_per_tick']:.1f} "
+                  f"| {r['cpu_ms_per_tick']:.1f} |")
     profiled = [r for r in rows if "profile" in r]
     if profiled:
         print("\nOnce ticking (start-up excluded): CPU per tick of all processes, and the rate two cores could "

@@ -28,6 +28,7 @@ OnToken = Callable[[str, bool], None]
 
 
 ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
+BATCHING = "transport/link/tx/queue/batching"
 
 
 class MeshError(RuntimeError):
@@ -38,7 +39,10 @@ class MeshError(RuntimeError):
 class Transport:
     """Interface; see the module docstring."""
 
-    def put(self, key: str, payload: bytes) -> None:  # pragma: no cover - interface
+    def put(self, key: str, payload: bytes, express: bool = True) -> None:  # pragma: no cover - interface
+        """Publish ``payload`` on ``key``. ``express=False``: it may wait in
+        its link's batch (at most ``ZenohTransport``'s ``hold_ms``) for the
+        next express message on the same link, and both go in one write."""
         raise NotImplementedError
 
     def subscribe(self, key_expr: str, on_sample: OnSample) -> None:  # pragma: no cover
@@ -68,11 +72,14 @@ class Transport:
 class ZenohTransport(Transport):
     """One zenoh session. Publishers are declared once per key, reliable,
     blocking on congestion (a fault-free run loses nothing), express (sent
-    at once, not batched: a tick is latency bound) and for other sessions
-    only (a process does not hear its own messages: zenoh would call its
-    subscriber inside ``put``)."""
+    at once, not batched: a tick is latency bound) unless the key's first put
+    says otherwise, and for other sessions only (a process does not hear its
+    own messages: zenoh would call its subscriber inside ``put``)."""
 
-    def __init__(self, options):
+    def __init__(self, options, hold_ms: int | None = None):
+        """``hold_ms``: how long a non-express message may wait in its link's
+        batch for company (zenoh's batching time limit), unless ``options``
+        set it."""
         import zenoh
 
         # one thread reads every link (zenoh's "rx" runtime; its default is two
@@ -84,6 +91,8 @@ class ZenohTransport(Transport):
         self._zenoh = zenoh
         zenoh.init_log_from_env_or("error")
         conf = options.to_config()
+        if hold_ms is not None and not options.config_file and not any(c.startswith(BATCHING) for c in options.cfg):
+            conf.insert_json5(f"{BATCHING}/time_limit", str(int(hold_ms)))
         try:
             self._session = zenoh.open(conf)
         except zenoh.ZError as e:
@@ -91,11 +100,11 @@ class ZenohTransport(Transport):
         self._publishers = {}
         self._entities = []
 
-    def put(self, key, payload):
+    def put(self, key, payload, express=True):
         pub = self._publishers.get(key)
-        if pub is None:
+        if pub is None:  # a key's first put decides whether it is express
             pub = self._session.declare_publisher(
-                key, congestion_control=self._zenoh.CongestionControl.BLOCK, express=True,
+                key, congestion_control=self._zenoh.CongestionControl.BLOCK, express=express,
                 allowed_destination=self._zenoh.Locality.REMOTE)
             self._publishers[key] = pub
         pub.put(payload)
@@ -194,7 +203,7 @@ class LocalTransport(Transport):
                 callback, args = self._queue.popleft()
             callback(*args)
 
-    def put(self, key, payload):
+    def put(self, key, payload, express=True):
         with self._bus._lock:
             targets = [(owner, cb) for owner, e, cb in self._bus._subs if key_matches(e, key)]
         for owner, cb in targets:
