@@ -64,6 +64,7 @@ from diskf_mesh.scenario import Scenario
 POLL_S = 0.5     # the main thread looks at the timeouts at least this often
 HOLD_TICKS = 2   # a neighbour's message up to this many ticks ahead waits for its tick
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
+KEYS_KEPT = 4096  # parsed keys remembered
 
 
 @dataclass(frozen=True)
@@ -176,7 +177,7 @@ class Agent:
     def _handle(self, key: str, payload) -> bool:
         """Take in one sample; False if it was dropped without changing
         anything a step waits for (a neighbour out of range)."""
-        kind, who = self._kinds.get(key) or self.keys.parse(key)
+        kind, who = self._kinds.get(key) or self._parse(key)
         try:
             if kind == "msg":
                 return self._gate(key, who, payload)
@@ -224,6 +225,14 @@ class Agent:
             self.counters.reject(e.reason)
             self.log.once((kind, e.reason), f"rejected a {kind} message on {key}: {e}")
         return True
+
+    def _parse(self, key: str) -> tuple:
+        """(kind, id) of a key not seen before; remembered (addressed message
+        keys: one per sender and neighbour set), up to ``KEYS_KEPT``."""
+        kind = self.keys.parse(key)
+        if len(self._kinds) < KEYS_KEPT:
+            self._kinds[key] = kind
+        return kind
 
     def _gate(self, key: str, sender, payload) -> bool:
         """The radio range: a message from an agent that is not linked to this
@@ -301,7 +310,7 @@ class Agent:
         payload = wire.encode(self.keys.run_id, self.id, k, self.own)
         prof.end("encode")
         prof.begin()
-        self.transport.put(self.keys.msg(self.id), payload)
+        self.transport.put(self.keys.msg(self.id, to=self.linked[k]), payload)
         prof.end("publish")
         self.counters.published += 1
         self.collecting = True
@@ -343,7 +352,8 @@ class Agent:
         k = self.keys
         for key in (k.tick, k.meas(self.id), k.stop):
             self.transport.subscribe(key, self._on_sample)
-        possible = possible_neighbours(self.scn, self.id)  # the agents it may ever be linked to
+        self.transport.subscribe(k.msg_to(self.id), self._on_sample)  # what its neighbours send it
+        possible = possible_neighbours(self.scn, self.id)  # unaddressed messages: of agents it may be linked to
         for key in [k.msg("*")] if possible is None else [k.msg(j) for j in possible]:
             self.transport.subscribe(key, self._on_sample)
         self.transport.watch_tokens(f"{k.root}/alive/**", self._on_sample)

@@ -223,6 +223,8 @@ def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
     ids = [a.id for a in specs]
     if len(set(ids)) != len(ids):
         raise InputError("agents.id", "agent ids must be unique")
+    if min(ids) < 0:
+        raise InputError("agents.id", f"agent ids must be non-negative integers (they name mesh keys), got {min(ids)}")
 
     steps = int(raw.get("steps", 200))
     if steps < 1:

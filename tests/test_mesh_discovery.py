@@ -86,6 +86,18 @@ def test_key_expressions_and_key_space():
     assert key_matches("diskf/r/agent/*/msg", "diskf/r/agent/12/msg")
     assert not key_matches("diskf/r/agent/*/msg", "diskf/r/agent/12/report")
     assert key_matches("diskf/r/**", "diskf/r/alive/agent/3")
+    # addressed messages: the receiver's subscription matches the agents named, no other
+    assert k.msg(3, to=[7, 1]) == "diskf/run-1/agent/3/msg/_1_7_"
+    assert k.parse(k.msg(3, to=[1, 7])) == ("msg", 3)
+    assert k.parse(k.msg(3, to=[])) == ("msg", 3)
+    assert k.parse("diskf/run-1/agent/3/msg/1_7") == (None, None)
+    assert key_matches(k.msg_to(7), k.msg(3, to=[1, 7]))
+    assert key_matches(k.msg_to(1), k.msg(3, to=[1, 7]))
+    assert not key_matches(k.msg_to(17), k.msg(3, to=[1, 7]))
+    assert not key_matches(k.msg_to(7), k.msg(3, to=[17]))
+    assert not key_matches(k.msg_to(7), k.msg(3, to=[]))
+    assert not key_matches(k.msg_to(7), k.msg(3))
+    assert key_matches(k.msgs, k.msg(3)) and key_matches(k.msgs, k.msg(3, to=[7]))
     from diskf_mesh.errors import InputError
     with pytest.raises(InputError):
         Keys("has/slash")

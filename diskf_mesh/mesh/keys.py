@@ -9,7 +9,12 @@ letters, digits, ``-`` and ``_``):
     diskf/<run>/world/meas/<id>        world -> agent id its own measurement at tick k, or
                                                          none ("meas")
     diskf/<run>/world/stop             world -> all      the run is over ("stop")
-    diskf/<run>/agent/<id>/msg         agent -> agents   its one message of tick k ("msg")
+    diskf/<run>/agent/<id>/msg/<to>    agent -> agents   its one message of tick k ("msg"),
+                                                         addressed to the agents in range
+                                                         (``<to>`` = ``_3_7_``: ids between
+                                                         underscores; ``_`` for none)
+    diskf/<run>/agent/<id>/msg         agent -> agents   a message with no address: every
+                                                         subscriber gets it ("msg")
     diskf/<run>/agent/<id>/report      agent -> world    its fused estimate of tick k ("report")
     diskf/<run>/alive/world            liveliness token  the world is up
     diskf/<run>/ticking/world          liveliness token  the world has started tick 1: an agent
@@ -20,6 +25,13 @@ letters, digits, ``-`` and ``_``):
                                                          agent of the scenario (so its message
                                                          reaches them all); the world starts
                                                          tick 1 once every agent is ready
+
+An agent publishes its one message of a tick on a key that names the agents
+in range at that tick (it knows every position and the live set from the
+world's tick) and subscribes to ``agent/*/msg/$*_<its id>_$*`` (zenoh's
+sub-chunk wildcard): zenoh then routes the message to those agents only,
+and an agent out of range never spends a wake-up on it. The address only
+saves work; every receiver still gates by range itself.
 
 Payload formats are in ``diskf_mesh.wire``. The id in a key must equal the id
 in the payload; a receiver rejects a message whose key names another agent.
@@ -65,8 +77,19 @@ class Keys:
         return f"{self.root}/world/stop"
 
     # agents -> agents, agents -> world
-    def msg(self, agent) -> str:
-        return f"{self.root}/agent/{agent}/msg"
+    def msg(self, agent, to=None) -> str:
+        """Agent ``agent``'s message key; with ``to`` (ids), addressed to those."""
+        key = f"{self.root}/agent/{agent}/msg"
+        return key if to is None else f"{key}/{address(to)}"
+
+    def msg_to(self, agent) -> str:
+        """The messages addressed to ``agent``, from any agent."""
+        return f"{self.root}/agent/*/msg/$*_{int(agent)}_$*"
+
+    @property
+    def msgs(self) -> str:
+        """Every agent message of the run, addressed or not (to watch the wire)."""
+        return f"{self.root}/agent/*/msg/**"
 
     def report(self, agent) -> str:
         return f"{self.root}/agent/{agent}/report"
@@ -99,6 +122,8 @@ class Keys:
         if not key.startswith(root):
             return None, None
         parts = key[len(root):].split("/")
+        if len(parts) == 4 and parts[0] == "agent" and parts[2] == "msg" and _ADDRESS.match(parts[3]):
+            parts = parts[:3]  # the address does not change the kind or the sender
         shape = tuple("#" if i == _ID_POS.get((parts[0], len(parts))) else p for i, p in enumerate(parts))
         kind = _SHAPES.get(shape)
         if kind is None:
@@ -111,6 +136,13 @@ class Keys:
         except ValueError:
             return kind, None
 
+
+def address(ids) -> str:
+    """The address chunk of a message key: ``_3_7_`` for ids 3 and 7, ``_`` for none."""
+    return "_" + "".join(f"{int(i)}_" for i in sorted(ids))
+
+
+_ADDRESS = re.compile(r"^_(?:\d+_)*$")
 
 # shape of a key below the run root -> kind; "#" stands for an agent id
 _SHAPES = {

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import os
+import re
 import threading
 from typing import Callable
 
@@ -29,6 +30,7 @@ OnToken = Callable[[str, bool], None]
 
 ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
 BATCHING = "transport/link/tx/queue/batching"
+PUBLISHERS_KEPT = 64  # declared publishers kept per session (one per key)
 
 
 class MeshError(RuntimeError):
@@ -97,7 +99,7 @@ class ZenohTransport(Transport):
             self._session = zenoh.open(conf)
         except zenoh.ZError as e:
             raise MeshError(f"cannot open a zenoh session: {e}") from None
-        self._publishers = {}
+        self._publishers = collections.OrderedDict()  # key -> publisher, least recently used first
         self._entities = []
 
     def put(self, key, payload, express=True):
@@ -107,6 +109,10 @@ class ZenohTransport(Transport):
                 key, congestion_control=self._zenoh.CongestionControl.BLOCK, express=express,
                 allowed_destination=self._zenoh.Locality.REMOTE)
             self._publishers[key] = pub
+            if len(self._publishers) > PUBLISHERS_KEPT:  # addressed keys come and go with the links
+                self._publishers.popitem(last=False)[1].undeclare()
+        else:
+            self._publishers.move_to_end(key)
         pub.put(payload)
 
     def _direct(self, fn):
@@ -147,14 +153,23 @@ class ZenohTransport(Transport):
 # --------------------------------------------------------------------------
 # in-process
 # --------------------------------------------------------------------------
+def _chunk_matches(e: str, k: str) -> bool:
+    if e == "*" or e == k:
+        return True
+    if "$*" not in e:
+        return False
+    return re.fullmatch(".*".join(map(re.escape, e.split("$*"))), k) is not None
+
+
 def key_matches(expr: str, key: str) -> bool:
-    """Key expression matching for ``*`` (one chunk) and ``**`` (any chunks)."""
+    """Key expression matching for ``*`` (one chunk), ``**`` (any chunks) and
+    ``$*`` (any characters within a chunk)."""
     def match(e, k):
         if not e:
             return not k
         if e[0] == "**":
             return any(match(e[1:], k[i:]) for i in range(len(k) + 1))
-        return bool(k) and (e[0] == "*" or e[0] == k[0]) and match(e[1:], k[1:])
+        return bool(k) and _chunk_matches(e[0], k[0]) and match(e[1:], k[1:])
 
     return match(expr.split("/"), key.split("/"))
 
