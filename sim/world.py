@@ -87,6 +87,7 @@ class WorldRecord:
 
 
 POLL_S = 0.5  # the main thread looks at the tick's deadline at least this often
+LINES_EVERY_S = 0.1  # --progress lines: at most one line this often (and ticks 1 and K)
 HOLD_MS = 5   # a measurement waits at most this long in zenoh's batch for its tick (it comes at once)
 
 
@@ -360,7 +361,8 @@ def register(subparsers) -> None:
     p.add_argument("--tick-timeout", type=float, default=WorldTiming.tick_timeout, metavar="S",
                    help="seconds to wait for the reports of one tick (default %(default)s)")
     p.add_argument("--progress", choices=PROGRESS, default="bar",
-                   help="progress bar on stderr, 'tick k K' lines on stdout, or none")
+                   help="progress bar on stderr, 'tick k K' lines on stdout (ticks 1 and K, and at most "
+                        f"one every {LINES_EVERY_S:g} s between), or none")
     p.add_argument("--profile", metavar="DIR",
                    help="measure where each tick's time goes (wait for reports, decode, encode, publish) and "
                         "write DIR/world.json at exit")
@@ -383,9 +385,15 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(total=K, desc=f"world {spec.algorithm}", unit="tick", file=sys.stderr,
                disable=args.progress != "bar" or not sys.stderr.isatty())
 
+    last_line = -math.inf
+
     def progress(k):
-        if args.progress == "lines":
-            print(f"tick {k} {K}", flush=True)
+        nonlocal last_line
+        if args.progress == "lines":  # every tick would wake the reader of the lines (the launcher) each tick
+            now = time.monotonic()
+            if k in (1, K) or now - last_line >= LINES_EVERY_S:
+                print(f"tick {k} {K}", flush=True)
+                last_line = now
         bar.update(1)
 
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
