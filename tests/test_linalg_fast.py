@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from diskf_mesh import algorithms, engine
-from diskf_mesh.linalg import (T, congruence, congruence_const, congruence_each, eigvalsh, inv_spd, inv_spd_cholesky,
+from diskf_mesh.linalg import (FEW, T, congruence, congruence_const, congruence_each, eigvalsh, inv_spd, inv_spd_cholesky,
                                inv_spd_each, matmul_right, mv, nbr_sum, nbr_sum_pair, solve, sum_order, sym,
                                transposed)
 from diskf_mesh.scenario import load_scenario, simulate
@@ -131,6 +131,45 @@ def test_stacked_helpers_equal_one_at_a_time():
         G, Xs = rng.standard_normal((2, m)), [rng.standard_normal((6, 4, 2, 2)) for _ in range(3)]
         for got, X in zip(congruence_each(G, *Xs), Xs):
             np.testing.assert_array_equal(got, congruence(G, X))
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_few_matrices_take_paths_with_the_same_bits(n):
+    """A stack of at most ``FEW`` matrices (an agent's batch of one) takes the
+    Python-float paths; a large stack the numpy ones: entry for entry the same."""
+    rng = np.random.default_rng(40 + n)
+    count = 200
+    a = random_spd(rng, (count,), n)
+    g = rng.standard_normal((count, n, n)) * 10.0 ** rng.uniform(-8, 8, (count, n, n))
+    v = rng.standard_normal((count, n)) * 10.0 ** rng.uniform(-8, 8, (count, n))
+    A = rng.standard_normal((n, n))
+    assert count > FEW
+    whole = {
+        "inv_spd": inv_spd(a), "sym": sym(g), "solve": solve(g, a), "mv": mv(g, v), "mv_const": mv(A, v),
+        "congruence_const": congruence_const(A, a),
+    }
+    for i in range(0, count, 3):  # one matrix at a time, and a few at once
+        for one in (slice(i, i + 1), slice(i, i + 3)):
+            few = {
+                "inv_spd": inv_spd(a[one][None]), "sym": sym(g[one][None]), "solve": solve(g[one][None], a[one][None]),
+                "mv": mv(g[one][None], v[one][None]), "mv_const": mv(A, v[one][None]),
+                "congruence_const": congruence_const(A, a[one][None]),
+            }
+            for name, got in few.items():
+                np.testing.assert_array_equal(got[0], whole[name][one], err_msg=name)
+    for got, want in zip(inv_spd_each(a[:1], a[1:3]), (inv_spd(a)[:1], inv_spd(a)[1:3])):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_few_matrices_reject_and_propagate_like_numpy():
+    with pytest.raises(np.linalg.LinAlgError):
+        solve(np.zeros((1, 2, 2)), np.eye(2)[None])
+    for n in (1, 2):
+        bad = -np.eye(n)[None]
+        with pytest.raises(np.linalg.LinAlgError):
+            inv_spd(bad)
+        nan = np.full((1, n, n), np.nan)
+        assert np.isnan(inv_spd(nan)).all() and np.isnan(solve(nan, np.eye(n)[None])).all()
 
 
 def test_nbr_sum_pair_is_two_nbr_sums():
