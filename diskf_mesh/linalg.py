@@ -41,6 +41,12 @@ def _few(a: np.ndarray, core: int) -> bool:
     return 0 < a.size <= FEW * core and a.dtype.char == "d"
 
 
+def _array(values: list, shape: tuple) -> np.ndarray:
+    """A float64 array of ``shape`` from a flat list of Python floats (the
+    output of a Python-float path; faster than np.array of nested lists)."""
+    return np.fromiter(values, float, len(values)).reshape(shape)
+
+
 @lru_cache(maxsize=None)
 def identity(n: int) -> np.ndarray:
     """A read-only n x n identity, made once (e.g. a placeholder in ``np.where``)."""
@@ -66,8 +72,8 @@ def _sym_2_few(a: np.ndarray) -> np.ndarray:
     out = []
     for p, q, s, r in a.reshape(-1, 4).tolist():  # [[p, q], [s, r]]
         off = (q + s) * 0.5
-        out.append(((p + p) * 0.5, off, off, (r + r) * 0.5))  # s + q is q + s: IEEE addition commutes
-    return np.array(out).reshape(a.shape)
+        out += ((p + p) * 0.5, off, off, (r + r) * 0.5)  # s + q is q + s: IEEE addition commutes
+    return _array(out, a.shape)
 
 
 def transposed(a: np.ndarray) -> np.ndarray:
@@ -89,8 +95,8 @@ def mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     on large stacks of tiny matrices that is several times faster than
     ``matmul``, and equal to it to round-off."""
     cols = a.shape[-1]
-    if cols == 2 and v.size == 2 and a.size == 2 * a.shape[-2] and a.dtype.char == v.dtype.char == "d":
-        return _mv_one(a, v)  # one matrix, one vector (an agent's own): 30 % faster in Python floats
+    if cols == 2 and v.size == 2 and a.size == 2 * a.shape[-2] <= 4 and a.dtype.char == v.dtype.char == "d":
+        return _mv_one(a, v)  # one matrix, one vector (an agent's own): twice as fast in Python floats
     if cols == 1:
         return a[..., 0] * v[..., 0, None]
     if cols == 2:
@@ -101,13 +107,14 @@ def mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _mv_one(a: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``mv`` of one matrix with two columns and one vector, in Python
-    floats: a[r, 0] v_0 + a[r, 1] v_1 row by row, as the numpy path computes it."""
+    """``mv`` of one matrix with two columns and one or two rows, and one
+    vector, in Python floats: a[r, 0] v_0 + a[r, 1] v_1 row by row, as the
+    numpy path computes it."""
     v0, v1 = v.ravel().tolist()
     m = a.ravel().tolist()
-    out = [m[i] * v0 + m[i + 1] * v1 for i in range(0, len(m), 2)]
-    batch = max(a.shape[:-2], v.shape[:-1], key=len)  # all ones: one matrix, one vector
-    return np.fromiter(out, float, len(out)).reshape(batch + (len(out),))
+    out = [m[0] * v0 + m[1] * v1, m[2] * v0 + m[3] * v1] if len(m) == 4 else [m[0] * v0 + m[1] * v1]
+    batch = v.shape[:-1] if v.ndim >= a.ndim - 1 else a.shape[:-2]  # the longer: all ones
+    return _array(out, batch + (len(out),))
 
 
 def matmul_right(X: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -166,7 +173,7 @@ def _inv_spd_1(a: np.ndarray) -> np.ndarray:
         values = a.ravel().tolist()
         if any(v <= 0 for v in values):  # False for NaN: it propagates, as below
             raise _not_pd()
-        return np.array([1.0 / v for v in values]).reshape(a.shape)
+        return _array([1.0 / v for v in values], a.shape)
     # fmin skips NaN: a NaN propagates, as through numpy's Cholesky
     if a.size and np.fmin.reduce(a, axis=None) <= 0:
         raise _not_pd()
@@ -202,8 +209,8 @@ def _inv_spd_2_few(a: np.ndarray) -> np.ndarray:
         if p <= 0 or det <= 0:
             raise _not_pd()
         off = q / -det
-        out.append((r / det, off, off, p / det))
-    return np.array(out).reshape(a.shape)
+        out += (r / det, off, off, p / det)
+    return _array(out, a.shape)
 
 
 def inv_spd_each(*stacks: np.ndarray) -> tuple:
@@ -260,8 +267,8 @@ def _inv_2_few(a: np.ndarray) -> np.ndarray:
         if det == 0:  # False for NaN, as ``det.all()`` there
             raise np.linalg.LinAlgError("Singular matrix")
         minus_det = -det
-        out.append((r / det, q / minus_det, s / minus_det, p / det))
-    return np.array(out).reshape(a.shape)
+        out += (r / det, q / minus_det, s / minus_det, p / det)
+    return _array(out, a.shape)
 
 
 def congruence(G: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -281,7 +288,8 @@ def congruence_each(G: np.ndarray, *Xs: np.ndarray) -> tuple:
     if G.shape[-1] != 1 or len(Xs) == 1:
         return tuple(congruence(G, X) for X in Xs)
     g = G[:, 0]
-    both = np.einsum("...ij,ij->...", np.concatenate([X[None] for X in Xs]), g[:, None] * g)[..., None, None]
+    stacked = np.array(Xs)  # as np.stack (the same array), faster on small stacks
+    both = np.einsum("...ij,ij->...", stacked, g[:, None] * g)[..., None, None]
     return tuple(both)
 
 
