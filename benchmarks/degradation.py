@@ -40,6 +40,7 @@ import numpy as np
 from diskf_mesh import algorithms, engine
 from diskf_mesh.experiment import PAPER_LABELS, summarize
 from diskf_mesh.faults import FaultConfig, delivered_links
+from diskf_mesh.figures import COLORS
 from diskf_mesh.scenario import load_scenario, simulate
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -152,7 +153,7 @@ def figure(rows, losses, path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     pct = [100 * L for L in losses]
     for a in rows:
-        style = dict(lw=2.2, color="k", marker="o") if a == "diskf" else dict(lw=1.2, marker=".")
+        style = dict(color=COLORS.get(a), lw=2.2 if a == "diskf" else 1.2, marker="o" if a == "diskf" else ".")
         for ax, metric in zip(axes, ("mae_state", "mae_input")):
             ax.plot(pct, [rows[a][L][metric] for L in losses], label=PAPER_LABELS.get(a, a), **style)
     axes[0].set_ylabel("state MAE")
