@@ -95,8 +95,11 @@ def mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     on large stacks of tiny matrices that is several times faster than
     ``matmul``, and equal to it to round-off."""
     cols = a.shape[-1]
-    if cols == 2 and v.size == 2 and a.size == 2 * a.shape[-2] <= 4 and a.dtype.char == v.dtype.char == "d":
-        return _mv_one(a, v)  # one matrix, one vector (an agent's own): twice as fast in Python floats
+    if cols == 2 and v.size <= 2 * FEW and a.dtype.char == v.dtype.char == "d":  # a few: in Python floats
+        if v.size == 2 and a.size == 2 * a.shape[-2] <= 4:
+            return _mv_one(a, v)  # one matrix, one vector (an agent's own), twice as fast
+        if a.shape[:-1] == v.shape and v.shape[-1] == 2:
+            return _mv_2x2_few(a, v)  # one 2 x 2 matrix per vector (an agent's senders)
     if cols == 1:
         return a[..., 0] * v[..., 0, None]
     if cols == 2:
@@ -115,6 +118,17 @@ def _mv_one(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     out = [m[0] * v0 + m[1] * v1, m[2] * v0 + m[3] * v1] if len(m) == 4 else [m[0] * v0 + m[1] * v1]
     batch = v.shape[:-1] if v.ndim >= a.ndim - 1 else a.shape[:-2]  # the longer: all ones
     return _array(out, batch + (len(out),))
+
+
+def _mv_2x2_few(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``mv`` of a few 2 x 2 matrices, each with its vector, in Python floats
+    (as ``_mv_one``)."""
+    m, x = a.ravel().tolist(), v.ravel().tolist()
+    out = []
+    for i in range(0, len(x), 2):  # vector i // 2 and its matrix, from m[2 i]
+        x0, x1, k = x[i], x[i + 1], 2 * i
+        out += (m[k] * x0 + m[k + 1] * x1, m[k + 2] * x0 + m[k + 3] * x1)
+    return _array(out, v.shape)
 
 
 def matmul_right(X: np.ndarray, B: np.ndarray) -> np.ndarray:
