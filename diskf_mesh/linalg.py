@@ -185,8 +185,9 @@ def _not_pd() -> np.linalg.LinAlgError:
 def _inv_spd_1(a: np.ndarray) -> np.ndarray:
     if _few(a, 1):
         values = a.ravel().tolist()
-        if any(v <= 0 for v in values):  # False for NaN: it propagates, as below
-            raise _not_pd()
+        for v in values:
+            if v <= 0:  # False for NaN: it propagates, as below
+                raise _not_pd()
         return _array([1.0 / v for v in values], a.shape)
     # fmin skips NaN: a NaN propagates, as through numpy's Cholesky
     if a.size and np.fmin.reduce(a, axis=None) <= 0:
