@@ -64,7 +64,6 @@ from diskf_mesh.scenario import Scenario
 POLL_S = 0.5     # the main thread looks at the timeouts at least this often
 HOLD_TICKS = 2   # a neighbour's message up to this many ticks ahead waits for its tick
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
-KEYS_KEPT = 4096  # parsed keys remembered
 
 
 @dataclass(frozen=True)
@@ -138,8 +137,6 @@ class Agent:
         self._advancing = False    # in _advance (a put may deliver to this process on the same thread)
         self._reports_wanted = False     # rejoining: the main thread subscribes to the reports
         self._reports_subscribed = False
-        self._kinds = {keys.tick: ("tick", None), keys.meas(agent_id): ("meas", agent_id), keys.stop: ("stop", None),
-                       **{keys.msg(j): ("msg", j) for j in self.ids}}  # key -> (kind, id), the usual keys
 
     # -- transport callbacks ---------------------------------------------------
     def _on_sample(self, key: str, payload) -> None:
@@ -177,7 +174,7 @@ class Agent:
     def _handle(self, key: str, payload) -> bool:
         """Take in one sample; False if it was dropped without changing
         anything a step waits for (a neighbour out of range)."""
-        kind, who = self._kinds.get(key) or self._parse(key)
+        kind, who = self.keys.parse(key)
         try:
             if kind == "msg":
                 return self._gate(key, who, payload)
@@ -225,14 +222,6 @@ class Agent:
             self.counters.reject(e.reason)
             self.log.once((kind, e.reason), f"rejected a {kind} message on {key}: {e}")
         return True
-
-    def _parse(self, key: str) -> tuple:
-        """(kind, id) of a key not seen before; remembered (addressed message
-        keys: one per sender and neighbour set), up to ``KEYS_KEPT``."""
-        kind = self.keys.parse(key)
-        if len(self._kinds) < KEYS_KEPT:
-            self._kinds[key] = kind
-        return kind
 
     def _gate(self, key: str, sender, payload) -> bool:
         """The radio range: a message from an agent that is not linked to this

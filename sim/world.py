@@ -128,7 +128,6 @@ class World:
         self._waiting = set()          # live (ready) agents whose report of tick k has not come yet
         self._deadline = math.inf      # end of tick k's collection (monotonic)
         self._main_looks_at = 0.0      # when the main thread looks at the deadline next
-        self._kinds = {keys.report(i): ("report", i) for i in self.ids}
 
     # -- transport callbacks ---------------------------------------------------
     def _on_sample(self, key: str, payload) -> None:
@@ -136,7 +135,7 @@ class World:
         self.prof.begin()
         try:
             with self._cv:
-                kind, who = self._kinds.get(key) or self.keys.parse(key)
+                kind, who = self.keys.parse(key)
                 if kind == "report":
                     try:
                         self._on_report(who, payload)

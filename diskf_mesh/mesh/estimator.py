@@ -30,6 +30,7 @@ class AgentEstimator:
         self.alg = algorithms.get(algorithm)(scn.model(ticks), self.sensors, params or scn.params)
         self.state = self.alg.init((1, 1))
         self.gossip = algorithms.gossip_draws(seed, [agent_id], ticks)[0] if algorithm == "gdkf" else None
+        self._neighbourhoods = {}  # (senders, own position) -> Neighbourhood
 
     @property
     def p(self) -> int:
@@ -51,13 +52,22 @@ class AgentEstimator:
         order = sorted(set(others) | {self.agent_id}, key=self.ids.index)
         rows = [own.take((0, 0)) if j == self.agent_id else others[j] for j in order]
         senders = Message.stack(rows).take(np.newaxis)         # (1, J, ...)
-        J = len(order)
-        self_mask = np.zeros((1, 1, J), dtype=bool)
-        self_mask[0, 0, order.index(self.agent_id)] = True
-        u = None if self.gossip is None else np.array([[self.gossip[k - 1]]])
-        nb = Neighbourhood(np.ones((1, 1, J)), self_mask, u)
+        nb = self._neighbourhood(len(order), order.index(self.agent_id))
+        if self.gossip is not None:
+            nb = Neighbourhood(nb.adj, nb.self_mask, np.array([[self.gossip[k - 1]]]))
         self.state, out = self.alg.fuse(self.state, own, senders, nb)
         return out
+
+    def _neighbourhood(self, J: int, own: int) -> Neighbourhood:
+        """All J senders fused, this agent the ``own``-th: made once per (J,
+        own) and kept (read-only arrays), with its neighbour count."""
+        nb = self._neighbourhoods.get((J, own))
+        if nb is None:
+            adj, self_mask = np.ones((1, 1, J)), np.zeros((1, 1, J), dtype=bool)
+            self_mask[0, 0, own] = True
+            adj.flags.writeable = self_mask.flags.writeable = False
+            nb = self._neighbourhoods[(J, own)] = Neighbourhood(adj, self_mask)
+        return nb
 
 
 def neighbours(scn: Scenario, agent_id: int, positions: np.ndarray) -> tuple:

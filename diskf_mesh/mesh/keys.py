@@ -38,6 +38,7 @@ in the payload; a receiver rejects a message whose key names another agent.
 """
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 
@@ -117,24 +118,30 @@ class Keys:
     def parse(self, key: str) -> tuple:
         """(kind, agent id or None) of a key of this run; kind is one of tick,
         meas, stop, msg, report, alive-world, alive, ready, or None (foreign).
-        An id that is not an integer gives (kind, None)."""
-        root = self.root + "/"
-        if not key.startswith(root):
-            return None, None
-        parts = key[len(root):].split("/")
-        if len(parts) == 4 and parts[0] == "agent" and parts[2] == "msg" and _ADDRESS.match(parts[3]):
-            parts = parts[:3]  # the address does not change the kind or the sender
-        shape = tuple("#" if i == _ID_POS.get((parts[0], len(parts))) else p for i, p in enumerate(parts))
-        kind = _SHAPES.get(shape)
-        if kind is None:
-            return None, None
-        pos = _ID_POS.get((parts[0], len(parts)))
-        if pos is None:
-            return kind, None
-        try:
-            return kind, int(parts[pos])
-        except ValueError:
-            return kind, None
+        An id that is not an integer gives (kind, None). Remembered: a run
+        uses few distinct keys, and every message's key is parsed."""
+        return _parse(self.root, key)
+
+
+@functools.lru_cache(maxsize=4096)
+def _parse(root: str, key: str) -> tuple:
+    root = root + "/"
+    if not key.startswith(root):
+        return None, None
+    parts = key[len(root):].split("/")
+    if len(parts) == 4 and parts[0] == "agent" and parts[2] == "msg" and _ADDRESS.match(parts[3]):
+        parts = parts[:3]  # the address does not change the kind or the sender
+    shape = tuple("#" if i == _ID_POS.get((parts[0], len(parts))) else p for i, p in enumerate(parts))
+    kind = _SHAPES.get(shape)
+    if kind is None:
+        return None, None
+    pos = _ID_POS.get((parts[0], len(parts)))
+    if pos is None:
+        return kind, None
+    try:
+        return kind, int(parts[pos])
+    except ValueError:
+        return kind, None
 
 
 def address(ids) -> str:
