@@ -299,6 +299,8 @@ class Agent:
         payload = wire.encode(self.keys.run_id, self.id, k, self.own)
         prof.end("encode")
         prof.begin()
+        # addressed to the agents it fuses at tick k: links are symmetric (range, ring, all), so
+        # these are the agents that fuse it
         self.transport.put(self.keys.msg(self.id, to=self.linked[k]), payload)
         prof.end("publish")
         self.counters.published += 1
