@@ -3,13 +3,16 @@
 Each subcommand lives in its own module under ``diskf_mesh.commands`` (or
 ``sim``/``agents``) exposing ``register(subparsers)``, which adds a parser and
 sets ``func``. User errors raise ``InputError`` and end as one line
-``error: <field>: <message>`` with exit status 2, never a traceback.
+``error: <field>: <message>`` with exit status 2, never a traceback; a
+warning of the library (e.g. a KCF step that may diverge) is one line
+``warning: <message>``.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+import warnings
 
 from .errors import InputError
 
@@ -44,12 +47,18 @@ def build_parser(modules=COMMAND_MODULES) -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(message, category, filename, lineno, line=None) -> str:
+    return f"warning: {message}\n"
+
+
 def main(argv=None, modules=COMMAND_MODULES) -> int:
     """Run one command; ``modules`` limits the subcommands loaded (a mesh
     process loads only its own, to start fast)."""
     args = build_parser(modules).parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.formatwarning = _one_line  # restored on leaving the block
+            return int(args.func(args) or 0)
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

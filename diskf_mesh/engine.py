@@ -26,11 +26,13 @@ paid once for all of them.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 from . import algorithms
+from .algorithms.consensus_baselines import consensus_step_problem
 from .messages import Message, Neighbourhood, Output
 from .model import Params
 from .trace import Trace
@@ -136,6 +138,10 @@ def run(trace: Trace, algorithm: str, params: Params | None = None, progress=Non
     over all seed chunks when a large run is split, see ``seeds_per_chunk``).
     ``neighbours`` picks the message layout (see the module docstring);
     all give the same estimates."""
+    if algorithm == "kcf":
+        problem = consensus_step_problem((params or Params()).consensus_eps, trace.links)
+        if problem:
+            warnings.warn(problem, RuntimeWarning, stacklevel=2)
     B = trace.has.shape[0]
     chunk = seeds_per_chunk(trace)
     if chunk >= B:

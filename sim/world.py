@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from diskf_mesh import metrics, wire
+from diskf_mesh.algorithms.consensus_baselines import consensus_step_problem
 from diskf_mesh.commands.options import positive_int, save_json, seed_value
 from diskf_mesh.counters import Counters
 from diskf_mesh.faults import FaultConfig
@@ -381,6 +382,8 @@ def run(args: argparse.Namespace) -> int:
     trace = simulate(scn, [args.seed])
     K = trace.has.shape[1]
     log = Log("world")
+    if spec.algorithm == "kcf" and (problem := consensus_step_problem(scn.params.consensus_eps, trace.links)):
+        log.info(problem)
     bar = tqdm(total=K, desc=f"world {spec.algorithm}", unit="tick", file=sys.stderr,
                disable=args.progress != "bar" or not sys.stderr.isatty())
 

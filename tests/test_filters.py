@@ -145,3 +145,17 @@ def test_diskf_equals_cdrkf_all_to_all_on_quadrants(quadrants):
     a = engine.run(tr, "diskf", scn.params)
     c = engine.run(tr, "cdrkf", scn.params)
     np.testing.assert_allclose(a.x, c.x, rtol=1e-9, atol=1e-7)
+
+
+def test_kcf_warns_when_its_consensus_step_may_diverge(quadrants):
+    """Olfati-Saber's step needs eps x max degree < 1: quadrants all-to-all has
+    degree 3, so eps = 0.4 is warned about (with the bound), 0.1 is not."""
+    from dataclasses import replace
+
+    from diskf_mesh.algorithms.consensus_baselines import consensus_step_problem
+
+    trace = simulate(quadrants, [0], steps=5)
+    with pytest.warns(RuntimeWarning, match=r"consensus_eps = 0.4 with up to 3 neighbours.*below 0.333"):
+        engine.run(trace, "kcf", replace(quadrants.params, consensus_eps=0.4))
+    assert consensus_step_problem(0.1, trace.links) is None
+    assert consensus_step_problem(1.0, np.eye(4, dtype=bool)) is None  # no neighbours, no consensus step

@@ -56,6 +56,20 @@ def diffusion_update(adj, own: Message, senders: Message, inverses=(None, None, 
     return eq.state_fusion(adj, x_comb, own.P_pred, dy, dY, Ystar=Ystar)
 
 
+def consensus_step_problem(eps: float, links: np.ndarray) -> str | None:
+    """Why KCF's consensus step may diverge on ``links``, or None.
+
+    Olfati-Saber's consensus term converges for eps x (largest degree) < 1:
+    KCF's step gamma M_i is below eps in norm, so the sum over a receiver's
+    neighbours moves at most eps x degree of the way. ``links`` (..., N, N)
+    bool, self-links included or not."""
+    deg = int((links.sum(axis=-1) - np.diagonal(links, axis1=-2, axis2=-1)).max(initial=0))
+    if deg and eps * deg >= 1.0:
+        return (f"KCF: consensus_eps = {eps:g} with up to {deg} neighbours (eps x max degree = {eps * deg:g}, "
+                f"not below 1): the consensus step may diverge; set [estimator] consensus_eps below {1 / deg:.3g}")
+    return None
+
+
 class DiffKF(_Consensus):
     name = "diffkf"
     label = "DiffKF"
