@@ -158,7 +158,8 @@ def message_problem(msg: Message, c: GuardConfig):
     ones with ``numpy.linalg``."""
     arrays = [getattr(msg, f) for f in Message.ARRAY_FIELDS]
     if sum(a.size for a in arrays) <= 64:
-        big = max(abs(v) for a in arrays for v in a.ravel().tolist())
+        values = [v for a in arrays for v in a.ravel().tolist()]
+        big = max(max(values), -min(values))  # the largest |v|, in C loops
     else:
         big = max(float(np.abs(a).max()) for a in arrays)
     if big > c.max_abs:

@@ -185,7 +185,8 @@ def encode_stop(run_id: str, tick: int, why: str) -> bytes:
 # decoding
 # --------------------------------------------------------------------------
 def _is_int(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
+    """An int and not a bool (msgpack gives plain ints and bools only)."""
+    return type(v) is int
 
 
 def _field(doc: dict, key: str, kind):
