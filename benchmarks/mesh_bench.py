@@ -8,7 +8,8 @@ lockstep. Prints markdown tables; not a test.
 Columns of the first table:
     first tick   seconds from starting ``up`` to the world opening tick 1
                  (process start, imports, zenoh sessions, discovery)
-    ticks/s      ticks per second from tick 1 to the last report
+    ticks/s      ticks per second from tick 1 to the last report (with
+                 --repeat: the median run, and the lowest and highest)
     CPU ms/tick  CPU time of all processes (world, agents, launcher) over
                  the whole run (start-up included), per tick
     msg bytes    size of one agent message on the wire (n = 2, m = 1)
@@ -42,6 +43,7 @@ import glob
 import json
 import re
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -62,6 +64,12 @@ def message_bytes(n: int = 2, m: int = 1) -> int:
     msg = Message(np.zeros((1, 1, n)), P, np.zeros((1, 1, n)), P, np.zeros((1, 1, m)), np.eye(m)[None, None],
                   np.array([[True]]))
     return len(wire.encode("a1b2c3d4", 50, 200, msg))
+
+
+def spread(runs: list) -> str:
+    """" (min–max)" of the ticks/s of repeated runs, "" for one run."""
+    rates = sorted(r["ticks_per_s"] for r in runs if "error" not in r)
+    return f" ({rates[0]:.0f}–{rates[-1]:.0f})" if len(rates) > 1 else ""
 
 
 def cpu_seconds() -> float:
@@ -164,7 +172,7 @@ def main(argv=None) -> int:
                     base = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), tree=args.baseline)
                     base_runs[n].append(base)
                     print("baseline " + json.dumps(base), file=sys.stderr, flush=True)
-    rows = [median_run(runs[n]) for n in counts]
+    rows = [{**median_run(runs[n]), "n": n} for n in counts]
     print(f"\n{args.algorithm} on {args.scenario}, {args.ticks} ticks, one process per agent, zenoh on loopback"
           + (f", median of {args.repeat} runs" if args.repeat > 1 else "") + "\n")
     print("| agents | first tick (s) | ticks/s | CPU ms/tick | msg bytes | fused/tick | heard/tick | complete |")
@@ -173,21 +181,26 @@ def main(argv=None) -> int:
         if "error" in r:
             print(f"| {r['agents']} | failed: {r['error']} | | | | | | |")
             continue
-        print(f"| {r['agents']} | {r['first_tick_s']:.2f} | {r['ticks_per_s']:.0f} | {r['cpu_ms_per_tick']:.1f} "
+        print(f"| {r['agents']} | {r['first_tick_s']:.2f} | {r['ticks_per_s']:.0f}{spread(runs[r['n']])} "
+              f"| {r['cpu_ms_per_tick']:.1f} "
               f"| {r['message_bytes']} | {r['fused_per_tick']:.1f} | {r['heard_per_tick']:.1f} "
               f"| {'yes' if r['complete'] else 'no'} |")
     if args.baseline:
         print(f"\nSide by side with {args.baseline} (run right after each run of this tree)\n")
-        print("| agents | baseline ticks/s | ticks/s | ratio | baseline CPU ms/tick | CPU ms/tick |")
-        print("|---:|---:|---:|---:|---:|---:|")
+        print("| agents | baseline ticks/s | ticks/s | ratio of medians | ratio per pair: median (range) "
+              "| baseline CPU ms/tick | CPU ms/tick |")
+        print("|---:|---:|---:|---:|---:|---:|---:|")
         for n, r in zip(counts, rows):
             b = median_run(base_runs[n])
             if "error" in r or "error" in b:
-                print(f"| {r['agents']} | {b.get('error', '')} | {r.get('error', '')} | | | |")
+                print(f"| {r['agents']} | {b.get('error', '')} | {r.get('error', '')} | | | | |")
                 continue
-            print(f"| {r['agents']} | {b['ticks_per_s']:.0f} | {r['ticks_per_s']:.0f} "
-                  f"| {r['ticks_per_s'] / b['ticks_per_s']:.2f} | {b['cpu_ms_per_tick']:.1f} "
-                  f"| {r['cpu_ms_per_tick']:.1f} |")
+            pairs = sorted(x["ticks_per_s"] / y["ticks_per_s"] for x, y in zip(runs[n], base_runs[n])
+                           if "error" not in x and "error" not in y)
+            print(f"| {r['agents']} | {b['ticks_per_s']:.0f}{spread(base_runs[n])} | {r['ticks_per_s']:.0f}"
+                  f"{spread(runs[n])} | {r['ticks_per_s'] / b['ticks_per_s']:.2f} "
+                  f"| {statistics.median(pairs):.2f} ({pairs[0]:.2f}–{pairs[-1]:.2f}) "
+                  f"| {b['cpu_ms_per_tick']:.1f} | {r['cpu_ms_per_tick']:.1f} |")
     profiled = [r for r in rows if "profile" in r]
     if profiled:
         print("\nOnce ticking (start-up excluded): CPU per tick of all processes, and the rate two cores could "
