@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import (T, congruence_const, congruence_each, eigvalsh, identity, inv_spd, mv, nbr_sum, nbr_sum_pair, solve,
+from .linalg import (T, congruence_const, congruence_each, eigvalsh, identity, inv_spd, mv, nbr_sum, nbr_sum_pair, row_sum, solve,
                      sum_order, sym, sym_of_inverses)
 
 
@@ -146,7 +146,7 @@ def input_fusion(adj, d, S, valid):
     Si = inv_spd(S)
     inv_tr = Si[..., 0, 0] if m == 1 else 1.0 / np.einsum("...ii->...", S)  # 1 x 1: 1/tr S is S^-1
     W = adj * (inv_tr * valid)[..., None, :]  # 1/tr S_j of valid senders, else 0 (exact: tr S_j > 0)
-    tot = W.sum(axis=-1)
+    tot = row_sum(W)
     has = tot > 0
     Wn = W / np.where(has, tot, 1.0)[..., None]
     info = nbr_sum(Wn, Si, 2)

@@ -356,8 +356,22 @@ def nbr_sum(adj: np.ndarray, x: np.ndarray, core_ndim: int) -> np.ndarray:
     ``(adj[..., None] * x[..., None, :, :]).sum(-2)`` bit for bit
     (``tests/test_linalg_fast.py``), at a fraction of its temporaries.
     """
+    if math.prod(x.shape[x.ndim - core_ndim:]) == 1:
+        # With a one-entry core the sender sum is einsum's inner loop, which
+        # numpy unrolls into partial sums: its rounding would depend on how
+        # many senders there are, zero weights included (the engine sums over
+        # all N agents, an agent over its J neighbours). A second (zero)
+        # entry keeps the inner loop over the core, so each entry is summed
+        # sender by sender, exactly as with larger cores.
+        return nbr_sum(adj, np.concatenate([x, np.zeros_like(x)], axis=-1), core_ndim)[..., :1]
     core = "ijkl"[:core_ndim]
     return np.einsum(f"...rs,...s{core}->...r{core}", adj, x, optimize=False, order=sum_order(x, core_ndim))
+
+
+def row_sum(w: np.ndarray) -> np.ndarray:
+    """(..., R) the sum of each row of weights (..., R, S), sender by sender
+    (as ``nbr_sum``), whatever the number of zero weights in it."""
+    return nbr_sum(w, np.ones(w.shape[-1:] + (1,)), 1)[..., 0]
 
 
 def sum_order(x: np.ndarray, core_ndim: int) -> str:
