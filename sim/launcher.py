@@ -42,7 +42,34 @@ from diskf_mesh.mesh.zenoh_config import ZenohOptions
 STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
 
 
+PORTS_BELOW_EPHEMERAL = 12000  # how many ports below the ephemeral range to pick the world's from
+
+
+def ephemeral_ports() -> tuple:
+    """(low, high) of the ports the OS hands out for binds to port 0."""
+    try:
+        low, high = map(int, Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+        return low, high
+    except (OSError, ValueError):
+        return 32768, 60999  # Linux's default
+
+
 def free_port(host: str = "127.0.0.1") -> int:
+    """A port free now, for the world to listen on, picked at random below the
+    ephemeral range: every other mesh process listens on port 0, and the OS
+    could hand this port to one of them between our check and the world's
+    bind if it were an ephemeral port (seen once in CI: "Address already in
+    use"). Falls back to an OS-assigned port."""
+    low = ephemeral_ports()[0]
+    start = max(1024, low - PORTS_BELOW_EPHEMERAL)
+    for _ in range(64):
+        port = start + secrets.randbelow(low - start) if low > start else 0
+        with socket.socket() as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+            return s.getsockname()[1]
     with socket.socket() as s:
         s.bind((host, 0))
         return s.getsockname()[1]

@@ -10,7 +10,6 @@ single sample into the run.
 from __future__ import annotations
 
 import json
-import socket
 import threading
 import time
 
@@ -23,18 +22,13 @@ from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.transport import MeshError, ZenohTransport
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from mesh_helpers import assert_same, reference, start_mesh
+from sim.launcher import free_port
 from message_factory import tick_view
 from tls_certs import CertificateAuthority
 
 RUN = "tls-test"
 SETTLE_S = 1.0   # time given to a session to connect before it publishes
 TRY_S = 1.0     # how long a publisher keeps trying
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def tls_config(path, leaf=None, root=None, listen=(), connect=(), protocols=("tls",), multicast=None,
