@@ -1,9 +1,11 @@
-"""The engine benchmark script runs end to end (tiny sizes) and prints its tables."""
+"""The benchmark scripts run end to end (tiny sizes) and print their tables."""
 from __future__ import annotations
 
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "engine_bench.py"
 
@@ -13,3 +15,12 @@ def test_engine_bench_smoke():
             "--agents", "12", "--ratio-steps", "3", "--big", "diskf"]
     out = subprocess.run([sys.executable, str(SCRIPT), *args], check=True, capture_output=True, text=True).stdout
     assert "| DISKF |" in out and "Full Table II" in out and "peak RSS" in out
+
+
+def test_agent_bench_smoke():
+    script = SCRIPT.parent / "agent_bench.py"
+    out = subprocess.run([sys.executable, str(script), "--ticks", "5", "--repeat", "1"], check=True,
+                         capture_output=True, text=True).stdout
+    row = next(line for line in out.splitlines() if line.startswith("| diskf |"))
+    total, math, protocol = (float(c) for c in row.strip("|").split("|")[1:])
+    assert total > 0 and math > 0 and total == pytest.approx(math + protocol, abs=1.0)

@@ -1,0 +1,149 @@
+"""One agent's work per tick, without zenoh: what an agent process spends in
+Python (protocol and math) when its callbacks are fed recorded payloads in
+one thread. Prints figures; not a test.
+
+    python benchmarks/agent_bench.py [--scenario dynamic] [--algorithm diskf]
+                                     [--ticks 200] [--agent ID] [--repeat 5]
+
+The payloads of every tick are made first, from the scenario's trace and the
+other agents' messages (``AgentEstimator`` in lockstep): the world's tick and
+this agent's measurement, then its in-range neighbours' messages on their
+addressed keys. Then an ``Agent`` with a transport that publishes nowhere
+takes them through ``_on_sample``, the callback zenoh calls in a real run:
+decode, guard, local step, encode, fusion, report. The table splits the time
+into the estimator's two calls (math) and the rest (protocol); the best of
+``--repeat`` rounds is kept (the machine is shared). In a mesh run the same
+work costs about twice this, since ten processes share two cores and their
+caches (``mesh_bench.py --profile``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from agents.agent import Agent
+from diskf_mesh import algorithms, wire
+from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
+from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.transport import Transport
+from diskf_mesh.scenario import simulate
+
+RUN = "bench"
+
+
+class Nowhere(Transport):
+    """Publishes nowhere, subscribes to nothing: the callbacks are called directly."""
+
+    def put(self, key, payload, express=True):
+        pass
+
+    def subscribe(self, key_expr, on_sample):
+        pass
+
+    def declare_token(self, key):
+        pass
+
+    def watch_tokens(self, key_expr, on_change):
+        pass
+
+    def close(self):
+        pass
+
+
+def recorded_ticks(spec: RunSpec, ticks: int, me: int) -> list:
+    """Per tick, [(key, payload)] as agent ``me`` receives them."""
+    scn = spec.load(ticks)
+    trace = simulate(scn, [0])
+    ids = [a.id for a in scn.agents]
+    keys = Keys(RUN)
+    others = {i: AgentEstimator(scn, i, spec.algorithm, ticks, 0) for i in ids}
+    j_me = ids.index(me)
+    out = []
+    for k in range(1, ticks + 1):
+        msgs = {i: others[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :others[i].p])
+                for j, i in enumerate(ids)}
+        for j, i in enumerate(ids):
+            heard = {o: msgs[o].take((0, 0)) for jj, o in enumerate(ids) if trace.links[0, k - 1, j, jj] and o != i}
+            others[i].fuse(k, msgs[i], heard)
+        pos = trace.positions[k - 1]
+        tick = wire.Tick(RUN, k, ticks, 0, spec.algorithm, scn.topology, scn.comm_range, pos, tuple(ids))
+        samples = [(keys.meas(me), wire.encode_measurement(RUN, k, me, bool(trace.has[0, k - 1, j_me]),
+                                                            trace.y[0, k - 1, j_me, :others[me].p])),
+                   (keys.tick, wire.encode_tick(tick))]
+        samples += [(keys.msg(o, to=[me]), wire.encode(RUN, o, k, msgs[o]))
+                    for o in neighbours(scn, me, pos) if o != me]
+        out.append(samples)
+    return out
+
+
+def one_round(spec: RunSpec, me: int, feed: list) -> dict:
+    """Seconds in all of ``_on_sample`` and in the estimator's two calls."""
+    scn = spec.load(len(feed))
+    keys = Keys(RUN)
+    agent = Agent(scn, me, spec.algorithm, keys, Nowhere())
+    agent._on_sample(keys.alive_world, True)
+    for i in (a.id for a in scn.agents):
+        agent._on_sample(keys.alive(i), True)
+    math_s = [0.0]
+    total = 0.0
+    for samples in feed:
+        for key, payload in samples:
+            t0 = time.perf_counter()
+            agent._on_sample(key, payload)
+            total += time.perf_counter() - t0
+            if agent.est is None and agent.ticks and agent.meas:
+                with agent._cv:  # what the main thread does once (not timed): make the estimator
+                    if agent._join():
+                        timed(agent.est, math_s)
+                    agent._advance()
+    if agent.k != len(feed) + 1:
+        raise RuntimeError(f"the agent stopped at tick {agent.k}")
+    return {"total": total, "math": math_s[0]}
+
+
+def timed(est: AgentEstimator, acc: list) -> None:
+    """Add the time of ``est.local`` and ``est.fuse`` to ``acc[0]``."""
+    for name in ("local", "fuse"):
+        f = getattr(est, name)
+
+        def wrapper(*a, _f=f, **kw):
+            t0 = time.perf_counter()
+            try:
+                return _f(*a, **kw)
+            finally:
+                acc[0] += time.perf_counter() - t0
+
+        setattr(est, name, wrapper)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenario", default="dynamic")
+    p.add_argument("--algorithm", default="diskf", choices=algorithms.NAMES)
+    p.add_argument("--ticks", type=int, default=200)
+    p.add_argument("--agent", type=int, help="the agent's id (default: the scenario's fifth, or its last)")
+    p.add_argument("--repeat", type=int, default=5)
+    args = p.parse_args(argv)
+    spec = RunSpec(args.scenario, args.algorithm)
+    ids = [a.id for a in spec.load(args.ticks).agents]
+    me = args.agent if args.agent is not None else ids[min(4, len(ids) - 1)]
+    if me not in ids:
+        p.error(f"agent {me} is not in {args.scenario} (ids {', '.join(map(str, ids))})")
+    feed = recorded_ticks(spec, args.ticks, me)
+    best = min((one_round(spec, me, feed) for _ in range(max(args.repeat, 1))), key=lambda r: r["total"])
+    us = {k: 1e6 * v / args.ticks for k, v in best.items()}
+    heard = np.mean([len(s) - 2 for s in feed])
+    print(f"\n{args.algorithm} on {args.scenario}, agent {me}, {args.ticks} ticks, {heard:.1f} neighbour messages a "
+          f"tick; best of {args.repeat} rounds, one thread, no zenoh\n")
+    print("| µs per tick | all of the callbacks | math (local + fuse) | protocol (the rest) |")
+    print("|---|---:|---:|---:|")
+    print(f"| {args.algorithm} | {us['total']:.0f} | {us['math']:.0f} | {us['total'] - us['math']:.0f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
