@@ -50,7 +50,7 @@ from agents import rejoin
 from diskf_mesh import wire
 from diskf_mesh.guard import Guard, GuardConfig
 from diskf_mesh.mesh import runspec, zenoh_config
-from diskf_mesh.mesh.estimator import AgentEstimator, neighbours, possible_neighbours
+from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.profile import AGENT_PHASES, NO_PHASES, Phases
@@ -344,9 +344,6 @@ class Agent:
         for key in (k.tick, k.meas(self.id), k.stop):
             self.transport.subscribe(key, self._on_sample)
         self.transport.subscribe(k.msg_to(self.id), self._on_sample)  # what its neighbours send it
-        possible = possible_neighbours(self.scn, self.id)  # unaddressed messages: of agents it may be linked to
-        for key in [k.msg("*")] if possible is None else [k.msg(j) for j in possible]:
-            self.transport.subscribe(key, self._on_sample)
         self.transport.watch_tokens(f"{k.root}/alive/**", self._on_sample)
         self.transport.watch_tokens(k.ticking, self._on_sample)
         self.transport.declare_token(k.alive(self.id))

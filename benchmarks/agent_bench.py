@@ -6,7 +6,7 @@ one thread. Prints figures; not a test.
                                      [--ticks 200] [--agent ID] [--repeat 5]
 
 The payloads of every tick are made first, from the scenario's trace and the
-other agents' messages (``AgentEstimator`` in lockstep): the world's tick and
+other agents' messages (``mesh.estimator.lockstep``): the world's tick and
 this agent's measurement, then its in-range neighbours' messages on their
 addressed keys. Then an ``Agent`` with a transport that publishes nowhere
 takes them through ``_on_sample``, the callback zenoh calls in a real run:
@@ -26,32 +26,13 @@ import numpy as np
 
 from agents.agent import Agent
 from diskf_mesh import algorithms, wire
-from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
+from diskf_mesh.mesh.estimator import AgentEstimator, lockstep, neighbours
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.transport import Transport
+from diskf_mesh.mesh.transport import LocalBus
 from diskf_mesh.scenario import simulate
 
 RUN = "bench"
-
-
-class Nowhere(Transport):
-    """Publishes nowhere, subscribes to nothing: the callbacks are called directly."""
-
-    def put(self, key, payload, express=True):
-        pass
-
-    def subscribe(self, key_expr, on_sample):
-        pass
-
-    def declare_token(self, key):
-        pass
-
-    def watch_tokens(self, key_expr, on_change):
-        pass
-
-    def close(self):
-        pass
 
 
 def recorded_ticks(spec: RunSpec, ticks: int, me: int) -> list:
@@ -60,19 +41,14 @@ def recorded_ticks(spec: RunSpec, ticks: int, me: int) -> list:
     trace = simulate(scn, [0])
     ids = [a.id for a in scn.agents]
     keys = Keys(RUN)
-    others = {i: AgentEstimator(scn, i, spec.algorithm, ticks, 0) for i in ids}
-    j_me = ids.index(me)
+    j = ids.index(me)
+    p = int(scn.sensors().p[j])
     out = []
-    for k in range(1, ticks + 1):
-        msgs = {i: others[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :others[i].p])
-                for j, i in enumerate(ids)}
-        for j, i in enumerate(ids):
-            heard = {o: msgs[o].take((0, 0)) for jj, o in enumerate(ids) if trace.links[0, k - 1, j, jj] and o != i}
-            others[i].fuse(k, msgs[i], heard)
+    for k, msgs, _ in lockstep(scn, spec.algorithm, trace):
         pos = trace.positions[k - 1]
         tick = wire.Tick(RUN, k, ticks, 0, spec.algorithm, scn.topology, scn.comm_range, pos, tuple(ids))
-        samples = [(keys.meas(me), wire.encode_measurement(RUN, k, me, bool(trace.has[0, k - 1, j_me]),
-                                                            trace.y[0, k - 1, j_me, :others[me].p])),
+        samples = [(keys.meas(me), wire.encode_measurement(RUN, k, me, bool(trace.has[0, k - 1, j]),
+                                                            trace.y[0, k - 1, j, :p])),
                    (keys.tick, wire.encode_tick(tick))]
         samples += [(keys.msg(o, to=[me]), wire.encode(RUN, o, k, msgs[o]))
                     for o in neighbours(scn, me, pos) if o != me]
@@ -84,7 +60,7 @@ def one_round(spec: RunSpec, me: int, feed: list) -> dict:
     """Seconds in all of ``_on_sample`` and in the estimator's two calls."""
     scn = spec.load(len(feed))
     keys = Keys(RUN)
-    agent = Agent(scn, me, spec.algorithm, keys, Nowhere())
+    agent = Agent(scn, me, spec.algorithm, keys, LocalBus().transport())  # on a bus of its own: puts go nowhere
     agent._on_sample(keys.alive_world, True)
     for i in (a.id for a in scn.agents):
         agent._on_sample(keys.alive(i), True)

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import (T, congruence_const, congruence_each, eigvalsh, identity, inv_spd, mv, nbr_sum, nbr_sum_pair, row_sum, solve,
-                     sum_order, sym, sym_of_inverses)
+from .linalg import (T, congruence_const, congruence_each, eigvalsh, identity, inv_spd, mv, nbr_sum, nbr_sum_pair,
+                     pair_sum, row_sum, solve, sum_order, sym, sym_of_inverses)
 
 
 # --------------------------------------------------------------------------
@@ -255,7 +255,7 @@ def compensation_state(adj, x_bar, gain, x_pred_recv, x_pred_send, eps: float):
     # (..., R, S, n); in the order of nbr_sum's output (the same numbers, faster)
     order = sum_order(x_pred_send, 1)
     diff = np.subtract(x_pred_send[..., None, :, :], x_pred_recv[..., :, None, :], order=order)
-    total = np.einsum("...rs,...rsn->...rn", adj, diff, order=order)  # sum_s adj[r, s] diff[r, s], like nbr_sum
+    total = pair_sum(adj, diff, order)  # sum_s adj[r, s] diff[r, s]
     return x_bar + eps * mv(gain, total)
 
 

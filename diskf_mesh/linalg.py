@@ -357,15 +357,28 @@ def nbr_sum(adj: np.ndarray, x: np.ndarray, core_ndim: int) -> np.ndarray:
     (``tests/test_linalg_fast.py``), at a fraction of its temporaries.
     """
     if math.prod(x.shape[x.ndim - core_ndim:]) == 1:
-        # With a one-entry core the sender sum is einsum's inner loop, which
-        # numpy unrolls into partial sums: its rounding would depend on how
-        # many senders there are, zero weights included (the engine sums over
-        # all N agents, an agent over its J neighbours). A second (zero)
-        # entry keeps the inner loop over the core, so each entry is summed
-        # sender by sender, exactly as with larger cores.
-        return nbr_sum(adj, np.concatenate([x, np.zeros_like(x)], axis=-1), core_ndim)[..., :1]
+        return nbr_sum(adj, _second_entry(x), core_ndim)[..., :1]
     core = "ijkl"[:core_ndim]
     return np.einsum(f"...rs,...s{core}->...r{core}", adj, x, optimize=False, order=sum_order(x, core_ndim))
+
+
+def pair_sum(adj: np.ndarray, diff: np.ndarray, order: str = "C") -> np.ndarray:
+    """(..., R, n): sum_s adj[r, s] diff[r, s] for a value per (receiver,
+    sender) pair, diff (..., R, S, n), sender by sender as ``nbr_sum``
+    (``order``: of the output, as ``sum_order`` picks it)."""
+    if diff.shape[-1] == 1:
+        return pair_sum(adj, _second_entry(diff), order)[..., :1]
+    return np.einsum("...rs,...rsn->...rn", adj, diff, optimize=False, order=order)
+
+
+def _second_entry(x: np.ndarray) -> np.ndarray:
+    """``x`` with a zero second entry on its last axis. With a one-entry core
+    the sender sum is einsum's inner loop, which numpy unrolls into partial
+    sums: its rounding would depend on how many senders there are, zero
+    weights included (the engine sums over all N agents, an agent over its J
+    neighbours). With two entries the inner loop runs over the core, and each
+    entry is summed sender by sender, as with larger cores."""
+    return np.concatenate([x, np.zeros_like(x)], axis=-1)
 
 
 def row_sum(w: np.ndarray) -> np.ndarray:
@@ -384,9 +397,8 @@ def sum_order(x: np.ndarray, core_ndim: int) -> str:
     puts the batch innermost: 2-3x faster. Either way every output entry is
     accumulated over the senders one by one in sender order (the inner loop
     runs over independent entries), so both orders give the same bits
-    (``tests/test_linalg_fast.py``). A one-entry core keeps C order: there
-    the inner loop is the sender sum itself, and changing it would change
-    the rounding."""
+    (``tests/test_linalg_fast.py``). A one-entry core never reaches
+    ``einsum`` (``_second_entry``); it keeps C order here."""
     core = math.prod(x.shape[x.ndim - core_ndim:])
     senders = x.shape[x.ndim - core_ndim - 1]
     return "F" if core > 1 and senders <= 16 and x.size >= 8 * senders * core else "C"

@@ -45,13 +45,12 @@ STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
 PORTS_BELOW_EPHEMERAL = 12000  # how many ports below the ephemeral range to pick the world's from
 
 
-def ephemeral_ports() -> tuple:
-    """(low, high) of the ports the OS hands out for binds to port 0."""
+def first_ephemeral_port() -> int:
+    """The lowest port the OS hands out for binds to port 0."""
     try:
-        low, high = map(int, Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
-        return low, high
-    except (OSError, ValueError):
-        return 32768, 60999  # Linux's default
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768  # Linux's default
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -60,19 +59,17 @@ def free_port(host: str = "127.0.0.1") -> int:
     could hand this port to one of them between our check and the world's
     bind if it were an ephemeral port (seen once in CI: "Address already in
     use"). Falls back to an OS-assigned port."""
-    low = ephemeral_ports()[0]
+    low = first_ephemeral_port()
     start = max(1024, low - PORTS_BELOW_EPHEMERAL)
-    for _ in range(64):
-        port = start + secrets.randbelow(low - start) if low > start else 0
+    candidates = [start + secrets.randbelow(low - start) for _ in range(64)] if low > start else []
+    for port in candidates + [0]:
         with socket.socket() as s:
             try:
                 s.bind((host, port))
             except OSError:
                 continue
             return s.getsockname()[1]
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
+    raise OSError(f"no free port on {host}")
 
 
 def loopback_options(port: int) -> tuple:

@@ -6,8 +6,8 @@ import pytest
 
 from diskf_mesh import algorithms, engine
 from diskf_mesh.linalg import (FEW, T, congruence, congruence_const, congruence_each, eigvalsh, inv_spd, inv_spd_cholesky,
-                               inv_spd_each, matmul_right, mv, nbr_sum, nbr_sum_pair, row_sum, solve, sum_order, sym,
-                               transposed)
+                               inv_spd_each, matmul_right, mv, nbr_sum, nbr_sum_pair, pair_sum, row_sum, solve,
+                               sum_order, sym, transposed)
 from diskf_mesh.scenario import load_scenario, simulate
 
 
@@ -219,7 +219,8 @@ def test_neighbour_sums_go_sender_by_sender_whatever_the_zeros(core):
     """An agent sums over its J neighbours, the engine over all N agents with
     zero weights: both must add the nonzero terms one by one in sender order
     (numpy's unrolled reductions would not), so that they give the same bits.
-    ``core`` None: ``row_sum`` of the weights themselves."""
+    ``core`` None: ``row_sum`` of the weights themselves; a vector core:
+    ``pair_sum`` too."""
     rng = np.random.default_rng(7)
     for _ in range(300):
         N = int(rng.integers(2, 20))
@@ -237,6 +238,8 @@ def test_neighbour_sums_go_sender_by_sender_whatever_the_zeros(core):
         for ww, xx in ((w, x), (w[nz], x[nz])):  # all N with zeros, and the J nonzero ones
             got = row_sum(ww[None, :])[0] if core is None else nbr_sum(ww[None, :], xx, len(core))[0]
             np.testing.assert_array_equal(got, want[0] if core is None else want)
+            if core is not None and len(core) == 1:  # a value per (receiver, sender) pair, one receiver
+                np.testing.assert_array_equal(pair_sum(ww[None, :], xx[None])[0], want)
 
 
 @pytest.mark.parametrize("algorithm", algorithms.NAMES)
@@ -244,19 +247,10 @@ def test_an_agent_alone_computes_the_engine_bits(algorithm):
     """Every agent as a batch of one (``AgentEstimator``, what an agent process
     runs) in lockstep equals the engine on the same seed bit for bit, dense
     and gathered, on Scenario 2's changing links."""
-    from diskf_mesh.mesh.estimator import AgentEstimator
+    from diskf_mesh.mesh.estimator import lockstep
 
     scn = load_scenario("dynamic")
-    K = 80
-    trace = simulate(scn, [0], steps=K)
-    ids = [a.id for a in scn.agents]
-    est = {i: AgentEstimator(scn, i, algorithm, K, 0) for i in ids}
-    x = np.empty((K, len(ids), 2))
-    for k in range(1, K + 1):
-        msgs = {i: est[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :est[i].p])
-                for j, i in enumerate(ids)}
-        for j, i in enumerate(ids):
-            heard = {o: msgs[o].take((0, 0)) for jj, o in enumerate(ids) if trace.links[0, k - 1, j, jj] and o != i}
-            x[k - 1, j] = est[i].fuse(k, msgs[i], heard).x[0, 0]
+    trace = simulate(scn, [0], steps=80)
+    x = np.array([[out.x[0, 0] for out in outputs.values()] for _, _, outputs in lockstep(scn, algorithm, trace)])
     for layout in ("dense", "gather"):
         np.testing.assert_array_equal(engine.run(trace, algorithm, scn.params, neighbours=layout).x[0], x)

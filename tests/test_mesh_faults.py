@@ -285,8 +285,8 @@ def test_another_run_cannot_feed_this_one(tmp_path):
             while a.world.proc.poll() is None and time.monotonic() < t_end:
                 k = it % ticks + 1
                 for i in view.ids:
-                    rogue.put(keys_a.msg(i), wire.encode(b_spec.run_id, i, k, view.messages[i]))
-                rogue.put(keys_a.msg(3), b"\x00garbage")
+                    rogue.put(keys_a.msg(i, to=view.ids), wire.encode(b_spec.run_id, i, k, view.messages[i]))
+                rogue.put(keys_a.msg(3, to=view.ids), b"\x00garbage")
                 it += 1
                 time.sleep(0.05)
         assert a.world.proc.wait(60) == 0, a.world.last_error_line()

@@ -186,7 +186,8 @@ def test_a_mesh_run_over_tls_keeps_impostors_out(pki, tmp_path):
             k = it % ticks + 1
             for t in sessions:
                 for i in (1, 2, 3, 4):
-                    t.put(keys.msg(i), wire.encode(spec.run_id, i, k, forged.messages[forged.ids[i]]))
+                    t.put(keys.msg(i, to=(1, 2, 3, 4)),  # addressed to every agent
+                          wire.encode(spec.run_id, i, k, forged.messages[forged.ids[i]]))
             it += 1
             time.sleep(0.02)
         assert mesh.world.proc.wait(30) == 0, mesh.world.last_error_line()

@@ -86,70 +86,20 @@ def neighbours(scn: Scenario, agent_id: int, positions: np.ndarray) -> tuple:
     return tuple(j for j, linked in zip(ids, row.tolist()) if linked)
 
 
-def fixed_neighbours(scn: Scenario, agent_id: int) -> tuple | None:
-    """The agents ``agent_id`` can ever be linked to, when the links cannot
-    change during a run (a static topology, or range links between agents
-    that never move), else None. An agent process then listens to these
-    agents' keys only, instead of every agent's: the per-message cost of the
-    transport is what limits a large mesh."""
-    if scn.topology == "all" or (scn.topology == "range" and any(a.mobile for a in scn.agents)):
-        return None
-    positions = np.stack([a.position_at(np.array([1]))[0] for a in scn.agents])
-    return tuple(j for j in neighbours(scn, agent_id, positions) if j != agent_id)
-
-
-# a link is assumed possible up to this much beyond the range (relative), so
-# that rounding in positions along a path can never hide a real link
-RANGE_SLACK = 1e-6
-
-
-def possible_neighbours(scn: Scenario, agent_id: int) -> tuple | None:
-    """The agents ``agent_id`` may be linked to at some tick of a run (not
-    itself), or None where that may be every agent (listen to them all).
-
-    With range links between moving agents the links change, but an agent
-    moves only along its path (a closed polyline; a static agent is a point),
-    so two agents whose paths never come within the range of each other are
-    never linked, whatever the ticks, periods and phases. This bound keeps
-    every agent that might be linked (a superset of the real links, with
-    ``RANGE_SLACK``); the range gate at each tick decides the rest. In
-    Scenario 2 a static agent listens to the five moving agents only."""
-    fixed = fixed_neighbours(scn, agent_id)
-    if fixed is not None or scn.topology != "range":
-        return fixed
+def lockstep(scn: Scenario, algorithm: str, trace, seed: int = 0):
+    """Every agent of ``scn`` as an ``AgentEstimator`` (a batch of one, as in
+    an agent process), in lockstep over seed 0 of ``trace``, each fusing the
+    messages of the agents linked to it: what a fault-free mesh run computes,
+    in one process. Yields (k, messages {id: Message}, outputs {id: Output})
+    per tick; ``seed``: the run's seed (GDKF's draws)."""
     ids = [a.id for a in scn.agents]
-    mine = _path_segments(scn.agents[ids.index(agent_id)])
-    reach = scn.comm_range * (1.0 + RANGE_SLACK)
-    out = tuple(a.id for a in scn.agents
-                if a.id != agent_id and _segments_distance(mine, _path_segments(a)) <= reach)
-    return None if len(out) == len(ids) - 1 else out
-
-
-def _path_segments(agent) -> np.ndarray:
-    """(S, 2, 2) the segments an agent's position can be on."""
-    if agent.path is None:
-        p = np.asarray(agent.position, dtype=float)
-        return np.stack([p, p])[None]
-    pts = np.asarray(agent.path, dtype=float)
-    return np.stack([pts, np.roll(pts, -1, axis=0)], axis=1)
-
-
-def _segments_distance(A: np.ndarray, B: np.ndarray) -> float:
-    """Smallest distance between any segment of A (S, 2, 2) and of B (T, 2, 2)."""
-    a0, a1 = A[:, None, 0], A[:, None, 1]
-    b0, b1 = B[None, :, 0], B[None, :, 1]
-
-    def to_segment(p, s0, s1):
-        d = s1 - s0
-        dd = np.einsum("...k,...k->...", d, d)
-        t = np.clip(np.einsum("...k,...k->...", p - s0, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
-        return np.linalg.norm(s0 + t[..., None] * d - p, axis=-1)
-
-    def cross(u, v):
-        return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-
-    dist = np.minimum(np.minimum(to_segment(a0, b0, b1), to_segment(a1, b0, b1)),
-                      np.minimum(to_segment(b0, a0, a1), to_segment(b1, a0, a1)))
-    crossing = ((cross(a1 - a0, b0 - a0) * cross(a1 - a0, b1 - a0) < 0)
-                & (cross(b1 - b0, a0 - b0) * cross(b1 - b0, a1 - b0) < 0))
-    return float(np.where(crossing, 0.0, dist).min())
+    K = trace.has.shape[1]
+    agents = {i: AgentEstimator(scn, i, algorithm, K, seed) for i in ids}
+    for k in range(1, K + 1):
+        msgs = {i: agents[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :agents[i].p])
+                for j, i in enumerate(ids)}
+        outputs = {}
+        for j, i in enumerate(ids):
+            heard = {o: msgs[o].take((0, 0)) for jj, o in enumerate(ids) if trace.links[0, k - 1, j, jj] and o != i}
+            outputs[i] = agents[i].fuse(k, msgs[i], heard)
+        yield k, msgs, outputs

@@ -13,8 +13,8 @@ letters, digits, ``-`` and ``_``):
                                                          addressed to the agents in range
                                                          (``<to>`` = ``_3_7_``: ids between
                                                          underscores; ``_`` for none)
-    diskf/<run>/agent/<id>/msg         agent -> agents   a message with no address: every
-                                                         subscriber gets it ("msg")
+    diskf/<run>/agent/<id>/msg         no address: no agent subscribes to it (a watcher of
+                                                         ``msgs`` sees it; "msg")
     diskf/<run>/agent/<id>/report      agent -> world    its fused estimate of tick k ("report")
     diskf/<run>/alive/world            liveliness token  the world is up
     diskf/<run>/ticking/world          liveliness token  the world has started tick 1: an agent

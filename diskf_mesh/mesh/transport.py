@@ -9,12 +9,8 @@ Callbacks run on the transport's own threads (zenoh's network thread, one
 ``LocalTransport`` thread), never inside the publisher's ``put``: a mesh
 process does its per-message work right there, under its own lock, and wakes
 its main thread only for what that thread does (start-up, timeouts, the
-end). This one narrow interface is where faults go in (issue 6): a wrapper
-``Transport`` that takes the inner transport and, per incoming sample on an
-agent-message key, drops, delays (latency + jitter, by a timer thread),
-duplicates or reorders it before calling the real callback, with one seeded
-random stream per link (sender id from the key, receiver id known to the
-wrapper). Nothing above this layer changes.
+end). Link faults are not here: they act in each agent's receive path
+(``diskf_mesh.receive``), on the messages this layer delivered.
 """
 from __future__ import annotations
 
