@@ -24,10 +24,7 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -241,17 +238,3 @@ def estimates_to_json(est, algorithm: str, b: int = 0, metrics: dict | None = No
     if metrics is not None:
         doc["metrics"] = metrics
     return doc
-
-
-def write_json(path, doc) -> None:
-    """Write atomically: a failed write never leaves a partial file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, allow_nan=False)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
