@@ -17,6 +17,8 @@ from .linalg import is_spd
 
 
 MAX_ID = 2**63 - 1  # agent ids travel as msgpack int64 and name mesh keys
+MAX_MAGNITUDE = 1e12  # array entries: products of a few stay far from float overflow
+MIN_VARIANCE = 1e-12  # covariance eigenvalues: their inverses stay below 1 / MIN_VARIANCE
 _REQUIRED = object()
 
 
@@ -124,6 +126,8 @@ def _array(value, field: str, ndim: int) -> np.ndarray:
         raise InputError(field, f"must be a {ndim}-dimensional array, got shape {a.shape}")
     if not np.isfinite(a).all():
         raise InputError(field, "contains NaN or infinity")
+    if a.size and np.abs(a).max() > MAX_MAGNITUDE:
+        raise InputError(field, f"entries must be within +-{MAX_MAGNITUDE:g}, got {np.abs(a).max():g}")
     return a
 
 
@@ -151,4 +155,6 @@ def spd(a: np.ndarray, field: str) -> np.ndarray:
         raise InputError(field, "must be symmetric")
     if not bool(is_spd(a)):
         raise InputError(field, "must be positive definite")
+    if np.linalg.eigvalsh(a)[0] < MIN_VARIANCE:
+        raise InputError(field, f"eigenvalues must be at least {MIN_VARIANCE:g}")
     return a
