@@ -99,8 +99,10 @@ def run_experiment(scn: Scenario, settings, algorithms, seeds, steps=None, param
     are those of separate runs. ``progress``, if given, is called with 1
     after every (setting, algorithm)."""
     settings = list(settings)
-    seeds = list(seeds)
     scns = [st.apply(scn, steps) for st in settings]
+    for s in scns:  # before a list of the seeds is made
+        s.check_size(len(seeds))
+    seeds = list(seeds)
     rows = {}
     for p, idx in batches(scns, seeds, params):
         traces = [simulate(scns[i], seeds) for i in idx]

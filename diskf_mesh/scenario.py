@@ -114,6 +114,13 @@ class Scenario:
         ticks = np.arange(1, steps + 1)
         return np.stack([a.position_at(ticks) for a in self.agents], axis=1)
 
+    def check_size(self, seeds: int = 1, steps: int | None = None) -> None:
+        """``InputError`` if simulating ``seeds`` seeds would need more than
+        ``MEMORY_BOUND`` bytes (``simulation_bytes``)."""
+        n, m = self.G.shape
+        moving = self.topology == "range" and any(a.mobile for a in self.agents)
+        check_size(self.N, steps or self.steps, n, max(a.H.shape[0] for a in self.agents), m, seeds, moving)
+
     def with_overrides(self, topology=None, comm_range=None, steps=None, params=None) -> "Scenario":
         out = self
         if topology is not None:
@@ -398,14 +405,12 @@ def simulate(scn: Scenario, seeds, steps: int | None = None) -> Trace:
     """Ground truth, measurements and links for every seed: a ``Trace`` with
     a leading seed axis. Seed s draws its process and measurement noise from
     ``numpy.random.default_rng(s)``."""
-    seeds = tuple(int(s) for s in np.atleast_1d(seeds))
     K = int(steps or scn.steps)
-    n, m = scn.G.shape
-    pmax = max(a.H.shape[0] for a in scn.agents)
-    check_size(scn.N, K, n, pmax, m, len(seeds), scn.topology == "range" and any(a.mobile for a in scn.agents))
+    scn.check_size(len(seeds) if isinstance(seeds, (list, tuple, range)) else int(np.size(seeds)), K)
+    seeds = tuple(int(s) for s in np.atleast_1d(seeds))
     model = scn.model(K)
     sensors = scn.sensors()
-    N = sensors.N
+    n, m, N, pmax = model.n, model.m, sensors.N, sensors.H.shape[1]
     B = len(seeds)
     Lq = np.linalg.cholesky(model.Q)
     Lr = np.linalg.cholesky(sensors.R)  # (N, p, p)
