@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 import warnings
 
@@ -58,7 +59,12 @@ def main(argv=None, modules=COMMAND_MODULES) -> int:
     try:
         with warnings.catch_warnings():
             warnings.formatwarning = _one_line  # restored on leaving the block
-            return int(args.func(args) or 0)
+            code = int(args.func(args) or 0)
+            sys.stdout.flush()  # a closed pipe shows here, not as a traceback at exit
+            return code
+    except BrokenPipeError:  # the reader went away (`... | head -1`): end quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -99,8 +99,10 @@ def run_experiment(scn: Scenario, settings, algorithms, seeds, steps=None, param
     are those of separate runs. ``progress``, if given, is called with 1
     after every (setting, algorithm)."""
     settings = list(settings)
-    seeds = list(seeds)
     scns = [st.apply(scn, steps) for st in settings]
+    for s in scns:  # before a list of the seeds is made
+        s.check_size(len(seeds))
+    seeds = list(seeds)
     rows = {}
     for p, idx in batches(scns, seeds, params):
         traces = [simulate(scns[i], seeds) for i in idx]
@@ -110,6 +112,13 @@ def run_experiment(scn: Scenario, settings, algorithms, seeds, steps=None, param
                 if progress is not None:
                     progress(1)
     return {a: {st.label: rows[a, i] for i, st in enumerate(settings)} for a in algorithms}
+
+
+def _number(v) -> float:
+    """A table value as a float; None, text or anything else is NaN (no value)."""
+    if isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool):
+        return float(v)
+    return float("nan")
 
 
 def _cell(v: float, best: bool) -> str:
@@ -122,21 +131,22 @@ def format_table(results: dict, metric_keys=TABLE_METRICS) -> str:
     per setting, algorithms as columns. In every row the best value (lowest
     error, highest input coverage), as printed (two decimals, so ties are all
     marked), carries a ``*``; ``-`` means no value (e.g. no agent ever had an
-    input estimate). Input coverage, not in the paper's table, is the share
-    of agent-ticks over which MAE/RMSE(input) are taken."""
+    input estimate, or a run that measured nothing: None, NaN or an absent
+    key or setting all print ``-``). Input coverage, not in the paper's table,
+    is the share of agent-ticks over which MAE/RMSE(input) are taken."""
     algs = list(results)
-    settings = list(next(iter(results.values())))
-    width = max(10, *(len(PAPER_LABELS.get(a, a)) + 2 for a in algs))
-    head = f"{'Comm.':<12}{'Metric':<13}" + "".join(f"{PAPER_LABELS.get(a, a):>{width}}" for a in algs)
+    settings = list(dict.fromkeys(st for a in algs for st in (results[a] or {})))
+    width = max(10, *(len(PAPER_LABELS.get(a, str(a))) + 2 for a in algs)) if algs else 10
+    head = f"{'Comm.':<12}{'Metric':<13}" + "".join(f"{PAPER_LABELS.get(a, str(a)):>{width}}" for a in algs)
     lines = [head, "-" * len(head)]
     for st in settings:
         for i, key in enumerate(metric_keys):
-            vals = [round(float(results[a][st][key]), 2) for a in algs]
+            vals = [round(_number(((results[a] or {}).get(st) or {}).get(key)), 2) for a in algs]
             finite = [v for v in vals if np.isfinite(v)]
             pick = max if key in HIGHER_IS_BETTER else min
             best = pick(finite) if finite else None
             cells = "".join(f"{_cell(v, v == best):>{width}}" for v in vals)
-            comm = TOPOLOGY_LABELS.get(st, st) if i == 0 else ""
+            comm = TOPOLOGY_LABELS.get(st, str(st)) if i == 0 else ""
             lines.append(f"{comm:<12}{METRIC_LABELS.get(key, key):<13}{cells}")
         lines.append("-" * len(head))
     return "\n".join(lines)

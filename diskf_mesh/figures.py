@@ -17,6 +17,7 @@ from PIL import Image
 
 from . import engine, metrics, studies
 from .experiment import PAPER_LABELS
+from .outputs import atomic_open
 from .scenario import Scenario, simulate
 
 DPI = 100
@@ -46,7 +47,8 @@ def _save(fig: Figure, path: Path) -> Path:
     fig.savefig(buf, format="png", dpi=DPI)
     buf.seek(0)
     with Image.open(buf) as im:
-        im.convert("RGB").quantize(colors=256, method=Image.Quantize.FASTOCTREE).save(path, optimize=True)
+        with atomic_open(path, "wb") as f:
+            im.convert("RGB").quantize(colors=256, method=Image.Quantize.FASTOCTREE).save(f, format="PNG", optimize=True)
     return path
 
 

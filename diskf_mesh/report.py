@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from . import figures, paper_values, studies
-from .commands.options import save_json
+from .outputs import atomic_open, save_json
 from .experiment import PAPER_LABELS
 from .scenario import load_scenario
 
@@ -432,6 +432,7 @@ def write_report(cfg: studies.StudyConfig, out_dir) -> list[Path]:
     res = studies.run_all(cfg)
     paths = figures.make_figures(cfg, out / "figures", res)
     md = out / "reproduction.md"
-    md.write_text(render(res, "figures"))
+    with atomic_open(md, "w") as f:
+        f.write(render(res, "figures"))
     save_json(out / "results.json", res.to_json(), "out")
     return [md, out / "results.json", *paths]

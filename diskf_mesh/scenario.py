@@ -23,16 +23,17 @@ Format (see ``scenarios/quadrants.toml`` for a commented example):
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
-from .model import LinearModel, Params, Sensors
+from .faults import FaultConfig
+from .model import COMPENSATION_FORMS, LinearModel, Params, Sensors
 from .trace import Trace
-from .validate import matrix, spd, vector
+from .validate import agent_id, check_keys, index_list, matrix, scalar, setting, spd, vector
 
 TOPOLOGIES = ("all", "ring", "none", "range")
 SENSE_KINDS = ("quadrant", "always", "range")
@@ -113,6 +114,13 @@ class Scenario:
         ticks = np.arange(1, steps + 1)
         return np.stack([a.position_at(ticks) for a in self.agents], axis=1)
 
+    def check_size(self, seeds: int = 1, steps: int | None = None) -> None:
+        """``InputError`` if simulating ``seeds`` seeds would need more than
+        ``MEMORY_BOUND`` bytes (``simulation_bytes``)."""
+        n, m = self.G.shape
+        moving = self.topology == "range" and any(a.mobile for a in self.agents)
+        check_size(self.N, steps or self.steps, n, max(a.H.shape[0] for a in self.agents), m, seeds, moving)
+
     def with_overrides(self, topology=None, comm_range=None, steps=None, params=None) -> "Scenario":
         out = self
         if topology is not None:
@@ -120,13 +128,10 @@ class Scenario:
                 raise InputError("topology", f"must be one of {', '.join(TOPOLOGIES)}, got {topology!r}")
             out = replace(out, topology=topology)
         if comm_range is not None:
-            if not np.isfinite(comm_range) and comm_range != np.inf or comm_range < 0:
-                raise InputError("range", f"must be a non-negative number, got {comm_range!r}")
-            out = replace(out, comm_range=float(comm_range), topology="range" if topology is None else out.topology)
+            comm_range = scalar(comm_range, "range", float, low=0.0, allow_inf=True)
+            out = replace(out, comm_range=comm_range, topology="range" if topology is None else out.topology)
         if steps is not None:
-            if int(steps) < 1:
-                raise InputError("steps", f"must be a positive integer, got {steps!r}")
-            out = replace(out, steps=int(steps))
+            out = replace(out, steps=scalar(steps, "steps", int, low=1))
         if params is not None:
             out = replace(out, params=params)
         return out
@@ -166,116 +171,176 @@ def load_scenario(name_or_path: str, agents: int | None = None) -> Scenario:
     return parse_scenario(raw, agents=agents)
 
 
+TOP_KEYS = ("name", "description", "steps", "model", "input", "estimator", "topology", "agents", "generate", "faults")
+MODEL_KEYS = {"rotation": ("dynamics", "omega", "G", "Q", "x0", "P0", "position_dims"),
+              "matrix": ("dynamics", "A", "G", "Q", "x0", "P0", "position_dims")}
+INPUT_KEYS = ("kind", "at", "before", "after", "value")
+TOPOLOGY_KEYS = ("kind", "range")
+AGENT_KEYS = ("id", "H", "R", "sense", "sense_range", "position", "path", "period", "phase")
+GENERATE_KEYS = ("kind", "agents", "box", "sense_range", "R", "layout_seed")
+# estimator settings with more than a type to check; every other Params
+# field is read by the type of its default
+ESTIMATOR_CHECKS = {"eps": {"low": 0.0}, "consensus_eps": {"low": 0.0},
+                    "compensation": {"choices": COMPENSATION_FORMS}}
+
+
 def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
+    """A ``Scenario`` from a parsed TOML document; every field is typed and
+    range-checked (``validate.setting``), unknown keys are errors."""
+    check_keys(raw, TOP_KEYS, "")
+    steps = setting(raw, "steps", "", int, 200, low=1)
     mdl = raw.get("model", {})
+    dyn = setting(check_keys(mdl, MODEL_KEYS["matrix"] + ("omega",), "model"), "dynamics", "model", str, "matrix",
+                  choices=tuple(MODEL_KEYS))
+    for key in set(mdl) - set(MODEL_KEYS[dyn]):
+        raise InputError(f"model.{key}", f"is not used with dynamics = {dyn!r}")
     G = matrix(mdl.get("G"), "model.G")
     n, m = G.shape
-    dyn = mdl.get("dynamics", "matrix")
+    if n == 0 or m == 0:
+        raise InputError("model.G", f"must be n x m with n, m >= 1, got {n}x{m}")
     if dyn == "rotation":
         if n != 2:
             raise InputError("model.dynamics", "rotation needs a 2-dimensional state")
-        w = float(mdl.get("omega", 0.0))
+        w = setting(mdl, "omega", "model", float, 0.0)
         A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
-    elif dyn == "matrix":
-        A = matrix(mdl.get("A"), "model.A", (n, n))
     else:
-        raise InputError("model.dynamics", f"must be 'rotation' or 'matrix', got {dyn!r}")
+        A = matrix(mdl.get("A"), "model.A", (n, n))
     Q = spd(matrix(mdl.get("Q"), "model.Q", (n, n)), "model.Q")
     P0 = spd(matrix(mdl.get("P0"), "model.P0", (n, n)), "model.P0")
     x0 = vector(mdl.get("x0"), "model.x0", n)
-    pos_dims = tuple(int(i) for i in mdl.get("position_dims", range(min(n, 2))))
+    # the target's position is compared with the agents' 2-D positions
+    pos_dims = index_list(mdl.get("position_dims", list(range(min(n, 2)))), "model.position_dims", n, max_len=2)
 
-    inp = raw.get("input", {})
-    kind = inp.get("kind", "step")
-    if kind not in ("step", "constant"):
-        raise InputError("input.kind", f"must be 'step' or 'constant', got {kind!r}")
+    inp = check_keys(raw.get("input", {}), INPUT_KEYS, "input")
+    kind = setting(inp, "kind", "input", str, "step", choices=("step", "constant"))
     before = vector(inp.get("before", [0.0] * m), "input.before", m)
     after = vector(inp.get("after", inp.get("value", [0.0] * m)), "input.after", m)
+    input_at = setting(inp, "at", "input", int, 0, low=0)
 
-    est = raw.get("estimator", {})
-    try:
-        window = est.get("window", 5)
-        params = Params(
-            window=None if window in (None, "none", -1) else int(window),
-            reset=bool(est.get("reset", True)),
-            eps=float(est.get("eps", 0.05)),
-            compensation=str(est.get("compensation", "bounded")),
-            consensus_eps=float(est.get("consensus_eps", 0.1)),
-            hold_input=bool(est.get("hold_input", False)),
-        )
-    except ValueError as e:
-        raise InputError("estimator", str(e)) from None
+    params = _parse_estimator(raw.get("estimator", {}))
 
-    topo = raw.get("topology", {})
-    topology = topo.get("kind", "all")
-    if topology not in TOPOLOGIES:
-        raise InputError("topology.kind", f"must be one of {', '.join(TOPOLOGIES)}, got {topology!r}")
+    topo = check_keys(raw.get("topology", {}), TOPOLOGY_KEYS, "topology")
+    topology = setting(topo, "kind", "topology", str, "all", choices=TOPOLOGIES)
+    comm_range = setting(topo, "range", "topology", float, np.inf, low=0.0, allow_inf=True)
 
     gen = raw.get("generate")
     if gen is not None:
-        specs = _generate_agents(gen, n, agents)
+        if "agents" in raw:
+            raise InputError("agents", "give either [[agents]] or [generate], not both")
+        specs = _generate_agents(gen, n, agents, steps)
     else:
         if agents is not None:
             raise InputError("agents", "--agents applies only to generated scenarios (random-geometric)")
-        specs = tuple(_parse_agent(a, i, n) for i, a in enumerate(raw.get("agents", [])))
+        listed = raw.get("agents", [])
+        if not isinstance(listed, list):
+            raise InputError("agents", "must be a list of tables ([[agents]])")
+        specs = tuple(_parse_agent(a, i, n) for i, a in enumerate(listed))
     if not specs:
         raise InputError("agents", "a scenario needs at least one agent")
     ids = [a.id for a in specs]
     if len(set(ids)) != len(ids):
         raise InputError("agents.id", "agent ids must be unique")
-    if min(ids) < 0:
-        raise InputError("agents.id", f"agent ids must be non-negative integers (they name mesh keys), got {min(ids)}")
 
-    steps = int(raw.get("steps", 200))
-    if steps < 1:
-        raise InputError("steps", "must be a positive integer")
+    faults = check_keys(raw.get("faults", {}), [f.name for f in fields(FaultConfig)], "faults")
+    FaultConfig.from_mapping(faults)
     return Scenario(
-        name=str(raw.get("name", "custom")),
-        description=str(raw.get("description", "")),
+        name=setting(raw, "name", "", str, "custom"),
+        description=setting(raw, "description", "", str, ""),
         steps=steps, A=A, G=G, Q=Q, x0=x0, P0=P0, position_dims=pos_dims,
-        input_kind=kind, input_at=int(inp.get("at", 0)), input_before=before, input_after=after,
-        params=params, topology=topology, comm_range=float(topo.get("range", np.inf)),
-        agents=specs, faults=dict(raw.get("faults", {})),
+        input_kind=kind, input_at=input_at, input_before=before, input_after=after,
+        params=params, topology=topology, comm_range=comm_range,
+        agents=specs, faults=dict(faults),
     )
 
 
-def _parse_agent(a: dict, i: int, n: int) -> AgentSpec:
+def _parse_estimator(est) -> Params:
+    """``Params`` from an ``[estimator]`` table: its keys are Params' fields,
+    each of the type of its default; ``window = "none"`` means no window."""
+    defaults = {f.name: f.default for f in fields(Params)}
+    check_keys(est, defaults, "estimator")
+    given = {}
+    for key, value in est.items():
+        if key == "window" and value in ("none", -1):
+            given[key] = None
+            continue
+        kind = {"window": int}.get(key, type(defaults[key]))
+        if kind not in (bool, int, float, str):
+            given[key] = value  # a field without a typed default: Params checks it
+            continue
+        checks = ESTIMATOR_CHECKS.get(key, {"low": 0} if kind in (int, float) else {})
+        given[key] = scalar(value, f"estimator.{key}", kind, **checks)
+    try:
+        return Params(**given)
+    except ValueError as e:
+        raise InputError("estimator", str(e)) from None
+
+
+def _parse_agent(a, i: int, n: int) -> AgentSpec:
     where = f"agents[{i}]"
+    check_keys(a, AGENT_KEYS, where)
     H = matrix(a.get("H"), f"{where}.H")
-    if H.shape[1] != n:
-        raise InputError(f"{where}.H", f"must have {n} columns (the state dimension), got {H.shape[1]}")
+    if H.shape[0] == 0 or H.shape[1] != n:
+        raise InputError(f"{where}.H", f"must have at least one row and {n} columns (the state dimension), "
+                                       f"got {H.shape[0]}x{H.shape[1]}")
     R = spd(matrix(a.get("R"), f"{where}.R", (H.shape[0], H.shape[0])), f"{where}.R")
-    sense = a.get("sense", "quadrant")
-    if sense not in SENSE_KINDS:
-        raise InputError(f"{where}.sense", f"must be one of {', '.join(SENSE_KINDS)}, got {sense!r}")
+    sense = setting(a, "sense", where, str, "quadrant", choices=SENSE_KINDS)
     path = a.get("path")
-    position = a.get("position", [0.0, 0.0])
+    if path is not None and "position" in a:
+        raise InputError(f"{where}.position", "give either position (static) or path (mobile), not both")
+    if path is None and ("period" in a or "phase" in a):
+        raise InputError(f"{where}.{'period' if 'period' in a else 'phase'}", "applies only to a mobile agent (path)")
     return AgentSpec(
-        id=int(a.get("id", i + 1)), H=H, R=R, sense=sense,
-        sense_range=float(a.get("sense_range", np.inf)),
-        position=None if path is not None else vector(position, f"{where}.position", 2),
+        id=agent_id(a.get("id", i + 1), f"{where}.id"), H=H, R=R, sense=sense,
+        sense_range=setting(a, "sense_range", where, float, np.inf, low=0.0, allow_inf=True),
+        position=None if path is not None else vector(a.get("position", [0.0, 0.0]), f"{where}.position", 2),
         path=None if path is None else matrix(path, f"{where}.path", (None, 2)),
-        period=float(a.get("period", 1.0)), phase=float(a.get("phase", 0.0)),
+        period=setting(a, "period", where, float, 1.0, above=0.0),
+        phase=setting(a, "phase", where, float, 0.0),
     )
 
 
-def _generate_agents(gen: dict, n: int, agents: int | None) -> tuple:
-    kind = gen.get("kind")
-    if kind != "random-geometric":
-        raise InputError("generate.kind", f"only 'random-geometric' is known, got {kind!r}")
-    N = int(agents if agents is not None else gen.get("agents", 100))
-    if N < 1:
-        raise InputError("agents", f"must be a positive integer, got {N}")
-    box = float(gen.get("box", 300.0))
-    rng = np.random.default_rng(int(gen.get("layout_seed", 0)))
+MEMORY_BOUND = 2 * 2**30  # bytes a simulation (and its estimates) may ask for; above it is refused
+
+
+def simulation_bytes(N: int, K: int, n: int, p: int, m: int, seeds: int = 1, moving_links: bool = False) -> int:
+    """About how many bytes ``simulate`` and an engine run of its trace hold:
+    per seed, agent and tick the noise, measurements and estimates (x, P, d,
+    S); the links, (N, N) once for static agents or per tick for moving ones,
+    and the (N, N) temporaries that form and use them (measured: an engine
+    run of 4,000 random-geometric agents peaks about 33 bytes per agent pair
+    above the interpreter's own)."""
+    per_agent_tick = 8 * (3 * p + 3 * n + 2 * n * n + 2 * m + 2 * m * m) + 2
+    links = N * N * ((K if moving_links else 1) + 48)
+    return seeds * K * N * per_agent_tick + K * N * 16 + links
+
+
+def check_size(N: int, K: int, n: int, p: int, m: int, seeds: int = 1, moving_links: bool = False) -> None:
+    """``InputError`` when ``simulation_bytes`` is over ``MEMORY_BOUND``."""
+    need = simulation_bytes(N, K, n, p, m, seeds, moving_links)
+    if need > MEMORY_BOUND:
+        raise InputError("size", f"{N} agents x {K} ticks x {seeds} seeds need about {need / 2**30:.1f} GiB, "
+                                 f"over the bound of {MEMORY_BOUND / 2**30:g} GiB; use fewer agents, ticks or seeds")
+
+
+def _generate_agents(gen, n: int, agents: int | None, steps: int) -> tuple:
+    check_keys(gen, GENERATE_KEYS, "generate")
+    setting(gen, "kind", "generate", str, choices=("random-geometric",))
+    if n < 2:
+        raise InputError("generate", "generated agents see x, y or both: the state needs at least 2 dimensions")
+    N = scalar(agents, "agents", int, low=1) if agents is not None else setting(gen, "agents", "generate", int, 100,
+                                                                               low=1)
+    check_size(N, steps, n, 2, 1)  # before drawing N positions (m is not known here; 1 is the shipped one)
+    box = setting(gen, "box", "generate", float, 300.0, above=0.0)
+    r = setting(gen, "R", "generate", float, 2.0, above=0.0)
+    sense_range = setting(gen, "sense_range", "generate", float, 150.0, low=0.0, allow_inf=True)
+    rng = np.random.default_rng(setting(gen, "layout_seed", "generate", int, 0, low=0))
     pos = rng.uniform(-box, box, size=(N, 2))
-    r = float(gen.get("R", 2.0))
     kinds = [np.eye(n)[[0]], np.eye(n)[[1]], np.eye(n)[:2]]  # sees x, sees y, sees both
     out = []
     for i in range(N):
         H = kinds[i % 3]
         out.append(AgentSpec(id=i + 1, H=H, R=r * np.eye(H.shape[0]), sense="range",
-                             sense_range=float(gen.get("sense_range", 150.0)), position=pos[i]))
+                             sense_range=sense_range, position=pos[i]))
     return tuple(out)
 
 
@@ -340,8 +405,9 @@ def simulate(scn: Scenario, seeds, steps: int | None = None) -> Trace:
     """Ground truth, measurements and links for every seed: a ``Trace`` with
     a leading seed axis. Seed s draws its process and measurement noise from
     ``numpy.random.default_rng(s)``."""
-    seeds = tuple(int(s) for s in np.atleast_1d(seeds))
     K = int(steps or scn.steps)
+    scn.check_size(len(seeds) if isinstance(seeds, (list, tuple, range)) else int(np.size(seeds)), K)
+    seeds = tuple(int(s) for s in np.atleast_1d(seeds))
     model = scn.model(K)
     sensors = scn.sensors()
     n, m, N, pmax = model.n, model.m, sensors.N, sensors.H.shape[1]

@@ -6,7 +6,7 @@
      "A": n x n  |  "A_seq": K x n x n,   "G": n x m,  "Q": n x n,
      "x0": n,  "P0": n x n,
      "agents": [{"id": 1, "H": p_i x n, "R": p_i x p_i}, ...],   (ids: distinct
-                                                  non-negative integers)
+                                                  integers in 0..2^63-1)
      "y": K entries, each a list with one item per agent: p_i floats or null,
      "links": N x N (static) | K x N x N (dynamic), 0/1, diagonal 1,
      "truth": {"x": K x n, "d": K x m}          (optional; d[k-1] acts
@@ -24,16 +24,13 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
 from .model import LinearModel, Sensors
-from .validate import matrix, spd, vector
+from .validate import agent_id, index_list, matrix, setting, spd, vector
 
 TRACE_FORMAT = "diskf-trace/1"
 ESTIMATES_FORMAT = "diskf-estimates/1"
@@ -123,7 +120,7 @@ def trace_from_json(doc: dict) -> Trace:
             raise InputError(f"agents[{i}]", "must be an object {id, H, R}")
         H = matrix(a.get("H"), f"agents[{i}].H", (None, n))
         R = spd(matrix(a.get("R"), f"agents[{i}].R", (H.shape[0], H.shape[0])), f"agents[{i}].R")
-        ids.append(_agent_id(a.get("id", i + 1), f"agents[{i}].id"))
+        ids.append(agent_id(a.get("id", i + 1), f"agents[{i}].id"))
         Hs.append(H)
         Rs.append(R)
     if len(set(map(str, ids))) != len(ids):
@@ -167,31 +164,9 @@ def trace_from_json(doc: dict) -> Trace:
         truth_x = matrix(truth.get("x"), "truth.x", (K, n))[None]
         truth_d = matrix(truth.get("d"), "truth.d", (K, m))[None]
     model = LinearModel(np.ascontiguousarray(A), G, Q, x0, P0)
-    seed = doc.get("seed", 0)
-    if not _is_int(seed) or seed < 0:
-        raise InputError("seed", f"must be a non-negative integer, got {seed!r}")
+    seed = setting(doc, "seed", "", int, 0, low=0)
     return Trace(model, sensors, y, has, links, truth_x, truth_d, None, (int(seed),),
-                 _position_dims(doc.get("position_dims", list(range(min(n, 2)))), n))
-
-
-def _is_int(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _agent_id(v, field: str) -> int:
-    """Agent ids seed the per-agent gossip streams (``gossip_draws``), so
-    they must be non-negative integers."""
-    if not _is_int(v) or v < 0:
-        raise InputError(field, f"must be a non-negative integer, got {v!r}")
-    return v
-
-
-def _position_dims(v, n: int) -> tuple:
-    """State components that make the position (for the state metrics)."""
-    if (not isinstance(v, list) or not v or not all(_is_int(i) and 0 <= i < n for i in v)
-            or len(set(v)) != len(v)):
-        raise InputError("position_dims", f"must be a non-empty list of distinct indices in 0..{n - 1}, got {v!r}")
-    return tuple(v)
+                 index_list(doc.get("position_dims", list(range(min(n, 2)))), "position_dims", n))
 
 
 def load_trace(path) -> Trace:
@@ -241,17 +216,3 @@ def estimates_to_json(est, algorithm: str, b: int = 0, metrics: dict | None = No
     if metrics is not None:
         doc["metrics"] = metrics
     return doc
-
-
-def write_json(path, doc) -> None:
-    """Write atomically: a failed write never leaves a partial file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, allow_nan=False)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from diskf_mesh.commands.options import positive_int, seed_value
+from diskf_mesh.commands.options import check_output, check_output_dir, positive_int, seed_value
 from diskf_mesh.errors import InputError
 from diskf_mesh.faults import FaultConfig
 from diskf_mesh.faults import add_arguments as add_fault_arguments
@@ -256,10 +256,14 @@ def run(args: argparse.Namespace) -> int:
     from diskf_mesh.experiment import format_table
 
     spec = runspec.from_args(args, run_id=args.run_id or secrets.token_hex(4))
+    out = Path(args.json or f"results/up-{spec.run_id}.json")
+    check_output(out, "json", stdout=False, make_parent=args.json is None)  # before any work
+    check_output(args.estimates, "estimates", stdout=False)
+    if args.logs:
+        check_output_dir(args.logs, "logs")
     scn = spec.load(args.ticks)
     ticks = scn.steps
     ids = [a.id for a in scn.agents]
-    out = Path(args.json or f"results/up-{spec.run_id}.json")
     logs = Path(args.logs or tempfile.mkdtemp(prefix=f"diskf-up-{spec.run_id}-"))
     try:
         logs.mkdir(parents=True, exist_ok=True)

@@ -37,7 +37,7 @@ import numpy as np
 
 from diskf_mesh import metrics, wire
 from diskf_mesh.algorithms.consensus_baselines import consensus_step_problem
-from diskf_mesh.commands.options import positive_int, save_json, seed_value
+from diskf_mesh.commands.options import check_output, positive_int, save_json, seed_value
 from diskf_mesh.counters import Counters
 from diskf_mesh.faults import FaultConfig
 from diskf_mesh.faults import add_arguments as add_fault_arguments
@@ -376,6 +376,8 @@ def run(args: argparse.Namespace) -> int:
 
     from diskf_mesh.experiment import format_table
 
+    check_output(args.json, "json", stdout=False)  # before any work: a bad path must not cost the run
+    check_output(args.estimates, "estimates", stdout=False)
     spec = runspec.from_args(args)
     scn = spec.load(args.ticks)
     faults = faults_from_args(args, scn.faults)  # the agents apply them; the world records them

@@ -3,15 +3,21 @@ and writes nothing; good input gives the documented outputs."""
 from __future__ import annotations
 
 import copy
+import importlib
 import json
 import math
 import os
+import signal
+import stat
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
 from cli_helpers import run_cli, simulated_doc, write
+from diskf_mesh import cli
 from diskf_mesh import algorithms
 from diskf_mesh.metrics import METRIC_KEYS
 
@@ -258,3 +264,283 @@ def test_installed_entry_point(tmp_path):
     assert bad.returncode == 2
     assert bad.stderr.count("\n") == 1 and bad.stderr.startswith("error: file:")
     assert not out_path.exists()
+
+
+# --------------------------------------------------------------------------
+# scenario files: every field typed and range-checked
+# --------------------------------------------------------------------------
+QUADRANTS = (Path(__file__).parents[1] / "diskf_mesh" / "scenarios" / "quadrants.toml").read_text()
+DYNAMIC = (Path(__file__).parents[1] / "diskf_mesh" / "scenarios" / "dynamic.toml").read_text()
+
+
+def edited(text, old, new):
+    assert old in text
+    return text.replace(old, new, 1)
+
+
+BAD_SCENARIOS = {  # scenario text, field named in the error
+    "omega nan": (edited(QUADRANTS, "omega = 0.15707963267948966", "omega = nan"), "model.omega"),
+    "omega text": (edited(QUADRANTS, "omega = 0.15707963267948966", 'omega = "fast"'), "model.omega"),
+    "negative range": (edited(DYNAMIC, "range = 120.0", "range = -120.0"), "topology.range"),
+    "period zero": (edited(DYNAMIC, "period = 120", "period = 0"), "agents[4].period"),
+    "period negative": (edited(DYNAMIC, "period = 90", "period = -90"), "agents[7].period"),
+    "phase inf": (edited(DYNAMIC, "phase = 0.25", "phase = inf"), "agents[7].phase"),
+    "misspelled key": (edited(QUADRANTS, "eps = 0.05", "epss = 0.05"), "estimator.epss"),
+    "unknown table": (QUADRANTS + "\n[topolgy]\nkind = \"ring\"\n", "topolgy"),
+    "agent key misspelled": (edited(QUADRANTS, 'position = [150.0, 150.0]', 'positon = [150.0, 150.0]'),
+                             "agents[0].positon"),
+    "id 2^64": (edited(QUADRANTS, "id = 1", "id = 18446744073709551616"), "agents[0].id"),
+    "id 2^63": (edited(QUADRANTS, "id = 1", "id = 9223372036854775808"), "agents[0].id"),
+    "id float": (edited(QUADRANTS, "id = 1", "id = 1.0"), "agents[0].id"),
+    "steps float": (edited(QUADRANTS, "steps = 200", "steps = 200.5"), "steps"),
+    "steps bool": (edited(QUADRANTS, "steps = 200", "steps = true"), "steps"),
+    "window float": (edited(QUADRANTS, "window = 5", "window = 2.5"), "estimator.window"),
+    "reset text": (edited(QUADRANTS, "reset = true", 'reset = "yes"'), "estimator.reset"),
+    "consensus_eps negative": (edited(QUADRANTS, "consensus_eps = 0.1", "consensus_eps = -0.1"),
+                               "estimator.consensus_eps"),
+    "input at negative": (edited(QUADRANTS, "at = 10", "at = -10"), "input.at"),
+    "input at float": (edited(QUADRANTS, "at = 10", "at = 10.5"), "input.at"),
+    "huge matrix entry": (edited(QUADRANTS, "x0 = [200.0, 0.0]", "x0 = [1e300, 0.0]"), "model.x0"),
+    "tiny variance": (edited(QUADRANTS, "R = [[2.0]]", "R = [[1e-300]]"), "agents[0].R"),
+    "A with rotation": (edited(QUADRANTS, "G = [[1.0], [1.0]]", "G = [[1.0], [1.0]]\nA = [[1.0, 0.0], [0.0, 1.0]]"),
+                        "model.A"),
+    "position and path": (edited(DYNAMIC, "period = 120", "period = 120\nposition = [0.0, 0.0]"),
+                          "agents[4].position"),
+    "fault unknown": (QUADRANTS.replace("[topology]", "[faults]\nlos = 0.1\n\n[topology]"), "faults.los"),
+    "fault probability": (QUADRANTS.replace("[topology]", "[faults]\nloss = 2.0\n\n[topology]"), "faults.loss"),
+    "agents not tables": (QUADRANTS.split("[[agents]]")[0] + "agents = [1, 2]\n", "agents"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_SCENARIOS))
+def test_experiment_rejects_bad_scenario(case, tmp_path, capsys):
+    text, field = BAD_SCENARIOS[case]
+    scenario = write(tmp_path / "scenario.toml", text)
+    out_path = tmp_path / "results.json"
+    assert_rejected(["experiment", *QUICK, "--scenario", scenario, "--json", out_path], field, out_path, capsys)
+
+
+def test_misspelled_key_names_the_likely_one(tmp_path, capsys):
+    scenario = write(tmp_path / "scenario.toml", BAD_SCENARIOS["misspelled key"][0])
+    code, _, err = run_cli(["experiment", *QUICK, "--scenario", scenario], capsys)
+    assert code == 2 and "'eps'" in err.split("estimator.epss", 1)[1]
+
+
+def test_generated_agent_count_over_the_memory_bound(tmp_path, capsys):
+    """Refused before numpy is asked for the arrays: fast, and exit 2."""
+    out_path = tmp_path / "results.json"
+    t0 = time.monotonic()
+    assert_rejected(["experiment", *QUICK, "--scenario", "random-geometric", "--agents", "1000000",
+                     "--json", out_path], "size", out_path, capsys)
+    assert time.monotonic() - t0 < 5
+
+
+def test_too_many_seeds_refused_before_allocating(tmp_path, capsys):
+    out_path = tmp_path / "results.json"
+    assert_rejected(["experiment", "--quiet", "--seeds", "100000000", "--json", out_path], "size", out_path, capsys)
+
+
+def test_id_at_the_top_of_the_range_runs(tmp_path, capsys):
+    scenario = write(tmp_path / "scenario.toml", edited(QUADRANTS, "id = 1", f"id = {2**63 - 1}"))
+    code, out, err = run_cli(["experiment", *QUICK, "--scenario", scenario], capsys)
+    assert code == 0, err
+
+
+# --------------------------------------------------------------------------
+# output files: checked before any work, atomic, umask, '-' for stdout
+# --------------------------------------------------------------------------
+def _trace(tmp_path):
+    return write(tmp_path / "trace.json", DOC)
+
+
+# command argv (before the output flag), the output flag, the field, the function doing the work
+WRITERS = {
+    "experiment": (lambda tmp: ["experiment", *QUICK], "--json", "json", "diskf_mesh.experiment.run_experiment"),
+    "simulate": (lambda tmp: ["simulate", "--steps", "5"], "--out", "out", "diskf_mesh.commands.simulate.simulate"),
+    "replay": (lambda tmp: ["replay", _trace(tmp)], "--out", "out", "diskf_mesh.engine.run"),
+}
+
+
+def _bad_target(kind, tmp_path):
+    """(path, a check that the node is unchanged afterwards)."""
+    if kind in ("/dev/null", "/dev/full"):
+        if not os.path.exists(kind):
+            pytest.skip(f"no {kind}")
+        return kind, lambda: stat.S_ISCHR(os.lstat(kind).st_mode)
+    if kind == "symlink":
+        target = tmp_path / "target.json"
+        target.write_text("keep")
+        link = tmp_path / "link.json"
+        link.symlink_to(target)
+        return str(link), lambda: link.is_symlink() and target.read_text() == "keep"
+    if kind == "dangling symlink":
+        link = tmp_path / "link.json"
+        link.symlink_to(tmp_path / "nowhere.json")
+        return str(link), lambda: link.is_symlink() and not (tmp_path / "nowhere.json").exists()
+    if kind == "directory":
+        folder = tmp_path / "folder"
+        folder.mkdir()
+        return str(folder), lambda: folder.is_dir() and not any(folder.iterdir())
+    if kind == "missing folder":
+        return str(tmp_path / "nowhere" / "r.json"), lambda: not (tmp_path / "nowhere").exists()
+    if kind == "unwritable folder":  # /proc refuses new files even to root
+        return "/proc/diskf-out.json", lambda: not os.path.exists("/proc/diskf-out.json")
+    if kind == "read-only folder":
+        if os.geteuid() == 0:
+            pytest.skip("root writes into a 0500 folder")
+        folder = tmp_path / "ro"
+        folder.mkdir(mode=0o500)
+        return str(folder / "r.json"), lambda: not any(folder.iterdir())
+    raise AssertionError(kind)
+
+
+BAD_TARGETS = ["/dev/null", "/dev/full", "symlink", "dangling symlink", "directory", "missing folder",
+               "unwritable folder", "read-only folder"]
+
+
+@pytest.mark.parametrize("command", list(WRITERS))
+@pytest.mark.parametrize("kind", BAD_TARGETS)
+def test_bad_output_refused_before_any_work(command, kind, tmp_path, capsys, monkeypatch):
+    argv, flag, field, work = WRITERS[command]
+    path, unchanged = _bad_target(kind, tmp_path)
+    ran = []
+    module, _, name = work.rpartition(".")
+    monkeypatch.setattr(importlib.import_module(module), name, lambda *a, **k: ran.append(1))
+    code, out, err = run_cli([*argv(tmp_path), flag, path], capsys)
+    assert code == 2 and err.startswith(f"error: {field}:") and err.count("\n") == 1, err
+    assert out == "" and not ran
+    assert unchanged()
+    assert not [p for p in tmp_path.rglob("*.tmp")]
+
+
+@pytest.mark.parametrize("kind", ["/dev/null", "symlink", "directory", "unwritable folder"])
+def test_up_and_world_refuse_bad_outputs_before_starting(kind, tmp_path, capsys):
+    path, unchanged = _bad_target(kind, tmp_path)
+    logs = tmp_path / "logs"
+    cli.build_parser()  # imports every command: not part of the time below
+    for argv in (["up", "--ticks", "2", "--logs", logs, "--json", path],
+                 ["up", "--ticks", "2", "--logs", logs, "--estimates", path],
+                 ["world", "--ticks", "2", "--startup-timeout", "120", "--json", path],
+                 ["world", "--ticks", "2", "--startup-timeout", "120", "--estimates", path]):
+        t0 = time.monotonic()
+        code, out, err = run_cli(argv, capsys)
+        assert code == 2 and err.startswith("error: ") and err.count("\n") == 1, err
+        assert time.monotonic() - t0 < 60  # a world that ran would wait 120 s for its agents
+        assert not logs.exists() and unchanged()  # up started no process (it would have made the logs)
+
+
+def test_up_and_world_refuse_stdout_for_results(tmp_path, capsys):
+    for argv in (["up", "--json", "-", "--logs", tmp_path / "logs"], ["world", "--estimates", "-"]):
+        code, out, err = run_cli(argv, capsys)
+        assert code == 2 and err.startswith("error: ") and out == ""
+    assert not (tmp_path / "logs").exists()
+
+
+@pytest.mark.parametrize("command", ["figures", "report"])
+def test_study_output_folder_checked_first(command, tmp_path, capsys, monkeypatch):
+    blocked = blocker(tmp_path)
+    for out in (blocked, "/proc/diskf-figures"):
+        code, _, err = run_cli([command, "--out", out, "--seeds", "1", "--steps", "5", "--quiet"], capsys)
+        assert code == 2 and err.startswith("error: out:") and err.count("\n") == 1, err
+    assert blocked.read_text() == ""
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o077, 0o002])
+def test_outputs_follow_the_umask(mask, tmp_path, capsys):
+    out_path = tmp_path / "trace.json"
+    old = os.umask(mask)
+    try:
+        code, _, _ = run_cli(["simulate", "--steps", "5", "--out", out_path], capsys)
+    finally:
+        os.umask(old)
+    assert code == 0
+    assert stat.S_IMODE(out_path.stat().st_mode) == 0o666 & ~mask
+
+
+def test_output_replaces_a_regular_file(tmp_path, capsys):
+    out_path = tmp_path / "trace.json"
+    out_path.write_text("old")
+    code, _, _ = run_cli(["simulate", "--steps", "5", "--out", out_path], capsys)
+    assert code == 0 and json.loads(out_path.read_text())["format"] == "diskf-trace/1"
+    assert [p.name for p in tmp_path.iterdir()] == ["trace.json"]
+
+
+def test_json_dash_writes_to_stdout(tmp_path, capsys):
+    code, out, err = run_cli(["experiment", *QUICK, "--algorithms", "diskf", "--json", "-"], capsys)
+    assert code == 0
+    results = json.loads(out)  # stdout carries the JSON alone; the table went to stderr
+    assert list(results) == ["diskf"] and "MAE(state)" in err
+    code, out, err = run_cli(["simulate", "--steps", "5", "--out", "-"], capsys)
+    assert code == 0 and json.loads(out)["format"] == "diskf-trace/1"
+    code, out, err = run_cli(["replay", _trace(tmp_path), "--out", "-"], capsys)
+    assert code == 0 and json.loads(out)["format"] == "diskf-estimates/1"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["trace.json"]
+
+
+WRITER_SCRIPT = """
+import sys, time
+from diskf_mesh.outputs import atomic_open
+with atomic_open(sys.argv[1]) as f:
+    f.write("partial")
+    f.flush()
+    print("writing", flush=True)
+    time.sleep(60)
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_temporary_file_removed_when_killed_mid_write(sig, tmp_path):
+    target = tmp_path / "out.json"
+    target.write_text("old")
+    p = subprocess.Popen([sys.executable, "-c", WRITER_SCRIPT, str(target)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline() == "writing\n"
+        assert len(list(tmp_path.glob(".out.json.*.tmp"))) == 1  # the write is under way
+        p.send_signal(sig)
+        p.wait(30)
+    finally:
+        p.kill()
+    assert p.returncode != 0
+    assert sorted(tmp_path.iterdir()) == [target] and target.read_text() == "old"
+
+
+def test_temporary_file_removed_on_error(tmp_path):
+    from diskf_mesh.outputs import atomic_open
+    target = tmp_path / "out.json"
+    with pytest.raises(ZeroDivisionError):
+        with atomic_open(target) as f:
+            f.write("partial")
+            1 / 0
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_closed_stdout_pipe_ends_quietly():
+    read, write_end = os.pipe()
+    os.close(read)
+    try:
+        p = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", "experiment", *QUICK], stdout=write_end,
+                           stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert p.stderr == "" and p.returncode == 141
+
+
+# --------------------------------------------------------------------------
+# printers take missing values
+# --------------------------------------------------------------------------
+def test_format_table_accepts_missing_values():
+    from diskf_mesh.experiment import TABLE_METRICS, format_table
+    full = {k: 1.0 for k in TABLE_METRICS}
+    results = {
+        "diskf": {"all": {**full, "mae_state": math.nan}, "ring": full},
+        "kcf": {"all": {**full, "mae_state": None, "rmse_state": "n/a"}},  # no ring at all
+        "ldrkf": {"all": {}, "ring": None},
+        "gdkf": {},
+    }
+    table = format_table(results)
+    rows = table.splitlines()
+    mae = next(r for r in rows if r.startswith("all-to-all"))
+    assert mae.split()[2:] == ["-", "-", "-", "-"]
+    assert sum(r.split()[0] == "1-hop" for r in rows if r.split()) == 1
+    assert format_table({}).splitlines()[0].startswith("Comm.")

@@ -13,10 +13,9 @@ import sys
 from tqdm import tqdm
 
 from .. import algorithms, experiment
-from ..errors import InputError
 from ..scenario import load_scenario
-from .options import add_command, add_estimator_options, add_scenario_options, algorithm_list, estimator_params, \
-    positive_int, save_json
+from .options import add_command, add_estimator_options, add_scenario_options, algorithm_list, check_output, \
+    estimator_params, human_stream, positive_int, save_json
 
 DEFAULT_TOPOLOGIES = ("all", "ring", "none")
 
@@ -36,14 +35,13 @@ def register(subparsers) -> None:
                    help=f"'all' or a comma list of {', '.join(algorithms.NAMES)}")
     p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
     add_estimator_options(p)
-    p.add_argument("--json", metavar="OUT", help="also write the results as JSON")
+    p.add_argument("--json", metavar="OUT", help="also write the results as JSON (- for standard output)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.json == "":
-        raise InputError("json", "needs a file name")
+    check_output(args.json, "json")
     scn = load_scenario(args.scenario, agents=args.agents)
     if args.topology is None:
         args.topology = ["range"] if args.comm_range is not None else list(DEFAULT_TOPOLOGIES)
@@ -59,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         save_json(args.json, results, "json")
     steps = args.steps or scn.steps
+    text = human_stream(args.json)
     print(f"Scenario {scn.name}: {args.seeds} seeds x {steps} ticks, {scn.N} agents; "
-          f"* marks the best value of each row")
-    print(experiment.format_table(results))
+          f"* marks the best value of each row", file=text)
+    print(experiment.format_table(results), file=text)
     return 0

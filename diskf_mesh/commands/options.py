@@ -2,8 +2,9 @@
 
 Option values are checked by argparse ``type=`` callables, so a bad value
 ends as argparse's one line ``error: argument --X: ...`` with status 2
-before any work is done. Outputs go through ``save_json``: atomic, and an
-unwritable path becomes an ``InputError`` naming the option.
+before any work is done. Output paths are checked with ``check_output``
+before any work, and written with ``save_json`` (``diskf_mesh.outputs``:
+atomic, the user's umask, ``-`` for standard output).
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from dataclasses import replace
 from .. import algorithms
 from ..errors import InputError
 from ..model import COMPENSATION_FORMS, Params
-from ..trace import write_json
+from ..outputs import check_output, check_output_dir, human_stream, json_safe, save_json  # noqa: F401 (re-exported)
 
 
 def _integer(text: str, low: int, what: str) -> int:
@@ -111,22 +112,3 @@ def estimator_params(base: Params, args: argparse.Namespace) -> Params:
     except ValueError as e:
         field, _, msg = str(e).partition(": ")
         raise InputError(field if msg else "params", msg or str(e)) from None
-
-
-def json_safe(obj):
-    """``obj`` with non-finite floats as None (JSON has no NaN)."""
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
-def save_json(path, doc, option: str = "out") -> None:
-    """Write ``doc`` atomically; a path that cannot be written is bad input."""
-    try:
-        write_json(path, json_safe(doc))
-    except OSError as e:
-        raise InputError(option, f"cannot write {path}: {e.strerror or e}") from None

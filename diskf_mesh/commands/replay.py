@@ -12,7 +12,8 @@ import argparse
 from .. import algorithms, engine, metrics
 from ..model import Params
 from ..trace import estimates_to_json, load_trace
-from .options import add_command, add_estimator_options, algorithm_name, estimator_params, json_safe, save_json
+from .options import add_command, add_estimator_options, algorithm_name, check_output, estimator_params, human_stream, \
+    json_safe, save_json
 
 
 def register(subparsers) -> None:
@@ -21,18 +22,20 @@ def register(subparsers) -> None:
     p.add_argument("--algorithm", type=algorithm_name, default="diskf",
                    help=f"one of {', '.join(algorithms.NAMES)} (default diskf)")
     add_estimator_options(p)
-    p.add_argument("--out", required=True, metavar="EST.json", help="where to write diskf-estimates/1")
+    p.add_argument("--out", required=True, metavar="EST.json", help="where to write diskf-estimates/1 (- for standard output)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output(args.out, "out")
     params = estimator_params(Params(), args)
     trace = load_trace(args.trace)
     est = engine.run(trace, args.algorithm, params)
     scores = metrics.compute(trace, est) if trace.truth_x is not None else None
     save_json(args.out, estimates_to_json(est, args.algorithm, 0, scores))
     B, K, N = trace.shape
-    print(f"{args.algorithm}: {K} ticks, {N} agents -> {args.out}")
+    text = human_stream(args.out)
+    print(f"{args.algorithm}: {K} ticks, {N} agents -> {args.out}", file=text)
     for key, value in json_safe(scores or {}).items():
-        print(f"  {key:<15}{'-' if value is None else f'{value:.4f}'}")
+        print(f"  {key:<15}{'-' if value is None else f'{value:.4f}'}", file=text)
     return 0

@@ -10,7 +10,7 @@ import argparse
 from ..experiment import settings_for
 from ..scenario import TOPOLOGIES, load_scenario, simulate
 from ..trace import trace_to_json
-from .options import add_command, add_scenario_options, save_json, seed_value
+from .options import add_command, add_scenario_options, check_output, human_stream, save_json, seed_value
 
 
 def register(subparsers) -> None:
@@ -18,11 +18,12 @@ def register(subparsers) -> None:
     add_scenario_options(p)
     p.add_argument("--topology", metavar="T", help=f"one of {', '.join(TOPOLOGIES)} (default: the scenario's)")
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="noise seed (default 0)")
-    p.add_argument("--out", required=True, metavar="TRACE.json", help="where to write the trace")
+    p.add_argument("--out", required=True, metavar="TRACE.json", help="where to write the trace (- for standard output)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output(args.out, "out")
     scn = load_scenario(args.scenario, agents=args.agents)
     topology = args.topology or ("range" if args.comm_range is not None else scn.topology)
     setting, = settings_for([topology], args.comm_range)
@@ -30,5 +31,6 @@ def run(args: argparse.Namespace) -> int:
     trace = simulate(scn, [args.seed])
     save_json(args.out, trace_to_json(trace, 0))
     B, K, N = trace.shape
-    print(f"{scn.name} seed {args.seed}: {K} ticks, {N} agents, topology {setting.label} -> {args.out}")
+    print(f"{scn.name} seed {args.seed}: {K} ticks, {N} agents, topology {setting.label} -> {args.out}",
+          file=human_stream(args.out))
     return 0

@@ -6,9 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..errors import InputError
 from ..studies import StudyConfig
-from .options import add_command, positive_int
+from .options import add_command, check_output_dir, positive_int
 
 
 def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: str, action) -> None:
@@ -29,9 +28,4 @@ def _run(args: argparse.Namespace, action) -> int:
 
 def out_dir(text: str) -> Path:
     """The output folder, created; a path that cannot be one is bad input."""
-    path = Path(text)
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError("out", f"cannot create folder {text}: {e.strerror or e}") from None
-    return path
+    return check_output_dir(text, "out")
