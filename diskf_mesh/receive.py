@@ -1,13 +1,24 @@
-"""The receive path of one agent: guard, then the link's faults, then the inbox.
+"""The receive path of one agent: guard, range gate, the link's faults, the inbox.
 
-    payload on a neighbour's key
-      -> ``Guard.admit``      rejected (counted by reason), or a decoded message
+    payload on a neighbour's key (its id parsed once, by the agent)
+      -> ``Guard.screen``     rejected (counted by reason; one that named a
+                              tick in the window accounts for its sender at
+                              that tick), or a decoded message (decoded once)
+      -> range gate           its tick's links known (the world's tick is
+                              in) and the sender not among them:
+                              out_of_range += 1, never on a link
       -> sent += 1
       -> ``FaultModel.plan``  lost (lost += 1), or one or two copies with delays
       -> ``DelayLine``        holds each copy until it is due
       -> received += 1 at the message's first copy
       -> ``Inbox.offer``      every copy: held (later fused or unlinked),
                               duplicate or late
+
+The inbox is the one place a message waits, also one that came before the
+world's tick of its tick (``Inbox.take`` then gates it by range). Every map
+here is bounded by the guard's window (``max_lag`` + ``max_lead`` + 1 ticks)
+times the scenario's agents: what a flood of other ids, ticks or copies
+sends costs counts, never memory.
 
 A transport calls ``on_payload`` from its subscriber callback and, per tick,
 ``wait(tick, expected, deadline)`` then ``take(tick, linked)``. Without a
@@ -20,6 +31,7 @@ import itertools
 import threading
 import time
 
+from . import wire
 from .counters import Counters
 from .delayline import DelayLine
 from .faults import PERFECT, FaultModel
@@ -35,7 +47,7 @@ class Receiver:
         self.me = guard.config.me
         self.counters: Counters = guard.counters
         self.faults = faults if faults is not None and faults.config.active else None
-        self.inbox = Inbox(self.counters)
+        self.inbox = Inbox(self.counters, keep=guard.config.max_lag)
         self._arrived = threading.Condition()
         self._delay = DelayLine(self._arrive_later)
         self._lock = threading.Lock()  # fault streams and counters are touched from zenoh threads
@@ -43,20 +55,39 @@ class Receiver:
         self._heard: set = set()       # send events of which a copy arrived
         self._events = itertools.count()
         self._lost: dict = {}          # tick -> senders whose message of that tick the link dropped
-        self.tick = 0                  # the agent's current tick, for the guard's window
+        self._refused: dict = {}       # tick -> senders whose message of that tick was rejected
+        self.tick = 0                  # the agent's current tick, for the guard's window (``advance``)
         self._on_arrival = on_arrival
 
-    def on_payload(self, key: str, payload) -> None:
+    def advance(self, tick: int) -> None:
+        """The agent works on ``tick`` now: the guard's window follows it, and
+        every earlier tick is closed (what comes for one is late)."""
+        if tick > self.tick:
+            self.tick = tick
+            self.inbox.close_through(tick - 1)
+
+    def on_payload(self, sender, payload, links=None) -> bool:
+        """A payload on agent ``sender``'s message key (None: the key's id is
+        not an integer). ``links``: {tick: ids in range at that tick} for the
+        ticks the world has opened. Returns whether a wait may be over (a
+        message or a refusal accounted for a sender)."""
         with self._lock:
-            wm = self.guard.admit(key, payload, self.tick)
-            if wm is None:
-                return
+            wm = self.guard.screen(sender, payload, self.tick)
+            if not isinstance(wm, wire.WireMessage):
+                if wm is not None and wm.tick is not None:
+                    self._refused.setdefault(wm.tick, set()).add(sender)
+                    return True
+                return False
+            linked = None if links is None else links.get(wm.tick)
+            if linked is not None and wm.sender not in linked:
+                self.counters.out_of_range += 1
+                return False
             self.counters.sent += 1
             plan = PERFECT if self.faults is None else self.faults.plan(wm.sender, self.me, wm.tick)
             if not plan:
                 self.counters.lost += 1
                 self._lost.setdefault(wm.tick, set()).add(wm.sender)
-                return
+                return True
             event = next(self._events)
             self._copies_left[event] = len(plan)
         for d in plan:
@@ -64,6 +95,7 @@ class Receiver:
                 self._delay.submit((event, wm), d.delay_s)
             else:
                 self._arrive((event, wm))
+        return True
 
     def _arrive_later(self, item) -> None:
         self._arrive(item)
@@ -104,19 +136,21 @@ class Receiver:
 
     def accounted(self, tick: int) -> set:
         """Senders of ``tick`` that need no more waiting for: their message
-        arrived, or the (simulated) link dropped it. Waiting for a message the
-        fault layer has dropped could only end at the deadline with the same
-        messages fused, so a loop may stop as soon as every expected sender
-        is accounted for: a lossy run is then as fast as a clean one."""
+        arrived, the (simulated) link dropped it, or it came and was rejected.
+        Waiting for a message the fault layer has dropped could only end at
+        the deadline with the same messages fused, so a loop may stop as soon
+        as every expected sender is accounted for: a lossy run is then as
+        fast as a clean one, and a poisoned neighbour costs no timeout."""
         heard = self.inbox.senders(tick)
         with self._lock:
-            return heard | self._lost.get(tick, set())
+            return heard | self._lost.get(tick, set()) | self._refused.get(tick, set())
 
     def take(self, tick: int, linked) -> list:
         """[(sender, message)] to fuse at ``tick``, sorted by sender id."""
         with self._lock:
-            for t in [t for t in self._lost if t <= tick]:
-                del self._lost[t]
+            for book in (self._lost, self._refused):
+                for t in [t for t in book if t <= tick]:
+                    del book[t]
         return self.inbox.take(tick, linked)
 
     def use_faults(self, faults: FaultModel | None) -> None:
@@ -125,11 +159,12 @@ class Receiver:
         with self._lock:
             self.faults = faults if faults is not None and faults.config.active else None
 
-    def snapshot(self) -> dict:
-        """The counters with the gauges (in flight, pending) filled in, flat."""
+    def snapshot(self, cap: int | None = None) -> dict:
+        """The counters with the gauges (in flight, pending) filled in, flat
+        (none above ``cap``)."""
         self.counters.in_flight = self.in_flight
         self.counters.pending = self.inbox.pending
-        return self.counters.to_dict()
+        return self.counters.to_dict(cap)
 
     def close(self) -> Counters:
         """End of run: copies still in flight or held arrive too late to count as fused."""

@@ -84,24 +84,23 @@ def test_every_bad_input_is_rejected_with_its_reason(view):
     g = Guard(view.guard_config())
     for reason, sender, payload in bad_payloads(view):
         before = dict(g.counters.rejected)
-        assert g.admit(view.key(sender), payload, view.tick) is None, reason
+        assert g.admit(sender, payload, view.tick) is None, reason
         assert g.counters.rejected.get(reason, 0) == before.get(reason, 0) + 1, (reason, g.counters.rejected)
     assert set(g.counters.rejected) <= set(REASONS) and "error" not in g.counters.rejected
 
 
-def test_keys_of_other_kinds_or_runs_are_rejected(view):
+def test_a_key_without_an_integer_id_is_rejected_without_a_decode(view):
     g = Guard(view.guard_config())
     j = view.linked[0]
-    for key in (f"diskf/{view.run_id}/agent/{j}/report", f"diskf/other-run/agent/{j}/msg",
-                f"diskf/{view.run_id}/agent/x/msg", "elsewhere"):
-        assert g.admit(key, view.payload(j), view.tick) is None
-    assert g.counters.rejected == {"key": 4}
+    for payload in (view.payload(j), b"junk"):   # the verdict does not depend on the bytes: never decoded
+        assert g.admit(None, payload, view.tick) is None
+    assert g.counters.rejected == {"key": 2}
 
 
 def test_a_good_message_passes_bit_for_bit(view):
     g = Guard(view.guard_config())
     for j in view.linked:
-        wm = g.admit(view.key(j), view.payload(j), view.tick)
+        wm = g.admit(j, view.payload(j), view.tick)
         assert (wm.sender, wm.tick, wm.run_id) == (j, view.tick, view.run_id)
         for f in Message.ARRAY_FIELDS:
             assert np.array_equal(getattr(wm.message, f), getattr(view.messages[j], f))
@@ -111,7 +110,7 @@ def test_a_good_message_passes_bit_for_bit(view):
 
 def test_own_messages_are_ignored_silently(view):
     g = Guard(view.guard_config())
-    assert g.admit(view.key(view.me), view.payload(view.me), view.tick) is None
+    assert g.admit(view.me, view.payload(view.me), view.tick) is None
     assert g.counters == Counters()
 
 
@@ -119,9 +118,9 @@ def test_ticks_inside_the_window_pass(view):
     g = Guard(view.guard_config(max_lag=3, max_lead=2))
     j = view.linked[0]
     ok = [view.tick - 3, view.tick, view.tick + 2]
-    assert all(g.admit(view.key(j), view.payload(j, tick=t), view.tick) for t in ok)
+    assert all(g.admit(j, view.payload(j, tick=t), view.tick) for t in ok)
     bad = [view.tick - 4, view.tick + 3]
-    assert not any(g.admit(view.key(j), view.payload(j, tick=t), view.tick) for t in bad)
+    assert not any(g.admit(j, view.payload(j, tick=t), view.tick) for t in bad)
 
 
 def test_logged_once_per_sender_and_reason(view, caplog):
@@ -129,9 +128,9 @@ def test_logged_once_per_sender_and_reason(view, caplog):
     j, k = view.linked[:2]
     with caplog.at_level(logging.WARNING, logger="diskf_mesh.guard"):
         for _ in range(5):
-            g.admit(view.key(j), b"junk", view.tick)
-            g.admit(view.key(k), b"junk", view.tick)
-            g.admit(view.key(j), view.payload(j, tick=0), view.tick)
+            g.admit(j, b"junk", view.tick)
+            g.admit(k, b"junk", view.tick)
+            g.admit(j, view.payload(j, tick=0), view.tick)
     assert len(caplog.records) == 3
     assert g.by_sender[(j, "not-msgpack")] == 5 and g.by_sender[(k, "not-msgpack")] == 5
     assert g.by_sender[(j, "tick-past")] == 5
@@ -142,7 +141,7 @@ def test_logged_once_per_sender_and_reason(view, caplog):
 def test_guard_never_raises_even_on_non_bytes(view):
     g = Guard(view.guard_config())
     for payload in (None, 12, "text", [b"x"], object()):
-        assert g.admit(view.key(view.linked[0]), payload, view.tick) is None
+        assert g.admit(view.linked[0], payload, view.tick) is None
     assert "error" not in g.counters.rejected
 
 
@@ -161,10 +160,10 @@ def test_rejected_messages_leave_the_estimate_bit_for_bit(view):
     rx = Receiver(Guard(view.guard_config()))
     rx.tick = view.tick
     for reason, sender, payload in bad_payloads(view):
-        rx.on_payload(view.key(sender), payload)
+        rx.on_payload(sender, payload)
     for j in view.linked:
-        rx.on_payload(view.key(j), view.payload(j))
-        rx.on_payload(view.key(j), view.payload(j))      # a duplicate is fused once
+        rx.on_payload(j, view.payload(j))
+        rx.on_payload(j, view.payload(j))      # a duplicate is fused once
     got = rx.take(view.tick, view.linked)
     _, out = view.fuse(got)
     _, ref = view.fuse([(j, view.messages[j]) for j in view.linked])
@@ -202,7 +201,7 @@ def test_receiver_with_faults_balances_its_books(view):
     for t in range(1, view.ticks + 1):
         rx.tick = t
         for j in view.ids:
-            rx.on_payload(view.key(j), view.payload(j, tick=t))
+            rx.on_payload(j, view.payload(j, tick=t))
         rx.take(t, view.linked)
     c = rx.close()
     others = len(view.ids) - 1
