@@ -207,6 +207,7 @@ class Agent:
                                        if self.id in t.live else set())
                 if self.id not in t.live and self.est is None:
                     self._joining(t.tick)
+                self.receiver.release(t.tick, self.linked[t.tick])
                 self._bound(self.ticks)
                 for old in [j for j in self.linked if j < self.k - LINKS_KEPT]:
                     del self.linked[old]
@@ -292,9 +293,9 @@ class Agent:
         the receive path (``diskf_mesh.receive``): the guard decodes it once
         and rejects (counts) what is malformed or off the window around tick
         k, the range gate drops (counts "out_of_range") one from an agent not
-        linked to this one at the message's tick, and the inbox holds the
-        rest (also one whose tick the world has not opened yet: gated by
-        range when its tick is taken). False if it was dropped."""
+        linked to this one at the message's tick (one whose tick the world
+        has not opened here yet waits for it), and the inbox holds the rest
+        until the tick is fused. False if it was dropped."""
         self.receiver.advance(self.k)
         return self.receiver.on_payload(sender, payload, self.linked)
 

@@ -13,9 +13,6 @@ The estimator fuses only what arrived in time for its tick:
                                       and ``tick`` is closed: anything for it
                                       or an earlier tick that comes later is
                                       late
-    ``close_through(tick)``           ticks up to ``tick`` will never be
-                                      fused (an agent that joins later):
-                                      what is held for them is late
     ``close()``                       the run is over: whatever is still held
                                       never made it into fusion, late
 
@@ -75,13 +72,6 @@ class Inbox:
                 for t in [t for t in self._seen if t < tick - self.keep]:
                     del self._seen[t]
             return out
-
-    def close_through(self, tick: int) -> None:
-        with self._lock:
-            if tick > self._closed_through:
-                for t in [t for t in self._held if t <= tick]:
-                    self.counters.late += len(self._held.pop(t))
-                self._closed_through = tick
 
     def senders(self, tick: int) -> set:
         """Who has been heard for ``tick`` so far (to stop waiting early)."""

@@ -4,9 +4,14 @@
       -> ``Guard.screen``     rejected (counted by reason; one that named a
                               tick in the window accounts for its sender at
                               that tick), or a decoded message (decoded once)
-      -> range gate           its tick's links known (the world's tick is
-                              in) and the sender not among them:
-                              out_of_range += 1, never on a link
+      -> range gate           the sender not in range at the message's tick:
+                              out_of_range += 1, never on a link. A message
+                              whose tick the world has not opened here yet
+                              waits for it (``release``), first copy per
+                              (sender, tick), before the link: a link's
+                              latency runs from when its receiver knows
+                              the tick, as in the engine's fault model
+                              (``faults.delivered_links``)
       -> sent += 1
       -> ``FaultModel.plan``  lost (lost += 1), or one or two copies with delays
       -> ``DelayLine``        holds each copy until it is due
@@ -14,11 +19,9 @@
       -> ``Inbox.offer``      every copy: held (later fused or unlinked),
                               duplicate or late
 
-The inbox is the one place a message waits, also one that came before the
-world's tick of its tick (``Inbox.take`` then gates it by range). Every map
-here is bounded by the guard's window (``max_lag`` + ``max_lead`` + 1 ticks)
-times the scenario's agents: what a flood of other ids, ticks or copies
-sends costs counts, never memory.
+Every map here is bounded by the guard's window (``max_lag`` + ``max_lead``
++ 1 ticks) times the scenario's agents: what a flood of other ids, ticks or
+copies sends costs counts, never memory.
 
 A transport calls ``on_payload`` from its subscriber callback and, per tick,
 ``wait(tick, expected, deadline)`` then ``take(tick, linked)``. Without a
@@ -56,21 +59,25 @@ class Receiver:
         self._events = itertools.count()
         self._lost: dict = {}          # tick -> senders whose message of that tick the link dropped
         self._refused: dict = {}       # tick -> senders whose message of that tick was rejected
+        self._early: dict = {}         # tick -> {sender: message} before the world's tick of that tick
         self.tick = 0                  # the agent's current tick, for the guard's window (``advance``)
         self._on_arrival = on_arrival
 
     def advance(self, tick: int) -> None:
-        """The agent works on ``tick`` now: the guard's window follows it, and
-        every earlier tick is closed (what comes for one is late)."""
+        """The agent works on ``tick`` now: the guard's window follows it;
+        messages waiting for an earlier tick's links never enter a link (the
+        agent skipped that tick: out_of_range)."""
         if tick > self.tick:
-            self.tick = tick
-            self.inbox.close_through(tick - 1)
+            with self._lock:
+                self.tick = tick
+                for t in [t for t in self._early if t < tick]:
+                    self.counters.out_of_range += len(self._early.pop(t))
 
     def on_payload(self, sender, payload, links=None) -> bool:
         """A payload on agent ``sender``'s message key (None: the key's id is
         not an integer). ``links``: {tick: ids in range at that tick} for the
-        ticks the world has opened. Returns whether a wait may be over (a
-        message or a refusal accounted for a sender)."""
+        ticks the world has opened (None: no range gate). Returns whether a
+        wait may be over (a message or a refusal accounted for a sender)."""
         with self._lock:
             wm = self.guard.screen(sender, payload, self.tick)
             if not isinstance(wm, wire.WireMessage):
@@ -78,24 +85,65 @@ class Receiver:
                     self._refused.setdefault(wm.tick, set()).add(sender)
                     return True
                 return False
-            linked = None if links is None else links.get(wm.tick)
-            if linked is not None and wm.sender not in linked:
-                self.counters.out_of_range += 1
-                return False
-            self.counters.sent += 1
-            plan = PERFECT if self.faults is None else self.faults.plan(wm.sender, self.me, wm.tick)
-            if not plan:
-                self.counters.lost += 1
-                self._lost.setdefault(wm.tick, set()).add(wm.sender)
-                return True
-            event = next(self._events)
-            self._copies_left[event] = len(plan)
+            if links is not None:
+                linked = links.get(wm.tick)
+                if linked is None:  # its tick is not open here yet
+                    early = self._early.setdefault(wm.tick, {})
+                    if wm.sender in early:
+                        self._repeated()
+                    else:
+                        early[wm.sender] = wm
+                    return False
+                if wm.sender not in linked:
+                    self.counters.out_of_range += 1
+                    return False
+            item = self._link(wm)
+        self._deliver(item)
+        return True
+
+    def release(self, tick: int, linked) -> None:
+        """The world's tick ``tick`` is in: what waited for it goes on a link
+        (a sender in ``linked``) or is out of range."""
+        with self._lock:
+            early = self._early.pop(tick, {})
+            items = []
+            for s, wm in early.items():
+                if s in linked:
+                    items.append(self._link(wm))
+                else:
+                    self.counters.out_of_range += 1
+        for item in items:
+            self._deliver(item)
+
+    def _repeated(self) -> None:
+        """A sender repeated a message still waiting for its tick: counted as
+        the link counts a repeat (sent, received, arrived, a duplicate),
+        without holding it (lock held)."""
+        c = self.counters
+        c.sent += 1
+        c.received += 1
+        c.arrived += 1
+        c.duplicate += 1
+
+    def _link(self, wm) -> tuple:
+        """Put ``wm`` on its link (lock held): (event, message, deliveries)."""
+        self.counters.sent += 1
+        plan = PERFECT if self.faults is None else self.faults.plan(wm.sender, self.me, wm.tick)
+        if not plan:
+            self.counters.lost += 1
+            self._lost.setdefault(wm.tick, set()).add(wm.sender)
+            return None, wm, ()
+        event = next(self._events)
+        self._copies_left[event] = len(plan)
+        return event, wm, plan
+
+    def _deliver(self, item) -> None:
+        event, wm, plan = item
         for d in plan:
             if d.delay_s > 0:
                 self._delay.submit((event, wm), d.delay_s)
             else:
                 self._arrive((event, wm))
-        return True
 
     def _arrive_later(self, item) -> None:
         self._arrive(item)

@@ -45,7 +45,7 @@ Limits (``limits``): before anything is decoded, a payload larger than its
 kind's schema allows for the receiver's dimensions is refused ("size"): a
 "msg" of n = 2, m = 1 is at most ``HEADER_BYTES`` + 8 x 14 bytes. Then one
 msgpack unpack with every container and string bounded by the schema
-(``max_map_len`` = the kind's field count, ``max_bin_len`` = its float
+(``max_map_len`` = the kind's field count + 2, ``max_bin_len`` = its float
 bytes, ``max_array_len`` = its longest array or float count, ``max_str_len``
 = ``MAX_STR``), so a map of 130,000 keys is refused at its header, before
 one key is read. Report counters are non-negative ints of at most
@@ -71,7 +71,7 @@ MAX_DIM = 64  # largest n, m (or p) a decoder accepts
 MAX_BYTES = 1 << 20  # largest payload a decoder looks at, whatever the kind
 HEADER_BYTES = 256   # the fixed fields of a payload, generously (run id <= 32 characters, ints <= 9 bytes)
 MAX_STR = 64         # longest string field or map key (run ids, algorithm and counter names)
-MAX_WHY = 256        # longest "why" of a stop
+MAX_WHY = 1024       # longest "why" of a stop
 MAX_COUNTERS = 64    # most counters a report may carry (there are about 30)
 PER_TICK = 1 << 20   # most payloads one agent counts per tick of the run (``count_bound``)
 
@@ -232,8 +232,10 @@ class Limits:
                                max_map_len=self.max_map_len, max_ext_len=0)
 
 
-# fields of each kind (the map's length)
+# fields of each kind (the map's length), and room for a few more (a signature, a binding) that a
+# decoder ignores: each is still bounded by the string, bin and byte limits
 _FIELDS = {"msg": 10, "report": 11, "tick": 12, "meas": 8, "stop": 5}
+EXTRA_FIELDS = 2
 
 
 @functools.lru_cache(maxsize=64)
@@ -243,7 +245,7 @@ def limits(kind: str, a: int | None = None, b: int | None = None) -> Limits:
     not given is the largest any run may have (``MAX_DIM``; for N, what fits
     in ``MAX_BYTES``)."""
     n, m = a or MAX_DIM, b or MAX_DIM
-    fields = _FIELDS[kind]
+    fields = _FIELDS[kind] + EXTRA_FIELDS
     if kind in ("msg", "report"):
         floats = 2 * n + 2 * n * n + m + m * m if kind == "msg" else n + n * n + m
         size = HEADER_BYTES + 8 * floats

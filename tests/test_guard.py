@@ -288,6 +288,30 @@ def test_what_waits_is_bounded_by_the_window_and_the_scenario(view):
     assert len(rx.inbox._seen) <= cfg.max_lag + cfg.max_lead + 1
 
 
+def test_what_waits_for_the_worlds_tick_is_bounded_and_gated_on_release(view):
+    """The same flood before the world's tick 1 is in (no links known): one
+    copy per sender and tick of the window waits, before any link; the
+    world's tick lets the linked ones on, the others are out of range."""
+    cfg = view.guard_config()
+    rx = Receiver(Guard(cfg))
+    rx.advance(1)
+    links = {}
+    for _ in range(50):
+        for j in view.ids:
+            for t in range(1, 21):
+                rx.on_payload(j, view.payload(j, tick=t), links)
+    others = len(view.ids) - 1
+    assert sum(map(len, rx._early.values())) == others * (1 + cfg.max_lead)
+    c = rx.counters
+    assert c.sent == c.duplicate == 49 * others * (1 + cfg.max_lead) and c.fused == c.pending == 0
+    rx.release(1, view.linked)
+    assert c.out_of_range == others - len(view.linked)
+    assert [s for s, _ in rx.take(1, view.linked)] == sorted(view.linked)
+    rx.advance(10)                          # ticks the agent skipped: never on a link
+    assert rx._early == {} and c.out_of_range == others - len(view.linked) + 2 * others
+    assert rx.close().imbalance() == []
+
+
 # --------------------------------------------------------------------------
 # the world's messages at an agent (agents.agent), fed bytes on a LocalBus
 # --------------------------------------------------------------------------

@@ -131,7 +131,8 @@ def test_limits_fit_every_payload_of_a_run_and_nothing_much_larger():
 
 def test_msgpack_limits_are_sized_to_the_schema():
     _rejects(msgpack.packb({str(i): 0 for i in range(130_000)}), "size")            # ~0.9 MB, 130k keys
-    _rejects({**_doc(), "x": 1}, "size", n=2, m=1)                                  # an 11th field
+    _rejects({**_doc(), "x": 1, "y": 2, "z": 3}, "size", n=2, m=1)                  # a 13th field
+    wire.decode(msgpack.packb({**_doc(), "x": 1, "y": 2}), n=2, m=1)                # room for two more
     _rejects({**_doc(), "run": "r" * (wire.MAX_STR + 1)}, "size")
     _rejects({**_doc(), "a": _doc()["a"] + b"\x00" * 8}, "size", n=2, m=1)          # a bin over 8 x 14
     _rejects({**_doc(), "a": [1.0] * 15}, "size", n=2, m=1)                        # an array over 14
