@@ -21,7 +21,11 @@ message was most of a message's cost on a busy machine).
 
 Neighbours' messages pass the receive path (``diskf_mesh.receive``: the
 guard rejects what is malformed, the inbox fuses a message at most once and
-discards, counted as late, one for a tick already fused). The counters
+discards, counted as late, one for a tick already fused). The world's
+messages are taken only when they fit the run (``_tick_problem``,
+``_meas_problem``): a tick for k or k+1 (k the tick being worked on) with the
+run's constants, a measurement for k or k+1 of this agent's length within
+``GuardConfig.max_abs``; every per-tick map is kept to a few ticks. The counters
 (``diskf_mesh.counters``) go to the world with every report. The
 agent exits 0 when the world says stop, and 1 with one line on stderr if the
 world goes away or stays silent for ``--world-timeout`` seconds.
@@ -37,6 +41,7 @@ and re-initialises from a neighbour's fused estimate (``agents.rejoin``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -62,8 +67,8 @@ from diskf_mesh.receive import Receiver
 from diskf_mesh.scenario import Scenario
 
 POLL_S = 0.5     # the main thread looks at the timeouts at least this often
-HOLD_TICKS = 2   # a neighbour's message up to this many ticks ahead waits for its tick
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
+AHEAD_KEPT = 4   # ticks (and measurements) kept ahead of joining: a restart sees the world's latest
 
 
 @dataclass(frozen=True)
@@ -116,12 +121,11 @@ class Agent:
         self.rejoining = False
         self.reports = {}    # k -> {sender: wire.Report}, listened to only while rejoining
         self.est: AgentEstimator | None = None
-        self.ticks = {}      # k -> wire.Tick
-        self.meas = {}       # k -> wire.Measurement
-        self.alive = set()   # agent ids with a liveliness token
+        self.ticks = {}      # k -> wire.Tick (k and k + 1; before joining, a few)
+        self.meas = {}       # k -> wire.Measurement (likewise)
+        self.constants = None  # (K, seed, algorithm, topology, range) of the first tick taken
+        self.alive = set()   # agent ids of the scenario with a liveliness token
         self.linked = {}     # k -> ids of live agents in range at tick k (not this one), recent ticks
-        self.held = {}       # k -> [(key, sender, payload)] that came before the world's tick k
-        self.out_of_range = 0
         self.world_seen = False
         self.world_ticking = False  # the world's "ticking" token: the run is past its start
         self.world_gone = False
@@ -173,42 +177,62 @@ class Agent:
     # -- the world's messages and liveliness ---------------------------------
     def _handle(self, key: str, payload) -> bool:
         """Take in one sample; False if it was dropped without changing
-        anything a step waits for (a neighbour out of range)."""
+        anything a step waits for (a neighbour out of range, a rejection)."""
         kind, who = self.keys.parse(key)
         try:
             if kind == "msg":
-                return self._gate(key, who, payload)
+                return self._gate(who, payload)
             elif kind == "tick":
                 self.prof.begin()
                 try:
                     t = wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids))
                 finally:
                     self.prof.end("decode")
+                if t.tick < self.k or t.tick in self.ticks:
+                    self.last_heard = time.monotonic()
+                    return True
+                problem = self._tick_problem(t)
+                if problem is not None:
+                    return self._refuse(kind, *problem)
                 self.last_heard = time.monotonic()
-                if t.tick >= self.k and t.tick not in self.ticks:
+                if self.constants is None:
+                    self.constants = (t.ticks, t.seed, t.algorithm, t.topology, t.comm_range)
+                    guard = self.receiver.guard
+                    guard.config = dataclasses.replace(guard.config, ticks=t.ticks)
                     if self.fault_config is not None and self.receiver.faults is None:
                         self.receiver.use_faults(FaultModel(self.fault_config, t.seed))
-                    self.ticks[t.tick] = t
-                    # not live at a tick (joining later): linked to no one, nothing to fuse
-                    self.linked[t.tick] = ((set(neighbours(self.scn, self.id, t.positions)) & set(t.live)) - {self.id}
-                                           if self.id in t.live else set())
-                    if self.id not in t.live and self.est is None:
-                        self._joining(t.tick)
-                    for held in self.held.pop(t.tick, ()):
-                        self._gate(*held)
+                self.ticks[t.tick] = t
+                # not live at a tick (joining later): linked to no one, nothing to fuse
+                self.linked[t.tick] = ((set(neighbours(self.scn, self.id, t.positions)) & set(t.live)) - {self.id}
+                                       if self.id in t.live else set())
+                if self.id not in t.live and self.est is None:
+                    self._joining(t.tick)
+                self.receiver.release(t.tick, self.linked[t.tick])
+                self._bound(self.ticks)
+                for old in [j for j in self.linked if j < self.k - LINKS_KEPT]:
+                    del self.linked[old]
             elif kind == "meas":
                 self.prof.begin()
                 try:
                     mm = wire.decode_measurement(payload, run_id=self.keys.run_id, agent=self.id, p=self.p)
                 finally:
                     self.prof.end("decode")
+                if mm.tick < self.k:
+                    return True
+                problem = self._meas_problem(mm)
+                if problem is not None:
+                    return self._refuse(kind, *problem)
                 self.last_heard = time.monotonic()
-                if mm.tick >= self.k:
-                    self.meas.setdefault(mm.tick, mm)
+                self.meas.setdefault(mm.tick, mm)
+                self._bound(self.meas)
             elif kind == "report" and self.rejoining and self.est is None and who in self.ids:
                 n, m = self.scn.G.shape
-                r = wire.decode_report(payload, run_id=self.keys.run_id, sender=who, n=n, m=m)
-                self.reports.setdefault(r.tick, {})[who] = r
+                r = wire.decode_report(payload, run_id=self.keys.run_id, sender=who, n=n, m=m,
+                                       ticks=self.constants and self.constants[0])
+                if self.k - 1 <= r.tick <= self.k + 1:  # the re-initialisation reads tick k - 1
+                    self.reports.setdefault(r.tick, {})[who] = r
+                for old in [j for j in self.reports if j < self.k - 1]:
+                    del self.reports[old]
             elif kind == "stop":
                 self.stopped = wire.decode_stop(payload, run_id=self.keys.run_id)
             elif kind == "alive-world":
@@ -216,36 +240,64 @@ class Agent:
                 self.world_gone = self.world_seen and not payload
             elif kind == "ticking":
                 self.world_ticking = bool(payload)
-            elif kind == "alive" and who is not None:
+            elif kind == "alive" and who in self.ids:
                 (self.alive.add if payload else self.alive.discard)(who)
         except wire.Rejected as e:
-            self.counters.reject(e.reason)
-            self.log.once((kind, e.reason), f"rejected a {kind} message on {key}: {e}")
+            return self._refuse(kind, e.reason, e.detail)
         return True
 
-    def _gate(self, key: str, sender, payload) -> bool:
-        """The radio range: a message from an agent that is not linked to this
-        one at the message's tick never reaches it, so it is dropped here
-        (counted "out_of_range") before the receive path spends a decode on
-        it. A message whose tick is not known yet waits for the world's tick;
-        one that cannot be read, or is for a tick far off, goes on to the
-        receive path, which rejects or counts it. False if it was dropped."""
-        if sender == self.id:
-            return False
-        t = wire.peek_tick(payload)
-        if t in self.linked:
-            if sender not in self.linked[t]:
-                self.out_of_range += 1
-                return False
-            self.receiver.on_payload(key, payload)
-        elif t is not None and self.k <= t <= self.k + HOLD_TICKS:
-            self.held.setdefault(t, []).append((key, sender, payload))
-        elif self.est is None and t is not None:  # a tick from before this agent (re)joined the run
-            self.out_of_range += 1
-            return False
-        else:
-            self.receiver.on_payload(key, payload)
-        return True
+    def _refuse(self, kind: str, reason: str, detail: str) -> bool:
+        """Count a rejected message of the world (or a report), say it once
+        per kind and reason."""
+        self.counters.reject(reason)
+        self.log.once((kind, reason), f"rejected a {kind} message: {reason}" + (f" ({detail[:200]})" if detail else ""))
+        return False
+
+    def _tick_problem(self, t: wire.Tick):
+        """None if the world's tick ``t`` (not before k, not seen yet) may be
+        taken, else (reason, detail): it must carry the run's constants as
+        the first tick taken did, lie within the run, and be for k or k + 1
+        (before this agent has joined, any later tick: a restart joins the
+        world where it is)."""
+        consts = (t.ticks, t.seed, t.algorithm, t.topology, t.comm_range)
+        if self.constants is not None and consts != self.constants:
+            return "constants", f"tick {t.tick} says (K, seed, algorithm, topology, range) = {consts}, " \
+                                f"the run {self.constants}"
+        if t.tick > t.ticks or (t.tick > self.k + 1 and self.est is not None):
+            return "tick-future", f"tick {t.tick} at tick {self.k} of {t.ticks}"
+        return None
+
+    def _meas_problem(self, mm: wire.Measurement):
+        """None if this agent's measurement ``mm`` (not before k) may be
+        taken: for k or k + 1 (before joining, any later tick of the run),
+        every value within ``GuardConfig.max_abs``; else (reason, detail)."""
+        K = self.constants[0] if self.constants is not None else math.inf
+        if mm.tick > K or (mm.tick > self.k + 1 and self.est is not None):
+            return "tick-future", f"measurement of tick {mm.tick} at tick {self.k}"
+        limit = self.receiver.guard.config.max_abs
+        if mm.has and not float(np.abs(mm.y).max(initial=0.0)) <= limit:
+            return "magnitude", f"measurement of tick {mm.tick}: a value beyond {limit:.3g}"
+        return None
+
+    def _bound(self, by_tick: dict) -> None:
+        """Keep a per-tick map of the world's messages to ticks from k - 1
+        (a restart re-initialises from tick k - 1) and at most
+        ``AHEAD_KEPT`` of them (only a joining agent takes more than two)."""
+        for old in [j for j in by_tick if j < self.k - 1]:
+            del by_tick[old]
+        while len(by_tick) > AHEAD_KEPT:
+            del by_tick[max(by_tick)]
+
+    def _gate(self, sender, payload) -> bool:
+        """A neighbour's message (``sender``: its key's id, parsed once) into
+        the receive path (``diskf_mesh.receive``): the guard decodes it once
+        and rejects (counts) what is malformed or off the window around tick
+        k, the range gate drops (counts "out_of_range") one from an agent not
+        linked to this one at the message's tick (one whose tick the world
+        has not opened here yet waits for it), and the inbox holds the rest
+        until the tick is fused. False if it was dropped."""
+        self.receiver.advance(self.k)
+        return self.receiver.on_payload(sender, payload, self.linked)
 
     def _check_world(self, deadline: float, what: str) -> None:
         if self.failure is not None:
@@ -291,7 +343,7 @@ class Agent:
         """Local step of tick k, own message out."""
         prof = self.prof
         mm = self.meas.pop(k)
-        self.receiver.tick = k
+        self.receiver.advance(k)
         prof.begin()
         self.own = self.est.local(k, mm.has, mm.y)
         prof.end("local")
@@ -321,8 +373,7 @@ class Agent:
             out = self.est.fuse(k, self.own, {})
         finally:
             prof.end("fuse")
-        counters = self.receiver.snapshot()
-        counters["out_of_range"] = self.out_of_range
+        counters = self.receiver.snapshot(cap=wire.count_bound(self.constants[0]))
         prof.begin()
         report = wire.encode_report(self.keys.run_id, self.id, k, out.x[0, 0], out.P[0, 0], out.d[0, 0],
                                     out.d_valid[0, 0], counters)
@@ -333,7 +384,6 @@ class Agent:
         prof.tick()
         prof.waiting = "wait-world"
         self.ticks.pop(k, None)
-        self.held.pop(k, None)
         self.linked.pop(k - LINKS_KEPT, None)
         self.collecting, self.own, self.deadline = False, None, math.inf
         self.k = k + 1

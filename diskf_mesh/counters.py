@@ -79,11 +79,13 @@ class Counters:
             out.append(f"arrived {self.arrived} < received {self.received}")
         return out
 
-    def to_dict(self) -> dict:
-        """Flat {name: int}, rejections as ``rejected.<reason>`` (the report's "c" map)."""
+    def to_dict(self, cap: int | None = None) -> dict:
+        """Flat {name: int}, rejections as ``rejected.<reason>`` (the report's
+        "c" map); with ``cap``, no count above it (``wire.count_bound``: a
+        receiver refuses a report with a larger one)."""
         out = {name: int(getattr(self, name)) for name in SCALARS}
         out.update({REJECTED_PREFIX + r: int(n) for r, n in sorted(self.rejected.items())})
-        return out
+        return out if cap is None else {k: min(v, cap) for k, v in out.items()}
 
     @classmethod
     def from_dict(cls, flat: dict) -> "Counters":

@@ -1,19 +1,22 @@
 """The fusion guard: nothing an agent receives can corrupt its estimate.
 
 Every payload that arrives on a neighbour's message key goes through
-``Guard.admit(key, payload, tick)`` before it can reach fusion. It returns
-the decoded ``wire.WireMessage`` or None; it never raises. A payload is
-rejected, with one reason, when
+``Guard.screen(sender, payload, tick)`` (``sender``: the id the key names,
+parsed once by the agent) before it can reach fusion. It returns the decoded
+``wire.WireMessage`` or a refusal; it never raises. A payload is rejected,
+with one reason, when
 
-    not-msgpack, schema, run, dtype, shape, non-finite, not-spd, sender
-                    the decoder's checks (``wire.REASONS``): not msgpack, wrong
-                    schema version or kind or a missing field, another run,
-                    arrays not float64 or not of this run's (n, m), NaN or
-                    infinity, a covariance (P_pred, P_upd, S) that is not
-                    symmetric positive definite, a key naming another agent
-                    than the body
-    key             the key is not an agent message key of this run
-    unknown-sender  the sender is not an agent of this run's scenario
+    key             the key's id is not an integer (no decode)
+    unknown-sender  the key names an agent that is not in this run's scenario
+                    (no decode: a flood under random ids costs a set lookup)
+    size, not-msgpack, schema, run, dtype, shape, non-finite, not-spd, sender
+                    the decoder's checks (``wire.REASONS``): larger than the
+                    schema allows (checked before any decode, and msgpack's
+                    own limits), not msgpack, wrong schema version or kind
+                    or a missing field, another run, arrays not float64 or
+                    not of this run's (n, m), NaN or infinity, a covariance
+                    (P_pred, P_upd, S) that is not symmetric positive
+                    definite, a key naming another agent than the body
     tick-past       the tick is before 1 or more than ``max_lag`` ticks behind
                     the agent's current tick
     tick-future     the tick is beyond the run or more than ``max_lead``
@@ -30,12 +33,21 @@ rejected, with one reason, when
     fusion          (counted by the agent, per message of the tick) fusion of
                     messages that all passed failed anyway; the agent fused
                     its own message alone (see ``fuse_checked``)
+    constants       (counted by the agent) a world tick whose run constants
+                    (K, seed, algorithm, topology, range) are not those of
+                    the run's first tick
 
 Each rejection is counted per reason in ``Counters.rejected`` and per
 (sender, reason) in ``Guard.by_sender``, and logged (``logging``, logger
-``diskf_mesh.guard``) once per sender and reason. A message from this agent's
-own id is ignored without counting (a zenoh subscriber also hears its own
-session's publications).
+``diskf_mesh.guard``) once per sender and reason. Only the scenario's
+agents have a row of their own: every other id (and a key without one)
+shares the row ``None``, so neither table nor log grows with what an
+intruder sends. A message from this agent's own id is ignored without
+counting (a zenoh subscriber also hears its own session's publications).
+
+A refusal whose payload named a tick inside the window (``Refused.tick``)
+accounts for that sender at that tick: the agent does not wait the collect
+timeout for a neighbour whose message was poisoned, and never fuses it.
 
 Late and duplicate messages are not errors: they are well-formed, and the
 inbox (``diskf_mesh.inbox``) counts and drops them.
@@ -57,11 +69,10 @@ import numpy as np
 from . import wire
 from .counters import Counters
 from .messages import Message, Neighbourhood
-from .mesh.keys import Keys
 from .mesh.profile import NO_PHASES, Phases
 
 REASONS = wire.REASONS + ("key", "unknown-sender", "tick-past", "tick-future", "magnitude", "ill-conditioned",
-                          "information", "error", "fusion")
+                          "information", "error", "fusion", "constants")
 LOGGER = logging.getLogger("diskf_mesh.guard")
 
 
@@ -83,6 +94,15 @@ class GuardConfig:
     information_check: bool = True  # off for algorithms that never invert a sender's P (L-DRKF)
 
 
+@dataclass(frozen=True)
+class Refused:
+    """A rejected payload: its reason, and the tick it accounts for (its
+    sender's message of that tick came, poisoned) or None."""
+
+    reason: str
+    tick: int | None = None
+
+
 class Guard:
     def __init__(self, config: GuardConfig, counters: Counters | None = None, logger: logging.Logger = LOGGER,
                  profile: Phases = NO_PHASES):
@@ -90,28 +110,28 @@ class Guard:
         (``mesh.profile``, phases "decode" and "guard")."""
         self.config = config
         self.counters = counters if counters is not None else Counters()
-        self.by_sender: Counter = Counter()  # (sender or None, reason) -> count
+        self.by_sender: Counter = Counter()  # (known sender or None, reason) -> count
         self.logger = logger
         self.profile = profile
-        self._keys = Keys(config.run_id)
 
     # -- entry point -----------------------------------------------------
-    def admit(self, key: str, payload, tick: int) -> wire.WireMessage | None:
-        """The decoded message if it may be fused at (or around) ``tick``, the
-        agent's current tick; None if rejected or the agent's own."""
-        key_sender = None
+    def screen(self, sender, payload, tick: int):
+        """``payload`` on the key of agent ``sender`` (an int, or None when
+        the key's id is not one) at ``tick``, the agent's current tick: the
+        decoded message if it may be fused at (or around) ``tick``, a
+        ``Refused``, or None for the agent's own message."""
+        c = self.config
+        if sender is None or sender not in c.known:
+            return self._reject(None, "key" if sender is None else "unknown-sender")
+        if sender == c.me:
+            return None
         try:
-            kind, key_sender = self._keys.parse(str(key))
-            if kind != "msg" or key_sender is None:
-                return self._reject(key_sender, "key", f"not an agent message key: {key!r}")
-            if key_sender == self.config.me:
-                return None
-            c, prof = self.config, self.profile
+            prof = self.profile
             prof.begin()
             try:
-                wm = wire.decode(payload, run_id=c.run_id, sender=key_sender, n=c.n, m=c.m)
+                wm = wire.decode(payload, run_id=c.run_id, sender=sender, n=c.n, m=c.m)
             except wire.Rejected as e:
-                return self._reject(key_sender, e.reason, e.detail)
+                return self._reject(sender, e.reason, e.detail, e.tick if self.in_window(e.tick, tick) else None)
             finally:
                 prof.end("decode")
             prof.begin()
@@ -120,32 +140,48 @@ class Guard:
             finally:
                 prof.end("guard")
             if reason is not None:
-                return self._reject(key_sender, *reason)
+                return self._reject(sender, *reason, wm.tick if self.in_window(wm.tick, tick) else None)
             return wm
         except Exception as e:  # noqa: BLE001 - a guard that raises would stop the agent
-            return self._reject(key_sender, "error", f"{type(e).__name__}: {e}")
+            return self._reject(sender, "error", f"{type(e).__name__}: {e}")
+
+    def admit(self, sender, payload, tick: int) -> wire.WireMessage | None:
+        """``screen``'s message, or None (rejected, or the agent's own)."""
+        out = self.screen(sender, payload, tick)
+        return out if isinstance(out, wire.WireMessage) else None
 
     # -- checks beyond the decoder's ---------------------------------------
+    def in_window(self, t, tick: int) -> bool:
+        """Whether a message of tick ``t`` may be fused around ``tick``."""
+        c = self.config
+        return t is not None and max(1, tick - c.max_lag) <= t <= tick + c.max_lead and (c.ticks is None
+                                                                                          or t <= c.ticks)
+
     def check(self, wm: wire.WireMessage, tick: int):
         """None, or (reason, detail) for a decoded message."""
-        c = self.config
-        if wm.sender not in c.known:
-            return "unknown-sender", f"agent {wm.sender} is not in this run"
-        if wm.tick < 1 or wm.tick < tick - c.max_lag:
-            return "tick-past", f"tick {wm.tick} at tick {tick}"
-        if wm.tick > tick + c.max_lead or (c.ticks is not None and wm.tick > c.ticks):
+        if not self.in_window(wm.tick, tick):
+            c = self.config
+            if wm.tick < 1 or wm.tick < tick - c.max_lag:
+                return "tick-past", f"tick {wm.tick} at tick {tick}"
             return "tick-future", f"tick {wm.tick} at tick {tick}"
-        return message_problem(wm.message, c)
+        return message_problem(wm.message, self.config)
 
     # -- bookkeeping -----------------------------------------------------
-    def _reject(self, sender, reason: str, detail: str = ""):
+    def reject(self, sender, reason: str, detail: str = "") -> None:
+        """Count and log (once per known sender and reason) a rejection;
+        ``sender`` None or not in the scenario: the shared row."""
+        if sender not in self.config.known:
+            sender = None
         self.counters.reject(reason)
         self.by_sender[(sender, reason)] += 1
         if self.by_sender[(sender, reason)] == 1:
-            who = "an unnamed sender" if sender is None else f"agent {sender}"
+            who = "an unknown sender" if sender is None else f"agent {sender}"
             self.logger.warning("agent %s: rejected a message from %s: %s%s (further ones are counted, not logged)",
-                                self.config.me, who, reason, f" ({detail})" if detail else "")
-        return None
+                                self.config.me, who, reason, f" ({detail[:200]})" if detail else "")
+
+    def _reject(self, sender, reason: str, detail: str = "", tick: int | None = None) -> Refused:
+        self.reject(sender, reason, detail)
+        return Refused(reason, tick)
 
 
 def message_problem(msg: Message, c: GuardConfig):

@@ -16,6 +16,10 @@ The estimator fuses only what arrived in time for its tick:
     ``close()``                       the run is over: whatever is still held
                                       never made it into fusion, late
 
+Bounded: a (sender, tick) is remembered (to tell a duplicate) only for
+``keep`` ticks behind the last tick taken; the receiver's guard refuses
+anything older before it gets here.
+
 Counts go to a ``Counters`` (arrived, duplicate, fused, late, unlinked).
 Thread-safe: a transport may offer from its own threads.
 """
@@ -27,9 +31,10 @@ from .counters import Counters
 
 
 class Inbox:
-    def __init__(self, counters: Counters | None = None):
+    def __init__(self, counters: Counters | None = None, keep: int | None = None):
         self.counters = counters if counters is not None else Counters()
-        self._seen: set = set()      # (sender, tick) arrived so far
+        self.keep = keep             # ticks behind the last taken whose arrivals are remembered (None: all)
+        self._seen: dict = {}        # tick -> senders arrived so far
         self._held: dict = {}        # tick -> {sender: message}
         self._closed_through = 0     # ticks <= this were fused
         self._closed = False         # the run is over: everything is late
@@ -40,10 +45,11 @@ class Inbox:
         with self._lock:
             c = self.counters
             c.arrived += 1
-            if (sender, tick) in self._seen:
+            seen = self._seen.setdefault(tick, set())
+            if sender in seen:
                 c.duplicate += 1
                 return "duplicate"
-            self._seen.add((sender, tick))
+            seen.add(sender)
             if self._closed or tick <= self._closed_through:
                 c.late += 1
                 return "late"
@@ -62,6 +68,9 @@ class Inbox:
             c.fused += len(out)
             c.unlinked += len(held) - len(out)
             self._closed_through = max(self._closed_through, tick)
+            if self.keep is not None:
+                for t in [t for t in self._seen if t < tick - self.keep]:
+                    del self._seen[t]
             return out
 
     def senders(self, tick: int) -> set:

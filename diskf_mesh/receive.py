@@ -1,13 +1,27 @@
-"""The receive path of one agent: guard, then the link's faults, then the inbox.
+"""The receive path of one agent: guard, range gate, the link's faults, the inbox.
 
-    payload on a neighbour's key
-      -> ``Guard.admit``      rejected (counted by reason), or a decoded message
+    payload on a neighbour's key (its id parsed once, by the agent)
+      -> ``Guard.screen``     rejected (counted by reason; one that named a
+                              tick in the window accounts for its sender at
+                              that tick), or a decoded message (decoded once)
+      -> range gate           the sender not in range at the message's tick:
+                              out_of_range += 1, never on a link. A message
+                              whose tick the world has not opened here yet
+                              waits for it (``release``), first copy per
+                              (sender, tick), before the link: a link's
+                              latency runs from when its receiver knows
+                              the tick, as in the engine's fault model
+                              (``faults.delivered_links``)
       -> sent += 1
       -> ``FaultModel.plan``  lost (lost += 1), or one or two copies with delays
       -> ``DelayLine``        holds each copy until it is due
       -> received += 1 at the message's first copy
       -> ``Inbox.offer``      every copy: held (later fused or unlinked),
                               duplicate or late
+
+Every map here is bounded by the guard's window (``max_lag`` + ``max_lead``
++ 1 ticks) times the scenario's agents: what a flood of other ids, ticks or
+copies sends costs counts, never memory.
 
 A transport calls ``on_payload`` from its subscriber callback and, per tick,
 ``wait(tick, expected, deadline)`` then ``take(tick, linked)``. Without a
@@ -20,6 +34,7 @@ import itertools
 import threading
 import time
 
+from . import wire
 from .counters import Counters
 from .delayline import DelayLine
 from .faults import PERFECT, FaultModel
@@ -35,7 +50,7 @@ class Receiver:
         self.me = guard.config.me
         self.counters: Counters = guard.counters
         self.faults = faults if faults is not None and faults.config.active else None
-        self.inbox = Inbox(self.counters)
+        self.inbox = Inbox(self.counters, keep=guard.config.max_lag)
         self._arrived = threading.Condition()
         self._delay = DelayLine(self._arrive_later)
         self._lock = threading.Lock()  # fault streams and counters are touched from zenoh threads
@@ -43,22 +58,87 @@ class Receiver:
         self._heard: set = set()       # send events of which a copy arrived
         self._events = itertools.count()
         self._lost: dict = {}          # tick -> senders whose message of that tick the link dropped
-        self.tick = 0                  # the agent's current tick, for the guard's window
+        self._refused: dict = {}       # tick -> senders whose message of that tick was rejected
+        self._early: dict = {}         # tick -> {sender: message} before the world's tick of that tick
+        self.tick = 0                  # the agent's current tick, for the guard's window (``advance``)
         self._on_arrival = on_arrival
 
-    def on_payload(self, key: str, payload) -> None:
+    def advance(self, tick: int) -> None:
+        """The agent works on ``tick`` now: the guard's window follows it;
+        messages waiting for an earlier tick's links never enter a link (the
+        agent skipped that tick: out_of_range)."""
+        if tick > self.tick:
+            with self._lock:
+                self.tick = tick
+                for t in [t for t in self._early if t < tick]:
+                    self.counters.out_of_range += len(self._early.pop(t))
+
+    def on_payload(self, sender, payload, links=None) -> bool:
+        """A payload on agent ``sender``'s message key (None: the key's id is
+        not an integer). ``links``: {tick: ids in range at that tick} for the
+        ticks the world has opened (None: no range gate). Returns whether a
+        wait may be over (a message or a refusal accounted for a sender)."""
         with self._lock:
-            wm = self.guard.admit(key, payload, self.tick)
-            if wm is None:
-                return
-            self.counters.sent += 1
-            plan = PERFECT if self.faults is None else self.faults.plan(wm.sender, self.me, wm.tick)
-            if not plan:
-                self.counters.lost += 1
-                self._lost.setdefault(wm.tick, set()).add(wm.sender)
-                return
-            event = next(self._events)
-            self._copies_left[event] = len(plan)
+            wm = self.guard.screen(sender, payload, self.tick)
+            if not isinstance(wm, wire.WireMessage):
+                if wm is not None and wm.tick is not None:
+                    self._refused.setdefault(wm.tick, set()).add(sender)
+                    return True
+                return False
+            if links is not None:
+                linked = links.get(wm.tick)
+                if linked is None:  # its tick is not open here yet
+                    early = self._early.setdefault(wm.tick, {})
+                    if wm.sender in early:
+                        self._repeated()
+                    else:
+                        early[wm.sender] = wm
+                    return False
+                if wm.sender not in linked:
+                    self.counters.out_of_range += 1
+                    return False
+            item = self._link(wm)
+        self._deliver(item)
+        return True
+
+    def release(self, tick: int, linked) -> None:
+        """The world's tick ``tick`` is in: what waited for it goes on a link
+        (a sender in ``linked``) or is out of range."""
+        with self._lock:
+            early = self._early.pop(tick, {})
+            items = []
+            for s, wm in early.items():
+                if s in linked:
+                    items.append(self._link(wm))
+                else:
+                    self.counters.out_of_range += 1
+        for item in items:
+            self._deliver(item)
+
+    def _repeated(self) -> None:
+        """A sender repeated a message still waiting for its tick: counted as
+        the link counts a repeat (sent, received, arrived, a duplicate),
+        without holding it (lock held)."""
+        c = self.counters
+        c.sent += 1
+        c.received += 1
+        c.arrived += 1
+        c.duplicate += 1
+
+    def _link(self, wm) -> tuple:
+        """Put ``wm`` on its link (lock held): (event, message, deliveries)."""
+        self.counters.sent += 1
+        plan = PERFECT if self.faults is None else self.faults.plan(wm.sender, self.me, wm.tick)
+        if not plan:
+            self.counters.lost += 1
+            self._lost.setdefault(wm.tick, set()).add(wm.sender)
+            return None, wm, ()
+        event = next(self._events)
+        self._copies_left[event] = len(plan)
+        return event, wm, plan
+
+    def _deliver(self, item) -> None:
+        event, wm, plan = item
         for d in plan:
             if d.delay_s > 0:
                 self._delay.submit((event, wm), d.delay_s)
@@ -104,19 +184,21 @@ class Receiver:
 
     def accounted(self, tick: int) -> set:
         """Senders of ``tick`` that need no more waiting for: their message
-        arrived, or the (simulated) link dropped it. Waiting for a message the
-        fault layer has dropped could only end at the deadline with the same
-        messages fused, so a loop may stop as soon as every expected sender
-        is accounted for: a lossy run is then as fast as a clean one."""
+        arrived, the (simulated) link dropped it, or it came and was rejected.
+        Waiting for a message the fault layer has dropped could only end at
+        the deadline with the same messages fused, so a loop may stop as soon
+        as every expected sender is accounted for: a lossy run is then as
+        fast as a clean one, and a poisoned neighbour costs no timeout."""
         heard = self.inbox.senders(tick)
         with self._lock:
-            return heard | self._lost.get(tick, set())
+            return heard | self._lost.get(tick, set()) | self._refused.get(tick, set())
 
     def take(self, tick: int, linked) -> list:
         """[(sender, message)] to fuse at ``tick``, sorted by sender id."""
         with self._lock:
-            for t in [t for t in self._lost if t <= tick]:
-                del self._lost[t]
+            for book in (self._lost, self._refused):
+                for t in [t for t in book if t <= tick]:
+                    del book[t]
         return self.inbox.take(tick, linked)
 
     def use_faults(self, faults: FaultModel | None) -> None:
@@ -125,11 +207,12 @@ class Receiver:
         with self._lock:
             self.faults = faults if faults is not None and faults.config.active else None
 
-    def snapshot(self) -> dict:
-        """The counters with the gauges (in flight, pending) filled in, flat."""
+    def snapshot(self, cap: int | None = None) -> dict:
+        """The counters with the gauges (in flight, pending) filled in, flat
+        (none above ``cap``)."""
         self.counters.in_flight = self.in_flight
         self.counters.pending = self.inbox.pending
-        return self.counters.to_dict()
+        return self.counters.to_dict(cap)
 
     def close(self) -> Counters:
         """End of run: copies still in flight or held arrive too late to count as fused."""

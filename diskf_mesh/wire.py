@@ -40,23 +40,40 @@ kind "stop" (world -> everyone): "why" a short text.
 
 ``decode_*`` either returns a dataclass or raises ``Rejected`` with one of
 ``REASONS``, never anything else, whatever the bytes.
+
+Limits (``limits``): before anything is decoded, a payload larger than its
+kind's schema allows for the receiver's dimensions is refused ("size"): a
+"msg" of n = 2, m = 1 is at most ``HEADER_BYTES`` + 8 x 14 bytes. Then one
+msgpack unpack with every container and string bounded by the schema
+(``max_map_len`` = the kind's field count + 2, ``max_bin_len`` = its float
+bytes, ``max_array_len`` = its longest array or float count, ``max_str_len``
+= ``MAX_STR``), so a map of 130,000 keys is refused at its header, before
+one key is read. Report counters are non-negative ints of at most
+``count_bound(ticks)``, at most ``MAX_COUNTERS`` of them, with known names.
 """
 from __future__ import annotations
 
 import functools
 import math
+import re
 import struct
 from dataclasses import dataclass, field
 
 import msgpack
 import numpy as np
 
+from .counters import SCALARS
 from .messages import Message
 
 SCHEMA = 1
 DTYPE = "<f8"
 MAX_DIM = 64  # largest n, m (or p) a decoder accepts
-MAX_BYTES = 1 << 20  # largest payload a decoder looks at
+MAX_BYTES = 1 << 20  # largest payload a decoder looks at, whatever the kind
+HEADER_BYTES = 256   # the fixed fields of a payload, generously (run id <= 32 characters, ints <= 9 bytes)
+MAX_STR = 64         # longest string field or map key (run ids, algorithm and counter names)
+MAX_WHY = 1024       # longest "why" of a stop
+MAX_COUNTERS = 64    # most counters a report may carry (there are about 30)
+PER_TICK = 1 << 20   # most payloads one agent counts per tick of the run (``count_bound``)
 
 REASONS = (
     "not-msgpack",  # not a msgpack document at all
@@ -67,17 +84,19 @@ REASONS = (
     "dtype",        # arrays not little-endian float64
     "non-finite",   # NaN or infinity
     "not-spd",      # a covariance that is not symmetric positive definite
+    "size",         # larger than the schema allows: the payload, or a string, map, array or bin in it
 )
 
 
 class Rejected(ValueError):
     """A payload the decoder refuses; ``reason`` is one of ``REASONS``."""
 
-    def __init__(self, reason: str, detail: str = ""):
+    def __init__(self, reason: str, detail: str = "", tick: int | None = None):
         assert reason in REASONS, reason
         super().__init__(f"{reason}: {detail}" if detail else reason)
         self.reason = reason
         self.detail = detail
+        self.tick = tick  # the payload's tick where it was read before the rejection, else None
 
 
 @dataclass(frozen=True)
@@ -197,14 +216,64 @@ def _field(doc: dict, key: str, kind):
     return v
 
 
-def _open(data, kind: str, run_id: str | None) -> dict:
-    """Unpack, check version, kind, run and tick."""
+@dataclass(frozen=True)
+class Limits:
+    """The most one kind of payload may hold, for the receiver's dimensions."""
+
+    max_bytes: int       # the whole payload
+    max_str_len: int     # any string (map keys too)
+    max_bin_len: int     # any bin (the float arrays)
+    max_array_len: int   # any array
+    max_map_len: int     # any map
+
+    def unpack(self, data):
+        return msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, max_str_len=self.max_str_len,
+                               max_bin_len=self.max_bin_len, max_array_len=self.max_array_len,
+                               max_map_len=self.max_map_len, max_ext_len=0)
+
+
+# fields of each kind (the map's length), and room for a few more (a signature, a binding) that a
+# decoder ignores: each is still bounded by the string, bin and byte limits
+_FIELDS = {"msg": 10, "report": 11, "tick": 12, "meas": 8, "stop": 5}
+EXTRA_FIELDS = 2
+
+
+@functools.lru_cache(maxsize=64)
+def limits(kind: str, a: int | None = None, b: int | None = None) -> Limits:
+    """``kind``'s limits: "msg" and "report" for dimensions (a, b) = (n, m),
+    "tick" for a = N agents, "meas" for a = p values, "stop". A dimension
+    not given is the largest any run may have (``MAX_DIM``; for N, what fits
+    in ``MAX_BYTES``)."""
+    n, m = a or MAX_DIM, b or MAX_DIM
+    fields = _FIELDS[kind] + EXTRA_FIELDS
+    if kind in ("msg", "report"):
+        floats = 2 * n + 2 * n * n + m + m * m if kind == "msg" else n + n * n + m
+        size = HEADER_BYTES + 8 * floats
+        if kind == "report":  # the counters: MAX_COUNTERS names and ints
+            size += MAX_COUNTERS * (2 + MAX_STR + 9)
+            fields = MAX_COUNTERS
+        return Limits(size, MAX_STR, 8 * floats, floats, fields)
+    if kind == "tick":  # alg, topo; N positions (2 float64) and N live ids (<= 9 bytes each)
+        N = a or (MAX_BYTES - HEADER_BYTES - 2 * MAX_STR) // 25
+        return Limits(HEADER_BYTES + 2 * MAX_STR + 25 * N, MAX_STR, 16 * N, N, fields)
+    if kind == "meas":
+        p = a or MAX_DIM
+        return Limits(HEADER_BYTES + 8 * p, MAX_STR, 8 * p, p, fields)
+    return Limits(HEADER_BYTES + MAX_WHY, MAX_WHY, 0, 0, fields)
+
+
+def _open(data, kind: str, run_id: str | None, lim: Limits) -> dict:
+    """Size check, one bounded unpack; check version, kind, run and tick."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise Rejected("not-msgpack", "payload is not bytes")
-    if len(data) > MAX_BYTES:
-        raise Rejected("shape", f"payload of {len(data)} bytes, at most {MAX_BYTES}")
+    if len(data) > min(lim.max_bytes, MAX_BYTES):
+        raise Rejected("size", f"payload of {len(data)} bytes, at most {min(lim.max_bytes, MAX_BYTES)}")
     try:
-        doc = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
+        doc = lim.unpack(data)
+    except ValueError as e:  # msgpack's limits and most garbage
+        if "exceeds max_" in str(e):
+            raise Rejected("size", str(e)) from None
+        raise Rejected("not-msgpack", type(e).__name__) from None
     except Exception as e:  # msgpack raises several unrelated types on garbage
         raise Rejected("not-msgpack", type(e).__name__) from None
     if not isinstance(doc, dict):
@@ -327,52 +396,67 @@ def _split(a: np.ndarray, shapes) -> list:
     return out
 
 
-def peek_tick(data) -> int | None:
-    """The tick of a payload, read without any check (None if there is no
-    readable one); for routing before the full ``decode``."""
-    try:
-        t = msgpack.unpackb(data, raw=False).get("t")
-    except Exception:  # anything unreadable is for the full decoder to reject
-        return None
-    return t if _is_int(t) else None
-
-
-def _estimate_head(data, kind: str, run_id, sender, n, m) -> tuple:
-    """(doc, sender, n, m, d_valid) of a "msg" or "report", checked."""
-    doc = _open(data, kind, run_id)
+def _estimate_head(doc: dict, sender, n, m) -> tuple:
+    """(sender, n, m, d_valid) of an open "msg" or "report", checked."""
     s = _check_sender(doc, sender)
     n, m = _dims_of(doc, n, m)
     dv = doc.get("dv")
     if not isinstance(dv, bool):
         raise Rejected("schema", "field 'dv' missing or not bool")
-    return doc, s, n, m, dv
+    return s, n, m, dv
 
 
 def decode(data, *, run_id: str | None = None, sender: int | None = None,
            n: int | None = None, m: int | None = None) -> WireMessage:
     """A neighbour's "msg"; checks everything a receiver relies on.
 
-    ``sender`` is the id the key names, ``n``/``m`` the receiver's dimensions."""
-    doc, s, n, m, dv = _estimate_head(data, "msg", run_id, sender, n, m)
-    a = _floats(doc, "a", 2 * n + 2 * n * n + m + m * m)
-    x_pred, P_pred, x_upd, P_upd, d, S = _split(a, [(n,), (n, n), (n,), (n, n), (m,), (m, m)])
-    _spd(P_pred, P_upd, S)
+    ``sender`` is the id the key names, ``n``/``m`` the receiver's
+    dimensions. A rejection after the tick was read carries it (``tick``)."""
+    doc = _open(data, "msg", run_id, limits("msg", n, m))
+    try:
+        s, n, m, dv = _estimate_head(doc, sender, n, m)
+        a = _floats(doc, "a", 2 * n + 2 * n * n + m + m * m)
+        x_pred, P_pred, x_upd, P_upd, d, S = _split(a, [(n,), (n, n), (n,), (n, n), (m,), (m, m)])
+        _spd(P_pred, P_upd, S)
+    except Rejected as e:
+        e.tick = doc["t"]
+        raise
     return WireMessage(doc["run"], s, doc["t"], Message(x_pred, P_pred, x_upd, P_upd, d, S, np.array(dv)))
 
 
+def count_bound(ticks: int | None) -> int:
+    """The largest counter a report of a run of ``ticks`` ticks may carry:
+    ``PER_TICK`` payloads per tick (an agent caps its own counters there);
+    without the run's length, 2^53 (exact in JSON)."""
+    return (int(ticks) + 1) * PER_TICK if ticks else 1 << 53
+
+
+_COUNTER = re.compile(r"rejected\.[a-z][a-z-]{0,31}")
+
+
 def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
-                  n: int | None = None, m: int | None = None) -> Report:
-    doc, s, n, m, dv = _estimate_head(data, "report", run_id, sender, n, m)
+                  n: int | None = None, m: int | None = None, ticks: int | None = None) -> Report:
+    """``ticks``: the run's length, which bounds every counter (``count_bound``)."""
+    doc = _open(data, "report", run_id, limits("report", n, m))
+    s, n, m, dv = _estimate_head(doc, sender, n, m)
     x, P, d = _split(_floats(doc, "a", n + n * n + m), [(n,), (n, n), (m,)])
     _spd(P)
     c = doc.get("c", {})
-    if not isinstance(c, dict) or not all(isinstance(k, str) and _is_int(v) for k, v in c.items()):
+    if not isinstance(c, dict) or len(c) > MAX_COUNTERS:
         raise Rejected("schema", "field 'c' is not a map of counters")
+    bound = count_bound(ticks)
+    for k, v in c.items():
+        if not (k in SCALARS or _COUNTER.fullmatch(k)):
+            raise Rejected("schema", f"field 'c': unknown counter {k[:MAX_STR]!r}")
+        if not _is_int(v):
+            raise Rejected("schema", f"field 'c': counter {k!r} is not an int")
+        if not 0 <= v <= bound:
+            raise Rejected("size", f"field 'c': counter {k!r} = {v}, expected 0 .. {bound}")
     return Report(doc["run"], s, doc["t"], x, P, d, dv, c)
 
 
 def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -> Tick:
-    doc = _open(data, "tick", run_id)
+    doc = _open(data, "tick", run_id, limits("tick", agents))
     K, seed = _field(doc, "K", int), _field(doc, "seed", int)
     alg, topo = _field(doc, "alg", str), _field(doc, "topo", str)
     rng = doc.get("range")
@@ -393,7 +477,7 @@ def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -
 
 def decode_measurement(data, *, run_id: str | None = None, agent: int | None = None,
                        p: int | None = None) -> Measurement:
-    doc = _open(data, "meas", run_id)
+    doc = _open(data, "meas", run_id, limits("meas", p))
     to = _field(doc, "to", int)
     if agent is not None and to != agent:
         raise Rejected("sender", f"measurement for agent {to}, this is agent {agent}")
@@ -408,5 +492,5 @@ def decode_measurement(data, *, run_id: str | None = None, agent: int | None = N
 
 
 def decode_stop(data, *, run_id: str | None = None) -> Stop:
-    doc = _open(data, "stop", run_id)
+    doc = _open(data, "stop", run_id, limits("stop"))
     return Stop(doc["run"], doc["t"], str(doc.get("why", "")))

@@ -142,7 +142,8 @@ class World:
                         self._on_report(who, payload)
                     except wire.Rejected as e:
                         self.record.counters[f"rejected:{e.reason}"] += 1
-                        self.log.once(("report", who, e.reason), f"rejected a report from {key}: {e}")
+                        self.log.once(("report", who if who in self.ids else None, e.reason),
+                                      f"rejected a report from {key[:200]}: {e}")
                 elif kind in ("alive", "ready") and who is not None:
                     self._on_token(kind, who, payload)
                 self._advance()
@@ -171,7 +172,7 @@ class World:
         self.prof.begin()
         try:
             r = wire.decode_report(payload, run_id=self.keys.run_id, sender=sender,
-                                   n=self.trace.model.n, m=self.trace.model.m)
+                                   n=self.trace.model.n, m=self.trace.model.m, ticks=self.K)
         finally:
             self.prof.end("decode")
         i = self.ids.index(sender)

@@ -84,24 +84,23 @@ def test_every_bad_input_is_rejected_with_its_reason(view):
     g = Guard(view.guard_config())
     for reason, sender, payload in bad_payloads(view):
         before = dict(g.counters.rejected)
-        assert g.admit(view.key(sender), payload, view.tick) is None, reason
+        assert g.admit(sender, payload, view.tick) is None, reason
         assert g.counters.rejected.get(reason, 0) == before.get(reason, 0) + 1, (reason, g.counters.rejected)
     assert set(g.counters.rejected) <= set(REASONS) and "error" not in g.counters.rejected
 
 
-def test_keys_of_other_kinds_or_runs_are_rejected(view):
+def test_a_key_without_an_integer_id_is_rejected_without_a_decode(view):
     g = Guard(view.guard_config())
     j = view.linked[0]
-    for key in (f"diskf/{view.run_id}/agent/{j}/report", f"diskf/other-run/agent/{j}/msg",
-                f"diskf/{view.run_id}/agent/x/msg", "elsewhere"):
-        assert g.admit(key, view.payload(j), view.tick) is None
-    assert g.counters.rejected == {"key": 4}
+    for payload in (view.payload(j), b"junk"):   # the verdict does not depend on the bytes: never decoded
+        assert g.admit(None, payload, view.tick) is None
+    assert g.counters.rejected == {"key": 2}
 
 
 def test_a_good_message_passes_bit_for_bit(view):
     g = Guard(view.guard_config())
     for j in view.linked:
-        wm = g.admit(view.key(j), view.payload(j), view.tick)
+        wm = g.admit(j, view.payload(j), view.tick)
         assert (wm.sender, wm.tick, wm.run_id) == (j, view.tick, view.run_id)
         for f in Message.ARRAY_FIELDS:
             assert np.array_equal(getattr(wm.message, f), getattr(view.messages[j], f))
@@ -111,7 +110,7 @@ def test_a_good_message_passes_bit_for_bit(view):
 
 def test_own_messages_are_ignored_silently(view):
     g = Guard(view.guard_config())
-    assert g.admit(view.key(view.me), view.payload(view.me), view.tick) is None
+    assert g.admit(view.me, view.payload(view.me), view.tick) is None
     assert g.counters == Counters()
 
 
@@ -119,9 +118,9 @@ def test_ticks_inside_the_window_pass(view):
     g = Guard(view.guard_config(max_lag=3, max_lead=2))
     j = view.linked[0]
     ok = [view.tick - 3, view.tick, view.tick + 2]
-    assert all(g.admit(view.key(j), view.payload(j, tick=t), view.tick) for t in ok)
+    assert all(g.admit(j, view.payload(j, tick=t), view.tick) for t in ok)
     bad = [view.tick - 4, view.tick + 3]
-    assert not any(g.admit(view.key(j), view.payload(j, tick=t), view.tick) for t in bad)
+    assert not any(g.admit(j, view.payload(j, tick=t), view.tick) for t in bad)
 
 
 def test_logged_once_per_sender_and_reason(view, caplog):
@@ -129,9 +128,9 @@ def test_logged_once_per_sender_and_reason(view, caplog):
     j, k = view.linked[:2]
     with caplog.at_level(logging.WARNING, logger="diskf_mesh.guard"):
         for _ in range(5):
-            g.admit(view.key(j), b"junk", view.tick)
-            g.admit(view.key(k), b"junk", view.tick)
-            g.admit(view.key(j), view.payload(j, tick=0), view.tick)
+            g.admit(j, b"junk", view.tick)
+            g.admit(k, b"junk", view.tick)
+            g.admit(j, view.payload(j, tick=0), view.tick)
     assert len(caplog.records) == 3
     assert g.by_sender[(j, "not-msgpack")] == 5 and g.by_sender[(k, "not-msgpack")] == 5
     assert g.by_sender[(j, "tick-past")] == 5
@@ -142,7 +141,7 @@ def test_logged_once_per_sender_and_reason(view, caplog):
 def test_guard_never_raises_even_on_non_bytes(view):
     g = Guard(view.guard_config())
     for payload in (None, 12, "text", [b"x"], object()):
-        assert g.admit(view.key(view.linked[0]), payload, view.tick) is None
+        assert g.admit(view.linked[0], payload, view.tick) is None
     assert "error" not in g.counters.rejected
 
 
@@ -161,10 +160,10 @@ def test_rejected_messages_leave_the_estimate_bit_for_bit(view):
     rx = Receiver(Guard(view.guard_config()))
     rx.tick = view.tick
     for reason, sender, payload in bad_payloads(view):
-        rx.on_payload(view.key(sender), payload)
+        rx.on_payload(sender, payload)
     for j in view.linked:
-        rx.on_payload(view.key(j), view.payload(j))
-        rx.on_payload(view.key(j), view.payload(j))      # a duplicate is fused once
+        rx.on_payload(j, view.payload(j))
+        rx.on_payload(j, view.payload(j))      # a duplicate is fused once
     got = rx.take(view.tick, view.linked)
     _, out = view.fuse(got)
     _, ref = view.fuse([(j, view.messages[j]) for j in view.linked])
@@ -202,7 +201,7 @@ def test_receiver_with_faults_balances_its_books(view):
     for t in range(1, view.ticks + 1):
         rx.tick = t
         for j in view.ids:
-            rx.on_payload(view.key(j), view.payload(j, tick=t))
+            rx.on_payload(j, view.payload(j, tick=t))
         rx.take(t, view.linked)
     c = rx.close()
     others = len(view.ids) - 1
@@ -211,3 +210,205 @@ def test_receiver_with_faults_balances_its_books(view):
     assert abs(c.lost / c.sent - 0.3) < 0.05
     assert c.fused + c.unlinked + c.duplicate == c.arrived and c.late == 0
     assert c.arrived > c.received and c.duplicate == c.arrived - c.received
+
+
+# --------------------------------------------------------------------------
+# resources under hostile input (issue 11): bytes in, verdict and counts out
+# --------------------------------------------------------------------------
+def test_unknown_sender_ids_share_one_row_and_are_never_decoded(view, caplog):
+    g = Guard(view.guard_config())
+    ids = [int(i) for i in np.random.default_rng(1).integers(100, 2 ** 62, 10_000)]
+    with caplog.at_level(logging.WARNING, logger="diskf_mesh.guard"):
+        for i in ids:  # garbage: were it decoded, the reason would be "not-msgpack"
+            assert g.admit(i, b"\xc1" * 300, view.tick) is None
+    assert g.counters.rejected == {"unknown-sender": 10_000}
+    assert dict(g.by_sender) == {(None, "unknown-sender"): 10_000}
+    assert len(caplog.records) == 1
+
+
+def test_oversized_payloads_are_refused_before_decoding(view):
+    g = Guard(view.guard_config())
+    j = view.linked[0]
+    doc = doc_of(view, j)
+    big_map = msgpack.packb({str(i): 0 for i in range(130_000)})   # ~0.9 MB, under wire.MAX_BYTES
+    cases = [big_map, b"\x00" * (1 << 20), pack({**doc, "pad": b"x" * 400}),   # bytes over the schema's
+             pack({**doc, **{f"x{i}": 0 for i in range(3)}}),                    # more fields than the schema's
+             pack({**doc, "run": "r" * 65}),                                      # a string over MAX_STR
+             pack({**doc, "a": doc["a"] + b"\x00" * 8})]                          # a bin over the schema's
+    assert len(big_map) < wire.MAX_BYTES
+    for payload in cases:
+        assert g.admit(j, payload, view.tick) is None
+    assert g.counters.rejected == {"size": len(cases)}
+
+
+def test_a_poisoned_neighbour_is_accounted_for_and_never_fused(view):
+    import time
+    j, *rest = view.linked
+    d = doc_of(view, j)
+    blob = np.frombuffer(d["a"], dtype="<f8").copy()
+    blob[0] = np.nan
+    poisoned = pack({**d, "a": blob.tobytes()})
+    rx = Receiver(Guard(view.guard_config()))
+    rx.advance(view.tick)
+    rx.on_payload(j, poisoned)
+    rx.on_payload(j, pack({**d, "a": blob.tobytes(), "t": view.tick + 7}))   # outside the window: accounts nothing
+    for i in rest:
+        rx.on_payload(i, view.payload(i))
+    t0 = time.monotonic()
+    assert rx.wait(view.tick, view.linked, t0 + 30.0) >= set(view.linked)
+    assert time.monotonic() - t0 < 1.0                      # no collect timeout for the poisoned one
+    assert rx.accounted(view.tick + 7) == set()
+    got = rx.take(view.tick, view.linked)
+    assert [s for s, _ in got] == sorted(rest)
+    _, out = view.fuse(got)
+    _, ref = view.fuse([(i, view.messages[i]) for i in rest])
+    assert out.x.tobytes() == ref.x.tobytes() and out.P.tobytes() == ref.P.tobytes()
+    c = rx.close()
+    assert c.rejected == {"non-finite": 2} and c.fused == len(rest) and c.imbalance() == []
+
+
+def test_what_waits_is_bounded_by_the_window_and_the_scenario(view):
+    """Copies of every agent's message for ticks 1..20, 50 times over, before
+    tick 1: the inbox holds one per sender and tick of the window."""
+    cfg = view.guard_config()
+    rx = Receiver(Guard(cfg))
+    rx.advance(1)
+    payloads = {(j, t): view.payload(j, tick=t) for j in view.ids for t in range(1, 21)}
+    for _ in range(50):
+        for (j, t), payload in payloads.items():
+            rx.on_payload(j, payload)
+    others = len(view.ids) - 1
+    assert rx.inbox.pending == others * (1 + cfg.max_lead)
+    c = rx.counters
+    assert c.rejected == {"tick-future": 50 * others * (20 - 1 - cfg.max_lead)}
+    assert c.duplicate == 49 * others * (1 + cfg.max_lead)
+    for t in range(1, 200):  # a long run: what the inbox remembers stays within the window
+        rx.advance(t)
+        rx.take(t, view.linked)
+    assert len(rx.inbox._seen) <= cfg.max_lag + cfg.max_lead + 1
+
+
+def test_what_waits_for_the_worlds_tick_is_bounded_and_gated_on_release(view):
+    """The same flood before the world's tick 1 is in (no links known): one
+    copy per sender and tick of the window waits, before any link; the
+    world's tick lets the linked ones on, the others are out of range."""
+    cfg = view.guard_config()
+    rx = Receiver(Guard(cfg))
+    rx.advance(1)
+    links = {}
+    for _ in range(50):
+        for j in view.ids:
+            for t in range(1, 21):
+                rx.on_payload(j, view.payload(j, tick=t), links)
+    others = len(view.ids) - 1
+    assert sum(map(len, rx._early.values())) == others * (1 + cfg.max_lead)
+    c = rx.counters
+    assert c.sent == c.duplicate == 49 * others * (1 + cfg.max_lead) and c.fused == c.pending == 0
+    rx.release(1, view.linked)
+    assert c.out_of_range == others - len(view.linked)
+    assert [s for s, _ in rx.take(1, view.linked)] == sorted(view.linked)
+    rx.advance(10)                          # ticks the agent skipped: never on a link
+    assert rx._early == {} and c.out_of_range == others - len(view.linked) + 2 * others
+    assert rx.close().imbalance() == []
+
+
+# --------------------------------------------------------------------------
+# the world's messages at an agent (agents.agent), fed bytes on a LocalBus
+# --------------------------------------------------------------------------
+class FedAgent:
+    """An ``Agent`` of Scenario 2 working on tick ``k`` (ticks before it
+    fed as the world and its neighbours send them), for tests of what it
+    takes from the world."""
+
+    K = 30
+
+    def __init__(self, k: int = 5):
+        from agents.agent import Agent
+        from diskf_mesh.mesh.estimator import lockstep
+        from diskf_mesh.mesh.keys import Keys
+        from diskf_mesh.mesh.transport import LocalBus
+        from diskf_mesh.scenario import load_scenario, simulate
+        self.scn = scn = load_scenario("dynamic")
+        self.trace = simulate(scn, [0], steps=self.K)
+        self.ids = [a.id for a in scn.agents]
+        self.me = self.ids[4]
+        self.keys = Keys("fed")
+        self.agent = Agent(scn, self.me, "diskf", self.keys, LocalBus().transport())
+        self.agent._on_sample(self.keys.alive_world, True)
+        for i in self.ids:
+            self.agent._on_sample(self.keys.alive(i), True)
+        self.msgs = {t: m for t, m, _ in lockstep(scn, "diskf", self.trace)}
+        for t in range(1, k):
+            self.world(t)
+            if t == 1:
+                with self.agent._cv:
+                    assert self.agent._join()
+                    self.agent._advance()
+            self.neighbours(t)
+        assert self.agent.k == k and not self.agent.collecting
+
+    def tick(self, t: int, **change) -> bytes:
+        tick = wire.Tick("fed", t, self.K, 0, "diskf", self.scn.topology, self.scn.comm_range,
+                         self.trace.positions[min(t, self.K) - 1], tuple(self.ids))
+        return wire.encode_tick(wire.Tick(**{**tick.__dict__, **change}))
+
+    def meas(self, t: int, y=None) -> bytes:
+        j = self.ids.index(self.me)
+        y = self.trace.y[0, min(t, self.K) - 1, j, :1] if y is None else y
+        return wire.encode_measurement("fed", t, self.me, True, y)
+
+    def world(self, t: int) -> None:
+        self.agent._on_sample(self.keys.meas(self.me), self.meas(t))
+        self.agent._on_sample(self.keys.tick, self.tick(t))
+
+    def neighbours(self, t: int) -> None:
+        from diskf_mesh.mesh.estimator import neighbours
+        for o in neighbours(self.scn, self.me, self.trace.positions[t - 1]):
+            if o != self.me:
+                self.agent._on_sample(self.keys.msg(o, to=[self.me]), wire.encode("fed", o, t, self.msgs[t][o]))
+
+
+def test_an_agent_takes_world_ticks_only_for_k_and_k1_with_the_run_constants():
+    fed = FedAgent(k=5)
+    a = fed.agent
+    sample = lambda b: a._on_sample(fed.keys.tick, b)  # noqa: E731
+    for t in range(7, 1007):                  # far-future ticks (within and beyond the run)
+        sample(fed.tick(t))
+    sample(fed.tick(6, seed=1))               # k + 1 with another seed, algorithm, topology, range, K
+    sample(fed.tick(6, algorithm="kcf"))
+    sample(fed.tick(6, topology="all"))
+    sample(fed.tick(6, comm_range=1e9))
+    sample(fed.tick(6, ticks=10 ** 6))
+    assert a.ticks == {} and set(a.linked) <= set(range(1, 5))
+    assert a.counters.rejected == {"tick-future": 1000, "constants": 5}
+    sample(fed.tick(6))                       # k + 1 as the world sends it: taken
+    assert set(a.ticks) == {6}
+
+
+def test_an_agent_takes_measurements_only_for_k_and_k1_of_its_length_within_max_abs():
+    fed = FedAgent(k=5)
+    a = fed.agent
+    sample = lambda b: a._on_sample(fed.keys.meas(fed.me), b)  # noqa: E731
+    for t in range(7, 507):
+        sample(fed.meas(t))
+    sample(fed.meas(5, y=[1e300]))
+    sample(fed.meas(5, y=[-2e12]))
+    sample(fed.meas(5, y=[1.0, 2.0]))         # two values for a sensor of one
+    sample(fed.meas(5, y=[np.nan]))
+    assert a.meas == {}
+    assert a.counters.rejected == {"tick-future": 500, "magnitude": 2, "size": 1, "non-finite": 1}
+    sample(fed.meas(5))
+    sample(fed.meas(6))
+    assert set(a.meas) == {5, 6}
+
+
+def test_an_agent_keeps_only_the_scenarios_agents_and_bounded_tables():
+    fed = FedAgent(k=3)
+    a = fed.agent
+    for i in range(1000, 3000):
+        a._on_sample(fed.keys.alive(i), True)
+        a._on_sample(fed.keys.msg(i, to=[fed.me]), b"\xc1" * 100)
+    assert a.alive == set(fed.ids)
+    assert a.counters.rejected == {"unknown-sender": 2000}
+    assert dict(a.receiver.guard.by_sender) == {(None, "unknown-sender"): 2000}
+    assert len(a.log._said) == 0              # the guard logs it, once (its own logger)

@@ -100,6 +100,86 @@ def test_world_payloads_round_trip():
     assert r.counters == {"fused": 3} and r.d_valid
 
 
+def test_limits_fit_every_payload_of_a_run_and_nothing_much_larger():
+    """The schema's sizes: the largest legitimate payload of each kind (a
+    32-character run id, 19-digit ids and ticks) fits; one byte of padding
+    over the limit does not, and is refused before it is decoded."""
+    run, big = "r" * 32, 2 ** 63 - 1
+    cases = [("msg", (2, 1), wire.encode(run, big, big, _message(2, 1)), wire.decode, {"n": 2, "m": 1}),
+             ("msg", (6, 3), wire.encode(run, big, big, _message(6, 3)), wire.decode, {"n": 6, "m": 3}),
+             ("report", (2, 1), wire.encode_report(run, big, big, [1.0, 2.0], np.eye(2), [0.5], True,
+                                                   {f"rejected.{'x' * 32}{i:c}": big for i in range(97, 97 + 26)}
+                                                   | {k: big for k in ("published", "sent", "lost", "received",
+                                                                       "arrived", "duplicate", "fused", "late",
+                                                                       "unlinked", "out_of_range", "in_flight",
+                                                                       "pending")}),
+              None, None),
+             ("tick", (9,), wire.encode_tick(wire.Tick(run, big, big, big, "random-gdkf", "random-geometric",
+                                                       1e300, np.ones((9, 2)), tuple(range(big - 9, big)))),
+              wire.decode_tick, {"agents": 9}),
+             ("meas", (1,), wire.encode_measurement(run, big, big, True, [1.5]), wire.decode_measurement, {"p": 1}),
+             ("stop", (), wire.encode_stop(run, big, "x" * wire.MAX_WHY), wire.decode_stop, {})]
+    for kind, dims, payload, dec, kw in cases:
+        lim = wire.limits(kind, *dims)
+        assert len(payload) <= lim.max_bytes, kind
+        if dec is not None:
+            dec(payload, **kw)
+            with pytest.raises(wire.Rejected) as e:
+                dec(payload + b"\x00" * (lim.max_bytes + 1 - len(payload)), **kw)
+            assert e.value.reason == "size"
+
+
+def test_msgpack_limits_are_sized_to_the_schema():
+    _rejects(msgpack.packb({str(i): 0 for i in range(130_000)}), "size")            # ~0.9 MB, 130k keys
+    _rejects({**_doc(), "x": 1, "y": 2, "z": 3}, "size", n=2, m=1)                  # a 13th field
+    wire.decode(msgpack.packb({**_doc(), "x": 1, "y": 2}), n=2, m=1)                # room for two more
+    _rejects({**_doc(), "run": "r" * (wire.MAX_STR + 1)}, "size")
+    _rejects({**_doc(), "a": _doc()["a"] + b"\x00" * 8}, "size", n=2, m=1)          # a bin over 8 x 14
+    _rejects({**_doc(), "a": [1.0] * 15}, "size", n=2, m=1)                        # an array over 14
+    tick = msgpack.unpackb(wire.encode_tick(wire.Tick(RUN, 5, 30, 7, "diskf", "range", 1.0, np.ones((4, 2)),
+                                                      (1, 2, 3, 4))))
+    with pytest.raises(wire.Rejected) as e:
+        wire.decode_tick(msgpack.packb({**tick, "live": list(range(5))}), agents=4)    # more ids than agents
+    assert e.value.reason == "size"
+    with pytest.raises(wire.Rejected) as e:
+        wire.decode_measurement(wire.encode_measurement(RUN, 5, 2, True, [1.5, 2.5]), p=1)
+    assert e.value.reason == "size"
+
+
+def test_a_rejection_after_the_tick_was_read_carries_it():
+    bad = np.frombuffer(_doc()["a"], "<f8").copy()
+    bad[0] = np.nan
+    with pytest.raises(wire.Rejected) as e:
+        wire.decode(msgpack.packb({**_doc(), "a": bad.tobytes()}), n=2, m=1)
+    assert (e.value.reason, e.value.tick) == ("non-finite", 12)
+    with pytest.raises(wire.Rejected) as e:
+        wire.decode(b"\xc1")
+    assert e.value.tick is None
+
+
+def test_report_counters_are_validated_against_the_run():
+    def report(counters):
+        return wire.encode_report(RUN, 2, 5, [1.0, 2.0], np.eye(2), [0.5], True, counters)
+
+    bound = wire.count_bound(200)
+    assert bound == 201 * wire.PER_TICK and wire.count_bound(None) == 2 ** 53
+    ok = wire.decode_report(report({"sent": bound, "rejected.size": 3}), n=2, m=1, ticks=200)
+    assert ok.counters == {"sent": bound, "rejected.size": 3}
+    letters = [a + b for a in "abcdefghij" for b in "abcdefghij"]
+    for counters, reason in [({"sent": 2 ** 63 - 1}, "size"),            # forged, with or without the run's K
+                             ({"sent": bound + 1}, "size"), ({"fused": -1}, "size"),
+                             ({"made-up": 1}, "schema"), ({"rejected.X1": 1}, "schema"),
+                             ({f"rejected.{x}": 1 for x in letters[:wire.MAX_COUNTERS + 1]}, "size")]:
+        for ticks in (200, None):
+            if counters == {"sent": bound + 1} and ticks is None:
+                continue
+            with pytest.raises(wire.Rejected) as e:
+                wire.decode_report(report(counters), n=2, m=1, ticks=ticks)
+            assert e.value.reason == reason, counters
+    from diskf_mesh.counters import Counters
+    assert Counters(sent=2 ** 70, fused=3).to_dict(cap=bound)["sent"] == bound
+
+
 def _distinctive_scenario(tmp_path):
     """Scenario 1 with H and R values that cannot appear by chance."""
     text = scenario_path("quadrants").read_text()

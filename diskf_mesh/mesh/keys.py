@@ -45,6 +45,7 @@ from dataclasses import dataclass
 from ..errors import InputError
 
 PREFIX = "diskf"
+CACHED_KEY = 512  # longest key whose parse is remembered (4,096 of them at most)
 _RUN_ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 
 
@@ -119,8 +120,10 @@ class Keys:
         """(kind, agent id or None) of a key of this run; kind is one of tick,
         meas, stop, msg, report, alive-world, alive, ready, or None (foreign).
         An id that is not an integer gives (kind, None). Remembered: a run
-        uses few distinct keys, and every message's key is parsed."""
-        return _parse(self.root, key)
+        uses few distinct keys, and every message's key is parsed (keys
+        longer than ``CACHED_KEY`` are not, so what an intruder's keys can
+        hold in the cache stays small)."""
+        return _parse(self.root, key) if len(key) <= CACHED_KEY else _parse.__wrapped__(self.root, key)
 
 
 @functools.lru_cache(maxsize=4096)
