@@ -83,7 +83,8 @@ def main(argv=None) -> int:
     print("|---|---:|---:|")
     for k in kinds:
         rtt, cpu = zip(*out[k])
-        print(f"| {k} | {statistics.median(rtt):.0f} ({min(rtt):.0f}) | {statistics.median(cpu):.0f} ({min(cpu):.0f}) |")
+        print(f"| {k} | {statistics.median(rtt):.0f} ({min(rtt):.0f}) "
+              f"| {statistics.median(cpu):.0f} ({min(cpu):.0f}) |")
     return 0
 
 
