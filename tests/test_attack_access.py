@@ -167,6 +167,7 @@ def attacked(tmp_path_factory):
     attackers = []
     try:
         seen = from_process_table(run_id)
+        assert seen["listen"].startswith("tls/127.0.0.1:") and seen["credentials"]  # the default: TLS, loopback
         port = seen["listen"].rsplit(":", 1)[1]
         everything = [f"{keys.root}/**"]
         all_tokens = [keys.alive_world, keys.ticking] + [k for i in ids for k in (keys.alive(i), keys.ready(i))]
