@@ -294,6 +294,9 @@ def _run(args: argparse.Namespace, private: Path) -> int:
     zopts = zenoh_config.from_args(args)
     if not zopts.insecure:  # a fresh CA, one certificate per process; each child reads its own
         zopts = replace(zopts, credentials=str(credentials.make(private / "credentials", spec.run_id, ids)))
+    else:
+        print(f"warning: up: --insecure: plain zenoh; any process that reaches it can read and write run "
+              f"{spec.run_id}", file=sys.stderr)
     world_z, agent_z = loopback_options(free_port(), zopts) if zopts.is_default else (zopts, zopts)
     world_extra = ["--progress", "lines", "--json", str(out), "--startup-timeout", str(args.startup_timeout),
                    "--tick-timeout", str(args.tick_timeout)]
