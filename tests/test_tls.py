@@ -255,6 +255,32 @@ def test_an_identity_speaks_for_itself_only(creds, acl):
         assert others_meas.got
 
 
+def test_a_new_peer_is_not_sent_what_it_may_not_hear(creds):
+    """Until a new peer's declarations arrive, zenoh sends it every put; the
+    egress rules keep the world's measurement of agent 1 from agent 2 even
+    then (agent 2, subscribed to every measurement, connecting again and
+    again while the world publishes agent 1's)."""
+    port = free_port()
+    stop = threading.Event()
+    with ZenohTransport(session(creds, "world", listen=[f"tls/127.0.0.1:{port}"])) as w:
+        def pump():
+            while not stop.is_set():
+                w.put(KEYS.meas(1), b"agent 1's measurement")
+                time.sleep(0.002)
+
+        threading.Thread(target=pump, daemon=True).start()
+        heard = []
+        try:
+            for _ in range(6):
+                with ZenohTransport(session(creds, "agent-2", connect=[f"tls/127.0.0.1:{port}"],
+                                            listen=["tls/127.0.0.1:0"])) as a2:
+                    a2.subscribe(f"{KEYS.root}/world/meas/*", lambda k, p: heard.append(k))
+                    time.sleep(0.4)
+        finally:
+            stop.set()
+    assert heard == []
+
+
 def test_multicast_scouting_finds_the_run_over_tls_only(creds, tmp_path):
     """A by-hand run with no endpoints: peers meet by multicast scouting and
     connect over TLS (credentials' default listen endpoint). A plain-TCP

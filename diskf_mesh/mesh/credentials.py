@@ -36,9 +36,13 @@ peer, by the peer's certificate:
     observer     subscribe         diskf/<run>/** (samples and tokens), nothing else
 
 A declaration refused at ingress never enters the receiver's routing
-tables, so the receiver never sends that peer what it asked for either
-(agent j cannot subscribe to agent i's measurement). What a process sends
-(egress) is allowed to every identity of the run: the receiver decides.
+tables, so the receiver does not send that peer what it asked for. That
+alone leaks: until a new peer's declarations have arrived, zenoh sends it
+every put (measured: agent 2 subscribed to ``world/meas/*`` heard one of
+agent 1's measurements in 8 connections). So what a process sends (egress)
+is filtered by the receiver too: a put goes to an identity only on the keys
+that identity may subscribe to (the "subscribe" column), every declaration
+and token to every identity of the run.
 """
 from __future__ import annotations
 
@@ -211,27 +215,28 @@ def access_control(run_id: str, agents, observer: bool = True) -> dict:
                       "key_exprs": list(keys)})
         return rid
 
-    def grant(who, *rule_ids):
+    def grant(who, listens, *rule_ids):
+        """``who`` subscribes to ``listens`` and is sent puts on those keys only."""
         subjects.append({"id": who, "cert_common_names": [who]})
-        policies.append({"id": who, "subjects": [who], "rules": [*rule_ids, "egress"]})
+        policies.append({"id": who, "subjects": [who], "rules": [
+            rule(f"{who}-listen", LISTEN, listens), rule(f"{who}-receive", ("put",), listens, flows=("egress",)),
+            *rule_ids, "egress"]})
 
-    rule("egress", ALL_MESSAGES, [f"{r}/**"], flows=("egress",))
-    grant(WORLD,
+    rule("egress", [m for m in ALL_MESSAGES if m != "put"], [f"{r}/**"], flows=("egress",))
+    grant(WORLD, [f"{r}/agent/*/report"],
           rule("world-put", ("put",), [f"{r}/world/**"]),
           rule("world-tokens", ("liveliness_token",), [f"{r}/alive/world", f"{r}/ticking/world"]),
-          rule("world-listen", LISTEN, [f"{r}/agent/*/report"]),
           rule("world-watch", WATCH, [f"{r}/*/agent/*"]))
     watch = rule("agent-watch", WATCH, [f"{r}/alive/**", f"{r}/ticking/world"])
     for i in agents:
         who = agent_identity(i)
-        grant(who,
+        grant(who, [f"{r}/world/tick", f"{r}/world/stop", f"{r}/world/meas/{i}", f"{r}/agent/*/msg/$*_{i}_$*",
+                    f"{r}/agent/*/report"],
               rule(f"{who}-put", ("put",), [f"{r}/agent/{i}/**"]),
               rule(f"{who}-tokens", ("liveliness_token",), [f"{r}/alive/agent/{i}", f"{r}/ready/agent/{i}"]),
-              rule(f"{who}-listen", LISTEN, [f"{r}/world/tick", f"{r}/world/stop", f"{r}/world/meas/{i}",
-                                             f"{r}/agent/*/msg/$*_{i}_$*", f"{r}/agent/*/report"]),
               watch)
     if observer:
-        grant(OBSERVER, rule("observer-listen", LISTEN + WATCH, [f"{r}/**"]))
+        grant(OBSERVER, [f"{r}/**"], rule("observer-watch", WATCH, [f"{r}/**"]))
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 
