@@ -1,8 +1,16 @@
-# One image for every process of a mesh run (see docker-compose.yml).
-FROM python:3.11-slim
+# One image for every process of a mesh run (see docker-compose.yml, docs/docker.md).
+# The base image is pinned to one Python release; pin its digest too (FROM ...@sha256:...)
+# where the registry is reachable to look it up.
+FROM python:3.11.9-slim-bookworm
 WORKDIR /app
 COPY . /app
-RUN pip install --no-cache-dir .
-# zenoh peers listen here; the world's port is what agents connect to
+RUN pip install --no-cache-dir . \
+ && useradd --uid 10001 --no-create-home --shell /usr/sbin/nologin diskf \
+ && mkdir -p /credentials /results \
+ && chmod 1777 /credentials /results
+# not root: every service runs as this user, or as the DISKF_UID:DISKF_GID compose gives it;
+# /credentials (a volume) takes any user's 0700 run directory, like /tmp
+USER 10001
+# zenoh peers listen here (TLS); the world's port is what agents connect to
 EXPOSE 7447
 CMD ["diskf-mesh", "--help"]

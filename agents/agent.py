@@ -54,7 +54,7 @@ import numpy as np
 from agents import rejoin
 from diskf_mesh import wire
 from diskf_mesh.guard import Guard, GuardConfig
-from diskf_mesh.mesh import runspec, zenoh_config
+from diskf_mesh.mesh import credentials, runspec, zenoh_config
 from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.log import Log
@@ -531,9 +531,10 @@ def run(args: argparse.Namespace) -> int:
     scn = spec.load()
     log = Log(f"agent {args.agent_id}")
     batch_scheduling()
+    zenoh = zenoh_config.from_args(args, credentials.agent_identity(args.agent_id), spec.run_id)
     prof = Phases(AGENT_PHASES, f"agent {args.agent_id}") if args.profile else NO_PHASES
     try:
-        with ZenohTransport(zenoh_config.from_args(args)) as transport:
+        with ZenohTransport(zenoh) as transport:
             agent = Agent(scn, args.agent_id, spec.algorithm, Keys(spec.run_id), transport,
                           AgentTiming(args.collect_timeout, args.world_timeout), log,
                           fault_config=faults_from_args(args, scn.faults), profile=prof)

@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "diskf_mesh.commands.simulate",
     "diskf_mesh.commands.figures",
     "diskf_mesh.commands.report",
+    "diskf_mesh.commands.credentials",
     "sim.world",
     "agents.agent",
     "sim.launcher",

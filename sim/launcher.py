@@ -6,11 +6,17 @@ progress bar, prints the metrics table and writes the results. If any child
 fails, or on Ctrl-C, it stops every child it started and says which one
 failed and why (exit code, last line of its stderr; full logs in --logs).
 
+Every run is authenticated: ``up`` makes a fresh certificate authority and
+one certificate per process (``diskf_mesh.mesh.credentials``) in a private
+(0700) directory, gives each child ``--credentials DIR`` (a child reads its
+own identity's files only), and removes the directory when it ends, however
+it ends. ``--insecure`` runs plain zenoh instead.
+
 Without zenoh flags the processes meet on loopback only: the world listens on
-a free port of 127.0.0.1 and every agent connects to it (no multicast
-scouting). With zenoh flags (``--mode``, ``--connect``, ``--listen``,
-``--no-multicast-scouting``, ``--zenoh-config``, ``--cfg``) every child gets
-exactly those.
+a free port of 127.0.0.1 (``tls/``, or ``tcp/`` with ``--insecure``) and
+every agent connects to it (no multicast scouting). With zenoh flags
+(``--mode``, ``--connect``, ``--listen``, ``--no-multicast-scouting``,
+``--zenoh-config``, ``--cfg``) every child gets exactly those.
 """
 from __future__ import annotations
 
@@ -27,7 +33,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from diskf_mesh.commands.options import check_output, check_output_dir, positive_int, seed_value
@@ -35,7 +41,7 @@ from diskf_mesh.errors import InputError
 from diskf_mesh.faults import FaultConfig
 from diskf_mesh.faults import add_arguments as add_fault_arguments
 from diskf_mesh.faults import from_args as faults_from_args
-from diskf_mesh.mesh import runspec, zenoh_config
+from diskf_mesh.mesh import credentials, runspec, zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 
@@ -72,11 +78,13 @@ def free_port(host: str = "127.0.0.1") -> int:
     raise OSError(f"no free port on {host}")
 
 
-def loopback_options(port: int) -> tuple:
-    """(world, agent) zenoh options for a run confined to 127.0.0.1."""
-    world = ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",), no_multicast_scouting=True)
-    agent = ZenohOptions(connect=(f"tcp/127.0.0.1:{port}",), listen=("tcp/127.0.0.1:0",),
-                         no_multicast_scouting=True)
+def loopback_options(port: int, base: ZenohOptions = ZenohOptions()) -> tuple:
+    """(world, agent) zenoh options for a run confined to 127.0.0.1: over
+    TLS if ``base`` has credentials, plain TCP otherwise."""
+    proto = "tls" if base.credentials else "tcp"
+    world = replace(base, listen=(f"{proto}/127.0.0.1:{port}",), no_multicast_scouting=True)
+    agent = replace(base, connect=(f"{proto}/127.0.0.1:{port}",), listen=(f"{proto}/127.0.0.1:0",),
+                    no_multicast_scouting=True)
     return world, agent
 
 
@@ -251,6 +259,24 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.credentials:
+        raise InputError("credentials", "up makes fresh credentials for every run (--credentials is for world "
+                                        "and agent started by hand)")
+    # SIGTERM ends the run like Ctrl-C's path does: through the finally blocks (the children,
+    # which get SIGTERM when up dies, and the credentials directory)
+    previous = signal.signal(signal.SIGTERM, _terminated)
+    try:
+        with tempfile.TemporaryDirectory(prefix="diskf-run-") as private:  # 0700; removed however the run ends
+            return _run(args, Path(private))
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _terminated(signum, frame):
+    raise SystemExit(128 + signum)
+
+
+def _run(args: argparse.Namespace, private: Path) -> int:
     from tqdm import tqdm
 
     from diskf_mesh.experiment import format_table
@@ -270,7 +296,12 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:
         raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
     zopts = zenoh_config.from_args(args)
-    world_z, agent_z = loopback_options(free_port()) if zopts.is_default else (zopts, zopts)
+    if not zopts.insecure:  # a fresh CA, one certificate per process; each child reads its own
+        zopts = replace(zopts, credentials=str(credentials.make(private / "credentials", spec.run_id, ids)))
+    else:
+        print(f"warning: up: --insecure: plain zenoh; any process that reaches it can read and write run "
+              f"{spec.run_id}", file=sys.stderr)
+    world_z, agent_z = loopback_options(free_port(), zopts) if zopts.is_default else (zopts, zopts)
     world_extra = ["--progress", "lines", "--json", str(out), "--startup-timeout", str(args.startup_timeout),
                    "--tick-timeout", str(args.tick_timeout)]
     if args.estimates:

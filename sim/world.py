@@ -43,7 +43,7 @@ from diskf_mesh.faults import FaultConfig
 from diskf_mesh.faults import add_arguments as add_fault_arguments
 from diskf_mesh.faults import from_args as faults_from_args
 from diskf_mesh.engine import Estimates
-from diskf_mesh.mesh import runspec, zenoh_config
+from diskf_mesh.mesh import credentials, runspec, zenoh_config
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
@@ -381,6 +381,7 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.estimates, "estimates", stdout=False)
     spec = runspec.from_args(args)
     scn = spec.load(args.ticks)
+    zenoh = zenoh_config.from_args(args, credentials.WORLD, spec.run_id)
     faults = faults_from_args(args, scn.faults)  # the agents apply them; the world records them
     trace = simulate(scn, [args.seed])
     K = trace.has.shape[1]
@@ -403,7 +404,7 @@ def run(args: argparse.Namespace) -> int:
 
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
     try:
-        with ZenohTransport(zenoh_config.from_args(args), hold_ms=HOLD_MS) as transport:
+        with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
             world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
                           WorldTiming(args.startup_timeout, args.tick_timeout), progress, log, prof)
             rec = world.run()

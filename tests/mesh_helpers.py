@@ -4,12 +4,15 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from diskf_mesh import engine
+from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from diskf_mesh.scenario import simulate
 from sim.launcher import Launcher, build_children, free_port, loopback_options
 
@@ -50,19 +53,38 @@ def run_checked(cmd, **kw) -> str:
     return subprocess.run(cmd, check=True, capture_output=True, text=True, **kw).stdout
 
 
+def with_credentials(spec: RunSpec, tmp_path: Path, ticks: int | None = None) -> ZenohOptions:
+    """Zenoh options carrying fresh credentials of ``spec``'s run (world,
+    every agent, observer) in ``tmp_path/credentials``."""
+    ids = [a.id for a in spec.load(ticks).agents]
+    return ZenohOptions(credentials=str(credentials.make(tmp_path / "credentials", spec.run_id, ids)))
+
+
 class Mesh(Launcher):
     """World and agents started by the tests themselves (explicit endpoints)."""
 
     world_endpoints: tuple = ()
+    run_id: str = ""
+    credentials: str | None = None
+
+    def observer(self, **kw) -> ZenohOptions:
+        """Options of a session that joins this run to listen: the run's
+        observer identity (or plain, if the run is insecure)."""
+        opts = ZenohOptions(connect=self.world_endpoints, no_multicast_scouting=True, **kw)
+        if self.credentials is None:
+            return replace(opts, listen=opts.listen or ("tcp/127.0.0.1:0",))
+        return replace(opts, listen=opts.listen or ("tls/127.0.0.1:0",), credentials=self.credentials,
+                       identity=credentials.OBSERVER, run_id=self.run_id)
 
 
 def start_mesh(spec: RunSpec, ticks: int, seed: int, tmp_path: Path, world_zenoh=None, agent_zenoh=None,
                world_extra=(), agent_extra=(), wrap=None) -> Mesh:
     """Start the world (agents: ``mesh.start_agents()``). Default endpoints:
-    loopback, the world listening on a free port. ``wrap(name, argv)`` may
-    prefix a child's command line (e.g. ``ip netns exec``)."""
+    loopback, the world listening on a free port, with fresh credentials
+    of the run (``with_credentials``). ``wrap(name, argv)`` may prefix a
+    child's command line (e.g. ``ip netns exec``)."""
     if world_zenoh is None:
-        world_zenoh, agent_zenoh = loopback_options(free_port())
+        world_zenoh, agent_zenoh = loopback_options(free_port(), with_credentials(spec, tmp_path, ticks))
     logs = tmp_path / "logs"
     logs.mkdir(exist_ok=True)
     world, agents = build_children(spec, ticks, seed, [a.id for a in spec.load(ticks).agents], logs, world_zenoh,
@@ -73,5 +95,6 @@ def start_mesh(spec: RunSpec, ticks: int, seed: int, tmp_path: Path, world_zenoh
             c.argv = wrap(c.name, c.argv)
     mesh = Mesh(world, agents)
     mesh.world_endpoints = tuple(world_zenoh.listen)
+    mesh.run_id, mesh.credentials = spec.run_id, world_zenoh.credentials
     mesh.start_world()
     return mesh

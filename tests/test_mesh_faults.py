@@ -268,7 +268,9 @@ def test_another_run_cannot_feed_this_one(tmp_path):
     a_dir, b_dir = tmp_path / "a", tmp_path / "b"
     a_dir.mkdir()
     b_dir.mkdir()
-    z = lambda listen, *connect: ZenohOptions(listen=(listen,), connect=connect, no_multicast_scouting=True)  # noqa
+    # plain zenoh (--insecure): this test is about the key space and the guard, not about credentials
+    z = lambda listen, *connect: ZenohOptions(listen=(listen,), connect=connect, no_multicast_scouting=True,  # noqa
+                                              insecure=True)
     a_ep, b_ep = f"tcp/127.0.0.1:{pa}", f"tcp/127.0.0.1:{pb}"
     a = start_mesh(a_spec, ticks, 11, a_dir, z(a_ep), z("tcp/127.0.0.1:0", a_ep),
                    world_extra=["--json", str(a_dir / "res.json")])

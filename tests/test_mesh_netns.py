@@ -1,6 +1,8 @@
 """Beyond one host: every process in its own network namespace, joined by
-veth pairs on a bridge, meeting only on explicit --listen/--connect TCP
-endpoints (no multicast). The result must equal the single-host run.
+veth pairs on a bridge, meeting only on explicit --listen/--connect TLS
+endpoints (no multicast), each with its own identity of the run's
+credentials (``diskf-mesh credentials``). The result must equal the
+single-host run.
 
 Needs root and ``ip netns``; skipped with the reason otherwise. Addresses
 are 10.213.<n>.0/24 inside namespaces this test creates and deletes.
@@ -15,6 +17,7 @@ import subprocess
 import numpy as np
 import pytest
 
+from diskf_mesh import cli
 from diskf_mesh.mesh.runspec import RunSpec, agent_command, world_command
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.launcher import Child, Launcher
@@ -101,17 +104,19 @@ def test_namespaced_run_equals_single_host_run(tmp_path, namespaces):
                              "--seed", str(seed))
     assert done.returncode == 0, done.stderr
 
+    creds = str(tmp_path / "credentials")
+    assert cli.main(["credentials", "--run-id", spec.run_id, "--out", creds, "--scenario", "quadrants"]) == 0
     world_addr = namespaces.addrs[0]
     est_path = tmp_path / "netns-estimates.json"
-    world_z = ZenohOptions(listen=(f"tcp/{world_addr}:{PORT}",), no_multicast_scouting=True)
+    world_z = ZenohOptions(listen=(f"tls/{world_addr}:{PORT}",), no_multicast_scouting=True, credentials=creds)
     world = Child("world", ["ip", "netns", "exec", namespaces.names[0],
                             *world_command(spec, ticks, seed, world_z,
                                            ["--progress", "none", "--estimates", str(est_path)])],
                   tmp_path / "world.log")
     agents = []
     for j, a in enumerate(spec.load(ticks).agents, start=1):
-        z = ZenohOptions(connect=(f"tcp/{world_addr}:{PORT}",), listen=(f"tcp/{namespaces.addrs[j]}:{PORT}",),
-                         no_multicast_scouting=True)
+        z = ZenohOptions(connect=(f"tls/{world_addr}:{PORT}",), listen=(f"tls/{namespaces.addrs[j]}:{PORT}",),
+                         no_multicast_scouting=True, credentials=creds)
         agents.append(Child(f"agent {a.id}", ["ip", "netns", "exec", namespaces.names[j],
                                               *agent_command(spec, a.id, z)], tmp_path / f"agent-{a.id}.log"))
     launcher = Launcher(world, agents)

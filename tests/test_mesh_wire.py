@@ -14,7 +14,6 @@ from diskf_mesh import wire
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.transport import ZenohTransport
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from diskf_mesh.messages import Message
 from diskf_mesh.scenario import scenario_path, simulate
 
@@ -199,8 +198,7 @@ def test_no_measurement_h_or_r_on_the_wire(tmp_path):
     captured = queue.SimpleQueue()
     mesh = start_mesh(spec, ticks, seed, tmp_path)
     try:
-        sniffer = ZenohTransport(ZenohOptions(connect=mesh.world_endpoints, no_multicast_scouting=True,
-                                              listen=("tcp/127.0.0.1:0",)))
+        sniffer = ZenohTransport(mesh.observer())  # the run's observer identity: it may listen
         sniffer.subscribe(Keys(spec.run_id).msgs, lambda k, p: captured.put((k, p)))
         mesh.start_agents()
         mesh.wait(60)

@@ -7,6 +7,13 @@
     --zenoh-config FILE        a zenoh JSON5 configuration file; the flags above
                                are applied on top of it
     --cfg KEY:VALUE            any other setting, a config path and a JSON5 value
+    --credentials DIR          this process's identity from a run's credentials
+                               (``diskf-mesh credentials``): TLS links only, mutual
+                               authentication, the run's access control
+                               (``diskf_mesh.mesh.credentials``); the flags above are
+                               applied on top
+    --insecure                 run without credentials (plain zenoh): a world or an
+                               agent refuses to start without one of the two
 
 On one host, peers find each other with no flags (multicast scouting).
 Across hosts, or where multicast does not pass (Docker bridges), give the
@@ -18,9 +25,11 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import dataclass
+import sys
+from dataclasses import dataclass, replace
 
 from ..errors import InputError
+from . import credentials as creds
 
 MODES = ("peer", "client")
 
@@ -33,6 +42,10 @@ class ZenohOptions:
     no_multicast_scouting: bool = False
     config_file: str | None = None
     cfg: tuple = ()
+    credentials: str | None = None  # a run's credentials directory (or one identity's)
+    insecure: bool = False
+    identity: str | None = None     # whose credentials (not a flag: the process knows who it is)
+    run_id: str | None = None       # the run they must be for
 
     def to_argv(self) -> list:
         """The flags that reproduce these options (for child processes)."""
@@ -49,11 +62,33 @@ class ZenohOptions:
             out.append("--no-multicast-scouting")
         for c in self.cfg:
             out += ["--cfg", c]
+        if self.credentials:
+            out += ["--credentials", self.credentials]
+        if self.insecure:
+            out.append("--insecure")
         return out
 
     @property
     def is_default(self) -> bool:
-        return self == ZenohOptions()
+        """No network setting given (credentials or not)."""
+        return replace(self, credentials=None, insecure=False, identity=None, run_id=None) == ZenohOptions()
+
+    def as_identity(self, identity: str, run_id: str) -> "ZenohOptions":
+        """These options for the mesh process ``identity`` of run ``run_id``:
+        its credentials checked now (``InputError``), or, with ``--insecure``,
+        one warning line on stderr. Neither: an ``InputError``."""
+        opts = replace(self, identity=identity, run_id=run_id)
+        if opts.credentials and opts.insecure:
+            raise InputError("insecure", "give --credentials DIR or --insecure, not both")
+        if opts.credentials:
+            creds.load(opts.credentials, identity, run_id)
+        elif opts.insecure:
+            print(f"warning: {identity}: --insecure: no TLS, no access control; any process that reaches this "
+                  f"zenoh network can read and write run {run_id}", file=sys.stderr, flush=True)
+        else:
+            raise InputError("credentials", "no credentials: give --credentials DIR (made by `diskf-mesh "
+                                            "credentials`) or --insecure to run unauthenticated")
+        return opts
 
     def to_config(self):
         """A ``zenoh.Config``; a bad file or value is an ``InputError``."""
@@ -64,6 +99,12 @@ class ZenohOptions:
         except (zenoh.ZError, OSError, ValueError) as e:
             raise InputError("zenoh-config", f"cannot load {self.config_file}: {e}") from None
         settings = []
+        if self.credentials:
+            if self.identity is None:
+                raise InputError("credentials", "whose credentials? (no identity given)")
+            settings += creds.zenoh_settings(creds.load(self.credentials, self.identity, self.run_id))
+            if not self.listen and not self.config_file:  # zenoh's default listen endpoint is plain TCP
+                settings.append(("listen/endpoints", json.dumps(list(creds.DEFAULT_LISTEN))))
         if self.mode:
             settings.append(("mode", json.dumps(self.mode)))
         if self.connect:
@@ -96,9 +137,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--zenoh-config", metavar="FILE", help="a zenoh configuration file (JSON5)")
     g.add_argument("--cfg", metavar="KEY:VALUE", action="append", default=[],
                    help="any zenoh setting as a config path and a JSON5 value (repeatable)")
+    g.add_argument("--credentials", metavar="DIR",
+                   help="the run's credentials (diskf-mesh credentials): TLS, mutual authentication and access "
+                        "control; this process reads its own identity's files only")
+    g.add_argument("--insecure", action="store_true",
+                   help="run without credentials: plain zenoh, anyone on the network can read and write the run")
 
 
-def from_args(args: argparse.Namespace) -> ZenohOptions:
-    return ZenohOptions(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
+def from_args(args: argparse.Namespace, identity: str | None = None, run_id: str | None = None) -> ZenohOptions:
+    """The options of the command line; with ``identity`` (a world or an
+    agent), checked for that identity of run ``run_id`` (``as_identity``)."""
+    opts = ZenohOptions(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
                         no_multicast_scouting=args.no_multicast_scouting, config_file=args.zenoh_config,
-                        cfg=tuple(args.cfg))
+                        cfg=tuple(args.cfg), credentials=args.credentials, insecure=args.insecure)
+    return opts if identity is None else opts.as_identity(identity, run_id)

@@ -1,0 +1,261 @@
+"""Who may speak in a mesh run: one certificate per process identity, and
+the zenoh configuration that makes zenoh enforce it (docs/security.md).
+
+``make(out, run_id, agents)`` creates a fresh certificate authority for one
+run, issues one certificate and key per identity, and throws the CA's key
+away (nobody can mint another identity for this run afterwards):
+
+    out/                          0700
+      world/                      0700, one directory per identity
+        ca.pem                    the run's CA certificate
+        cert.pem                  this identity's certificate (CN = identity)
+        key.pem                   its private key, 0600
+        run.json                  run id, agent ids, the identity's name
+      agent-<id>/ ...             one per agent of the scenario
+      observer/ ...               may only listen (a live viewer, a recorder)
+
+Every identity directory is self-contained: a process reads its own
+directory only (``load``), and a host or container needs only its own.
+
+``zenoh_settings(identity)`` is the zenoh configuration of that identity:
+TLS links only (``transport/link/protocols = ["tls"]``, so neither a listen
+endpoint, a connect endpoint nor a locator found by scouting can open plain
+TCP), mutual authentication against the run's CA, and zenoh's access
+control, default deny, with one subject per certificate common name. Every
+process applies the same policy to what it receives (ingress) from each
+peer, by the peer's certificate:
+
+    world        put               diskf/<run>/world/**
+                 liveliness token  diskf/<run>/alive/world, diskf/<run>/ticking/world
+                 subscribe         diskf/<run>/agent/*/report; tokens diskf/<run>/*/agent/*
+    agent-<i>    put               diskf/<run>/agent/<i>/**
+                 liveliness token  diskf/<run>/alive/agent/<i>, diskf/<run>/ready/agent/<i>
+                 subscribe         the world's tick and stop, its own measurement
+                                   diskf/<run>/world/meas/<i>, the messages addressed to
+                                   it, the reports (rejoining); tokens alive/**, ticking/world
+    observer     subscribe         diskf/<run>/** (samples and tokens), nothing else
+
+A declaration refused at ingress never enters the receiver's routing
+tables, so the receiver does not send that peer what it asked for. That
+alone leaks: until a new peer's declarations have arrived, zenoh sends it
+every put (measured: agent 2 subscribed to ``world/meas/*`` heard one of
+agent 1's measurements in 8 connections). So what a process sends (egress)
+is filtered by the receiver too: a put goes to an identity only on the keys
+that identity may subscribe to (the "subscribe" column), every declaration
+and token to every identity of the run.
+"""
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import InputError
+from .keys import check_run_id
+
+FORMAT = "diskf-credentials/1"
+WORLD = "world"
+OBSERVER = "observer"
+CA_FILE, CERT_FILE, KEY_FILE, RUN_FILE = "ca.pem", "cert.pem", "key.pem", "run.json"
+VALID_DAYS = 30
+DEFAULT_LISTEN = ("tls/[::]:0",)  # with credentials and no --listen (zenoh's own default is plain TCP)
+HOSTS = ("127.0.0.1", "localhost")  # subjectAltNames of every certificate, next to its identity
+
+
+def agent_identity(agent_id: int) -> str:
+    return f"agent-{int(agent_id)}"
+
+
+def identities(agents, observer: bool = True) -> list:
+    """Every identity of a run: the world, one per agent, the observer."""
+    return [WORLD, *(agent_identity(i) for i in agents), *([OBSERVER] if observer else [])]
+
+
+# --------------------------------------------------------------------------
+# making them
+# --------------------------------------------------------------------------
+def _private_dir(path: Path) -> Path:
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    path.chmod(0o700)
+    return path
+
+
+def _write(path: Path, data: bytes, mode: int) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, mode)
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+    os.chmod(path, mode)
+
+
+def make(out, run_id: str, agents, observer: bool = True) -> Path:
+    """A fresh CA and one certificate + key per identity of run ``run_id``
+    in ``out`` (created 0700; an identity directory already there is
+    replaced). Returns ``out``."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    check_run_id(run_id)
+    agents = sorted({int(i) for i in agents})
+    out = Path(out)
+    try:
+        _private_dir(out)
+    except OSError as e:
+        raise InputError("out", f"cannot create {out}: {e.strerror or e}") from None
+    name = lambda cn: x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])  # noqa: E731
+    now = datetime.datetime.now(datetime.timezone.utc)
+    start, end = now - datetime.timedelta(minutes=5), now + datetime.timedelta(days=VALID_DAYS)
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = name(f"diskf run {run_id} CA")
+    ca = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name).public_key(ca_key.public_key())
+          .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end)
+          .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+          .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True,
+                                       content_commitment=False, key_encipherment=False, data_encipherment=False,
+                                       key_agreement=False, encipher_only=False, decipher_only=False), critical=True)
+          .sign(ca_key, hashes.SHA256()))
+    ca_pem = ca.public_bytes(serialization.Encoding.PEM)
+    for who in identities(agents, observer):
+        key = ec.generate_private_key(ec.SECP256R1())
+        sans = [x509.DNSName(who)] + [x509.IPAddress(ipaddress.ip_address(h)) if h[0].isdigit() else x509.DNSName(h)
+                                      for h in HOSTS]
+        cert = (x509.CertificateBuilder().subject_name(name(who)).issuer_name(ca_name).public_key(key.public_key())
+                .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end)
+                .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+                .add_extension(x509.SubjectAlternativeName(sans), critical=False)
+                .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
+                                                      ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+                .sign(ca_key, hashes.SHA256()))
+        d = _private_dir(out / who)
+        _write(d / KEY_FILE, key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                               serialization.NoEncryption()), 0o600)
+        _write(d / CERT_FILE, cert.public_bytes(serialization.Encoding.PEM), 0o644)
+        _write(d / CA_FILE, ca_pem, 0o644)
+        _write(d / RUN_FILE, (json.dumps({"format": FORMAT, "run_id": run_id, "agents": agents,
+                                          "observer": observer, "identity": who}) + "\n").encode(), 0o644)
+    return out  # ca_key goes out of scope here: the CA signs nothing more
+
+
+# --------------------------------------------------------------------------
+# using them
+# --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Identity:
+    """The files of one identity, read by that process only."""
+
+    name: str
+    run_id: str
+    agents: tuple
+    observer: bool
+    dir: Path
+
+    @property
+    def ca(self) -> Path:
+        return self.dir / CA_FILE
+
+    @property
+    def cert(self) -> Path:
+        return self.dir / CERT_FILE
+
+    @property
+    def key(self) -> Path:
+        return self.dir / KEY_FILE
+
+
+def load(directory, identity: str, run_id: str | None = None) -> Identity:
+    """Identity ``identity`` from ``directory`` (a run's credentials
+    directory, or that identity's own directory). ``InputError`` if the
+    files are missing, the key is readable by others, or they belong to
+    another identity or run."""
+    base = Path(directory)
+    d = base if (base / RUN_FILE).is_file() else base / identity
+    try:
+        doc = json.loads((d / RUN_FILE).read_text())
+        for f in (CA_FILE, CERT_FILE, KEY_FILE):
+            if not (d / f).is_file():
+                raise FileNotFoundError(str(d / f))
+        mode = (d / KEY_FILE).stat().st_mode & 0o777
+    except (OSError, ValueError) as e:
+        raise InputError("credentials", f"no credentials for {identity} in {base}: "
+                                        f"{getattr(e, 'strerror', None) or e}") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise InputError("credentials", f"{d / RUN_FILE} is not a {FORMAT} file")
+    if doc.get("identity") != identity:
+        raise InputError("credentials", f"{d} holds the credentials of {doc.get('identity')!r}, not {identity!r}")
+    if run_id is not None and doc.get("run_id") != run_id:
+        raise InputError("credentials", f"{base} is for run {doc.get('run_id')!r}, not {run_id!r} "
+                                        f"(give --run-id {doc.get('run_id')})")
+    if mode & 0o077:
+        raise InputError("credentials", f"{d / KEY_FILE} is readable by others (mode {mode:o}); it must be 0600")
+    try:
+        agents = tuple(int(i) for i in doc["agents"])
+        check_run_id(doc["run_id"])
+    except (KeyError, TypeError, ValueError, InputError):
+        raise InputError("credentials", f"{d / RUN_FILE}: bad run id or agent list") from None
+    return Identity(identity, doc["run_id"], agents, bool(doc.get("observer", False)), d)
+
+
+ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                "liveliness_token", "liveliness_query", "declare_liveliness_subscriber")
+LISTEN = ("declare_subscriber",)
+WATCH = ("declare_liveliness_subscriber", "liveliness_query")
+
+
+def access_control(run_id: str, agents, observer: bool = True) -> dict:
+    """zenoh's ``access_control`` of a run (the table in the module docstring)."""
+    r = f"diskf/{run_id}"
+    rules, subjects, policies = [], [], []
+
+    def rule(rid, messages, keys, flows=("ingress",)):
+        rules.append({"id": rid, "permission": "allow", "flows": list(flows), "messages": list(messages),
+                      "key_exprs": list(keys)})
+        return rid
+
+    def grant(who, listens, *rule_ids):
+        """``who`` subscribes to ``listens`` and is sent puts on those keys only."""
+        subjects.append({"id": who, "cert_common_names": [who]})
+        policies.append({"id": who, "subjects": [who], "rules": [
+            rule(f"{who}-listen", LISTEN, listens), rule(f"{who}-receive", ("put",), listens, flows=("egress",)),
+            *rule_ids, "egress"]})
+
+    rule("egress", [m for m in ALL_MESSAGES if m != "put"], [f"{r}/**"], flows=("egress",))
+    grant(WORLD, [f"{r}/agent/*/report"],
+          rule("world-put", ("put",), [f"{r}/world/**"]),
+          rule("world-tokens", ("liveliness_token",), [f"{r}/alive/world", f"{r}/ticking/world"]),
+          rule("world-watch", WATCH, [f"{r}/*/agent/*"]))
+    watch = rule("agent-watch", WATCH, [f"{r}/alive/**", f"{r}/ticking/world"])
+    for i in agents:
+        who = agent_identity(i)
+        grant(who, [f"{r}/world/tick", f"{r}/world/stop", f"{r}/world/meas/{i}", f"{r}/agent/*/msg/$*_{i}_$*",
+                    f"{r}/agent/*/report"],
+              rule(f"{who}-put", ("put",), [f"{r}/agent/{i}/**"]),
+              rule(f"{who}-tokens", ("liveliness_token",), [f"{r}/alive/agent/{i}", f"{r}/ready/agent/{i}"]),
+              watch)
+    if observer:
+        grant(OBSERVER, [f"{r}/**"], rule("observer-watch", WATCH, [f"{r}/**"]))
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def zenoh_settings(ident: Identity) -> list:
+    """(config path, JSON5 value) pairs that make a zenoh session this
+    identity: TLS only, mutual authentication, the run's access control.
+    Endpoints and the mode stay with the command line's flags."""
+    tls = {
+        "root_ca_certificate": str(ident.ca),
+        "listen_certificate": str(ident.cert), "listen_private_key": str(ident.key),
+        "connect_certificate": str(ident.cert), "connect_private_key": str(ident.key),
+        "enable_mtls": True,
+        # a peer is who its certificate says (the access control checks that), wherever it
+        # listens: an address found by scouting or gossip is not in any certificate
+        "verify_name_on_connect": False,
+    }
+    return [
+        ("transport/link/protocols", json.dumps(["tls"])),
+        ("transport/link/tls", json.dumps(tls)),
+        ("access_control", json.dumps(access_control(ident.run_id, ident.agents, ident.observer))),
+    ]
