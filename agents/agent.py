@@ -509,7 +509,7 @@ class Agent:
         with self._cv:
             if self.rejoining:
                 peers_by = time.monotonic() + PEERS_WAIT_S
-                while not (self.ticks and set(self.ticks[max(self.ticks)].live) - {self.id} <= self.alive) \
+                while not (not self.ticks or set(self.ticks[max(self.ticks)].live) - {self.id} <= self.alive) \
                         and time.monotonic() < peers_by and self.stopped is None and self.failure is None:
                     self._wait(peers_by)
             self.join_after = self.newest
@@ -547,7 +547,7 @@ class Agent:
         if not self.rejoins:
             self.prof.start()  # measured from the first tick this agent works on
         self.est = est
-        if self.rejoining:
+        if self.rejoining and self.k > 1:  # at tick 1 (a run started without some agents) all start alike
             self._reinitialise(self.k)
         return True
 

@@ -49,6 +49,7 @@ from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.world import INCOMPLETE, add_allow_missing, missing_line
 
 STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
+WORLD_STOP_GRACE_S = 20.0  # the world, stopped, writes its results first
 
 
 PORTS_BELOW_EPHEMERAL = 12000  # how many ports below the ephemeral range to pick the world's from
@@ -206,12 +207,14 @@ class Launcher:
         return bad
 
     def stop_all(self) -> None:
-        """SIGTERM every running child, SIGKILL what is left after a grace."""
+        """SIGTERM every running child, SIGKILL what is left after a grace
+        (the world's is longer: it writes what it measured)."""
         live = [c for c in self.children if c.proc is not None and c.proc.poll() is None]
         for c in live:
             _signal(c.proc, signal.SIGTERM)
-        deadline = time.monotonic() + STOP_GRACE_S
+        t0 = time.monotonic()
         for c in live:
+            deadline = t0 + (WORLD_STOP_GRACE_S if c is self.world else STOP_GRACE_S)
             try:
                 c.proc.wait(max(deadline - time.monotonic(), 0.01))
             except subprocess.TimeoutExpired:

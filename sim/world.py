@@ -115,6 +115,7 @@ POLL_S = 0.5  # the main thread looks at the tick's deadline at least this often
 FREEZE_S = 1.0  # the main thread this late: the world was not running (SIGSTOP)
 PAUSE_MIN_S = 1.0  # a pause lasts at least this long (the links that closed while frozen close on waking)
 CLAIM_S = 1.0   # the liveliness query for another world of this run id
+LATE_READY_S = 5.0  # --allow-missing: after the startup timeout, how long the agents up have to be ready
 LINES_EVERY_S = 0.1  # --progress lines: at most one line this often (and ticks 1 and K)
 HOLD_MS = 5   # a measurement waits at most this long in zenoh's batch for its tick (it comes at once)
 
@@ -169,6 +170,7 @@ class World:
         self._expect = set()           # the agents a pause waits for
         self._pending = 0              # the tick to open after a pause (0: the open tick goes on)
         self.interrupted = ""          # a signal's name: end the run early (the main thread looks)
+        self._ticking = False          # the "ticking" token is declared
 
     # -- transport callbacks ---------------------------------------------------
     def _on_sample(self, key: str, payload) -> None:
@@ -419,17 +421,19 @@ class World:
 
     def wait_agents(self, allow_missing: bool = False) -> None:
         """Until every agent is ready; after ``--startup-timeout`` fail naming
-        the missing ones, or (``allow_missing``) start with those ready."""
+        the missing ones, or (``allow_missing``) start with the agents up:
+        the world declares its ``ticking`` token (they stop waiting for the
+        missing peers and declare ready, as a restart does) and starts with
+        those ready ``LATE_READY_S`` later."""
         t0 = time.monotonic()
         deadline = t0 + self.timing.startup_timeout
         with self._cv:
             while not self.ready >= set(self.ids):
                 if self.interrupted:
-                    raise MeshError(f"interrupted ({self.interrupted}) before tick 1")
-                if time.monotonic() >= deadline and allow_missing and self.ready:
-                    self.log.info(f"starting without agent {', '.join(str(i) for i in self.ids if i not in self.ready)}"
-                                  f" (not ready after {self.timing.startup_timeout:g} s)")
+                    self.record.ended_early = f"interrupted ({self.interrupted}) before tick 1"
                     return
+                if time.monotonic() >= deadline and allow_missing and self.alive:
+                    break
                 if time.monotonic() >= deadline:
                     absent = [i for i in self.ids if i not in self.alive]
                     stuck = [i for i in self.ids if i in self.alive and i not in self.ready]
@@ -441,6 +445,22 @@ class World:
                     raise MeshError(f"after {self.timing.startup_timeout:g} s waiting for the agents: "
                                     + "; ".join(parts))
                 self._wait(deadline)
+            else:
+                return
+        self._declare_ticking()
+        late = time.monotonic() + LATE_READY_S
+        with self._cv:
+            while not self.ready >= self.alive and time.monotonic() < late:
+                self._wait(late)
+            if not self.ready:
+                raise MeshError(f"no agent ready {self.timing.startup_timeout + LATE_READY_S:g} s after the start")
+            self.log.info(f"starting without agent {', '.join(str(i) for i in self.ids if i not in self.ready)}"
+                          f" (not ready after {self.timing.startup_timeout:g} s; --allow-missing)")
+
+    def _declare_ticking(self) -> None:
+        if not self._ticking:
+            self._ticking = True
+            self.transport.declare_token(self.keys.ticking)  # an agent starting from now on is rejoining
 
     def run_ticks(self) -> None:
         """Tick 1 to K, in lockstep (the callbacks drive it; the main thread
@@ -483,7 +503,10 @@ class World:
         self.wait_agents(allow_missing)
         t1 = time.monotonic()
         self.record.startup_s = t1 - t0
-        self.transport.declare_token(self.keys.ticking)  # an agent starting from now on is rejoining
+        if self.record.ended_early:
+            self.stop(self.record.ended_early)
+            return self.record
+        self._declare_ticking()
         self.prof.start()
         try:
             self.run_ticks()
