@@ -637,6 +637,16 @@ def run(args: argparse.Namespace) -> int:
 
     from diskf_mesh.experiment import format_table
 
+    signalled = [""]  # the signal's name, then the World, which ends the run at its next look (POLL_S)
+
+    def interrupt(signum, frame):
+        if isinstance(signalled[0], World):
+            signalled[0].interrupted = signal.Signals(signum).name
+        else:
+            signalled[0] = signal.Signals(signum).name
+
+    for sig in (signal.SIGTERM, signal.SIGINT):  # from the start: up may stop the world while it starts
+        signal.signal(sig, interrupt)
     spec = runspec.from_args(args)
     scn = spec.load(args.ticks)
     faults = faults_from_args(args, scn.faults)  # the agents apply them; the world records them
@@ -660,18 +670,11 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
 
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
-    world = None
-
-    def interrupt(signum, frame):  # the main thread ends the run at its next look (POLL_S)
-        if world is not None:
-            world.interrupted = signal.Signals(signum).name
-
     try:
         with ZenohTransport(zenoh_config.from_args(args), hold_ms=HOLD_MS) as transport:
             world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
                           WorldTiming(args.startup_timeout, args.tick_timeout), progress, log, prof)
-            for sig in (signal.SIGTERM, signal.SIGINT):
-                signal.signal(sig, interrupt)
+            world.interrupted, signalled[0] = signalled[0], world
             rec = world.run(allow_missing=args.allow_missing > 0)
     except MeshError as e:
         log.error(str(e))

@@ -79,7 +79,7 @@ def start_mesh(spec: RunSpec, ticks: int, seed: int, tmp_path: Path, world_zenoh
     return mesh
 
 
-LEASE_MS = 2000  # zenoh's lease in the process-fault tests (default 10 s): a freeze past it is detected fast
+LEASE_MS = 3000  # zenoh's lease in the process-fault tests (default 10 s): a freeze past it is detected fast
 
 
 def with_lease(options, lease_ms: int = LEASE_MS):

@@ -83,10 +83,10 @@ def test_duplicate_id_mid_run_leaves_and_the_run_is_untouched(tmp_path):
     mesh, progress = lease_mesh(spec, ticks, seed, tmp_path, agent_extra=["--latency-ms", "10"])
     try:
         mesh.start_agents()
-        progress.wait_for(10, 60)
+        progress.wait_for(10, 120)
         dup = spawn(Child("agent 5 (duplicate)", agent(mesh, 5).argv, tmp_path / "logs" / "dup.log"))
         assert dup.proc.wait(30) == 2
-        assert progress.follow(120) == 0, mesh.world.last_error_line()
+        assert progress.follow(240) == 0, mesh.world.last_error_line()
         assert [a.proc.wait(10) for a in mesh.agents] == [0] * len(mesh.agents)
     finally:
         mesh.stop_all()
@@ -108,7 +108,7 @@ def test_two_processes_with_one_id_at_once(tmp_path):
     try:
         spawn(twin)
         mesh.start_agents()
-        assert progress.follow(120) == 0, mesh.world.last_error_line()
+        assert progress.follow(240) == 0, mesh.world.last_error_line()
         rcs = sorted([agent(mesh, 3).proc.wait(10), twin.proc.wait(10)])
         others = [a.proc.wait(10) for a in mesh.agents if a.name != "agent 3"]
     finally:
@@ -160,12 +160,12 @@ def test_frozen_agent_rejoins_when_it_wakes(tmp_path):
     mesh, progress = lease_mesh(spec, ticks, seed, tmp_path)
     try:
         mesh.start_agents()
-        progress.wait_for(20, 60)
+        progress.wait_for(20, 120)
         frozen = agent(mesh, victim)
         os.kill(frozen.proc.pid, signal.SIGSTOP)
         time.sleep(FREEZE_S)
         os.kill(frozen.proc.pid, signal.SIGCONT)
-        assert progress.follow(180) == 3, mesh.world.last_error_line()
+        assert progress.follow(300) == 3, mesh.world.last_error_line()
         rcs = [a.proc.wait(10) for a in mesh.agents]
     finally:
         mesh.stop_all()
@@ -189,20 +189,21 @@ def test_frozen_world_makes_the_agents_wait(tmp_path):
     mesh, progress = lease_mesh(spec, ticks, seed, tmp_path)
     try:
         mesh.start_agents()
-        progress.wait_for(20, 60)
+        progress.wait_for(20, 120)
         os.kill(mesh.world.proc.pid, signal.SIGSTOP)
         time.sleep(FREEZE_S)
         frozen_at = progress.tick
         os.kill(mesh.world.proc.pid, signal.SIGCONT)
-        assert progress.follow(180) == 0, mesh.world.last_error_line()
+        assert progress.follow(300) == 0, mesh.world.last_error_line()
         rcs = [a.proc.wait(10) for a in mesh.agents]
     finally:
         mesh.stop_all()
     assert rcs == [0] * len(mesh.agents)
     est, row = results(tmp_path)
     assert row["complete"] is True and row["missing_agent_ticks"] == 0 and row["missing"] == {}
-    assert [p["why"] for p in row["pauses"]] == ["the world was frozen"]
-    assert abs(row["pauses"][0]["tick"] - frozen_at) <= 1
+    # (a busy machine may add a short pause of its own: a late main thread looks like a freeze)
+    assert any(p["why"] == "the world was frozen" and abs(p["tick"] - frozen_at) <= 1 and p["seconds"] >= 1
+               for p in row["pauses"]), row["pauses"]
     assert_same(est, reference(spec, ticks, seed)[1])
 
 
@@ -219,11 +220,11 @@ def test_kill_9_of_three_agents(tmp_path):
     mesh, progress = lease_mesh(spec, ticks, 6, tmp_path, world_extra=["--allow-missing", "0.9"])
     try:
         mesh.start_agents()
-        progress.wait_for(20, 60)
+        progress.wait_for(20, 120)
         for i in victims:
             os.kill(agent(mesh, i).proc.pid, signal.SIGKILL)
         killed_at = progress.tick
-        assert progress.follow(180) == 0, mesh.world.last_error_line()
+        assert progress.follow(300) == 0, mesh.world.last_error_line()
         rcs = {int(a.name.split()[1]): a.proc.wait(10) for a in mesh.agents}
     finally:
         mesh.stop_all()
@@ -250,13 +251,13 @@ def test_kill_9_and_rejoin_from_the_neighbour_in_range(tmp_path):
     restarted = None
     try:
         mesh.start_agents()
-        progress.wait_for(15, 60)
+        progress.wait_for(15, 120)
         old = agent(mesh, victim)
         os.kill(old.proc.pid, signal.SIGKILL)
         assert old.proc.wait(5) == -signal.SIGKILL
         killed_at = progress.tick
         restarted = spawn(Child(f"agent {victim} (restarted)", old.argv, tmp_path / "logs" / "restarted.log"))
-        assert progress.follow(180) == 3, mesh.world.last_error_line()
+        assert progress.follow(300) == 3, mesh.world.last_error_line()
         assert restarted.proc.wait(10) == 0, restarted.last_error_line()
         assert all(a.proc.wait(10) == 0 for a in mesh.agents if a is not old)
     finally:
