@@ -72,10 +72,12 @@ from diskf_mesh.scenario import Scenario
 POLL_S = 0.5     # the main thread looks at the timeouts at least this often
 HOLD_TICKS = 2   # a neighbour's message up to this many ticks ahead waits for its tick
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
-FREEZE_S = 1.0   # the main thread this late: the process was not running (SIGSTOP, or starved)
+FREEZE_S = 2.0   # the main thread this late: the process was not running (SIGSTOP, or starved)
 WOKE_S = 3.0     # a world token that goes within this long of waking from a freeze: we were dropped
 PEERS_WAIT_S = 5.0  # a (re)joining agent waits at most this long to see the live agents
 CLAIM_S = 1.0    # the liveliness query for another process holding this id
+DUPLICATE_SAY_S = 0.2  # a duplicate's word to the world is on the wire before it leaves
+REPORTS_WAIT_S = 1.0   # a rejoining agent waits at most this long for its neighbours' reports
 
 
 @dataclass(frozen=True)
@@ -139,6 +141,8 @@ class Agent:
         self.join_after = 0       # join at the first tick after this that counts this agent live
         self._join_wanted = True  # the main thread declares a (new) ready token
         self.rejoins = []         # (tick, source) of every re-initialisation
+        self._worked = False      # has made an estimator once
+        self._reports_by = None   # joining: until when to wait for the neighbours' reports
         self.last_report = None   # (k, payload) of the last report sent
         self.K = None             # ticks in the run (the world's tick says)
         self.newest = 0           # newest tick heard of
@@ -346,7 +350,9 @@ class Agent:
         with self._cv:
             others |= self.alive_tokens.get(self.id, set())
             others.discard(self.nonce)
-            if others:
+            if others:  # tell the world (it counts duplicates), then leave
+                self.transport.put(self.keys.duplicate(self.id), self.nonce.encode())
+                time.sleep(DUPLICATE_SAY_S)
                 raise self._duplicate(min(others), "found before this one declared its own")
             self.claimed = True
         self.transport.declare_token(self.keys.alive(self.id, self.nonce))
@@ -541,15 +547,33 @@ class Agent:
         for by_tick in (self.ticks, self.meas):
             for t in [t for t in by_tick if t < self.k]:
                 del by_tick[t]
-        if self.k not in self.meas:
+        if self.k not in self.meas or not self._reports_in(self.k):
             return False
         est = self._make_estimator(self.ticks[self.k])
-        if not self.rejoins:
+        if not self._worked:
+            self._worked = True
             self.prof.start()  # measured from the first tick this agent works on
         self.est = est
         if self.rejoining and self.k > 1:  # at tick 1 (a run started without some agents) all start alike
             self._reinitialise(self.k)
         return True
+
+    def _reports_in(self, k: int) -> bool:
+        """A rejoining agent joining at tick k: whether the reports of tick
+        k - 1 of the agents in range then (and live at k) are in, to
+        re-initialise from the best of them; a report may come after the
+        world's tick k (another path), so it waits at most
+        ``REPORTS_WAIT_S``."""
+        if not self.rejoining or k == 1:
+            return True
+        now = time.monotonic()
+        if self._reports_by is None:
+            self._reports_by = now + REPORTS_WAIT_S
+        want = rejoin.in_range(self.scn, self.id, k - 1) & set(self.ticks[k].live)
+        if want <= set(self.reports.get(k - 1, ())) or now >= self._reports_by:
+            self._reports_by = None
+            return True
+        return False
 
     def _reinitialise(self, k: int) -> None:
         """A rejoining agent's estimate of tick k - 1 (``agents.rejoin``): the

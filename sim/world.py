@@ -112,7 +112,7 @@ class WorldRecord:
 
 
 POLL_S = 0.5  # the main thread looks at the tick's deadline at least this often
-FREEZE_S = 1.0  # the main thread this late: the world was not running (SIGSTOP)
+FREEZE_S = 2.0  # the main thread this late: the world was not running (SIGSTOP)
 PAUSE_MIN_S = 1.0  # a pause lasts at least this long (the links that closed while frozen close on waking)
 CLAIM_S = 1.0   # the liveliness query for another world of this run id
 LATE_READY_S = 5.0  # --allow-missing: after the startup timeout, how long the agents up have to be ready
@@ -194,6 +194,10 @@ class World:
                         self.record.rejoins.setdefault(who, []).append({"tick": r.tick, "source": r.source})
                     except wire.Rejected as e:
                         self.record.counters[f"rejected:{e.reason}"] += 1
+                elif kind == "duplicate" and who in self.ids:
+                    self.record.duplicates[who] += 1
+                    self.log.info(f"agent id {who}: a second process (nonce {bytes(payload[:32]).decode(errors='replace')})"
+                                  " found this id held and leaves: duplicate id")
                 elif kind in ("alive", "ready") and who is not None:
                     self._on_token(kind, who, nonce(key), payload)
                 elif kind == "alive-world":
@@ -411,6 +415,7 @@ class World:
         root = self.keys.root
         self.transport.subscribe(f"{root}/agent/*/report", self._on_sample)
         self.transport.subscribe(f"{root}/agent/*/rejoin", self._on_sample)
+        self.transport.subscribe(f"{root}/agent/*/duplicate", self._on_sample)
         self.transport.watch_tokens(f"{root}/*/agent/*/*", self._on_sample)
         self.transport.watch_tokens(self.keys.alive_world, self._on_sample)
         others = {nonce(k) for k in self.transport.tokens(self.keys.alive_world, CLAIM_S)} - {self.nonce}

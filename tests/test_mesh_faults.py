@@ -154,6 +154,23 @@ def _pids_of(run_id: str) -> list:
     return out
 
 
+def _wait_until_ready(run_id: str, n: int, timeout: float) -> None:
+    """Until ``n`` agents of run ``run_id`` (under ``up``: its world's port from
+    its command line) hold their ready tokens."""
+    deadline = time.monotonic() + timeout
+    port = None
+    while port is None and time.monotonic() < deadline:
+        port = next((cmd[cmd.index("--listen") + 1] for _, cmd in _pids_of(run_id) if "sim.world" in cmd), None)
+        time.sleep(0.2)
+    assert port is not None, "no world"
+    seen, keys = set(), Keys(run_id)
+    with ZenohTransport(ZenohOptions(connect=(port,), listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)) as z:
+        z.watch_tokens(keys.ready("*"), lambda key, up: seen.add(key) if up else seen.discard(key))
+        while len(seen) < n:
+            assert time.monotonic() < deadline, f"{len(seen)} of {n} agents ready after {timeout} s"
+            time.sleep(0.2)
+
+
 @pytest.mark.parametrize("allow", [None, "1"])
 def test_up_names_the_child_that_died(tmp_path, allow):
     """An agent killed under ``up``: without ``--allow-missing`` up stops every
@@ -175,7 +192,8 @@ def test_up_names_the_child_that_died(tmp_path, allow):
                            if "agents.agent" in cmd and cmd[cmd.index("--id") + 1] == "7"), None)
             time.sleep(0.2)
         assert victim is not None, "agent 7 never started"
-        time.sleep(4)  # let the run get going
+        _wait_until_ready(run_id, 9, timeout=120)  # the run is about to start (a busy machine is slow to start)
+        time.sleep(1)
         os.kill(victim, signal.SIGKILL)
         _, err = up_proc.communicate(timeout=150)
     finally:

@@ -17,6 +17,8 @@ letters, digits, ``-`` and ``_``):
                                                          ``msgs`` sees it; "msg")
     diskf/<run>/agent/<id>/report      agent -> world    its fused estimate of tick k ("report")
     diskf/<run>/agent/<id>/rejoin      agent -> world    it re-initialised, from which source ("rejoin")
+    diskf/<run>/agent/<id>/duplicate   agent -> world    a second process of this id, leaving; the
+                                                         payload is its nonce ("duplicate")
     diskf/<run>/alive/world/<nonce>    liveliness token  the world is up
     diskf/<run>/ticking/world          liveliness token  the world has started tick 1: an agent
                                                          that sees it before it is ready is a
@@ -117,6 +119,9 @@ class Keys:
     def rejoin(self, agent) -> str:
         return f"{self.root}/agent/{agent}/rejoin"
 
+    def duplicate(self, agent) -> str:
+        return f"{self.root}/agent/{agent}/duplicate"
+
     # liveliness (``nonce="*"``: the expression of every process's token)
     @property
     def alive_world(self) -> str:
@@ -143,7 +148,7 @@ class Keys:
 
     def parse(self, key: str) -> tuple:
         """(kind, agent id or None) of a key of this run; kind is one of tick,
-        meas, stop, msg, report, rejoin, alive-world, alive, ready, or None
+        meas, stop, msg, report, rejoin, duplicate, alive-world, alive, ready, or None
         (foreign). A token's nonce is ``nonce(key)``.
         An id that is not an integer gives (kind, None). Remembered: a run
         uses few distinct keys, and every message's key is parsed."""
@@ -191,6 +196,7 @@ _SHAPES = {
     ("agent", "#", "msg"): "msg",
     ("agent", "#", "report"): "report",
     ("agent", "#", "rejoin"): "rejoin",
+    ("agent", "#", "duplicate"): "duplicate",
     ("alive", "world", "*"): "alive-world",
     ("ticking", "world"): "ticking",
     ("alive", "agent", "#", "*"): "alive",
