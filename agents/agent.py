@@ -377,6 +377,7 @@ class Agent:
         self.est, self.rejoining, self.join_after, self._join_wanted = None, True, None, True
         self.collecting, self.own, self.deadline = False, None, math.inf
         self.k = max(self.k, self.newest + 1)
+        self.receiver.tick = max(self.receiver.tick, self.k)
         for by_tick in (self.ticks, self.meas, self.held):
             for old in [j for j in by_tick if j < self.k]:
                 del by_tick[old]
@@ -528,6 +529,7 @@ class Agent:
         to the others' fused estimates, to re-initialise from one (the main
         thread subscribes: ``_join_setup``)."""
         self.k = max(self.k, tick + 1)
+        self.receiver.tick = max(self.receiver.tick, self.k)  # the guard's window: the tick it may join at
         if not self.rejoining:
             self.rejoining = True
             self.log.info("the run is in progress: rejoining" + (f" (at tick {tick})" if tick else ""))
