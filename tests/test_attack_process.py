@@ -295,3 +295,25 @@ def test_kill_9_and_rejoin_from_the_neighbour_in_range(tmp_path):
     e_clean = metrics.errors(trace, ref)[0][0, :, j]
     window = slice(J + 20 - 1, J + 30 - 1)  # ticks J+20 .. J+29
     assert e_kill[window].mean() <= 2 * e_clean[window].mean(), (e_kill[window], e_clean[window])
+
+
+def test_completeness_in_the_results():
+    """The world's accounting of a record, without processes: counts, reasons,
+    the one line."""
+    from collections import Counter
+
+    from sim.world import WorldRecord, completeness, missing_line
+
+    K, N = 4, 3
+    rep = np.ones((K, N), dtype=bool)
+    why = np.full((K, N), "", dtype=object)
+    rep[1:, 1], why[1, 1], why[2, 1] = False, "left", "rejoining"   # tick 4: never opened ("not run")
+    rec = WorldRecord((1, 2, 3), None, None, None, None, rep, why=why, duplicates=Counter({3: 1}),
+                      rejoins={2: [{"tick": 4, "source": 1}]})
+    c = completeness(rec)
+    assert c["complete"] is False and c["agent_ticks"] == 12 and c["missing_agent_ticks"] == 3
+    assert c["missing"] == {"2": {"ticks": 3, "why": {"left": 1, "not run": 1, "rejoining": 1}}}
+    assert c["duplicate_ids"] == {"3": 1} and c["rejoins"] == {"2": [{"tick": 4, "source": 1}]}
+    assert missing_line(c).startswith("3 of 12 agent-ticks missing (25.0 %): agent 2: 3")
+    rep[:] = True
+    assert completeness(rec)["complete"] is True
