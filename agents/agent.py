@@ -26,15 +26,23 @@ messages are taken only when they fit the run (``_tick_problem``,
 ``_meas_problem``): a tick for k or k+1 (k the tick being worked on) with the
 run's constants, a measurement for k or k+1 of this agent's length within
 ``GuardConfig.max_abs``; every per-tick map is kept to a few ticks. The counters
-(``diskf_mesh.counters``) go to the world with every report. The
-agent exits 0 when the world says stop, and 1 with one line on stderr if the
-world goes away or stays silent for ``--world-timeout`` seconds.
+(``diskf_mesh.counters``) go to the world with every report.
+
+Exit status: 0 only when the world says stop with "done" at the run's last
+tick; 2 (one line) when another process already holds this agent's id in the
+run (``mesh.keys``: every token carries its process's nonce); 1 with one line
+on stderr otherwise: the world stopped the run early, or it has been gone
+(its liveliness token) or silent for ``--world-timeout`` seconds. While the
+world is gone the agent waits for it (a frozen world comes back).
 
 Link faults (``--loss``, ``--latency-ms``, ... or the scenario's
 ``[faults]``) act in the receive path on every link into this agent, seeded
 by the run's seed (from the world's first tick). An agent started while the
 run is in progress (a restart after a crash) joins at the world's next tick
 and re-initialises from a neighbour's fused estimate (``agents.rejoin``).
+So does an agent that was frozen (SIGSTOP) past zenoh's lease and finds,
+when it wakes, that the world dropped it: it withdraws its ready token,
+declares a new one and rejoins like a restart.
 
 ``--profile DIR`` writes where each tick's time went (``mesh.profile``).
 """
@@ -56,10 +64,10 @@ from diskf_mesh import wire
 from diskf_mesh.guard import Guard, GuardConfig
 from diskf_mesh.mesh import credentials, runspec, zenoh_config
 from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
-from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.keys import Keys, new_nonce, nonce
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.profile import AGENT_PHASES, NO_PHASES, Phases
-from diskf_mesh.mesh.transport import MeshError, Transport, ZenohTransport
+from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.faults import FaultConfig, FaultModel
 from diskf_mesh.faults import add_arguments as add_fault_arguments
 from diskf_mesh.faults import from_args as faults_from_args
@@ -69,6 +77,12 @@ from diskf_mesh.scenario import Scenario
 POLL_S = 0.5     # the main thread looks at the timeouts at least this often
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
 AHEAD_KEPT = 4   # ticks (and measurements) kept ahead of joining: a restart sees the world's latest
+FREEZE_S = 2.0   # the main thread this late: the process was not running (SIGSTOP, or starved)
+WOKE_S = 3.0     # a world token that goes within this long of waking from a freeze: we were dropped
+PEERS_WAIT_S = 5.0  # a (re)joining agent waits at most this long to see the live agents
+CLAIM_S = 1.0    # the liveliness query for another process holding this id
+DUPLICATE_SAY_S = 0.2  # a duplicate's word to the world is on the wire before it leaves
+REPORTS_WAIT_S = 1.0   # a rejoining agent waits at most this long for its neighbours' reports
 
 
 @dataclass(frozen=True)
@@ -125,6 +139,22 @@ class Agent:
         self.meas = {}       # k -> wire.Measurement (likewise)
         self.constants = None  # (K, seed, algorithm, topology, range) of the first tick taken
         self.alive = set()   # agent ids of the scenario with a liveliness token
+        self.alive_tokens = {}  # agent id -> nonces of its processes' tokens
+        self.nonce = new_nonce()  # this process's tokens end in it (mesh.keys)
+        self.claimed = False      # own alive token declared
+        self._ready_token = None
+        self._joins = 0           # ready tokens declared so far
+        self.join_after = 0       # join at the first tick after this that counts this agent live
+        self._join_wanted = True  # the main thread declares a (new) ready token
+        self.rejoins = []         # (tick, source) of every re-initialisation
+        self._worked = False      # has made an estimator once
+        self._reports_by = None   # joining: until when to wait for the neighbours' reports
+        self.last_report = None   # (k, payload) of the last report sent
+        self.K = None             # ticks in the run (the world's tick says)
+        self.newest = 0           # newest tick heard of
+        self.world_tokens = set()
+        self.world_gone_at = math.inf
+        self._woke_at = -math.inf  # when the main thread found it had been frozen
         self.linked = {}     # k -> ids of live agents in range at tick k (not this one), recent ticks
         self.world_seen = False
         self.world_ticking = False  # the world's "ticking" token: the run is past its start
@@ -139,7 +169,6 @@ class Agent:
         self._cv = threading.Condition(threading.RLock())  # the protocol state
         self._main_looks_at = 0.0  # when the main thread looks at the timeouts next (monotonic)
         self._advancing = False    # in _advance (a put may deliver to this process on the same thread)
-        self._reports_wanted = False     # rejoining: the main thread subscribes to the reports
         self._reports_subscribed = False
 
     # -- transport callbacks ---------------------------------------------------
@@ -170,8 +199,8 @@ class Agent:
 
     def _notify_main(self) -> None:
         """Wake the main thread if there is something for it (lock held)."""
-        if (self.est is None or self.stopped is not None or self.world_gone or self._reports_wanted
-                or self.deadline < self._main_looks_at):
+        if (self.est is None or self.stopped is not None or self.world_gone or self._join_wanted
+                or self.failure is not None or self.deadline < self._main_looks_at):
             self._cv.notify_all()
 
     # -- the world's messages and liveliness ---------------------------------
@@ -188,19 +217,29 @@ class Agent:
                     t = wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids))
                 finally:
                     self.prof.end("decode")
+                consts = (t.ticks, t.seed, t.algorithm, t.topology, t.comm_range)
                 if t.tick < self.k or t.tick in self.ticks:
                     self.last_heard = time.monotonic()
+                    if self.constants in (None, consts):
+                        self._repeat_report(t.tick)  # a world that lost the reports of that tick sends it again
                     return True
                 problem = self._tick_problem(t)
                 if problem is not None:
+                    if (problem[0] == "tick-future" and self.est is not None and consts == self.constants
+                            and t.tick <= t.ticks):
+                        # the world ran ahead of this agent (its tick timeout): rejoin where it is
+                        self.newest = max(self.newest, t.tick)
+                        self._resync(f"the world is at tick {t.tick}")
+                        return True
                     return self._refuse(kind, *problem)
                 self.last_heard = time.monotonic()
                 if self.constants is None:
-                    self.constants = (t.ticks, t.seed, t.algorithm, t.topology, t.comm_range)
+                    self.constants = consts
                     guard = self.receiver.guard
                     guard.config = dataclasses.replace(guard.config, ticks=t.ticks)
-                    if self.fault_config is not None and self.receiver.faults is None:
-                        self.receiver.use_faults(FaultModel(self.fault_config, t.seed))
+                self.K, self.newest = t.ticks, max(self.newest, t.tick)
+                if self.fault_config is not None and self.receiver.faults is None:
+                    self.receiver.use_faults(FaultModel(self.fault_config, t.seed))
                 self.ticks[t.tick] = t
                 # not live at a tick (joining later): linked to no one, nothing to fuse
                 self.linked[t.tick] = ((set(neighbours(self.scn, self.id, t.positions)) & set(t.live)) - {self.id}
@@ -236,12 +275,11 @@ class Agent:
             elif kind == "stop":
                 self.stopped = wire.decode_stop(payload, run_id=self.keys.run_id)
             elif kind == "alive-world":
-                self.world_seen |= payload
-                self.world_gone = self.world_seen and not payload
+                self._on_world_token(nonce(key), bool(payload))
             elif kind == "ticking":
                 self.world_ticking = bool(payload)
             elif kind == "alive" and who in self.ids:
-                (self.alive.add if payload else self.alive.discard)(who)
+                self._on_agent_token(who, nonce(key), bool(payload))
         except wire.Rejected as e:
             return self._refuse(kind, e.reason, e.detail)
         return True
@@ -300,19 +338,117 @@ class Agent:
         return self.receiver.on_payload(sender, payload, self.linked)
 
     def _check_world(self, deadline: float, what: str) -> None:
+        """Main thread: a failure of a callback, or the world gone or silent
+        past ``deadline`` (its last word + ``--world-timeout``)."""
         if self.failure is not None:
             raise self.failure
-        if self.world_gone and self.stopped is None:
-            raise MeshError(f"the world is gone (its liveliness token went) while {what}")
-        if time.monotonic() > deadline:
+        now = time.monotonic()
+        if now > deadline:
+            if self.world_gone:
+                raise MeshError(f"the world is gone (its liveliness token went {now - self.world_gone_at:.0f} s ago "
+                                f"and did not come back) while {what}")
             raise MeshError(f"no word from the world for {self.timing.world_timeout:g} s while {what}")
 
     def _wait(self, until: float) -> None:
-        """Main thread, lock held: sleep until notified or ``until``, at most ``POLL_S``."""
+        """Main thread, lock held: sleep until notified or ``until``, at most
+        ``POLL_S``. Waking much later than that means this process was
+        frozen (SIGSTOP): noted, for ``_on_world_token``."""
         now = time.monotonic()
         timeout = max(min(until, now + POLL_S), now) - now
         self._main_looks_at = now + timeout
         self._cv.wait(timeout)
+        now = time.monotonic()
+        if now - self._main_looks_at > FREEZE_S:
+            self._woke_at = now
+        self._main_looks_at = math.inf  # not waiting: a callback cannot tell a freeze from work
+
+    def _was_frozen(self) -> bool:
+        """In a callback: this process has just been frozen (its main thread
+        is long overdue, or found it had overslept a moment ago)."""
+        now = time.monotonic()
+        return now - self._main_looks_at > FREEZE_S or now - self._woke_at < WOKE_S
+
+    # -- liveliness ----------------------------------------------------------
+    def _on_world_token(self, nonce_: str, up: bool) -> None:
+        """The world's token came or went. Gone while this process was frozen
+        past zenoh's lease: the world has dropped this agent from the run, so
+        it rejoins (``_resync``). Gone otherwise: wait for it (a frozen world
+        comes back), at most ``--world-timeout``."""
+        was_gone = self.world_gone
+        (self.world_tokens.add if up else self.world_tokens.discard)(nonce_)
+        self.world_seen |= bool(self.world_tokens)
+        self.world_gone = self.world_seen and not self.world_tokens
+        if self.world_gone and not was_gone:
+            self.world_gone_at = time.monotonic()
+            if self.est is not None and self._was_frozen():
+                self._resync("this process was frozen past zenoh's lease")
+        elif was_gone and not self.world_gone:
+            self.world_gone_at = math.inf
+            self.log.info(f"the world is back (at tick {self.newest})")
+
+    def _on_agent_token(self, who: int, nonce_: str, up: bool) -> None:
+        """An agent's token came or went. One of this agent's id with a
+        smaller nonce (an earlier start) that appears after this one
+        declared its own: two processes started at once, this one leaves."""
+        if who not in self.ids:
+            return
+        held = self.alive_tokens.setdefault(who, set())
+        (held.add if up else held.discard)(nonce_)
+        (self.alive.add if held else self.alive.discard)(who)
+        if up and who == self.id and self.claimed and nonce_ < self.nonce and self.failure is None:
+            self.failure = self._duplicate(nonce_, "started earlier")
+
+    def _duplicate(self, other: str, how: str) -> DuplicateProcess:
+        return DuplicateProcess(f"agent id {self.id} is already held by another process in run "
+                                f"{self.keys.run_id!r} (token nonce {other}, {how}): this one leaves")
+
+    def claim_id(self) -> None:
+        """Main thread: declare this process's alive token, unless another
+        process already holds this id (a liveliness query, then what the
+        token watch has seen): then this one is the second, and leaves."""
+        others = {nonce(k) for k in self.transport.tokens(self.keys.alive(self.id), CLAIM_S)}
+        with self._cv:
+            others |= self.alive_tokens.get(self.id, set())
+            others.discard(self.nonce)
+            if others:  # tell the world (it counts duplicates), then leave
+                self.transport.put(self.keys.duplicate(self.id), self.nonce.encode())
+                time.sleep(DUPLICATE_SAY_S)
+                raise self._duplicate(min(others), "found before this one declared its own")
+            self.claimed = True
+        self.transport.declare_token(self.keys.alive(self.id, self.nonce))
+
+    def wait_world(self) -> None:
+        """Main thread: until the world's token is seen (this process is on
+        the network), at most ``--world-timeout``."""
+        with self._cv:
+            self.last_heard = time.monotonic()
+            deadline = self.last_heard + self.timing.world_timeout
+            while not self.world_seen and self.stopped is None:
+                self._check_world(deadline, "waiting for the world")
+                self._wait(deadline)
+
+    def _resync(self, why: str) -> None:
+        """Lock held: this agent is out of the run (the world dropped it, or
+        it missed a tick): drop the estimator and rejoin as a restarted
+        agent does (the main thread declares a new ready token)."""
+        if self.est is None:
+            return
+        self.log.info(f"tick {self.k}: out of the run ({why}): rejoining")
+        self.est, self.rejoining, self.join_after, self._join_wanted = None, True, None, True
+        self.collecting, self.own, self.deadline = False, None, math.inf
+        self.k = max(self.k, self.newest + 1)
+        self.receiver.advance(self.k)
+        for by_tick in (self.ticks, self.meas):
+            for old in [j for j in by_tick if j < self.k]:
+                del by_tick[old]
+        self.reports.clear()
+        self._cv.notify_all()
+
+    def _repeat_report(self, tick: int) -> None:
+        """The world sent tick ``tick`` again (it lost the reports of that
+        tick: it was frozen): send it this agent's report of it again."""
+        if self.last_report is not None and self.last_report[0] == tick == self.k - 1:
+            self.transport.put(self.keys.report(self.id), self.last_report[1])
 
     # -- the steps -----------------------------------------------------------
     def _advance(self) -> None:
@@ -331,10 +467,16 @@ class Agent:
         while self.failure is None and self.est is not None:
             k = self.k
             if not self.collecting:
-                if self.stopped is not None or k not in self.ticks or k not in self.meas:
+                if self.stopped is not None:
+                    return
+                if k in self.ticks and self.id not in self.ticks[k].live:
+                    return self._resync(f"the world counts this agent out at tick {k}")
+                if k not in self.ticks and any(j > k for j in self.ticks):
+                    return self._resync(f"tick {k} never came")
+                if k not in self.ticks or k not in self.meas:
                     return
                 self._open(k)
-            if not (self.linked[k] <= self.receiver.accounted(k) or self.stopped is not None or self.world_gone
+            if not (self.linked[k] <= self.receiver.accounted(k) or self.stopped is not None
                     or any(j > k for j in self.ticks) or time.monotonic() >= self.deadline):
                 return
             self._close(k)
@@ -381,6 +523,7 @@ class Agent:
         prof.begin()
         self.transport.put(self.keys.report(self.id), report)
         prof.end("publish")
+        self.last_report = (k, report)
         prof.tick()
         prof.waiting = "wait-world"
         self.ticks.pop(k, None)
@@ -390,74 +533,116 @@ class Agent:
 
     # -- protocol ----------------------------------------------------------
     def start(self) -> None:
+        """Subscribe and watch the tokens; the own tokens come later
+        (``claim_id``, ``_join_setup``)."""
         k = self.keys
         for key in (k.tick, k.meas(self.id), k.stop):
             self.transport.subscribe(key, self._on_sample)
         self.transport.subscribe(k.msg_to(self.id), self._on_sample)  # what its neighbours send it
         self.transport.watch_tokens(f"{k.root}/alive/**", self._on_sample)
         self.transport.watch_tokens(k.ticking, self._on_sample)
-        self.transport.declare_token(k.alive(self.id))
 
-    def wait_ready(self) -> None:
-        """Declare the ready token once the world and every agent are seen."""
+    def _join_setup(self) -> None:
+        """Main thread, without the lock (no transport call is made from a
+        callback): declare a ready token when one is wanted. At the start,
+        once the world and every agent are seen; joining a run in progress
+        (a restart, or a resync after a freeze) once the agents the world
+        counts live are seen (at most ``PEERS_WAIT_S``), after withdrawing
+        the old token and subscribing to the reports, to re-initialise from
+        a neighbour's. The world counts a token that appears mid-run live
+        from its tick after next, so the reports of the tick before this
+        agent's first one reach it; this agent joins at the first tick after
+        the newest it knew of when it declared."""
         with self._cv:
-            self.last_heard = time.monotonic()
+            if not self._join_wanted:
+                return
+            self._join_wanted = False
+            old, self._ready_token = self._ready_token, None
             deadline = self.last_heard + self.timing.world_timeout
             while not (self.world_seen and (self.alive >= set(self.ids) or self.world_ticking)) \
-                    and self.stopped is None:
+                    and self.stopped is None and self.failure is None:
                 self._check_world(deadline, "waiting for the world and every agent")
                 self._wait(deadline)
             if self.world_ticking and self.est is None:
-                self._joining(max(self.ticks, default=0))
-        self._subscribe_reports()
-        self.transport.declare_token(self.keys.ready(self.id))
+                self._joining(self.newest)
+            subscribe = self.rejoining and not self._reports_subscribed
+        if old is not None:
+            old.undeclare()
+        if subscribe:
+            self._reports_subscribed = True
+            self.transport.subscribe(self.keys.report("*"), self._on_sample)
+        with self._cv:
+            if self.rejoining:
+                peers_by = time.monotonic() + PEERS_WAIT_S
+                while not (not self.ticks or set(self.ticks[max(self.ticks)].live) - {self.id} <= self.alive) \
+                        and time.monotonic() < peers_by and self.stopped is None and self.failure is None:
+                    self._wait(peers_by)
+            self.join_after = self.newest
+            self._joins += 1
+        self._ready_token = self.transport.declare_token(self.keys.ready(self.id, f"{self.nonce}.{self._joins}"))
 
     def _joining(self, tick: int) -> None:
         """The world is at ``tick`` without this agent: a restart joining a run
         in progress. It cannot join before the next tick; meanwhile it listens
         to the others' fused estimates, to re-initialise from one (the main
-        thread subscribes: ``_subscribe_reports``)."""
+        thread subscribes: ``_join_setup``)."""
         self.k = max(self.k, tick + 1)
+        self.receiver.advance(self.k)  # the guard's window: the tick it may join at
         if not self.rejoining:
             self.rejoining = True
-            self._reports_wanted = True
             self.log.info("the run is in progress: rejoining" + (f" (at tick {tick})" if tick else ""))
-
-    def _subscribe_reports(self) -> None:
-        """Main thread, without the lock (a subscription is never made from a
-        transport callback)."""
-        with self._cv:
-            wanted = self._reports_wanted and not self._reports_subscribed
-            self._reports_wanted = False
-        if wanted:
-            self._reports_subscribed = True
-            self.transport.subscribe(self.keys.report("*"), self._on_sample)
 
     def _join(self) -> bool:
         """Main thread, lock held: the first tick this agent works on. Once
-        the world counts it live at a tick k (1, or the tick after a
-        rejoining agent became ready) and tick k's messages are in, make the
-        estimator (a rejoining agent re-initialises it) and start working."""
-        mine = [t for t, tk in self.ticks.items() if self.id in tk.live]
+        the world counts it live at a tick k after ``join_after`` (1, or the
+        tick after next once it saw a rejoining agent's ready token) and tick
+        k's messages are in, make the estimator (a rejoining agent
+        re-initialises it) and start working."""
+        if self.join_after is None:
+            return False
+        mine = [t for t, tk in self.ticks.items() if t > self.join_after and self.id in tk.live]
         if not mine:
             return False
         self.k = min(mine)
-        for t in [t for t in self.ticks if t < self.k - 1]:  # tick k - 1 is kept for the re-initialisation
-            del self.ticks[t]
-        if self.k not in self.meas:
+        for by_tick in (self.ticks, self.meas):
+            for t in [t for t in by_tick if t < self.k]:
+                del by_tick[t]
+        if self.k not in self.meas or not self._reports_in(self.k):
             return False
         est = self._make_estimator(self.ticks[self.k])
-        self.prof.start()  # measured from the first tick this agent works on
+        if not self._worked:
+            self._worked = True
+            self.prof.start()  # measured from the first tick this agent works on
         self.est = est
-        if self.rejoining:
+        if self.rejoining and self.k > 1:  # at tick 1 (a run started without some agents) all start alike
             self._reinitialise(self.k)
         return True
 
+    def _reports_in(self, k: int) -> bool:
+        """A rejoining agent joining at tick k: whether the reports of tick
+        k - 1 of the agents in range then (and live at k) are in, to
+        re-initialise from the best of them; a report may come after the
+        world's tick k (another path), so it waits at most
+        ``REPORTS_WAIT_S``."""
+        if not self.rejoining or k == 1:
+            return True
+        now = time.monotonic()
+        if self._reports_by is None:
+            self._reports_by = now + REPORTS_WAIT_S
+        want = rejoin.in_range(self.scn, self.id, k - 1) & set(self.ticks[k].live)
+        if want <= set(self.reports.get(k - 1, ())) or now >= self._reports_by:
+            self._reports_by = None
+            return True
+        return False
+
     def _reinitialise(self, k: int) -> None:
-        """A rejoining agent's estimate of tick k - 1 (``agents.rejoin``)."""
-        before = self.ticks.pop(k - 1, None)
-        near = () if before is None else (set(neighbours(self.scn, self.id, before.positions)) & set(before.live))
-        src = rejoin.reinitialise(self.est, self.reports.get(k - 1, {}), set(near) - {self.id})
+        """A rejoining agent's estimate of tick k - 1 (``agents.rejoin``): the
+        agents in range then follow from the scenario's motion, the ones
+        live then from who reported; the world is told the source."""
+        near = rejoin.in_range(self.scn, self.id, k - 1) if k > 1 else set()
+        src = rejoin.reinitialise(self.est, self.reports.get(k - 1, {}), near)
+        self.rejoins.append((k, src))
+        self.transport.put(self.keys.rejoin(self.id), wire.encode_rejoin(self.keys.run_id, self.id, k, src))
         self.log.info(f"joined at tick {k}, re-initialised from "
                       + (f"agent {src}'s fused estimate of tick {k - 1}" if src is not None else "the prior"))
         self.reports.clear()
@@ -471,10 +656,14 @@ class Agent:
         return AgentEstimator(self.scn, self.id, self.algorithm, t.ticks, t.seed)
 
     def run(self) -> int:
+        """The run, to the world's stop; returns the ticks worked on. Raises
+        ``MeshError`` (``DuplicateProcess``) unless the stop is the world's
+        "done" at the run's last tick."""
         self.start()
-        self.wait_ready()
+        self.wait_world()
+        self.claim_id()
         while True:
-            self._subscribe_reports()
+            self._join_setup()
             with self._cv:
                 if self.est is None and self.stopped is None:
                     self._join()
@@ -490,6 +679,10 @@ class Agent:
                 self._wait(min(until, self.deadline))
         self.prof.stop()
         self.receiver.close()
+        st = self.stopped
+        if st.why != "done" or st.tick != self.K:
+            raise MeshError(f"the world stopped the run at tick {st.tick}"
+                            + (f" of {self.K}" if self.K else "") + f": {st.why}")
         return self.k - 1
 
 
@@ -541,7 +734,7 @@ def run(args: argparse.Namespace) -> int:
             agent.run()
     except MeshError as e:
         log.error(str(e))
-        return 1
+        return e.status
     finally:
         if prof:
             prof.write(args.profile, f"agent-{args.agent_id}")

@@ -36,7 +36,11 @@ kind "meas" (world -> one agent on its own key; ``Measurement``)::
 
     "to" agent id, "has" bool, "y" p_i float64 (empty when has is false)
 
-kind "stop" (world -> everyone): "why" a short text.
+kind "stop" (world -> everyone): "why" a short text ("done" after the last tick).
+
+kind "rejoin" (agent -> world, once per (re)join; ``Rejoin``): "t" the tick it
+joined at, "s" sender, "src" the agent whose fused estimate of tick "t" - 1 it
+re-initialised from, or -1 for its prior.
 
 ``decode_*`` either returns a dataclass or raises ``Rejected`` with one of
 ``REASONS``, never anything else, whatever the bytes.
@@ -150,6 +154,14 @@ class Stop:
     why: str
 
 
+@dataclass(frozen=True)
+class Rejoin:
+    run_id: str
+    sender: int
+    tick: int
+    source: int | None  # None: the prior
+
+
 # --------------------------------------------------------------------------
 # encoding
 # --------------------------------------------------------------------------
@@ -198,6 +210,11 @@ def encode_measurement(run_id: str, tick: int, agent: int, has: bool, y) -> byte
 
 def encode_stop(run_id: str, tick: int, why: str) -> bytes:
     return _pack({"v": SCHEMA, "k": "stop", "run": run_id, "t": int(tick), "why": str(why)})
+
+
+def encode_rejoin(run_id: str, sender: int, tick: int, source: int | None) -> bytes:
+    return _pack({"v": SCHEMA, "k": "rejoin", "run": run_id, "t": int(tick), "s": int(sender),
+                  "src": -1 if source is None else int(source)})
 
 
 # --------------------------------------------------------------------------
@@ -494,3 +511,9 @@ def decode_measurement(data, *, run_id: str | None = None, agent: int | None = N
 def decode_stop(data, *, run_id: str | None = None) -> Stop:
     doc = _open(data, "stop", run_id, limits("stop"))
     return Stop(doc["run"], doc["t"], str(doc.get("why", "")))
+
+
+def decode_rejoin(data, *, run_id: str | None = None, sender: int | None = None) -> Rejoin:
+    doc = _open(data, "rejoin", run_id)
+    s, src = _check_sender(doc, sender), _field(doc, "src", int)
+    return Rejoin(doc["run"], s, doc["t"], None if src < 0 else src)

@@ -4,7 +4,15 @@ It starts the world and every agent of the scenario as separate processes
 (``python -m sim.world``, ``python -m agents.agent``), shows the ticks as a
 progress bar, prints the metrics table and writes the results. If any child
 fails, or on Ctrl-C, it stops every child it started and says which one
-failed and why (exit code, last line of its stderr; full logs in --logs).
+failed and why (exit code, last line of its stderr; full logs in --logs);
+the world, stopped, still writes what it measured. With ``--allow-missing``
+an agent that fails does not end the run: the world accounts its missing
+ticks.
+
+Exit status: 0 when every agent reported every tick (or the missing share is
+within ``--allow-missing``: a warning line says what is missing); 3 with one
+line when agent-ticks are missing (the world's verdict, ``sim.world``); 1
+when a child failed; 2 on bad input.
 
 Every run is authenticated: ``up`` makes a fresh certificate authority and
 one certificate per process (``diskf_mesh.mesh.credentials``) in a private
@@ -44,8 +52,10 @@ from diskf_mesh.faults import from_args as faults_from_args
 from diskf_mesh.mesh import credentials, runspec, zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from sim.world import INCOMPLETE, add_allow_missing, missing_line
 
 STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
+WORLD_STOP_GRACE_S = 20.0  # the world, stopped, writes its results first
 
 
 PORTS_BELOW_EPHEMERAL = 12000  # how many ports below the ephemeral range to pick the world's from
@@ -115,8 +125,12 @@ def _die_with_parent() -> None:
 class Launcher:
     """Starts, watches and stops the children of one run."""
 
-    def __init__(self, world: Child, agents: list, progress=None, first_tick=None):
+    def __init__(self, world: Child, agents: list, progress=None, first_tick=None, tolerate_agents: bool = False):
+        """``tolerate_agents``: an agent that fails does not end the run (the
+        world counts its missing ticks); ``failed_agents`` lists them."""
         self.world = world
+        self.tolerate_agents = tolerate_agents
+        self.failed_agents = []
         self.agents = agents
         self.children = [world, *agents]
         self.progress = progress
@@ -158,31 +172,39 @@ class Launcher:
                 if self.progress is not None:
                     self.progress(k, int(parts[2]))
 
-    def wait(self, timeout: float) -> None:
-        """Until the world ends; raises ``ChildFailed`` on the first failure."""
+    def wait(self, timeout: float) -> int:
+        """Until the world ends; returns its exit status, 0 or ``INCOMPLETE``
+        (a run with missing agent-ticks: the world wrote its results and its
+        verdict). Raises ``ChildFailed`` on the first failure (any other
+        status of the world; an agent's, unless ``tolerate_agents``)."""
         deadline = time.monotonic() + timeout
         while True:
             self._drain()
             rc = self.world.proc.poll()
             if rc is not None:
                 self._drain()
-                if rc != 0:
+                if rc not in (0, INCOMPLETE):
                     raise ChildFailed(self.world, rc)
-                return
+                return rc
             for a in self.agents:
                 rc = a.proc.poll()
-                if rc:  # an agent exits 0 only on the world's stop
-                    raise ChildFailed(a, rc)
+                if rc and a not in self.failed_agents:  # an agent exits 0 only on the world's "done"
+                    if not self.tolerate_agents:
+                        raise ChildFailed(a, rc)
+                    self.failed_agents.append(a)
             if time.monotonic() > deadline:
                 raise ChildFailed(self.world, None, f"still running after {timeout:g} s")
             time.sleep(0.02)
 
     def finish(self, timeout: float = 5.0) -> list:
         """After the world: agents leave on its stop. Returns the agents that
-        did not exit 0 in time (they are stopped)."""
+        did not exit 0 in time (they are stopped), those that failed during
+        a tolerated run first."""
         deadline = time.monotonic() + timeout
-        bad = []
+        bad = list(self.failed_agents)
         for a in self.agents:
+            if a in bad:
+                continue
             try:
                 rc = a.proc.wait(max(deadline - time.monotonic(), 0.01))
             except subprocess.TimeoutExpired:
@@ -193,12 +215,14 @@ class Launcher:
         return bad
 
     def stop_all(self) -> None:
-        """SIGTERM every running child, SIGKILL what is left after a grace."""
+        """SIGTERM every running child, SIGKILL what is left after a grace
+        (the world's is longer: it writes what it measured)."""
         live = [c for c in self.children if c.proc is not None and c.proc.poll() is None]
         for c in live:
             _signal(c.proc, signal.SIGTERM)
-        deadline = time.monotonic() + STOP_GRACE_S
+        t0 = time.monotonic()
         for c in live:
+            deadline = t0 + (WORLD_STOP_GRACE_S if c is self.world else STOP_GRACE_S)
             try:
                 c.proc.wait(max(deadline - time.monotonic(), 0.01))
             except subprocess.TimeoutExpired:
@@ -249,6 +273,7 @@ def register(subparsers) -> None:
                    help="world: seconds to wait for the reports of a tick (default %(default)s)")
     p.add_argument("--collect-timeout", type=float, default=5.0, metavar="S",
                    help="agents: seconds to wait for neighbours' messages (default %(default)s)")
+    add_allow_missing(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--profile", metavar="DIR",
                    help="world and agents measure where each tick's time goes: DIR/world.json, "
@@ -308,6 +333,8 @@ def _run(args: argparse.Namespace, private: Path) -> int:
         world_extra += ["--estimates", args.estimates]
     if args.profile:
         world_extra += ["--profile", args.profile]
+    if args.allow_missing:
+        world_extra += ["--allow-missing", repr(args.allow_missing)]
     agent_extra = ["--collect-timeout", str(args.collect_timeout),
                    "--world-timeout", str(args.startup_timeout + 2 * args.tick_timeout)]
     if args.profile:
@@ -327,10 +354,11 @@ def _run(args: argparse.Namespace, private: Path) -> int:
     def progress(k, K):
         bar.update(k - bar.n)
 
-    launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()))
+    launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()),
+                        tolerate_agents=args.allow_missing > 0)
     try:
         launcher.start()
-        launcher.wait(args.startup_timeout + ticks * args.tick_timeout + 30.0)
+        world_rc = launcher.wait(args.startup_timeout + ticks * args.tick_timeout + 30.0)
     except ChildFailed as e:
         bar.close()
         launcher.stop_all()
@@ -352,7 +380,20 @@ def _run(args: argparse.Namespace, private: Path) -> int:
           f"first tick after {first:.2f} s, {ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
     print(format_table(results))
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "") + f", logs: {logs}")
-    return 0
+    return verdict(next(iter(next(iter(results.values())).values())), world_rc, args.allow_missing)
+
+
+def verdict(row: dict, world_rc: int, allow_missing: float) -> int:
+    """``up``'s exit status from the world's (0 or ``INCOMPLETE``) and its
+    results: one line on stderr when agent-ticks are missing."""
+    if row.get("complete", True) and world_rc == 0:
+        return 0
+    line = missing_line(row)
+    if world_rc == 0:
+        print(f"warning: incomplete run accepted (--allow-missing {allow_missing:g}): {line}", file=sys.stderr)
+        return 0
+    print(f"error: incomplete run: {line}", file=sys.stderr)
+    return world_rc
 
 
 if __name__ == "__main__":

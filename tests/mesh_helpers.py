@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from diskf_mesh.scenario import simulate
-from sim.launcher import Launcher, build_children, free_port, loopback_options
+from sim.launcher import Child, Launcher, build_children, free_port, loopback_options
 
 TOL = 1e-9
 
@@ -98,3 +99,52 @@ def start_mesh(spec: RunSpec, ticks: int, seed: int, tmp_path: Path, world_zenoh
     mesh.run_id, mesh.credentials = spec.run_id, world_zenoh.credentials
     mesh.start_world()
     return mesh
+
+
+LEASE_MS = 3000  # zenoh's lease in the process-fault tests (default 10 s): a freeze past it is detected fast
+
+
+def with_lease(options, lease_ms: int = LEASE_MS):
+    """ZenohOptions with zenoh's link lease shortened (``--cfg``)."""
+    return replace(options, cfg=(*options.cfg, f"transport/link/tx/lease:{int(lease_ms)}"))
+
+
+class Progress:
+    """The world's ``tick k K`` lines (``--progress lines``) as they come."""
+
+    def __init__(self, mesh):
+        self.mesh, self.tick = mesh, 0
+        mesh.progress = self._on
+
+    def _on(self, k, K):
+        self.tick = k
+
+    def wait_for(self, k: int, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while self.tick < k:
+            self.mesh._drain()
+            assert self.mesh.world.proc.poll() is None, f"world ended at tick {self.tick}"
+            assert time.monotonic() < deadline, f"tick {k} not reached in {timeout} s (at {self.tick})"
+            time.sleep(0.01)
+
+    def follow(self, timeout: float) -> int:
+        """Until the world ends; its exit status."""
+        deadline = time.monotonic() + timeout
+        while self.mesh.world.proc.poll() is None:
+            self.mesh._drain()
+            assert time.monotonic() < deadline, f"the world still runs after {timeout} s (at tick {self.tick})"
+            time.sleep(0.02)
+        self.mesh._drain()
+        return self.mesh.world.proc.returncode
+
+
+def spawn(child: Child) -> Child:
+    """Start one more process (a restart, a duplicate) with the launcher's settings."""
+    with open(child.log, "wb") as err:
+        child.proc = subprocess.Popen(child.argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                                      start_new_session=True)
+    return child
+
+
+def error_lines(child: Child) -> list:
+    return [ln for ln in child.log.read_text().splitlines() if ln.startswith("error:")]

@@ -19,13 +19,13 @@ from diskf_mesh import engine, wire
 from diskf_mesh.counters import Counters
 from diskf_mesh.faults import FaultConfig, delivered_links
 from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.runspec import RunSpec, agent_command
+from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.transport import ZenohTransport
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from diskf_mesh.scenario import simulate
-from sim.launcher import Child, free_port
+from sim.launcher import free_port
 
-from mesh_helpers import assert_same, reference, start_mesh, up
+from mesh_helpers import Progress, assert_same, reference, start_mesh, up
 from message_factory import tick_view
 
 pytestmark = pytest.mark.mesh
@@ -115,98 +115,26 @@ def test_duplicates_and_reordering(tmp_path):
 
 
 # --------------------------------------------------------------------------
-# node faults
+# node faults (kill -9 and rejoin, freezes, duplicates: tests/test_attack_process.py)
 # --------------------------------------------------------------------------
-class Progress:
-    def __init__(self, mesh):
-        self.mesh, self.tick = mesh, 0
-        mesh.progress = self._on
-
-    def _on(self, k, K):
-        self.tick = k
-
-    def wait_for(self, k: int, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        while self.tick < k:
-            self.mesh._drain()
-            assert self.mesh.world.proc.poll() is None, f"world ended at tick {self.tick}"
-            assert time.monotonic() < deadline, f"tick {k} not reached in {timeout} s (at {self.tick})"
-            time.sleep(0.01)
-
-
-def spawn(child: Child) -> Child:
-    with open(child.log, "wb") as err:
-        child.proc = subprocess.Popen(child.argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
-                                      start_new_session=True)
-    return child
-
-
-def test_kill_9_and_rejoin(tmp_path):
-    spec = RunSpec(SCENARIO, "diskf", run_id="rejoin")
-    ticks, seed, victim = 200, 4, 5
-    mesh = start_mesh(spec, ticks, seed, tmp_path, world_extra=["--progress", "lines", "--json",
-                                                                 str(tmp_path / "res.json")],
-                      # 25 ms link latency paces the run (about 40 ticks/s at most), so that the
-                      # restarted process, which needs a few seconds to start, rejoins well before the end
-                      agent_extra=["--collect-timeout", "1", "--world-timeout", "20", "--latency-ms", "25"])
-    extra = []
-    try:
-        progress = Progress(mesh)
-        mesh.start_agents()
-        progress.wait_for(15, 30)
-        old = next(a for a in mesh.agents if a.name == f"agent {victim}")
-        os.kill(old.proc.pid, signal.SIGKILL)
-        assert old.proc.wait(5) == -signal.SIGKILL
-        killed_at = progress.tick
-        restarted = spawn(Child(f"agent {victim} (restarted)", old.argv, tmp_path / "logs" / "agent-restarted.log"))
-        extra.append(restarted)
-        while mesh.world.proc.poll() is None:
-            mesh._drain()
-            time.sleep(0.02)
-            assert restarted.proc.poll() in (None, 0), restarted.last_error_line()
-        assert mesh.world.proc.wait(60) == 0, mesh.world.last_error_line()
-        assert restarted.proc.wait(10) == 0, restarted.last_error_line()
-        assert all(a.proc.wait(10) == 0 for a in mesh.agents if a is not old)
-    finally:
-        mesh.stop_all()
-        for c in extra:
-            if c.proc.poll() is None:
-                c.proc.kill()
-                c.proc.wait(5)
-    est = json.loads((tmp_path / "est.json").read_text())
-    res = json.loads((tmp_path / "res.json").read_text())
-    reported = np.array(est["reported"])
-    j = est["ids"].index(victim)
-    others = np.delete(reported, j, axis=1)
-    assert others.all(), "the other agents missed ticks"
-    gap = np.flatnonzero(~reported[:, j]) + 1
-    assert len(gap) > 0 and gap[0] >= killed_at - 1 and (np.diff(gap) == 1).all(), gap
-    assert reported[gap[-1]:, j].all(), "the restarted agent did not report to the end"
-    assert res["diskf"][SETTING]["missing_ticks"] == {str(victim): gap.tolist()}
-    log = restarted.log.read_text()
-    assert "rejoining" in log and "re-initialised from" in log
-    assert f"agent {victim} is gone" in mesh.world.log.read_text()
-    # the estimates of the agents that never left are finite and reported all along
-    x = np.array(est["x"], dtype=float)
-    assert np.isfinite(np.delete(x, j, axis=1)).all()
-
-
 def test_world_death_ends_every_agent_in_one_line(tmp_path):
+    """The world killed: every agent waits ``--world-timeout`` for it to come
+    back (a frozen world does), then exits 1 with one line."""
     spec = RunSpec(SCENARIO, "diskf", run_id="worlddeath")
     mesh = start_mesh(spec, 400, 0, tmp_path, world_extra=["--progress", "lines"],
-                      agent_extra=["--world-timeout", "30"])
+                      agent_extra=["--world-timeout", "4"])
     try:
         progress = Progress(mesh)
         mesh.start_agents()
         progress.wait_for(10, 30)
         os.kill(mesh.world.proc.pid, signal.SIGKILL)
         t0 = time.monotonic()
-        rcs = [a.proc.wait(15) for a in mesh.agents]
+        rcs = [a.proc.wait(20) for a in mesh.agents]
         took = time.monotonic() - t0
     finally:
         mesh.stop_all()
     assert rcs == [1] * len(mesh.agents)
-    assert took < 10
+    assert 3 < took < 15
     for a in mesh.agents:
         lines = [ln for ln in a.log.read_text().splitlines() if ln.strip()]
         errors = [ln for ln in lines if ln.startswith("error:")]
@@ -226,11 +154,35 @@ def _pids_of(run_id: str) -> list:
     return out
 
 
-def test_up_names_the_child_that_died(tmp_path):
-    run_id = f"upkill{os.getpid()}"
-    up_proc = subprocess.Popen([sys.executable, "-m", "sim.launcher", "--scenario", SCENARIO, "--ticks", "100000",
+def _wait_until_ready(run_id: str, n: int, timeout: float) -> None:
+    """Until ``n`` agents of run ``run_id`` (under ``up``: its world's port from
+    its command line) hold their ready tokens."""
+    deadline = time.monotonic() + timeout
+    port = None
+    while port is None and time.monotonic() < deadline:
+        port = next((cmd[cmd.index("--listen") + 1] for _, cmd in _pids_of(run_id) if "sim.world" in cmd), None)
+        time.sleep(0.2)
+    assert port is not None, "no world"
+    seen, keys = set(), Keys(run_id)
+    with ZenohTransport(ZenohOptions(connect=(port,), listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)) as z:
+        z.watch_tokens(keys.ready("*"), lambda key, up: seen.add(key) if up else seen.discard(key))
+        while len(seen) < n:
+            assert time.monotonic() < deadline, f"{len(seen)} of {n} agents ready after {timeout} s"
+            time.sleep(0.2)
+
+
+@pytest.mark.parametrize("allow", [None, "1"])
+def test_up_names_the_child_that_died(tmp_path, allow):
+    """An agent killed under ``up``: without ``--allow-missing`` up stops every
+    child, names the dead one and exits 1, and the world (stopped) still
+    writes what it measured, complete: false; with it, the run goes on
+    without that agent and up exits 0 with one warning line."""
+    run_id = f"upkill{os.getpid()}{'a' if allow else ''}"
+    ticks = 300 if allow else 3000  # without: far more than the run lasts (25 ms latency: 40 ticks/s at most)
+    up_proc = subprocess.Popen([sys.executable, "-m", "sim.launcher", "--scenario", SCENARIO, "--ticks", str(ticks),
                                 "--run-id", run_id, "--quiet", "--json", str(tmp_path / "r.json"),
-                                "--logs", str(tmp_path / "logs")],
+                                "--logs", str(tmp_path / "logs"), "--latency-ms", "25",
+                                *(["--allow-missing", allow] if allow else [])],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30
@@ -240,15 +192,24 @@ def test_up_names_the_child_that_died(tmp_path):
                            if "agents.agent" in cmd and cmd[cmd.index("--id") + 1] == "7"), None)
             time.sleep(0.2)
         assert victim is not None, "agent 7 never started"
-        time.sleep(4)  # let the run get going
+        _wait_until_ready(run_id, 9, timeout=120)  # the run is about to start (a busy machine is slow to start)
+        time.sleep(1)
         os.kill(victim, signal.SIGKILL)
-        _, err = up_proc.communicate(timeout=30)
+        _, err = up_proc.communicate(timeout=150)
     finally:
         if up_proc.poll() is None:
             up_proc.kill()
             up_proc.communicate(timeout=10)
-    assert up_proc.returncode == 1
-    assert "agent 7 failed (killed by signal 9)" in err and "stopped 10 processes" in err, err
+    row = json.loads((tmp_path / "r.json").read_text())["diskf"][SETTING]
+    assert row["complete"] is False and "7" in row["missing"]
+    if allow:
+        assert list(row["missing"]) == ["7"]
+        assert up_proc.returncode == 0, err
+        assert len([ln for ln in err.splitlines() if ln.startswith("warning: incomplete run")]) == 1, err
+        assert row["missing"]["7"]["ticks"] == row["missing_agent_ticks"] > 0
+    else:
+        assert up_proc.returncode == 1
+        assert "agent 7 failed (killed by signal 9)" in err and "stopped 10 processes" in err, err
     time.sleep(0.5)
     assert _pids_of(run_id) == [], "children left behind"
 

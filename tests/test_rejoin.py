@@ -37,3 +37,17 @@ def test_no_linked_neighbour_keeps_the_prior():
     assert reinitialise(est, {1: report(1, 1.0)}, linked={2}) is None
     assert est.state is before
     np.testing.assert_array_equal(est.state.x[0, 0], scn.x0)
+
+
+def test_in_range_follows_the_scenario_geometry():
+    """Who a rejoining agent re-initialises from is found from the
+    scenario's motion alone: the same links as the simulation's."""
+    from agents.rejoin import in_range
+    from diskf_mesh.scenario import simulate
+
+    scn = load_scenario("dynamic").with_overrides(steps=120)
+    links = simulate(scn, [0]).links[0]
+    ids = [a.id for a in scn.agents]
+    for k in (1, 17, 60, 119):
+        for j, i in enumerate(ids):
+            assert in_range(scn, i, k) == {ids[q] for q in np.flatnonzero(links[k - 1, j]) if q != j}

@@ -26,10 +26,11 @@ process applies the same policy to what it receives (ingress) from each
 peer, by the peer's certificate:
 
     world        put               diskf/<run>/world/**
-                 liveliness token  diskf/<run>/alive/world, diskf/<run>/ticking/world
-                 subscribe         diskf/<run>/agent/*/report; tokens diskf/<run>/*/agent/*
+                 liveliness token  diskf/<run>/alive/world/<nonce>, diskf/<run>/ticking/world
+                 subscribe         diskf/<run>/agent/*/{report,rejoin,duplicate};
+                                   tokens diskf/<run>/*/agent/*/*, diskf/<run>/alive/world/*
     agent-<i>    put               diskf/<run>/agent/<i>/**
-                 liveliness token  diskf/<run>/alive/agent/<i>, diskf/<run>/ready/agent/<i>
+                 liveliness token  diskf/<run>/alive/agent/<i>/<nonce>, diskf/<run>/ready/agent/<i>/<nonce>
                  subscribe         the world's tick and stop, its own measurement
                                    diskf/<run>/world/meas/<i>, the messages addressed to
                                    it, the reports (rejoining); tokens alive/**, ticking/world
@@ -223,17 +224,17 @@ def access_control(run_id: str, agents, observer: bool = True) -> dict:
             *rule_ids, "egress"]})
 
     rule("egress", [m for m in ALL_MESSAGES if m != "put"], [f"{r}/**"], flows=("egress",))
-    grant(WORLD, [f"{r}/agent/*/report"],
+    grant(WORLD, [f"{r}/agent/*/report", f"{r}/agent/*/rejoin", f"{r}/agent/*/duplicate"],
           rule("world-put", ("put",), [f"{r}/world/**"]),
-          rule("world-tokens", ("liveliness_token",), [f"{r}/alive/world", f"{r}/ticking/world"]),
-          rule("world-watch", WATCH, [f"{r}/*/agent/*"]))
+          rule("world-tokens", ("liveliness_token",), [f"{r}/alive/world/*", f"{r}/ticking/world"]),
+          rule("world-watch", WATCH, [f"{r}/*/agent/*/*", f"{r}/alive/world/*"]))
     watch = rule("agent-watch", WATCH, [f"{r}/alive/**", f"{r}/ticking/world"])
     for i in agents:
         who = agent_identity(i)
         grant(who, [f"{r}/world/tick", f"{r}/world/stop", f"{r}/world/meas/{i}", f"{r}/agent/*/msg/$*_{i}_$*",
                     f"{r}/agent/*/report"],
               rule(f"{who}-put", ("put",), [f"{r}/agent/{i}/**"]),
-              rule(f"{who}-tokens", ("liveliness_token",), [f"{r}/alive/agent/{i}", f"{r}/ready/agent/{i}"]),
+              rule(f"{who}-tokens", ("liveliness_token",), [f"{r}/alive/agent/{i}/*", f"{r}/ready/agent/{i}/*"]),
               watch)
     if observer:
         grant(OBSERVER, [f"{r}/**"], rule("observer-watch", WATCH, [f"{r}/**"]))

@@ -16,15 +16,28 @@ letters, digits, ``-`` and ``_``):
     diskf/<run>/agent/<id>/msg         no address: no agent subscribes to it (a watcher of
                                                          ``msgs`` sees it; "msg")
     diskf/<run>/agent/<id>/report      agent -> world    its fused estimate of tick k ("report")
-    diskf/<run>/alive/world            liveliness token  the world is up
+    diskf/<run>/agent/<id>/rejoin      agent -> world    it re-initialised, from which source ("rejoin")
+    diskf/<run>/agent/<id>/duplicate   agent -> world    a second process of this id, leaving; the
+                                                         payload is its nonce ("duplicate")
+    diskf/<run>/alive/world/<nonce>    liveliness token  the world is up
     diskf/<run>/ticking/world          liveliness token  the world has started tick 1: an agent
                                                          that sees it before it is ready is a
                                                          restart joining a run in progress
-    diskf/<run>/alive/agent/<id>       liveliness token  agent id is up and subscribed
-    diskf/<run>/ready/agent/<id>       liveliness token  agent id sees the world and every other
+    diskf/<run>/alive/agent/<id>/<nonce>  liveliness     agent id is up and subscribed
+    diskf/<run>/ready/agent/<id>/<nonce>  liveliness     agent id sees the world and every other
                                                          agent of the scenario (so its message
                                                          reaches them all); the world starts
                                                          tick 1 once every agent is ready
+
+Every process's tokens end in its own ``<nonce>`` (``new_nonce``: its start
+time in nanoseconds, 16 hex digits, then 8 random hex digits), so two
+processes holding one id (or two worlds of one run id) hold two distinct
+tokens and everyone sees both: a process that finds a token of its id before
+declaring its own is the second and leaves (exit 2); two that declared at
+the same moment compare nonces, and the larger (the later start) leaves.
+A ready token's nonce has a join count after a dot (``<nonce>.<n>``): an
+agent that fell out of the run (frozen past zenoh's lease) withdraws it and
+declares the next to rejoin.
 
 An agent publishes its one message of a tick on a key that names the agents
 in range at that tick (it knows every position and the live set from the
@@ -40,6 +53,8 @@ from __future__ import annotations
 
 import functools
 import re
+import secrets
+import time
 from dataclasses import dataclass
 
 from ..errors import InputError
@@ -47,6 +62,12 @@ from ..errors import InputError
 PREFIX = "diskf"
 CACHED_KEY = 512  # longest key whose parse is remembered (4,096 of them at most)
 _RUN_ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+
+
+def new_nonce() -> str:
+    """This process's token suffix: start time (ns, hex) then random, so that
+    nonces sort by start and two processes never share one."""
+    return f"{time.time_ns():016x}{secrets.token_hex(4)}"
 
 
 def check_run_id(run_id: str) -> str:
@@ -96,20 +117,30 @@ class Keys:
     def report(self, agent) -> str:
         return f"{self.root}/agent/{agent}/report"
 
-    # liveliness
+    def rejoin(self, agent) -> str:
+        return f"{self.root}/agent/{agent}/rejoin"
+
+    def duplicate(self, agent) -> str:
+        return f"{self.root}/agent/{agent}/duplicate"
+
+    # liveliness (``nonce="*"``: the expression of every process's token)
     @property
     def alive_world(self) -> str:
-        return f"{self.root}/alive/world"
+        """Every world token of the run (``world(nonce)``: one world's)."""
+        return self.world("*")
+
+    def world(self, nonce: str) -> str:
+        return f"{self.root}/alive/world/{nonce}"
 
     @property
     def ticking(self) -> str:
         return f"{self.root}/ticking/world"
 
-    def alive(self, agent) -> str:
-        return f"{self.root}/alive/agent/{agent}"
+    def alive(self, agent, nonce: str = "*") -> str:
+        return f"{self.root}/alive/agent/{agent}/{nonce}"
 
-    def ready(self, agent) -> str:
-        return f"{self.root}/ready/agent/{agent}"
+    def ready(self, agent, nonce: str = "*") -> str:
+        return f"{self.root}/ready/agent/{agent}/{nonce}"
 
     @property
     def tokens(self) -> str:
@@ -118,7 +149,8 @@ class Keys:
 
     def parse(self, key: str) -> tuple:
         """(kind, agent id or None) of a key of this run; kind is one of tick,
-        meas, stop, msg, report, alive-world, alive, ready, or None (foreign).
+        meas, stop, msg, report, rejoin, duplicate, alive-world, alive, ready, or None
+        (foreign). A token's nonce is ``nonce(key)``.
         An id that is not an integer gives (kind, None). Remembered: a run
         uses few distinct keys, and every message's key is parsed (keys
         longer than ``CACHED_KEY`` are not, so what an intruder's keys can
@@ -134,17 +166,22 @@ def _parse(root: str, key: str) -> tuple:
     parts = key[len(root):].split("/")
     if len(parts) == 4 and parts[0] == "agent" and parts[2] == "msg" and _ADDRESS.match(parts[3]):
         parts = parts[:3]  # the address does not change the kind or the sender
-    shape = tuple("#" if i == _ID_POS.get((parts[0], len(parts))) else p for i, p in enumerate(parts))
+    at, last = _ID_POS.get((parts[0], len(parts))), _NONCE_POS.get((parts[0], len(parts)))
+    shape = tuple("#" if i == at else "*" if i == last and p else p for i, p in enumerate(parts))
     kind = _SHAPES.get(shape)
     if kind is None:
         return None, None
-    pos = _ID_POS.get((parts[0], len(parts)))
-    if pos is None:
+    if at is None:
         return kind, None
     try:
-        return kind, int(parts[pos])
+        return kind, int(parts[at])
     except ValueError:
         return kind, None
+
+
+def nonce(key: str) -> str:
+    """The nonce a token key ends with."""
+    return key.rsplit("/", 1)[-1]
 
 
 def address(ids) -> str:
@@ -161,10 +198,13 @@ _SHAPES = {
     ("world", "stop"): "stop",
     ("agent", "#", "msg"): "msg",
     ("agent", "#", "report"): "report",
-    ("alive", "world"): "alive-world",
+    ("agent", "#", "rejoin"): "rejoin",
+    ("agent", "#", "duplicate"): "duplicate",
+    ("alive", "world", "*"): "alive-world",
     ("ticking", "world"): "ticking",
-    ("alive", "agent", "#"): "alive",
-    ("ready", "agent", "#"): "ready",
+    ("alive", "agent", "#", "*"): "alive",
+    ("ready", "agent", "#", "*"): "ready",
 }
 # (first segment, segment count) -> index of the id segment
-_ID_POS = {("world", 3): 2, ("agent", 3): 1, ("alive", 3): 2, ("ready", 3): 2}
+_ID_POS = {("world", 3): 2, ("agent", 3): 1, ("alive", 4): 2, ("ready", 4): 2}
+_NONCE_POS = {("alive", 3): 2, ("alive", 4): 3, ("ready", 4): 3}  # "*" in _SHAPES: any nonce

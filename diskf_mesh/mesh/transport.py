@@ -31,7 +31,16 @@ PUBLISHERS_KEPT = 64  # declared publishers kept per session (one per key)
 
 class MeshError(RuntimeError):
     """The run cannot go on (a timeout, a peer gone, a mismatch); the command
-    prints ``error: <message>`` and exits with status 1."""
+    prints ``error: <message>`` and exits with status ``status`` (1)."""
+
+    status = 1
+
+
+class DuplicateProcess(MeshError):
+    """Another process holds this process's id (an agent id, or the world of
+    the run id): this one leaves, exit status 2."""
+
+    status = 2
 
 
 class Transport:
@@ -46,7 +55,13 @@ class Transport:
     def subscribe(self, key_expr: str, on_sample: OnSample) -> None:  # pragma: no cover
         raise NotImplementedError
 
-    def declare_token(self, key: str) -> None:  # pragma: no cover
+    def declare_token(self, key: str):  # pragma: no cover
+        """Declare a liveliness token; returns it (``undeclare()`` withdraws it)."""
+        raise NotImplementedError
+
+    def tokens(self, key_expr: str, timeout: float = 1.0) -> list:  # pragma: no cover
+        """The keys of the tokens matching ``key_expr`` that the network holds
+        now (a liveliness query, waiting at most ``timeout`` seconds)."""
         raise NotImplementedError
 
     def watch_tokens(self, key_expr: str, on_change: OnToken) -> None:  # pragma: no cover
@@ -125,7 +140,13 @@ class ZenohTransport(Transport):
         self._entities.append(self._session.declare_subscriber(key_expr, self._direct(cb)))
 
     def declare_token(self, key):
-        self._entities.append(self._session.liveliness().declare_token(key))
+        token = self._session.liveliness().declare_token(key)
+        self._entities.append(token)
+        return token
+
+    def tokens(self, key_expr, timeout=1.0):
+        replies = self._session.liveliness().get(key_expr, timeout=timeout)
+        return sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
 
     def watch_tokens(self, key_expr, on_change):
         put = self._zenoh.SampleKind.PUT
@@ -187,6 +208,14 @@ class LocalBus:
         return LocalTransport(self)
 
 
+class _LocalToken:
+    def __init__(self, owner, key):
+        self._owner, self._key = owner, key
+
+    def undeclare(self):
+        self._owner._undeclare(self._key)
+
+
 class LocalTransport(Transport):
     def __init__(self, bus: LocalBus):
         self._bus = bus
@@ -235,6 +264,23 @@ class LocalTransport(Transport):
             self._bus._tokens[key] = self._bus._tokens.get(key, 0) + 1
             self._tokens.append(key)
         self._token_event(key, True)
+        return _LocalToken(self, key)
+
+    def _undeclare(self, key):
+        with self._bus._lock:
+            if key not in self._tokens:
+                return
+            self._tokens.remove(key)
+            self._bus._tokens[key] -= 1
+            gone = not self._bus._tokens[key]
+            if gone:
+                del self._bus._tokens[key]
+        if gone:
+            self._token_event(key, False)
+
+    def tokens(self, key_expr, timeout=1.0):
+        with self._bus._lock:
+            return sorted(k for k in self._bus._tokens if key_matches(key_expr, k))
 
     def watch_tokens(self, key_expr, on_change):
         with self._bus._lock:
