@@ -171,7 +171,9 @@ def attacked(tmp_path_factory):
         assert seen["listen"].startswith("tls/127.0.0.1:") and seen["credentials"]  # the default: TLS, loopback
         port = seen["listen"].rsplit(":", 1)[1]
         everything = [f"{keys.root}/**"]
-        all_tokens = [keys.alive_world, keys.ticking] + [k for i in ids for k in (keys.alive(i), keys.ready(i))]
+        forged = "0000000000000000deadbeef"  # the earliest nonce there can be: it would win every id's claim
+        all_tokens = [keys.world(forged), keys.ticking] + [k for i in ids for k in (keys.alive(i, forged),
+                                                                                    keys.ready(i, forged + ".1"))]
         forge_all = forgeries(run_id, ids)
         plain = ZenohOptions(connect=(f"tcp/127.0.0.1:{port}",), no_multicast_scouting=True, insecure=True,
                              listen=("tcp/127.0.0.1:0",))
@@ -184,7 +186,7 @@ def attacked(tmp_path_factory):
             attackers += [Attacker(name, opts, everything, [], lambda k: []),
                           Attacker(f"{name} speaking", opts, [], all_tokens, forge_all)]
         # agent 3's own certificate, from the run's directory: replays what it is sent, tick rewritten
-        insider_keys = [k for k in all_tokens if k not in (keys.alive(INSIDER), keys.ready(INSIDER))]
+        insider_keys = [k for k in all_tokens if k not in (keys.alive(INSIDER, forged), keys.ready(INSIDER, forged + ".1"))]
 
         def replay(att, key, payload):
             kind, sender = keys.parse(key)

@@ -229,13 +229,13 @@ def test_an_identity_speaks_for_itself_only(creds, acl):
             ZenohTransport(session(creds, "agent-2", **ep)) as a2, \
             ZenohTransport(session(creds, "observer", **ep)) as obs:
         at_world = Sink(w, f"{KEYS.root}/agent/*/report")
-        tokens = Sink(w, f"{KEYS.root}/*/agent/*")
+        tokens = Sink(w, f"{KEYS.root}/*/agent/**")
         at_a1 = Sink(a1, KEYS.stop)
         own_meas, others_meas = Sink(a1, KEYS.meas(1)), Sink(a2, KEYS.meas(1))
         watching = Sink(obs)
         time.sleep(SETTLE_S)
-        a2.declare_token(KEYS.ready(1))    # agent 2 says agent 1 is ready
-        a2.declare_token(KEYS.alive(2))    # its own: allowed
+        a2.declare_token(KEYS.ready(1, "n1"))    # agent 2 says agent 1 is ready
+        a2.declare_token(KEYS.alive(2, "n2"))    # its own: allowed
         publish_for(a1, [(KEYS.report(1), b"agent 1")])
         publish_for(a2, [(KEYS.report(1), b"agent 2 as agent 1"), (KEYS.stop, b"agent 2 as the world")])
         publish_for(obs, [(KEYS.report(1), b"observer as agent 1"), (KEYS.stop, b"observer as the world")])
@@ -244,13 +244,13 @@ def test_an_identity_speaks_for_itself_only(creds, acl):
     legit = {b"agent 1", b"agent 1's measurement", b"the world's stop"}
     if acl == "on":
         assert {p for _, p in at_world.got} == {b"agent 1"}
-        assert tokens.keys() == {KEYS.alive(2)}
+        assert tokens.keys() == {KEYS.alive(2, "n2")}
         assert {p for _, p in at_a1.got} == {b"the world's stop"}
         assert {p for _, p in own_meas.got} == {b"agent 1's measurement"} and others_meas.got == []
         assert {p for _, p in watching.got if isinstance(p, bytes)} == legit  # the observer hears all, says nothing
     else:  # the same forgeries without the access control: they get through
         assert b"agent 2 as agent 1" in {p for _, p in at_world.got}
-        assert KEYS.ready(1) in tokens.keys()
+        assert KEYS.ready(1, "n1") in tokens.keys()
         assert b"agent 2 as the world" in {p for _, p in at_a1.got}
         assert others_meas.got
 
