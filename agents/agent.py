@@ -225,12 +225,6 @@ class Agent:
                     return True
                 problem = self._tick_problem(t)
                 if problem is not None:
-                    if (problem[0] == "tick-future" and self.est is not None and consts == self.constants
-                            and t.tick <= t.ticks):
-                        # the world ran ahead of this agent (its tick timeout): rejoin where it is
-                        self.newest = max(self.newest, t.tick)
-                        self._resync(f"the world is at tick {t.tick}")
-                        return True
                     return self._refuse(kind, *problem)
                 self.last_heard = time.monotonic()
                 if self.constants is None:

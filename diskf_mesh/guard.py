@@ -131,7 +131,11 @@ class Guard:
             try:
                 wm = wire.decode(payload, run_id=c.run_id, sender=sender, n=c.n, m=c.m)
             except wire.Rejected as e:
-                return self._reject(sender, e.reason, e.detail, e.tick if self.in_window(e.tick, tick) else None)
+                # a body naming another agent or run is not this sender's message of its tick (a copy, a
+                # replay): it accounts for no tick, so it cannot stand in for the sender's real message
+                mine = e.reason not in ("sender", "run")
+                return self._reject(sender, e.reason, e.detail,
+                                    e.tick if mine and self.in_window(e.tick, tick) else None)
             finally:
                 prof.end("decode")
             prof.begin()
