@@ -242,8 +242,9 @@ class Agent:
                     self._joining(t.tick)
                 self.receiver.release(t.tick, self.linked[t.tick])
                 self._bound(self.ticks)
-                for old in [j for j in self.linked if j < self.k - LINKS_KEPT]:
-                    del self.linked[old]
+                if len(self.linked) > LINKS_KEPT + 2:
+                    for old in [j for j in self.linked if j < self.k - LINKS_KEPT]:
+                        del self.linked[old]
             elif kind == "meas":
                 self.prof.begin()
                 try:
@@ -307,7 +308,7 @@ class Agent:
         if mm.tick > K or (mm.tick > self.k + 1 and self.est is not None):
             return "tick-future", f"measurement of tick {mm.tick} at tick {self.k}"
         limit = self.receiver.guard.config.max_abs
-        if mm.has and not float(np.abs(mm.y).max(initial=0.0)) <= limit:
+        if mm.has and not all(abs(v) <= limit for v in mm.y.tolist()):
             return "magnitude", f"measurement of tick {mm.tick}: a value beyond {limit:.3g}"
         return None
 

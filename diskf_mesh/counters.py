@@ -85,7 +85,9 @@ class Counters:
         receiver refuses a report with a larger one)."""
         out = {name: int(getattr(self, name)) for name in SCALARS}
         out.update({REJECTED_PREFIX + r: int(n) for r, n in sorted(self.rejected.items())})
-        return out if cap is None else {k: min(v, cap) for k, v in out.items()}
+        if cap is not None and max(out.values()) > cap:
+            out = {k: min(v, cap) for k, v in out.items()}
+        return out
 
     @classmethod
     def from_dict(cls, flat: dict) -> "Counters":
