@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from ..studies import StudyConfig
 from .options import add_command, positive_int
 
 
@@ -22,6 +21,8 @@ def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: s
 
 
 def _run(args: argparse.Namespace, action) -> int:
+    from ..studies import StudyConfig  # here, not at the top: --help loads every command module
+
     cfg = StudyConfig(seeds=args.seeds, steps=args.steps, quiet=args.quiet or not sys.stderr.isatty())
     print(action(cfg, out_dir(args.out)))
     return 0
