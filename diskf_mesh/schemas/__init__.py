@@ -43,10 +43,13 @@ def _text(fmt: str) -> str:
 def validator(fmt: str):
     """A jsonschema validator of ``fmt`` (imported here: only readers pay for it)."""
     from jsonschema import Draft202012Validator
+    from referencing import Registry, Resource
 
+    every = [schema(f) for f in FILES]  # diskf-mesh-estimates/1 refers to diskf-estimates/1
+    registry = Registry().with_resources((s["$id"], Resource.from_contents(s)) for s in every)
     s = schema(fmt)
     Draft202012Validator.check_schema(s)
-    return Draft202012Validator(s)
+    return Draft202012Validator(s, registry=registry)
 
 
 def check(doc, fmt: str) -> None:
@@ -76,8 +79,13 @@ def _numeric(value, ndims, zero_one=False) -> bool:
         a = np.asarray(value)
     except ValueError:  # ragged
         return False
-    return (a.dtype.kind in "iuf" and a.ndim in ndims and a.size > 0
-            and (not zero_one or bool(np.isin(a, (0, 1)).all())))
+    if a.dtype.kind not in "iuf" or a.ndim not in ndims or a.size == 0:
+        return False
+    rows = value  # numpy reads true as 1 among numbers: JSON numbers are Python ints and floats only
+    for _ in range(a.ndim - 2):
+        rows = [r for sub in rows for r in sub]
+    return all(type(v) is float or type(v) is int for row in rows for v in row) and (
+        not zero_one or bool(np.isin(a, (0, 1)).all()))
 
 
 def _measurements(y) -> bool:
