@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import json
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -186,3 +187,25 @@ def test_experiment_on_dynamic_defaults_to_its_own_range(tmp_path, capsys):
                             "--steps", "20", "--json", res], capsys)
     assert code == 0, err
     assert list(json.loads(res.read_text())["diskf"]) == ["range=120"]
+
+
+# --------------------------------------------------------------------------
+# docs/formats.md
+# --------------------------------------------------------------------------
+FORMATS_MD = Path(__file__).resolve().parents[1] / "docs" / "formats.md"
+
+
+def test_formats_md_names_every_field_and_its_example_replays(tmp_path, capsys):
+    text = FORMATS_MD.read_text()
+    for fmt in schemas.FILES:
+        s = schemas.schema(fmt)
+        props = dict(s.get("properties", {}))
+        for d in s.get("$defs", {}).values():
+            props.update(d.get("properties", {}))
+        for name in props:
+            assert f"`{name}`" in text or f"`{name}." in text, (fmt, name)
+    example = text.split("```json\n", 1)[1].split("```", 1)[0]
+    out = tmp_path / "est.json"
+    code, _, err = run_cli(["replay", write(tmp_path / "example.json", example), "--out", out], capsys)
+    assert code == 0, err
+    schemas.check(json.loads(out.read_text()), "diskf-estimates/1")
