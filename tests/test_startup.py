@@ -51,3 +51,16 @@ def test_replay_loads_no_plotting_library(tmp_path):
 def test_version(tmp_path):
     done, _ = run(["--version"], tmp_path)
     assert done.returncode == 0 and done.stdout == f"diskf-mesh {__version__}\n"
+
+
+def test_figures_without_the_figures_extra_is_one_error_line(tmp_path):
+    """matplotlib is the optional 'figures' extra: without it, figures ends
+    in one line saying how to install it, exit 2, nothing written."""
+    probe = "import sys; sys.modules['matplotlib'] = None\n" + PROBE
+    out = tmp_path / "figs"
+    done = subprocess.run([sys.executable, "-c", probe, "figures", "--out", str(out), "--seeds", "1", "--steps", "5"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stdout == ""
+    errors = [line for line in done.stderr.splitlines() if not line.startswith("LOADED")]
+    assert len(errors) == 1 and errors[0].startswith("error: figures: ")
+    assert not any(out.iterdir())
