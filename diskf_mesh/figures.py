@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from matplotlib.figure import Figure, SubplotParams
+from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 from PIL import Image
 
@@ -42,8 +42,15 @@ def _figure(width: float, height: float, top: float = 0.86, hspace: float = 0.35
     """A figure with fixed margins: a layout engine or bbox_inches="tight"
     would draw every figure twice, which triples the time of a report."""
     pad = 0.75 / height  # three quarters of an inch for the tick labels and the axis label below
-    return Figure(figsize=(width, height), subplotpars=SubplotParams(
-        left=0.8 / width, right=1 - 0.2 / width, bottom=pad, top=top, hspace=hspace, wspace=wspace))
+    return _margins(Figure(figsize=(width, height)), left=0.8 / width, right=1 - 0.2 / width, bottom=pad, top=top,
+                    hspace=hspace, wspace=wspace)
+
+
+def _margins(fig: Figure, **params) -> Figure:
+    """``fig`` with these subplot parameters (matplotlib 3.11 ignores
+    ``Figure(subplotpars=...)``; ``subplots_adjust`` is honoured)."""
+    fig.subplots_adjust(**params)
+    return fig
 
 
 def _save(fig: Figure, path: Path) -> Path:
@@ -202,10 +209,9 @@ def plot_inputs(run: Run, path: Path, seed: int = 0, ylim=(-20.0, 40.0)) -> Path
     input estimate against time over the true input; gaps where the node
     has no input estimate."""
     N, algs = run.trace.shape[2], list(run.ests)
-    width, height, head = 1.75 * len(algs) + 0.9, 0.95 * N + 1.2, 0.75
-    fig = Figure(figsize=(width, height), subplotpars=SubplotParams(
-        left=0.75 / width, right=1 - 0.1 / width, bottom=0.45 / height, top=1 - head / height,
-        hspace=0.12, wspace=0.08))
+    width, height, head = 1.75 * len(algs) + 1.15, 0.95 * N + 1.5, 0.95
+    fig = _margins(Figure(figsize=(width, height)), left=1.0 / width, right=1 - 0.1 / width,
+                   bottom=0.5 / height, top=1 - head / height, hspace=0.12, wspace=0.08)
     axes = fig.subplots(N, len(algs), sharex=True, sharey=True, squeeze=False)
     t = np.arange(1, run.trace.shape[1] + 1)
     for c, alg in enumerate(algs):
@@ -223,9 +229,9 @@ def plot_inputs(run: Run, path: Path, seed: int = 0, ylim=(-20.0, 40.0)) -> Path
         axes[i, 0].set_ylabel(f"node {run.scn.agents[i].id}", fontsize=8)
     for ax in axes[-1]:
         ax.set_xlabel(TICK, fontsize=8)
-    fig.text(0.2 / width, 0.5, f"input estimate d ({INPUT}; axis clipped to {ylim[0]:g}..{ylim[1]:g})",
+    fig.text(0.08 / width, 0.5, f"input estimate d ({INPUT}; axis clipped to {ylim[0]:g}..{ylim[1]:g})",
              rotation=90, va="center", ha="left", fontsize=8)
-    _legend(fig, axes[:1, :1], top=1 - 0.42 / height)
+    _legend(fig, axes[:1, :1], top=1 - 0.45 / height)
     fig.suptitle(f"{run.title}: input estimate per node and estimator (seed {seed})", y=1 - 0.08 / height,
                  va="top", fontsize=11)
     return _save(fig, path)
