@@ -6,6 +6,10 @@ sets ``func``. User errors raise ``InputError`` and end as one line
 ``error: <field>: <message>`` with exit status 2, never a traceback; a
 warning of the library (e.g. a KCF step that may diverge) is one line
 ``warning: <message>``.
+
+``--help`` loads every command module, so a module imports what only its
+action needs (matplotlib, tqdm, the studies) inside the action: ``--help``
+and the commands that draw nothing never load a plotting library.
 """
 from __future__ import annotations
 
@@ -15,6 +19,7 @@ import os
 import sys
 import warnings
 
+from . import __version__
 from .errors import InputError
 
 COMMAND_MODULES = (
@@ -37,6 +42,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser(modules=COMMAND_MODULES) -> argparse.ArgumentParser:
     parser = _Parser(prog="diskf-mesh", description="Decentralized input and state estimation (DISKF) on a Zenoh mesh")
+    parser.add_argument("--version", action="version", version=f"diskf-mesh {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for mod in modules:
         try:

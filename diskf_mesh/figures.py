@@ -3,6 +3,12 @@
 Every ``plot_*`` function takes data already computed (traces, estimates,
 study results) and writes one PNG; ``make_figures`` runs what they need and
 writes them all. Figures are small (dpi 100) so they can live in git.
+
+Every axis is labelled with its unit. The scenarios have no physical unit:
+positions, ranges and errors are in one length unit (``LENGTH``), time in
+ticks, and an input moves the target by G d per tick (``INPUT``). Legends
+name the estimators by their labels (``label``), once per figure, above the
+panels (``_legend``).
 """
 from __future__ import annotations
 
@@ -11,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from matplotlib.figure import Figure, SubplotParams
+from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 from PIL import Image
 
@@ -22,7 +28,10 @@ from .scenario import Scenario, simulate
 
 DPI = 100
 COLORS = {"diskf": "tab:blue", "cdrkf": "tab:orange", "ldrkf": "tab:green", "kcf": "tab:red",
-          "diffkf": "tab:purple", "gdkf": "tab:brown"}
+          "diffkf": "tab:purple", "gdkf": "tab:cyan"}
+LENGTH = "length units"             # of positions, ranges and position errors
+INPUT = "length units per tick"     # of the input d and its errors
+TICK = "tick"
 STATIC_COLOR, MOBILE_COLOR = "tab:red", "tab:green"
 
 
@@ -33,9 +42,16 @@ def label(alg: str) -> str:
 def _figure(width: float, height: float, top: float = 0.86, hspace: float = 0.35, wspace: float = 0.35) -> Figure:
     """A figure with fixed margins: a layout engine or bbox_inches="tight"
     would draw every figure twice, which triples the time of a report."""
-    pad = 0.55 / height  # about half an inch for the tick labels below
-    return Figure(figsize=(width, height), subplotpars=SubplotParams(
-        left=0.6 / width, right=1 - 0.2 / width, bottom=pad, top=top, hspace=hspace, wspace=wspace))
+    pad = 0.75 / height  # three quarters of an inch for the tick labels and the axis label below
+    return _margins(Figure(figsize=(width, height)), left=0.8 / width, right=1 - 0.2 / width, bottom=pad, top=top,
+                    hspace=hspace, wspace=wspace)
+
+
+def _margins(fig: Figure, **params) -> Figure:
+    """``fig`` with these subplot parameters (matplotlib 3.11 ignores
+    ``Figure(subplotpars=...)``; ``subplots_adjust`` is honoured)."""
+    fig.subplots_adjust(**params)
+    return fig
 
 
 def _save(fig: Figure, path: Path) -> Path:
@@ -52,13 +68,35 @@ def _save(fig: Figure, path: Path) -> Path:
     return path
 
 
-def _grid(n: int, cols: int, size=(3.6, 2.6), sharex=True):
+def _grid(n: int, cols: int, size=(3.6, 2.6), sharex=True, head: float = 0.6):
+    """``n`` panels in rows of ``cols``, ``head`` inches above them for the
+    title and the legend."""
     rows = -(-n // cols)
-    fig = _figure(size[0] * cols, size[1] * rows + 0.6, top=1 - 0.6 / (size[1] * rows + 0.6))
+    height = size[1] * rows + head
+    fig = _figure(size[0] * cols, height, top=1 - head / height)
     axes = fig.subplots(rows, cols, sharex=sharex, squeeze=False).ravel()
     for ax in axes[n:]:
         ax.set_visible(False)
     return fig, axes[:n]
+
+
+def _legend(fig: Figure, axes, top: float | None = None, ncol: int | None = None) -> None:
+    """One legend for the whole figure, centred just under the title: the
+    labelled lines of every panel, each label once, in the order drawn."""
+    handles = {}
+    for ax in np.ravel(axes):
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    y = fig.subplotpars.top + (1 - fig.subplotpars.top) * 0.5 if top is None else top
+    fig.legend(handles.values(), handles.keys(), loc="center", bbox_to_anchor=(0.5, y),
+               ncol=ncol or len(handles), fontsize=8, frameon=False)
+
+
+def _label(ax, x: str | None = None, y: str | None = None) -> None:
+    if x:
+        ax.set_xlabel(x, fontsize=8)
+    if y:
+        ax.set_ylabel(y, fontsize=8)
 
 
 def _limits(ax, truth: np.ndarray, margin: float = 0.35):
@@ -105,6 +143,7 @@ def _quadrants(ax, extent: float):
     ax.set_xlim(-extent, extent)
     ax.set_ylim(-extent, extent)
     ax.set_aspect("equal")
+    _label(ax, f"x ({LENGTH})")
 
 
 def _agents(ax, scn: Scenario, pos: np.ndarray, comm_range: float | None):
@@ -135,6 +174,7 @@ def plot_scenario(scn: Scenario, trace, path: Path, ticks=(1, 30, 60)) -> Path:
             ax.add_patch(Circle(p, scn.comm_range, fill=False, ls=":", color=STATIC_COLOR))
     links = f"range circles {scn.comm_range:g}" if scn.topology == "range" else f"topology {scn.topology}"
     ax.set_title(f"{scn.name}: static (red), mobile paths (green),\ntarget seed 0 (gray); {links}", fontsize=10)
+    _label(ax, None, f"y ({LENGTH})")
     L = np.broadcast_to(trace.links[0], (pos.shape[0],) + trace.links.shape[2:])
     for ax, k in zip(axes[1:], ticks):
         k = min(k, pos.shape[0])
@@ -152,39 +192,57 @@ def plot_scenario(scn: Scenario, trace, path: Path, ticks=(1, 30, 60)) -> Path:
 # --------------------------------------------------------------------------
 def plot_trajectories(run: Run, path: Path, node: int = 0, seed: int = 0) -> Path:
     """2-D trajectory of every estimator at one node against the truth."""
-    fig, axes = _grid(len(run.ests), 3, size=(3.6, 3.4), sharex=False)
+    fig, axes = _grid(len(run.ests), 3, size=(3.6, 3.4), sharex=False, head=0.9)
     truth = run.trace.truth_x[seed]
     for ax, (alg, est) in zip(axes, run.ests.items()):
         ax.plot(*truth.T, color="k", lw=1.5, label="truth")
         ax.plot(*est.x[seed, :, node].T, color=COLORS.get(alg), lw=1, label=label(alg))
         _limits(ax, truth)
         ax.set_aspect("equal")
-        ax.legend(fontsize=7, loc="upper right")
-    fig.suptitle(f"{run.title}: trajectory estimated at node {run.scn.agents[node].id}, seed {seed}")
+        ax.set_title(label(alg), fontsize=9, color=COLORS.get(alg))
+        _label(ax, f"x ({LENGTH})", f"y ({LENGTH})")
+    _legend(fig, axes)
+    fig.suptitle(f"{run.title}: trajectory estimated at node {run.scn.agents[node].id}, seed {seed}", y=0.985)
     return _save(fig, path)
 
 
 def plot_inputs(run: Run, path: Path, seed: int = 0, ylim=(-20.0, 40.0)) -> Path:
-    """Input estimate against time at every node; gaps where none exists."""
-    N = run.trace.shape[2]
-    fig, axes = _grid(N, min(N, 3) if N > 4 else 2)
+    """Small multiples: one row per node, one column per estimator, the
+    input estimate against time over the true input; gaps where the node
+    has no input estimate."""
+    N, algs = run.trace.shape[2], list(run.ests)
+    width, height, head = 1.75 * len(algs) + 1.15, 0.95 * N + 1.5, 0.95
+    fig = _margins(Figure(figsize=(width, height)), left=1.0 / width, right=1 - 0.1 / width,
+                   bottom=0.5 / height, top=1 - head / height, hspace=0.12, wspace=0.08)
+    axes = fig.subplots(N, len(algs), sharex=True, sharey=True, squeeze=False)
     t = np.arange(1, run.trace.shape[1] + 1)
-    for i, ax in enumerate(axes):
-        ax.plot(t, run.trace.truth_d[seed, :, 0], "k--", lw=1.2, label="truth")
-        for alg, est in run.ests.items():
-            d = np.where(est.d_valid[seed, :, i], est.d[seed, :, i, 0], np.nan)
-            ax.plot(t, d, color=COLORS.get(alg), lw=0.9, label=label(alg))
-        ax.set_ylim(*ylim)
-        ax.set_title(f"node {run.scn.agents[i].id}", fontsize=9)
-    axes[0].legend(fontsize=7, ncol=2)
-    fig.suptitle(f"{run.title}: input estimate (seed {seed}; clipped to {ylim})")
+    for c, alg in enumerate(algs):
+        est = run.ests[alg]
+        axes[0, c].set_title(label(alg), fontsize=9, color=COLORS.get(alg))
+        for i in range(N):
+            ax = axes[i, c]
+            ax.axhline(0, color="0.85", lw=0.6)
+            ax.plot(t, run.trace.truth_d[seed, :, 0], "k--", lw=0.8, label="true input")
+            ax.plot(t, np.where(est.d_valid[seed, :, i], est.d[seed, :, i, 0], np.nan), color=COLORS.get(alg),
+                    lw=0.9, label="estimate (gaps: none)")
+            ax.tick_params(labelsize=7)
+    axes[0, 0].set_ylim(*ylim)
+    for i in range(N):
+        axes[i, 0].set_ylabel(f"node {run.scn.agents[i].id}", fontsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel(TICK, fontsize=8)
+    fig.text(0.08 / width, 0.5, f"input estimate d ({INPUT}; axis clipped to {ylim[0]:g}..{ylim[1]:g})",
+             rotation=90, va="center", ha="left", fontsize=8)
+    _legend(fig, axes[:1, :1], top=1 - 0.45 / height)
+    fig.suptitle(f"{run.title}: input estimate per node and estimator (seed {seed})", y=1 - 0.08 / height,
+                 va="top", fontsize=11)
     return _save(fig, path)
 
 
 def plot_states(run: Run, path: Path, nodes=None, seed: int = 0) -> Path:
     """x (top row) and y (bottom row) against time at the given nodes."""
     nodes = list(range(run.trace.shape[2])) if nodes is None else list(nodes)
-    fig = _figure(3.6 * len(nodes), 5.6, top=0.88)
+    fig = _figure(3.6 * len(nodes) + 0.3, 6.0, top=0.85)
     axes = fig.subplots(2, len(nodes), sharex=True, squeeze=False)
     t = np.arange(1, run.trace.shape[1] + 1)
     truth = run.trace.truth_x[seed]
@@ -197,8 +255,9 @@ def plot_states(run: Run, path: Path, nodes=None, seed: int = 0) -> Path:
             span = truth[:, r].max() - truth[:, r].min()
             ax.set_ylim(truth[:, r].min() - 0.5 * span, truth[:, r].max() + 0.5 * span)
             ax.set_title(f"node {run.scn.agents[node].id}: {comp}", fontsize=9)
-    axes[0, 0].legend(fontsize=7, ncol=2)
-    fig.suptitle(f"{run.title}: position estimates (seed {seed})")
+            _label(ax, TICK if r == 1 else None, f"{comp} ({LENGTH})" if c == 0 else None)
+    _legend(fig, axes)
+    fig.suptitle(f"{run.title}: position estimates (seed {seed})", y=0.985)
     return _save(fig, path)
 
 
@@ -214,22 +273,21 @@ def _sweep_x(labels):
 
 def plot_error_vs_range(sweep: dict, path: Path) -> Path:
     """MAE of input and state against communication range (Fig. 6)."""
-    fig = _figure(11, 4.4, top=0.9)
+    fig = _figure(11, 4.8, top=0.84)
     axes = fig.subplots(1, 2)
     labels = list(next(iter(sweep.values())))
     x = _sweep_x(labels)
-    for ax, key, title in ((axes[0], "mae_input", "input"), (axes[1], "mae_state", "state")):
+    for ax, key, title in ((axes[0], "mae_input", f"input ({INPUT})"), (axes[1], "mae_state", f"position ({LENGTH})")):
         for alg, rows in sweep.items():
             y = np.array([rows[s][key] for s in labels])
             e = np.array([rows[s][f"{key}_std"] for s in labels])
             ax.errorbar(x, y, yerr=e, color=COLORS.get(alg), marker="o", ms=3, lw=1, capsize=2, label=label(alg))
         ax.set_yscale("log")
         ax.set_xticks(x, [s if s != "all" else "all" for s in labels], fontsize=8)
-        ax.set_xlabel("communication range (0 = isolated, all = all-to-all)")
-        ax.set_ylabel(f"MAE ({title})")
+        _label(ax, f"communication range ({LENGTH}; 0 = isolated, all = all-to-all)", f"MAE of the {title}")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.suptitle("Scenario 2: error against communication range (bars: std over seeds)")
+    _legend(fig, axes)
+    fig.suptitle("Scenario 2: error against communication range (bars: std over seeds)", y=0.985)
     return _save(fig, path)
 
 
@@ -240,7 +298,7 @@ def plot_bars(results: dict, path: Path, title: str) -> Path:
     """Grouped bars: per setting, MAE/RMSE of input and state for every
     algorithm, with the spread over seeds (the paper's Fig. 5)."""
     settings = list(next(iter(results.values())))
-    fig = _figure(6.5 * len(settings), 4.4, top=0.86, wspace=0.15)
+    fig = _figure(6.5 * len(settings), 4.8, top=0.8, wspace=0.15)
     axes = np.atleast_1d(fig.subplots(1, len(settings)))
     algs = list(results)
     w = 0.8 / len(algs)
@@ -252,17 +310,18 @@ def plot_bars(results: dict, path: Path, title: str) -> Path:
             ax.bar(xs, ys, w, yerr=es, color=COLORS.get(alg), label=label(alg), capsize=2)
         ax.set_xticks(np.arange(len(BAR_METRICS)), [k.replace("_", " ").upper() for k in BAR_METRICS], fontsize=8)
         ax.set_yscale("log")
-        ax.set_title(f"range {st}" if st != "all" else "all-to-all")
+        ax.set_title(f"range {st}" if st != "all" else "all-to-all", fontsize=10)
         ax.grid(axis="y", alpha=0.3)
-    axes[0].legend(fontsize=8, ncol=2)
-    fig.suptitle(title)
+    _label(axes[0], None, f"error (state: {LENGTH}; input: {INPUT})")
+    _legend(fig, axes)
+    fig.suptitle(title, y=0.985)
     return _save(fig, path)
 
 
 def plot_window(run: Run, path: Path, node: int = 0, seed: int = 0) -> Path:
     """Fig. 3: input estimate at one node and state error (mean over agents
     and seeds) against time, one line per window variant in ``run.ests``."""
-    fig = _figure(11, 4.0, top=0.82)
+    fig = _figure(11, 4.6, top=0.76)
     ax_d, ax_x = fig.subplots(1, 2)
     tr = run.trace
     t = np.arange(1, tr.shape[1] + 1)
@@ -274,18 +333,20 @@ def plot_window(run: Run, path: Path, node: int = 0, seed: int = 0) -> Path:
         e_state, _, _ = metrics.errors(tr, est)
         ax_x.plot(t, e_state.mean(axis=(0, 2)), color=c, lw=lw, label=name)
     ax_d.set_ylim(-30, 50)
-    ax_d.set_title(f"DISKF input estimate, node {run.scn.agents[node].id}, seed {seed}")
+    ax_d.set_title(f"DISKF input estimate, node {run.scn.agents[node].id}, seed {seed}", fontsize=10)
     ax_x.set_yscale("log")
-    ax_x.set_title("DISKF state error, mean over agents and seeds")
-    ax_d.legend(fontsize=8)
-    fig.suptitle(f"{run.title}: observation time window")
+    ax_x.set_title("DISKF position error, mean over agents and seeds", fontsize=10)
+    _label(ax_d, TICK, f"input d ({INPUT})")
+    _label(ax_x, TICK, f"position error ({LENGTH})")
+    _legend(fig, (ax_d, ax_x))
+    fig.suptitle(f"{run.title}: observation time window", y=0.985)
     return _save(fig, path)
 
 
 def plot_sensor_split(run: Run, path: Path, zeros: dict) -> Path:
     """Isolated agents: mean state error against time by sensor type."""
     groups = studies.sensor_groups(run.scn)
-    fig, axes = _grid(len(groups), len(groups), size=(5.2, 3.8))
+    fig, axes = _grid(len(groups), len(groups), size=(5.2, 3.8), head=0.9)
     t = np.arange(1, run.trace.shape[1] + 1)
     for ax, (g, mask) in zip(axes, groups.items()):
         for alg, est in run.ests.items():
@@ -294,8 +355,9 @@ def plot_sensor_split(run: Run, path: Path, zeros: dict) -> Path:
         ax.set_yscale("log")
         ax.set_title(f"agents measuring {g} (invariant zero {zeros[g]:.3f})", fontsize=9)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.suptitle(f"{run.title}: state error by sensor type, mean over agents and seeds")
+        _label(ax, TICK, f"position error ({LENGTH})")
+    _legend(fig, axes)
+    fig.suptitle(f"{run.title}: position error by sensor type, mean over agents and seeds", y=0.985)
     return _save(fig, path)
 
 

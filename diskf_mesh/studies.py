@@ -20,7 +20,6 @@ import sys
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.sparse.csgraph import connected_components
 from tqdm import tqdm
 
 from . import algorithms, engine, metrics
@@ -128,7 +127,7 @@ def topology_stats(cfg: StudyConfig, ranges=DEFAULT_RANGES) -> dict:
         tr = simulate(cfg.scenario(DYNAMIC, st), cfg.seed_range)
         L = np.broadcast_to(tr.links[0], tr.has.shape[1:2] + tr.links.shape[2:])
         deg = L.sum(axis=-1) - 1
-        comps = [connected_components(l, directed=False)[0] for l in L]
+        comps = [component_count(l) for l in L]
         heard = np.einsum("kij,bkj->bki", L.astype(float), tr.has.astype(float)) > 0
         out[st.label] = {
             "mean_degree": float(deg.mean()),
@@ -141,6 +140,19 @@ def topology_stats(cfg: StudyConfig, ranges=DEFAULT_RANGES) -> dict:
             "own_observed": float(tr.has.mean()),
         }
     return out
+
+
+def component_count(adj: np.ndarray) -> int:
+    """Connected components of the undirected graph ``adj`` (N x N bool):
+    every node takes the smallest label among itself and its neighbours
+    until no label changes; each component ends with its smallest index."""
+    adj = adj | adj.T | np.eye(len(adj), dtype=bool)
+    label = np.arange(len(adj))
+    while True:
+        new = np.where(adj, label, len(adj)).min(axis=1)
+        if (new == label).all():
+            return len(np.unique(label))
+        label = new
 
 
 def _ablation_settings():

@@ -1,8 +1,12 @@
 """Recorded data: the ``Trace`` an engine runs on, and its JSON formats.
 
+Every field, type and default: docs/formats.md; the JSON Schemas are
+``diskf_mesh/schemas/*.json``, and ``trace_from_json`` checks a document
+against its schema before anything else.
+
 ``diskf-trace/1`` (input of ``replay``, output of ``simulate``)::
 
-    {"format": "diskf-trace/1",
+    {"format": "diskf-trace/1", "scenario": name (optional),
      "A": n x n  |  "A_seq": K x n x n,   "G": n x m,  "Q": n x n,
      "x0": n,  "P0": n x n,
      "agents": [{"id": 1, "H": p_i x n, "R": p_i x p_i}, ...],   (ids: distinct
@@ -12,7 +16,10 @@
      "truth": {"x": K x n, "d": K x m}          (optional; d[k-1] acts
                                                   between tick k-1 and k),
      "seed": S              (optional, >= 0; seeds GDKF's gossip draws),
-     "position_dims": [0, 1] (optional; state components of the position)}
+     "position_dims": [0, 1] (optional; state components of the position),
+     "estimator": {"window": 5, "reset": true, "eps": 0.05, ...}
+                            (optional; the scenario's [estimator] settings,
+                             replay's defaults)}
 
 ``diskf-estimates/1`` (output of ``replay``)::
 
@@ -24,12 +31,13 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from . import schemas
 from .errors import InputError
-from .model import LinearModel, Sensors
+from .model import LinearModel, Params, Sensors
 from .validate import agent_id, index_list, matrix, setting, spd, vector
 
 TRACE_FORMAT = "diskf-trace/1"
@@ -82,28 +90,23 @@ def read_json(path) -> dict:
 
 
 def trace_from_json(doc: dict) -> Trace:
-    if not isinstance(doc, dict):
-        raise InputError("trace", "must be a JSON object")
-    fmt = doc.get("format", TRACE_FORMAT)
-    if fmt != TRACE_FORMAT:
-        raise InputError("format", f"expected {TRACE_FORMAT!r}, got {fmt!r}")
+    """The ``Trace`` of a diskf-trace/1 document: its schema first (types,
+    required fields), then what a schema cannot say (shapes that depend on
+    each other, symmetric positive-definite covariances, distinct ids)."""
+    schemas.check(doc, TRACE_FORMAT)
     G = matrix(doc.get("G"), "G")
     n, m = G.shape
-    if n == 0 or m == 0:
-        raise InputError("G", f"must be n x m with n, m >= 1, got {n}x{m}")
     Q = spd(matrix(doc.get("Q"), "Q", (n, n)), "Q")
     P0 = spd(matrix(doc.get("P0"), "P0", (n, n)), "P0")
     x0 = vector(doc.get("x0"), "x0", n)
 
-    ys = doc.get("y")
-    if not isinstance(ys, list) or not ys:
-        raise InputError("y", "must be a non-empty list with one entry per tick")
+    ys = doc["y"]
     K = len(ys)
     if "A_seq" in doc:
         try:
             A = np.asarray(doc["A_seq"], dtype=float)
-        except (TypeError, ValueError):
-            raise InputError("A_seq", "must be numbers") from None
+        except ValueError:
+            raise InputError("A_seq", "must be K matrices of n x n numbers (a ragged array was given)") from None
         if A.shape != (K, n, n):
             raise InputError("A_seq", f"must be {K}x{n}x{n} (K ticks), got {'x'.join(map(str, A.shape))}")
         if not np.isfinite(A).all():
@@ -111,13 +114,8 @@ def trace_from_json(doc: dict) -> Trace:
     else:
         A = np.broadcast_to(matrix(doc.get("A"), "A", (n, n)), (K, n, n))
 
-    agents = doc.get("agents")
-    if not isinstance(agents, list) or not agents:
-        raise InputError("agents", "must be a non-empty list of {id, H, R}")
     ids, Hs, Rs = [], [], []
-    for i, a in enumerate(agents):
-        if not isinstance(a, dict):
-            raise InputError(f"agents[{i}]", "must be an object {id, H, R}")
+    for i, a in enumerate(doc["agents"]):
         H = matrix(a.get("H"), f"agents[{i}].H", (None, n))
         R = spd(matrix(a.get("R"), f"agents[{i}].R", (H.shape[0], H.shape[0])), f"agents[{i}].R")
         ids.append(agent_id(a.get("id", i + 1), f"agents[{i}].id"))
@@ -131,7 +129,7 @@ def trace_from_json(doc: dict) -> Trace:
     y = np.zeros((1, K, N, pmax))
     has = np.zeros((1, K, N), dtype=bool)
     for k, row in enumerate(ys):
-        if not isinstance(row, list) or len(row) != N:
+        if len(row) != N:
             raise InputError(f"y[{k}]", f"must be a list with one item per agent ({N})")
         for i, v in enumerate(row):
             if v is None:
@@ -140,18 +138,14 @@ def trace_from_json(doc: dict) -> Trace:
             y[0, k, i, : sensors.p[i]] = vv
             has[0, k, i] = True
 
-    if doc.get("links") is None:
-        raise InputError("links", "is missing (an N x N 0/1 matrix, or K of them)")
     try:
-        L = np.asarray(doc.get("links"), dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("links", "must be a 0/1 matrix (N x N) or K of them") from None
+        L = np.asarray(doc["links"], dtype=float)
+    except ValueError:
+        raise InputError("links", "must be a 0/1 matrix (N x N) or K of them (a ragged array was given)") from None
     if L.shape == (N, N):
         L = np.broadcast_to(L, (K, N, N))
     elif L.shape != (K, N, N):
         raise InputError("links", f"must be {N}x{N} or {K}x{N}x{N}, got {'x'.join(map(str, L.shape)) or 'a scalar'}")
-    if not np.isin(L, (0.0, 1.0)).all():
-        raise InputError("links", "entries must be 0 or 1")
     if not (np.diagonal(L, axis1=-2, axis2=-1) == 1).all():
         raise InputError("links", "the diagonal must be 1 (every agent hears itself)")
     links = (L > 0)[None]
@@ -159,14 +153,25 @@ def trace_from_json(doc: dict) -> Trace:
     truth_x = truth_d = None
     truth = doc.get("truth")
     if truth is not None:
-        if not isinstance(truth, dict):
-            raise InputError("truth", "must be an object {x, d}")
         truth_x = matrix(truth.get("x"), "truth.x", (K, n))[None]
         truth_d = matrix(truth.get("d"), "truth.d", (K, m))[None]
     model = LinearModel(np.ascontiguousarray(A), G, Q, x0, P0)
     seed = setting(doc, "seed", "", int, 0, low=0)
     return Trace(model, sensors, y, has, links, truth_x, truth_d, None, (int(seed),),
                  index_list(doc.get("position_dims", list(range(min(n, 2)))), "position_dims", n))
+
+
+def estimator_from_json(doc: dict) -> Params:
+    """The estimator settings a diskf-trace/1 document carries (its
+    scenario's ``[estimator]``), ``Params()`` for the ones it does not."""
+    given = dict(doc.get("estimator", {}))
+    if given.get("window") is not None:
+        given["window"] = int(given["window"])  # the schema allows 5.0 for an integer
+    try:
+        return Params(**given)
+    except ValueError as e:
+        field, _, msg = str(e).partition(": ")
+        raise InputError(f"estimator.{field}", msg) from None
 
 
 def load_trace(path) -> Trace:
@@ -176,12 +181,14 @@ def load_trace(path) -> Trace:
 # --------------------------------------------------------------------------
 # writing
 # --------------------------------------------------------------------------
-def trace_to_json(tr: Trace, b: int = 0) -> dict:
-    """The ``b``-th seed of a trace as a diskf-trace/1 document."""
+def trace_to_json(tr: Trace, b: int = 0, scenario: str | None = None, params: Params | None = None) -> dict:
+    """The ``b``-th seed of a trace as a diskf-trace/1 document, with the
+    name of the ``scenario`` and the estimator ``params`` it came with."""
     s = tr.sensors
     K = tr.y.shape[1]
     A = tr.model.A
-    doc = {"format": TRACE_FORMAT, "seed": int(tr.seeds[b])}
+    doc = {"format": TRACE_FORMAT} | ({"scenario": scenario} if scenario is not None else {})
+    doc["seed"] = int(tr.seeds[b])
     if np.all(A == A[0]):
         doc["A"] = A[0].tolist()
     else:
@@ -201,6 +208,8 @@ def trace_to_json(tr: Trace, b: int = 0) -> dict:
     doc["position_dims"] = list(tr.position_dims)
     if tr.truth_x is not None:
         doc["truth"] = {"x": tr.truth_x[b].tolist(), "d": tr.truth_d[b].tolist()}
+    if params is not None:
+        doc["estimator"] = asdict(params)
     return doc
 
 

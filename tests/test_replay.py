@@ -30,10 +30,10 @@ def simulate_file(path, capsys):
 
 
 def test_trace_file_round_trips_exactly(reference, tmp_path, capsys):
-    _, trace = reference
+    scn, trace = reference
     path = tmp_path / "trace.json"
     simulate_file(path, capsys)
-    assert json.loads(path.read_text()) == trace_to_json(trace)
+    assert json.loads(path.read_text()) == trace_to_json(trace, scenario=scn.name, params=scn.params)
     back = load_trace(path)
     for name in ("y", "has", "links", "truth_x", "truth_d"):
         np.testing.assert_array_equal(np.broadcast_to(getattr(back, name), getattr(trace, name).shape),

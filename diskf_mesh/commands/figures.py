@@ -7,11 +7,12 @@ the observation-window variants and the isolated-sensor diagnosis.
 """
 from __future__ import annotations
 
-from ..figures import make_figures
 from .study_options import add_study_command
 
 
 def figures(cfg, out) -> str:
+    from ..figures import make_figures  # matplotlib: only when drawing
+
     return f"{len(make_figures(cfg, out))} figures -> {out}"
 
 

@@ -2,16 +2,18 @@
 
 Reads a ``diskf-trace/1`` JSON file, runs the algorithm on it in-process and
 writes ``diskf-estimates/1`` (with ``metrics`` when the trace has truth).
-The estimator options default to ``Params()``, the settings of the shipped
-quadrants scenario.
+The estimator settings are those the trace carries (``simulate`` writes its
+scenario's ``[estimator]`` table into it), so ``simulate`` + ``replay`` gives
+``experiment``'s estimates bit for bit; ``Params()`` where the trace has
+none, and --window, --eps, --compensation override them. A trace that breaks
+its schema (docs/formats.md) ends in one line naming the field, exit 2.
 """
 from __future__ import annotations
 
 import argparse
 
 from .. import algorithms, engine, metrics
-from ..model import Params
-from ..trace import estimates_to_json, load_trace
+from ..trace import estimates_to_json, estimator_from_json, read_json, trace_from_json
 from .options import add_command, add_estimator_options, algorithm_name, check_output, estimator_params, human_stream, \
     json_safe, save_json
 
@@ -21,15 +23,16 @@ def register(subparsers) -> None:
     p.add_argument("trace", metavar="TRACE.json", help="a diskf-trace/1 file")
     p.add_argument("--algorithm", type=algorithm_name, default="diskf",
                    help=f"one of {', '.join(algorithms.NAMES)} (default diskf)")
-    add_estimator_options(p)
+    add_estimator_options(p)  # default: the trace's "estimator" settings
     p.add_argument("--out", required=True, metavar="EST.json", help="where to write diskf-estimates/1 (- for standard output)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     check_output(args.out, "out")
-    params = estimator_params(Params(), args)
-    trace = load_trace(args.trace)
+    doc = read_json(args.trace)
+    trace = trace_from_json(doc)
+    params = estimator_params(estimator_from_json(doc), args)
     est = engine.run(trace, args.algorithm, params)
     scores = metrics.compute(trace, est) if trace.truth_x is not None else None
     save_json(args.out, estimates_to_json(est, args.algorithm, 0, scores))

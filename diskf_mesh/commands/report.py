@@ -7,11 +7,12 @@ docs/reproduction.md.
 """
 from __future__ import annotations
 
-from ..report import write_report
 from .study_options import add_study_command
 
 
 def report(cfg, out) -> str:
+    from ..report import write_report  # matplotlib: only when drawing
+
     md, js, *figs = write_report(cfg, out)
     return f"report -> {md} ({len(figs)} figures, numbers in {js})"
 

@@ -1,7 +1,9 @@
 """``diskf-mesh simulate``: draw one seed of a scenario as a diskf-trace/1 file.
 
 Seed S draws the noise from ``numpy.random.default_rng(S)``, exactly as the
-experiment's seed S does, so ``replay`` of the file reproduces the engine run.
+experiment's seed S does, and the file carries the scenario's name and its
+``[estimator]`` settings, so ``replay`` of the file reproduces the engine run
+of ``experiment`` bit for bit.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     setting, = settings_for([topology], args.comm_range)
     scn = setting.apply(scn, args.steps)
     trace = simulate(scn, [args.seed])
-    save_json(args.out, trace_to_json(trace, 0))
+    save_json(args.out, trace_to_json(trace, 0, scenario=scn.name, params=scn.params))
     B, K, N = trace.shape
     print(f"{scn.name} seed {args.seed}: {K} ticks, {N} agents, topology {setting.label} -> {args.out}",
           file=human_stream(args.out))

@@ -6,8 +6,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..studies import StudyConfig
+from ..errors import InputError
 from .options import add_command, check_output_dir, positive_int
+
+
+PLOTTING = ("matplotlib", "PIL")  # pyproject.toml's figures extra
 
 
 def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: str, action) -> None:
@@ -21,8 +24,16 @@ def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: s
 
 
 def _run(args: argparse.Namespace, action) -> int:
+    from ..studies import StudyConfig  # here, not at the top: --help loads every command module
+
     cfg = StudyConfig(seeds=args.seeds, steps=args.steps, quiet=args.quiet or not sys.stderr.isatty())
-    print(action(cfg, out_dir(args.out)))
+    try:
+        print(action(cfg, out_dir(args.out)))
+    except ModuleNotFoundError as e:
+        if (e.name or "").split(".")[0] not in PLOTTING:
+            raise
+        raise InputError(args.command, f"needs {e.name}, which diskf-mesh installs only with its figures extra: "
+                                       "pip install 'diskf-mesh[figures]'") from None
     return 0
 
 

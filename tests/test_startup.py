@@ -1,0 +1,66 @@
+"""Start-up: --help, --version and the commands that draw nothing load no
+plotting library (matplotlib, PIL) and no scipy; each runs in a fresh
+interpreter, as a user's shell would start it."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from diskf_mesh import __version__
+
+HEAVY = ("matplotlib", "PIL", "scipy")
+PROBE = """
+import sys
+from diskf_mesh import cli
+try:
+    code = cli.main(sys.argv[1:])
+except SystemExit as e:
+    code = e.code
+loaded = sorted({m.split('.')[0] for m in sys.modules} & set(%r))
+print('LOADED', ','.join(loaded), file=sys.stderr)
+sys.exit(code)
+""" % (HEAVY,)
+
+
+def run(argv, cwd):
+    done = subprocess.run([sys.executable, "-c", PROBE, *map(str, argv)], capture_output=True, text=True,
+                          cwd=cwd, timeout=120)
+    loaded = done.stderr.rsplit("LOADED", 1)[1].strip()
+    return done, loaded
+
+
+@pytest.mark.parametrize("argv", [
+    ["--help"], ["experiment", "--help"], ["up", "--help"],
+    ["experiment", "--seeds", "1", "--steps", "5", "--algorithms", "diskf"],
+    ["simulate", "--steps", "5", "--out", "trace.json"],
+], ids=lambda a: " ".join(a))
+def test_commands_that_draw_nothing_load_no_plotting_library(argv, tmp_path):
+    done, loaded = run(argv, tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert loaded == ""
+
+
+def test_replay_loads_no_plotting_library(tmp_path):
+    assert run(["simulate", "--steps", "5", "--out", "trace.json"], tmp_path)[0].returncode == 0
+    done, loaded = run(["replay", "trace.json", "--out", "est.json"], tmp_path)
+    assert done.returncode == 0 and loaded == ""
+
+
+def test_version(tmp_path):
+    done, _ = run(["--version"], tmp_path)
+    assert done.returncode == 0 and done.stdout == f"diskf-mesh {__version__}\n"
+
+
+def test_figures_without_the_figures_extra_is_one_error_line(tmp_path):
+    """matplotlib is the optional 'figures' extra: without it, figures ends
+    in one line saying how to install it, exit 2, nothing written."""
+    probe = "import sys; sys.modules['matplotlib'] = None\n" + PROBE
+    out = tmp_path / "figs"
+    done = subprocess.run([sys.executable, "-c", probe, "figures", "--out", str(out), "--seeds", "1", "--steps", "5"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stdout == ""
+    errors = [line for line in done.stderr.splitlines() if not line.startswith("LOADED")]
+    assert len(errors) == 1 and errors[0].startswith("error: figures: ")
+    assert not any(out.iterdir())
