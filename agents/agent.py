@@ -59,6 +59,7 @@ from diskf_mesh.faults import FaultConfig, FaultModel
 from diskf_mesh.faults import add_arguments as add_fault_arguments
 from diskf_mesh.faults import from_args as faults_from_args
 from diskf_mesh.receive import Receiver
+from diskf_mesh.recording.verdicts import TickVerdicts
 from diskf_mesh.scenario import Scenario
 
 POLL_S = 0.5     # the main thread looks at the timeouts at least this often
@@ -112,6 +113,7 @@ class Agent:
             keys.run_id, agent_id, frozenset(self.ids), n, m, information_check=algorithm != "ldrkf"),
             profile=profile), faults, on_arrival=self.wake)
         self.counters = self.receiver.counters
+        self.verdicts = TickVerdicts(self.counters)  # per tick: who was fused, why the others were not
         self.fault_config = fault_config
         self.rejoining = False
         self.reports = {}    # k -> {sender: wire.Report}, listened to only while rejoining
@@ -237,7 +239,7 @@ class Agent:
             if sender not in self.linked[t]:
                 self.out_of_range += 1
                 return False
-            self.receiver.on_payload(key, payload)
+            self.verdicts.on_payload(self.receiver.on_payload, key, payload, sender, t)
         elif t is not None and self.k <= t <= self.k + HOLD_TICKS:
             self.held.setdefault(t, []).append((key, sender, payload))
         elif self.est is None and t is not None:  # a tick from before this agent (re)joined the run
@@ -311,7 +313,9 @@ class Agent:
     def _close(self, k: int) -> None:
         """Fuse what came for tick k, report to the world."""
         prof = self.prof
+        heard = self.receiver.accounted(k)
         fused = dict(self.receiver.take(k, self.linked[k]))
+        failed = False
         prof.begin()
         try:
             out = self.est.fuse(k, self.own, fused)
@@ -319,13 +323,15 @@ class Agent:
             self.counters.reject("fusion", len(fused))
             self.log.once("fusion", f"tick {k}: fusion failed; fused this agent's own message alone")
             out = self.est.fuse(k, self.own, {})
+            failed = True
         finally:
             prof.end("fuse")
         counters = self.receiver.snapshot()
         counters["out_of_range"] = self.out_of_range
+        fused_ids, not_fused = self.verdicts.of_tick(k, self.linked[k], heard, fused, failed)
         prof.begin()
         report = wire.encode_report(self.keys.run_id, self.id, k, out.x[0, 0], out.P[0, 0], out.d[0, 0],
-                                    out.d_valid[0, 0], counters)
+                                    out.d_valid[0, 0], counters, fused_ids, not_fused)
         prof.end("encode")
         prof.begin()
         self.transport.put(self.keys.report(self.id), report)

@@ -24,7 +24,14 @@ kind "msg" (agent -> neighbours, one per agent and tick; ``Message``)::
 kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
 
     "s", "n", "m", "dt", "dv", "a" x (n), P (n x n), d (m),
-    "c" the agent's counters so far {name: int} (see ``mesh.agent_loop``)
+    "c" the agent's counters so far {name: int} (see ``mesh.agent_loop``),
+    "f" the senders whose messages of tick k went into this estimate (ids,
+        at most ``MAX_LINKS``; optional, default none),
+    "nf" the other senders linked at tick k and why their message did not:
+        [[sender, verdict], ...] with verdict "lost" (the link dropped it),
+        "late" (no copy by the tick's close) or "rejected:<reason>"
+        (at most ``MAX_LINKS`` entries of at most ``MAX_VERDICT`` characters;
+        optional) - what a recording (``diskf_mesh.recording``) replays
 
 kind "tick" (world -> everyone, opens tick k; ``Tick``)::
 
@@ -57,6 +64,8 @@ SCHEMA = 1
 DTYPE = "<f8"
 MAX_DIM = 64  # largest n, m (or p) a decoder accepts
 MAX_BYTES = 1 << 20  # largest payload a decoder looks at
+MAX_LINKS = 1024  # most senders a report's "f" and "nf" may name
+MAX_VERDICT = 48  # longest verdict text in a report's "nf"
 
 REASONS = (
     "not-msgpack",  # not a msgpack document at all
@@ -100,6 +109,8 @@ class Report:
     d: np.ndarray        # (m,)
     d_valid: bool
     counters: dict = field(default_factory=dict)
+    fused: tuple = ()      # sender ids fused into this estimate
+    not_fused: tuple = ()  # ((sender, verdict), ...) the other linked senders
 
 
 @dataclass(frozen=True)
@@ -156,14 +167,16 @@ def encode(run_id: str, sender: int, tick: int, msg: Message) -> bytes:
                   "dt": DTYPE, "dv": bool(np.asarray(msg.d_valid).reshape(-1)[0]), "a": blob})
 
 
-def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None) -> bytes:
+def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None, fused=(),
+                  not_fused=()) -> bytes:
     n, m = _dims(x, d)
     blob = _f8(x, P, d)
     if len(blob) != 8 * (n + n * n + m):
         raise ValueError("encode_report: a report must hold one agent's arrays")
     return _pack({"v": SCHEMA, "k": "report", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
                   "dt": DTYPE, "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
-                  "c": {str(k): int(v) for k, v in (counters or {}).items()}})
+                  "c": {str(k): int(v) for k, v in (counters or {}).items()},
+                  "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused]})
 
 
 def encode_tick(t: Tick) -> bytes:
@@ -368,7 +381,14 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
     c = doc.get("c", {})
     if not isinstance(c, dict) or not all(isinstance(k, str) and _is_int(v) for k, v in c.items()):
         raise Rejected("schema", "field 'c' is not a map of counters")
-    return Report(doc["run"], s, doc["t"], x, P, d, dv, c)
+    f, nf = doc.get("f", []), doc.get("nf", [])
+    if not isinstance(f, list) or len(f) > MAX_LINKS or not all(_is_int(i) for i in f):
+        raise Rejected("schema", f"field 'f' is not a list of at most {MAX_LINKS} ids")
+    if not isinstance(nf, list) or len(nf) > MAX_LINKS or not all(
+            isinstance(e, list) and len(e) == 2 and _is_int(e[0]) and isinstance(e[1], str)
+            and len(e[1]) <= MAX_VERDICT for e in nf):
+        raise Rejected("schema", f"field 'nf' is not a list of at most {MAX_LINKS} [id, verdict] pairs")
+    return Report(doc["run"], s, doc["t"], x, P, d, dv, c, tuple(f), tuple((i, v) for i, v in nf))
 
 
 def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -> Tick:

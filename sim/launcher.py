@@ -234,6 +234,7 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
     p.add_argument("--json", metavar="OUT", help="results file (default: results/up-<run-id>.json)")
     p.add_argument("--estimates", metavar="OUT", help="also write every agent's fused estimates")
+    p.add_argument("--record", metavar="FILE.mcap", help="the world records the run as MCAP (diskf_mesh.recording)")
     p.add_argument("--logs", metavar="DIR", help="children's stderr logs (default: a temporary directory)")
     p.add_argument("--startup-timeout", type=float, default=30.0, metavar="S",
                    help="seconds for every agent to come up (default %(default)s)")
@@ -271,6 +272,8 @@ def run(args: argparse.Namespace) -> int:
                    "--tick-timeout", str(args.tick_timeout)]
     if args.estimates:
         world_extra += ["--estimates", args.estimates]
+    if args.record:
+        world_extra += ["--record", args.record]
     if args.profile:
         world_extra += ["--profile", args.profile]
     agent_extra = ["--collect-timeout", str(args.collect_timeout),
@@ -316,7 +319,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{scn.name}: {len(ids)} agent processes + world, {ticks} ticks, seed {args.seed}, run {spec.run_id}; "
           f"first tick after {first:.2f} s, {ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
     print(format_table(results))
-    print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "") + f", logs: {logs}")
+    print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
+          + (f", recording: {args.record}" if args.record else "") + f", logs: {logs}")
     return 0
 
 

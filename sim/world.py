@@ -48,6 +48,7 @@ from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
 from diskf_mesh.mesh.transport import MeshError, Transport, ZenohTransport
+from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder
 from diskf_mesh.scenario import Scenario, simulate
 from diskf_mesh.trace import Trace, estimates_to_json
 
@@ -105,7 +106,8 @@ class World:
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
                  timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None,
-                 profile: Phases = NO_PHASES):
+                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER):
+        self.recorder = recorder  # diskf_mesh.recording: called at open, report, close
         self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
         self.prof = profile
         self.keys, self.transport, self.timing = keys, transport, timing
@@ -186,6 +188,7 @@ class World:
             rec.reported[r.tick - 1, i] = True
             rec.agent_counters[sender] = r.counters
             self._waiting.discard(sender)
+            self.recorder.on_report(r)
 
     # -- the ticks (lock held) ---------------------------------------------------
     def _advance(self) -> None:
@@ -201,6 +204,7 @@ class World:
         live = [i for i in self.ids if i in self.ready]
         self.k = self._open = k
         self._waiting = set(live)
+        self.recorder.on_open(k, live)
         prof.begin()
         out = [(self.keys.meas(i), wire.encode_measurement(run, k, i, bool(tr.has[0, k - 1, j]),
                                                            tr.y[0, k - 1, j, : self.p[j]]))
@@ -226,6 +230,7 @@ class World:
         for i in sorted(self._waiting):
             self.record.counters["missing-report"] += 1
             self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
+        self.recorder.on_close(k, self._waiting)
         self._open, self._waiting, self._deadline = 0, set(), math.inf
         self.prof.tick()
         if self.progress is not None:
@@ -249,6 +254,8 @@ class World:
     def start(self) -> None:
         self.transport.subscribe(f"{self.keys.root}/agent/*/report", self._on_sample)
         self.transport.watch_tokens(f"{self.keys.root}/*/agent/*", self._on_sample)
+        if self.recorder:  # every agent message, as sent
+            self.transport.subscribe(self.keys.msgs, self.recorder.on_message)
         self.transport.declare_token(self.keys.alive_world)
 
     def wait_agents(self) -> None:
@@ -342,6 +349,17 @@ def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, ru
     return doc
 
 
+def open_recorder(path, trace, scn, spec, seed, faults):
+    from diskf_mesh.errors import InputError
+    from diskf_mesh.recording.writer import Recorder
+
+    try:
+        return Recorder(path, trace, scn, scenario=spec.scenario, algorithm=spec.algorithm, seed=seed,
+                        run_id=spec.run_id, faults=faults)
+    except OSError as e:
+        raise InputError("record", f"cannot write {path}: {e.strerror or e}") from None
+
+
 # --------------------------------------------------------------------------
 # command line
 # --------------------------------------------------------------------------
@@ -356,6 +374,7 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
     p.add_argument("--json", metavar="OUT", help="write the results {algorithm: {setting: metrics}}")
     p.add_argument("--estimates", metavar="OUT", help="write every agent's fused estimates and counters")
+    p.add_argument("--record", metavar="FILE.mcap", help="record the run as MCAP (diskf_mesh.recording)")
     p.add_argument("--startup-timeout", type=float, default=WorldTiming.startup_timeout, metavar="S",
                    help="seconds to wait for every agent (default %(default)s)")
     p.add_argument("--tick-timeout", type=float, default=WorldTiming.tick_timeout, metavar="S",
@@ -399,19 +418,22 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
 
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
+    recorder = open_recorder(args.record, trace, scn, spec, args.seed, faults) if args.record else NO_RECORDER
     try:
         with ZenohTransport(zenoh_config.from_args(args), hold_ms=HOLD_MS) as transport:
             world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
-                          WorldTiming(args.startup_timeout, args.tick_timeout), progress, log, prof)
+                          WorldTiming(args.startup_timeout, args.tick_timeout), progress, log, prof, recorder)
             rec = world.run()
     except MeshError as e:
         log.error(str(e))
+        recorder.finish(f"failed: {e}")
         return 1
     finally:
         bar.close()
         if prof:
             prof.write(args.profile, "world")
     row = result_metrics(trace, rec)
+    recorder.finish("done" if world.done else "stopped", row)
     summary = run_summary(rec, faults)
     results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
     if args.json:

@@ -1,0 +1,268 @@
+"""The world's recorder: one MCAP file per run (``world --record``, ``up --record``).
+
+The world calls it at fixed points of its lockstep (``sim.world.World``):
+
+    on_open(k, live)      tick k opened for the agents in ``live``
+    on_message(key, b)    an agent message as it went on the wire (the world
+                          subscribes to every agent message of its run)
+    on_report(report)     an agent's accepted report of the open tick
+    on_close(k, missing)  tick k is over: everything of tick k is written,
+                          the tick's closing record last, and the file is
+                          flushed to the OS
+    finish(status, ...)   the run's result; the MCAP summary and footer
+
+so a world killed at any point (even SIGKILL) leaves a file that is readable
+up to its last closed tick (``recording.reader``). Channels and their JSON
+Schemas: ``recording.schemas``. The run's trace (model, sensors,
+measurements, truth; ``diskf-trace/1``) and estimator settings are attached
+as ``trace.json``, written first, so a recording replays on its own.
+
+What each agent did with its neighbours' messages comes from its reports
+(``recording.verdicts``); the copies and delays of each message are the
+seeded fault layer's plan (``faults.FaultModel``, the same seed and
+settings as the agents').
+
+Messages are stamped with a tick time: log time = recording start +
+k x ``TICK_PERIOD_S`` (so a viewer's timeline shows ticks evenly), publish
+time = the wall clock when the world wrote it.
+"""
+from __future__ import annotations
+
+import json
+import platform
+import struct
+import threading
+import time
+from dataclasses import asdict
+from importlib import metadata
+from pathlib import Path
+
+import msgpack
+import numpy as np
+
+from .. import __version__
+from ..commands.options import json_safe
+from ..faults import FaultConfig, FaultModel
+from ..mesh.keys import Keys
+from ..trace import trace_to_json
+from .schemas import CHANNELS, SCHEMA_PREFIX, schema_bytes
+
+FORMAT = "diskf-recording/1"
+TICK_PERIOD_S = 0.1
+TRACE_ATTACHMENT = "trace.json"
+CHUNK_BYTES = 1 << 20  # a chunk is also closed at every tick (flush)
+
+
+def versions() -> dict:
+    out = {"diskf-mesh": __version__, "python": platform.python_version()}
+    for dist in ("numpy", "eclipse-zenoh", "mcap", "msgpack"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "absent"
+    return out
+
+
+def _dumps(doc: dict) -> bytes:
+    return json.dumps(doc, separators=(",", ":")).encode()
+
+
+def address_of(key: str) -> list:
+    """Ids of an addressed message key's last chunk (``_3_7_``), [] if none."""
+    last = key.rsplit("/", 1)[-1]
+    if not (last.startswith("_") and last.endswith("_")):
+        return []
+    try:
+        return [int(i) for i in last.strip("_").split("_") if i]
+    except ValueError:
+        return []
+
+
+def sent_record(key: str, payload: bytes, keys: Keys, tick: int) -> dict:
+    """A message as it went on the wire, decoded without the guard's checks
+    (the record says what was sent, well formed or not); ``tick``: the tick
+    to file an undecodable one under."""
+    _, sender = keys.parse(key)
+    rec = {"tick": tick, "sender": -1 if sender is None else sender, "to": address_of(key), "bytes": len(payload)}
+    try:
+        doc = msgpack.unpackb(payload, raw=False)
+        n, m, t, blob = doc["n"], doc["m"], doc["t"], doc["a"]
+        if not (type(t) is int and t >= 1):
+            raise ValueError("no tick")
+        a = struct.unpack(f"<{len(blob) // 8}d", blob)
+        sizes = (n, n * n, n, n * n, m, m * m)
+        if len(a) != sum(sizes):
+            raise ValueError("arrays of the wrong size")
+        parts, i = [], 0
+        for size in sizes:
+            parts.append(list(a[i:i + size]))
+            i += size
+        rows = lambda v, k: [v[r * k:(r + 1) * k] for r in range(k)]  # noqa: E731
+        rec.update(tick=t, x_pred=parts[0], P_pred=rows(parts[1], n), x_upd=parts[2], P_upd=rows(parts[3], n),
+                   d=parts[4], S=rows(parts[5], m), d_valid=bool(doc.get("dv")))
+    except Exception as e:  # noqa: BLE001 - anything on the wire is recorded, readable or not
+        rec["undecodable"] = f"{type(e).__name__}: {e}"[:200]
+    return rec
+
+
+class NoRecorder:
+    """A run that is not recorded: every hook does nothing."""
+
+    def __bool__(self):
+        return False
+
+    def on_open(self, k, live):
+        pass
+
+    def on_message(self, key, payload):
+        pass
+
+    def on_report(self, report):
+        pass
+
+    def on_close(self, k, missing):
+        pass
+
+    def finish(self, status, metrics=None):
+        pass
+
+
+NO_RECORDER = NoRecorder()
+
+
+class Recorder(NoRecorder):
+    def __bool__(self):
+        return True
+
+    def __init__(self, path, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
+                 faults: FaultConfig):
+        from mcap.writer import CompressionType, Writer
+
+        self.path = str(path)
+        self.trace, self.scn, self.seed = trace, scn, int(seed)
+        self.keys = Keys(run_id)
+        self.ids = tuple(trace.sensors.ids)
+        self.faults = FaultModel(faults, seed) if faults.active else None
+        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")
+        self._mcap = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self._mcap.start(profile="", library=f"diskf-mesh/{__version__}")
+        self._channel = {}
+        for topic in CHANNELS:
+            sid = self._mcap.register_schema(SCHEMA_PREFIX + topic.strip("/").replace("/", "."), "jsonschema",
+                                             schema_bytes(topic))
+            self._channel[topic] = self._mcap.register_channel(topic, "json", sid)
+        self._t0 = time.time_ns()
+        self._period = int(TICK_PERIOD_S * 1e9)
+        self._lock = threading.Lock()   # the sent messages come on their own callback
+        self._sent = []
+        self._open = 0
+        self._opened_at = None
+        self._live = {}                 # k -> live ids
+        self._reports = {}              # k -> {agent: wire.Report}
+        self._closed = False
+        self._last_closed = 0
+        K, N = trace.has.shape[1:]
+        n, m = trace.model.n, trace.model.m
+        run = {"format": FORMAT, "run_id": run_id, "scenario": scenario, "scenario_name": scn.name,
+               "seed": self.seed, "algorithm": algorithm, "topology": scn.topology,
+               "comm_range": scn.comm_range if np.isfinite(scn.comm_range) else "inf",
+               "ids": list(self.ids), "ticks": int(K), "n": int(n), "m": int(m), "params": asdict(scn.params),
+               "faults": faults.to_dict(), "tick_period_s": TICK_PERIOD_S, "versions": versions()}
+        doc = trace_to_json(trace)
+        doc["params"] = asdict(scn.params)
+        self._mcap.add_attachment(self._t0, self._t0, TRACE_ATTACHMENT, "application/json", _dumps(doc))
+        self._mcap.add_metadata("run", {k: v if isinstance(v, str) else json.dumps(v) for k, v in run.items()})
+        self._put("/run", 0, run)
+        self._mcap.flush()
+
+    def _time(self, k: int) -> int:
+        return self._t0 + k * self._period
+
+    def _put(self, topic: str, k: int, doc: dict, now: int | None = None) -> None:
+        self._mcap.add_message(self._channel[topic], self._time(k), _dumps(doc), now or time.time_ns())
+
+    # -- hooks (the world's lock held, except on_message) ----------------------
+    def on_open(self, k, live):
+        self._open = k
+        self._live[k] = tuple(live)
+        if self._opened_at is None:
+            self._opened_at = time.monotonic()
+
+    def on_message(self, key, payload):
+        rec = sent_record(key, payload, self.keys, max(self._open, 1))
+        with self._lock:
+            self._sent.append(rec)
+
+    def on_report(self, report):
+        self._reports.setdefault(report.tick, {})[report.sender] = report
+
+    def on_close(self, k, missing):
+        if self._closed:
+            return
+        now = time.time_ns()
+        tr, ids = self.trace, self.ids
+        live = self._live.pop(k, ())
+        reports = self._reports.pop(k, {})
+        links = tr.links[0, k - 1]
+        pos = tr.positions[k - 1]
+        truth_x = tr.truth_x[0, k - 1]
+        dims = list(tr.position_dims)
+        put = lambda topic, doc: self._put(topic, k, doc, now)  # noqa: E731
+        put("/world/truth", {"tick": k, "x": truth_x.tolist(), "d": tr.truth_d[0, k - 1].tolist(),
+                             "position": truth_x[dims].tolist()})
+        put("/world/agents", {"tick": k, "ids": list(ids), "positions": pos.tolist(), "live": list(live)})
+        alive = set(live)
+        idx = np.flatnonzero(np.triu(links, 1).ravel())
+        N = len(ids)
+        put("/world/links", {"tick": k, "edges": [[ids[i // N], ids[i % N]] for i in idx.tolist()
+                                                  if ids[i // N] in alive and ids[i % N] in alive]})
+        with self._lock:
+            sent, self._sent = self._sent, []
+        for rec in sent:
+            self._put("/agents/sent", rec["tick"], rec, now)
+        for j, i in enumerate(ids):
+            r = reports.get(i)
+            if r is not None:
+                err = float(np.linalg.norm(r.x[dims] - truth_x[dims]))
+                put("/agents/estimate", {"tick": k, "agent": i, "x": r.x.tolist(), "P": r.P.tolist(),
+                                         "d": r.d.tolist() if r.d_valid else None, "d_valid": bool(r.d_valid),
+                                         "fused": list(r.fused), "position_error": err})
+                put("/agents/counters", {"tick": k, "agent": i, "counters": r.counters})
+                verdicts = {s: "fused" for s in r.fused}
+                verdicts.update(dict(r.not_fused))
+            elif i in alive:
+                verdicts = {s: "unreported" for s, ln in zip(ids, links[j].tolist())
+                            if ln and s != i and s in alive}
+            else:
+                continue
+            for s in sorted(verdicts, key=lambda s: ids.index(s) if s in ids else N):
+                verdict, _, reason = verdicts[s].partition(":")
+                doc = {"tick": k, "sender": s, "receiver": i, "verdict": verdict}
+                if reason:
+                    doc["reason"] = reason
+                if self.faults is not None:
+                    plan = self.faults.plan(s, i, k)
+                    doc["copies"], doc["delays_ms"] = len(plan), [1e3 * d.delay_s for d in plan]
+                else:
+                    doc["copies"], doc["delays_ms"] = 1, [0.0]
+                put("/agents/delivered", doc)
+        put("/world/tick", {"tick": k, "reported": sorted(reports, key=ids.index), "missing": sorted(missing),
+                            "wall_s": time.monotonic() - (self._opened_at or time.monotonic())})
+        self._mcap.flush()
+        self._last_closed = k
+
+    def finish(self, status, metrics=None):
+        """The run's result (``status``: "done" or why not; the metrics),
+        then the MCAP summary and footer; the file is closed."""
+        if self._closed:
+            return
+        self._closed = True
+        with self._lock:
+            sent, self._sent = self._sent, []
+        for rec in sent:
+            self._put("/agents/sent", rec["tick"], rec)
+        k = self._last_closed
+        self._put("/run/result", k, {"status": status, "ticks": k, "metrics": json_safe(metrics or {})})
+        self._mcap.finish()
+        self._file.close()
