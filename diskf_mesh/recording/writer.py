@@ -169,12 +169,13 @@ class Recorder(NoRecorder):
                "comm_range": scn.comm_range if np.isfinite(scn.comm_range) else "inf",
                "ids": list(self.ids), "ticks": int(K), "n": int(n), "m": int(m), "params": asdict(scn.params),
                "faults": faults.to_dict(), "tick_period_s": TICK_PERIOD_S, "versions": versions()}
+        self._put("/run", 0, run)
+        self._mcap.flush()  # the channels and /run first
         doc = trace_to_json(trace)
         doc["params"] = asdict(scn.params)
         self._mcap.add_attachment(self._t0, self._t0, TRACE_ATTACHMENT, "application/json", _dumps(doc))
         self._mcap.add_metadata("run", {k: v if isinstance(v, str) else json.dumps(v) for k, v in run.items()})
-        self._put("/run", 0, run)
-        self._mcap.flush()
+        self._file.flush()
 
     def _time(self, k: int) -> int:
         return self._t0 + k * self._period
