@@ -44,8 +44,8 @@ class Recording:
     d_valid: np.ndarray
     reported: np.ndarray        # (K, N) bool
     fused: np.ndarray           # (K, N, N) bool: [k-1, receiver, sender] fused (diagonal True)
-    sent: list = field(default_factory=list)        # /agents/sent docs of ticks <= K
-    delivered: list = field(default_factory=list)   # /agents/delivered docs of ticks <= K
+    sent: list = field(default_factory=list)        # every message sent at ticks <= K (/agents/sent)
+    delivered: list = field(default_factory=list)   # every delivery of ticks <= K, with its tick
     counters: dict = field(default_factory=dict)    # (k, agent) -> counters
     positions: np.ndarray | None = None             # (K, N, 2)
     edges: list = field(default_factory=list)       # per tick, [[a, b], ...]
@@ -141,28 +141,32 @@ def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: b
     reported = np.zeros((K, N), dtype=bool)
     fused = np.zeros((K, N, N), dtype=bool)
     fused[:, np.arange(N), np.arange(N)] = True
-    for doc in by_topic.get("/agents/estimate", []):
-        k, j = doc["tick"], where.get(doc["agent"])
-        if not 1 <= k <= K or j is None:
-            continue
-        x[k - 1, j], P[k - 1, j] = doc["x"], doc["P"]
-        d_valid[k - 1, j] = doc["d_valid"]
-        if doc["d"] is not None:
-            d[k - 1, j] = doc["d"]
-        reported[k - 1, j] = True
-        for s in doc["fused"]:
-            fused[k - 1, j, where[s]] = True
     in_run = lambda topic: [doc for doc in by_topic.get(topic, []) if 1 <= doc["tick"] <= K]  # noqa: E731
+    for doc in in_run("/agents/estimates"):
+        k = doc["tick"]
+        for e in doc["estimates"]:
+            j = where.get(e["agent"])
+            if j is None:
+                continue
+            x[k - 1, j], P[k - 1, j] = e["x"], e["P"]
+            d_valid[k - 1, j] = e["d_valid"]
+            if e["d"] is not None:
+                d[k - 1, j] = e["d"]
+            reported[k - 1, j] = True
+            for s in e["fused"]:
+                fused[k - 1, j, where[s]] = True
     positions = np.full((K, N, 2), np.nan)
     edges = [[] for _ in range(K)]
     for doc in in_run("/world/agents"):
         positions[doc["tick"] - 1] = doc["positions"]
     for doc in in_run("/world/links"):
         edges[doc["tick"] - 1] = doc["edges"]
-    counters = {(doc["tick"], doc["agent"]): doc["counters"] for doc in in_run("/agents/counters")}
+    counters = {(doc["tick"], c["agent"]): c["counters"] for doc in in_run("/agents/counters") for c in doc["counters"]}
+    sent = [m for doc in by_topic.get("/agents/sent", []) for m in doc["messages"] if 1 <= m["tick"] <= K]
+    delivered = [{"tick": doc["tick"], **e} for doc in in_run("/agents/delivered") for e in doc["deliveries"]]
     results = by_topic.get("/run/result", [])
     return Recording(path, run, trace, params, K, ids, x, P, d, d_valid, reported, fused,
-                     in_run("/agents/sent"), in_run("/agents/delivered"), counters, positions, edges,
+                     sent, delivered, counters, positions, edges,
                      results[-1] if results else None, finished, by_topic)
 
 

@@ -2,8 +2,11 @@
 encoding ``jsonschema``, message encoding ``json``: Foxglove and the ``mcap``
 tools read them without plugins).
 
-Every message carries ``tick`` (k >= 1). Vectors are JSON arrays of
-numbers, matrices arrays of rows. Agent ids are the scenario's.
+Every message carries ``tick`` (k >= 1); there is one message per channel
+and tick, holding every agent's (a list; in Foxglove, pick one agent with a
+filter, e.g. ``/agents/estimates.estimates[:]{agent==3}.position_error``).
+Vectors are JSON arrays of numbers, matrices arrays of rows. Agent ids are
+the scenario's.
 """
 from __future__ import annotations
 
@@ -43,29 +46,30 @@ CHANNELS = {
     "/world/tick": _obj("TickClosed", "tick k is over: who reported, who did not (written last; a tick "
                                       "without it is incomplete)", **_TICK, reported=_IDS, missing=_IDS,
                         wall_s={**_NUM, "description": "seconds since tick 1 opened"}),
-    "/agents/sent": _obj("MessageSent", "one agent message as it went on the wire (heard by the world)",
-                         required=("tick", "sender", "to", "bytes"), **_TICK, sender=_INT,
-                         to={**_IDS, "description": "the agents it is addressed to (in range at tick k)"},
-                         bytes=_INT, x_pred=_VEC, P_pred=_MAT, x_upd=_VEC, P_upd=_MAT, d=_VEC, S=_MAT,
-                         d_valid={"type": "boolean"}, undecodable={"type": "string"}),
-    "/agents/delivered": _obj(
-        "MessageDelivered", "what became of sender's message of tick k at one receiver linked to it",
-        required=("tick", "sender", "receiver", "verdict"), **_TICK, sender=_INT, receiver=_INT,
+    "/agents/sent": _obj("MessagesSent", "the agent messages the world heard since the last tick closed, "
+                                         "as they went on the wire", **_TICK, messages={"type": "array", "items": _obj(
+        "MessageSent", "one agent message", required=("tick", "sender", "to", "bytes"), **_TICK, sender=_INT,
+        to={**_IDS, "description": "the agents it is addressed to (in range at its tick)"},
+        bytes=_INT, x_pred=_VEC, P_pred=_MAT, x_upd=_VEC, P_upd=_MAT, d=_VEC, S=_MAT,
+        d_valid={"type": "boolean"}, undecodable={"type": "string"})}),
+    "/agents/delivered": _obj("MessagesDelivered", "what became of every message of tick k at every receiver "
+                                                   "linked to its sender", **_TICK, deliveries={"type": "array", "items": _obj(
+        "MessageDelivered", "sender's message of tick k at one receiver",
+        required=("sender", "receiver", "verdict", "copies"), sender=_INT, receiver=_INT,
         verdict={"enum": ["fused", "lost", "late", "rejected", "unreported"],
                  "description": "fused; lost (the link dropped it); late (no copy by the tick's close); "
                                 "rejected (reason); unreported (the receiver sent no report of tick k)"},
         reason={"type": "string"},
-        copies={**_INT, "description": "copies the seeded fault layer sends (0 lost, 2: one is a duplicate)"},
-        delays_ms={**_VEC, "description": "each copy's delay planned by the fault layer"}),
-    "/agents/estimate": _obj("Estimate", "an agent's fused estimate after tick k, as reported to the world",
-                             required=("tick", "agent", "x", "P", "d_valid", "fused"), **_TICK, agent=_INT,
-                             x=_VEC, P=_MAT, d={"type": ["array", "null"], "items": _NUM},
-                             d_valid={"type": "boolean"}, fused=_IDS,
-                             position_error={**_NUM, "description": "distance of the estimated position "
-                                                                    "to the truth"}),
-    "/agents/counters": _obj("Counters", "an agent's message counters after tick k (diskf_mesh.counters), flat",
-                             required=("tick", "agent", "counters"), **_TICK, agent=_INT,
-                             counters={"type": "object", "additionalProperties": _INT}),
+        copies={**_INT, "description": "copies the seeded fault layer sends (0: lost; 2: one is a duplicate)"},
+        delays_ms={**_VEC, "description": "each copy's delay planned by the fault layer"})}),
+    "/agents/estimates": _obj("Estimates", "every agent's fused estimate after tick k, as reported to the world",
+                              **_TICK, estimates={"type": "array", "items": _obj(
+        "Estimate", "one agent's", required=("agent", "x", "P", "d_valid", "fused"), agent=_INT,
+        x=_VEC, P=_MAT, d={"type": ["array", "null"], "items": _NUM}, d_valid={"type": "boolean"}, fused=_IDS,
+        position_error={**_NUM, "description": "distance of the estimated position to the truth"})}),
+    "/agents/counters": _obj("Counters", "every agent's message counters after tick k (diskf_mesh.counters), flat",
+                             **_TICK, counters={"type": "array", "items": _obj(
+        "AgentCounters", "one agent's", agent=_INT, counters={"type": "object", "additionalProperties": _INT})}),
     "/run/result": _obj("Result", "the run's end: status, ticks closed, metrics (last)",
                         required=("status", "ticks"), status={"type": "string"}, ticks=_INT,
                         metrics={"type": "object"}),

@@ -7,12 +7,13 @@ The world calls it at fixed points of its lockstep (``sim.world.World``):
                           subscribes to every agent message of its run)
     on_report(report)     an agent's accepted report of the open tick
     on_close(k, missing)  tick k is over: everything of tick k is written,
-                          the tick's closing record last, and the file is
-                          flushed to the OS
+                          the tick's closing record last; the file is
+                          flushed to the OS every ``FLUSH_S`` (and at the
+                          last tick)
     finish(status, ...)   the run's result; the MCAP summary and footer
 
 so a world killed at any point (even SIGKILL) leaves a file that is readable
-up to its last closed tick (``recording.reader``). Channels and their JSON
+up to the last tick closed before its last flush (``recording.reader``). Channels and their JSON
 Schemas: ``recording.schemas``. The run's trace (model, sensors,
 measurements, truth; ``diskf-trace/1``) and estimator settings are attached
 as ``trace.json``, written first, so a recording replays on its own.
@@ -29,8 +30,11 @@ time = the wall clock when the world wrote it.
 from __future__ import annotations
 
 import json
+import math
 import platform
+import queue
 import struct
+import sys
 import threading
 import time
 from dataclasses import asdict
@@ -50,7 +54,8 @@ from .schemas import CHANNELS, SCHEMA_PREFIX, schema_bytes
 FORMAT = "diskf-recording/1"
 TICK_PERIOD_S = 0.1
 TRACE_ATTACHMENT = "trace.json"
-CHUNK_BYTES = 1 << 20  # a chunk is also closed at every tick (flush)
+CHUNK_BYTES = 1 << 20  # a chunk is also closed at every flush
+FLUSH_S = 0.05         # the writer thread hands the file to the OS at most, and at least, this often
 
 
 def versions() -> dict:
@@ -162,6 +167,7 @@ class Recorder(NoRecorder):
         self._reports = {}              # k -> {agent: wire.Report}
         self._closed = False
         self._last_closed = 0
+        self._flush_due = 0.0
         K, N = trace.has.shape[1:]
         n, m = trace.model.n, trace.model.m
         run = {"format": FORMAT, "run_id": run_id, "scenario": scenario, "scenario_name": scn.name,
@@ -176,6 +182,10 @@ class Recorder(NoRecorder):
         self._mcap.add_attachment(self._t0, self._t0, TRACE_ATTACHMENT, "application/json", _dumps(doc))
         self._mcap.add_metadata("run", {k: v if isinstance(v, str) else json.dumps(v) for k, v in run.items()})
         self._file.flush()
+        self._queue = queue.SimpleQueue()  # closed ticks, for the writer thread
+        self._failure = None
+        self._thread = threading.Thread(target=self._write_ticks, name="recorder", daemon=True)
+        self._thread.start()
 
     def _time(self, k: int) -> int:
         return self._t0 + k * self._period
@@ -191,55 +201,80 @@ class Recorder(NoRecorder):
             self._opened_at = time.monotonic()
 
     def on_message(self, key, payload):
-        rec = sent_record(key, payload, self.keys, max(self._open, 1))
         with self._lock:
-            self._sent.append(rec)
+            self._sent.append((key, payload, self._open))
 
     def on_report(self, report):
         self._reports.setdefault(report.tick, {})[report.sender] = report
 
+    def _take_sent(self) -> list:
+        with self._lock:
+            sent, self._sent = self._sent, []
+        return [sent_record(key, payload, self.keys, max(k, 1)) for key, payload, k in sent]
+
     def on_close(self, k, missing):
-        if self._closed:
-            return
-        now = time.time_ns()
+        """Hand tick k to the writer thread: the lockstep opens the next tick
+        at once, and the tick is written while the agents work on it."""
+        if not self._closed:
+            wall_s = time.monotonic() - (self._opened_at or time.monotonic())
+            self._queue.put((k, self._live.pop(k, ()), self._reports.pop(k, {}), sorted(missing), wall_s,
+                             time.time_ns()))
+
+    def _write_ticks(self) -> None:
+        """The writer thread: every closed tick in turn; the file goes to the
+        OS once the thread has caught up (at most every ``FLUSH_S``), and at
+        least every ``FLUSH_S`` while something is unflushed."""
+        unflushed = False
+        while True:
+            try:
+                item = self._queue.get(timeout=FLUSH_S)
+            except queue.Empty:
+                item = ()
+            if item is None:
+                return
+            try:
+                if item and self._failure is None:
+                    self._write_tick(*item)
+                    unflushed = True
+                if unflushed and self._queue.empty() and time.monotonic() >= self._flush_due:
+                    self._mcap.flush()
+                    self._flush_due, unflushed = time.monotonic() + FLUSH_S, False
+            except Exception as e:  # noqa: BLE001 - a failed write stops the recording, not the run
+                self._failure = self._failure or e
+
+    def _write_tick(self, k, live, reports, missing, wall_s, now) -> None:
         tr, ids = self.trace, self.ids
-        live = self._live.pop(k, ())
-        reports = self._reports.pop(k, {})
+        alive = set(live)
         links = tr.links[0, k - 1]
-        pos = tr.positions[k - 1]
         truth_x = tr.truth_x[0, k - 1]
         dims = list(tr.position_dims)
         put = lambda topic, doc: self._put(topic, k, doc, now)  # noqa: E731
         put("/world/truth", {"tick": k, "x": truth_x.tolist(), "d": tr.truth_d[0, k - 1].tolist(),
                              "position": truth_x[dims].tolist()})
-        put("/world/agents", {"tick": k, "ids": list(ids), "positions": pos.tolist(), "live": list(live)})
-        alive = set(live)
-        idx = np.flatnonzero(np.triu(links, 1).ravel())
+        put("/world/agents", {"tick": k, "ids": list(ids), "positions": tr.positions[k - 1].tolist(),
+                              "live": list(live)})
         N = len(ids)
-        put("/world/links", {"tick": k, "edges": [[ids[i // N], ids[i % N]] for i in idx.tolist()
+        put("/world/links", {"tick": k, "edges": [[ids[i // N], ids[i % N]] for i in
+                                                  np.flatnonzero(np.triu(links, 1).ravel()).tolist()
                                                   if ids[i // N] in alive and ids[i % N] in alive]})
-        with self._lock:
-            sent, self._sent = self._sent, []
-        for rec in sent:
-            self._put("/agents/sent", rec["tick"], rec, now)
+        put("/agents/sent", {"tick": k, "messages": self._take_sent()})
+        estimates, counters, deliveries = [], [], []
         for j, i in enumerate(ids):
             r = reports.get(i)
             if r is not None:
-                err = float(np.linalg.norm(r.x[dims] - truth_x[dims]))
-                put("/agents/estimate", {"tick": k, "agent": i, "x": r.x.tolist(), "P": r.P.tolist(),
-                                         "d": r.d.tolist() if r.d_valid else None, "d_valid": bool(r.d_valid),
-                                         "fused": list(r.fused), "position_error": err})
-                put("/agents/counters", {"tick": k, "agent": i, "counters": r.counters})
-                verdicts = {s: "fused" for s in r.fused}
-                verdicts.update(dict(r.not_fused))
+                x = r.x.tolist()
+                err = math.dist([x[a] for a in dims], truth_x[dims].tolist())
+                estimates.append({"agent": i, "x": x, "P": r.P.tolist(), "d": r.d.tolist() if r.d_valid else None,
+                                  "d_valid": bool(r.d_valid), "fused": list(r.fused), "position_error": err})
+                counters.append({"agent": i, "counters": r.counters})
+                verdicts = [(s, "fused") for s in r.fused] + list(r.not_fused)
             elif i in alive:
-                verdicts = {s: "unreported" for s, ln in zip(ids, links[j].tolist())
-                            if ln and s != i and s in alive}
+                verdicts = [(s, "unreported") for s, ln in zip(ids, links[j].tolist()) if ln and s != i and s in alive]
             else:
                 continue
-            for s in sorted(verdicts, key=lambda s: ids.index(s) if s in ids else N):
-                verdict, _, reason = verdicts[s].partition(":")
-                doc = {"tick": k, "sender": s, "receiver": i, "verdict": verdict}
+            for s, v in sorted(verdicts, key=lambda e: ids.index(e[0]) if e[0] in ids else N):
+                verdict, _, reason = v.partition(":")
+                doc = {"sender": s, "receiver": i, "verdict": verdict}
                 if reason:
                     doc["reason"] = reason
                 if self.faults is not None:
@@ -247,23 +282,32 @@ class Recorder(NoRecorder):
                     doc["copies"], doc["delays_ms"] = len(plan), [1e3 * d.delay_s for d in plan]
                 else:
                     doc["copies"], doc["delays_ms"] = 1, [0.0]
-                put("/agents/delivered", doc)
-        put("/world/tick", {"tick": k, "reported": sorted(reports, key=ids.index), "missing": sorted(missing),
-                            "wall_s": time.monotonic() - (self._opened_at or time.monotonic())})
-        self._mcap.flush()
+                deliveries.append(doc)
+        put("/agents/delivered", {"tick": k, "deliveries": deliveries})
+        put("/agents/estimates", {"tick": k, "estimates": estimates})
+        put("/agents/counters", {"tick": k, "counters": counters})
+        put("/world/tick", {"tick": k, "reported": sorted(reports, key=ids.index), "missing": missing,
+                            "wall_s": wall_s})
         self._last_closed = k
 
     def finish(self, status, metrics=None):
         """The run's result (``status``: "done" or why not; the metrics),
-        then the MCAP summary and footer; the file is closed."""
+        then the MCAP summary and footer; the file is closed. If writing it
+        failed, one line ``warning: ...`` on stderr (the run is not
+        affected)."""
         if self._closed:
             return
         self._closed = True
-        with self._lock:
-            sent, self._sent = self._sent, []
-        for rec in sent:
-            self._put("/agents/sent", rec["tick"], rec)
-        k = self._last_closed
-        self._put("/run/result", k, {"status": status, "ticks": k, "metrics": json_safe(metrics or {})})
-        self._mcap.finish()
+        self._queue.put(None)
+        self._thread.join()
+        if self._failure is None:
+            k = self._last_closed
+            sent = self._take_sent()
+            if sent:  # heard after the last tick closed
+                self._put("/agents/sent", k, {"tick": max(k, 1), "messages": sent})
+            self._put("/run/result", k, {"status": status, "ticks": k, "metrics": json_safe(metrics or {})})
+            self._mcap.finish()
         self._file.close()
+        if self._failure is not None:
+            print(f"warning: recording {self.path} stopped at tick {self._last_closed}: {self._failure}",
+                  file=sys.stderr)
