@@ -32,8 +32,11 @@ def _title(rec: Recording) -> str:
 def _agent_colors(N: int):
     from matplotlib import colormaps
 
-    cmap = colormaps["tab10" if N <= 10 else "viridis"]
-    return [cmap(i if N <= 10 else i / max(N - 1, 1)) for i in range(N)]
+    if N <= 9:  # tab10 without its gray (the truth is drawn in black and gray)
+        tab = colormaps["tab10"]
+        return [tab(i if i < 7 else i + 1) for i in range(N)]
+    cmap = colormaps["viridis"]
+    return [cmap(i / max(N - 1, 1)) for i in range(N)]
 
 
 def plot_trajectories(rec: Recording, path: Path) -> Path:
@@ -68,7 +71,8 @@ def plot_trajectories(rec: Recording, path: Path) -> Path:
     where = {i: j for j, i in enumerate(rec.ids)}
     for a, b in last:
         ax_pos.plot(*pos[-1, [where[a], where[b]]].T, color="tab:blue", lw=0.8, alpha=0.7)
-    ax_pos.plot(*truth.T, color="k", lw=1.0, alpha=0.5)
+    ax_pos.plot(*truth.T, "k--", lw=0.8, label="target (truth)")
+    ax_pos.legend(fontsize=7, loc="upper right", framealpha=0.6)
     ax_pos.set_title(f"agents: paths, positions and links at tick {rec.ticks} (square = static)", fontsize=10)
     for ax, adjust in ((ax_est, "box"), (ax_pos, "datalim")):
         ax.set_xlabel("x (scenario units)")
