@@ -95,6 +95,17 @@ def test_every_verdict_is_the_fault_layers(tmp_path):
     last = {int(i): Counters.from_dict(c) for i, c in est["agent_counters"].items()}
     dup = sum(doc["copies"] - 1 for doc in rec.delivered if doc["copies"] > 1)
     assert dup == sum(c.duplicate for c in last.values()) > 0
+    # every message of every channel is valid against its channel's JSON Schema
+    jsonschema = pytest.importorskip("jsonschema")
+    from diskf_mesh.recording import scene
+    from diskf_mesh.recording.schemas import CHANNELS
+
+    schemas = {**CHANNELS, scene.TOPIC: scene.SCHEMA}
+    assert set(rec.messages_by_topic) == set(schemas)
+    for topic, docs in rec.messages_by_topic.items():
+        check = jsonschema.Draft202012Validator(schemas[topic])
+        for doc in docs:
+            check.validate(doc)
     # each agent-tick's fused senders are the receivers' "fused" verdicts
     fused = {(d["tick"], d["receiver"], d["sender"]) for d in rec.delivered if d["verdict"] == "fused"}
     where = {i: j for j, i in enumerate(rec.ids)}

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .reader import Recording, take_ticks
+from .scene import AGENT_COLORS, agent_color
 from .summary import VERDICTS
 
 VERDICT_COLORS = {"fused": "tab:green", "lost": "tab:red", "late": "tab:orange", "rejected": "tab:purple",
@@ -32,9 +33,8 @@ def _title(rec: Recording) -> str:
 def _agent_colors(N: int):
     from matplotlib import colormaps
 
-    if N <= 9:  # tab10 without its gray (the truth is drawn in black and gray)
-        tab = colormaps["tab10"]
-        return [tab(i if i < 7 else i + 1) for i in range(N)]
+    if N <= len(AGENT_COLORS):  # as in the recording's /scene
+        return [agent_color(j) for j in range(N)]
     cmap = colormaps["viridis"]
     return [cmap(i / max(N - 1, 1)) for i in range(N)]
 

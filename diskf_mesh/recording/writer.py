@@ -49,6 +49,7 @@ from ..commands.options import json_safe
 from ..faults import FaultConfig, FaultModel
 from ..mesh.keys import Keys
 from ..trace import trace_to_json
+from . import scene
 from .schemas import CHANNELS, SCHEMA_PREFIX, schema_bytes
 
 FORMAT = "diskf-recording/1"
@@ -157,6 +158,12 @@ class Recorder(NoRecorder):
             sid = self._mcap.register_schema(SCHEMA_PREFIX + topic.strip("/").replace("/", "."), "jsonschema",
                                              schema_bytes(topic))
             self._channel[topic] = self._mcap.register_channel(topic, "json", sid)
+        sid = self._mcap.register_schema(scene.NAME, "jsonschema", json.dumps(scene.SCHEMA).encode())
+        self._channel[scene.TOPIC] = self._mcap.register_channel(scene.TOPIC, "json", sid)
+        self._mobile = [bool(a.mobile) for a in scn.agents]
+        self._colors = {i: scene.agent_color(j) for j, i in enumerate(self.ids)}
+        extent = max(np.ptp(trace.positions.reshape(-1, 2), axis=0).max(), 1.0)
+        self._radius = 0.012 * float(extent)
         self._t0 = time.time_ns()
         self._period = int(TICK_PERIOD_S * 1e9)
         self._lock = threading.Lock()   # the sent messages come on their own callback
@@ -254,9 +261,9 @@ class Recorder(NoRecorder):
         put("/world/agents", {"tick": k, "ids": list(ids), "positions": tr.positions[k - 1].tolist(),
                               "live": list(live)})
         N = len(ids)
-        put("/world/links", {"tick": k, "edges": [[ids[i // N], ids[i % N]] for i in
-                                                  np.flatnonzero(np.triu(links, 1).ravel()).tolist()
-                                                  if ids[i // N] in alive and ids[i % N] in alive]})
+        edges = [[ids[i // N], ids[i % N]] for i in np.flatnonzero(np.triu(links, 1).ravel()).tolist()
+                 if ids[i // N] in alive and ids[i % N] in alive]
+        put("/world/links", {"tick": k, "edges": edges})
         put("/agents/sent", {"tick": k, "messages": self._take_sent()})
         estimates, counters, deliveries = [], [], []
         for j, i in enumerate(ids):
@@ -286,6 +293,11 @@ class Recorder(NoRecorder):
         put("/agents/delivered", {"tick": k, "deliveries": deliveries})
         put("/agents/estimates", {"tick": k, "estimates": estimates})
         put("/agents/counters", {"tick": k, "counters": counters})
+        put(scene.TOPIC, scene.scene_update(
+            k, self._time(k), ids, tr.positions[k - 1], self._mobile, alive, edges,
+            tr.truth_x[0, max(k - scene.TRAIL, 0):k][:, dims[:2]],
+            [(e["agent"], [e["x"][a] for a in dims[:2]], [[e["P"][a][b] for b in dims[:2]] for a in dims[:2]])
+             for e in estimates], self._colors, self._radius))
         put("/world/tick", {"tick": k, "reported": sorted(reports, key=ids.index), "missing": missing,
                             "wall_s": wall_s})
         self._last_closed = k
