@@ -273,6 +273,8 @@ def run(args: argparse.Namespace) -> int:
     if args.estimates:
         world_extra += ["--estimates", args.estimates]
     if args.record:
+        from diskf_mesh.recording.writer import check_writable
+        check_writable(args.record)
         world_extra += ["--record", args.record]
     if args.profile:
         world_extra += ["--profile", args.profile]

@@ -137,3 +137,18 @@ def test_tick_verdicts():
     assert fused == (4, 6) and others == ((2, "rejected:not-spd"), (5, "lost"))
     fused, others = v.of_tick(8, linked={2, 4}, heard=set(), fused={4}, fusion_failed=True)
     assert fused == () and others == ((2, "late"), (4, "rejected:fusion"))
+
+
+@pytest.mark.parametrize("argv", [
+    ["up", "--ticks", "3", "--record", "/proc/no/such/run.mcap"],   # a folder that cannot be made
+    ["up", "--ticks", "3", "--record", "."],                        # a folder, not a file
+    ["inspect", "/etc/hostname"],                                   # not MCAP
+    ["replay", "absent.mcap"],
+    ["figures", "--from", "absent.mcap", "--out", "figs"],
+])
+def test_bad_recording_input_is_one_line_and_status_2(tmp_path, argv):
+    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", *argv], capture_output=True, text=True,
+                          timeout=60, cwd=tmp_path)
+    assert done.returncode == 2
+    assert len(done.stderr.strip().splitlines()) == 1 and done.stderr.startswith("error: ")
+    assert not (tmp_path / "figs").exists() or not any((tmp_path / "figs").iterdir())

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 
 from .. import metrics
+from ..errors import InputError
 from ..commands.options import json_safe, save_json
 from ..trace import estimates_to_json
 from .reader import read, take_ticks
@@ -14,6 +15,8 @@ from .replay import compare, replay
 def replay_recording(path, out=None) -> int:
     """Exit status 0 when the replay equals the recording bit for bit, 1 if not."""
     rec = read(path)
+    if not rec.ticks:
+        raise InputError("recording", f"{path} holds no complete tick to replay")
     est = replay(rec)
     scores = metrics.compute(take_ticks(rec.trace, rec.ticks), est) if rec.ticks else None
     if out:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 import queue
 import struct
@@ -67,6 +68,19 @@ def versions() -> dict:
         except metadata.PackageNotFoundError:
             out[dist] = "absent"
     return out
+
+
+def check_writable(path) -> None:
+    """``InputError`` (option ``record``) unless a recording can be written at ``path``."""
+    from ..errors import InputError
+
+    target = Path(path)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError("record", f"cannot create the folder of {path}: {e.strerror or e}") from None
+    if target.is_dir() or not os.access(target.parent, os.W_OK) or (target.exists() and not os.access(target, os.W_OK)):
+        raise InputError("record", f"cannot write {path}")
 
 
 def _dumps(doc: dict) -> bytes:
