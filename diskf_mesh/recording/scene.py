@@ -7,7 +7,8 @@ each agent's estimate of the target: a small sphere in the agent's colour
 and its 2-sigma covariance ellipse (a flat sphere along P's eigenvectors).
 The schema (``SCHEMA``) describes the part of Foxglove's SceneUpdate these
 messages use, under Foxglove's schema name, so the panel renders it without
-plugins. Coordinates are the scenario's, z = 0, frame "world".
+plugins. Coordinates are the scenario's, z = 0, frame "world". The recorder writes
+``/scene`` when the run ends (a run killed before has every other channel).
 """
 from __future__ import annotations
 

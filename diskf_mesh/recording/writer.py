@@ -189,6 +189,7 @@ class Recorder(NoRecorder):
         self._closed = False
         self._last_closed = 0
         self._flush_due = 0.0
+        self._scenes = []               # per tick, what /scene draws (written at the end)
         K, N = trace.has.shape[1:]
         n, m = trace.model.n, trace.model.m
         run = {"format": FORMAT, "run_id": run_id, "scenario": scenario, "scenario_name": scn.name,
@@ -307,14 +308,23 @@ class Recorder(NoRecorder):
         put("/agents/delivered", {"tick": k, "deliveries": deliveries})
         put("/agents/estimates", {"tick": k, "estimates": estimates})
         put("/agents/counters", {"tick": k, "counters": counters})
-        put(scene.TOPIC, scene.scene_update(
-            k, self._time(k), ids, tr.positions[k - 1], self._mobile, alive, edges,
-            tr.truth_x[0, max(k - scene.TRAIL, 0):k][:, dims[:2]],
-            [(e["agent"], [e["x"][a] for a in dims[:2]], [[e["P"][a][b] for b in dims[:2]] for a in dims[:2]])
-             for e in estimates], self._colors, self._radius))
+        self._scenes.append((k, alive, edges, [(e["agent"], e["x"], e["P"]) for e in estimates]))
         put("/world/tick", {"tick": k, "reported": sorted(reports, key=ids.index), "missing": missing,
                             "wall_s": wall_s})
         self._last_closed = k
+
+    def _write_scenes(self) -> None:
+        """``/scene`` of every closed tick. Written once the ticks are over (it
+        is most of a tick's bytes, and only a viewer needs it), so a run
+        killed before its end has every channel but this one."""
+        tr, dims = self.trace, list(self.trace.position_dims)[:2]
+        for k, alive, edges, estimates in self._scenes:
+            self._put(scene.TOPIC, k, scene.scene_update(
+                k, self._time(k), self.ids, tr.positions[k - 1], self._mobile, alive, edges,
+                tr.truth_x[0, max(k - scene.TRAIL, 0):k][:, dims],
+                [(i, [x[a] for a in dims], [[P[a][b] for b in dims] for a in dims]) for i, x, P in estimates],
+                self._colors, self._radius))
+        self._scenes = []
 
     def finish(self, status, metrics=None):
         """The run's result (``status``: "done" or why not; the metrics),
@@ -331,6 +341,7 @@ class Recorder(NoRecorder):
             sent = self._take_sent()
             if sent:  # heard after the last tick closed
                 self._put("/agents/sent", k, {"tick": max(k, 1), "messages": sent})
+            self._write_scenes()
             self._put("/run/result", k, {"status": status, "ticks": k, "metrics": json_safe(metrics or {})})
             self._mcap.finish()
         self._file.close()
