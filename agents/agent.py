@@ -72,6 +72,7 @@ from diskf_mesh.faults import FaultConfig, FaultModel
 from diskf_mesh.faults import add_arguments as add_fault_arguments
 from diskf_mesh.faults import from_args as faults_from_args
 from diskf_mesh.receive import Receiver
+from diskf_mesh.recording.verdicts import TickVerdicts
 from diskf_mesh.scenario import Scenario
 
 POLL_S = 0.5     # the main thread looks at the timeouts at least this often
@@ -131,6 +132,7 @@ class Agent:
             keys.run_id, agent_id, frozenset(self.ids), n, m, information_check=algorithm != "ldrkf"),
             profile=profile), faults, on_arrival=self.wake)
         self.counters = self.receiver.counters
+        self.verdicts = TickVerdicts()  # per tick: who was fused, why the others were not
         self.fault_config = fault_config
         self.rejoining = False
         self.reports = {}    # k -> {sender: wire.Report}, listened to only while rejoining
@@ -262,7 +264,7 @@ class Agent:
             elif kind == "report" and self.rejoining and self.est is None and who in self.ids:
                 n, m = self.scn.G.shape
                 r = wire.decode_report(payload, run_id=self.keys.run_id, sender=who, n=n, m=m,
-                                       ticks=self.constants and self.constants[0])
+                                       ticks=self.constants and self.constants[0], agents=len(self.ids))
                 if self.k - 1 <= r.tick <= self.k + 1:  # the re-initialisation reads tick k - 1
                     self.reports.setdefault(r.tick, {})[who] = r
                 for old in [j for j in self.reports if j < self.k - 1]:
@@ -500,7 +502,9 @@ class Agent:
     def _close(self, k: int) -> None:
         """Fuse what came for tick k, report to the world."""
         prof = self.prof
+        heard, rejected = self.receiver.accounted(k), self.receiver.refusals(k)
         fused = dict(self.receiver.take(k, self.linked[k]))
+        failed = False
         prof.begin()
         try:
             out = self.est.fuse(k, self.own, fused)
@@ -508,12 +512,14 @@ class Agent:
             self.counters.reject("fusion", len(fused))
             self.log.once("fusion", f"tick {k}: fusion failed; fused this agent's own message alone")
             out = self.est.fuse(k, self.own, {})
+            failed = True
         finally:
             prof.end("fuse")
         counters = self.receiver.snapshot(cap=wire.count_bound(self.constants[0]))
+        fused_ids, not_fused = self.verdicts.of_tick(k, self.linked[k], heard, rejected, fused, failed)
         prof.begin()
         report = wire.encode_report(self.keys.run_id, self.id, k, out.x[0, 0], out.P[0, 0], out.d[0, 0],
-                                    out.d_valid[0, 0], counters)
+                                    out.d_valid[0, 0], counters, fused_ids, not_fused)
         prof.end("encode")
         prof.begin()
         self.transport.put(self.keys.report(self.id), report)

@@ -25,6 +25,7 @@ from .errors import InputError
 COMMAND_MODULES = (
     "diskf_mesh.commands.experiment",
     "diskf_mesh.commands.replay",
+    "diskf_mesh.commands.inspect",
     "diskf_mesh.commands.simulate",
     "diskf_mesh.commands.figures",
     "diskf_mesh.commands.report",

@@ -58,7 +58,7 @@ class Receiver:
         self._heard: set = set()       # send events of which a copy arrived
         self._events = itertools.count()
         self._lost: dict = {}          # tick -> senders whose message of that tick the link dropped
-        self._refused: dict = {}       # tick -> senders whose message of that tick was rejected
+        self._refused: dict = {}       # tick -> {sender: reason} whose message of that tick was rejected
         self._early: dict = {}         # tick -> {sender: message} before the world's tick of that tick
         self.tick = 0                  # the agent's current tick, for the guard's window (``advance``)
         self._on_arrival = on_arrival
@@ -82,7 +82,7 @@ class Receiver:
             wm = self.guard.screen(sender, payload, self.tick)
             if not isinstance(wm, wire.WireMessage):
                 if wm is not None and wm.tick is not None:
-                    self._refused.setdefault(wm.tick, set()).add(sender)
+                    self._refused.setdefault(wm.tick, {}).setdefault(sender, wm.reason)
                     return True
                 return False
             if links is not None:
@@ -191,7 +191,13 @@ class Receiver:
         fast as a clean one, and a poisoned neighbour costs no timeout."""
         heard = self.inbox.senders(tick)
         with self._lock:
-            return heard | self._lost.get(tick, set()) | self._refused.get(tick, set())
+            return heard | self._lost.get(tick, set()) | set(self._refused.get(tick, ()))
+
+    def refusals(self, tick: int) -> dict:
+        """{sender: the guard's reason} of the messages of ``tick`` it refused
+        (the first refusal per sender), until ``take`` of that tick."""
+        with self._lock:
+            return dict(self._refused.get(tick, {}))
 
     def take(self, tick: int, linked) -> list:
         """[(sender, message)] to fuse at ``tick``, sorted by sender id."""

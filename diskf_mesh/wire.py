@@ -24,7 +24,14 @@ kind "msg" (agent -> neighbours, one per agent and tick; ``Message``)::
 kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
 
     "s", "n", "m", "dt", "dv", "a" x (n), P (n x n), d (m),
-    "c" the agent's counters so far {name: int} (see ``mesh.agent_loop``)
+    "c" the agent's counters so far {name: int} (see ``mesh.agent_loop``),
+    "f" the senders whose messages of tick k went into this estimate (ids,
+        at most ``MAX_LINKS``; optional, default none),
+    "nf" the other senders linked at tick k and why their message did not:
+        [[sender, verdict], ...] with verdict "lost" (the link dropped it),
+        "late" (no copy by the tick's close) or "rejected:<reason>"
+        (at most ``MAX_LINKS`` entries of at most ``MAX_VERDICT`` characters;
+        optional) - what a recording (``diskf_mesh.recording``) replays
 
 kind "tick" (world -> everyone, opens tick k; ``Tick``)::
 
@@ -78,6 +85,8 @@ MAX_STR = 64         # longest string field or map key (run ids, algorithm and c
 MAX_WHY = 1024       # longest "why" of a stop
 MAX_COUNTERS = 64    # most counters a report may carry (there are about 30)
 PER_TICK = 1 << 20   # most payloads one agent counts per tick of the run (``count_bound``)
+MAX_LINKS = 1024     # most senders a report's "f" and "nf" may name (without the run's agent count)
+MAX_VERDICT = 48     # longest verdict text in a report's "nf"
 
 REASONS = (
     "not-msgpack",  # not a msgpack document at all
@@ -123,6 +132,8 @@ class Report:
     d: np.ndarray        # (m,)
     d_valid: bool
     counters: dict = field(default_factory=dict)
+    fused: tuple = ()      # sender ids fused into this estimate
+    not_fused: tuple = ()  # ((sender, verdict), ...) the other linked senders
 
 
 @dataclass(frozen=True)
@@ -187,14 +198,16 @@ def encode(run_id: str, sender: int, tick: int, msg: Message) -> bytes:
                   "dt": DTYPE, "dv": bool(np.asarray(msg.d_valid).reshape(-1)[0]), "a": blob})
 
 
-def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None) -> bytes:
+def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None, fused=(),
+                  not_fused=()) -> bytes:
     n, m = _dims(x, d)
     blob = _f8(x, P, d)
     if len(blob) != 8 * (n + n * n + m):
         raise ValueError("encode_report: a report must hold one agent's arrays")
     return _pack({"v": SCHEMA, "k": "report", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
                   "dt": DTYPE, "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
-                  "c": {str(k): int(v) for k, v in (counters or {}).items()}})
+                  "c": {str(k): int(v) for k, v in (counters or {}).items()},
+                  "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused]})
 
 
 def encode_tick(t: Tick) -> bytes:
@@ -256,8 +269,9 @@ EXTRA_FIELDS = 2
 
 
 @functools.lru_cache(maxsize=64)
-def limits(kind: str, a: int | None = None, b: int | None = None) -> Limits:
-    """``kind``'s limits: "msg" and "report" for dimensions (a, b) = (n, m),
+def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | None = None) -> Limits:
+    """``kind``'s limits: "msg" and "report" for dimensions (a, b) = (n, m)
+    (a report also for the run's ``agents``: its "f" and "nf" name senders),
     "tick" for a = N agents, "meas" for a = p values, "stop". A dimension
     not given is the largest any run may have (``MAX_DIM``; for N, what fits
     in ``MAX_BYTES``)."""
@@ -266,10 +280,12 @@ def limits(kind: str, a: int | None = None, b: int | None = None) -> Limits:
     if kind in ("msg", "report"):
         floats = 2 * n + 2 * n * n + m + m * m if kind == "msg" else n + n * n + m
         size = HEADER_BYTES + 8 * floats
-        if kind == "report":  # the counters: MAX_COUNTERS names and ints
-            size += MAX_COUNTERS * (2 + MAX_STR + 9)
-            fields = MAX_COUNTERS
-        return Limits(size, MAX_STR, 8 * floats, floats, fields)
+        arrays = floats
+        if kind == "report":  # the counters: MAX_COUNTERS names and ints; "f" and "nf": a few bytes per sender
+            links = agents if agents is not None else MAX_LINKS
+            size += MAX_COUNTERS * (2 + MAX_STR + 9) + links * (9 + 12 + MAX_VERDICT)
+            fields, arrays = MAX_COUNTERS, max(floats, links)
+        return Limits(size, MAX_STR, 8 * floats, arrays, fields)
     if kind == "tick":  # alg, topo; N positions (2 float64) and N live ids (<= 9 bytes each)
         N = a or (MAX_BYTES - HEADER_BYTES - 2 * MAX_STR) // 25
         return Limits(HEADER_BYTES + 2 * MAX_STR + 25 * N, MAX_STR, 16 * N, N, fields)
@@ -452,9 +468,11 @@ _COUNTER = re.compile(r"rejected\.[a-z][a-z-]{0,31}")
 
 
 def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
-                  n: int | None = None, m: int | None = None, ticks: int | None = None) -> Report:
-    """``ticks``: the run's length, which bounds every counter (``count_bound``)."""
-    doc = _open(data, "report", run_id, limits("report", n, m))
+                  n: int | None = None, m: int | None = None, ticks: int | None = None,
+                  agents: int | None = None) -> Report:
+    """``ticks``: the run's length, which bounds every counter (``count_bound``);
+    ``agents``: the run's agent count, which bounds "f" and "nf"."""
+    doc = _open(data, "report", run_id, limits("report", n, m, agents))
     s, n, m, dv = _estimate_head(doc, sender, n, m)
     x, P, d = _split(_floats(doc, "a", n + n * n + m), [(n,), (n, n), (m,)])
     _spd(P)
@@ -469,7 +487,15 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
             raise Rejected("schema", f"field 'c': counter {k!r} is not an int")
         if not 0 <= v <= bound:
             raise Rejected("size", f"field 'c': counter {k!r} = {v}, expected 0 .. {bound}")
-    return Report(doc["run"], s, doc["t"], x, P, d, dv, c)
+    links = agents if agents is not None else MAX_LINKS
+    f, nf = doc.get("f", []), doc.get("nf", [])
+    if not isinstance(f, list) or len(f) > links or not all(_is_int(i) for i in f):
+        raise Rejected("schema", f"field 'f' is not a list of at most {links} ids")
+    if not isinstance(nf, list) or len(nf) > links or not all(
+            isinstance(e, list) and len(e) == 2 and _is_int(e[0]) and isinstance(e[1], str)
+            and len(e[1]) <= MAX_VERDICT for e in nf):
+        raise Rejected("schema", f"field 'nf' is not a list of at most {links} [id, verdict] pairs")
+    return Report(doc["run"], s, doc["t"], x, P, d, dv, c, tuple(f), tuple((i, v) for i, v in nf))
 
 
 def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -> Tick:

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import ctypes
 import json
-import os
 import queue
 import secrets
 import signal
@@ -266,6 +265,7 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
     p.add_argument("--json", metavar="OUT", help="results file (default: results/up-<run-id>.json)")
     p.add_argument("--estimates", metavar="OUT", help="also write every agent's fused estimates")
+    p.add_argument("--record", metavar="FILE.mcap", help="the world records the run as MCAP (diskf_mesh.recording)")
     p.add_argument("--logs", metavar="DIR", help="children's stderr logs (default: a temporary directory)")
     p.add_argument("--startup-timeout", type=float, default=30.0, metavar="S",
                    help="seconds for every agent to come up (default %(default)s)")
@@ -310,6 +310,7 @@ def _run(args: argparse.Namespace, private: Path) -> int:
     out = Path(args.json or f"results/up-{spec.run_id}.json")
     check_output(out, "json", stdout=False, make_parent=args.json is None)  # before any work
     check_output(args.estimates, "estimates", stdout=False)
+    check_output(args.record, "record", stdout=False)
     if args.logs:
         check_output_dir(args.logs, "logs")
     scn = spec.load(args.ticks)
@@ -331,6 +332,8 @@ def _run(args: argparse.Namespace, private: Path) -> int:
                    "--tick-timeout", str(args.tick_timeout)]
     if args.estimates:
         world_extra += ["--estimates", args.estimates]
+    if args.record:
+        world_extra += ["--record", args.record]
     if args.profile:
         world_extra += ["--profile", args.profile]
     if args.allow_missing:
@@ -379,7 +382,8 @@ def _run(args: argparse.Namespace, private: Path) -> int:
     print(f"{scn.name}: {len(ids)} agent processes + world, {ticks} ticks, seed {args.seed}, run {spec.run_id}; "
           f"first tick after {first:.2f} s, {ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
     print(format_table(results))
-    print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "") + f", logs: {logs}")
+    print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
+          + (f", recording: {args.record}" if args.record else "") + f", logs: {logs}")
     return verdict(next(iter(next(iter(results.values())).values())), world_rc, args.allow_missing)
 
 

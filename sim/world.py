@@ -67,6 +67,7 @@ from diskf_mesh.mesh.keys import Keys, new_nonce, nonce
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
+from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder
 from diskf_mesh.scenario import Scenario, simulate
 from diskf_mesh.trace import Trace, estimates_to_json
 
@@ -133,7 +134,8 @@ class World:
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
                  timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None,
-                 profile: Phases = NO_PHASES):
+                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER):
+        self.recorder = recorder  # diskf_mesh.recording: called at open, report, close
         self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
         self.prof = profile
         self.keys, self.transport, self.timing = keys, transport, timing
@@ -270,7 +272,7 @@ class World:
         self.prof.begin()
         try:
             r = wire.decode_report(payload, run_id=self.keys.run_id, sender=sender,
-                                   n=self.trace.model.n, m=self.trace.model.m, ticks=self.K)
+                                   n=self.trace.model.n, m=self.trace.model.m, ticks=self.K, agents=len(self.ids))
         finally:
             self.prof.end("decode")
         i = self.ids.index(sender)
@@ -285,6 +287,7 @@ class World:
             rec.reported[r.tick - 1, i] = True
             rec.agent_counters[sender] = r.counters
             self._waiting.discard(sender)
+            self.recorder.on_report(r)
 
     # -- the ticks (lock held) ---------------------------------------------------
     def _advance(self) -> None:
@@ -310,6 +313,7 @@ class World:
                 self._why[i] = None
             else:
                 self.record.why[k - 1, j] = self._why[i] or "left"
+        self.recorder.on_open(k, live)
         prof.begin()
         out = [(self.keys.meas(i), wire.encode_measurement(run, k, i, bool(tr.has[0, k - 1, j]),
                                                            tr.y[0, k - 1, j, : self.p[j]]))
@@ -344,6 +348,7 @@ class World:
         for i in sorted(self._waiting):
             self.record.counters["missing-report"] += 1
             self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
+        self.recorder.on_close(k, self._waiting)
         self._open, self._waiting, self._deadline = 0, set(), math.inf
         self.prof.tick()
         if self.progress is not None:
@@ -420,6 +425,8 @@ class World:
         self.transport.subscribe(f"{root}/agent/*/duplicate", self._on_sample)
         self.transport.watch_tokens(f"{root}/*/agent/*/*", self._on_sample)
         self.transport.watch_tokens(self.keys.alive_world, self._on_sample)
+        if self.recorder:  # every agent message, as sent
+            self.transport.subscribe(self.keys.msgs, self.recorder.on_message)
         others = {nonce(k) for k in self.transport.tokens(self.keys.alive_world, CLAIM_S)} - {self.nonce}
         if others:
             raise DuplicateProcess(f"another world runs run id {self.keys.run_id!r} (token nonce {min(others)}): "
@@ -601,6 +608,17 @@ def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, ru
     return doc
 
 
+def open_recorder(path, trace, scn, spec, seed, faults):
+    from diskf_mesh.errors import InputError
+    from diskf_mesh.recording.writer import Recorder
+
+    try:
+        return Recorder(path, trace, scn, scenario=spec.scenario, algorithm=spec.algorithm, seed=seed,
+                        run_id=spec.run_id, faults=faults)
+    except OSError as e:
+        raise InputError("record", f"cannot write {path}: {e.strerror or e}") from None
+
+
 # --------------------------------------------------------------------------
 # command line
 # --------------------------------------------------------------------------
@@ -623,6 +641,7 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
     p.add_argument("--json", metavar="OUT", help="write the results {algorithm: {setting: metrics}}")
     p.add_argument("--estimates", metavar="OUT", help="write every agent's fused estimates and counters")
+    p.add_argument("--record", metavar="FILE.mcap", help="record the run as MCAP (diskf_mesh.recording)")
     p.add_argument("--startup-timeout", type=float, default=WorldTiming.startup_timeout, metavar="S",
                    help="seconds to wait for every agent (default %(default)s)")
     p.add_argument("--tick-timeout", type=float, default=WorldTiming.tick_timeout, metavar="S",
@@ -646,6 +665,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_output(args.json, "json", stdout=False)  # before any work: a bad path must not cost the run
     check_output(args.estimates, "estimates", stdout=False)
+    check_output(args.record, "record", stdout=False)
     signalled = [""]  # the signal's name, then the World, which ends the run at its next look (POLL_S)
 
     def interrupt(signum, frame):
@@ -680,20 +700,23 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
 
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
+    recorder = open_recorder(args.record, trace, scn, spec, args.seed, faults) if args.record else NO_RECORDER
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
             world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
-                          WorldTiming(args.startup_timeout, args.tick_timeout), progress, log, prof)
+                          WorldTiming(args.startup_timeout, args.tick_timeout), progress, log, prof, recorder)
             world.interrupted, signalled[0] = signalled[0], world
             rec = world.run(allow_missing=args.allow_missing > 0)
     except MeshError as e:
         log.error(str(e))
+        recorder.finish(f"failed: {e}")
         return e.status
     finally:
         bar.close()
         if prof:
             prof.write(args.profile, "world")
     row = result_metrics(trace, rec)
+    recorder.finish("done" if world.done else "stopped", row)
     summary = run_summary(rec, faults)
     results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
     if args.json:

@@ -7,7 +7,7 @@ the observation-window variants and the isolated-sensor diagnosis.
 """
 from __future__ import annotations
 
-from .study_options import add_study_command
+from .study_options import add_study_command, out_dir
 
 
 def figures(cfg, out) -> str:
@@ -19,3 +19,17 @@ def figures(cfg, out) -> str:
 def register(subparsers) -> None:
     add_study_command(subparsers, "figures", "write every figure of the report (PNG)", __doc__,
                       "folder for the PNG files (created)", figures)
+    p = subparsers.choices["figures"]
+    p.add_argument("--from", dest="recording", metavar="RUN.mcap",
+                   help="instead: the figures of one recorded run (trajectories, links, error over time)")
+    report = p.get_default("func")
+    p.set_defaults(func=lambda args: recording_figures(args) if args.recording else report(args))
+
+
+def recording_figures(args) -> int:
+    from ..recording.figures import make_recording_figures
+    from ..recording.reader import read
+
+    paths = make_recording_figures(read(args.recording), out_dir(args.out))
+    print(f"{len(paths)} figures of {args.recording} -> {args.out}")
+    return 0

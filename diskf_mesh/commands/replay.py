@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 
 from .. import algorithms, engine, metrics
+from ..errors import InputError
 from ..trace import estimates_to_json, estimator_from_json, read_json, trace_from_json
 from .options import add_command, add_estimator_options, algorithm_name, check_output, estimator_params, human_stream, \
     json_safe, save_json
@@ -20,15 +21,22 @@ from .options import add_command, add_estimator_options, algorithm_name, check_o
 
 def register(subparsers) -> None:
     p = add_command(subparsers, "replay", "run an algorithm on a recorded diskf-trace/1 file", __doc__)
-    p.add_argument("trace", metavar="TRACE.json", help="a diskf-trace/1 file")
+    p.add_argument("trace", metavar="TRACE.json", help="a diskf-trace/1 file, or RUN.mcap: a recording of up --record "
+                   "(re-run on what each agent fused; --algorithm and the estimator options are the recording's)")
     p.add_argument("--algorithm", type=algorithm_name, default="diskf",
                    help=f"one of {', '.join(algorithms.NAMES)} (default diskf)")
     add_estimator_options(p)  # default: the trace's "estimator" settings
-    p.add_argument("--out", required=True, metavar="EST.json", help="where to write diskf-estimates/1 (- for standard output)")
+    p.add_argument("--out", metavar="EST.json", help="where to write diskf-estimates/1 (- for standard output; required for a trace)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if str(args.trace).endswith(".mcap"):
+        from ..recording.command import replay_recording
+        check_output(args.out, "out")
+        return replay_recording(args.trace, args.out)
+    if args.out is None:
+        raise InputError("out", "is required: where to write diskf-estimates/1")
     check_output(args.out, "out")
     doc = read_json(args.trace)
     trace = trace_from_json(doc)

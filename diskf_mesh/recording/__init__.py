@@ -1,0 +1,9 @@
+"""Recordings of mesh runs as MCAP files (``up --record``, ``world --record``).
+
+    verdicts   an agent's account, in each report, of what it fused and why not the rest
+    schemas    the channels and their JSON Schemas;  scene: ``/scene`` for Foxglove's 3-D panel
+    writer     the world's recorder (hooks called by ``sim.world.World``)
+    reader     reading a recording back, whole or cut short
+    replay     the engine on exactly what each agent fused; ``command``: ``replay RUN.mcap``
+    summary    ``inspect RUN.mcap``;  figures: ``figures --from RUN.mcap``
+"""

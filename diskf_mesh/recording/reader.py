@@ -1,0 +1,179 @@
+"""Reading a recording back, whole or cut short.
+
+``read(path)`` reads every complete MCAP record of the file and stops at the
+first one the end of the file cuts (a world killed mid-run leaves no
+summary, no footer, and perhaps half a chunk): the recording is then
+readable up to its last closed tick. Ticks after the last one whose closing
+record (``/world/tick``) is in the file are dropped, so every tick a
+``Recording`` holds is complete.
+"""
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import dataclass, field, replace
+from io import BytesIO
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..model import Params
+from ..trace import Trace, trace_from_json
+from .writer import FORMAT, TRACE_ATTACHMENT
+
+MAGIC = b"\x89MCAP0\r\n"
+_FOOTER = 0x02
+_HEAD = struct.Struct("<BQ")
+
+
+@dataclass
+class Recording:
+    """A recording's complete ticks 1..K (arrays (K, N, ...), NaN where an
+    agent did not report)."""
+
+    path: str
+    run: dict                   # the /run message
+    trace: Trace                # the whole run's trace (all planned ticks)
+    params: Params
+    ticks: int                  # complete ticks K
+    ids: tuple
+    x: np.ndarray
+    P: np.ndarray
+    d: np.ndarray
+    d_valid: np.ndarray
+    reported: np.ndarray        # (K, N) bool
+    fused: np.ndarray           # (K, N, N) bool: [k-1, receiver, sender] fused (diagonal True)
+    sent: list = field(default_factory=list)        # every message sent at ticks <= K (/agents/sent)
+    delivered: list = field(default_factory=list)   # every delivery of ticks <= K, with its tick
+    counters: dict = field(default_factory=dict)    # (k, agent) -> counters
+    positions: np.ndarray | None = None             # (K, N, 2)
+    edges: list = field(default_factory=list)       # per tick, [[a, b], ...]
+    result: dict | None = None  # /run/result, when the run ended and wrote it
+    finished: bool = False      # the file has its footer (the world closed it)
+    messages_by_topic: dict = field(default_factory=dict)
+
+    @property
+    def algorithm(self) -> str:
+        return self.run["algorithm"]
+
+    @property
+    def planned_ticks(self) -> int:
+        return int(self.run["ticks"])
+
+
+def whole_records(data: bytes) -> tuple:
+    """(end of the last whole record, whether the footer and the closing
+    magic are there) of an MCAP file's bytes."""
+    if data[:8] != MAGIC:
+        raise ValueError("not an MCAP file (no MCAP magic at its start)")
+    pos = 8
+    while pos + _HEAD.size <= len(data):
+        op, length = _HEAD.unpack_from(data, pos)
+        end = pos + _HEAD.size + length
+        if end > len(data):
+            break
+        pos = end
+        if op == _FOOTER:
+            return pos, data[pos:pos + 8] == MAGIC
+    return pos, False
+
+
+def records(data: bytes):
+    """Every whole record (chunks opened), in file order; stops quietly at
+    a record the file cuts or a chunk that does not decompress."""
+    from mcap.stream_reader import StreamReader
+
+    end, _ = whole_records(data)
+    reader = StreamReader(BytesIO(data[8:end]), skip_magic=True)
+    it = reader.records
+    while True:
+        try:
+            rec = next(it)
+        except StopIteration:
+            return
+        except Exception:  # noqa: BLE001 - a damaged tail (bad CRC, undecompressable chunk): stop there
+            return
+        yield rec
+
+
+def read(path) -> Recording:
+    from mcap.records import Attachment, Channel, Message
+
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise InputError("recording", f"cannot read {path}: {e.strerror or e}") from None
+    try:
+        _, finished = whole_records(data)
+    except ValueError as e:
+        raise InputError("recording", f"{path}: {e}") from None
+    channels, by_topic, trace_doc = {}, {}, None
+    for rec in records(data):
+        if isinstance(rec, Channel):
+            channels[rec.id] = rec.topic
+        elif isinstance(rec, Message) and rec.channel_id in channels:
+            try:
+                by_topic.setdefault(channels[rec.channel_id], []).append(json.loads(rec.data))
+            except ValueError:
+                continue
+        elif isinstance(rec, Attachment) and rec.name == TRACE_ATTACHMENT:
+            trace_doc = json.loads(rec.data)
+    runs = by_topic.get("/run", [])
+    if not runs or runs[0].get("format") != FORMAT or trace_doc is None:
+        raise InputError("recording", f"{path} is not a diskf-mesh recording ({FORMAT}) or was cut before "
+                                      "its first tick")
+    return _assemble(str(path), runs[0], trace_doc, by_topic, finished)
+
+
+def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: bool) -> Recording:
+    params = Params(**trace_doc.pop("params", {}))
+    trace = trace_from_json(trace_doc)
+    ids = tuple(run["ids"])
+    N, n, m = len(ids), int(run["n"]), int(run["m"])
+    closed = {doc["tick"] for doc in by_topic.get("/world/tick", [])}
+    K = 0
+    while K + 1 in closed:
+        K += 1
+    where = {i: j for j, i in enumerate(ids)}
+    x, P = np.full((K, N, n), np.nan), np.full((K, N, n, n), np.nan)
+    d, d_valid = np.full((K, N, m), np.nan), np.zeros((K, N), dtype=bool)
+    reported = np.zeros((K, N), dtype=bool)
+    fused = np.zeros((K, N, N), dtype=bool)
+    fused[:, np.arange(N), np.arange(N)] = True
+    in_run = lambda topic: [doc for doc in by_topic.get(topic, []) if 1 <= doc["tick"] <= K]  # noqa: E731
+    for doc in in_run("/agents/estimates"):
+        k = doc["tick"]
+        for e in doc["estimates"]:
+            j = where.get(e["agent"])
+            if j is None:
+                continue
+            x[k - 1, j], P[k - 1, j] = e["x"], e["P"]
+            d_valid[k - 1, j] = e["d_valid"]
+            if e["d"] is not None:
+                d[k - 1, j] = e["d"]
+            reported[k - 1, j] = True
+            for s in e["fused"]:
+                fused[k - 1, j, where[s]] = True
+    positions = np.full((K, N, 2), np.nan)
+    edges = [[] for _ in range(K)]
+    for doc in in_run("/world/agents"):
+        positions[doc["tick"] - 1] = doc["positions"]
+    for doc in in_run("/world/links"):
+        edges[doc["tick"] - 1] = doc["edges"]
+    counters = {(doc["tick"], c["agent"]): c["counters"] for doc in in_run("/agents/counters") for c in doc["counters"]}
+    sent = [m for doc in by_topic.get("/agents/sent", []) for m in doc["messages"] if 1 <= m["tick"] <= K]
+    delivered = [{"tick": doc["tick"], **e} for doc in in_run("/agents/delivered") for e in doc["deliveries"]]
+    results = by_topic.get("/run/result", [])
+    return Recording(path, run, trace, params, K, ids, x, P, d, d_valid, reported, fused,
+                     sent, delivered, counters, positions, edges,
+                     results[-1] if results else None, finished, by_topic)
+
+
+def take_ticks(trace: Trace, K: int) -> Trace:
+    """The first K ticks of a trace (everything is causal: ticks 1..K of a
+    run do not depend on later ones)."""
+    cut = lambda a: None if a is None else a[:, :K]  # noqa: E731
+    return replace(trace, model=replace(trace.model, A=trace.model.A[:K]), y=trace.y[:, :K], has=trace.has[:, :K],
+                   links=trace.links[:, :K], truth_x=cut(trace.truth_x), truth_d=cut(trace.truth_d),
+                   positions=None if trace.positions is None else trace.positions[:K])

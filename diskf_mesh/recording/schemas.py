@@ -1,0 +1,80 @@
+"""The channels of a recording and the JSON Schema of each (MCAP schema
+encoding ``jsonschema``, message encoding ``json``: Foxglove and the ``mcap``
+tools read them without plugins).
+
+Every message carries ``tick`` (k >= 1); there is one message per channel
+and tick, holding every agent's (a list; in Foxglove, pick one agent with a
+filter, e.g. ``/agents/estimates.estimates[:]{agent==3}.position_error``).
+Vectors are JSON arrays of numbers, matrices arrays of rows. Agent ids are
+the scenario's.
+"""
+from __future__ import annotations
+
+import json
+
+SCHEMA_PREFIX = "diskf."
+
+_NUM = {"type": "number"}
+_INT = {"type": "integer"}
+_IDS = {"type": "array", "items": _INT}
+_VEC = {"type": "array", "items": _NUM}
+_MAT = {"type": "array", "items": _VEC}
+
+
+def _obj(title: str, description: str, required=(), **props) -> dict:
+    return {"title": SCHEMA_PREFIX + title, "description": description, "type": "object",
+            "properties": props, "required": list(required or props)}
+
+
+_TICK = {"tick": {**_INT, "minimum": 1, "description": "tick k (1..K)"}}
+
+# topic -> JSON Schema of its messages
+CHANNELS = {
+    "/run": _obj("Run", "what ran: scenario, seed, estimator, faults, ids, dimensions, versions (once, first)",
+                 required=("format", "run_id", "scenario", "seed", "algorithm", "ids", "ticks"),
+                 format={"type": "string"}, run_id={"type": "string"}, scenario={"type": "string"},
+                 scenario_name={"type": "string"}, seed=_INT, algorithm={"type": "string"},
+                 topology={"type": "string"}, comm_range={"type": ["number", "string"]},
+                 ids=_IDS, ticks=_INT, n=_INT, m=_INT, params={"type": "object"}, faults={"type": "object"},
+                 tick_period_s=_NUM, versions={"type": "object"}),
+    "/world/truth": _obj("Truth", "ground truth of tick k: the target's state x and the input d acting "
+                                  "between tick k-1 and k", **_TICK, x=_VEC, d=_VEC, position=_VEC),
+    "/world/agents": _obj("Agents", "every agent's position at tick k (scenario order) and the live set",
+                          **_TICK, ids=_IDS, positions=_MAT, live=_IDS),
+    "/world/links": _obj("Links", "the link graph of tick k: pairs [a, b] (a < b) of live agents in range",
+                         **_TICK, edges={"type": "array", "items": _IDS}),
+    "/world/tick": _obj("TickClosed", "tick k is over: who reported, who did not (written last; a tick "
+                                      "without it is incomplete)", **_TICK, reported=_IDS, missing=_IDS,
+                        wall_s={**_NUM, "description": "seconds since tick 1 opened"}),
+    "/agents/sent": _obj("MessagesSent", "the agent messages the world heard since the last tick closed, "
+                                         "as they went on the wire", **_TICK, messages={"type": "array", "items": _obj(
+        "MessageSent", "one agent message", required=("tick", "sender", "to", "bytes"), **_TICK, sender=_INT,
+        to={**_IDS, "description": "the agents it is addressed to (in range at its tick)"},
+        bytes=_INT, x_pred=_VEC, P_pred=_MAT, x_upd=_VEC, P_upd=_MAT, d=_VEC, S=_MAT,
+        d_valid={"type": "boolean"}, undecodable={"type": "string"})}),
+    "/agents/delivered": _obj("MessagesDelivered", "what became of every message of tick k at every receiver "
+                                                   "linked to its sender", **_TICK, deliveries={"type": "array", "items": _obj(
+        "MessageDelivered", "sender's message of tick k at one receiver",
+        required=("sender", "receiver", "verdict", "copies"), sender=_INT, receiver=_INT,
+        verdict={"enum": ["fused", "lost", "late", "rejected", "unreported"],
+                 "description": "fused; lost (the link dropped it); late (no copy by the tick's close); "
+                                "rejected (reason); unreported (the receiver sent no report of tick k)"},
+        reason={"type": "string"},
+        copies={**_INT, "description": "copies the seeded fault layer sends (0: lost; 2: one is a duplicate)"},
+        delays_ms={**_VEC, "description": "each copy's delay planned by the fault layer"})}),
+    "/agents/estimates": _obj("Estimates", "every agent's fused estimate after tick k, as reported to the world",
+                              **_TICK, estimates={"type": "array", "items": _obj(
+        "Estimate", "one agent's", required=("agent", "x", "P", "d_valid", "fused"), agent=_INT,
+        x=_VEC, P=_MAT, d={"type": ["array", "null"], "items": _NUM}, d_valid={"type": "boolean"}, fused=_IDS,
+        position_error={**_NUM, "description": "distance of the estimated position to the truth"})}),
+    "/agents/counters": _obj("Counters", "every agent's message counters after tick k (diskf_mesh.counters), flat",
+                             **_TICK, counters={"type": "array", "items": _obj(
+        "AgentCounters", "one agent's", agent=_INT, counters={"type": "object", "additionalProperties": _INT})}),
+    "/run/result": _obj("Result", "the run's end: status, ticks closed, metrics (last)",
+                        required=("status", "ticks"), status={"type": "string"}, ticks=_INT,
+                        metrics={"type": "object"}),
+}
+
+
+def schema_bytes(topic: str) -> bytes:
+    return json.dumps(CHANNELS[topic], sort_keys=True).encode()

@@ -1,0 +1,154 @@
+"""A recording cut short stays readable up to its last complete tick: a
+world killed with SIGKILL mid-run, and the same file cut at every kind of
+offset. Also the report fields a recording is built on."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from diskf_mesh import wire
+from diskf_mesh.counters import Counters
+from diskf_mesh.errors import InputError
+from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.recording import reader
+from diskf_mesh.recording.replay import compare, replay
+from diskf_mesh.recording.verdicts import TickVerdicts
+
+from mesh_helpers import start_mesh
+
+
+def closed_ticks(path) -> int:
+    try:
+        return reader.read(path).ticks
+    except InputError:  # not even the first tick yet
+        return 0
+
+
+@pytest.mark.mesh
+def test_killed_world_leaves_a_readable_recording(tmp_path):
+    path = tmp_path / "killed.mcap"
+    spec = RunSpec("dynamic", "diskf", run_id="reckill")
+    mesh = start_mesh(spec, 400, 2, tmp_path, world_extra=["--record", str(path), "--loss", "0.2"],
+                      agent_extra=["--world-timeout", "30", "--loss", "0.2"])
+    try:
+        mesh.start_agents()
+        deadline = time.monotonic() + 90
+        while closed_ticks(path) < 20:
+            assert mesh.world.proc.poll() is None, mesh.world.last_error_line()
+            assert time.monotonic() < deadline, "the world did not reach tick 20"
+            time.sleep(0.2)
+        os.kill(mesh.world.proc.pid, signal.SIGKILL)
+        assert mesh.world.proc.wait(10) == -signal.SIGKILL
+    finally:
+        mesh.stop_all()
+    rec = reader.read(path)
+    assert not rec.finished and rec.result is None
+    assert 20 <= rec.ticks < 400
+    assert rec.reported.all()                  # every tick it holds is complete
+    assert {d["tick"] for d in rec.delivered} == set(range(1, rec.ticks + 1))
+    assert compare(rec, replay(rec)).equal     # and replays bit for bit
+    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", "inspect", str(path), "--json"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    s = json.loads(done.stdout)
+    assert (s["finished"], s["ticks"], s["planned_ticks"], s["status"]) == (False, rec.ticks, 400, "cut short")
+    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", "replay", str(path)], capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    # cut it further anywhere: never an error once the first tick is in, never a partial tick
+    data = path.read_bytes()
+    cut_path = tmp_path / "cut.mcap"
+    seen = []
+    for end in np.linspace(len(data) // 4, len(data), 40).astype(int):
+        cut_path.write_bytes(data[:end])
+        try:
+            cut = reader.read(cut_path)
+        except InputError:  # cut before its first tick closed
+            assert not seen, f"unreadable at {end} bytes after a readable shorter cut"
+            continue
+        assert cut.reported.all()
+        np.testing.assert_array_equal(cut.x, rec.x[:cut.ticks])
+        seen.append(cut.ticks)
+    assert seen == sorted(seen) and seen[-1] == rec.ticks and any(0 < t < rec.ticks for t in seen)
+
+
+def test_what_is_not_a_recording(tmp_path):
+    p = tmp_path / "x.mcap"
+    p.write_bytes(b"not an mcap file")
+    with pytest.raises(InputError, match="not an MCAP file"):
+        reader.read(p)
+    with pytest.raises(InputError, match="cannot read"):
+        reader.read(tmp_path / "absent.mcap")
+    p.write_bytes(reader.MAGIC + b"\x01\x05")  # cut inside the header record
+    with pytest.raises(InputError, match="not a diskf-mesh recording"):
+        reader.read(p)
+
+
+# --------------------------------------------------------------------------
+# the report's fused senders and verdicts
+# --------------------------------------------------------------------------
+def _report(**kw) -> bytes:
+    return wire.encode_report("r", 3, 7, np.zeros(2), np.eye(2), np.zeros(1), True, {"fused": 2}, **kw)
+
+
+def test_report_carries_fused_senders_and_verdicts():
+    r = wire.decode_report(_report(fused=(1, 4), not_fused=((2, "lost"), (5, "rejected:not-spd"))), run_id="r")
+    assert r.fused == (1, 4) and r.not_fused == ((2, "lost"), (5, "rejected:not-spd"))
+    old = wire.decode_report(wire.encode_report("r", 3, 7, np.zeros(2), np.eye(2), np.zeros(1), True))
+    assert old.fused == () and old.not_fused == ()
+
+
+@pytest.mark.parametrize("fields", [
+    {"f": list(range(wire.MAX_LINKS + 1))}, {"f": ["1"]}, {"f": [True]}, {"nf": [[1]]}, {"nf": [[1, 2]]},
+    {"nf": [[1, "x" * (wire.MAX_VERDICT + 1)]]}, {"nf": {"1": "lost"}},
+])
+def test_report_verdicts_are_bounded(fields):
+    import msgpack
+
+    doc = msgpack.unpackb(_report(), raw=False)
+    doc.update(fields)
+    with pytest.raises(wire.Rejected) as e:
+        wire.decode_report(msgpack.packb(doc, use_bin_type=True))
+    assert e.value.reason == "schema"
+
+
+def test_tick_verdicts():
+    c = Counters()
+    v = TickVerdicts(c)
+
+    def receive_rejected(key, payload):
+        c.reject("not-spd")
+
+    def receive_ok(key, payload):
+        pass
+
+    v.on_payload(receive_rejected, "k", b"", 2, 7)
+    v.on_payload(receive_ok, "k", b"", 4, 7)
+    c.reject("fusion")  # counted outside a payload: attributed to no one
+    v.on_payload(receive_ok, "k", b"", 6, 7)
+    fused, others = v.of_tick(7, linked={2, 4, 5, 6}, heard={4, 5, 6}, fused={4, 6})
+    assert fused == (4, 6) and others == ((2, "rejected:not-spd"), (5, "lost"))
+    fused, others = v.of_tick(8, linked={2, 4}, heard=set(), fused={4}, fusion_failed=True)
+    assert fused == () and others == ((2, "late"), (4, "rejected:fusion"))
+
+
+@pytest.mark.parametrize("argv", [
+    ["up", "--ticks", "3", "--record", "/proc/no/such/run.mcap"],   # a folder that cannot be made
+    ["up", "--ticks", "3", "--record", "."],                        # a folder, not a file
+    ["inspect", "/etc/hostname"],                                   # not MCAP
+    ["replay", "absent.mcap"],
+    ["figures", "--from", "absent.mcap", "--out", "figs"],
+])
+def test_bad_recording_input_is_one_line_and_status_2(tmp_path, argv):
+    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", *argv], capture_output=True, text=True,
+                          timeout=60, cwd=tmp_path)
+    assert done.returncode == 2
+    assert len(done.stderr.strip().splitlines()) == 1 and done.stderr.startswith("error: ")
+    assert not (tmp_path / "figs").exists() or not any((tmp_path / "figs").iterdir())
