@@ -258,6 +258,9 @@ def test_a_poisoned_neighbour_is_accounted_for_and_never_fused(view):
     assert rx.wait(view.tick, view.linked, t0 + 30.0) >= set(view.linked)
     assert time.monotonic() - t0 < 1.0                      # no collect timeout for the poisoned one
     assert rx.accounted(view.tick + 7) == set()
+    assert rx.refusals(view.tick) == {j: "non-finite"}      # what the report's verdicts say of it
+    rx.on_payload(j, pack({**d, "s": rest[0]}))              # another agent's body on j's key: accounts nothing
+    assert rx.refusals(view.tick) == {j: "non-finite"}
     got = rx.take(view.tick, view.linked)
     assert [s for s, _ in got] == sorted(rest)
     _, out = view.fuse(got)

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 from diskf_mesh import wire
-from diskf_mesh.counters import Counters
 from diskf_mesh.errors import InputError
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.recording import reader
@@ -120,22 +119,10 @@ def test_report_verdicts_are_bounded(fields):
 
 
 def test_tick_verdicts():
-    c = Counters()
-    v = TickVerdicts(c)
-
-    def receive_rejected(key, payload):
-        c.reject("not-spd")
-
-    def receive_ok(key, payload):
-        pass
-
-    v.on_payload(receive_rejected, "k", b"", 2, 7)
-    v.on_payload(receive_ok, "k", b"", 4, 7)
-    c.reject("fusion")  # counted outside a payload: attributed to no one
-    v.on_payload(receive_ok, "k", b"", 6, 7)
-    fused, others = v.of_tick(7, linked={2, 4, 5, 6}, heard={4, 5, 6}, fused={4, 6})
+    v = TickVerdicts()
+    fused, others = v.of_tick(7, linked={2, 4, 5, 6}, heard={2, 4, 5, 6}, rejected={2: "not-spd"}, fused={4, 6})
     assert fused == (4, 6) and others == ((2, "rejected:not-spd"), (5, "lost"))
-    fused, others = v.of_tick(8, linked={2, 4}, heard=set(), fused={4}, fusion_failed=True)
+    fused, others = v.of_tick(8, linked={2, 4}, heard=set(), rejected={}, fused={4}, fusion_failed=True)
     assert fused == () and others == ((2, "late"), (4, "rejected:fusion"))
 
 
