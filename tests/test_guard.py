@@ -267,7 +267,7 @@ def test_a_poisoned_neighbour_is_accounted_for_and_never_fused(view):
     _, ref = view.fuse([(i, view.messages[i]) for i in rest])
     assert out.x.tobytes() == ref.x.tobytes() and out.P.tobytes() == ref.P.tobytes()
     c = rx.close()
-    assert c.rejected == {"non-finite": 2} and c.fused == len(rest) and c.imbalance() == []
+    assert c.rejected == {"non-finite": 2, "sender": 1} and c.fused == len(rest) and c.imbalance() == []
 
 
 def test_what_waits_is_bounded_by_the_window_and_the_scenario(view):
