@@ -35,6 +35,7 @@ from diskf_mesh.errors import InputError
 from diskf_mesh.faults import FaultConfig
 from diskf_mesh.faults import add_arguments as add_fault_arguments
 from diskf_mesh.faults import from_args as faults_from_args
+from diskf_mesh import live
 from diskf_mesh.mesh import runspec, zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
@@ -245,6 +246,7 @@ def register(subparsers) -> None:
     p.add_argument("--profile", metavar="DIR",
                    help="world and agents measure where each tick's time goes: DIR/world.json, "
                         "DIR/agent-<id>.json (benchmarks/mesh_bench.py --profile prints them)")
+    live.add_arguments(p)
     add_fault_arguments(p)
     zenoh_config.add_arguments(p)
     p.set_defaults(func=run)
@@ -293,6 +295,7 @@ def run(args: argparse.Namespace) -> int:
         bar.update(k - bar.n)
 
     launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()))
+    live.attach(args, launcher, spec, ticks, agent_z, logs)  # --live: the viewer, one more child
     try:
         launcher.start()
         launcher.wait(args.startup_timeout + ticks * args.tick_timeout + 30.0)
