@@ -1,11 +1,11 @@
 """The live view of a mesh run in a browser: ``diskf-mesh up --live [PORT]``.
 
-The view is Rerun's web viewer (the ``rerun-sdk`` wheel ships it, HTML, JS
-and Wasm, and its server: nothing comes from the internet), fed by a viewer
-process (``diskf_mesh.live.viewer``) that listens to the run on zenoh and
-recomputes the truth from the scenario and the seed. The world and the agents
-do not change, and while no browser is connected the viewer has no zenoh
-session at all. What it shows: ``diskf_mesh.live.view``.
+A viewer process (``diskf_mesh.live.viewer``) serves one page on 127.0.0.1
+(plain JS drawing SVG, fed by Server-Sent Events; nothing comes from the
+internet). It listens to the run on zenoh and recomputes the truth from the
+scenario and the seed. The world and the agents do not change, and while no
+page is open the viewer has no zenoh session at all. What it shows:
+``diskf_mesh.live.view``.
 
 ``add_arguments`` and ``attach`` are the launcher's hook: ``up --live``
 starts the viewer as one more child of the run (stopped with the others).
@@ -13,7 +13,6 @@ starts the viewer as one more child of the run (stopped with the others).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import socket
 import subprocess
 import sys
@@ -26,8 +25,8 @@ MODULE = "diskf_mesh.live.viewer"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--live", type=int, nargs="?", const=DEFAULT_PORT, default=None, metavar="PORT",
-                        help="serve a live view of the run at http://127.0.0.1:PORT/ (default port "
-                             f"{DEFAULT_PORT}; needs the rerun-sdk package: pip install 'diskf-mesh[live]')")
+                        help="serve a live view of the run at http://127.0.0.1:PORT/ for a browser on this "
+                             f"machine (default port {DEFAULT_PORT})")
 
 
 def _check_port(port: int) -> None:
@@ -40,11 +39,10 @@ def _check_port(port: int) -> None:
             raise InputError("live", f"port {port} is not free on 127.0.0.1: {e.strerror or e}") from None
 
 
-def viewer_command(spec, ticks: int, seed: int, port: int, grpc_port: int, zenoh, status=None) -> list:
+def viewer_command(spec, ticks: int, seed: int, port: int, zenoh, status=None) -> list:
     """argv of the viewer process (``zenoh``: its ``ZenohOptions``)."""
     return [sys.executable, "-m", MODULE, *spec.to_argv(), "--ticks", str(ticks), "--seed", str(seed),
-            "--port", str(port), "--grpc-port", str(grpc_port), *zenoh.to_argv(),
-            *(["--status", str(status)] if status else [])]
+            "--port", str(port), *zenoh.to_argv(), *(["--status", str(status)] if status else [])]
 
 
 def attach(args, launcher, spec, ticks: int, zenoh, logs):
@@ -53,17 +51,14 @@ def attach(args, launcher, spec, ticks: int, zenoh, logs):
     viewer's session options. Returns the child, or None without ``--live``."""
     if args.live is None:
         return None
-    from sim.launcher import Child, free_port  # the launcher calls this hook: no import cycle at load time
+    from sim.launcher import Child  # the launcher calls this hook: no import cycle at load time
 
-    _check_port(args.live)
-    if importlib.util.find_spec("rerun") is None:
-        raise InputError("live", "the live view needs the rerun-sdk package: pip install 'diskf-mesh[live]'")
     from .viewer import page_url
 
-    grpc_port = free_port()
-    child = Child("live view", viewer_command(spec, ticks, args.seed, args.live, grpc_port, zenoh,
-                                              logs / "live-status.json"), logs / "live.log")
+    _check_port(args.live)
+    child = Child("live view", viewer_command(spec, ticks, args.seed, args.live, zenoh, logs / "live-status.json"),
+                  logs / "live.log")
     launcher._spawn(child, subprocess.DEVNULL)
     launcher.children.append(child)
-    print(f"live view: {page_url(args.live, grpc_port)}", file=sys.stderr, flush=True)
+    print(f"live view: {page_url(args.live)}", file=sys.stderr, flush=True)
     return child

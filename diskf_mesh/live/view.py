@@ -10,15 +10,13 @@ after every live agent reported tick k, or at its deadline) or when the run
 stops; a report that comes after its frame went out is counted in ``late``
 and not shown.
 
-``RerunSink`` logs a frame to a ``rerun.RecordingStream`` on the timeline
-``tick``: ``world/agents`` (positions, static red, mobile green, grey when
-not live), ``world/links`` (the links of the tick between live agents),
-``world/truth`` (the target, and ``world/truth_path`` its whole path, static),
-``world/estimates`` and ``world/ellipses`` (each agent's fused position and
-its 95 % covariance ellipse), ``error/state`` (each agent's position error
-and the running MAE over the agent-ticks reported so far, as
-``metrics.errors`` and ``metrics.summarize`` define them) and ``counters``
-(each agent's message counters, a table).
+``scene_doc`` and ``frame_doc`` are what the page (``page.html``) draws:
+the agents (static red, mobile green, grey when not live), the links of the
+tick between live agents, the target (blue) and its recent true path, each
+agent's fused position (yellow) and its 95 % covariance ellipse, each
+agent's position error and the running MAE over the agent-ticks reported so
+far (as ``metrics.errors`` and ``metrics.summarize`` define them), and every
+agent's message counters.
 """
 from __future__ import annotations
 
@@ -176,67 +174,48 @@ class LiveView:
 
 
 # --------------------------------------------------------------------------
-# Rerun
+# what the page gets
 # --------------------------------------------------------------------------
-def blueprint():
-    """The layout: the mesh on the left, the error over time and the counters
-    on the right, the timeline below (to scrub back)."""
-    import rerun.blueprint as rrb
-
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial2DView(origin="/world", name="mesh: agents, links, truth, estimates"),
-            rrb.Vertical(rrb.TimeSeriesView(origin="/error", name="position error"),
-                         rrb.TextDocumentView(origin="/counters", name="counters"), row_shares=[3, 2]),
-            column_shares=[3, 2]),
-        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="collapsed"), collapse_panels=True)
+def _num(a) -> list:
+    """Floats for JSON, rounded to what a screen shows, NaN as None."""
+    return [None if v != v else round(float(v), 3) for v in np.asarray(a, dtype=float).ravel()]
 
 
-class RerunSink:
-    """Logs frames to a Rerun recording (``rerun.RecordingStream``)."""
-
-    def __init__(self, rec, scn: Scenario, trace: Trace):
-        import rerun as rr
-
-        self.rr, self.rec = rr, rec
-        self.ids = [a.id for a in scn.agents]
-        self.labels = [("m" if a.mobile else "s") + str(a.id) for a in scn.agents]
-        self.colors = np.array([MOBILE if a.mobile else STATIC for a in scn.agents], dtype=np.uint8)
-        dims = list(trace.position_dims)
-        rec.log("world/truth_path", rr.LineStrips2D([trace.truth_x[0][:, dims]], colors=[TRUTH], radii=0.6),
-                static=True)
-        rec.log("error/state", rr.SeriesLines(names=[f"agent {lab}" for lab in self.labels] + ["running MAE"],
-                                              widths=[1.0] * len(self.ids) + [3.0]), static=True)
-
-    def frame(self, f: Frame) -> None:
-        rr, rec = self.rr, self.rec
-        rec.set_time("tick", sequence=f.tick)
-        colors = np.where(f.live[:, None], self.colors, np.array(GONE, dtype=np.uint8))
-        rec.log("world/agents", rr.Points2D(f.positions, colors=colors, radii=6.0, labels=self.labels,
-                                            show_labels=True, draw_order=30.0))
-        rec.log("world/links", rr.LineStrips2D([f.positions[[i, j]] for i, j in f.links], colors=[LINK],
-                                               radii=0.8, draw_order=10.0))
-        rec.log("world/truth", rr.Points2D([f.truth], colors=[TRUTH], radii=7.0, labels=["target"],
-                                           show_labels=True, draw_order=40.0))
-        ok = f.reported
-        rec.log("world/estimates", rr.Points2D(f.estimate[ok], colors=[ESTIMATE], radii=3.0, draw_order=35.0))
-        rec.log("world/ellipses", rr.LineStrips2D(list(covariance_ellipses(f.estimate[ok], f.cov[ok])),
-                                                  colors=[ESTIMATE], radii=0.6, draw_order=20.0))
-        rec.log("error/state", rr.Scalars(np.append(f.error, f.running_mae)))
-        rec.log("counters", rr.TextDocument(counters_table(f, self.ids, self.labels), media_type="text/markdown"))
+def scene_doc(scn: Scenario, trace: Trace, run_id: str, algorithm: str) -> dict:
+    """What does not change during the run: agents, the target's true path, bounds."""
+    dims = list(trace.position_dims)
+    path = trace.truth_x[0][:, dims]
+    pos = trace.positions.reshape(-1, 2)
+    both = np.concatenate([path, pos])
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    pad = 0.05 * float((hi - lo).max() or 1.0)
+    return {
+        "run_id": run_id, "scenario": scn.name, "algorithm": algorithm, "ticks": int(trace.has.shape[1]),
+        "ids": [str(a.id) for a in scn.agents], "mobile": [bool(a.mobile) for a in scn.agents],
+        "labels": [("m" if a.mobile else "s") + str(a.id) for a in scn.agents],
+        "bounds": _num([lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad]),
+        "truth_path": [_num(p) for p in path], "counters": list(COUNTER_COLUMNS) + ["rejected"],
+        "colors": {"static": STATIC, "mobile": MOBILE, "gone": GONE, "truth": TRUTH, "estimate": ESTIMATE,
+                   "link": LINK},
+    }
 
 
-def counters_table(f: Frame, ids: list, labels: list) -> str:
-    """A markdown table of every agent's counters (``diskf_mesh.counters``)."""
-    head = f"**tick {f.tick}**, running MAE(state) {f.running_mae:.2f}\n\n"
-    rows = ["| agent | " + " | ".join(COUNTER_COLUMNS) + " | rejected |",
-            "|---" * (len(COUNTER_COLUMNS) + 2) + "|"]
-    for i, lab in zip(ids, labels):
-        if i not in f.counters:
-            rows.append(f"| {lab} |" + " |" * (len(COUNTER_COLUMNS) + 1))
-            continue
-        c = Counters.from_dict(f.counters[i])
-        rows.append(f"| {lab} | " + " | ".join(str(getattr(c, k)) for k in COUNTER_COLUMNS)
-                    + f" | {c.rejected_total} |")
-    return head + "\n".join(rows)
+def frame_doc(f: Frame, ids: tuple) -> dict:
+    """One frame as the page draws it: positions, links, truth, estimates
+    with their 95 % ellipses, errors and every agent's counters."""
+    ok = f.reported
+    ellipses = np.full((len(ids), ELLIPSE_POINTS, 2), np.nan)
+    if ok.any():
+        ellipses[ok] = covariance_ellipses(f.estimate[ok], f.cov[ok])
+    counters = {}
+    for i in ids:
+        if i in f.counters:
+            c = Counters.from_dict(f.counters[i])
+            counters[str(i)] = [getattr(c, k) for k in COUNTER_COLUMNS] + [c.rejected_total]
+    return {
+        "tick": f.tick, "positions": [_num(p) for p in f.positions], "live": f.live.tolist(),
+        "links": [[int(i), int(j)] for i, j in f.links], "truth": _num(f.truth),
+        "estimates": [_num(e) if r else None for e, r in zip(f.estimate, ok)],
+        "ellipses": [[_num(p) for p in e] if r else None for e, r in zip(ellipses, ok)],
+        "errors": _num(f.error), "running_mae": _num([f.running_mae])[0], "counters": counters,
+    }
