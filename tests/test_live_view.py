@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from diskf_mesh.live.view import MOBILE, STATIC, CHI2_95_2D, covariance_ellipses
 from sim.launcher import free_port
@@ -119,8 +120,6 @@ def wait_for(what: str, check, timeout: float = SLOW, every: float = 0.25):
 
 
 def pixels(png: bytes) -> np.ndarray:
-    from PIL import Image
-
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
 
 
@@ -149,7 +148,6 @@ def blobs(img: np.ndarray, rgb, tol: int = 40, min_px: int = 12) -> int:
 def chromium_or_skip(tmp: str) -> Browser:
     if CHROMIUM is None:
         pytest.skip("no chromium on this machine (Debian: apt-get install chromium; .ci/run installs it)")
-    pytest.importorskip("PIL", reason="reading the screenshots needs Pillow (matplotlib's dependency)")
     b = Browser(CHROMIUM, tmp)
     try:
         b.call("Browser.getVersion", timeout=60)
@@ -243,3 +241,99 @@ def test_live_view_renders_the_run_in_a_browser(tmp_path):
             except subprocess.TimeoutExpired:
                 os.killpg(up.pid, signal.SIGKILL)
                 up.wait(10)
+
+
+# --------------------------------------------------------------------------
+# the frames, without a browser or a mesh
+# --------------------------------------------------------------------------
+def _engine_run(ticks: int = 60):
+    from diskf_mesh import engine
+    from diskf_mesh.mesh.runspec import RunSpec
+    from diskf_mesh.scenario import simulate
+
+    scn = RunSpec().load(ticks)
+    trace = simulate(scn, [0])
+    return scn, trace, engine.run(trace, "diskf", scn.params)
+
+
+def _samples(scn, trace, est, k: int, live=None):
+    from diskf_mesh import wire
+
+    ids = [a.id for a in scn.agents]
+    live = tuple(ids if live is None else live)
+    tick = wire.Tick("r", k, trace.has.shape[1], 0, "diskf", scn.topology, scn.comm_range, trace.positions[k - 1],
+                     live)
+    reports = [wire.Report("r", i, k, est.x[0, k - 1, j], est.P[0, k - 1, j], est.d[0, k - 1, j],
+                           bool(est.d_valid[0, k - 1, j]), {"published": k, "fused": 2 * k})
+               for j, i in enumerate(ids) if i in live]
+    return tick, reports
+
+
+def test_frames_show_the_engine_errors_whatever_the_order_of_arrival():
+    """Reports may come before their tick or after the next one: every frame
+    still holds every report of its tick, in tick order, and the running MAE
+    is ``experiment``'s MAE(state) over the ticks shown."""
+    from diskf_mesh import metrics
+    from diskf_mesh.live.view import LiveView
+
+    scn, trace, est = _engine_run()
+    K = trace.has.shape[1]
+    view = LiveView(scn, trace)
+    frames = []
+    samples = [_samples(scn, trace, est, k) for k in range(1, K + 1)]
+    for k in range(1, K + 1):
+        tick, reports = samples[k - 1]
+        if k % 3 == 0:   # all reports before their tick
+            for r in reports:
+                view.on_report(r)
+            view.on_tick(tick)
+        else:            # the tick, half of the reports, the next tick, the rest
+            view.on_tick(tick)
+            for r in reports[:4]:
+                view.on_report(r)
+            if k < K:
+                view.on_tick(samples[k][0])
+            for r in reports[4:]:
+                view.on_report(r)
+        if (f := view.take()) is not None:
+            frames.append(f)
+    view.on_stop()
+    if (f := view.take()) is not None:
+        frames.append(f)
+    assert view.frames == K and view.late == 0
+    assert [f.tick for f in frames] == sorted({f.tick for f in frames})  # newest only, in order
+    e_state = metrics.errors(trace, est)[0][0]
+    last = frames[-1]
+    assert last.tick == K and last.reported.all()
+    np.testing.assert_allclose(last.error, e_state[K - 1], rtol=1e-12)
+    np.testing.assert_allclose(last.estimate, est.x[0, K - 1][:, list(trace.position_dims)])
+    assert last.running_mae == pytest.approx(metrics.compute(trace, est)["mae_state"], rel=1e-12)
+    assert last.counters[scn.agents[0].id] == {"published": K, "fused": 2 * K}
+
+
+def test_frame_links_are_those_of_the_tick_between_live_agents():
+    from diskf_mesh.live.view import LiveView
+    from diskf_mesh.scenario import links_for
+
+    scn, trace, est = _engine_run(20)
+    k, ids = 7, [a.id for a in scn.agents]
+    gone = ids[4]
+    view = LiveView(scn, trace)
+    tick, reports = _samples(scn, trace, est, k, live=[i for i in ids if i != gone])
+    view.on_tick(tick)
+    for r in reports:
+        view.on_report(r)  # every live agent reported: the frame is made at once
+    f = view.take()
+    L = links_for(scn, trace.positions[k - 1:k])[0]
+    want = {(i, j) for i in range(len(ids)) for j in range(i + 1, len(ids)) if L[i, j] and gone not in (ids[i], ids[j])}
+    assert set(f.links) == want and not f.live[4] and not f.reported[4] and np.isnan(f.error[4])
+    np.testing.assert_allclose(f.truth, trace.truth_x[0, k - 1, list(trace.position_dims)])
+
+
+@pytest.mark.parametrize("flag", [["--live", "70000"], ["--live", "x"]])
+def test_up_live_bad_port_is_an_input_error(tmp_path, flag):
+    done = subprocess.run([sys.executable, "-m", "sim.launcher", "--ticks", "5", "--logs", str(tmp_path), *flag],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert len(done.stderr.strip().splitlines()) == 1 and done.stderr.startswith("error:")
+    assert not list(tmp_path.glob("*.log"))  # nothing was started
