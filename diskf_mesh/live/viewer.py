@@ -44,6 +44,7 @@ from ..mesh.log import Log
 from ..mesh.transport import MeshError, ZenohTransport
 from ..mesh.zenoh_config import ZenohOptions
 from ..scenario import simulate
+from . import DEFAULT_PORT
 from .view import LiveView, frame_doc, scene_doc
 
 HOST = "127.0.0.1"
@@ -195,7 +196,7 @@ def register(subparsers) -> None:
     runspec.add_arguments(p)
     p.add_argument("--ticks", type=positive_int, metavar="K", help="ticks of the run (default: the scenario's steps)")
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="the run's seed (default 0)")
-    p.add_argument("--port", type=int, default=9090, help="HTTP port on 127.0.0.1 (default %(default)s)")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help="HTTP port on 127.0.0.1 (default %(default)s)")
     p.add_argument("--status", metavar="FILE", help="write what went to the view after every poll")
     zenoh_config.add_arguments(p)
     p.set_defaults(func=run)
