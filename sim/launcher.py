@@ -30,12 +30,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from diskf_mesh import live
 from diskf_mesh.commands.options import positive_int, seed_value
 from diskf_mesh.errors import InputError
 from diskf_mesh.faults import FaultConfig
 from diskf_mesh.faults import add_arguments as add_fault_arguments
 from diskf_mesh.faults import from_args as faults_from_args
-from diskf_mesh import live
 from diskf_mesh.mesh import runspec, zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
