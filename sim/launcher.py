@@ -43,6 +43,7 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from diskf_mesh import live
 from diskf_mesh.commands.options import check_output, check_output_dir, positive_int, seed_value
 from diskf_mesh.errors import InputError
 from diskf_mesh.faults import FaultConfig
@@ -278,6 +279,7 @@ def register(subparsers) -> None:
     p.add_argument("--profile", metavar="DIR",
                    help="world and agents measure where each tick's time goes: DIR/world.json, "
                         "DIR/agent-<id>.json (benchmarks/mesh_bench.py --profile prints them)")
+    live.add_arguments(p)
     add_fault_arguments(p)
     zenoh_config.add_arguments(p)
     p.set_defaults(func=run)
@@ -359,6 +361,7 @@ def _run(args: argparse.Namespace, private: Path) -> int:
 
     launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()),
                         tolerate_agents=args.allow_missing > 0)
+    live.attach(args, launcher, spec, ticks, agent_z, logs)  # --live: the viewer, one more child
     try:
         launcher.start()
         world_rc = launcher.wait(args.startup_timeout + ticks * args.tick_timeout + 30.0)
