@@ -21,7 +21,7 @@ from .scenario import Scenario, simulate
 
 DPI = 100
 COLORS = {"diskf": "tab:blue", "cdrkf": "tab:orange", "ldrkf": "tab:green", "kcf": "tab:red",
-          "diffkf": "tab:purple", "gdkf": "tab:brown"}
+          "diffkf": "tab:purple", "gdkf": "tab:brown", "diskf-r": "tab:cyan", "centralized": "black"}
 STATIC_COLOR, MOBILE_COLOR = "tab:red", "tab:green"
 
 
