@@ -354,3 +354,27 @@ def strongly_detectable(A, G, U, valid, rtol: float = 1e-8):
     unobservable = smin <= rtol * scale[..., None]
     unstable = np.abs(lam) >= 1.0
     return np.asarray(valid, dtype=bool) & ~np.any(unobservable & unstable, axis=-1)
+
+
+def innovation_scale(P, U, u, x):
+    """Fading factor of the prior (P, x) from the neighbourhood's measurement
+    information (U, u) (``diskf-r``, our derivation after Xia et al.'s
+    adaptive fading Kalman filter):
+
+        alpha = max(1, (r^T U^+ r - rank U) / tr(P U)),   r = u - U x
+
+    With whitened sensors C = R^-1/2 H and innovation nu = R^-1/2 (y - H x),
+    r = C^T nu, so r^T U^+ r = nu^T nu (nu lies in the range of C when the
+    stacked rows are independent; otherwise its part outside is not seen),
+    and tr(P U) = tr(C P C^T). A prior consistent with the measurement has
+    E[nu nu^T] = C P C^T + I; the one-sample estimate nu nu^T - I of
+    C P C^T, matched in trace, gives alpha. alpha = 1 (no change) wherever
+    the innovation is no larger than the prior and R explain, and where
+    nothing is measured (U = 0). Only H^T R^-1 H and H^T R^-1 y are used.
+    """
+    r = u - mv(U, x)
+    nis = np.einsum("...i,...i->...", r, mv(np.linalg.pinv(U, hermitian=True), r))
+    dof = np.linalg.matrix_rank(U, hermitian=True)
+    tPU = np.einsum("...ij,...ji->...", P, U)
+    return np.where(tPU > 0, np.maximum(1.0, (nis - dof) / np.where(tPU > 0, tPU, 1.0)), 1.0)
+

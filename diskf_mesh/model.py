@@ -100,6 +100,11 @@ class RobustOptions:
     relay:       carry the fused input forward and share it: the message's
                  (d, S) is the sender's last fused input (Algorithm 1, step 2)
     inject:      the input covariance in the prediction, P^* = P^ + G S G^T
+    latch:       once the unbiased update ran, keep running it while rank(HG) = m
+                 (until a tick without any usable measurement)
+    inflate:     where the input is assumed (not detectable), scale the prior
+                 by the innovation's fading factor when the measurement shows
+                 it too small
     window:      the paper's observation window (with Params.window, reset)
     compensate:  the paper's state compensation (Params.compensation, eps)
     """
@@ -112,6 +117,7 @@ class RobustOptions:
     window: bool = False
     compensate: bool = False
     latch: bool = True
+    inflate: bool = True
 
 
 @dataclass(frozen=True)

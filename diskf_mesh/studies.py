@@ -265,7 +265,7 @@ def overview(cfg: StudyConfig) -> dict:
     return out
 
 
-ROBUST_SWITCHES = ("prior_ci", "joint_input", "gate", "latch", "relay", "inject")
+ROBUST_SWITCHES = ("prior_ci", "joint_input", "gate", "latch", "relay", "inject", "inflate")
 
 
 def robust_variants(base: Params) -> list[Variant]:

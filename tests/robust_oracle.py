@@ -7,6 +7,7 @@ come from the Rosenbrock pencil (scipy's generalized eigenvalues), not from
 the zero dynamics + Hautus test of ``equations.strongly_detectable``.
 
 Implements the defaults of ``model.RobustOptions`` (every switch as shipped).
+The fading factor is computed from the whitened innovation itself.
 """
 from __future__ import annotations
 
@@ -102,7 +103,12 @@ def run_robust(trace):
                     else:
                         d, S = np.zeros(m), np.eye(m)
                         xs, Ps = xc, Pc
-                    if meas:  # Kalman update in gain form
+                    if meas:  # fading factor from the whitened innovation, then the Kalman update in gain form
+                        Li = np.linalg.inv(np.linalg.cholesky(R))
+                        Cw, nu = Li @ H, Li @ (y - H @ xs)
+                        seen = Cw @ np.linalg.pinv(Cw) @ nu  # the part of nu in the range of Cw
+                        alpha = max(1.0, (seen @ seen - np.linalg.matrix_rank(Cw)) / np.trace(Cw @ Ps @ Cw.T))
+                        Ps = alpha * Ps
                         L = Ps @ H.T @ np.linalg.inv(H @ Ps @ H.T + R)
                         xn, Pn = xs + L @ (y - H @ xs), (np.eye(n) - L @ H) @ Ps
                     else:

@@ -36,6 +36,17 @@ def info(*rows, r=2.0):
 # --------------------------------------------------------------------------
 # equations
 # --------------------------------------------------------------------------
+def test_innovation_scale_hand_worked():
+    # one x-sensor, R = 2: U = [[0.5, 0], [0, 0]], prior x = 0, P = I, y = 4:
+    # u = H^T R^-1 y = [2, 0], r = u, r^T U^+ r = 2 * 2 / 0.5 = 8 (= y^2 / R),
+    # rank 1, tr(P U) = 0.5: alpha = (8 - 1) / 0.5 = 14. With y = 1: (0.5 - 1) < 0 -> 1.
+    U = info(0)
+    x, P = np.zeros(2), np.eye(2)
+    a = eq.innovation_scale(np.stack([P, P, P]), np.stack([U, U, np.zeros((2, 2))]),
+                            np.array([[2.0, 0.0], [0.5, 0.0], [0.0, 0.0]]), np.stack([x, x, x]))
+    np.testing.assert_allclose(a, [14.0, 1.0, 1.0])
+
+
 def test_input_injection_hand_worked():
     # x = [1, 2], P = diag(1, 2), G = [1, 1]^T, d = 3, S = 0.5:
     # x* = [4, 5], P* = P + 0.5 [[1, 1], [1, 1]] = [[1.5, 0.5], [0.5, 2.5]]
@@ -150,6 +161,6 @@ def test_switches_change_the_estimate():
     tr = simulate(scn, [0])
     base = engine.run(tr, "diskf-r", scn.params).x
     for sw, val in (("prior_ci", False), ("joint_input", False), ("gate", False), ("latch", False),
-                    ("relay", False), ("inject", False), ("window", True), ("compensate", True)):
+                    ("relay", False), ("inject", False), ("inflate", False), ("window", True), ("compensate", True)):
         p = replace(scn.params, robust=replace(RobustOptions(), **{sw: val}))
         assert not np.array_equal(engine.run(tr, "diskf-r", p).x, base), sw

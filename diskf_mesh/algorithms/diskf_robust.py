@@ -37,6 +37,15 @@ uses what it hears. Per tick, agent i (switches in ``model.RobustOptions``):
      the input direction of the prior left free. Its error decays whatever
      the input, and its covariance is the true one given the prior. The fused
      input is (d_N, S_N).
+     ``latch``: once an agent has made this update, it keeps making it at
+     the following ticks while rank(HG) = m holds, even where the sensors of
+     that one tick alone are not strongly detectable: its prior already
+     carries the information of the earlier sensors (e.g. a y-sensor's),
+     so the error of a short stretch of x-sensor ticks grows from a small
+     value, as in the centralized filter, which never stops. A tick without
+     a usable measurement ends the latch; it restarts at the next
+     detectable tick. An agent that has only ever heard x-sensors never
+     latches.
    * otherwise (no measurement, rank(HG) < m, or an invariant zero on or
      outside the unit circle, e.g. only x-sensors heard while the target
      turns anticlockwise): feeding the input estimate into the state would
@@ -44,7 +53,10 @@ uses what it hears. Per tick, agent i (switches in ``model.RobustOptions``):
      predicted from the last fused inputs the neighbourhood relays
      (``relay``: fast CI of their (d_bar, S_bar), the agent's own included),
      injected with its covariance (``inject``; ``equations.input_injection``:
-     x* = x_c + G d, P* = P_c + G S G^T), and the neighbourhood's
+     x* = x_c + G d, P* = P_c + G S G^T), the prior is scaled up where the
+     measurement shows it too small (``inflate``;
+     ``equations.innovation_scale``: an assumed input may have changed, or
+     none is known yet, and the prior cannot know), and the neighbourhood's
      measurement information is added by the Kalman update in information
      form (``equations.local_update``). The fused input is the relayed one.
      Where nothing is known about the input yet, it is taken as zero (the
@@ -140,6 +152,9 @@ class DISKFRobust(Algorithm):
             x_s, P_s = eq.input_injection(x_c, P_c, G, d_p, S_p, has_p)
         else:
             x_s, P_s = eq.input_injection(x_c, P_c, G, d_p, np.zeros_like(S_p), has_p)
+        if o.inflate:
+            alpha = eq.innovation_scale(P_s, U, u, x_s)
+            P_s = P_s * alpha[..., None, None]
         x_k, P_k = eq.local_update(x_s, P_s, U, u)
         f2, f3 = feed[..., None], feed[..., None, None]
         x_bar, P_bar = np.where(f2, x_g, x_k), np.where(f3, P_g, P_k)
