@@ -371,10 +371,22 @@ def innovation_scale(P, U, u, x):
     C P C^T, matched in trace, gives alpha. alpha = 1 (no change) wherever
     the innovation is no larger than the prior and R explain, and where
     nothing is measured (U = 0). Only H^T R^-1 H and H^T R^-1 y are used.
+    Computed from the eigendecomposition of U (LAPACK, one matrix at a time)
+    with element-wise sums over the n components only (no BLAS product, no
+    ``einsum``), so a batch of one gives the bits of a batch of many.
     """
+    n = U.shape[-1]
     r = u - mv(U, x)
-    nis = np.einsum("...i,...i->...", r, mv(np.linalg.pinv(U, hermitian=True), r))
-    dof = np.linalg.matrix_rank(U, hermitian=True)
-    tPU = np.einsum("...ij,...ji->...", P, U)
+    lam, V = np.linalg.eigh(U)
+    kept = lam > lam[..., -1:] * (n * np.finfo(float).eps)  # the rank rule of numpy.linalg.matrix_rank
+    proj = V[..., 0, :] * r[..., 0:1]                        # (V^T r)_i, summed over j one by one
+    for j in range(1, n):
+        proj = proj + V[..., j, :] * r[..., j:j + 1]
+    terms = np.where(kept, proj * proj / np.where(kept, lam, 1.0), 0.0)
+    nis, dof, tPU = terms[..., 0], kept[..., 0].astype(float), 0.0
+    for i in range(1, n):
+        nis, dof = nis + terms[..., i], dof + kept[..., i]
+    for i in range(n):
+        for j in range(n):
+            tPU = tPU + P[..., i, j] * U[..., j, i]
     return np.where(tPU > 0, np.maximum(1.0, (nis - dof) / np.where(tPU > 0, tPU, 1.0)), 1.0)
-
