@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import (T, congruence_const, congruence_each, eigvalsh, identity, inv_spd, mv, nbr_sum, nbr_sum_pair,
+from .linalg import (T, congruence, congruence_const, congruence_each, eigvalsh, identity, inv_spd, mv, nbr_sum, nbr_sum_pair,
                      pair_sum, row_sum, solve, sum_order, sym, sym_of_inverses)
 
 
@@ -279,3 +279,114 @@ def window_advance(since, has_measurement, fused_valid, reset: bool):
     if reset:
         since = np.where(fused_valid, 0, since)
     return since
+
+
+# --------------------------------------------------------------------------
+# Robust DISKF (diskf-r): our derivations, not the paper's equations
+# --------------------------------------------------------------------------
+def input_injection(x, P, G, d, S, has):
+    """The prediction with an uncertain input (``diskf-r``, our derivation):
+
+        x^* = x^ + G d,     P^* = P^ + G S G^T
+
+    From x_k = A x_{k-1} + G d_{k-1} + w with an input estimate d of d_{k-1}
+    whose error (covariance S) is independent of the state error: the error
+    of A x_bar + G d is A e + G (d - d_{k-1}) - w, covariance
+    A P_bar A^T + G S G^T + Q. The paper's eq. (info_kf_prediction) sets the
+    G S G^T term to zero (P^* = P^), which is why its P understates the error
+    wherever the input is uncertain. Where ``has`` is False no input is known
+    and the prediction is left without one (x^ and P^ unchanged, exactly).
+    x, P: (..., n), (..., n, n); d, S: (..., m), (..., m, m); has: (...).
+    """
+    has = np.asarray(has, dtype=bool)
+    x_star = x + np.where(has[..., None], mv(G, d), 0.0)
+    GSG = np.matmul(np.matmul(G, S), T(G))
+    P_star = sym(P + np.where(has[..., None, None], GSG, 0.0))
+    return x_star, P_star
+
+
+def zero_dynamics(A, G, U, valid):
+    """Phi = (I - G (G^T U G)^-1 G^T U) A: the state motion the unbiased
+    input estimate cannot see (``diskf-r``, our derivation).
+
+    With the stacked information U = H^T R^-1 H of the sensors that measured
+    and rank(HG) = m (``valid``), the unbiased input estimate reads as input
+    every output the input could have produced. The state motions it cannot
+    tell from an input are those x_{k+1} = A x_k + G d_k with H x = 0 all
+    along: d_k = -(G^T U G)^-1 G^T U A x_k (the least-squares input that
+    cancels the output, weighted by R^-1), so x_{k+1} = Phi x_k, restricted
+    to the largest Phi-invariant subspace inside ker U (= ker H). Depends
+    only on ker H, which U carries: no H or R is needed. Where not ``valid``
+    the identity stands in for (G^T U G)^-1 (the result is not used there).
+    """
+    m = G.shape[-1]
+    GUG = congruence(G, U)
+    inv = inv_spd(np.where(np.asarray(valid)[..., None, None], GUG, identity(m)))
+    Pi = identity(G.shape[0]) - np.matmul(np.matmul(G, inv), np.matmul(T(G), U))
+    return np.matmul(Pi, A)
+
+
+def strongly_detectable(A, G, U, valid, rtol: float = 1e-8):
+    """Whether the sensors with stacked information U make the input and the
+    state strongly detectable over the step A (``diskf-r``, our derivation).
+
+    Strong detectability (Hautus 1983): rank(HG) = m and every invariant zero
+    of (A, G, H) lies strictly inside the unit circle. The invariant zeros
+    are the unobservable modes of (Phi, H) with Phi of ``zero_dynamics``
+    (the eigenvalues of Phi on its largest invariant subspace in ker H), so
+    by the Hautus test: every eigenvalue lambda of Phi with |lambda| >= 1
+    must have rank [Phi - lambda I; U] = n (ker U = ker H). Only then does
+    the error of an unbiased input-and-state estimate decay, whatever the
+    input; otherwise it grows like |lambda|^k while these sensors are all
+    that is heard (README: an x-sensor alone, zero cos w + sin w > 1).
+    The rank is judged by the smallest singular value against
+    ``rtol`` x (||Phi|| + ||U|| + 1).
+    Returns (...) bool; False where not ``valid``.
+    """
+    n = A.shape[-1]
+    Phi = zero_dynamics(A, G, U, valid)
+    lam = np.linalg.eigvals(Phi)                                   # (..., n)
+    eye = identity(n)
+    shifted = Phi[..., None, :, :] - lam[..., :, None, None] * eye  # (..., n, n, n)
+    Ub = np.broadcast_to(U[..., None, :, :], shifted.shape).astype(complex)
+    smin = np.linalg.svd(np.concatenate([shifted, Ub], axis=-2), compute_uv=False)[..., -1]
+    scale = np.linalg.norm(Phi, axis=(-2, -1)) + np.linalg.norm(U, axis=(-2, -1)) + 1.0
+    unobservable = smin <= rtol * scale[..., None]
+    unstable = np.abs(lam) >= 1.0
+    return np.asarray(valid, dtype=bool) & ~np.any(unobservable & unstable, axis=-1)
+
+
+def innovation_scale(P, U, u, x):
+    """Fading factor of the prior (P, x) from the neighbourhood's measurement
+    information (U, u) (``diskf-r``, our derivation after Xia et al.'s
+    adaptive fading Kalman filter):
+
+        alpha = max(1, (r^T U^+ r - rank U) / tr(P U)),   r = u - U x
+
+    With whitened sensors C = R^-1/2 H and innovation nu = R^-1/2 (y - H x),
+    r = C^T nu, so r^T U^+ r = nu^T nu (nu lies in the range of C when the
+    stacked rows are independent; otherwise its part outside is not seen),
+    and tr(P U) = tr(C P C^T). A prior consistent with the measurement has
+    E[nu nu^T] = C P C^T + I; the one-sample estimate nu nu^T - I of
+    C P C^T, matched in trace, gives alpha. alpha = 1 (no change) wherever
+    the innovation is no larger than the prior and R explain, and where
+    nothing is measured (U = 0). Only H^T R^-1 H and H^T R^-1 y are used.
+    Computed from the eigendecomposition of U (LAPACK, one matrix at a time)
+    with element-wise sums over the n components only (no BLAS product, no
+    ``einsum``), so a batch of one gives the bits of a batch of many.
+    """
+    n = U.shape[-1]
+    r = u - mv(U, x)
+    lam, V = np.linalg.eigh(U)
+    kept = lam > lam[..., -1:] * (n * np.finfo(float).eps)  # the rank rule of numpy.linalg.matrix_rank
+    proj = V[..., 0, :] * r[..., 0:1]                        # (V^T r)_i, summed over j one by one
+    for j in range(1, n):
+        proj = proj + V[..., j, :] * r[..., j:j + 1]
+    terms = np.where(kept, proj * proj / np.where(kept, lam, 1.0), 0.0)
+    nis, dof, tPU = terms[..., 0], kept[..., 0].astype(float), 0.0
+    for i in range(1, n):
+        nis, dof = nis + terms[..., i], dof + kept[..., i]
+    for i in range(n):
+        for j in range(n):
+            tPU = tPU + P[..., i, j] * U[..., j, i]
+    return np.where(tPU > 0, np.maximum(1.0, (nis - dof) / np.where(tPU > 0, tPU, 1.0)), 1.0)

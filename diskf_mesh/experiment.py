@@ -14,7 +14,8 @@ from .errors import InputError
 from .model import Params
 from .scenario import TOPOLOGIES, Scenario, simulate
 
-PAPER_LABELS = {"diskf": "DISKF", "cdrkf": "C-DRKF", "ldrkf": "L-DRKF", "kcf": "KCF", "diffkf": "DiffKF", "gdkf": "GDKF"}
+PAPER_LABELS = {"diskf": "DISKF", "diskf-r": "DISKF-R", "cdrkf": "C-DRKF", "ldrkf": "L-DRKF", "kcf": "KCF", "diffkf": "DiffKF", "gdkf": "GDKF",
+                "centralized": "Centralized (bound)"}
 TOPOLOGY_LABELS = {"all": "all-to-all", "ring": "1-hop", "none": "none"}
 TABLE_METRICS = ("mae_state", "rmse_state", "mae_input", "rmse_input", "input_coverage")
 HIGHER_IS_BETTER = frozenset({"input_coverage"})

@@ -28,7 +28,8 @@ from .scenario import Scenario, simulate
 
 DPI = 100
 COLORS = {"diskf": "tab:blue", "cdrkf": "tab:orange", "ldrkf": "tab:green", "kcf": "tab:red",
-          "diffkf": "tab:purple", "gdkf": "tab:cyan"}
+          "diffkf": "tab:purple", "gdkf": "tab:cyan", "diskf-r": "midnightblue",
+          "centralized": "black"}
 LENGTH = "length units"             # of positions, ranges and position errors
 INPUT = "length units per tick"     # of the input d and its errors
 TICK = "tick"

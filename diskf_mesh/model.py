@@ -85,6 +85,42 @@ COMPENSATION_FORMS = ("bounded", "paper", "normalized", "none")
 
 
 @dataclass(frozen=True)
+class RobustOptions:
+    """The ingredients of ``diskf-r`` (``algorithms/diskf_robust.py``), one
+    switch each, all on by default; the derivations are in that module's
+    docstrings and the ablation table of docs/reproduction.md turns each off.
+
+    prior_ci:    fuse the neighbours' predictions by covariance intersection
+                 before adding their measurement information
+    joint_input: the input from the neighbourhood's stacked measurement
+                 information (exact Gillijns-De Moor), not CI of the
+                 individual estimates
+    gate:        feed the input into the state (unbiased update) only where
+                 the neighbourhood's sensors make it strongly detectable
+    relay:       carry the fused input forward and share it: the message's
+                 (d, S) is the sender's last fused input (Algorithm 1, step 2)
+    inject:      the input covariance in the prediction, P^* = P^ + G S G^T
+    latch:       once the unbiased update ran, keep running it while rank(HG) = m
+                 (until a tick without any usable measurement)
+    inflate:     where the input is assumed (not detectable), scale the prior
+                 by the innovation's fading factor when the measurement shows
+                 it too small
+    window:      the paper's observation window (with Params.window, reset)
+    compensate:  the paper's state compensation (Params.compensation, eps)
+    """
+
+    prior_ci: bool = True
+    joint_input: bool = True
+    gate: bool = True
+    relay: bool = True
+    inject: bool = True
+    window: bool = False
+    compensate: bool = False
+    latch: bool = True
+    inflate: bool = True
+
+
+@dataclass(frozen=True)
 class Params:
     """Estimator hyper-parameters.
 
@@ -98,6 +134,8 @@ class Params:
                    last fused input instead of with none. Helps a lasting
                    input seen intermittently; hurts isolated agents whose own
                    estimate is poor (see docs/reproduction.md).
+    robust:        the switches of ``diskf-r`` (``RobustOptions``); the other
+                   algorithms ignore them.
     """
 
     window: int | None = 5
@@ -106,6 +144,7 @@ class Params:
     compensation: str = "bounded"
     consensus_eps: float = 0.1
     hold_input: bool = False
+    robust: RobustOptions = RobustOptions()
 
     def __post_init__(self):
         if self.window is not None and (int(self.window) != self.window or self.window < 0):

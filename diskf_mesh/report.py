@@ -50,9 +50,14 @@ def table(header, rows) -> str:
     return "\n".join(lines)
 
 
-def best_alg(results: dict, setting: str, key: str) -> str:
-    """The algorithm with the lowest value (ties: the first listed)."""
-    vals = {a: results[a][setting][key] for a in results}
+BOUND = "centralized"  # a reference row, never "the best"
+PAPER_ALGS = ("diskf", "cdrkf", "ldrkf", "kcf", "diffkf", "gdkf")
+
+
+def best_alg(results: dict, setting: str, key: str, among=None) -> str:
+    """The algorithm with the lowest value (ties: the first listed), among
+    ``among`` (default: all but the centralized bound)."""
+    vals = {a: results[a][setting][key] for a in results if a != BOUND and (among is None or a in among)}
     finite = {a: v for a, v in vals.items() if math.isfinite(v)}
     return min(finite, key=finite.get) if finite else ""
 
@@ -72,7 +77,7 @@ def comparison_table(results: dict, settings, paper: dict | None = None, spread:
                 ours = pm(results[a][st], key) if spread else num(results[a][st][key])
                 ours = _bold_best(results, st, key, ours, a)
                 if paper is not None:
-                    ours += f" ({num(paper[st][key][a])})"
+                    ours += f" ({num(paper[st][key].get(a))})"
                 cells.append(ours)
             rows.append([comm_name(st) if i == 0 else "", METRIC_NAMES[key]] + cells)
     return table(["Comm.", "Metric"] + [PAPER_LABELS.get(a, a) for a in algs], rows)
@@ -95,7 +100,7 @@ def not_best(results: dict, what: str, skip=()) -> list[list[str]]:
             continue
         cells = []
         for key in METRICS:
-            b = best_alg(results, st, key)
+            b = best_alg(results, st, key, among=PAPER_ALGS)
             lost = b and b != "diskf" and results[b][st][key] < results["diskf"][st][key]
             cells.append(f"{PAPER_LABELS[b]} {num(results[b][st][key])} (DISKF {num(results['diskf'][st][key])})"
                          if lost else "DISKF")
@@ -335,10 +340,10 @@ def headline(res: studies.Results) -> str:
     r = f"{studies.PAPER_RANGE:g}"
     parts = []
     for key in ("mae_state", "mae_input"):
-        b = best_alg(res.dynamic, r, key)
+        b = best_alg(res.dynamic, r, key, among=PAPER_ALGS)
         v = res.dynamic["diskf"][r][key]
         parts.append(f"{METRIC_NAMES[key]} DISKF {num(v)}: " + (
-            "the lowest of the six" if b == "diskf" else f"not the lowest, {PAPER_LABELS[b]} has {num(res.dynamic[b][r][key])}"))
+            "the lowest of the paper's six" if b == "diskf" else f"not the lowest, {PAPER_LABELS[b]} has {num(res.dynamic[b][r][key])}"))
     return f"At range {r}: " + "; ".join(parts) + "."
 
 
@@ -395,6 +400,163 @@ def hold_note(res: studies.Results) -> str:
     )
 
 
+# --------------------------------------------------------------------------
+# beyond the paper
+# --------------------------------------------------------------------------
+ONE_ROUND = ("diskf", "diskf-r", "cdrkf", "ldrkf", "kcf", "diffkf", "gdkf")
+NEES_BAND = (1.6, 2.5)  # the 95 % band of the averaged NEES for n = 2 (issue 13)
+
+
+def family_check(rows: dict, key: str) -> tuple:
+    """(best of diskf*, best other one-round (name, value), within 1 %)."""
+    fam = min(rows[a][key] for a in rows if a.startswith("diskf"))
+    others = {a: rows[a][key] for a in rows if a in ONE_ROUND and not a.startswith("diskf") and math.isfinite(rows[a][key])}
+    b = min(others, key=others.get)
+    return fam, (b, others[b]), fam <= 1.01 * others[b]
+
+
+def _label(a: str) -> str:
+    return PAPER_LABELS.get(a, a)
+
+
+def overview_table(ov: dict, key: str) -> str:
+    rows = []
+    for st, r in ov.items():
+        fam, (b, bv), ok = family_check(r, key)
+        rows.append([st, num(r["diskf"][key]), num(r["diskf-r"][key]), f"{_label(b)} {num(bv)}",
+                     num(r[BOUND][key]), "yes" if ok else f"**no** ({num(100 * (fam - bv) / bv, 1)} % above)"])
+    return table(["setting", "DISKF", "DISKF-R", "best other one-round", "Centralized (bound)",
+                  "DISKF family lowest (or within 1 %)"], rows)
+
+
+def nees_table(ov: dict, key: str) -> str:
+    algs = [a for a in next(iter(ov.values()))]
+    rows = [[st] + [num(r[a][key]) for a in algs] for st, r in ov.items()]
+    return table(["setting"] + [_label(a) for a in algs], rows)
+
+
+def ablation_table(abl: dict) -> str:
+    cells = [(env, comm) for env, cs in abl.items() for comm in cs]
+    names = list(abl[cells[0][0]][cells[0][1]]["rows"])
+    rows = []
+    for name in names:
+        row = [name]
+        for env, comm in cells:
+            r = abl[env][comm]["rows"][name]
+            row.append("diverged" if r.get("diverged") else
+                       f"{num(r['mae_state'])} / {num(r['mae_input'])} / {num(r['nees_observed'], 1)}")
+        rows.append(row)
+    return table(["variant"] + [f"{env} {comm}" for env, comm in cells], rows)
+
+
+def robustness_table(rb: dict) -> str:
+    algs = list(next(iter(rb.values())))
+    rows = []
+    for st, r in rb.items():
+        fam, (b, bv), ok = family_check(r, "mae_state")
+        fam_i, (bi, biv), ok_i = family_check(r, "mae_input")
+        rows.append([st] + [num(r[a]["mae_state"]) for a in algs]
+                    + [num(r["diskf-r"]["mae_input"]), num(r["diskf-r"]["nees_observed"], 1),
+                       ("yes" if ok else "**no**") + " / " + ("yes" if ok_i else "**no**")])
+    return table(["setting / perturbation"] + [f"{_label(a)} MAE(state)" for a in algs]
+                 + ["DISKF-R MAE(input)", "DISKF-R NEES observed", "family lowest: state / input"], rows)
+
+
+def robust_targets(res: studies.Results) -> list:
+    """The issue's targets, each with its measured numbers and met or not."""
+    ov = res.overview
+    def cell(st):
+        return ov[st]
+    r120, ring = cell("Scenario 2 / range 120"), cell("Scenario 1 / 1-hop (ring)")
+    lows = [(st, key) for st, r in ov.items() for key in ("mae_state", "mae_input") if not family_check(r, key)[2]]
+    out = [["DISKF family lowest MAE(state) and MAE(input) of the one-round estimators (or within 1 %), every setting",
+            "met" if not lows else "not met in " + ", ".join(f"{st} ({METRIC_NAMES[k]})" for st, k in lows)]]
+    out.append(["Scenario 2 range 120: MAE(state) ≤ 20", f"{num(r120['diskf-r']['mae_state'])}: "
+                + ("met" if r120["diskf-r"]["mae_state"] <= 20 else "not met")])
+    out.append(["Scenario 1 ring: MAE(state) ≤ 5", f"{num(ring['diskf-r']['mae_state'])}: "
+                + ("met" if ring["diskf-r"]["mae_state"] <= 5 else "not met")])
+    for st in ("Scenario 1 / all-to-all", "Scenario 2 / all-to-all"):
+        r = cell(st)
+        v, c = r["diskf-r"]["mae_state"], r[BOUND]["mae_state"]
+        out.append([f"{st}: MAE(state) within 1 % of the centralized bound",
+                    f"{num(v)} against {num(c)}: " + ("met" if v <= 1.01 * c else "not met")])
+        nees = r["diskf-r"]["nees"]
+        out.append([f"{st}: DISKF-R mean NEES inside [{NEES_BAND[0]}, {NEES_BAND[1]}]",
+                    f"{num(nees)}: " + ("met" if NEES_BAND[0] <= nees <= NEES_BAND[1] else "not met")])
+    high = [(st, r["diskf-r"]["nees_observed"]) for st, r in ov.items() if not r["diskf-r"]["nees_observed"] <= 4.0]
+    out.append(["DISKF-R mean NEES ≤ 2n = 4 over the agent-ticks whose neighbourhood measures, every setting",
+                "met" if not high else "not met in " + ", ".join(f"{st} ({num(v, 1)})" for st, v in high)])
+    return out
+
+
+def cfg_of(res: studies.Results) -> studies.StudyConfig:
+    return studies.StudyConfig(seeds=res.config["seeds"], steps=res.config["steps"])
+
+
+def section_robust(ctx: Context) -> str:
+    res = ctx.res
+    return (
+        "## 10. Beyond the paper: robust DISKF (`diskf-r`) and the centralized bound\n\n"
+        "`diskf` above is the paper's Algorithm 1. `diskf-r` (`diskf_mesh/algorithms/diskf_robust.py`, switches in "
+        "`model.RobustOptions`) is our extension under the paper's constraints: one exchange round per tick, the "
+        "same message (x̂, P̂, x̃, P̃ and an input estimate with its covariance; no measurement, H or R), so the "
+        "same 8(2n + 2n² + m + m²) bytes of floats, 161 bytes on the wire for n = 2, m = 1, whatever the "
+        "neighbourhood's size. What a receiver does with the messages (derivations in the module and in "
+        "`equations.py`):\n\n"
+        "1. **CI of the priors** (`prior_ci`): the neighbours' predictions fused by the paper's fast CI before "
+        "their measurement information is added: consistent for any correlation, and exact (the common "
+        "prediction) in all-to-all.\n"
+        "2. **Joint input** (`joint_input`): the Gillijns–De Moor input estimate on the neighbourhood's stacked "
+        "measurement information (Σ P̃ⱼ⁻¹ − P̂ⱼ⁻¹ = Σ HⱼᵀRⱼ⁻¹Hⱼ, exact from the messages), not CI of the "
+        "individual estimates.\n"
+        "3. **Strong-detectability gate** (`gate`, `latch`): the input goes into the state through the exact "
+        "unbiased update (`rkf.rkf_update`) only where the heard sensors make it strongly detectable (rank(HG) = m "
+        "and every invariant zero of (A, G, H_N) inside the unit circle, `equations.strongly_detectable`, from "
+        "ker H = ker U, no H needed), and keeps doing so while measurements continue.\n"
+        "4. **Relayed fused input** (`relay`, `inject`): the message's (d, S) is the sender's last fused input "
+        "(Algorithm 1 lists d̄, S̄ among the exchanged values); where the gate does not hold, the fused relayed "
+        "input predicts the state with its covariance, P* = P_c + G S̄ Gᵀ (`equations.input_injection`).\n"
+        "5. **Fading factor** (`inflate`): in that case the prior is scaled up when the innovation shows it "
+        "too small (`equations.innovation_scale`, from U and u only).\n"
+        "6. The paper's window and compensation stay available as switches (`window`, `compensate`), off.\n\n"
+        "The **centralized bound** (`diskf_mesh/centralized.py`) is one centre with every agent's measurement at "
+        "every tick running the exact Gillijns–De Moor recursion. It is in every table of this report as a "
+        "reference row (never bold, never \"best\"): no one-round method sees more. It assumes nothing about the "
+        "input. `diskf-r` assumes the input persists where the gate does not hold, so it can be slightly below "
+        "the bound there. In an all-to-all network whose stacked sensors are strongly detectable at every tick, "
+        "`diskf-r` *is* the centralized filter (`tests/test_robust.py`, to 1e-9).\n\n"
+        "### 10.1 The targets, measured\n\n"
+        + table(["target", "measured"], robust_targets(res)) + "\n\n"
+        "### 10.2 Every setting: the DISKF family against every one-round estimator and the bound\n\n"
+        "**MAE(state)**\n\n" + overview_table(res.overview, "mae_state") + "\n\n"
+        "**MAE(input)**\n\n" + overview_table(res.overview, "mae_input") + "\n\n"
+        + fig(ctx.f("error_vs_range.png"), "Scenario 2: MAE against range, with DISKF-R and the centralized bound")
+        + "\n### 10.3 Consistency: NEES of every estimator\n\n"
+        f"n = 2; a consistent filter has mean NEES 2 (95 % band of the averaged NEES about [{NEES_BAND[0]}, "
+        f"{NEES_BAND[1]}]). Mean over all agent-ticks and seeds:\n\n" + nees_table(res.overview, "nees")
+        + "\n\nMean over the agent-ticks whose neighbourhood (the agent included) holds a measurement:\n\n"
+        + nees_table(res.overview, "nees_observed") + "\n\n"
+        "Where DISKF-R's NEES is above 2n (isolated agents and sparse ranges), the error comes from stretches "
+        "where the input is assumed, not detected: an agent that has never heard a sensor set that detects the "
+        "input predicts with none (or with a stale relayed one) and its covariance cannot know by how much the "
+        "input has moved the target; the fading factor repairs the measured direction only.\n\n"
+        "### 10.4 Ablation: each ingredient switched off\n\n"
+        "Each cell: MAE(state) / MAE(input) / NEES over observed agent-ticks; 20 seeds.\n\n"
+        + ablation_table(res.robust_ablation) + "\n\n"
+        "### 10.5 Robustness: other speeds, both directions, a wide prior, unseen seeds\n\n"
+        f"Seeds {studies.robust_seeds(cfg_of(res)).start}..{studies.robust_seeds(cfg_of(res)).stop - 1} (no other study uses them); the "
+        "defaults of every estimator unchanged. ω₀ = 2π/40 is the shipped turn rate; clockwise turns make the "
+        "y-sensors the ones with the unstable invariant zero.\n\n"
+        + robustness_table(res.robustness) + "\n\n"
+        "### 10.6 Which to use\n\n"
+        "- `diskf` reproduces the paper; use it to compare with the paper's numbers.\n"
+        "- `diskf-r` for a real network: lowest error of the one-round estimators in every setting we ran "
+        "except where noted in 10.1, and calibrated covariances wherever neighbourhoods mix sensor types. "
+        "Its engine CPU per tick is about four times DISKF's (Table II batch: 0.72 s against 0.18 s; eigenvalues and an SVD for the gate).\n"
+        "- The centralized filter is the yardstick: how far any one-round method is from the optimum.\n"
+    )
+
+
 def section_differences(ctx: Context) -> str:
     return (
         "## 9. Differences from the paper, in short\n\n"
@@ -422,7 +584,7 @@ def render(res: studies.Results, figdir: str = "figures") -> str:
     )
     parts = [head, section_setup(ctx), section_scenario2(ctx), section_table_ii(ctx), section_dynamic(ctx),
              section_sweep(ctx), section_table_i(ctx), section_window(ctx), section_diagnosis(ctx),
-             section_differences(ctx)]
+             section_differences(ctx), section_robust(ctx)]
     return "\n".join(parts)
 
 

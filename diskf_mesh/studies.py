@@ -22,9 +22,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from tqdm import tqdm
 
-from . import algorithms, engine, metrics
+from . import algorithms, centralized, engine, metrics
 from .experiment import Setting, run_experiment
-from .model import COMPENSATION_FORMS, Params
+from .model import COMPENSATION_FORMS, Params, RobustOptions
 from .scenario import Scenario, load_scenario, simulate
 
 STATIONARY = "quadrants"
@@ -74,11 +74,24 @@ class Variant:
 
 
 def metric_row(trace, est) -> dict:
-    """Pooled metrics and their spread (std over seeds)."""
+    """Pooled metrics and their spread (std over seeds), and ``nees_observed``:
+    the mean NEES over the agent-ticks whose neighbourhood holds a
+    measurement (``observed``)."""
     row = metrics.compute(trace, est)
     for k, v in metrics.per_seed(trace, est).items():
         row[f"{k}_std"] = float(np.nanstd(v)) if np.isfinite(v).any() else float("nan")
+    nees = metrics.errors(trace, est)[2]
+    heard = observed(trace)
+    row["nees_observed"] = float(nees[heard].mean()) if heard.any() else float("nan")
     return row
+
+
+def observed(trace) -> np.ndarray:
+    """(B, K, N) bool: the agent's 1-hop neighbourhood (itself included)
+    holds a measurement at that tick."""
+    B, K, N = trace.has.shape
+    L = np.broadcast_to(trace.links, (B, K, N, N)).astype(float)
+    return np.einsum("bkij,bkj->bki", L, trace.has.astype(float)) > 0
 
 
 def run_variants(scn: Scenario, variants, cfg: StudyConfig, bar=None, trace=None):
@@ -87,17 +100,30 @@ def run_variants(scn: Scenario, variants, cfg: StudyConfig, bar=None, trace=None
     trace = simulate(scn, cfg.seed_range) if trace is None else trace
     rows, ests = {}, {}
     for v in variants:
-        ests[v.label] = est = engine.run(trace, v.algorithm, v.params)
-        rows[v.label] = metric_row(trace, est)
+        try:
+            ests[v.label] = est = engine.run(trace, v.algorithm, v.params)
+            rows[v.label] = metric_row(trace, est)
+        except np.linalg.LinAlgError:  # a variant whose covariance diverged (an ablation row): say so
+            rows[v.label] = {"diverged": True, **{k: float("nan") for k in metrics.METRIC_KEYS + ("nees_observed",)}}
         if bar is not None:
             bar.update(1)
     return rows, ests
 
 
 def _experiment(cfg: StudyConfig, name: str, settings, desc: str) -> dict:
+    """{alg: {setting: row}} for every algorithm, and the centralized bound
+    (``centralized.NAME``) as a reference row."""
     scn = cfg.scenario(name)
     with cfg.bar(len(settings) * len(cfg.algorithms), desc) as bar:
-        return run_experiment(scn, settings, cfg.algorithms, cfg.seed_range, cfg.steps, progress=bar.update)
+        out = run_experiment(scn, settings, cfg.algorithms, cfg.seed_range, cfg.steps, progress=bar.update)
+    out[centralized.NAME] = {st.label: bound_row(cfg.scenario(name, st), cfg.seed_range) for st in settings}
+    return out
+
+
+def bound_row(scn: Scenario, seeds) -> dict:
+    """The centralized Gillijns-De Moor filter's row on ``scn``."""
+    tr = simulate(scn, seeds)
+    return metric_row(tr, centralized.run_centralized(tr))
 
 
 # --------------------------------------------------------------------------
@@ -128,7 +154,7 @@ def topology_stats(cfg: StudyConfig, ranges=DEFAULT_RANGES) -> dict:
         L = np.broadcast_to(tr.links[0], tr.has.shape[1:2] + tr.links.shape[2:])
         deg = L.sum(axis=-1) - 1
         comps = [component_count(l) for l in L]
-        heard = np.einsum("kij,bkj->bki", L.astype(float), tr.has.astype(float)) > 0
+        heard = observed(tr)
         out[st.label] = {
             "mean_degree": float(deg.mean()),
             "isolated_share": float((deg == 0).mean()),
@@ -218,6 +244,105 @@ def hold_ablation(cfg: StudyConfig) -> dict:
              ("stationary", "none", STATIONARY, NONE), ("dynamic", "all-to-all", DYNAMIC, ALL),
              ("dynamic", "1-hop", DYNAMIC, range_setting(PAPER_RANGE)), ("dynamic", "none", DYNAMIC, NONE))
     return _ablation(cfg, hold_variants, "hold input", cells=cells)
+
+
+# --------------------------------------------------------------------------
+# beyond the paper: diskf-r, the centralized bound, consistency, robustness
+# --------------------------------------------------------------------------
+RANDOM_GEOMETRIC = "random-geometric"
+
+
+def every_setting(cfg: StudyConfig) -> list:
+    """(group, label, scenario) of every setting the report shows: Scenario 1
+    all/ring/none, Scenario 2 at every range and all-to-all, random-geometric."""
+    out = [("Scenario 1", COMM[st.label], cfg.scenario(STATIONARY, st)) for st in (ALL, RING, NONE)]
+    out += [("Scenario 2", f"range {st.label}" if st.label != "all" else "all-to-all", cfg.scenario(DYNAMIC, st))
+            for st in [range_setting(r) for r in DEFAULT_RANGES] + [ALL]]
+    out.append(("random-geometric", "range", cfg.scenario(RANDOM_GEOMETRIC)))
+    return out
+
+
+COMM = {"all": "all-to-all", "ring": "1-hop (ring)", "none": "none"}
+
+
+def overview(cfg: StudyConfig) -> dict:
+    """{"group / setting": {alg: row}} for every algorithm and the centralized
+    bound in every setting (NEES of every estimator included)."""
+    out = {}
+    settings = every_setting(cfg)
+    with cfg.bar(len(settings), "overview") as bar:
+        for group, label, scn in settings:
+            tr = simulate(scn, cfg.seed_range)
+            rows = {a: metric_row(tr, engine.run(tr, a, scn.params)) for a in cfg.algorithms}
+            rows[centralized.NAME] = metric_row(tr, centralized.run_centralized(tr))
+            out[f"{group} / {label}"] = rows
+            bar.update(1)
+    return out
+
+
+ROBUST_SWITCHES = ("prior_ci", "joint_input", "gate", "latch", "relay", "inject", "inflate")
+
+
+def robust_variants(base: Params) -> list[Variant]:
+    """diskf-r as shipped, each ingredient off in turn, and the paper's window
+    and compensation switched on."""
+    out = [Variant("diskf-r (all on)", "diskf-r", base)]
+    for sw in ROBUST_SWITCHES:
+        out.append(Variant(f"without {sw}", "diskf-r", replace(base, robust=replace(base.robust, **{sw: False}))))
+    for sw in ("window", "compensate"):
+        out.append(Variant(f"with {sw}", "diskf-r", replace(base, robust=replace(base.robust, **{sw: True}))))
+    out.append(Variant("DISKF (paper)", "diskf", base))
+    return out
+
+
+def robust_ablation(cfg: StudyConfig) -> dict:
+    """Every ingredient of diskf-r switched off in turn, in six settings."""
+    cells = (("stationary", "all-to-all", STATIONARY, ALL), ("stationary", "1-hop", STATIONARY, RING),
+             ("stationary", "none", STATIONARY, NONE), ("dynamic", "all-to-all", DYNAMIC, ALL),
+             ("dynamic", f"range {PAPER_RANGE:g}", DYNAMIC, range_setting(PAPER_RANGE)),
+             ("dynamic", "none", DYNAMIC, NONE))
+    return _ablation(cfg, robust_variants, "diskf-r ablation", cells=cells)
+
+
+def rotation(omega: float) -> np.ndarray:
+    c, s = np.cos(omega), np.sin(omega)
+    return np.array([[c, -s], [s, c]])
+
+
+def perturbations(scn: Scenario) -> list:
+    """(label, scenario): the target's turn rate x 0.5, 1, 2 and reversed
+    (clockwise, so the y-sensors have the unstable invariant zero), and a
+    wide prior (P0 = 100^2 I: every agent is told its start is that uncertain)."""
+    w = float(np.arctan2(scn.A[1, 0], scn.A[0, 0]))
+    out = [(f"ω = {f:g}·ω₀", replace(scn, A=rotation(f * w))) for f in (0.5, 1.0, 2.0)]
+    out.append(("ω = −ω₀ (clockwise)", replace(scn, A=rotation(-w))))
+    out.append(("ω = −2·ω₀ (clockwise)", replace(scn, A=rotation(-2 * w))))
+    out.append(("wide prior P0 = 100² I", replace(scn, P0=1e4 * np.eye(scn.P0.shape[0]))))
+    return out
+
+
+ROBUST_SEED0 = 1000  # seeds from here on: no other study uses them
+
+
+def robust_seeds(cfg: StudyConfig) -> range:
+    """Twice the report's seeds (40 for the default 20), all unseen."""
+    return range(ROBUST_SEED0, ROBUST_SEED0 + 2 * cfg.seeds)
+
+
+def robustness(cfg: StudyConfig, algs=("diskf", "diskf-r", "kcf", "diffkf")) -> dict:
+    """{"setting / perturbation": {alg: row}} on ``robust_seeds`` (unseen)."""
+    cells = (("Scenario 1 ring", STATIONARY, RING), ("Scenario 1 none", STATIONARY, NONE),
+             (f"Scenario 2 range {PAPER_RANGE:g}", DYNAMIC, range_setting(PAPER_RANGE)), ("Scenario 2 all", DYNAMIC, ALL))
+    out = {}
+    with cfg.bar(len(cells) * 6, "robustness") as bar:
+        for name, scn_name, st in cells:
+            for lab, scn in perturbations(cfg.scenario(scn_name, st)):
+                tr = simulate(scn, robust_seeds(cfg))
+                rows = {a: metric_row(tr, engine.run(tr, a, scn.params)) for a in algs}
+                rows[centralized.NAME] = metric_row(tr, centralized.run_centralized(tr))
+                out[f"{name} / {lab}"] = rows
+                bar.update(1)
+    return out
 
 
 # --------------------------------------------------------------------------
@@ -320,6 +445,9 @@ class Results:
     window: dict = field(default_factory=dict)
     hold: dict = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
+    overview: dict = field(default_factory=dict)
+    robust_ablation: dict = field(default_factory=dict)
+    robustness: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return dict(vars(self))
@@ -331,4 +459,5 @@ def run_all(cfg: StudyConfig) -> Results:
         table_ii=table_ii(cfg), dynamic=dynamic_table(cfg), sweep=range_sweep(cfg),
         topology=topology_stats(cfg), compensation=compensation_ablation(cfg),
         window=window_ablation(cfg), hold=hold_ablation(cfg), diagnostics=diagnostics(cfg),
+        overview=overview(cfg), robust_ablation=robust_ablation(cfg), robustness=robustness(cfg),
     )

@@ -1,12 +1,13 @@
-"""The six estimators, by command-line name."""
+"""The estimators, by command-line name: DISKF, its robust variant and the five baselines."""
 from __future__ import annotations
 
 from .base import Algorithm, State
 from .consensus_baselines import GDKF, KCF, DiffKF, gossip_draws
 from .diskf import DISKF
+from .diskf_robust import DISKFRobust
 from .rkf_baselines import CDRKF, LDRKF
 
-REGISTRY = {cls.name: cls for cls in (DISKF, CDRKF, LDRKF, KCF, DiffKF, GDKF)}
+REGISTRY = {cls.name: cls for cls in (DISKF, DISKFRobust, CDRKF, LDRKF, KCF, DiffKF, GDKF)}
 NAMES = tuple(REGISTRY)
 
 
