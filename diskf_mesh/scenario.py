@@ -31,7 +31,7 @@ import numpy as np
 
 from .errors import InputError
 from .faults import FaultConfig
-from .model import COMPENSATION_FORMS, LinearModel, Params, Sensors
+from .model import COMPENSATION_FORMS, LinearModel, Params, RobustOptions, Sensors
 from .trace import Trace
 from .validate import agent_id, check_keys, index_list, matrix, scalar, setting, spd, vector
 
@@ -262,6 +262,13 @@ def _parse_estimator(est) -> Params:
     for key, value in est.items():
         if key == "window" and value in ("none", -1):
             given[key] = None
+            continue
+        if key == "robust":  # [estimator.robust]: diskf-r's switches, each a boolean
+            switches = {f.name: f.default for f in fields(RobustOptions)}
+            if not isinstance(value, dict):
+                raise InputError("estimator.robust", "must be a table of switches")
+            check_keys(value, switches, "estimator.robust")
+            given[key] = RobustOptions(**{k: scalar(v, f"estimator.robust.{k}", bool) for k, v in value.items()})
             continue
         kind = {"window": int}.get(key, type(defaults[key]))
         if kind not in (bool, int, float, str):

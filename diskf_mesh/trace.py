@@ -37,7 +37,7 @@ import numpy as np
 
 from . import schemas
 from .errors import InputError
-from .model import LinearModel, Params, Sensors
+from .model import LinearModel, Params, RobustOptions, Sensors
 from .validate import agent_id, index_list, matrix, setting, spd, vector
 
 TRACE_FORMAT = "diskf-trace/1"
@@ -167,6 +167,8 @@ def estimator_from_json(doc: dict) -> Params:
     given = dict(doc.get("estimator", {}))
     if given.get("window") is not None:
         given["window"] = int(given["window"])  # the schema allows 5.0 for an integer
+    if "robust" in given:  # the schema made it an object of booleans
+        given["robust"] = RobustOptions(**given["robust"])
     try:
         return Params(**given)
     except ValueError as e:

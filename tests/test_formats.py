@@ -5,6 +5,7 @@ it equals experiment bit for bit for every estimator."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 from importlib import resources
 from pathlib import Path
@@ -170,7 +171,7 @@ def test_simulate_replay_equals_experiment(algorithm, scenario, odd_scenario, tm
     name = odd_scenario if scenario == "odd" else scenario
     trace_doc, est = simulate_replay(tmp_path, capsys, name, algorithm, steps=60)
     scn = load_scenario(name).with_overrides(steps=60)
-    assert trace_doc["estimator"] == {k: getattr(scn.params, k) for k in trace_doc["estimator"]}
+    assert trace_doc["estimator"] == dataclasses.asdict(scn.params)
     res = tmp_path / "experiment.json"
     code, _, err = run_cli(["experiment", "--scenario", name, "--algorithms", algorithm, "--seeds", "1",
                             "--steps", "60", "--json", res], capsys)
