@@ -254,8 +254,6 @@ class World:
     def start(self) -> None:
         self.transport.subscribe(f"{self.keys.root}/agent/*/report", self._on_sample)
         self.transport.watch_tokens(f"{self.keys.root}/*/agent/*", self._on_sample)
-        if self.recorder:  # every agent message, as sent
-            self.transport.subscribe(self.keys.msgs, self.recorder.on_message)
         self.transport.declare_token(self.keys.alive_world)
 
     def wait_agents(self) -> None:
