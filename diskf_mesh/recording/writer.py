@@ -114,9 +114,6 @@ def sent_record(sender: int, payload: bytes, tick: int, to) -> dict:
 class NoRecorder:
     """A run that is not recorded: every hook does nothing."""
 
-    def __bool__(self):
-        return False
-
     def on_open(self, k, live):
         pass
 
@@ -134,9 +131,6 @@ NO_RECORDER = NoRecorder()
 
 
 class Recorder(NoRecorder):
-    def __bool__(self):
-        return True
-
     def __init__(self, path, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
                  faults: FaultConfig):
         from mcap.writer import CompressionType, Writer
