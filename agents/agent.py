@@ -166,6 +166,7 @@ class Agent:
         self.last_heard = time.monotonic()
         self.collecting = False    # tick k is open: own message out, neighbours' being collected
         self.own = None            # this agent's message of tick k while collecting
+        self.own_payload = b""     # ... as published (it goes with the report: a recording's "as sent")
         self.deadline = math.inf   # end of the collection of tick k (monotonic)
         self.failure: BaseException | None = None  # raised in a callback, re-raised by the main thread
         self._cv = threading.Condition(threading.RLock())  # the protocol state
@@ -487,7 +488,7 @@ class Agent:
         self.own = self.est.local(k, mm.has, mm.y)
         prof.end("local")
         prof.begin()
-        payload = wire.encode(self.keys.run_id, self.id, k, self.own)
+        payload = self.own_payload = wire.encode(self.keys.run_id, self.id, k, self.own)
         prof.end("encode")
         prof.begin()
         # addressed to the agents it fuses at tick k: links are symmetric (range, ring, all), so
@@ -519,7 +520,7 @@ class Agent:
         fused_ids, not_fused = self.verdicts.of_tick(k, self.linked[k], heard, rejected, fused, failed)
         prof.begin()
         report = wire.encode_report(self.keys.run_id, self.id, k, out.x[0, 0], out.P[0, 0], out.d[0, 0],
-                                    out.d_valid[0, 0], counters, fused_ids, not_fused)
+                                    out.d_valid[0, 0], counters, fused_ids, not_fused, self.own_payload)
         prof.end("encode")
         prof.begin()
         self.transport.put(self.keys.report(self.id), report)

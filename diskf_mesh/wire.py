@@ -31,7 +31,9 @@ kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
         [[sender, verdict], ...] with verdict "lost" (the link dropped it),
         "late" (no copy by the tick's close) or "rejected:<reason>"
         (at most ``MAX_LINKS`` entries of at most ``MAX_VERDICT`` characters;
-        optional) - what a recording (``diskf_mesh.recording``) replays
+        optional) - what a recording (``diskf_mesh.recording``) replays,
+    "o" the agent's own message of tick k, the very bytes it published
+        (optional, at most ``MAX_BYTES``): a recording's "as sent"
 
 kind "tick" (world -> everyone, opens tick k; ``Tick``)::
 
@@ -134,6 +136,7 @@ class Report:
     counters: dict = field(default_factory=dict)
     fused: tuple = ()      # sender ids fused into this estimate
     not_fused: tuple = ()  # ((sender, verdict), ...) the other linked senders
+    sent: bytes = b""      # this agent's own message of the tick, as published
 
 
 @dataclass(frozen=True)
@@ -199,7 +202,7 @@ def encode(run_id: str, sender: int, tick: int, msg: Message) -> bytes:
 
 
 def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None, fused=(),
-                  not_fused=()) -> bytes:
+                  not_fused=(), sent: bytes = b"") -> bytes:
     n, m = _dims(x, d)
     blob = _f8(x, P, d)
     if len(blob) != 8 * (n + n * n + m):
@@ -207,7 +210,7 @@ def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counter
     return _pack({"v": SCHEMA, "k": "report", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
                   "dt": DTYPE, "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
                   "c": {str(k): int(v) for k, v in (counters or {}).items()},
-                  "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused]})
+                  "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused], "o": bytes(sent)})
 
 
 def encode_tick(t: Tick) -> bytes:
@@ -280,12 +283,14 @@ def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | 
     if kind in ("msg", "report"):
         floats = 2 * n + 2 * n * n + m + m * m if kind == "msg" else n + n * n + m
         size = HEADER_BYTES + 8 * floats
-        arrays = floats
-        if kind == "report":  # the counters: MAX_COUNTERS names and ints; "f" and "nf": a few bytes per sender
+        arrays, bins = floats, 8 * floats
+        if kind == "report":  # the counters: MAX_COUNTERS names and ints; "f" and "nf": a few bytes per sender;
+            # "o": the agent's own message of the tick, as published (at most a message's size)
             links = agents if agents is not None else MAX_LINKS
-            size += MAX_COUNTERS * (2 + MAX_STR + 9) + links * (9 + 12 + MAX_VERDICT)
-            fields, arrays = MAX_COUNTERS, max(floats, links)
-        return Limits(size, MAX_STR, 8 * floats, arrays, fields)
+            own = limits("msg", a, b).max_bytes
+            size += MAX_COUNTERS * (2 + MAX_STR + 9) + links * (9 + 12 + MAX_VERDICT) + own
+            fields, arrays, bins = MAX_COUNTERS, max(floats, links), max(bins, own)
+        return Limits(size, MAX_STR, bins, arrays, fields)
     if kind == "tick":  # alg, topo; N positions (2 float64) and N live ids (<= 9 bytes each)
         N = a or (MAX_BYTES - HEADER_BYTES - 2 * MAX_STR) // 25
         return Limits(HEADER_BYTES + 2 * MAX_STR + 25 * N, MAX_STR, 16 * N, N, fields)
@@ -495,7 +500,10 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
             isinstance(e, list) and len(e) == 2 and _is_int(e[0]) and isinstance(e[1], str)
             and len(e[1]) <= MAX_VERDICT for e in nf):
         raise Rejected("schema", f"field 'nf' is not a list of at most {links} [id, verdict] pairs")
-    return Report(doc["run"], s, doc["t"], x, P, d, dv, c, tuple(f), tuple((i, v) for i, v in nf))
+    sent = doc.get("o", b"")
+    if not isinstance(sent, bytes):
+        raise Rejected("schema", "field 'o' is not a byte string")
+    return Report(doc["run"], s, doc["t"], x, P, d, dv, c, tuple(f), tuple((i, v) for i, v in nf), sent)
 
 
 def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -> Tick:

@@ -425,8 +425,6 @@ class World:
         self.transport.subscribe(f"{root}/agent/*/duplicate", self._on_sample)
         self.transport.watch_tokens(f"{root}/*/agent/*/*", self._on_sample)
         self.transport.watch_tokens(self.keys.alive_world, self._on_sample)
-        if self.recorder:  # every agent message, as sent
-            self.transport.subscribe(self.keys.msgs, self.recorder.on_message)
         others = {nonce(k) for k in self.transport.tokens(self.keys.alive_world, CLAIM_S)} - {self.nonce}
         if others:
             raise DuplicateProcess(f"another world runs run id {self.keys.run_id!r} (token nonce {min(others)}): "

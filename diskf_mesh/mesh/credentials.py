@@ -27,8 +27,7 @@ peer, by the peer's certificate:
 
     world        put               diskf/<run>/world/**
                  liveliness token  diskf/<run>/alive/world/<nonce>, diskf/<run>/ticking/world
-                 subscribe         diskf/<run>/agent/*/{report,rejoin,duplicate}, and every
-                                   agent message (agent/*/msg/**, when it records the run);
+                 subscribe         diskf/<run>/agent/*/{report,rejoin,duplicate};
                                    tokens diskf/<run>/*/agent/*/*, diskf/<run>/alive/world/*
     agent-<i>    put               diskf/<run>/agent/<i>/**
                  liveliness token  diskf/<run>/alive/agent/<i>/<nonce>, diskf/<run>/ready/agent/<i>/<nonce>
@@ -225,7 +224,7 @@ def access_control(run_id: str, agents, observer: bool = True) -> dict:
             *rule_ids, "egress"]})
 
     rule("egress", [m for m in ALL_MESSAGES if m != "put"], [f"{r}/**"], flows=("egress",))
-    grant(WORLD, [f"{r}/agent/*/report", f"{r}/agent/*/rejoin", f"{r}/agent/*/duplicate", f"{r}/agent/*/msg/**"],
+    grant(WORLD, [f"{r}/agent/*/report", f"{r}/agent/*/rejoin", f"{r}/agent/*/duplicate"],
           rule("world-put", ("put",), [f"{r}/world/**"]),
           rule("world-tokens", ("liveliness_token",), [f"{r}/alive/world/*", f"{r}/ticking/world"]),
           rule("world-watch", WATCH, [f"{r}/*/agent/*/*", f"{r}/alive/world/*"]))

@@ -46,8 +46,8 @@ CHANNELS = {
     "/world/tick": _obj("TickClosed", "tick k is over: who reported, who did not (written last; a tick "
                                       "without it is incomplete)", **_TICK, reported=_IDS, missing=_IDS,
                         wall_s={**_NUM, "description": "seconds since tick 1 opened"}),
-    "/agents/sent": _obj("MessagesSent", "the agent messages the world heard since the last tick closed, "
-                                         "as they went on the wire", **_TICK, messages={"type": "array", "items": _obj(
+    "/agents/sent": _obj("MessagesSent", "every agent message of tick k, the bytes it published (its "
+                                         "report carries them), decoded", **_TICK, messages={"type": "array", "items": _obj(
         "MessageSent", "one agent message", required=("tick", "sender", "to", "bytes"), **_TICK, sender=_INT,
         to={**_IDS, "description": "the agents it is addressed to (in range at its tick)"},
         bytes=_INT, x_pred=_VEC, P_pred=_MAT, x_upd=_VEC, P_upd=_MAT, d=_VEC, S=_MAT,

@@ -3,9 +3,9 @@
 The world calls it at fixed points of its lockstep (``sim.world.World``):
 
     on_open(k, live)      tick k opened for the agents in ``live``
-    on_message(key, b)    an agent message as it went on the wire (the world
-                          subscribes to every agent message of its run)
-    on_report(report)     an agent's accepted report of the open tick
+    on_report(report)     an agent's accepted report of the open tick, with
+                          the agent's own message of the tick as it published
+                          it (``wire.Report.sent``)
     on_close(k, missing)  tick k is over: everything of tick k is written,
                           the tick's closing record last; the file is
                           flushed to the OS every ``FLUSH_S`` (and at the
@@ -18,8 +18,9 @@ Schemas: ``recording.schemas``. The run's trace (model, sensors,
 measurements, truth; ``diskf-trace/1``) and estimator settings are attached
 as ``trace.json``, written first, so a recording replays on its own.
 
-What each agent did with its neighbours' messages comes from its reports
-(``recording.verdicts``); the copies and delays of each message are the
+What each agent sent and did with its neighbours' messages comes from its
+reports (``recording.verdicts``; the report carries the agent's own message
+as published, so recording adds no message to the wire); the copies and delays of each message are the
 seeded fault layer's plan (``faults.FaultModel``, the same seed and
 settings as the agents').
 
@@ -47,7 +48,6 @@ import numpy as np
 from .. import __version__
 from ..commands.options import json_safe
 from ..faults import FaultConfig, FaultModel
-from ..mesh.keys import Keys
 from ..trace import trace_to_json
 from . import scene
 from .schemas import CHANNELS, SCHEMA_PREFIX, schema_bytes
@@ -73,28 +73,14 @@ def _dumps(doc: dict) -> bytes:
     return json.dumps(doc, separators=(",", ":")).encode()
 
 
-def address_of(key: str) -> list:
-    """Ids of an addressed message key's last chunk (``_3_7_``), [] if none."""
-    last = key.rsplit("/", 1)[-1]
-    if not (last.startswith("_") and last.endswith("_")):
-        return []
-    try:
-        return [int(i) for i in last.strip("_").split("_") if i]
-    except ValueError:
-        return []
-
-
-def sent_record(key: str, payload: bytes, keys: Keys, tick: int) -> dict:
-    """A message as it went on the wire, decoded without the guard's checks
-    (the record says what was sent, well formed or not); ``tick``: the tick
-    to file an undecodable one under."""
-    _, sender = keys.parse(key)
-    rec = {"tick": tick, "sender": -1 if sender is None else sender, "to": address_of(key), "bytes": len(payload)}
+def sent_record(sender: int, payload: bytes, tick: int, to) -> dict:
+    """An agent's message as it published it, decoded without the guard's
+    checks (the record says what was sent); ``to``: the agents it was
+    addressed to, those linked to the sender at ``tick``."""
+    rec = {"tick": tick, "sender": sender, "to": list(to), "bytes": len(payload)}
     try:
         doc = msgpack.unpackb(payload, raw=False)
-        n, m, t, blob = doc["n"], doc["m"], doc["t"], doc["a"]
-        if not (type(t) is int and t >= 1):
-            raise ValueError("no tick")
+        n, m, blob = doc["n"], doc["m"], doc["a"]
         a = struct.unpack(f"<{len(blob) // 8}d", blob)
         sizes = (n, n * n, n, n * n, m, m * m)
         if len(a) != sum(sizes):
@@ -104,7 +90,7 @@ def sent_record(key: str, payload: bytes, keys: Keys, tick: int) -> dict:
             parts.append(list(a[i:i + size]))
             i += size
         rows = lambda v, k: [v[r * k:(r + 1) * k] for r in range(k)]  # noqa: E731
-        rec.update(tick=t, x_pred=parts[0], P_pred=rows(parts[1], n), x_upd=parts[2], P_upd=rows(parts[3], n),
+        rec.update(x_pred=parts[0], P_pred=rows(parts[1], n), x_upd=parts[2], P_upd=rows(parts[3], n),
                    d=parts[4], S=rows(parts[5], m), d_valid=bool(doc.get("dv")))
     except Exception as e:  # noqa: BLE001 - anything on the wire is recorded, readable or not
         rec["undecodable"] = f"{type(e).__name__}: {e}"[:200]
@@ -114,13 +100,7 @@ def sent_record(key: str, payload: bytes, keys: Keys, tick: int) -> dict:
 class NoRecorder:
     """A run that is not recorded: every hook does nothing."""
 
-    def __bool__(self):
-        return False
-
     def on_open(self, k, live):
-        pass
-
-    def on_message(self, key, payload):
         pass
 
     def on_report(self, report):
@@ -137,16 +117,12 @@ NO_RECORDER = NoRecorder()
 
 
 class Recorder(NoRecorder):
-    def __bool__(self):
-        return True
-
     def __init__(self, path, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
                  faults: FaultConfig):
         from mcap.writer import CompressionType, Writer
 
         self.path = str(path)
         self.trace, self.scn, self.seed = trace, scn, int(seed)
-        self.keys = Keys(run_id)
         self.ids = tuple(trace.sensors.ids)
         self.faults = FaultModel(faults, seed) if faults.active else None
         Path(self.path).parent.mkdir(parents=True, exist_ok=True)
@@ -166,8 +142,6 @@ class Recorder(NoRecorder):
         self._radius = 0.012 * float(extent)
         self._t0 = time.time_ns()
         self._period = int(TICK_PERIOD_S * 1e9)
-        self._lock = threading.Lock()   # the sent messages come on their own callback
-        self._sent = []
         self._open = 0
         self._opened_at = None
         self._live = {}                 # k -> live ids
@@ -201,24 +175,15 @@ class Recorder(NoRecorder):
     def _put(self, topic: str, k: int, doc: dict, now: int | None = None) -> None:
         self._mcap.add_message(self._channel[topic], self._time(k), _dumps(doc), now or time.time_ns())
 
-    # -- hooks (the world's lock held, except on_message) ----------------------
+    # -- hooks (the world's lock held) -----------------------------------------
     def on_open(self, k, live):
         self._open = k
         self._live[k] = tuple(live)
         if self._opened_at is None:
             self._opened_at = time.monotonic()
 
-    def on_message(self, key, payload):
-        with self._lock:
-            self._sent.append((key, payload, self._open))
-
     def on_report(self, report):
         self._reports.setdefault(report.tick, {})[report.sender] = report
-
-    def _take_sent(self) -> list:
-        with self._lock:
-            sent, self._sent = self._sent, []
-        return [sent_record(key, payload, self.keys, max(k, 1)) for key, payload, k in sent]
 
     def on_close(self, k, missing):
         """Hand tick k to the writer thread: the lockstep opens the next tick
@@ -265,7 +230,10 @@ class Recorder(NoRecorder):
         edges = [[ids[i // N], ids[i % N]] for i in np.flatnonzero(np.triu(links, 1).ravel()).tolist()
                  if ids[i // N] in alive and ids[i % N] in alive]
         put("/world/links", {"tick": k, "edges": edges})
-        put("/agents/sent", {"tick": k, "messages": self._take_sent()})
+        order = lambda i: ids.index(i) if i in ids else N  # noqa: E731
+        put("/agents/sent", {"tick": k, "messages": [
+            sent_record(r.sender, r.sent, k, sorted({s for s in r.fused} | {s for s, _ in r.not_fused}, key=order))
+            for r in (reports[i] for i in ids if i in reports) if r.sent]})
         estimates, counters, deliveries = [], [], []
         for j, i in enumerate(ids):
             r = reports.get(i)
@@ -324,9 +292,6 @@ class Recorder(NoRecorder):
         self._thread.join()
         if self._failure is None:
             k = self._last_closed
-            sent = self._take_sent()
-            if sent:  # heard after the last tick closed
-                self._put("/agents/sent", k, {"tick": max(k, 1), "messages": sent})
             self._write_scenes()
             self._put("/run/result", k, {"status": status, "ticks": k, "metrics": json_safe(metrics or {})})
             self._mcap.finish()
