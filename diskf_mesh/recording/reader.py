@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..model import Params
-from ..trace import Trace, trace_from_json
+from ..trace import Trace, estimator_from_json, trace_from_json
 from .writer import FORMAT, TRACE_ATTACHMENT
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -127,7 +127,7 @@ def read(path) -> Recording:
 
 
 def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: bool) -> Recording:
-    params = Params(**trace_doc.pop("params", {}))
+    params = estimator_from_json({"estimator": trace_doc.pop("params", {})})  # diskf-r's switches too
     trace = trace_from_json(trace_doc)
     ids = tuple(run["ids"])
     N, n, m = len(ids), int(run["n"]), int(run["m"])
