@@ -267,7 +267,7 @@ class Limits:
 
 # fields of each kind (the map's length), and room for a few more (a signature, a binding) that a
 # decoder ignores: each is still bounded by the string, bin and byte limits
-_FIELDS = {"msg": 10, "report": 11, "tick": 12, "meas": 8, "stop": 5}
+_FIELDS = {"msg": 10, "report": 11, "tick": 12, "meas": 8, "stop": 5, "rejoin": 6}
 EXTRA_FIELDS = 2
 
 
@@ -297,6 +297,8 @@ def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | 
     if kind == "meas":
         p = a or MAX_DIM
         return Limits(HEADER_BYTES + 8 * p, MAX_STR, 8 * p, p, fields)
+    if kind == "rejoin":  # ints only
+        return Limits(HEADER_BYTES, MAX_STR, 0, 0, fields)
     return Limits(HEADER_BYTES + MAX_WHY, MAX_WHY, 0, 0, fields)
 
 
@@ -548,6 +550,6 @@ def decode_stop(data, *, run_id: str | None = None) -> Stop:
 
 
 def decode_rejoin(data, *, run_id: str | None = None, sender: int | None = None) -> Rejoin:
-    doc = _open(data, "rejoin", run_id)
+    doc = _open(data, "rejoin", run_id, limits("rejoin"))
     s, src = _check_sender(doc, sender), _field(doc, "src", int)
     return Rejoin(doc["run"], s, doc["t"], None if src < 0 else src)

@@ -21,7 +21,8 @@ from diskf_mesh.mesh.runspec import RunSpec, world_command
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.launcher import Child, free_port, loopback_options
 
-from mesh_helpers import LEASE_MS, Progress, assert_same, error_lines, reference, spawn, start_mesh, with_lease
+from mesh_helpers import LEASE_MS, Progress, assert_same, error_lines, reference, spawn, start_mesh, with_credentials, \
+    with_lease
 
 pytestmark = pytest.mark.mesh
 
@@ -34,7 +35,7 @@ PACED = ["--latency-ms", "25", "--collect-timeout", "1", "--world-timeout", "30"
 
 
 def lease_mesh(spec, ticks, seed, tmp_path, agent_extra=PACED, world_extra=()):
-    world_z, agent_z = loopback_options(free_port())
+    world_z, agent_z = loopback_options(free_port(), with_credentials(spec, tmp_path, ticks))
     mesh = start_mesh(spec, ticks, seed, tmp_path, with_lease(world_z), with_lease(agent_z),
                       world_extra=["--progress", "lines", "--json", str(tmp_path / "res.json"), *world_extra],
                       agent_extra=agent_extra)
@@ -127,11 +128,11 @@ def test_a_second_world_on_one_run_id_is_refused(tmp_path):
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     spec = RunSpec(SCENARIO, "diskf")  # run id "default"
-    first = spawn(Child("world 1", world_command(spec, 20, 0, ZenohOptions(listen=(ep,), no_multicast_scouting=True),
+    first = spawn(Child("world 1", world_command(spec, 20, 0, ZenohOptions(listen=(ep,), no_multicast_scouting=True, insecure=True),
                                                  ["--progress", "none", "--startup-timeout", "20"]),
                         tmp_path / "w1.log"))
     second = Child("world 2", world_command(spec, 20, 0, ZenohOptions(connect=(ep,), listen=("tcp/127.0.0.1:0",),
-                                                                      no_multicast_scouting=True),
+                                                                      no_multicast_scouting=True, insecure=True),
                                             ["--progress", "none"]), tmp_path / "w2.log")
     try:
         time.sleep(1.5)
