@@ -3,8 +3,12 @@
 # where the registry is reachable to look it up.
 FROM python:3.11.9-slim-bookworm
 WORKDIR /app
+# the dependencies from the lock first (a layer that changes only with it), then diskf-mesh itself:
+# no plotting stack (matplotlib is the figures extra)
+COPY requirements.lock /app/
+RUN pip install --no-cache-dir -r requirements.lock
 COPY . /app
-RUN pip install --no-cache-dir . \
+RUN pip install --no-cache-dir --no-deps . \
  && useradd --uid 10001 --no-create-home --shell /usr/sbin/nologin diskf \
  && mkdir -p /credentials /results \
  && chmod 1777 /credentials /results

@@ -87,3 +87,26 @@ def test_dockerfile_installs_the_package_and_runs_as_a_user():
     assert ":" in base and base.split(":")[1][0].isdigit()  # a pinned release, not a floating tag
     user = [ln.split()[1] for ln in text.splitlines() if ln.startswith("USER ")]
     assert user and user[-1] not in ("root", "0")
+
+
+def test_the_image_lock_pins_every_runtime_dependency_within_its_bounds():
+    """The Dockerfile installs requirements.lock: every dependency of
+    pyproject.toml is pinned there (==) to a version its bounds allow, and
+    the image has no plotting stack."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    root = Path(__file__).resolve().parents[1]
+    deps = [Requirement(d) for d in tomllib.loads((root / "pyproject.toml").read_text())["project"]["dependencies"]]
+    pins = {}
+    for line in (root / "requirements.lock").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, _, version = line.partition("==")
+            pins[canonicalize_name(name)] = version.strip()
+    for d in deps:
+        assert canonicalize_name(d.name) in pins, f"{d.name} is not pinned in requirements.lock"
+        assert d.specifier.contains(pins[canonicalize_name(d.name)]), f"{d.name}=={pins[canonicalize_name(d.name)]}"
+    assert "matplotlib" not in pins
+    assert "requirements.lock" in (root / "Dockerfile").read_text()
