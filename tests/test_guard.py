@@ -416,3 +416,14 @@ def test_an_agent_keeps_only_the_scenarios_agents_and_bounded_tables():
     assert a.counters.rejected == {"unknown-sender": 2000}
     assert dict(a.receiver.guard.by_sender) == {(None, "unknown-sender"): 2000}
     assert len(a.log._said) == 0              # the guard logs it, once (its own logger)
+
+
+def test_a_copy_of_another_agents_message_accounts_for_nothing(view):
+    """A body naming another agent on j's key (a replay on a credentialed
+    agent's own key) is refused and does not stand in for j's message."""
+    j, other, *_ = view.linked
+    rx = Receiver(Guard(view.guard_config()))
+    rx.advance(view.tick)
+    rx.on_payload(j, pack({**doc_of(view, j), "s": other}))
+    assert j not in rx.accounted(view.tick) and rx.refusals(view.tick) == {}
+    assert rx.counters.rejected == {"sender": 1}
