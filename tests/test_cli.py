@@ -364,9 +364,13 @@ WRITERS = {
 def _bad_target(kind, tmp_path):
     """(path, a check that the node is unchanged afterwards)."""
     if kind in ("/dev/null", "/dev/full"):
-        if not os.path.exists(kind):
-            pytest.skip(f"no {kind}")
+        if not os.path.exists(kind) or not stat.S_ISCHR(os.lstat(kind).st_mode):
+            pytest.skip(f"{kind} is not a character device here (a sandbox's plain file); 'fifo' covers special nodes")
         return kind, lambda: stat.S_ISCHR(os.lstat(kind).st_mode)
+    if kind == "fifo":  # a special node every machine can make
+        fifo = tmp_path / "pipe.json"
+        os.mkfifo(fifo)
+        return str(fifo), lambda: stat.S_ISFIFO(os.lstat(fifo).st_mode)
     if kind == "symlink":
         target = tmp_path / "target.json"
         target.write_text("keep")
@@ -394,7 +398,7 @@ def _bad_target(kind, tmp_path):
     raise AssertionError(kind)
 
 
-BAD_TARGETS = ["/dev/null", "/dev/full", "symlink", "dangling symlink", "directory", "missing folder",
+BAD_TARGETS = ["/dev/null", "/dev/full", "fifo", "symlink", "dangling symlink", "directory", "missing folder",
                "unwritable folder", "read-only folder"]
 
 
@@ -413,7 +417,7 @@ def test_bad_output_refused_before_any_work(command, kind, tmp_path, capsys, mon
     assert not [p for p in tmp_path.rglob("*.tmp")]
 
 
-@pytest.mark.parametrize("kind", ["/dev/null", "symlink", "directory", "unwritable folder"])
+@pytest.mark.parametrize("kind", ["/dev/null", "fifo", "symlink", "directory", "unwritable folder"])
 def test_up_and_world_refuse_bad_outputs_before_starting(kind, tmp_path, capsys):
     path, unchanged = _bad_target(kind, tmp_path)
     logs = tmp_path / "logs"
