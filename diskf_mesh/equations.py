@@ -390,3 +390,80 @@ def innovation_scale(P, U, u, x):
         for j in range(n):
             tPU = tPU + P[..., i, j] * U[..., j, i]
     return np.where(tPU > 0, np.maximum(1.0, (nis - dof) / np.where(tPU > 0, tPU, 1.0)), 1.0)
+
+
+def input_walk(A, C, S, Qd):
+    """The joint prediction of (v_k, d_{k-1}), v_k = x_k - G d_{k-1}, under
+    the persistent-input model (``diskf-r``, our derivation):
+
+        d_{k-1} = d_{k-2} + eta,  eta ~ N(0, Qd)     (a random walk)
+        v_k     = A x_{k-1} + w                      (= x^ of eq. info_kf_prediction0)
+
+    With the fused (x_bar, d_bar) of tick k-1, joint error covariance
+    [[P_bar, C], [C^T, S]], the errors of v = A x_bar and d = d_bar are
+    A e_x - w and e_d - eta, so
+
+        cov(v, d) = A C,      cov(d) = S + Qd
+
+    and cov(v) = A P_bar A^T + Q is the message's P^ (computed there).
+    A: (n, n); C: (..., n, m); S: (..., m, m); Qd: (m, m).
+    Returns (A C, S + Qd).
+    """
+    return np.matmul(A, C), sym(S + Qd)
+
+
+def replace_marginal(a, Paa, b, Pab, Pbb, a_new, Paa_new):
+    """A joint Gaussian (a, b) whose marginal of a is replaced by
+    (a_new, Paa_new), the conditional p(b | a) kept (``diskf-r``, our
+    derivation). With K = Pab^T Paa^-1, b = b0 + K (a - a0) + e, e
+    independent of a, cov(e) = Pbb - K Pab; so
+
+        b'   = b + K (a_new - a)
+        Pab' = Paa_new K^T
+        Pbb' = Pbb - K Pab + K Paa_new K^T
+
+    It serves three steps of ``diskf-r``: the measurement update of the
+    input (a = x: the measurement is of x only, so p(d | x) is untouched and
+    this *is* the joint Kalman update of (x, d), given the x update), and
+    the neighbourhood's CI prior and relayed inputs replacing the agent's own
+    marginals. a: (..., na), Paa: (..., na, na), b: (..., nb),
+    Pab: (..., na, nb), Pbb: (..., nb, nb). Returns (b', Pab', Pbb').
+    """
+    K = T(solve(Paa, Pab))               # Pab^T Paa^-1 (Paa symmetric)
+    b_new = b + mv(K, a_new - a)
+    Pab_new = np.matmul(Paa_new, T(K))
+    Pbb_new = sym(Pbb - np.matmul(K, Pab) + np.matmul(K, Pab_new))
+    return b_new, Pab_new, Pbb_new
+
+
+def input_to_state(v, Pv, B, d, S, G):
+    """From (v, d) to (x, d), x = v + G d (``diskf-r``, our derivation):
+
+        x = v + G d
+        P = Pv + G B^T + B G^T + G S G^T
+        C = cov(x, d) = B + G S
+
+    B = cov(v, d). With B = 0 it is ``input_injection``'s prediction with an
+    uncertain input (x^* = x^ + G d, P^* = P^ + G S G^T), the prediction of
+    eq. (info_kf_prediction) with the input's covariance kept.
+    v: (..., n), Pv: (..., n, n), B: (..., n, m), d: (..., m), S: (..., m, m).
+    """
+    GS = np.matmul(G, S)
+    GB = np.matmul(G, T(B))
+    x = v + mv(G, d)
+    P = sym(Pv + GB + T(GB) + np.matmul(GS, T(G)))
+    return x, P, B + GS
+
+
+def free_input_gain(Y, G):
+    """L = (G^T Y G)^-1 G^T Y, Y = P^^-1: the input that the unbiased
+    (Gillijns-De Moor) update reads off its state estimate (``diskf-r``, our
+    derivation). That update is the joint Kalman update of (x_k, d_{k-1})
+    with no prior information on d_{k-1}: the prior x_k - G d ~ N(x^, P^)
+    and the measurement of x only. Its joint information is
+    [[Y + U, -Y G], [-G^T Y, G^T Y G]], so given x the input is
+    d = L (x - x^), and cov(x error, d error) = P L^T with P the updated
+    state covariance (``rkf.rkf_update``'s). Y: (..., n, n), G: (n, m).
+    """
+    YG = np.matmul(Y, G)
+    return solve(congruence(G, Y), T(YG))

@@ -117,7 +117,11 @@ class RobustOptions:
     window: bool = False
     compensate: bool = False
     latch: bool = True
-    inflate: bool = True
+    inflate: bool = False
+    persist: bool = True
+    unbiased: bool = False
+    input_walk: float = 1.0
+    input_prior: float = 1e4
 
 
 @dataclass(frozen=True)

@@ -83,7 +83,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import equations as eq
-from ..linalg import inv_spd, nbr_sum
+from ..linalg import T, inv_spd, mv, nbr_sum
 from ..messages import Message, Neighbourhood, Output
 from ..rkf import rkf_update
 from .base import Algorithm, State
@@ -94,6 +94,7 @@ class RobustState(State):
     S_hold: np.ndarray | None = None  # (..., m, m) covariance of d_hold, the last fused input
     tick: int = 0                     # the tick of the last ``local`` (its A_{k-1} serves ``fuse``)
     fed: np.ndarray | None = None     # (...,) the last tick made the unbiased update (``latch``)
+    C: np.ndarray | None = None       # (..., n, m) cov(x_bar error, d_hold error) (``persist``)
 
 
 class DISKFRobust(Algorithm):
@@ -102,9 +103,12 @@ class DISKFRobust(Algorithm):
 
     def init(self, batch: tuple) -> RobustState:
         s = super().init(batch)
-        m = self.model.m
-        S = np.broadcast_to(np.eye(m), batch + (m, m)).copy()  # placeholder where nothing is held
-        return RobustState(s.x, s.P, s.since, s.d_hold, s.held, S_hold=S, fed=np.zeros(batch, dtype=bool))
+        n, m = self.model.n, self.model.m
+        o = self.params.robust
+        scale = o.input_prior if o.persist else 1.0  # persist: the input's prior; else a placeholder
+        S = np.broadcast_to(scale * np.eye(m), batch + (m, m)).copy()
+        C = np.zeros(batch + (n, m))
+        return RobustState(s.x, s.P, s.since, s.d_hold, s.held, S_hold=S, fed=np.zeros(batch, dtype=bool), C=C)
 
     def local(self, state: RobustState, k: int, y, has):
         """Step 1 (prediction, local update) and the message."""
@@ -117,12 +121,14 @@ class DISKFRobust(Algorithm):
             allowed = eq.window_allows(since, self.params.window) if o.window else None
             d, S, valid = self.local_input(loc, allowed)
         st = RobustState(state.x, state.P, np.where(has, 0, since), state.d_hold, state.held,
-                         loc.Y, loc.Yx, S_hold=state.S_hold, tick=k, fed=state.fed)
+                         loc.Y, loc.Yx, S_hold=state.S_hold, tick=k, fed=state.fed, C=state.C)
         return st, self.message(loc, d, S, valid)
 
     def fuse(self, state: RobustState, own: Message, senders: Message, nb: Neighbourhood):
         p, o = self.params, self.params.robust
         G = self.model.G
+        A = self.model.A_at(state.tick)
+        m = G.shape[-1]
         Ystar, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
         dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
                                              Yp=Yp, Yu=Yu, Ypx=Ypx)
@@ -140,12 +146,72 @@ class DISKFRobust(Algorithm):
             d_N, S_N, valid_N = eq.input_estimate(x_c, P_c, U, u, G, allowed, Y=Yc)
         else:
             d_N, S_N, valid_N = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
-        feed = eq.strongly_detectable(self.model.A_at(state.tick), G, U, valid_N) if o.gate else valid_N
-        if o.gate and o.latch:
-            feed = feed | (valid_N & state.fed)
+        if o.unbiased:
+            feed = eq.strongly_detectable(A, G, U, valid_N) if o.gate else valid_N
+            if o.gate and o.latch:
+                feed = feed | (valid_N & state.fed)
+        else:
+            feed = np.zeros_like(valid_N)
         # 5a. detectable: the exact unbiased (Gillijns-De Moor) update
         x_g, P_g = rkf_update(x_c, P_c, U, u, G, feed, Y=Yc)
-        # 5b. otherwise: the relayed input, injected with its covariance, then the Kalman update
+        if o.persist:
+            x_k, P_k, d_k, S_k, C_k, has_p = self._persist(state, own, senders, nb, x_c, P_c, U, u, A)
+            C_g = np.matmul(P_g, T(eq.free_input_gain(Yc, G)))
+        else:
+            x_k, P_k, d_k, S_k, has_p = self._assume(state, senders, nb, x_c, P_c, U, u)
+            C_k = C_g = state.C
+        f2, f3 = feed[..., None], feed[..., None, None]
+        x_bar, P_bar = np.where(f2, x_g, x_k), np.where(f3, P_g, P_k)
+        if o.compensate and p.compensation != "none" and p.eps != 0.0:
+            gain = eq.compensation_gain(P_bar, p.compensation, p.eps, nb.n_neighbours)
+            x_bar = eq.compensation_state(nb.adj, x_bar, gain, own.x_pred, senders.x_pred, p.eps)
+        d_bar = np.where(f2, d_N, d_k)
+        S_bar = np.where(f3, S_N, S_k)
+        C_bar = np.where(f3, C_g, C_k)
+        held = feed | has_p
+        since = state.since
+        if o.window and p.reset:
+            since = np.where(held, 0, since)
+        st = RobustState(x_bar, P_bar, since, d_bar, held, S_hold=S_bar, tick=state.tick, fed=feed, C=C_bar)
+        return st, Output(x_bar, P_bar, d_bar, held)
+
+    def _persist(self, state, own, senders, nb, x_c, P_c, U, u, A):
+        """Step 5b with the persistent input (``persist``): the joint Kalman
+        filter of (x, d) under the random-walk input of ``equations.input_walk``."""
+        o = self.params.robust
+        G = self.model.G
+        m = G.shape[-1]
+        Qd = o.input_walk * np.eye(m)
+        B, S1 = eq.input_walk(A, state.C, state.S_hold, Qd)
+        d1 = state.d_hold
+        if o.prior_ci:  # the neighbourhood's CI prior replaces the own v, p(d | v) kept
+            d1, B, S1 = eq.replace_marginal(own.x_pred, own.P_pred, d1, B, S1, x_c, P_c)
+        v, Pv = x_c, P_c
+        has_p = state.held | (np.trace(U, axis1=-2, axis2=-1) > 0)
+        if o.relay and o.joint_input:  # the relayed inputs replace the own d, p(v | d) kept
+            d_r, S_r, has_r = eq.input_fusion(nb.adj, senders.d, senders.S + Qd, senders.d_valid)
+            v_r, Bt_r, Pv_r = eq.replace_marginal(d1, S1, v, T(B), Pv, d_r, S_r)
+            r1, r2 = has_r[..., None], has_r[..., None, None]
+            v, Pv, B = np.where(r1, v_r, v), np.where(r2, Pv_r, Pv), np.where(r2, T(Bt_r), B)
+            d1, S1 = np.where(r1, d_r, d1), np.where(r2, S_r, S1)
+            has_p = has_p | has_r
+        if o.inject:
+            x_s, P_s, C_s = eq.input_to_state(v, Pv, B, d1, S1, G)
+        else:
+            x_s, P_s, C_s = v + mv(G, d1), Pv, np.zeros_like(B)
+        if o.inflate:
+            alpha = eq.innovation_scale(P_s, U, u, x_s)
+            a3 = alpha[..., None, None]
+            P_s, C_s, S1 = P_s * a3, C_s * a3, S1 * a3
+        x_k, P_k = eq.local_update(x_s, P_s, U, u)
+        d_k, C_k, S_k = eq.replace_marginal(x_s, P_s, d1, C_s, S1, x_k, P_k)
+        return x_k, P_k, d_k, S_k, C_k, has_p
+
+    def _assume(self, state, senders, nb, x_c, P_c, U, u):
+        """Step 5b without ``persist``: the relayed input assumed, injected
+        with its covariance, the prior inflated, the Kalman update."""
+        o = self.params.robust
+        G = self.model.G
         if o.relay and o.joint_input:
             d_p, S_p, has_p = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
         else:
@@ -158,16 +224,5 @@ class DISKFRobust(Algorithm):
             alpha = eq.innovation_scale(P_s, U, u, x_s)
             P_s = P_s * alpha[..., None, None]
         x_k, P_k = eq.local_update(x_s, P_s, U, u)
-        f2, f3 = feed[..., None], feed[..., None, None]
-        x_bar, P_bar = np.where(f2, x_g, x_k), np.where(f3, P_g, P_k)
-        if o.compensate and p.compensation != "none" and p.eps != 0.0:
-            gain = eq.compensation_gain(P_bar, p.compensation, p.eps, nb.n_neighbours)
-            x_bar = eq.compensation_state(nb.adj, x_bar, gain, own.x_pred, senders.x_pred, p.eps)
-        d_bar = np.where(f2, d_N, np.where(has_p[..., None], d_p, 0.0))
-        S_bar = np.where(f3, S_N, S_p)
-        held = feed | has_p
-        since = state.since
-        if o.window and p.reset:
-            since = np.where(held, 0, since)
-        st = RobustState(x_bar, P_bar, since, d_bar, held, S_hold=S_bar, tick=state.tick, fed=feed)
-        return st, Output(x_bar, P_bar, d_bar, held)
+        d_k = np.where(has_p[..., None], d_p, 0.0)
+        return x_k, P_k, d_k, S_p, has_p
