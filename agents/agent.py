@@ -19,14 +19,14 @@ steps 3-4. The main thread only starts the agent, joins the run, and watches
 the timeouts and the stop; it is not woken per message (a thread hop per
 message was most of a message's cost on a busy machine).
 
-Neighbours' messages pass the receive path (``diskf_mesh.receive``: the
+Neighbours' messages pass the receive path (``diskf_mesh.mesh.receive``: the
 guard rejects what is malformed, the inbox fuses a message at most once and
 discards, counted as late, one for a tick already fused). The world's
 messages are taken only when they fit the run (``_tick_problem``,
 ``_meas_problem``): a tick for k or k+1 (k the tick being worked on) with the
 run's constants, a measurement for k or k+1 of this agent's length within
 ``GuardConfig.max_abs``; every per-tick map is kept to a few ticks. The counters
-(``diskf_mesh.counters``) go to the world with every report.
+(``diskf_mesh.mesh.counters``) go to the world with every report.
 
 Exit status: 0 only when the world says stop with "done" at the run's last
 tick; 2 (one line) when another process already holds this agent's id in the
@@ -60,20 +60,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from agents import rejoin
-from diskf_mesh import wire
-from diskf_mesh.guard import Guard, GuardConfig
-from diskf_mesh.mesh import credentials, runspec, zenoh_config
+from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.guard import Guard, GuardConfig
+from diskf_mesh.mesh import credentials
+from diskf_mesh.mesh import runspec
+from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
 from diskf_mesh.mesh.keys import Keys, new_nonce, nonce
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.profile import AGENT_PHASES, NO_PHASES, Phases
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
-from diskf_mesh.faults import FaultConfig, FaultModel
-from diskf_mesh.faults import add_arguments as add_fault_arguments
-from diskf_mesh.faults import from_args as faults_from_args
-from diskf_mesh.receive import Receiver
+from diskf_mesh.data.faults import FaultConfig, FaultModel
+from diskf_mesh.data.faults import add_arguments as add_fault_arguments
+from diskf_mesh.data.faults import from_args as faults_from_args
+from diskf_mesh.mesh.receive import Receiver
 from diskf_mesh.recording.verdicts import TickVerdicts
-from diskf_mesh.scenario import Scenario
+from diskf_mesh.data.scenario import Scenario
 
 POLL_S = 0.5     # the main thread looks at the timeouts at least this often
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
@@ -101,7 +103,7 @@ class Agent:
     under one lock (``_cv``), and ``_advance`` then takes every step the
     new state allows (open tick k: local step and own message; close it:
     fusion and report). Neighbours' messages that pass the range gate go on
-    to the receive path (``diskf_mesh.receive``: guard, the link's
+    to the receive path (``diskf_mesh.mesh.receive``: guard, the link's
     ``faults``, inbox); a copy the fault layer delays comes back through
     ``wake``. The main thread (``run``) waits on ``_cv`` for what only it
     does: joining the run (the estimator, a rejoining agent's
@@ -326,7 +328,7 @@ class Agent:
 
     def _gate(self, sender, payload) -> bool:
         """A neighbour's message (``sender``: its key's id, parsed once) into
-        the receive path (``diskf_mesh.receive``): the guard decodes it once
+        the receive path (``diskf_mesh.mesh.receive``): the guard decodes it once
         and rejects (counts) what is malformed or off the window around tick
         k, the range gate drops (counts "out_of_range") one from an agent not
         linked to this one at the message's tick (one whose tick the world
@@ -744,6 +746,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    from diskf_mesh import cli
+    from diskf_mesh.cli import main as cli
 
     sys.exit(cli.run_one("agent", __spec__.name))

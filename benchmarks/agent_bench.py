@@ -25,12 +25,13 @@ import time
 import numpy as np
 
 from agents.agent import Agent
-from diskf_mesh import algorithms, wire
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.estimator import AgentEstimator, lockstep, neighbours
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.transport import LocalBus
-from diskf_mesh.scenario import simulate
+from diskf_mesh.data.scenario import simulate
 
 RUN = "bench"
 

@@ -5,7 +5,7 @@ DISKF next to the baselines, on Scenario 2 (``dynamic``).
                                      [--mesh-losses 0,0.3,0.5] [--mesh-algorithms all]
                                      [--out docs/degradation.md] [--figure docs/figures/degradation.png]
 
-Every number comes from the project's seeded fault layer (``diskf_mesh.faults``):
+Every number comes from the project's seeded fault layer (``diskf_mesh.data.faults``):
 
 * The table and the figure: for each loss rate and seed, ``faults.delivered_links``
   asks ``FaultModel(FaultConfig(loss=L), seed)`` which of the scenario's links
@@ -38,11 +38,12 @@ from pathlib import Path
 
 import numpy as np
 
-from diskf_mesh import algorithms, engine
-from diskf_mesh.experiment import PAPER_LABELS, summarize
-from diskf_mesh.faults import FaultConfig, delivered_links
-from diskf_mesh.figures import COLORS
-from diskf_mesh.scenario import load_scenario, simulate
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.studies.experiment import PAPER_LABELS, summarize
+from diskf_mesh.data.faults import FaultConfig, delivered_links
+from diskf_mesh.studies.figures import COLORS
+from diskf_mesh.data.scenario import load_scenario, simulate
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -76,7 +77,7 @@ def mesh_run(scn_name: str, alg: str, loss: float, seed: int, timeout: float = 3
     """``diskf-mesh up`` with the fault flags; the estimates document."""
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "estimates.json"
-        argv = [sys.executable, "-m", "diskf_mesh.cli", "up", "--scenario", scn_name, "--algorithm", alg,
+        argv = [sys.executable, "-m", "diskf_mesh.cli.main", "up", "--scenario", scn_name, "--algorithm", alg,
                 "--seed", str(seed), "--loss", repr(loss), "--estimates", str(out), "--json",
                 str(Path(d) / "results.json"), "--logs", str(Path(d) / "logs"), "--quiet"]
         t0 = time.monotonic()

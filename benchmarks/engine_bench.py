@@ -21,8 +21,11 @@ import sys
 import time
 import tracemalloc
 
-from diskf_mesh import algorithms, engine, experiment, oracle
-from diskf_mesh.scenario import load_scenario, simulate
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.studies import experiment
+from diskf_mesh.engine import oracle
+from diskf_mesh.data.scenario import load_scenario, simulate
 
 TOPOLOGIES = ("all", "ring", "none")
 

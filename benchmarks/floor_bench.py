@@ -58,7 +58,7 @@ def sizes() -> dict:
     """Bytes of the project's payloads for n = 2, m = 1, p = 1."""
     import numpy as np
 
-    from diskf_mesh import wire
+    from diskf_mesh.mesh import wire
     from mesh_bench import message_bytes
 
     report = wire.encode_report("a1b2c3d4", 50, 200, np.zeros(2), np.eye(2), np.zeros(1), True,
@@ -69,7 +69,7 @@ def sizes() -> dict:
 
 def links_of(scenario: str, agents: int | None, ticks: int):
     """(K, N, N) bool links and the agent ids of the project's scenario."""
-    from diskf_mesh.scenario import load_scenario, simulate
+    from diskf_mesh.data.scenario import load_scenario, simulate
 
     scn = load_scenario(scenario, agents=agents).with_overrides(steps=ticks)
     tr = simulate(scn, [0])

@@ -52,9 +52,9 @@ from pathlib import Path
 
 import numpy as np
 
-from diskf_mesh import wire
+from diskf_mesh.mesh import wire
 from diskf_mesh.mesh import profile
-from diskf_mesh.messages import Message
+from diskf_mesh.core.messages import Message
 
 CORES = 2
 

@@ -4,9 +4,11 @@ estimator and the centralized bound in every setting (engine, 20 seeds; ``python
 import sys, time
 from dataclasses import replace
 import numpy as np
-from diskf_mesh import engine, metrics, centralized
-from diskf_mesh.scenario import load_scenario, simulate
-from diskf_mesh.model import Params
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.data import metrics
+from diskf_mesh.engine import centralized
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.core.model import Params
 
 SEEDS = range(int(sys.argv[1]) if len(sys.argv) > 1 else 20)
 
@@ -57,7 +59,7 @@ def show(res, keys=("mae_state", "mae_input", "nees", "nees_obs")):
 
 def robust(**kw):
     """Params -> Params with diskf-r's switches ``kw`` (for variant rows)."""
-    from diskf_mesh.model import RobustOptions
+    from diskf_mesh.core.model import RobustOptions
     return lambda p: replace(p, robust=RobustOptions(**kw))
 
 

@@ -44,12 +44,15 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from diskf_mesh import live
-from diskf_mesh.commands.options import check_output, check_output_dir, positive_int, seed_value
-from diskf_mesh.errors import InputError
-from diskf_mesh.faults import FaultConfig
-from diskf_mesh.faults import add_arguments as add_fault_arguments
-from diskf_mesh.faults import from_args as faults_from_args
-from diskf_mesh.mesh import credentials, runspec, zenoh_config
+from diskf_mesh.data.argtypes import positive_int, seed_value
+from diskf_mesh.data.outputs import check_output, check_output_dir
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.data.faults import add_arguments as add_fault_arguments
+from diskf_mesh.data.faults import from_args as faults_from_args
+from diskf_mesh.mesh import credentials
+from diskf_mesh.mesh import runspec
+from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.world import INCOMPLETE, add_allow_missing, missing_line
@@ -141,6 +144,13 @@ class Launcher:
         with open(child.log, "wb") as err:
             child.proc = subprocess.Popen(child.argv, stdin=subprocess.DEVNULL, stdout=stdout, stderr=err,
                                           start_new_session=True, preexec_fn=_die_with_parent)
+
+    def add_child(self, name: str, argv: list, log: Path) -> Child:
+        """Start one more child (e.g. the live view), stopped with the others."""
+        child = Child(name, argv, log)
+        self._spawn(child, subprocess.DEVNULL)
+        self.children.append(child)
+        return child
 
     def start(self) -> None:
         self.start_world()
@@ -306,7 +316,7 @@ def _terminated(signum, frame):
 def _run(args: argparse.Namespace, private: Path) -> int:
     from tqdm import tqdm
 
-    from diskf_mesh.experiment import format_table
+    from diskf_mesh.studies.experiment import format_table
 
     spec = runspec.from_args(args, run_id=args.run_id or secrets.token_hex(4))
     out = Path(args.json or f"results/up-{spec.run_id}.json")
@@ -404,6 +414,6 @@ def verdict(row: dict, world_rc: int, allow_missing: float) -> int:
 
 
 if __name__ == "__main__":
-    from diskf_mesh import cli
+    from diskf_mesh.cli import main as cli
 
     sys.exit(cli.run_one("up", __spec__.name))

@@ -10,7 +10,7 @@ of tick k, or ``--tick-timeout`` seconds. A report of a past tick is counted
 ("stale") and dropped. At the end it says stop, computes the metrics and
 writes the same result JSON as ``experiment``:
 ``{algorithm: {setting: {mae_state, ...}}}``, plus, per setting, the link
-faults of the run, every agent's message counters (``diskf_mesh.counters``)
+faults of the run, every agent's message counters (``diskf_mesh.mesh.counters``)
 and the ticks each agent did not report (``missing_ticks``: killed, or
 rejoining); ``--estimates`` writes every agent's fused estimates, what was
 missing, and every agent's counters.
@@ -54,22 +54,26 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from diskf_mesh import metrics, wire
-from diskf_mesh.algorithms.consensus_baselines import consensus_step_problem
-from diskf_mesh.commands.options import check_output, positive_int, save_json, seed_value
-from diskf_mesh.counters import Counters
-from diskf_mesh.faults import FaultConfig
-from diskf_mesh.faults import add_arguments as add_fault_arguments
-from diskf_mesh.faults import from_args as faults_from_args
-from diskf_mesh.engine import Estimates
-from diskf_mesh.mesh import credentials, runspec, zenoh_config
+from diskf_mesh.data import metrics
+from diskf_mesh.mesh import wire
+from diskf_mesh.estimators.consensus_baselines import consensus_step_problem
+from diskf_mesh.data.argtypes import positive_int, seed_value
+from diskf_mesh.data.outputs import check_output, save_json
+from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.data.faults import add_arguments as add_fault_arguments
+from diskf_mesh.data.faults import from_args as faults_from_args
+from diskf_mesh.engine.batch import Estimates
+from diskf_mesh.mesh import credentials
+from diskf_mesh.mesh import runspec
+from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.keys import Keys, new_nonce, nonce
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder
-from diskf_mesh.scenario import Scenario, simulate
-from diskf_mesh.trace import Trace, estimates_to_json
+from diskf_mesh.data.scenario import Scenario, simulate
+from diskf_mesh.data.trace import Trace, estimates_to_json
 
 ESTIMATES_FORMAT = "diskf-mesh-estimates/1"
 
@@ -607,7 +611,7 @@ def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, ru
 
 
 def open_recorder(path, trace, scn, spec, seed, faults):
-    from diskf_mesh.errors import InputError
+    from diskf_mesh.core.errors import InputError
     from diskf_mesh.recording.writer import Recorder
 
     try:
@@ -659,7 +663,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from diskf_mesh.experiment import format_table
+    from diskf_mesh.studies.experiment import format_table
 
     check_output(args.json, "json", stdout=False)  # before any work: a bad path must not cost the run
     check_output(args.estimates, "estimates", stdout=False)
@@ -739,6 +743,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    from diskf_mesh import cli
+    from diskf_mesh.cli import main as cli
 
     sys.exit(cli.run_one("world", __spec__.name))

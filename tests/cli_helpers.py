@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import json
 
-from diskf_mesh import cli
-from diskf_mesh.scenario import load_scenario, simulate
-from diskf_mesh.trace import trace_to_json
+from diskf_mesh.cli import main as cli
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.data.trace import trace_to_json
 
 
 def run_cli(argv, capsys):

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from diskf_mesh import engine
+from diskf_mesh.engine import batch as engine
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
-from diskf_mesh.scenario import simulate
+from diskf_mesh.data.scenario import simulate
 from sim.launcher import Child, Launcher, build_children, free_port, loopback_options
 
 TOL = 1e-9

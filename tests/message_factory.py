@@ -6,12 +6,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diskf_mesh import algorithms, wire
-from diskf_mesh.algorithms.base import State
-from diskf_mesh.guard import GuardConfig
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.mesh import wire
+from diskf_mesh.estimators.base import State
+from diskf_mesh.mesh.guard import GuardConfig
 from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.messages import Message, Neighbourhood
-from diskf_mesh.scenario import load_scenario, simulate
+from diskf_mesh.core.messages import Message, Neighbourhood
+from diskf_mesh.data.scenario import load_scenario, simulate
 
 RUN = "fuzz-run"
 

@@ -1,5 +1,5 @@
 """A plain per-agent reference of ``diskf-r`` (the test oracle for the
-robust variant), in the spirit of ``diskf_mesh/oracle.py``: explicit loops
+robust variant), in the spirit of ``diskf_mesh/engine/oracle.py``: explicit loops
 over seeds, ticks, agents and neighbours, textbook formulas on stacked H, R,
 y (never the messages' information form), numpy.linalg / scipy only, and no
 code shared with ``equations``, ``rkf`` or ``linalg``. The invariant zeros

@@ -41,7 +41,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from diskf_mesh import wire
+from diskf_mesh.mesh import wire
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec

@@ -33,7 +33,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from diskf_mesh import wire
+from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.keys import Keys, address
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions

@@ -15,8 +15,8 @@ import time
 import numpy as np
 import pytest
 
-from diskf_mesh import metrics
-from diskf_mesh.engine import Estimates
+from diskf_mesh.data import metrics
+from diskf_mesh.engine.batch import Estimates
 from diskf_mesh.mesh.runspec import RunSpec, world_command
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.launcher import Child, free_port, loopback_options

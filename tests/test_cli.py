@@ -17,9 +17,9 @@ from pathlib import Path
 import pytest
 
 from cli_helpers import run_cli, simulated_doc, write
-from diskf_mesh import cli
-from diskf_mesh import algorithms
-from diskf_mesh.metrics import METRIC_KEYS
+from diskf_mesh.cli import main as cli
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.data.metrics import METRIC_KEYS
 
 DOC = simulated_doc()
 
@@ -355,9 +355,9 @@ def _trace(tmp_path):
 
 # command argv (before the output flag), the output flag, the field, the function doing the work
 WRITERS = {
-    "experiment": (lambda tmp: ["experiment", *QUICK], "--json", "json", "diskf_mesh.experiment.run_experiment"),
-    "simulate": (lambda tmp: ["simulate", "--steps", "5"], "--out", "out", "diskf_mesh.commands.simulate.simulate"),
-    "replay": (lambda tmp: ["replay", _trace(tmp)], "--out", "out", "diskf_mesh.engine.run"),
+    "experiment": (lambda tmp: ["experiment", *QUICK], "--json", "json", "diskf_mesh.studies.experiment.run_experiment"),
+    "simulate": (lambda tmp: ["simulate", "--steps", "5"], "--out", "out", "diskf_mesh.cli.simulate.simulate"),
+    "replay": (lambda tmp: ["replay", _trace(tmp)], "--out", "out", "diskf_mesh.engine.batch.run"),
 }
 
 
@@ -483,7 +483,7 @@ def test_json_dash_writes_to_stdout(tmp_path, capsys):
 
 WRITER_SCRIPT = """
 import sys, time
-from diskf_mesh.outputs import atomic_open
+from diskf_mesh.data.outputs import atomic_open
 with atomic_open(sys.argv[1]) as f:
     f.write("partial")
     f.flush()
@@ -510,7 +510,7 @@ def test_temporary_file_removed_when_killed_mid_write(sig, tmp_path):
 
 
 def test_temporary_file_removed_on_error(tmp_path):
-    from diskf_mesh.outputs import atomic_open
+    from diskf_mesh.data.outputs import atomic_open
     target = tmp_path / "out.json"
     with pytest.raises(ZeroDivisionError):
         with atomic_open(target) as f:
@@ -523,7 +523,7 @@ def test_closed_stdout_pipe_ends_quietly():
     read, write_end = os.pipe()
     os.close(read)
     try:
-        p = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", "experiment", *QUICK], stdout=write_end,
+        p = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "experiment", *QUICK], stdout=write_end,
                            stderr=subprocess.PIPE, text=True, timeout=120)
     finally:
         os.close(write_end)
@@ -534,7 +534,7 @@ def test_closed_stdout_pipe_ends_quietly():
 # printers take missing values
 # --------------------------------------------------------------------------
 def test_format_table_accepts_missing_values():
-    from diskf_mesh.experiment import TABLE_METRICS, format_table
+    from diskf_mesh.studies.experiment import TABLE_METRICS, format_table
     full = {k: 1.0 for k in TABLE_METRICS}
     results = {
         "diskf": {"all": {**full, "mae_state": math.nan}, "ring": full},

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from diskf_mesh import engine
-from diskf_mesh.model import COMPENSATION_FORMS, Params
-from diskf_mesh.scenario import load_scenario, simulate
-from diskf_mesh.studies import StudyConfig, compensation_ablation, input_zero
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.core.model import COMPENSATION_FORMS, Params
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.studies.suite import StudyConfig, compensation_ablation, input_zero
 
 # Three agents on a line: A and B static 100 apart, C shuttles along y = 50
 # between x = 0 and x = 200, one loop in 4 ticks (400 units of path), so at

@@ -5,8 +5,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from diskf_mesh import equations as eq
-from diskf_mesh.linalg import inv_spd, is_spd, nbr_sum
+from diskf_mesh.core import equations as eq
+from diskf_mesh.core.linalg import inv_spd, is_spd, nbr_sum
 
 G = np.array([[1.0], [1.0]])
 

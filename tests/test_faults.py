@@ -8,11 +8,11 @@ import time
 import numpy as np
 import pytest
 
-from diskf_mesh.counters import Counters, total
-from diskf_mesh.delayline import DelayLine
-from diskf_mesh.errors import InputError
-from diskf_mesh.faults import PERFECT, FaultConfig, FaultModel, add_arguments, from_args
-from diskf_mesh.inbox import Inbox
+from diskf_mesh.mesh.counters import Counters, total
+from diskf_mesh.mesh.delayline import DelayLine
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.faults import PERFECT, FaultConfig, FaultModel, add_arguments, from_args
+from diskf_mesh.mesh.inbox import Inbox
 
 ALL = FaultConfig(loss=0.2, latency_ms=5, jitter_ms=5, duplicate=0.05, reorder=0.05)
 
@@ -97,7 +97,7 @@ def test_command_line_overrides_the_scenario_field_by_field():
 
 
 def test_scenario_faults_table_is_read():
-    from diskf_mesh.scenario import parse_scenario
+    from diskf_mesh.data.scenario import parse_scenario
     raw = {"model": {"G": [[1.0], [1.0]], "dynamics": "rotation", "Q": [[1, 0], [0, 1]], "P0": [[1, 0], [0, 1]],
                      "x0": [0, 0]},
            "agents": [{"id": 1, "H": [[1, 0]], "R": [[1]]}], "faults": {"loss": 0.25, "latency_ms": 3}}
@@ -164,7 +164,7 @@ def test_counters_round_trip_and_sum():
 
 
 def test_delivered_links_follow_the_link_plans():
-    from diskf_mesh.faults import delivered_links
+    from diskf_mesh.data.faults import delivered_links
     K, N, ids = 30, 4, (3, 5, 8, 9)
     links = np.ones((K, N, N), dtype=bool)
     links[:, 0, 3] = links[:, 3, 0] = False

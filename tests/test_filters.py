@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from diskf_mesh import engine
-from diskf_mesh.model import Params
-from diskf_mesh.rkf import rkf_update
-from diskf_mesh.scenario import load_scenario, simulate
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.core.model import Params
+from diskf_mesh.core.rkf import rkf_update
+from diskf_mesh.data.scenario import load_scenario, simulate
 
 
 @pytest.fixture(scope="module")
@@ -152,7 +152,7 @@ def test_kcf_warns_when_its_consensus_step_may_diverge(quadrants):
     degree 3, so eps = 0.4 is warned about (with the bound), 0.1 is not."""
     from dataclasses import replace
 
-    from diskf_mesh.algorithms.consensus_baselines import consensus_step_problem
+    from diskf_mesh.estimators.consensus_baselines import consensus_step_problem
 
     trace = simulate(quadrants, [0], steps=5)
     with pytest.warns(RuntimeWarning, match=r"consensus_eps = 0.4 with up to 3 neighbours.*below 0.333"):

@@ -15,16 +15,18 @@ import pytest
 from jsonschema import Draft202012Validator
 
 from cli_helpers import run_cli, write
-from diskf_mesh import algorithms, engine, schemas
-from diskf_mesh.errors import InputError
-from diskf_mesh.scenario import load_scenario, scenario_path, shipped_scenarios, simulate
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.data import schemas
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.scenario import load_scenario, scenario_path, shipped_scenarios, simulate
 from mesh_helpers import up
 
 STEPS = 30
 
 
 def test_every_schema_is_valid_and_shipped_as_package_data():
-    names = sorted(p.name for p in resources.files("diskf_mesh.schemas").iterdir() if p.name.endswith(".json"))
+    names = sorted(p.name for p in resources.files("diskf_mesh.data.schemas").iterdir() if p.name.endswith(".json"))
     assert names == sorted(schemas.FILES.values())
     for fmt in schemas.FILES:
         s = schemas.schema(fmt)
@@ -138,7 +140,7 @@ def test_both_A_and_A_seq_is_rejected(tmp_path, capsys):
 def test_large_trace_arrays_are_checked_too():
     """The quick path for big regular arrays never lets a bad one through."""
     scn = load_scenario("random-geometric", agents=50).with_overrides(steps=10)
-    from diskf_mesh.trace import trace_to_json
+    from diskf_mesh.data.trace import trace_to_json
 
     doc = trace_to_json(simulate(scn, [0]))
     schemas.check(doc, "diskf-trace/1")

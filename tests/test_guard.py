@@ -8,12 +8,12 @@ import msgpack
 import numpy as np
 import pytest
 
-from diskf_mesh import wire
-from diskf_mesh.counters import Counters
-from diskf_mesh.faults import FaultConfig, FaultModel
-from diskf_mesh.guard import REASONS, Guard, fuse_checked
-from diskf_mesh.messages import Message, Neighbourhood
-from diskf_mesh.receive import Receiver
+from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.data.faults import FaultConfig, FaultModel
+from diskf_mesh.mesh.guard import REASONS, Guard, fuse_checked
+from diskf_mesh.core.messages import Message, Neighbourhood
+from diskf_mesh.mesh.receive import Receiver
 from message_factory import tick_view
 
 
@@ -126,7 +126,7 @@ def test_ticks_inside_the_window_pass(view):
 def test_logged_once_per_sender_and_reason(view, caplog):
     g = Guard(view.guard_config())
     j, k = view.linked[:2]
-    with caplog.at_level(logging.WARNING, logger="diskf_mesh.guard"):
+    with caplog.at_level(logging.WARNING, logger="diskf_mesh.mesh.guard"):
         for _ in range(5):
             g.admit(j, b"junk", view.tick)
             g.admit(k, b"junk", view.tick)
@@ -147,8 +147,8 @@ def test_guard_never_raises_even_on_non_bytes(view):
 
 def test_the_factory_fuses_as_the_engine_does(view):
     """The batch-of-one fusion of the factory equals the in-process engine's."""
-    from diskf_mesh import engine
-    from diskf_mesh.scenario import load_scenario, simulate
+    from diskf_mesh.engine import batch as engine
+    from diskf_mesh.data.scenario import load_scenario, simulate
     scn = load_scenario("dynamic")
     est = engine.run(simulate(scn, [0], steps=view.tick), "diskf", scn.params)
     _, out = view.fuse([(j, view.messages[j]) for j in view.linked])
@@ -218,7 +218,7 @@ def test_receiver_with_faults_balances_its_books(view):
 def test_unknown_sender_ids_share_one_row_and_are_never_decoded(view, caplog):
     g = Guard(view.guard_config())
     ids = [int(i) for i in np.random.default_rng(1).integers(100, 2 ** 62, 10_000)]
-    with caplog.at_level(logging.WARNING, logger="diskf_mesh.guard"):
+    with caplog.at_level(logging.WARNING, logger="diskf_mesh.mesh.guard"):
         for i in ids:  # garbage: were it decoded, the reason would be "not-msgpack"
             assert g.admit(i, b"\xc1" * 300, view.tick) is None
     assert g.counters.rejected == {"unknown-sender": 10_000}
@@ -330,7 +330,7 @@ class FedAgent:
         from diskf_mesh.mesh.estimator import lockstep
         from diskf_mesh.mesh.keys import Keys
         from diskf_mesh.mesh.transport import LocalBus
-        from diskf_mesh.scenario import load_scenario, simulate
+        from diskf_mesh.data.scenario import load_scenario, simulate
         self.scn = scn = load_scenario("dynamic")
         self.trace = simulate(scn, [0], steps=self.K)
         self.ids = [a.id for a in scn.agents]

@@ -4,11 +4,30 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from diskf_mesh import algorithms, engine
-from diskf_mesh.linalg import (FEW, T, congruence, congruence_const, congruence_each, eigvalsh, inv_spd, inv_spd_cholesky,
-                               inv_spd_each, matmul_right, mv, nbr_sum, nbr_sum_pair, pair_sum, row_sum, solve,
-                               sum_order, sym, transposed)
-from diskf_mesh.scenario import load_scenario, simulate
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.core.linalg import (
+    FEW,
+    T,
+    congruence,
+    congruence_const,
+    congruence_each,
+    eigvalsh,
+    inv_spd,
+    inv_spd_cholesky,
+    inv_spd_each,
+    matmul_right,
+    mv,
+    nbr_sum,
+    nbr_sum_pair,
+    pair_sum,
+    row_sum,
+    solve,
+    sum_order,
+    sym,
+    transposed,
+)
+from diskf_mesh.data.scenario import load_scenario, simulate
 
 
 def random_spd(rng, shape, n, cond=1e3):

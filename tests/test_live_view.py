@@ -247,9 +247,9 @@ def test_live_view_renders_the_run_in_a_browser(tmp_path):
 # the frames, without a browser or a mesh
 # --------------------------------------------------------------------------
 def _engine_run(ticks: int = 60):
-    from diskf_mesh import engine
+    from diskf_mesh.engine import batch as engine
     from diskf_mesh.mesh.runspec import RunSpec
-    from diskf_mesh.scenario import simulate
+    from diskf_mesh.data.scenario import simulate
 
     scn = RunSpec().load(ticks)
     trace = simulate(scn, [0])
@@ -257,7 +257,7 @@ def _engine_run(ticks: int = 60):
 
 
 def _samples(scn, trace, est, k: int, live=None):
-    from diskf_mesh import wire
+    from diskf_mesh.mesh import wire
 
     ids = [a.id for a in scn.agents]
     live = tuple(ids if live is None else live)
@@ -273,7 +273,7 @@ def test_frames_show_the_engine_errors_whatever_the_order_of_arrival():
     """Reports may come before their tick or after the next one: every frame
     still holds every report of its tick, in tick order, and the running MAE
     is ``experiment``'s MAE(state) over the ticks shown."""
-    from diskf_mesh import metrics
+    from diskf_mesh.data import metrics
     from diskf_mesh.live.view import LiveView
 
     scn, trace, est = _engine_run()
@@ -313,7 +313,7 @@ def test_frames_show_the_engine_errors_whatever_the_order_of_arrival():
 
 def test_frame_links_are_those_of_the_tick_between_live_agents():
     from diskf_mesh.live.view import LiveView
-    from diskf_mesh.scenario import links_for
+    from diskf_mesh.data.scenario import links_for
 
     scn, trace, est = _engine_run(20)
     k, ids = 7, [a.id for a in scn.agents]

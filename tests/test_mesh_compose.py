@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from diskf_mesh import cli
+from diskf_mesh.cli import main as cli
 from diskf_mesh.mesh import credentials
 from sim import compose
 from sim.launcher import build_children

@@ -98,7 +98,7 @@ def test_key_expressions_and_key_space():
     assert not key_matches(k.msg_to(7), k.msg(3, to=[]))
     assert not key_matches(k.msg_to(7), k.msg(3))
     assert key_matches(k.msgs, k.msg(3)) and key_matches(k.msgs, k.msg(3, to=[7]))
-    from diskf_mesh.errors import InputError
+    from diskf_mesh.core.errors import InputError
     with pytest.raises(InputError):
         Keys("has/slash")
 

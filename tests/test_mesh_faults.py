@@ -15,14 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from diskf_mesh import engine, wire
-from diskf_mesh.counters import Counters
-from diskf_mesh.faults import FaultConfig, delivered_links
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.data.faults import FaultConfig, delivered_links
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.transport import ZenohTransport
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
-from diskf_mesh.scenario import simulate
+from diskf_mesh.data.scenario import simulate
 from sim.launcher import free_port
 
 from mesh_helpers import Progress, assert_same, reference, start_mesh, up

@@ -17,7 +17,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from diskf_mesh import cli
+from diskf_mesh.cli import main as cli
 from diskf_mesh.mesh.runspec import RunSpec, agent_command, world_command
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.launcher import Child, Launcher

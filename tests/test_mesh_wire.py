@@ -10,12 +10,12 @@ import msgpack
 import numpy as np
 import pytest
 
-from diskf_mesh import wire
+from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.transport import ZenohTransport
-from diskf_mesh.messages import Message
-from diskf_mesh.scenario import scenario_path, simulate
+from diskf_mesh.core.messages import Message
+from diskf_mesh.data.scenario import scenario_path, simulate
 
 from mesh_helpers import start_mesh
 
@@ -175,7 +175,7 @@ def test_report_counters_are_validated_against_the_run():
             with pytest.raises(wire.Rejected) as e:
                 wire.decode_report(report(counters), n=2, m=1, ticks=ticks)
             assert e.value.reason == reason, counters
-    from diskf_mesh.counters import Counters
+    from diskf_mesh.mesh.counters import Counters
     assert Counters(sent=2 ** 70, fused=3).to_dict(cap=bound)["sent"] == bound
 
 

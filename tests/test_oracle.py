@@ -8,9 +8,10 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from diskf_mesh import engine, oracle
-from diskf_mesh.model import Params
-from diskf_mesh.scenario import load_scenario, parse_scenario, simulate
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.engine import oracle
+from diskf_mesh.core.model import Params
+from diskf_mesh.data.scenario import load_scenario, parse_scenario, simulate
 
 TOL = 1e-9
 

@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 
-from diskf_mesh import engine
-from diskf_mesh.scenario import load_scenario, simulate
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.data.scenario import load_scenario, simulate
 
 from cli_helpers import run_cli
 

@@ -11,9 +11,9 @@ import sys
 import numpy as np
 import pytest
 
-from diskf_mesh import algorithms
-from diskf_mesh.counters import Counters
-from diskf_mesh.faults import FaultConfig, FaultModel
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.recording.reader import read
 
 from mesh_helpers import up
@@ -25,7 +25,7 @@ SEED = 5
 
 
 def cli(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "diskf_mesh.cli", *map(str, args)], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", *map(str, args)], capture_output=True,
                           text=True, timeout=120)
 
 

@@ -13,8 +13,8 @@ import time
 import numpy as np
 import pytest
 
-from diskf_mesh import wire
-from diskf_mesh.errors import InputError
+from diskf_mesh.mesh import wire
+from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.recording import reader
 from diskf_mesh.recording.replay import compare, replay
@@ -53,12 +53,12 @@ def test_killed_world_leaves_a_readable_recording(tmp_path):
     assert rec.reported.all()                  # every tick it holds is complete
     assert {d["tick"] for d in rec.delivered} == set(range(1, rec.ticks + 1))
     assert compare(rec, replay(rec)).equal     # and replays bit for bit
-    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", "inspect", str(path), "--json"],
+    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "inspect", str(path), "--json"],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     s = json.loads(done.stdout)
     assert (s["finished"], s["ticks"], s["planned_ticks"], s["status"]) == (False, rec.ticks, 400, "cut short")
-    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", "replay", str(path)], capture_output=True,
+    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "replay", str(path)], capture_output=True,
                           text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     # cut it further anywhere: never an error once the first tick is in, never a partial tick
@@ -135,7 +135,7 @@ def test_tick_verdicts():
     ["figures", "--from", "absent.mcap", "--out", "figs"],
 ])
 def test_bad_recording_input_is_one_line_and_status_2(tmp_path, argv):
-    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", *argv], capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", *argv], capture_output=True, text=True,
                           timeout=60, cwd=tmp_path)
     assert done.returncode == 2
     assert len(done.stderr.strip().splitlines()) == 1 and done.stderr.startswith("error: ")

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 
 from agents.rejoin import reinitialise
-from diskf_mesh import wire
+from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.estimator import AgentEstimator
-from diskf_mesh.scenario import load_scenario
+from diskf_mesh.data.scenario import load_scenario
 
 
 def report(sender, scale, x=(1.0, 2.0)):
@@ -43,7 +43,7 @@ def test_in_range_follows_the_scenario_geometry():
     """Who a rejoining agent re-initialises from is found from the
     scenario's motion alone: the same links as the simulation's."""
     from agents.rejoin import in_range
-    from diskf_mesh.scenario import simulate
+    from diskf_mesh.data.scenario import simulate
 
     scn = load_scenario("dynamic").with_overrides(steps=120)
     links = simulate(scn, [0]).links[0]

@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from cli_helpers import run_cli
-from diskf_mesh import algorithms, engine, metrics
-from diskf_mesh.model import Params
-from diskf_mesh.scenario import load_scenario, simulate
-from diskf_mesh.trace import load_trace, trace_from_json, trace_to_json
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.data import metrics
+from diskf_mesh.core.model import Params
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.data.trace import load_trace, trace_from_json, trace_to_json
 
 SEED, STEPS, TOPOLOGY = 7, 60, "ring"
 

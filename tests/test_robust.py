@@ -9,11 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from diskf_mesh import centralized, engine
-from diskf_mesh import equations as eq
+from diskf_mesh.engine import centralized
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.core import equations as eq
 from diskf_mesh.mesh.estimator import lockstep
-from diskf_mesh.model import Params, RobustOptions
-from diskf_mesh.scenario import load_scenario, simulate
+from diskf_mesh.core.model import Params, RobustOptions
+from diskf_mesh.data.scenario import load_scenario, simulate
 
 import robust_oracle
 

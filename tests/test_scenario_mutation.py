@@ -24,10 +24,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from diskf_mesh import algorithms
-from diskf_mesh.errors import InputError
-from diskf_mesh.experiment import format_table, run_experiment, settings_for
-from diskf_mesh.scenario import parse_scenario, shipped_scenarios
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.studies.experiment import format_table, run_experiment, settings_for
+from diskf_mesh.data.scenario import parse_scenario, shipped_scenarios
 
 SHIPPED = {name: tomllib.loads((resources.files("diskf_mesh") / "scenarios" / f"{name}.toml").read_text())
            for name in shipped_scenarios()}
@@ -240,7 +240,7 @@ def test_cli_on_mutated_scenarios(case, tmp_path):
     path.write_text(to_toml(doc))
     out = tmp_path / "r.json"
     env = dict(os.environ, PYTHONWARNINGS="ignore")
-    p = subprocess.run([sys.executable, "-m", "diskf_mesh.cli", "experiment", "--scenario", str(path), "--steps",
+    p = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "experiment", "--scenario", str(path), "--steps",
                         str(STEPS), "--seeds", "1", "--algorithms", "diskf", "--quiet", "--json", str(out)],
                        capture_output=True, text=True, env=env, timeout=120)
     if field is None:

@@ -32,8 +32,8 @@ import pytest
 from cryptography import x509
 from cryptography.hazmat.primitives.asymmetric import ec
 
-from diskf_mesh import cli
-from diskf_mesh.errors import InputError
+from diskf_mesh.cli import main as cli
+from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.transport import MeshError, ZenohTransport

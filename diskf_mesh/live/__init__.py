@@ -9,6 +9,8 @@ page is open the viewer has no zenoh session at all. What it shows:
 
 ``add_arguments`` and ``attach`` are the launcher's hook: ``up --live``
 starts the viewer as one more child of the run (stopped with the others).
+
+May import: every layer but cli.
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ import socket
 import subprocess
 import sys
 
-from ..errors import InputError
+from diskf_mesh.core.errors import InputError
 
 DEFAULT_PORT = 9090
 MODULE = "diskf_mesh.live.viewer"
@@ -51,14 +53,10 @@ def attach(args, launcher, spec, ticks: int, zenoh, logs):
     viewer's session options. Returns the child, or None without ``--live``."""
     if args.live is None:
         return None
-    from sim.launcher import Child  # the launcher calls this hook: no import cycle at load time
-
-    from .viewer import page_url
+    from diskf_mesh.live.viewer import page_url
 
     _check_port(args.live)
-    child = Child("live view", viewer_command(spec, ticks, args.seed, args.live, zenoh, logs / "live-status.json"),
-                  logs / "live.log")
-    launcher._spawn(child, subprocess.DEVNULL)
-    launcher.children.append(child)
+    child = launcher.add_child("live view", viewer_command(spec, ticks, args.seed, args.live, zenoh,
+                                                            logs / "live-status.json"), logs / "live.log")
     print(f"live view: {page_url(args.live)}", file=sys.stderr, flush=True)
     return child

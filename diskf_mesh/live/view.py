@@ -27,11 +27,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import metrics, wire
-from ..counters import Counters
-from ..engine import Estimates
-from ..scenario import Scenario, links_for
-from ..trace import Trace
+from diskf_mesh.data import metrics
+from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.engine.batch import Estimates
+from diskf_mesh.data.scenario import Scenario, links_for
+from diskf_mesh.data.trace import Trace
 
 CHI2_95_2D = 5.991464547107979  # 95 % quantile of the chi-square law with 2 degrees of freedom
 ELLIPSE_POINTS = 33             # closed polygon: the last point repeats the first

@@ -36,16 +36,18 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 
-from .. import wire
-from ..commands.options import positive_int, seed_value
-from ..mesh import credentials, runspec, zenoh_config
-from ..mesh.keys import Keys
-from ..mesh.log import Log
-from ..mesh.transport import MeshError, ZenohTransport
-from ..mesh.zenoh_config import ZenohOptions
-from ..scenario import simulate
-from . import DEFAULT_PORT
-from .view import LiveView, frame_doc, scene_doc
+from diskf_mesh.mesh import wire
+from diskf_mesh.data.argtypes import positive_int, seed_value
+from diskf_mesh.mesh import credentials
+from diskf_mesh.mesh import runspec
+from diskf_mesh.mesh import zenoh_config
+from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.log import Log
+from diskf_mesh.mesh.transport import MeshError, ZenohTransport
+from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.data.scenario import simulate
+from diskf_mesh.live import DEFAULT_PORT
+from diskf_mesh.live.view import LiveView, frame_doc, scene_doc
 
 HOST = "127.0.0.1"
 POLL_S = 0.2        # how often it looks whether anybody watches, and writes --status
@@ -250,6 +252,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    from diskf_mesh import cli
+    from diskf_mesh.cli import main as cli
 
     sys.exit(cli.run_one("live", __spec__.name))

@@ -1,6 +1,18 @@
-"""The Zenoh mesh: wire keys, zenoh settings, transport, and the glue that lets
-an agent process run the engine's estimator on a batch of one.
+"""mesh: what the agent and world processes are made of.
 
-The processes themselves live in ``sim.world`` (ground truth, lockstep),
+    keys, wire     the key space and the msgpack messages (one decode per message)
+    transport      Transport: zenoh sessions, and an in-process bus for tests
+    zenoh_config   session settings (TLS, access control, endpoints)
+    credentials    the per-run CA and certificates
+    guard          the fusion guard (a message's values before it may be fused)
+    receive        an agent's receive path: gate -> guard -> faults -> inbox
+    inbox, delayline, counters   where messages wait, late delivery, the counts
+    estimator      an agent's estimator: the engine's functions on a batch of one
+    runspec        one run's settings as command lines (launcher, compose)
+    log, profile   logging and per-phase timing
+
+The processes themselves are ``sim.world`` (ground truth, lockstep),
 ``agents.agent`` (one agent) and ``sim.launcher`` (``diskf-mesh up``).
+
+May import: core, estimators, data, engine.
 """

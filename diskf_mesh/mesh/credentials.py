@@ -54,8 +54,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import InputError
-from .keys import check_run_id
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.mesh.keys import check_run_id
 
 FORMAT = "diskf-credentials/1"
 WORLD = "world"

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import algorithms
-from ..messages import Message, Neighbourhood, Output
-from ..scenario import Scenario, links_for
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.core.messages import Message, Neighbourhood, Output
+from diskf_mesh.data.scenario import Scenario, links_for
 
 
 class AgentEstimator:

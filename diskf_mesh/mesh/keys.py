@@ -46,7 +46,7 @@ sub-chunk wildcard): zenoh then routes the message to those agents only,
 and an agent out of range never spends a wake-up on it. The address only
 saves work; every receiver still gates by range itself.
 
-Payload formats are in ``diskf_mesh.wire``. The id in a key must equal the id
+Payload formats are in ``diskf_mesh.mesh.wire``. The id in a key must equal the id
 in the payload; a receiver rejects a message whose key names another agent.
 """
 from __future__ import annotations
@@ -57,7 +57,7 @@ import secrets
 import time
 from dataclasses import dataclass
 
-from ..errors import InputError
+from diskf_mesh.core.errors import InputError
 
 PREFIX = "diskf"
 CACHED_KEY = 512  # longest key whose parse is remembered (4,096 of them at most)

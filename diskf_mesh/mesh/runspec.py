@@ -13,10 +13,10 @@ import argparse
 import sys
 from dataclasses import dataclass
 
-from ..commands.options import algorithm_name, positive_int, range_value
-from ..scenario import TOPOLOGIES, Scenario, load_scenario
-from .keys import check_run_id
-from .zenoh_config import ZenohOptions
+from diskf_mesh.data.argtypes import algorithm_name, positive_int, range_value
+from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, load_scenario
+from diskf_mesh.mesh.keys import check_run_id
+from diskf_mesh.mesh.zenoh_config import ZenohOptions
 
 DEFAULT_RUN_ID = "default"
 WORLD_MODULE = "sim.world"

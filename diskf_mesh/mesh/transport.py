@@ -10,7 +10,7 @@ Callbacks run on the transport's own threads (zenoh's network thread, one
 process does its per-message work right there, under its own lock, and wakes
 its main thread only for what that thread does (start-up, timeouts, the
 end). Link faults are not here: they act in each agent's receive path
-(``diskf_mesh.receive``), on the messages this layer delivered.
+(``diskf_mesh.mesh.receive``), on the messages this layer delivered.
 """
 from __future__ import annotations
 

@@ -28,8 +28,8 @@ import json
 import sys
 from dataclasses import dataclass, replace
 
-from ..errors import InputError
-from . import credentials as creds
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.mesh import credentials as creds
 
 MODES = ("peer", "client")
 

@@ -6,4 +6,6 @@
     reader     reading a recording back, whole or cut short
     replay     the engine on exactly what each agent fused; ``command``: ``replay RUN.mcap``
     summary    ``inspect RUN.mcap``;  figures: ``figures --from RUN.mcap``
+
+May import: core, estimators, data, engine, mesh, studies.
 """

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import sys
 
-from .. import metrics
-from ..errors import InputError
-from ..commands.options import json_safe, save_json
-from ..trace import estimates_to_json
-from .reader import read, take_ticks
-from .replay import compare, replay
+from diskf_mesh.data import metrics
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.outputs import json_safe, save_json
+from diskf_mesh.data.trace import estimates_to_json
+from diskf_mesh.recording.reader import read, take_ticks
+from diskf_mesh.recording.replay import compare, replay
 
 
 def replay_recording(path, out=None) -> int:

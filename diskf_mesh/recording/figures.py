@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .reader import Recording, take_ticks
-from .scene import AGENT_COLORS, agent_color
-from .summary import VERDICTS
+from diskf_mesh.recording.reader import Recording, take_ticks
+from diskf_mesh.recording.scene import AGENT_COLORS, agent_color
+from diskf_mesh.recording.summary import VERDICTS
 
 VERDICT_COLORS = {"fused": "tab:green", "lost": "tab:red", "late": "tab:orange", "rejected": "tab:purple",
                   "unreported": "0.6"}
@@ -40,7 +40,7 @@ def _agent_colors(N: int):
 
 
 def plot_trajectories(rec: Recording, path: Path) -> Path:
-    from ..figures import _figure, _save
+    from diskf_mesh.studies.figures import _figure, _save
 
     trace = take_ticks(rec.trace, rec.ticks)
     dims = list(trace.position_dims)[:2]
@@ -92,7 +92,7 @@ def verdicts_per_tick(rec: Recording) -> dict:
 
 
 def plot_links(rec: Recording, path: Path) -> Path:
-    from ..figures import _figure, _save
+    from diskf_mesh.studies.figures import _figure, _save
 
     t = np.arange(1, rec.ticks + 1)
     fig = _figure(9.0, 6.0, top=0.9, hspace=0.3)
@@ -127,7 +127,7 @@ def position_errors(rec: Recording) -> np.ndarray:
 
 
 def plot_error(rec: Recording, path: Path) -> Path:
-    from ..figures import _figure, _save
+    from diskf_mesh.studies.figures import _figure, _save
 
     t = np.arange(1, rec.ticks + 1)
     err = position_errors(rec)

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..model import Params
-from ..trace import Trace, estimator_from_json, trace_from_json
-from .writer import FORMAT, TRACE_ATTACHMENT
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.core.model import Params
+from diskf_mesh.data.trace import Trace, estimator_from_json, trace_from_json
+from diskf_mesh.recording.writer import FORMAT, TRACE_ATTACHMENT
 
 MAGIC = b"\x89MCAP0\r\n"
 _FOOTER = 0x02

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import engine
-from ..engine import Estimates
-from .reader import Recording, take_ticks
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.engine.batch import Estimates
+from diskf_mesh.recording.reader import Recording, take_ticks
 
 
 def replay(rec: Recording) -> Estimates:

@@ -67,7 +67,7 @@ CHANNELS = {
         "Estimate", "one agent's", required=("agent", "x", "P", "d_valid", "fused"), agent=_INT,
         x=_VEC, P=_MAT, d={"type": ["array", "null"], "items": _NUM}, d_valid={"type": "boolean"}, fused=_IDS,
         position_error={**_NUM, "description": "distance of the estimated position to the truth"})}),
-    "/agents/counters": _obj("Counters", "every agent's message counters after tick k (diskf_mesh.counters), flat",
+    "/agents/counters": _obj("Counters", "every agent's message counters after tick k (diskf_mesh.mesh.counters), flat",
                              **_TICK, counters={"type": "array", "items": _obj(
         "AgentCounters", "one agent's", agent=_INT, counters={"type": "object", "additionalProperties": _INT})}),
     "/run/result": _obj("Result", "the run's end: status, ticks closed, metrics (last)",

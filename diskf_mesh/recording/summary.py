@@ -5,9 +5,9 @@ from collections import Counter
 
 import numpy as np
 
-from .. import metrics
-from ..engine import Estimates
-from .reader import Recording, take_ticks
+from diskf_mesh.data import metrics
+from diskf_mesh.engine.batch import Estimates
+from diskf_mesh.recording.reader import Recording, take_ticks
 
 VERDICTS = ("fused", "lost", "late", "rejected", "unreported")
 

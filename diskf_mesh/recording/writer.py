@@ -45,12 +45,12 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from .. import __version__
-from ..commands.options import json_safe
-from ..faults import FaultConfig, FaultModel
-from ..trace import trace_to_json
-from . import scene
-from .schemas import CHANNELS, SCHEMA_PREFIX, schema_bytes
+from diskf_mesh import __version__
+from diskf_mesh.data.outputs import json_safe
+from diskf_mesh.data.faults import FaultConfig, FaultModel
+from diskf_mesh.data.trace import trace_to_json
+from diskf_mesh.recording import scene
+from diskf_mesh.recording.schemas import CHANNELS, SCHEMA_PREFIX, schema_bytes
 
 FORMAT = "diskf-recording/1"
 TICK_PERIOD_S = 0.1

@@ -1,0 +1,35 @@
+"""``diskf-mesh figures``: every figure of the report as PNG files.
+
+The scenarios (Scenario 2 with its links), 2-D trajectories of every
+estimator against the truth, input estimates per node, x and y against
+time, error against communication range, the range-120 / all-to-all bars,
+the observation-window variants and the isolated-sensor diagnosis.
+"""
+from __future__ import annotations
+
+from diskf_mesh.cli.study_options import add_study_command, out_dir
+
+
+def figures(cfg, out) -> str:
+    from diskf_mesh.studies.figures import make_figures  # matplotlib: only when drawing
+
+    return f"{len(make_figures(cfg, out))} figures -> {out}"
+
+
+def register(subparsers) -> None:
+    add_study_command(subparsers, "figures", "write every figure of the report (PNG)", __doc__,
+                      "folder for the PNG files (created)", figures)
+    p = subparsers.choices["figures"]
+    p.add_argument("--from", dest="recording", metavar="RUN.mcap",
+                   help="instead: the figures of one recorded run (trajectories, links, error over time)")
+    report = p.get_default("func")
+    p.set_defaults(func=lambda args: recording_figures(args) if args.recording else report(args))
+
+
+def recording_figures(args) -> int:
+    from diskf_mesh.recording.figures import make_recording_figures
+    from diskf_mesh.recording.reader import read
+
+    paths = make_recording_figures(read(args.recording), out_dir(args.out))
+    print(f"{len(paths)} figures of {args.recording} -> {args.out}")
+    return 0

@@ -1,0 +1,91 @@
+"""The ``diskf-mesh`` command line.
+
+Each subcommand lives in its own module under ``diskf_mesh.cli`` (or
+``sim``/``agents``) exposing ``register(subparsers)``, which adds a parser and
+sets ``func``. User errors raise ``InputError`` and end as one line
+``error: <field>: <message>`` with exit status 2, never a traceback; a
+warning of the library (e.g. a KCF step that may diverge) is one line
+``warning: <message>``.
+
+``--help`` loads every command module, so a module imports what only its
+action needs (matplotlib, tqdm, the studies) inside the action: ``--help``
+and the commands that draw nothing never load a plotting library.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+import warnings
+
+from diskf_mesh import __version__
+from diskf_mesh.core.errors import InputError
+
+COMMAND_MODULES = (
+    "diskf_mesh.cli.experiment",
+    "diskf_mesh.cli.replay",
+    "diskf_mesh.cli.inspect",
+    "diskf_mesh.cli.simulate",
+    "diskf_mesh.cli.figures",
+    "diskf_mesh.cli.report",
+    "diskf_mesh.cli.credentials",
+    "sim.world",
+    "agents.agent",
+    "sim.launcher",
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse's own usage errors: one line, status 2
+        self.exit(2, f"error: {message}\n")
+
+
+def build_parser(modules=COMMAND_MODULES) -> argparse.ArgumentParser:
+    parser = _Parser(prog="diskf-mesh", description="Decentralized input and state estimation (DISKF) on a Zenoh mesh")
+    parser.add_argument("--version", action="version", version=f"diskf-mesh {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    for mod in modules:
+        try:
+            m = importlib.import_module(mod)
+        except ModuleNotFoundError as e:
+            if e.name == mod:
+                continue  # subcommand not built yet
+            raise
+        m.register(sub)
+    return parser
+
+
+def _one_line(message, category, filename, lineno, line=None) -> str:
+    return f"warning: {message}\n"
+
+
+def main(argv=None, modules=COMMAND_MODULES) -> int:
+    """Run one command; ``modules`` limits the subcommands loaded (a mesh
+    process loads only its own, to start fast)."""
+    args = build_parser(modules).parse_args(argv)
+    try:
+        with warnings.catch_warnings():
+            warnings.formatwarning = _one_line  # restored on leaving the block
+            code = int(args.func(args) or 0)
+            sys.stdout.flush()  # a closed pipe shows here, not as a traceback at exit
+            return code
+    except BrokenPipeError:  # the reader went away (`... | head -1`): end quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def run_one(command: str, module: str, argv=None) -> int:
+    """``python -m <module>``: only the subcommand ``command`` that ``module``
+    registers, with the same error handling as ``diskf-mesh``."""
+    return main([command, *(sys.argv[1:] if argv is None else argv)], modules=(module,))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

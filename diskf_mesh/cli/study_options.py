@@ -1,0 +1,42 @@
+"""What ``figures`` and ``report`` share: options (output folder, seeds,
+horizon, quiet) and the command skeleton around one action."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.cli.options import add_command, check_output_dir, positive_int
+
+
+PLOTTING = ("matplotlib", "PIL")  # pyproject.toml's figures extra
+
+
+def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: str, action) -> None:
+    """A subcommand running ``action(config, out_dir) -> message``."""
+    p = add_command(subparsers, name, summary, doc)
+    p.add_argument("--out", required=True, metavar="DIR", help=out_help)
+    p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
+    p.add_argument("--steps", type=positive_int, metavar="K", help="horizon in ticks (default: the scenarios')")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=lambda args: _run(args, action))
+
+
+def _run(args: argparse.Namespace, action) -> int:
+    from diskf_mesh.studies.suite import StudyConfig  # here, not at the top: --help loads every command module
+
+    cfg = StudyConfig(seeds=args.seeds, steps=args.steps, quiet=args.quiet or not sys.stderr.isatty())
+    try:
+        print(action(cfg, out_dir(args.out)))
+    except ModuleNotFoundError as e:
+        if (e.name or "").split(".")[0] not in PLOTTING:
+            raise
+        raise InputError(args.command, f"needs {e.name}, which diskf-mesh installs only with its figures extra: "
+                                       "pip install 'diskf-mesh[figures]'") from None
+    return 0
+
+
+def out_dir(text: str) -> Path:
+    """The output folder, created; a path that cannot be one is bad input."""
+    return check_output_dir(text, "out")

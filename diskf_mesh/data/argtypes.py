@@ -1,0 +1,73 @@
+"""Command-line value types, shared by the commands and the mesh processes.
+
+Option values are checked by argparse ``type=`` callables, so a bad value
+ends as argparse's one line ``error: argument --X: ...`` with status 2
+before any work is done.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+
+from diskf_mesh import estimators
+
+
+def _integer(text: str, low: int, what: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = low - 1
+    if v < low:
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+    return v
+
+
+def positive_int(text: str) -> int:
+    return _integer(text, 1, "a positive integer")
+
+
+def seed_value(text: str) -> int:
+    return _integer(text, 0, "a non-negative integer")
+
+
+def _non_negative(text: str, finite: bool) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if math.isnan(v) or v < 0 or (finite and math.isinf(v)):
+        kind = "a finite non-negative number" if finite else "a non-negative number (or inf)"
+        raise argparse.ArgumentTypeError(f"must be {kind}, got {text!r}")
+    return v
+
+
+def range_value(text: str) -> float:
+    """Communication radius: >= 0, ``inf`` allowed."""
+    return _non_negative(text, finite=False)
+
+
+def eps_value(text: str) -> float:
+    """State compensation step: finite, >= 0."""
+    return _non_negative(text, finite=True)
+
+
+def window_value(text: str):
+    """Observation window in ticks (>= 0), or ``none`` for no window."""
+    if text.strip().lower() == "none":
+        return None
+    return _integer(text, 0, "a non-negative integer or 'none'")
+
+
+def algorithm_name(text: str) -> str:
+    try:
+        estimators.get(text.strip())
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text.strip()
+
+
+def algorithm_list(text: str) -> list[str]:
+    try:
+        return estimators.parse_list(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None

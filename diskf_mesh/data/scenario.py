@@ -1,0 +1,446 @@
+"""Scenarios: TOML files describing the world, and their simulation.
+
+A scenario is a TOML file (shipped ones live in ``diskf_mesh/scenarios``;
+users pass a path to their own). ``load_scenario`` parses and validates it
+into a ``Scenario``; ``simulate`` draws ground truth and measurements for a
+batch of seeds into a ``Trace`` (see ``diskf_mesh.data.trace``).
+
+Format (see ``scenarios/quadrants.toml`` for a commented example):
+
+    name, description, steps
+    [model]     dynamics = "rotation" (omega, rad/tick) | "matrix" (A)
+                G, Q, x0, P0, position_dims
+    [input]     kind = "step" (at, before, after) | "constant" (value)
+    [estimator] window, reset, eps, compensation, consensus_eps
+    [topology]  kind = "all" | "ring" | "none" | "range"; range
+    [[agents]]  id, H, R, sense = "quadrant" | "always" | "range" (sense_range)
+                position = [x, y]                     a static agent, or
+                path = [[x, y], ...], period = ticks  a closed piecewise-linear
+                                                      loop, start phase ``phase``
+    [generate]  kind = "random-geometric": agents are generated instead of
+                listed (agents, box, sense_range, layout_seed)
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.core.model import COMPENSATION_FORMS, LinearModel, Params, RobustOptions, Sensors
+from diskf_mesh.data.trace import Trace
+from diskf_mesh.data.validate import agent_id, check_keys, index_list, matrix, scalar, setting, spd, vector
+
+TOPOLOGIES = ("all", "ring", "none", "range")
+SENSE_KINDS = ("quadrant", "always", "range")
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    id: int
+    H: np.ndarray
+    R: np.ndarray
+    sense: str = "quadrant"
+    sense_range: float = np.inf
+    position: np.ndarray | None = None      # static
+    path: np.ndarray | None = None          # (W, 2) closed loop
+    period: float = 1.0
+    phase: float = 0.0
+
+    @property
+    def mobile(self) -> bool:
+        return self.path is not None
+
+    def position_at(self, ticks: np.ndarray) -> np.ndarray:
+        """Position (len(ticks), 2) at the given ticks."""
+        ticks = np.asarray(ticks, dtype=float)
+        if self.path is None:
+            return np.broadcast_to(self.position, ticks.shape + (2,)).copy()
+        pts = np.vstack([self.path, self.path[:1]])
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        s = ((ticks / self.period + self.phase) % 1.0) * cum[-1]
+        return np.stack([np.interp(s, cum, pts[:, 0]), np.interp(s, cum, pts[:, 1])], axis=-1)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    steps: int
+    A: np.ndarray            # (n, n) constant, or (K, n, n)
+    G: np.ndarray
+    Q: np.ndarray
+    x0: np.ndarray
+    P0: np.ndarray
+    position_dims: tuple
+    input_kind: str
+    input_at: int
+    input_before: np.ndarray
+    input_after: np.ndarray
+    params: Params
+    topology: str
+    comm_range: float
+    agents: tuple
+    faults: dict = field(default_factory=dict)
+
+    @property
+    def N(self) -> int:
+        return len(self.agents)
+
+    def sensors(self) -> Sensors:
+        return Sensors.from_list([a.id for a in self.agents], [a.H for a in self.agents], [a.R for a in self.agents])
+
+    def model(self, steps: int | None = None) -> LinearModel:
+        K = steps or self.steps
+        A = self.A if self.A.ndim == 3 else np.broadcast_to(self.A, (K,) + self.A.shape)
+        if A.shape[0] < K:
+            raise InputError("steps", f"the scenario's A sequence has {A.shape[0]} entries, {K} requested")
+        return LinearModel(np.ascontiguousarray(A[:K]), self.G, self.Q, self.x0, self.P0)
+
+    def inputs(self, steps: int) -> np.ndarray:
+        """d_k for k = 0..steps-1 (d[k] acts between tick k and k+1)."""
+        k = np.arange(steps)[:, None]
+        if self.input_kind == "constant":
+            return np.broadcast_to(self.input_after, (steps, len(self.input_after))).copy()
+        return np.where(k >= self.input_at, self.input_after, self.input_before)
+
+    def positions(self, steps: int) -> np.ndarray:
+        """Agent positions (steps, N, 2) at ticks 1..steps."""
+        ticks = np.arange(1, steps + 1)
+        return np.stack([a.position_at(ticks) for a in self.agents], axis=1)
+
+    def check_size(self, seeds: int = 1, steps: int | None = None) -> None:
+        """``InputError`` if simulating ``seeds`` seeds would need more than
+        ``MEMORY_BOUND`` bytes (``simulation_bytes``)."""
+        n, m = self.G.shape
+        moving = self.topology == "range" and any(a.mobile for a in self.agents)
+        check_size(self.N, steps or self.steps, n, max(a.H.shape[0] for a in self.agents), m, seeds, moving)
+
+    def with_overrides(self, topology=None, comm_range=None, steps=None, params=None) -> "Scenario":
+        out = self
+        if topology is not None:
+            if topology not in TOPOLOGIES:
+                raise InputError("topology", f"must be one of {', '.join(TOPOLOGIES)}, got {topology!r}")
+            out = replace(out, topology=topology)
+        if comm_range is not None:
+            comm_range = scalar(comm_range, "range", float, low=0.0, allow_inf=True)
+            out = replace(out, comm_range=comm_range, topology="range" if topology is None else out.topology)
+        if steps is not None:
+            out = replace(out, steps=scalar(steps, "steps", int, low=1))
+        if params is not None:
+            out = replace(out, params=params)
+        return out
+
+
+# --------------------------------------------------------------------------
+# loading
+# --------------------------------------------------------------------------
+def shipped_scenarios() -> list[str]:
+    root = resources.files("diskf_mesh") / "scenarios"
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def scenario_path(name_or_path: str) -> Path:
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise InputError("scenario", f"no such file: {name_or_path}")
+        return p
+    root = resources.files("diskf_mesh") / "scenarios" / f"{name_or_path}.toml"
+    if not root.is_file():
+        raise InputError("scenario", f"unknown scenario {name_or_path!r}; shipped: {', '.join(shipped_scenarios())}, or give a .toml path")
+    return Path(str(root))
+
+
+def load_scenario(name_or_path: str, agents: int | None = None) -> Scenario:
+    """Load and validate a scenario by shipped name or path.
+
+    ``agents`` overrides the agent count of a generated scenario."""
+    path = scenario_path(name_or_path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError("scenario", f"cannot read {path}: {e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError("scenario", f"{path} is not valid TOML: {e}") from None
+    return parse_scenario(raw, agents=agents)
+
+
+TOP_KEYS = ("name", "description", "steps", "model", "input", "estimator", "topology", "agents", "generate", "faults")
+MODEL_KEYS = {"rotation": ("dynamics", "omega", "G", "Q", "x0", "P0", "position_dims"),
+              "matrix": ("dynamics", "A", "G", "Q", "x0", "P0", "position_dims")}
+INPUT_KEYS = ("kind", "at", "before", "after", "value")
+TOPOLOGY_KEYS = ("kind", "range")
+AGENT_KEYS = ("id", "H", "R", "sense", "sense_range", "position", "path", "period", "phase")
+GENERATE_KEYS = ("kind", "agents", "box", "sense_range", "R", "layout_seed")
+# estimator settings with more than a type to check; every other Params
+# field is read by the type of its default
+ESTIMATOR_CHECKS = {"eps": {"low": 0.0}, "consensus_eps": {"low": 0.0},
+                    "compensation": {"choices": COMPENSATION_FORMS}}
+
+
+def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
+    """A ``Scenario`` from a parsed TOML document; every field is typed and
+    range-checked (``validate.setting``), unknown keys are errors."""
+    check_keys(raw, TOP_KEYS, "")
+    steps = setting(raw, "steps", "", int, 200, low=1)
+    mdl = raw.get("model", {})
+    dyn = setting(check_keys(mdl, MODEL_KEYS["matrix"] + ("omega",), "model"), "dynamics", "model", str, "matrix",
+                  choices=tuple(MODEL_KEYS))
+    for key in set(mdl) - set(MODEL_KEYS[dyn]):
+        raise InputError(f"model.{key}", f"is not used with dynamics = {dyn!r}")
+    G = matrix(mdl.get("G"), "model.G")
+    n, m = G.shape
+    if n == 0 or m == 0:
+        raise InputError("model.G", f"must be n x m with n, m >= 1, got {n}x{m}")
+    if dyn == "rotation":
+        if n != 2:
+            raise InputError("model.dynamics", "rotation needs a 2-dimensional state")
+        w = setting(mdl, "omega", "model", float, 0.0)
+        A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    else:
+        A = matrix(mdl.get("A"), "model.A", (n, n))
+    Q = spd(matrix(mdl.get("Q"), "model.Q", (n, n)), "model.Q")
+    P0 = spd(matrix(mdl.get("P0"), "model.P0", (n, n)), "model.P0")
+    x0 = vector(mdl.get("x0"), "model.x0", n)
+    # the target's position is compared with the agents' 2-D positions
+    pos_dims = index_list(mdl.get("position_dims", list(range(min(n, 2)))), "model.position_dims", n, max_len=2)
+
+    inp = check_keys(raw.get("input", {}), INPUT_KEYS, "input")
+    kind = setting(inp, "kind", "input", str, "step", choices=("step", "constant"))
+    before = vector(inp.get("before", [0.0] * m), "input.before", m)
+    after = vector(inp.get("after", inp.get("value", [0.0] * m)), "input.after", m)
+    input_at = setting(inp, "at", "input", int, 0, low=0)
+
+    params = _parse_estimator(raw.get("estimator", {}))
+
+    topo = check_keys(raw.get("topology", {}), TOPOLOGY_KEYS, "topology")
+    topology = setting(topo, "kind", "topology", str, "all", choices=TOPOLOGIES)
+    comm_range = setting(topo, "range", "topology", float, np.inf, low=0.0, allow_inf=True)
+
+    gen = raw.get("generate")
+    if gen is not None:
+        if "agents" in raw:
+            raise InputError("agents", "give either [[agents]] or [generate], not both")
+        specs = _generate_agents(gen, n, agents, steps)
+    else:
+        if agents is not None:
+            raise InputError("agents", "--agents applies only to generated scenarios (random-geometric)")
+        listed = raw.get("agents", [])
+        if not isinstance(listed, list):
+            raise InputError("agents", "must be a list of tables ([[agents]])")
+        specs = tuple(_parse_agent(a, i, n) for i, a in enumerate(listed))
+    if not specs:
+        raise InputError("agents", "a scenario needs at least one agent")
+    ids = [a.id for a in specs]
+    if len(set(ids)) != len(ids):
+        raise InputError("agents.id", "agent ids must be unique")
+
+    faults = check_keys(raw.get("faults", {}), [f.name for f in fields(FaultConfig)], "faults")
+    FaultConfig.from_mapping(faults)
+    return Scenario(
+        name=setting(raw, "name", "", str, "custom"),
+        description=setting(raw, "description", "", str, ""),
+        steps=steps, A=A, G=G, Q=Q, x0=x0, P0=P0, position_dims=pos_dims,
+        input_kind=kind, input_at=input_at, input_before=before, input_after=after,
+        params=params, topology=topology, comm_range=comm_range,
+        agents=specs, faults=dict(faults),
+    )
+
+
+def _parse_estimator(est) -> Params:
+    """``Params`` from an ``[estimator]`` table: its keys are Params' fields,
+    each of the type of its default; ``window = "none"`` means no window."""
+    defaults = {f.name: f.default for f in fields(Params)}
+    check_keys(est, defaults, "estimator")
+    given = {}
+    for key, value in est.items():
+        if key == "window" and value in ("none", -1):
+            given[key] = None
+            continue
+        if key == "robust":  # [estimator.robust]: diskf-r's switches, each a boolean
+            switches = {f.name: f.default for f in fields(RobustOptions)}
+            if not isinstance(value, dict):
+                raise InputError("estimator.robust", "must be a table of switches")
+            check_keys(value, switches, "estimator.robust")
+            given[key] = RobustOptions(**{k: scalar(v, f"estimator.robust.{k}", bool) for k, v in value.items()})
+            continue
+        kind = {"window": int}.get(key, type(defaults[key]))
+        if kind not in (bool, int, float, str):
+            given[key] = value  # a field without a typed default: Params checks it
+            continue
+        checks = ESTIMATOR_CHECKS.get(key, {"low": 0} if kind in (int, float) else {})
+        given[key] = scalar(value, f"estimator.{key}", kind, **checks)
+    try:
+        return Params(**given)
+    except ValueError as e:
+        raise InputError("estimator", str(e)) from None
+
+
+def _parse_agent(a, i: int, n: int) -> AgentSpec:
+    where = f"agents[{i}]"
+    check_keys(a, AGENT_KEYS, where)
+    H = matrix(a.get("H"), f"{where}.H")
+    if H.shape[0] == 0 or H.shape[1] != n:
+        raise InputError(f"{where}.H", f"must have at least one row and {n} columns (the state dimension), "
+                                       f"got {H.shape[0]}x{H.shape[1]}")
+    R = spd(matrix(a.get("R"), f"{where}.R", (H.shape[0], H.shape[0])), f"{where}.R")
+    sense = setting(a, "sense", where, str, "quadrant", choices=SENSE_KINDS)
+    path = a.get("path")
+    if path is not None and "position" in a:
+        raise InputError(f"{where}.position", "give either position (static) or path (mobile), not both")
+    if path is None and ("period" in a or "phase" in a):
+        raise InputError(f"{where}.{'period' if 'period' in a else 'phase'}", "applies only to a mobile agent (path)")
+    return AgentSpec(
+        id=agent_id(a.get("id", i + 1), f"{where}.id"), H=H, R=R, sense=sense,
+        sense_range=setting(a, "sense_range", where, float, np.inf, low=0.0, allow_inf=True),
+        position=None if path is not None else vector(a.get("position", [0.0, 0.0]), f"{where}.position", 2),
+        path=None if path is None else matrix(path, f"{where}.path", (None, 2)),
+        period=setting(a, "period", where, float, 1.0, above=0.0),
+        phase=setting(a, "phase", where, float, 0.0),
+    )
+
+
+MEMORY_BOUND = 2 * 2**30  # bytes a simulation (and its estimates) may ask for; above it is refused
+
+
+def simulation_bytes(N: int, K: int, n: int, p: int, m: int, seeds: int = 1, moving_links: bool = False) -> int:
+    """About how many bytes ``simulate`` and an engine run of its trace hold:
+    per seed, agent and tick the noise, measurements and estimates (x, P, d,
+    S); the links, (N, N) once for static agents or per tick for moving ones,
+    and the (N, N) temporaries that form and use them (measured: an engine
+    run of 4,000 random-geometric agents peaks about 33 bytes per agent pair
+    above the interpreter's own)."""
+    per_agent_tick = 8 * (3 * p + 3 * n + 2 * n * n + 2 * m + 2 * m * m) + 2
+    links = N * N * ((K if moving_links else 1) + 48)
+    return seeds * K * N * per_agent_tick + K * N * 16 + links
+
+
+def check_size(N: int, K: int, n: int, p: int, m: int, seeds: int = 1, moving_links: bool = False) -> None:
+    """``InputError`` when ``simulation_bytes`` is over ``MEMORY_BOUND``."""
+    need = simulation_bytes(N, K, n, p, m, seeds, moving_links)
+    if need > MEMORY_BOUND:
+        raise InputError("size", f"{N} agents x {K} ticks x {seeds} seeds need about {need / 2**30:.1f} GiB, "
+                                 f"over the bound of {MEMORY_BOUND / 2**30:g} GiB; use fewer agents, ticks or seeds")
+
+
+def _generate_agents(gen, n: int, agents: int | None, steps: int) -> tuple:
+    check_keys(gen, GENERATE_KEYS, "generate")
+    setting(gen, "kind", "generate", str, choices=("random-geometric",))
+    if n < 2:
+        raise InputError("generate", "generated agents see x, y or both: the state needs at least 2 dimensions")
+    N = scalar(agents, "agents", int, low=1) if agents is not None else setting(gen, "agents", "generate", int, 100,
+                                                                               low=1)
+    check_size(N, steps, n, 2, 1)  # before drawing N positions (m is not known here; 1 is the shipped one)
+    box = setting(gen, "box", "generate", float, 300.0, above=0.0)
+    r = setting(gen, "R", "generate", float, 2.0, above=0.0)
+    sense_range = setting(gen, "sense_range", "generate", float, 150.0, low=0.0, allow_inf=True)
+    rng = np.random.default_rng(setting(gen, "layout_seed", "generate", int, 0, low=0))
+    pos = rng.uniform(-box, box, size=(N, 2))
+    kinds = [np.eye(n)[[0]], np.eye(n)[[1]], np.eye(n)[:2]]  # sees x, sees y, sees both
+    out = []
+    for i in range(N):
+        H = kinds[i % 3]
+        out.append(AgentSpec(id=i + 1, H=H, R=r * np.eye(H.shape[0]), sense="range",
+                             sense_range=sense_range, position=pos[i]))
+    return tuple(out)
+
+
+# --------------------------------------------------------------------------
+# simulation
+# --------------------------------------------------------------------------
+def static_links(kind: str, N: int) -> np.ndarray:
+    """(N, N) bool adjacency of a fixed topology, diagonal True."""
+    eye = np.eye(N, dtype=bool)
+    if kind == "all":
+        return np.ones((N, N), dtype=bool)
+    if kind == "none":
+        return eye
+    if kind == "ring":
+        i = np.arange(N)
+        L = eye.copy()
+        L[i, (i + 1) % N] = True
+        L[i, (i - 1) % N] = True
+        return L
+    raise InputError("topology", f"no static adjacency for {kind!r}")
+
+
+def range_links(positions: np.ndarray, comm_range: float) -> np.ndarray:
+    """(..., N, N) bool: agents within ``comm_range`` of each other (inclusive),
+    diagonal True. Symmetric by construction."""
+    diff = positions[..., :, None, :] - positions[..., None, :, :]
+    return np.einsum("...k,...k->...", diff, diff) <= comm_range * comm_range
+
+
+def sensing(scn: Scenario, target: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(B, K, N) bool: which agent measures the target at which tick.
+
+    target: (B, K, 2) target position; positions: (K, N, 2)."""
+    t = target[:, :, None, :]
+    p = positions[None]
+    out = np.zeros(t.shape[:2] + (scn.N,), dtype=bool)
+    for i, a in enumerate(scn.agents):
+        if a.sense == "always":
+            out[:, :, i] = True
+        elif a.sense == "quadrant":
+            out[:, :, i] = np.all(np.sign(t[:, :, 0]) == np.sign(p[:, :, i]), axis=-1)
+        else:
+            out[:, :, i] = np.linalg.norm(t[:, :, 0] - p[:, :, i], axis=-1) <= a.sense_range
+    return out
+
+
+def links_for(scn: Scenario, positions: np.ndarray) -> np.ndarray:
+    """(K, N, N) bool links at every tick.
+
+    Range links are formed one tick at a time (never a (K, N, N, 2) array of
+    differences), and once only when no agent moves: a read-only broadcast
+    then stands for all K ticks, so 1,000 static agents cost one N x N."""
+    K = positions.shape[0]
+    if scn.topology == "range":
+        if not any(a.mobile for a in scn.agents):
+            return np.broadcast_to(range_links(positions[0], scn.comm_range), (K, scn.N, scn.N))
+        return np.stack([range_links(p, scn.comm_range) for p in positions])
+    return np.broadcast_to(static_links(scn.topology, scn.N), (K, scn.N, scn.N))
+
+
+def simulate(scn: Scenario, seeds, steps: int | None = None) -> Trace:
+    """Ground truth, measurements and links for every seed: a ``Trace`` with
+    a leading seed axis. Seed s draws its process and measurement noise from
+    ``numpy.random.default_rng(s)``."""
+    K = int(steps or scn.steps)
+    scn.check_size(len(seeds) if isinstance(seeds, (list, tuple, range)) else int(np.size(seeds)), K)
+    seeds = tuple(int(s) for s in np.atleast_1d(seeds))
+    model = scn.model(K)
+    sensors = scn.sensors()
+    n, m, N, pmax = model.n, model.m, sensors.N, sensors.H.shape[1]
+    B = len(seeds)
+    Lq = np.linalg.cholesky(model.Q)
+    Lr = np.linalg.cholesky(sensors.R)  # (N, p, p)
+    W = np.empty((B, K, n))
+    V = np.empty((B, K, N, pmax))
+    for b, s in enumerate(seeds):
+        rng = np.random.default_rng(s)
+        W[b] = rng.standard_normal((K, n)) @ Lq.T
+        V[b] = np.einsum("iab,kib->kia", Lr, rng.standard_normal((K, N, pmax)))
+    d = scn.inputs(K)
+    x = np.empty((B, K, n))
+    prev = np.broadcast_to(model.x0, (B, n))
+    for k in range(1, K + 1):
+        prev = prev @ model.A_at(k).T + d[k - 1] @ model.G.T + W[:, k - 1]
+        x[:, k - 1] = prev
+    positions = scn.positions(K)
+    has = sensing(scn, x[..., list(scn.position_dims)], positions)
+    y = np.einsum("ipn,bkn->bkip", sensors.H, x) + V
+    valid_rows = np.arange(pmax)[None, :] < sensors.p[:, None]  # (N, p)
+    y = np.where(valid_rows & has[..., None], y, 0.0)
+    links = links_for(scn, positions)[None]
+    return Trace(
+        model=model, sensors=sensors, y=y, has=has, links=links,
+        truth_x=x, truth_d=np.broadcast_to(d, (B, K, m)).copy(),
+        positions=positions, seeds=seeds, position_dims=scn.position_dims,
+    )

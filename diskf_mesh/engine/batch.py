@@ -1,0 +1,266 @@
+"""The in-process engine: every agent of every seed at once, one tick at a time.
+
+Per tick it calls the algorithm's ``local`` on the whole (seeds x agents)
+batch, lets every agent "hear" the messages allowed by the links, and calls
+``fuse``. There is no Python loop over agents or seeds; the agent process
+(``agents/``) calls the very same two functions on a batch of one.
+
+Two ways to hand the messages to ``fuse``, the same numbers to round-off
+(``tests/test_linalg_fast.py``):
+
+dense    one (B, N, N) adjacency over all agents as senders. Best for small
+         or densely linked networks (the paper's four agents).
+gather   every receiver is a batch of one (as in an agent process) with its
+         own padded list of D senders, D the largest neighbourhood: the work
+         is O(N D) instead of O(N^2), for large sparse networks (a random
+         geometric graph of 1,000 agents). Senders are listed in id order, so
+         each receiver sums its neighbours in the same order as ``dense``;
+         padding slots carry weight 0. Receivers with the same neighbours
+         still get bit-identical sums. What a sender contributes (e.g. its
+         P^-1) is recomputed in each of its receivers' slots: D times the
+         per-sender work, still far below the dense O(N^2).
+
+``run_many`` stacks several traces of one scenario (e.g. the three
+topologies of Table II) into one batch, so the per-tick Python overhead is
+paid once for all of them.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.estimators.consensus_baselines import consensus_step_problem
+from diskf_mesh.core.messages import Message, Neighbourhood, Output
+from diskf_mesh.core.model import Params
+from diskf_mesh.data.trace import Trace
+
+NEIGHBOURS = ("auto", "dense", "gather")
+
+
+@dataclass(frozen=True)
+class Estimates:
+    """Per tick and agent: fused state and covariance, fused input and
+    whether it exists. Shapes (B, K, N, ...)."""
+
+    x: np.ndarray
+    P: np.ndarray
+    d: np.ndarray
+    d_valid: np.ndarray
+
+    def take(self, index) -> "Estimates":
+        """Select seeds (the leading axis)."""
+        return Estimates(self.x[index], self.P[index], self.d[index], self.d_valid[index])
+
+
+def gossip_stream(trace: Trace) -> np.ndarray:
+    """(B, K, N) uniform draws, the per-agent streams of ``gossip_draws``."""
+    K = trace.y.shape[1]
+    return np.stack([algorithms.gossip_draws(s, trace.sensors.ids, K).T for s in trace.seeds])
+
+
+# --------------------------------------------------------------------------
+# who hears whom at one tick
+# --------------------------------------------------------------------------
+class DenseLinks:
+    """All N agents as senders of every receiver, weighted by the links."""
+
+    def __init__(self, links: np.ndarray, B: int):
+        N = links.shape[-1]
+        self.adj = np.broadcast_to(links, (B, N, N)).astype(float)
+        self.self_mask = np.broadcast_to(np.eye(N, dtype=bool), (B, N, N))
+        self.nb = Neighbourhood(self.adj, self.self_mask)  # one per link change: caches what it derives
+
+    def fuse(self, alg, state, msg: Message, gossip_u):
+        nb = self.nb if gossip_u is None else Neighbourhood(self.adj, self.self_mask, gossip_u)
+        return alg.fuse(state, msg, msg, nb)
+
+
+class GatheredLinks:
+    """Each receiver a batch of one with its D senders gathered in id order."""
+
+    def __init__(self, links: np.ndarray, B: int):
+        N = links.shape[-1]
+        D = int(links.sum(axis=-1).max())
+        idx = np.argsort(~links, axis=-1, kind="stable")[..., :D]      # (b, N, D), neighbours first, in id order
+        linked = np.take_along_axis(links, idx, axis=-1)
+        self.flat = (np.arange(B)[:, None, None] * N + idx).reshape(-1)  # into (B*N) rows
+        self.shape = (B, N, D)
+        self.adj = np.broadcast_to(linked[..., None, :].astype(float), (B, N, 1, D))
+        is_self = linked & (idx == np.arange(N)[:, None])
+        self.self_mask = np.broadcast_to(is_self[..., None, :], (B, N, 1, D))
+        self.nb = Neighbourhood(self.adj, self.self_mask)
+
+    def gather(self, a: np.ndarray) -> np.ndarray:
+        """(B, N, ...) per sender -> (B, N, D, ...) per receiver and slot."""
+        rows = a.reshape((-1,) + a.shape[2:])
+        return np.take(rows, self.flat, axis=0).reshape(self.shape + a.shape[2:])
+
+    def fuse(self, alg, state, msg: Message, gossip_u):
+        own = Message(**{f.name: getattr(msg, f.name)[:, :, None] for f in fields(Message)})
+        senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
+        nb = self.nb if gossip_u is None else Neighbourhood(self.adj, self.self_mask, gossip_u[:, :, None])
+        st, out = alg.fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders, nb)
+        squeeze = lambda a: a[:, :, 0]  # noqa: E731
+        return per_receiver(st, squeeze), Output(squeeze(out.x), squeeze(out.P), squeeze(out.d), squeeze(out.d_valid))
+
+
+def per_receiver(state, fn):
+    """``state`` with ``fn`` applied to every array field (whatever fields the
+    algorithm's state carries), e.g. to add or drop the receiver-batch axis."""
+    return replace(state, **{f.name: fn(v) for f in fields(state)
+                             if isinstance(v := getattr(state, f.name), np.ndarray)})
+
+
+def choose_links(links: np.ndarray, B: int, mode: str = "auto"):
+    """The neighbour representation for one tick's links ``(1 or B, N, N)``.
+
+    ``auto`` gathers when the network is large and sparse (N >= 32 and no
+    neighbourhood holds more than half of the agents)."""
+    if mode not in NEIGHBOURS:
+        raise ValueError(f"neighbours: must be one of {', '.join(NEIGHBOURS)}, got {mode!r}")
+    N = links.shape[-1]
+    if mode == "auto":
+        mode = "gather" if N >= 32 and 2 * int(links.sum(axis=-1).max()) <= N else "dense"
+    return GatheredLinks(links, B) if mode == "gather" else DenseLinks(links, B)
+
+
+# --------------------------------------------------------------------------
+# running
+# --------------------------------------------------------------------------
+def run(trace: Trace, algorithm: str, params: Params | None = None, progress=None,
+        neighbours: str = "auto") -> Estimates:
+    """Run one algorithm on every seed of ``trace``.
+
+    ``progress``, if given, is called with the number of ticks done (counted
+    over all seed chunks when a large run is split, see ``seeds_per_chunk``).
+    ``neighbours`` picks the message layout (see the module docstring);
+    all give the same estimates."""
+    if algorithm == "kcf":
+        problem = consensus_step_problem((params or Params()).consensus_eps, trace.links)
+        if problem:
+            warnings.warn(problem, RuntimeWarning, stacklevel=2)
+    B = trace.has.shape[0]
+    chunk = seeds_per_chunk(trace)
+    if chunk >= B:
+        return run_batch(trace, algorithm, params, progress, neighbours)
+    K = trace.has.shape[1]
+    parts = []
+    for c, start in enumerate(range(0, B, chunk)):
+        report = None if progress is None else (lambda k, done=c * K: progress(done + k))
+        parts.append(run_batch(take_seeds(trace, slice(start, start + chunk)), algorithm, params, report, neighbours))
+    return Estimates(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Estimates)))
+
+
+def run_batch(trace: Trace, algorithm: str, params: Params | None = None, progress=None,
+              neighbours: str = "auto") -> Estimates:
+    """``run`` on all seeds of ``trace`` as one batch."""
+    alg = algorithms.get(algorithm)(trace.model, trace.sensors, params)
+    B, K, N = trace.has.shape
+    n, m = trace.model.n, trace.model.m
+    state = alg.init((B, N))
+    gossip = gossip_stream(trace) if algorithm == "gdkf" else None
+    # tick-major buffers: each tick writes one contiguous block
+    xs = np.empty((K, B, N, n))
+    Ps = np.empty((K, B, N, n, n))
+    ds = np.empty((K, B, N, m))
+    dv = np.empty((K, B, N), dtype=bool)
+    y, has = np.moveaxis(trace.y, 1, 0), np.moveaxis(trace.has, 1, 0)
+    changed = link_changes(trace.links)
+    view = None
+    for k in range(1, K + 1):
+        state, msg = alg.local(state, k, y[k - 1], has[k - 1])
+        if changed[k - 1]:
+            view = choose_links(trace.links[:, k - 1], B, neighbours)
+        state, out = view.fuse(alg, state, msg, None if gossip is None else gossip[:, k - 1])
+        xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
+        if progress is not None:
+            progress(k)
+    return Estimates(*(np.moveaxis(a, 0, 1) for a in (xs, Ps, ds, dv)))
+
+
+TICK_BYTES_MAX = 1 << 28  # working set one tick of a batch may take (256 MiB)
+TICK_BYTES_PER_SLOT = 12 * 8  # ~12 live float arrays of (receiver, sender slot, n, n)
+
+
+def seeds_per_chunk(trace: Trace) -> int:
+    """How many seeds run together so that one tick's working set, about
+    ``TICK_BYTES_PER_SLOT`` n^2 bytes per (seed, receiver, sender slot), stays
+    under ``TICK_BYTES_MAX``: all of them unless the network is large (1,000
+    agents and 20 seeds would take ~700 MB in one batch)."""
+    B, K, N = trace.has.shape
+    per_slot = TICK_BYTES_PER_SLOT * trace.model.n ** 2
+    if B * N * N * per_slot <= TICK_BYTES_MAX:  # even all-to-all fits
+        return B
+    links = trace.links[:, link_changes(trace.links)]
+    slots = N * int(links.sum(axis=-1).max())
+    return int(np.clip(TICK_BYTES_MAX // (slots * per_slot), 1, B))
+
+
+def take_seeds(trace: Trace, index) -> Trace:
+    """The trace restricted to some seeds (the leading axis)."""
+    pick = lambda a: None if a is None else a[index]  # noqa: E731
+    links = trace.links if trace.links.shape[0] == 1 else trace.links[index]
+    return replace(trace, y=trace.y[index], has=trace.has[index], links=links, truth_x=pick(trace.truth_x),
+                   truth_d=pick(trace.truth_d), seeds=tuple(np.asarray(trace.seeds)[index].tolist()))
+
+
+def link_changes(links: np.ndarray) -> np.ndarray:
+    """(K,) bool: the links of tick k differ from those of tick k-1 (True at k=1)."""
+    K = links.shape[1]
+    if links.strides[1] == 0:  # one matrix broadcast over the ticks (a static network)
+        return np.arange(K) == 0
+    out = np.ones(K, dtype=bool)
+    out[1:] = (links[:, 1:] != links[:, :-1]).any(axis=(0, 2, 3))
+    return out
+
+
+STACK_LINKS_MAX = 1 << 26  # bytes of per-seed links a stacked batch may hold
+
+
+def stackable(traces) -> bool:
+    """Whether traces share model, sensors and horizon (only seeds, noise and
+    links differ), so that ``run_many`` can batch them, and are small enough
+    that the stacked per-seed links stay under ``STACK_LINKS_MAX`` (large
+    networks gain nothing from stacking: their ticks are not overhead-bound)."""
+    first = traces[0]
+    B, (K, N) = sum(t.has.shape[0] for t in traces), first.has.shape[1:]
+    if B * K * N * N > STACK_LINKS_MAX:
+        return False
+    for t in traces[1:]:
+        if t.has.shape[1:] != first.has.shape[1:] or t.sensors.ids != first.sensors.ids:
+            return False
+        pairs = [(getattr(t.model, f), getattr(first.model, f)) for f in ("A", "G", "Q", "x0", "P0")]
+        pairs += [(t.sensors.H, first.sensors.H), (t.sensors.R, first.sensors.R)]
+        if not all(a.shape == b.shape and np.array_equal(a, b) for a, b in pairs):
+            return False
+    return True
+
+
+def stack(traces) -> Trace:
+    """One trace whose seed axis is the concatenation of the traces' seeds."""
+    first = traces[0]
+    K, N = first.has.shape[1:]
+    cat = lambda f: np.concatenate([getattr(t, f) for t in traces])  # noqa: E731
+    links = np.concatenate([np.broadcast_to(t.links, (t.has.shape[0], K, N, N)) for t in traces])
+    has_truth = all(t.truth_x is not None for t in traces)
+    return replace(
+        first, y=cat("y"), has=cat("has"), links=links,
+        truth_x=cat("truth_x") if has_truth else None,
+        truth_d=cat("truth_d") if has_truth else None,
+        seeds=tuple(s for t in traces for s in t.seeds),
+    )
+
+
+def run_many(traces, algorithm: str, params: Params | None = None, progress=None) -> list[Estimates]:
+    """``run`` on each trace, batched into one run when they are ``stackable``.
+
+    Returns one ``Estimates`` per trace, equal to running each alone."""
+    traces = list(traces)
+    if len(traces) == 1 or not stackable(traces):
+        return [run(t, algorithm, params, progress) for t in traces]
+    est = run(stack(traces), algorithm, params, progress)
+    bounds = np.cumsum([0] + [t.has.shape[0] for t in traces])
+    return [est.take(slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]

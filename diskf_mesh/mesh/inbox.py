@@ -1,0 +1,90 @@
+"""An agent's inbox: neighbours' messages that arrived, held until their tick is fused.
+
+The estimator fuses only what arrived in time for its tick:
+
+    ``offer(sender, tick, message)``  a copy that arrived: the first copy of
+                                      (sender, tick) is held; a later one is a
+                                      duplicate (fused at most once); one for
+                                      a tick already fused is late
+    ``take(tick, linked)``            the messages of ``tick`` from the senders
+                                      in ``linked``, sorted by sender id (so
+                                      fusion sums in a fixed order); every
+                                      other one held for ``tick`` is unlinked,
+                                      and ``tick`` is closed: anything for it
+                                      or an earlier tick that comes later is
+                                      late
+    ``close()``                       the run is over: whatever is still held
+                                      never made it into fusion, late
+
+Bounded: a (sender, tick) is remembered (to tell a duplicate) only for
+``keep`` ticks behind the last tick taken; the receiver's guard refuses
+anything older before it gets here.
+
+Counts go to a ``Counters`` (arrived, duplicate, fused, late, unlinked).
+Thread-safe: a transport may offer from its own threads.
+"""
+from __future__ import annotations
+
+import threading
+
+from diskf_mesh.mesh.counters import Counters
+
+
+class Inbox:
+    def __init__(self, counters: Counters | None = None, keep: int | None = None):
+        self.counters = counters if counters is not None else Counters()
+        self.keep = keep             # ticks behind the last taken whose arrivals are remembered (None: all)
+        self._seen: dict = {}        # tick -> senders arrived so far
+        self._held: dict = {}        # tick -> {sender: message}
+        self._closed_through = 0     # ticks <= this were fused
+        self._closed = False         # the run is over: everything is late
+        self._lock = threading.Lock()
+
+    def offer(self, sender: int, tick: int, message) -> str:
+        """Returns what happened: "held", "duplicate" or "late"."""
+        with self._lock:
+            c = self.counters
+            c.arrived += 1
+            seen = self._seen.setdefault(tick, set())
+            if sender in seen:
+                c.duplicate += 1
+                return "duplicate"
+            seen.add(sender)
+            if self._closed or tick <= self._closed_through:
+                c.late += 1
+                return "late"
+            self._held.setdefault(tick, {})[sender] = message
+            return "held"
+
+    def take(self, tick: int, linked) -> list:
+        """[(sender, message)] of ``tick`` from ``linked`` senders, by sender id."""
+        with self._lock:
+            c = self.counters
+            for t in [t for t in self._held if t < tick]:  # skipped ticks: never fused
+                c.late += len(self._held.pop(t))
+            held = self._held.pop(tick, {})
+            linked = set(linked)
+            out = sorted((s, msg) for s, msg in held.items() if s in linked) if held else []
+            c.fused += len(out)
+            c.unlinked += len(held) - len(out)
+            self._closed_through = max(self._closed_through, tick)
+            if self.keep is not None:
+                for t in [t for t in self._seen if t < tick - self.keep]:
+                    del self._seen[t]
+            return out
+
+    def senders(self, tick: int) -> set:
+        """Who has been heard for ``tick`` so far (to stop waiting early)."""
+        with self._lock:
+            return set(self._held.get(tick, ()))
+
+    @property
+    def pending(self) -> int:
+        with self._lock:
+            return sum(len(h) for h in self._held.values())
+
+    def close(self) -> None:
+        with self._lock:
+            self.counters.late += sum(len(h) for h in self._held.values())
+            self._held.clear()
+            self._closed = True

@@ -1,0 +1,229 @@
+"""The receive path of one agent: guard, range gate, the link's faults, the inbox.
+
+    payload on a neighbour's key (its id parsed once, by the agent)
+      -> ``Guard.screen``     rejected (counted by reason; one that named a
+                              tick in the window accounts for its sender at
+                              that tick), or a decoded message (decoded once)
+      -> range gate           the sender not in range at the message's tick:
+                              out_of_range += 1, never on a link. A message
+                              whose tick the world has not opened here yet
+                              waits for it (``release``), first copy per
+                              (sender, tick), before the link: a link's
+                              latency runs from when its receiver knows
+                              the tick, as in the engine's fault model
+                              (``faults.delivered_links``)
+      -> sent += 1
+      -> ``FaultModel.plan``  lost (lost += 1), or one or two copies with delays
+      -> ``DelayLine``        holds each copy until it is due
+      -> received += 1 at the message's first copy
+      -> ``Inbox.offer``      every copy: held (later fused or unlinked),
+                              duplicate or late
+
+Every map here is bounded by the guard's window (``max_lag`` + ``max_lead``
++ 1 ticks) times the scenario's agents: what a flood of other ids, ticks or
+copies sends costs counts, never memory.
+
+A transport calls ``on_payload`` from its subscriber callback and, per tick,
+``wait(tick, expected, deadline)`` then ``take(tick, linked)``. Without a
+fault model (or with an inactive one) a copy goes straight to the inbox in
+the caller's thread, so a fault-free run is exactly the run without this layer.
+"""
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+
+from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.mesh.delayline import DelayLine
+from diskf_mesh.data.faults import PERFECT, FaultModel
+from diskf_mesh.mesh.guard import Guard
+from diskf_mesh.mesh.inbox import Inbox
+
+
+class Receiver:
+    def __init__(self, guard: Guard, faults: FaultModel | None = None, on_arrival=None):
+        """``on_arrival()``, if given, is called (from the delay line's thread)
+        after a delayed copy reached the inbox, e.g. to wake a waiting loop."""
+        self.guard = guard
+        self.me = guard.config.me
+        self.counters: Counters = guard.counters
+        self.faults = faults if faults is not None and faults.config.active else None
+        self.inbox = Inbox(self.counters, keep=guard.config.max_lag)
+        self._arrived = threading.Condition()
+        self._delay = DelayLine(self._arrive_later)
+        self._lock = threading.Lock()  # fault streams and counters are touched from zenoh threads
+        self._copies_left: dict = {}   # send event -> copies not yet arrived
+        self._heard: set = set()       # send events of which a copy arrived
+        self._events = itertools.count()
+        self._lost: dict = {}          # tick -> senders whose message of that tick the link dropped
+        self._refused: dict = {}       # tick -> {sender: reason} whose message of that tick was rejected
+        self._early: dict = {}         # tick -> {sender: message} before the world's tick of that tick
+        self.tick = 0                  # the agent's current tick, for the guard's window (``advance``)
+        self._on_arrival = on_arrival
+
+    def advance(self, tick: int) -> None:
+        """The agent works on ``tick`` now: the guard's window follows it;
+        messages waiting for an earlier tick's links never enter a link (the
+        agent skipped that tick: out_of_range)."""
+        if tick > self.tick:
+            with self._lock:
+                self.tick = tick
+                for t in [t for t in self._early if t < tick]:
+                    self.counters.out_of_range += len(self._early.pop(t))
+
+    def on_payload(self, sender, payload, links=None) -> bool:
+        """A payload on agent ``sender``'s message key (None: the key's id is
+        not an integer). ``links``: {tick: ids in range at that tick} for the
+        ticks the world has opened (None: no range gate). Returns whether a
+        wait may be over (a message or a refusal accounted for a sender)."""
+        with self._lock:
+            wm = self.guard.screen(sender, payload, self.tick)
+            if not isinstance(wm, wire.WireMessage):
+                if wm is not None and wm.tick is not None:
+                    self._refused.setdefault(wm.tick, {}).setdefault(sender, wm.reason)
+                    return True
+                return False
+            if links is not None:
+                linked = links.get(wm.tick)
+                if linked is None:  # its tick is not open here yet
+                    early = self._early.setdefault(wm.tick, {})
+                    if wm.sender in early:
+                        self._repeated()
+                    else:
+                        early[wm.sender] = wm
+                    return False
+                if wm.sender not in linked:
+                    self.counters.out_of_range += 1
+                    return False
+            item = self._link(wm)
+        self._deliver(item)
+        return True
+
+    def release(self, tick: int, linked) -> None:
+        """The world's tick ``tick`` is in: what waited for it goes on a link
+        (a sender in ``linked``) or is out of range."""
+        with self._lock:
+            early = self._early.pop(tick, {})
+            items = []
+            for s, wm in early.items():
+                if s in linked:
+                    items.append(self._link(wm))
+                else:
+                    self.counters.out_of_range += 1
+        for item in items:
+            self._deliver(item)
+
+    def _repeated(self) -> None:
+        """A sender repeated a message still waiting for its tick: counted as
+        the link counts a repeat (sent, received, arrived, a duplicate),
+        without holding it (lock held)."""
+        c = self.counters
+        c.sent += 1
+        c.received += 1
+        c.arrived += 1
+        c.duplicate += 1
+
+    def _link(self, wm) -> tuple:
+        """Put ``wm`` on its link (lock held): (event, message, deliveries)."""
+        self.counters.sent += 1
+        plan = PERFECT if self.faults is None else self.faults.plan(wm.sender, self.me, wm.tick)
+        if not plan:
+            self.counters.lost += 1
+            self._lost.setdefault(wm.tick, set()).add(wm.sender)
+            return None, wm, ()
+        event = next(self._events)
+        self._copies_left[event] = len(plan)
+        return event, wm, plan
+
+    def _deliver(self, item) -> None:
+        event, wm, plan = item
+        for d in plan:
+            if d.delay_s > 0:
+                self._delay.submit((event, wm), d.delay_s)
+            else:
+                self._arrive((event, wm))
+
+    def _arrive_later(self, item) -> None:
+        self._arrive(item)
+        if self._on_arrival is not None:
+            self._on_arrival()
+
+    def _arrive(self, item) -> None:
+        event, wm = item
+        with self._lock:
+            if event not in self._heard:
+                self._heard.add(event)
+                self.counters.received += 1
+            self._copies_left[event] -= 1
+            if not self._copies_left[event]:
+                del self._copies_left[event]
+                self._heard.discard(event)
+        self.inbox.offer(wm.sender, wm.tick, wm.message)
+        with self._arrived:
+            self._arrived.notify_all()
+
+    @property
+    def in_flight(self) -> int:
+        """Messages sent on a link of which no copy has arrived yet."""
+        with self._lock:
+            return sum(1 for e in self._copies_left if e not in self._heard)
+
+    def wait(self, tick: int, expected, deadline: float, clock=time.monotonic) -> set:
+        """Block until every sender in ``expected`` is accounted for at ``tick``
+        (``accounted``) or the monotonic ``deadline`` passes; returns them."""
+        expected = set(expected)
+        with self._arrived:
+            while True:
+                heard = self.accounted(tick)
+                left = deadline - clock()
+                if expected <= heard or left <= 0:
+                    return heard
+                self._arrived.wait(min(left, 0.05))
+
+    def accounted(self, tick: int) -> set:
+        """Senders of ``tick`` that need no more waiting for: their message
+        arrived, the (simulated) link dropped it, or it came and was rejected.
+        Waiting for a message the fault layer has dropped could only end at
+        the deadline with the same messages fused, so a loop may stop as soon
+        as every expected sender is accounted for: a lossy run is then as
+        fast as a clean one, and a poisoned neighbour costs no timeout."""
+        heard = self.inbox.senders(tick)
+        with self._lock:
+            return heard | self._lost.get(tick, set()) | set(self._refused.get(tick, ()))
+
+    def refusals(self, tick: int) -> dict:
+        """{sender: the guard's reason} of the messages of ``tick`` it refused
+        (the first refusal per sender), until ``take`` of that tick."""
+        with self._lock:
+            return dict(self._refused.get(tick, {}))
+
+    def take(self, tick: int, linked) -> list:
+        """[(sender, message)] to fuse at ``tick``, sorted by sender id."""
+        with self._lock:
+            for book in (self._lost, self._refused):
+                for t in [t for t in book if t <= tick]:
+                    del book[t]
+        return self.inbox.take(tick, linked)
+
+    def use_faults(self, faults: FaultModel | None) -> None:
+        """Set the link faults once the run's seed is known (before any
+        neighbour's message was let through)."""
+        with self._lock:
+            self.faults = faults if faults is not None and faults.config.active else None
+
+    def snapshot(self, cap: int | None = None) -> dict:
+        """The counters with the gauges (in flight, pending) filled in, flat
+        (none above ``cap``)."""
+        self.counters.in_flight = self.in_flight
+        self.counters.pending = self.inbox.pending
+        return self.counters.to_dict(cap)
+
+    def close(self) -> Counters:
+        """End of run: copies still in flight or held arrive too late to count as fused."""
+        self.inbox.close()
+        for item in self._delay.close():
+            self._arrive(item)
+        self.counters.in_flight = self.counters.pending = 0
+        return self.counters

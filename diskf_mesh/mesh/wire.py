@@ -1,0 +1,555 @@
+"""The wire format: what travels between the processes of a mesh run, as msgpack.
+
+Every payload is one msgpack map with short keys. Common to all kinds:
+
+    "v"   schema version (``SCHEMA``)
+    "k"   kind: "msg" | "report" | "tick" | "meas" | "stop"
+    "run" run id (the key prefix diskf/<run-id>/ carries it too)
+    "t"   tick k >= 1 ("stop": the last tick)
+
+Float arrays travel as one msgpack ``bin`` of little-endian float64
+(``"dt": "<f8"``), concatenated in a fixed order and row-major; their shapes
+follow from the state and input dimensions ``"n"`` and ``"m"`` carried in the
+same map. Matrices are sent whole (not as triangles): a receiver then fuses
+bit for bit what the sender computed.
+
+kind "msg" (agent -> neighbours, one per agent and tick; ``Message``)::
+
+    "s" sender id, "n", "m", "dt", "dv" d_valid (bool),
+    "a" x_pred (n), P_pred (n x n), x_upd (n), P_upd (n x n), d (m), S (m x m)
+
+  It never carries a raw measurement, an H or an R. For n = 2, m = 1 it is
+  about 160 bytes.
+
+kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
+
+    "s", "n", "m", "dt", "dv", "a" x (n), P (n x n), d (m),
+    "c" the agent's counters so far {name: int} (see ``mesh.agent_loop``),
+    "f" the senders whose messages of tick k went into this estimate (ids,
+        at most ``MAX_LINKS``; optional, default none),
+    "nf" the other senders linked at tick k and why their message did not:
+        [[sender, verdict], ...] with verdict "lost" (the link dropped it),
+        "late" (no copy by the tick's close) or "rejected:<reason>"
+        (at most ``MAX_LINKS`` entries of at most ``MAX_VERDICT`` characters;
+        optional) - what a recording (``diskf_mesh.recording``) replays,
+    "o" the agent's own message of tick k, the very bytes it published
+        (optional, at most ``MAX_BYTES``): a recording's "as sent"
+
+kind "tick" (world -> everyone, opens tick k; ``Tick``)::
+
+    "K" ticks in the run, "seed", "alg", "topo", "range" (float, may be inf),
+    "pos" positions of every agent at tick k, (N x 2) float64 in scenario order,
+    "live" ids of the agents the world counts as alive
+
+kind "meas" (world -> one agent on its own key; ``Measurement``)::
+
+    "to" agent id, "has" bool, "y" p_i float64 (empty when has is false)
+
+kind "stop" (world -> everyone): "why" a short text ("done" after the last tick).
+
+kind "rejoin" (agent -> world, once per (re)join; ``Rejoin``): "t" the tick it
+joined at, "s" sender, "src" the agent whose fused estimate of tick "t" - 1 it
+re-initialised from, or -1 for its prior.
+
+``decode_*`` either returns a dataclass or raises ``Rejected`` with one of
+``REASONS``, never anything else, whatever the bytes.
+
+Limits (``limits``): before anything is decoded, a payload larger than its
+kind's schema allows for the receiver's dimensions is refused ("size"): a
+"msg" of n = 2, m = 1 is at most ``HEADER_BYTES`` + 8 x 14 bytes. Then one
+msgpack unpack with every container and string bounded by the schema
+(``max_map_len`` = the kind's field count + 2, ``max_bin_len`` = its float
+bytes, ``max_array_len`` = its longest array or float count, ``max_str_len``
+= ``MAX_STR``), so a map of 130,000 keys is refused at its header, before
+one key is read. Report counters are non-negative ints of at most
+``count_bound(ticks)``, at most ``MAX_COUNTERS`` of them, with known names.
+"""
+from __future__ import annotations
+
+import functools
+import math
+import re
+import struct
+from dataclasses import dataclass, field
+
+import msgpack
+import numpy as np
+
+from diskf_mesh.mesh.counters import SCALARS
+from diskf_mesh.core.messages import Message
+
+SCHEMA = 1
+DTYPE = "<f8"
+MAX_DIM = 64  # largest n, m (or p) a decoder accepts
+MAX_BYTES = 1 << 20  # largest payload a decoder looks at, whatever the kind
+HEADER_BYTES = 256   # the fixed fields of a payload, generously (run id <= 32 characters, ints <= 9 bytes)
+MAX_STR = 64         # longest string field or map key (run ids, algorithm and counter names)
+MAX_WHY = 1024       # longest "why" of a stop
+MAX_COUNTERS = 64    # most counters a report may carry (there are about 30)
+PER_TICK = 1 << 20   # most payloads one agent counts per tick of the run (``count_bound``)
+MAX_LINKS = 1024     # most senders a report's "f" and "nf" may name (without the run's agent count)
+MAX_VERDICT = 48     # longest verdict text in a report's "nf"
+
+REASONS = (
+    "not-msgpack",  # not a msgpack document at all
+    "schema",       # wrong version, kind, or a missing or mistyped field
+    "run",          # belongs to another run
+    "sender",       # the key names another agent than the body, or an unknown one
+    "shape",        # dimensions or array lengths not the expected ones
+    "dtype",        # arrays not little-endian float64
+    "non-finite",   # NaN or infinity
+    "not-spd",      # a covariance that is not symmetric positive definite
+    "size",         # larger than the schema allows: the payload, or a string, map, array or bin in it
+)
+
+
+class Rejected(ValueError):
+    """A payload the decoder refuses; ``reason`` is one of ``REASONS``."""
+
+    def __init__(self, reason: str, detail: str = "", tick: int | None = None):
+        assert reason in REASONS, reason
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+        self.detail = detail
+        self.tick = tick  # the payload's tick where it was read before the rejection, else None
+
+
+@dataclass(frozen=True)
+class WireMessage:
+    """A decoded "msg": ``message`` holds unbatched arrays, x_pred (n,) ..."""
+
+    run_id: str
+    sender: int
+    tick: int
+    message: Message
+
+
+@dataclass(frozen=True)
+class Report:
+    run_id: str
+    sender: int
+    tick: int
+    x: np.ndarray        # (n,)
+    P: np.ndarray        # (n, n)
+    d: np.ndarray        # (m,)
+    d_valid: bool
+    counters: dict = field(default_factory=dict)
+    fused: tuple = ()      # sender ids fused into this estimate
+    not_fused: tuple = ()  # ((sender, verdict), ...) the other linked senders
+    sent: bytes = b""      # this agent's own message of the tick, as published
+
+
+@dataclass(frozen=True)
+class Tick:
+    run_id: str
+    tick: int
+    ticks: int
+    seed: int
+    algorithm: str
+    topology: str
+    comm_range: float
+    positions: np.ndarray  # (N, 2)
+    live: tuple
+
+
+@dataclass(frozen=True)
+class Measurement:
+    run_id: str
+    tick: int
+    agent: int
+    has: bool
+    y: np.ndarray          # (p_i,), empty when not has
+
+
+@dataclass(frozen=True)
+class Stop:
+    run_id: str
+    tick: int
+    why: str
+
+
+@dataclass(frozen=True)
+class Rejoin:
+    run_id: str
+    sender: int
+    tick: int
+    source: int | None  # None: the prior
+
+
+# --------------------------------------------------------------------------
+# encoding
+# --------------------------------------------------------------------------
+def _f8(*arrays) -> bytes:
+    return b"".join(np.ascontiguousarray(a, dtype=DTYPE).tobytes() for a in arrays)
+
+
+def _pack(doc: dict) -> bytes:
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+def _dims(x: np.ndarray, d: np.ndarray) -> tuple:
+    return int(np.shape(x)[-1]), int(np.shape(d)[-1])
+
+
+def encode(run_id: str, sender: int, tick: int, msg: Message) -> bytes:
+    """One agent's message; ``msg`` arrays may keep leading batch axes of size 1."""
+    n, m = _dims(msg.x_pred, msg.d)
+    blob = _f8(msg.x_pred, msg.P_pred, msg.x_upd, msg.P_upd, msg.d, msg.S)
+    if len(blob) != 8 * (2 * n + 2 * n * n + m + m * m):
+        raise ValueError("encode: a message must hold one agent's arrays")
+    return _pack({"v": SCHEMA, "k": "msg", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
+                  "dt": DTYPE, "dv": bool(np.asarray(msg.d_valid).reshape(-1)[0]), "a": blob})
+
+
+def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None, fused=(),
+                  not_fused=(), sent: bytes = b"") -> bytes:
+    n, m = _dims(x, d)
+    blob = _f8(x, P, d)
+    if len(blob) != 8 * (n + n * n + m):
+        raise ValueError("encode_report: a report must hold one agent's arrays")
+    return _pack({"v": SCHEMA, "k": "report", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
+                  "dt": DTYPE, "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
+                  "c": {str(k): int(v) for k, v in (counters or {}).items()},
+                  "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused], "o": bytes(sent)})
+
+
+def encode_tick(t: Tick) -> bytes:
+    return _pack({"v": SCHEMA, "k": "tick", "run": t.run_id, "t": int(t.tick), "K": int(t.ticks),
+                  "seed": int(t.seed), "alg": t.algorithm, "topo": t.topology, "range": float(t.comm_range),
+                  "dt": DTYPE, "pos": _f8(t.positions), "live": [int(i) for i in t.live]})
+
+
+def encode_measurement(run_id: str, tick: int, agent: int, has: bool, y) -> bytes:
+    return _pack({"v": SCHEMA, "k": "meas", "run": run_id, "t": int(tick), "to": int(agent), "has": bool(has),
+                  "dt": DTYPE, "y": _f8(y) if has else b""})
+
+
+def encode_stop(run_id: str, tick: int, why: str) -> bytes:
+    return _pack({"v": SCHEMA, "k": "stop", "run": run_id, "t": int(tick), "why": str(why)})
+
+
+def encode_rejoin(run_id: str, sender: int, tick: int, source: int | None) -> bytes:
+    return _pack({"v": SCHEMA, "k": "rejoin", "run": run_id, "t": int(tick), "s": int(sender),
+                  "src": -1 if source is None else int(source)})
+
+
+# --------------------------------------------------------------------------
+# decoding
+# --------------------------------------------------------------------------
+def _is_int(v) -> bool:
+    """An int and not a bool (msgpack gives plain ints and bools only)."""
+    return type(v) is int
+
+
+def _field(doc: dict, key: str, kind):
+    v = doc.get(key)
+    ok = _is_int(v) if kind is int else isinstance(v, kind)
+    if not ok:
+        raise Rejected("schema", f"field {key!r} missing or not {getattr(kind, '__name__', kind)}")
+    return v
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The most one kind of payload may hold, for the receiver's dimensions."""
+
+    max_bytes: int       # the whole payload
+    max_str_len: int     # any string (map keys too)
+    max_bin_len: int     # any bin (the float arrays)
+    max_array_len: int   # any array
+    max_map_len: int     # any map
+
+    def unpack(self, data):
+        return msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, max_str_len=self.max_str_len,
+                               max_bin_len=self.max_bin_len, max_array_len=self.max_array_len,
+                               max_map_len=self.max_map_len, max_ext_len=0)
+
+
+# fields of each kind (the map's length), and room for a few more (a signature, a binding) that a
+# decoder ignores: each is still bounded by the string, bin and byte limits
+_FIELDS = {"msg": 10, "report": 11, "tick": 12, "meas": 8, "stop": 5, "rejoin": 6}
+EXTRA_FIELDS = 2
+
+
+@functools.lru_cache(maxsize=64)
+def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | None = None) -> Limits:
+    """``kind``'s limits: "msg" and "report" for dimensions (a, b) = (n, m)
+    (a report also for the run's ``agents``: its "f" and "nf" name senders),
+    "tick" for a = N agents, "meas" for a = p values, "stop". A dimension
+    not given is the largest any run may have (``MAX_DIM``; for N, what fits
+    in ``MAX_BYTES``)."""
+    n, m = a or MAX_DIM, b or MAX_DIM
+    fields = _FIELDS[kind] + EXTRA_FIELDS
+    if kind in ("msg", "report"):
+        floats = 2 * n + 2 * n * n + m + m * m if kind == "msg" else n + n * n + m
+        size = HEADER_BYTES + 8 * floats
+        arrays, bins = floats, 8 * floats
+        if kind == "report":  # the counters: MAX_COUNTERS names and ints; "f" and "nf": a few bytes per sender;
+            # "o": the agent's own message of the tick, as published (at most a message's size)
+            links = agents if agents is not None else MAX_LINKS
+            own = limits("msg", a, b).max_bytes
+            size += MAX_COUNTERS * (2 + MAX_STR + 9) + links * (9 + 12 + MAX_VERDICT) + own
+            fields, arrays, bins = MAX_COUNTERS, max(floats, links), max(bins, own)
+        return Limits(size, MAX_STR, bins, arrays, fields)
+    if kind == "tick":  # alg, topo; N positions (2 float64) and N live ids (<= 9 bytes each)
+        N = a or (MAX_BYTES - HEADER_BYTES - 2 * MAX_STR) // 25
+        return Limits(HEADER_BYTES + 2 * MAX_STR + 25 * N, MAX_STR, 16 * N, N, fields)
+    if kind == "meas":
+        p = a or MAX_DIM
+        return Limits(HEADER_BYTES + 8 * p, MAX_STR, 8 * p, p, fields)
+    if kind == "rejoin":  # ints only
+        return Limits(HEADER_BYTES, MAX_STR, 0, 0, fields)
+    return Limits(HEADER_BYTES + MAX_WHY, MAX_WHY, 0, 0, fields)
+
+
+def _open(data, kind: str, run_id: str | None, lim: Limits) -> dict:
+    """Size check, one bounded unpack; check version, kind, run and tick."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise Rejected("not-msgpack", "payload is not bytes")
+    if len(data) > min(lim.max_bytes, MAX_BYTES):
+        raise Rejected("size", f"payload of {len(data)} bytes, at most {min(lim.max_bytes, MAX_BYTES)}")
+    try:
+        doc = lim.unpack(data)
+    except ValueError as e:  # msgpack's limits and most garbage
+        if "exceeds max_" in str(e):
+            raise Rejected("size", str(e)) from None
+        raise Rejected("not-msgpack", type(e).__name__) from None
+    except Exception as e:  # msgpack raises several unrelated types on garbage
+        raise Rejected("not-msgpack", type(e).__name__) from None
+    if not isinstance(doc, dict):
+        raise Rejected("schema", "not a map")
+    if doc.get("v") != SCHEMA or isinstance(doc.get("v"), bool):
+        raise Rejected("schema", f"version {doc.get('v')!r}, expected {SCHEMA}")
+    if doc.get("k") != kind:
+        raise Rejected("schema", f"kind {doc.get('k')!r}, expected {kind!r}")
+    run = _field(doc, "run", str)
+    if run_id is not None and run != run_id:
+        raise Rejected("run", f"run {run!r}, expected {run_id!r}")
+    if _field(doc, "t", int) < 0:
+        raise Rejected("schema", "negative tick")
+    return doc
+
+
+def _floats(doc: dict, key: str, count: int) -> np.ndarray:
+    if doc.get("dt", DTYPE) != DTYPE:
+        raise Rejected("dtype", f"dtype {doc.get('dt')!r}, expected {DTYPE!r}")
+    blob = doc.get(key)
+    if not isinstance(blob, bytes):
+        raise Rejected("dtype", f"field {key!r} is not a float64 byte string")
+    if len(blob) != 8 * count:
+        raise Rejected("shape", f"field {key!r} holds {len(blob)} bytes, expected {8 * count}")
+    if count <= _SMALL:  # the usual message: Python floats are faster than numpy calls on a few numbers
+        values = _struct(count).unpack(blob)
+        # NaN and infinity make the sum non-finite (so may huge finite values: then look at each)
+        if not math.isfinite(sum(values)) and not all(map(math.isfinite, values)):
+            raise Rejected("non-finite", f"field {key!r}")
+        return np.array(values, dtype=float)
+    a = np.frombuffer(blob, dtype=DTYPE).astype(float)
+    if not np.isfinite(a).all():
+        raise Rejected("non-finite", f"field {key!r}")
+    return a
+
+
+_SMALL = 64
+
+
+@functools.lru_cache(maxsize=None)
+def _struct(count: int) -> struct.Struct:
+    return struct.Struct(f"<{count}d")
+
+
+def _dims_of(doc: dict, n: int | None, m: int | None) -> tuple:
+    dn, dm = _field(doc, "n", int), _field(doc, "m", int)
+    if not (1 <= dn <= MAX_DIM and 1 <= dm <= MAX_DIM):
+        raise Rejected("shape", f"n={dn}, m={dm} out of range")
+    if (n is not None and dn != n) or (m is not None and dm != m):
+        raise Rejected("shape", f"n={dn}, m={dm}, expected n={n}, m={m}")
+    return dn, dm
+
+
+def _check_sender(doc: dict, sender: int | None) -> int:
+    s = _field(doc, "s", int)
+    if sender is not None and s != sender:
+        raise Rejected("sender", f"body says sender {s}, key says {sender}")
+    return s
+
+
+def _spd(*mats, rtol: float = 1e-9) -> None:
+    """Symmetric to ``rtol`` of the largest entry, and a Cholesky factor
+    exists. Small matrices (the usual n, m <= 4) are checked in plain Python,
+    which is several times faster than numpy calls on them; this runs for
+    every message received."""
+    for M in mats:
+        k = M.shape[-1]
+        if k > 4:
+            scale = np.abs(M).max()
+            if np.abs(M - M.T).max() > rtol * scale:
+                raise Rejected("not-spd", "a covariance is not symmetric")
+            try:
+                np.linalg.cholesky(M)
+            except np.linalg.LinAlgError:
+                raise Rejected("not-spd", "a covariance is not positive definite") from None
+            continue
+        if k == 1:
+            if not M[0, 0] > 0.0:
+                raise Rejected("not-spd", "a variance is not positive")
+            continue
+        if k == 2:  # the same arithmetic as _cholesky_ok, unrolled
+            (p, q), (s, r) = M.tolist()
+            if abs(q - s) > rtol * max(abs(p), abs(q), abs(s), abs(r)):
+                raise Rejected("not-spd", "a covariance is not symmetric")
+            if not p > 0.0:
+                raise Rejected("not-spd", "a covariance is not positive definite")
+            low = s / p ** 0.5
+            if not r - low * low > 0.0:
+                raise Rejected("not-spd", "a covariance is not positive definite")
+            continue
+        a = M.tolist()
+        scale = max(abs(v) for row in a for v in row)
+        if any(abs(a[i][j] - a[j][i]) > rtol * scale for i in range(k) for j in range(i)):
+            raise Rejected("not-spd", "a covariance is not symmetric")
+        if not _cholesky_ok(a):
+            raise Rejected("not-spd", "a covariance is not positive definite")
+
+
+def _cholesky_ok(a: list) -> bool:
+    """Whether the Cholesky factorisation of a small symmetric matrix (lists,
+    lower triangle read) has a positive pivot at every step."""
+    k = len(a)
+    L = [[0.0] * k for _ in range(k)]
+    for j in range(k):
+        pivot = a[j][j] - sum(L[j][i] * L[j][i] for i in range(j))
+        if not pivot > 0.0:
+            return False
+        L[j][j] = pivot ** 0.5
+        for r in range(j + 1, k):
+            L[r][j] = (a[r][j] - sum(L[r][i] * L[j][i] for i in range(j))) / L[j][j]
+    return True
+
+
+def _split(a: np.ndarray, shapes) -> list:
+    out, i = [], 0
+    for shp in shapes:
+        size = math.prod(shp)
+        out.append(a[i:i + size].reshape(shp))
+        i += size
+    return out
+
+
+def _estimate_head(doc: dict, sender, n, m) -> tuple:
+    """(sender, n, m, d_valid) of an open "msg" or "report", checked."""
+    s = _check_sender(doc, sender)
+    n, m = _dims_of(doc, n, m)
+    dv = doc.get("dv")
+    if not isinstance(dv, bool):
+        raise Rejected("schema", "field 'dv' missing or not bool")
+    return s, n, m, dv
+
+
+def decode(data, *, run_id: str | None = None, sender: int | None = None,
+           n: int | None = None, m: int | None = None) -> WireMessage:
+    """A neighbour's "msg"; checks everything a receiver relies on.
+
+    ``sender`` is the id the key names, ``n``/``m`` the receiver's
+    dimensions. A rejection after the tick was read carries it (``tick``)."""
+    doc = _open(data, "msg", run_id, limits("msg", n, m))
+    try:
+        s, n, m, dv = _estimate_head(doc, sender, n, m)
+        a = _floats(doc, "a", 2 * n + 2 * n * n + m + m * m)
+        x_pred, P_pred, x_upd, P_upd, d, S = _split(a, [(n,), (n, n), (n,), (n, n), (m,), (m, m)])
+        _spd(P_pred, P_upd, S)
+    except Rejected as e:
+        e.tick = doc["t"]
+        raise
+    return WireMessage(doc["run"], s, doc["t"], Message(x_pred, P_pred, x_upd, P_upd, d, S, np.array(dv)))
+
+
+def count_bound(ticks: int | None) -> int:
+    """The largest counter a report of a run of ``ticks`` ticks may carry:
+    ``PER_TICK`` payloads per tick (an agent caps its own counters there);
+    without the run's length, 2^53 (exact in JSON)."""
+    return (int(ticks) + 1) * PER_TICK if ticks else 1 << 53
+
+
+_COUNTER = re.compile(r"rejected\.[a-z][a-z-]{0,31}")
+
+
+def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
+                  n: int | None = None, m: int | None = None, ticks: int | None = None,
+                  agents: int | None = None) -> Report:
+    """``ticks``: the run's length, which bounds every counter (``count_bound``);
+    ``agents``: the run's agent count, which bounds "f" and "nf"."""
+    doc = _open(data, "report", run_id, limits("report", n, m, agents))
+    s, n, m, dv = _estimate_head(doc, sender, n, m)
+    x, P, d = _split(_floats(doc, "a", n + n * n + m), [(n,), (n, n), (m,)])
+    _spd(P)
+    c = doc.get("c", {})
+    if not isinstance(c, dict) or len(c) > MAX_COUNTERS:
+        raise Rejected("schema", "field 'c' is not a map of counters")
+    bound = count_bound(ticks)
+    for k, v in c.items():
+        if not (k in SCALARS or _COUNTER.fullmatch(k)):
+            raise Rejected("schema", f"field 'c': unknown counter {k[:MAX_STR]!r}")
+        if not _is_int(v):
+            raise Rejected("schema", f"field 'c': counter {k!r} is not an int")
+        if not 0 <= v <= bound:
+            raise Rejected("size", f"field 'c': counter {k!r} = {v}, expected 0 .. {bound}")
+    links = agents if agents is not None else MAX_LINKS
+    f, nf = doc.get("f", []), doc.get("nf", [])
+    if not isinstance(f, list) or len(f) > links or not all(_is_int(i) for i in f):
+        raise Rejected("schema", f"field 'f' is not a list of at most {links} ids")
+    if not isinstance(nf, list) or len(nf) > links or not all(
+            isinstance(e, list) and len(e) == 2 and _is_int(e[0]) and isinstance(e[1], str)
+            and len(e[1]) <= MAX_VERDICT for e in nf):
+        raise Rejected("schema", f"field 'nf' is not a list of at most {links} [id, verdict] pairs")
+    sent = doc.get("o", b"")
+    if not isinstance(sent, bytes):
+        raise Rejected("schema", "field 'o' is not a byte string")
+    return Report(doc["run"], s, doc["t"], x, P, d, dv, c, tuple(f), tuple((i, v) for i, v in nf), sent)
+
+
+def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -> Tick:
+    doc = _open(data, "tick", run_id, limits("tick", agents))
+    K, seed = _field(doc, "K", int), _field(doc, "seed", int)
+    alg, topo = _field(doc, "alg", str), _field(doc, "topo", str)
+    rng = doc.get("range")
+    if not isinstance(rng, (float, int)) or isinstance(rng, bool) or math.isnan(rng):
+        raise Rejected("schema", "field 'range' missing or not a number")
+    live = _field(doc, "live", list)
+    if not all(_is_int(i) for i in live):
+        raise Rejected("schema", "field 'live' is not a list of ids")
+    blob = doc.get("pos")
+    if not isinstance(blob, bytes) or len(blob) % 16:
+        raise Rejected("shape", "field 'pos' is not N x 2 float64")
+    N = len(blob) // 16
+    if agents is not None and N != agents:
+        raise Rejected("shape", f"{N} positions, expected {agents}")
+    pos = _floats(doc, "pos", 2 * N).reshape(N, 2)
+    return Tick(doc["run"], doc["t"], K, seed, alg, topo, float(rng), pos, tuple(live))
+
+
+def decode_measurement(data, *, run_id: str | None = None, agent: int | None = None,
+                       p: int | None = None) -> Measurement:
+    doc = _open(data, "meas", run_id, limits("meas", p))
+    to = _field(doc, "to", int)
+    if agent is not None and to != agent:
+        raise Rejected("sender", f"measurement for agent {to}, this is agent {agent}")
+    has = doc.get("has")
+    if not isinstance(has, bool):
+        raise Rejected("schema", "field 'has' missing or not bool")
+    blob = doc.get("y")
+    size = (len(blob) // 8) if isinstance(blob, bytes) else 0
+    want = (p if p is not None else size) if has else 0
+    y = _floats(doc, "y", want)
+    return Measurement(doc["run"], doc["t"], to, has, y)
+
+
+def decode_stop(data, *, run_id: str | None = None) -> Stop:
+    doc = _open(data, "stop", run_id, limits("stop"))
+    return Stop(doc["run"], doc["t"], str(doc.get("why", "")))
+
+
+def decode_rejoin(data, *, run_id: str | None = None, sender: int | None = None) -> Rejoin:
+    doc = _open(data, "rejoin", run_id, limits("rejoin"))
+    s, src = _check_sender(doc, sender), _field(doc, "src", int)
+    return Rejoin(doc["run"], s, doc["t"], None if src < 0 else src)

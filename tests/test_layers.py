@@ -1,0 +1,82 @@
+"""The package's layers (docs in each folder's ``__init__``): a module may
+import its own folder and the folders below it, never one above. Imports
+inside ``if __name__ == "__main__":`` (a process's entry point) are exempt."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "diskf_mesh"
+
+# bottom to top; a layer may import every layer listed before it
+LAYERS = ["core", "estimators", "data", "engine", "mesh", "studies", "recording", "live", "cli"]
+APPS = {"agents", "sim"}  # the processes: may import the whole package, never each other's internals
+
+
+def _layer(path: Path) -> str:
+    rel = path.relative_to(ROOT).parts
+    if rel[0] in APPS:
+        return rel[0]
+    return rel[1] if len(rel) > 2 else "root"
+
+
+def _main_block(node) -> bool:
+    return (isinstance(node, ast.If) and isinstance(node.test, ast.Compare)
+            and getattr(node.test.left, "id", None) == "__name__")
+
+
+def _imports(path: Path):
+    tree = ast.parse(path.read_text())
+    skip = {id(n) for top in tree.body if _main_block(top) for n in ast.walk(top)}
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.ImportFrom):
+            assert node.level == 0, f"{path.relative_to(ROOT)}:{node.lineno}: relative import"
+            mods = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.Import):
+            mods = [a.name for a in node.names]
+        else:
+            continue
+        for m in mods:
+            yield node.lineno, m
+
+
+def _target(module: str) -> str | None:
+    parts = module.split(".")
+    if parts[0] in APPS:
+        return parts[0]
+    if parts[0] != "diskf_mesh":
+        return None
+    return parts[1] if len(parts) > 1 and parts[1] in LAYERS else "root"
+
+
+FILES = sorted([*PACKAGE.rglob("*.py"), *(ROOT / "agents").rglob("*.py"), *(ROOT / "sim").rglob("*.py")])
+
+
+def test_every_folder_is_a_layer():
+    folders = {p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    assert folders == set(LAYERS)
+    for name in LAYERS:  # each says what lives there and what it may import
+        assert "May import" in (PACKAGE / name / "__init__.py").read_text(), name
+    assert sorted(p.name for p in PACKAGE.glob("*.py")) == ["__init__.py"]
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_imports_point_down(path):
+    here = _layer(path)
+    bad = []
+    for line, module in _imports(path):
+        there = _target(module)
+        if there is None or there == "root" or there == here:
+            continue
+        if here in APPS:
+            ok = there not in APPS
+        else:
+            ok = there not in APPS and LAYERS.index(there) < LAYERS.index(here)
+        if not ok:
+            bad.append(f"{path.relative_to(ROOT)}:{line}: {here} imports {module}")
+    assert not bad, "\n".join(bad)
