@@ -86,25 +86,32 @@ COMPENSATION_FORMS = ("bounded", "paper", "normalized", "none")
 
 @dataclass(frozen=True)
 class RobustOptions:
-    """The ingredients of ``diskf-r`` (``algorithms/diskf_robust.py``), one
-    switch each, all on by default; the derivations are in that module's
-    docstrings and the ablation table of docs/reproduction.md turns each off.
+    """The ingredients of ``diskf-r`` (``estimators/diskf_robust.py``), one
+    switch each; the derivations are in that module's docstrings and the
+    ablation table of docs/reproduction.md turns each on or off.
 
+    persist:     the input persists (a random walk): the joint Kalman filter of
+                 (x, d), the cross-covariance carried (default on)
+    input_walk:  Qd = input_walk * I, the random walk's covariance per tick
+                 (input units squared)
+    input_prior: S0 = input_prior * I, the input's covariance before any
+                 measurement (wide: nothing is known)
     prior_ci:    fuse the neighbours' predictions by covariance intersection
                  before adding their measurement information
-    joint_input: the input from the neighbourhood's stacked measurement
-                 information (exact Gillijns-De Moor), not CI of the
-                 individual estimates
-    gate:        feed the input into the state (unbiased update) only where
-                 the neighbourhood's sensors make it strongly detectable
     relay:       carry the fused input forward and share it: the message's
-                 (d, S) is the sender's last fused input (Algorithm 1, step 2)
-    inject:      the input covariance in the prediction, P^* = P^ + G S G^T
-    latch:       once the unbiased update ran, keep running it while rank(HG) = m
-                 (until a tick without any usable measurement)
-    inflate:     where the input is assumed (not detectable), scale the prior
-                 by the innovation's fading factor when the measurement shows
-                 it too small
+                 (d, S) is the sender's last fused input (Algorithm 1, step 2),
+                 and the neighbours' relayed inputs are fused by CI
+    inject:      the input's covariance in the prediction,
+                 P* = P^ + G B^T + B G^T + G S G^T (the paper: P* = P^)
+    joint_input: the message carries the fused input (not the local estimate);
+                 the unbiased update uses the stacked measurement information
+    unbiased:    where the heard sensors detect the input (``gate``), the exact
+                 Gillijns-De Moor update, the input's prior dropped (off)
+    gate:        ... only where the neighbourhood's sensors make the input
+                 strongly detectable
+    latch:       ... and after such a tick while rank(HG) = m holds
+    inflate:     scale the prior by the innovation's fading factor when the
+                 measurement shows it too small (off)
     window:      the paper's observation window (with Params.window, reset)
     compensate:  the paper's state compensation (Params.compensation, eps)
     """
@@ -122,6 +129,12 @@ class RobustOptions:
     unbiased: bool = False
     input_walk: float = 1.0
     input_prior: float = 1e4
+
+    def __post_init__(self):
+        for name in ("input_walk", "input_prior"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not np.isfinite(v) or v <= 0:
+                raise ValueError(f"robust.{name}: must be a finite positive number, got {v!r}")
 
 
 @dataclass(frozen=True)

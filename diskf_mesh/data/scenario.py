@@ -263,12 +263,14 @@ def _parse_estimator(est) -> Params:
         if key == "window" and value in ("none", -1):
             given[key] = None
             continue
-        if key == "robust":  # [estimator.robust]: diskf-r's switches, each a boolean
+        if key == "robust":  # [estimator.robust]: diskf-r's switches (booleans) and its two scales (numbers > 0)
             switches = {f.name: f.default for f in fields(RobustOptions)}
             if not isinstance(value, dict):
                 raise InputError("estimator.robust", "must be a table of switches")
             check_keys(value, switches, "estimator.robust")
-            given[key] = RobustOptions(**{k: scalar(v, f"estimator.robust.{k}", bool) for k, v in value.items()})
+            given[key] = RobustOptions(**{k: scalar(v, f"estimator.robust.{k}", type(switches[k]),
+                                                    **({} if type(switches[k]) is bool else {"above": 0}))
+                                          for k, v in value.items()})
             continue
         kind = {"window": int}.get(key, type(defaults[key]))
         if kind not in (bool, int, float, str):

@@ -33,6 +33,8 @@ from diskf_mesh.data.trace import Trace
 
 NAME = "centralized"
 LABEL = "Centralized (bound)"
+PERSIST_NAME = "centralized-persist"
+PERSIST_LABEL = "Centralized, persistent input (bound of DISKF-R's model)"
 
 
 def run_centralized(trace: Trace) -> Estimates:
@@ -49,11 +51,55 @@ def run_centralized(trace: Trace) -> Estimates:
     ds, dv = np.empty((B, K, m)), np.empty((B, K), dtype=bool)
     for k in range(1, K + 1):
         x_pred, P_pred = eq.predict(x, P, model.A_at(k), model.Q)
-        U_j, u_j = eq.measurement_information(sensors.H, sensors.R, trace.y[:, k - 1], trace.has[:, k - 1], info=info)
-        U, u = U_j.sum(axis=1), u_j.sum(axis=1)  # the stacked sensors' H^T R^-1 H, H^T R^-1 y
+        U, u = _stacked_information(trace, k, info)
         Y = inv_spd(P_pred)
         d, _, valid = eq.input_estimate(x_pred, P_pred, U, u, model.G, Y=Y)
         x, P = rkf_update(x_pred, P_pred, U, u, model.G, valid, Y=Y)
         xs[:, k - 1], Ps[:, k - 1], ds[:, k - 1], dv[:, k - 1] = x, P, d, valid
+    return _every_agent(N, xs, Ps, ds, dv)
+
+
+def _every_agent(N, xs, Ps, ds, dv) -> Estimates:
     rep = lambda a: np.repeat(a[:, :, None], N, axis=2)  # noqa: E731
     return Estimates(rep(xs), rep(Ps), rep(ds), rep(dv))
+
+
+def _stacked_information(trace: Trace, k: int, info):
+    """The stacked sensors' H^T R^-1 H and H^T R^-1 y at tick k (every agent)."""
+    U_j, u_j = eq.measurement_information(trace.sensors.H, trace.sensors.R, trace.y[:, k - 1],
+                                          trace.has[:, k - 1], info=info)
+    return U_j.sum(axis=1), u_j.sum(axis=1)
+
+
+def run_centralized_persist(trace: Trace, options) -> Estimates:
+    """The centre with ``diskf-r``'s persistent-input model (``options``:
+    ``model.RobustOptions``, its ``input_walk`` and ``input_prior``): the
+    joint Kalman filter of (x_k, d_{k-1}) with d a random walk
+    (``equations.input_walk``), every measurement stacked. This is the
+    bound of diskf-r's own model, as ``run_centralized`` is the bound of the
+    model that assumes nothing about the input: diskf-r in an all-to-all
+    network is this filter (``tests/test_robust.py``). The input estimate is
+    reported from the first tick with a measurement on."""
+    model, sensors = trace.model, trace.sensors
+    B, K, N = trace.has.shape
+    n, m = model.n, model.m
+    G, Qd = model.G, options.input_walk * np.eye(m)
+    info = eq.sensor_information(sensors.H, sensors.R)
+    x = np.broadcast_to(model.x0, (B, n)).astype(float).copy()
+    P = np.broadcast_to(model.P0, (B, n, n)).astype(float).copy()
+    d, C = np.zeros((B, m)), np.zeros((B, n, m))
+    S = np.broadcast_to(options.input_prior * np.eye(m), (B, m, m)).copy()
+    held = np.zeros(B, dtype=bool)
+    xs, Ps = np.empty((B, K, n)), np.empty((B, K, n, n))
+    ds, dv = np.empty((B, K, m)), np.empty((B, K), dtype=bool)
+    for k in range(1, K + 1):
+        A = model.A_at(k)
+        v, Pv = eq.predict(x, P, A, model.Q)
+        Bc, S = eq.input_walk(A, C, S, Qd)
+        U, u = _stacked_information(trace, k, info)
+        x_s, P_s, C_s = eq.input_to_state(v, Pv, Bc, d, S, G)
+        x, P = eq.local_update(x_s, P_s, U, u)
+        d, C, S = eq.replace_marginal(x_s, P_s, d, C_s, S, x, P)
+        held = held | (np.trace(U, axis1=-2, axis2=-1) > 0)
+        xs[:, k - 1], Ps[:, k - 1], ds[:, k - 1], dv[:, k - 1] = x, P, d, held
+    return _every_agent(N, xs, Ps, ds, dv)

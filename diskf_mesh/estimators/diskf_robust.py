@@ -7,74 +7,96 @@ covariance; no raw measurement, no H, no R), so the same wire format and
 bytes: 8 (2n + 2n^2 + m + m^2) bytes of float64 plus the msgpack header,
 161 bytes in all for n = 2, m = 1 and the run id ``default``, whatever the
 neighbourhood's size. And the same two steps per tick, local
-(before sending) and fuse (after receiving). What changes is how a receiver
-uses what it hears. Per tick, agent i (switches in ``model.RobustOptions``):
+(before sending) and fuse (after receiving). Switches: ``model.RobustOptions``.
+
+Why the paper's input estimate cannot be the whole answer. Gillijns-De
+Moor's input estimate is unbiased for *any* input sequence, so it reads as
+input every output the input could have produced. With one sensor type and
+one input (p = m = 1) that is the whole innovation, and the state error
+follows the zero dynamics of (A, G, H), whose zero is cos w + sin w > 1 for
+an x-sensor of the shipped scenarios: such a sensor cannot keep an
+unbiased estimate stable (``equations.strongly_detectable``). An isolated
+agent, or a neighbourhood of x-sensors, is in that case most of the time.
+
+The model (``persist``, the default): the input persists, as a random walk
+
+    d_{k-1} = d_{k-2} + eta,   eta ~ N(0, Qd),   Qd = input_walk * I
+    d_0 ~ N(0, input_prior * I)
+
+and every agent runs the Kalman filter of the joint state (x_k, d_{k-1})
+(the "augmented state" filter), decentralised as DISKF decentralises the
+state filter. A constant input is observable through any sensor with
+H (I - A)^-1 G != 0 (an x-sensor included), so an isolated agent learns the
+input while it measures and predicts with it, and with its covariance,
+while it does not. With Qd -> infinity the model assumes nothing and the
+filter tends to Gillijns-De Moor's; a finite Qd is an assumption (the input
+changes by about sqrt(Qd) per tick), stated, and its sensitivity measured
+in the report's ablation. Per tick, agent i:
 
 1. local: x^ = A x_bar, P^ = A P_bar A^T + Q (eq. info_kf_prediction0) and
-   the local update (eq. info_kf_update0), as DISKF. The message's (d, S,
-   d_valid) is the agent's last *fused* input (d_bar, S_bar), the exchanged
-   value Algorithm 1 lists in step 2 (``relay``); DISKF sends its local
-   estimate there instead.
-2. fuse, the prior (``prior_ci``): covariance intersection (the paper's fast
-   CI, eqs. input_fusion, input_fusion_p, applied to states) of the
-   neighbourhood's predictions (x^_j, P^_j). CI is consistent for any
-   correlation between the neighbours' errors, so the fused prior P_c is
-   never overconfident, and a neighbour that saw the target recently lends
-   its better prior: information travels one hop per tick, not only through
-   the compensation step. Where every prediction is the same (all-to-all:
-   every agent fused the same messages) CI returns that prediction.
-3. fuse, the measurement: the neighbourhood's stacked information
+   the local update (eq. info_kf_update0), as DISKF. x^ is the prediction
+   of v_k = x_k - G d_{k-1}, which does not depend on the input. The
+   message's (d, S, d_valid) is the agent's last *fused* input (d_bar,
+   S_bar), the exchanged value Algorithm 1 lists in step 2 (``relay``).
+   The cross-covariance C = cov(x_bar, d_bar) stays with the agent (it is
+   not on the wire).
+2. fuse, the own joint prior of (v_k, d_{k-1}): cov(v) = P^, cov(v, d) = A C,
+   cov(d) = S_bar + Qd (``equations.input_walk``).
+3. fuse, the neighbourhood's prior (``prior_ci``): covariance intersection
+   (the paper's fast CI, eqs. input_fusion, input_fusion_p, applied to the
+   states) of the neighbourhood's x^_j: consistent for any correlation
+   between the neighbours' errors, and a neighbour that saw the target lends
+   its better prior. It replaces the own marginal of v, the conditional
+   p(d | v) kept (``equations.replace_marginal``).
+4. fuse, the relayed inputs (``relay``): fast CI of the neighbourhood's
+   (d_bar_j, S_bar_j + Qd) (the agent's own included) replaces the marginal
+   of d, p(v | d) kept. Information about the input travels one hop per
+   tick; an agent that has never measured learns it from a neighbour.
+5. fuse, to the state (``inject``): x = v + G d with
+   P = P_v + G B^T + B G^T + G S G^T and C = B + G S
+   (``equations.input_to_state``; B = cov(v, d)). The paper's eq.
+   (info_kf_prediction) is the mean of this with the input's covariance left
+   out (P^* = P^), which is why DISKF's NEES is large wherever the input is
+   uncertain.
+6. fuse, the measurement: the neighbourhood's stacked information
    U = sum_j (P~_j^-1 - P^_j^-1) = sum_j H_j^T R_j^-1 H_j and u likewise
-   (below eq. state_fusion), exact from the messages.
-4. fuse, the input (``joint_input``): the unbiased minimum-variance input
-   estimate of eq. (input_estimation) on the stacked sensors, relative to the
-   fused prior (d_N, S_N): what a centre holding the neighbourhood's
-   measurements would estimate. DISKF instead fuses the individual estimates
-   by CI, which share the prediction error, and loses the joint estimate.
-5. fuse, the state. Two cases:
-   * the neighbourhood's sensors make the input strongly detectable
-     (``gate``; ``equations.strongly_detectable``: rank(HG) = m and every
-     invariant zero of (A, G, H_N) inside the unit circle): the exact
-     Gillijns-De Moor update of ``rkf.rkf_update`` on (x_c, P_c, U, u), with
-     the input direction of the prior left free. Its error decays whatever
-     the input, and its covariance is the true one given the prior. The fused
-     input is (d_N, S_N).
-     ``latch``: once an agent has made this update, it keeps making it at
-     the following ticks while rank(HG) = m holds, even where the sensors of
-     that one tick alone are not strongly detectable: its prior already
-     carries the information of the earlier sensors (e.g. a y-sensor's),
-     so the error of a short stretch of x-sensor ticks grows from a small
-     value, as in the centralized filter, which never stops. A tick without
-     a usable measurement ends the latch; it restarts at the next
-     detectable tick. An agent that has only ever heard x-sensors never
-     latches.
-   * otherwise (no measurement, rank(HG) < m, or an invariant zero on or
-     outside the unit circle, e.g. only x-sensors heard while the target
-     turns anticlockwise): feeding the input estimate into the state would
-     make the error grow like that zero's powers. Instead the input is
-     predicted from the last fused inputs the neighbourhood relays
-     (``relay``: fast CI of their (d_bar, S_bar), the agent's own included),
-     injected with its covariance (``inject``; ``equations.input_injection``:
-     x* = x_c + G d, P* = P_c + G S G^T), the prior is scaled up where the
-     measurement shows it too small (``inflate``;
-     ``equations.innovation_scale``: an assumed input may have changed, or
-     none is known yet, and the prior cannot know), and the neighbourhood's
-     measurement information is added by the Kalman update in information
-     form (``equations.local_update``). The fused input is the relayed one.
-     Where nothing is known about the input yet, it is taken as zero (the
-     paper's prediction without input).
-6. The paper's window and compensation are switches (``window``,
-   ``compensate``), off by default: with honest covariances the input
-   estimate's S already grows after a gap (R~ = H P^ H^T + R), and CI of the
-   priors does what the compensation step approximates.
+   (below eq. state_fusion), exact from the messages, added by the Kalman
+   update in information form (``equations.local_update``). The measurement
+   is of x only, so p(d | x) is unchanged and the input's update is
+   ``replace_marginal`` of x (prior -> posterior): together the exact joint
+   Kalman update of (x, d).
 
-What it assumes that Gillijns-De Moor does not: in step 5's second case the
-input is taken to persist from the last tick it was detectable (its
-covariance is not inflated: without an input model there is no principled
-rate). Where the gate holds at every tick, nothing is assumed about the
-input. In particular, in an all-to-all network whose stacked sensors are
-strongly detectable at every tick, diskf-r *is* the centralized
-Gillijns-De Moor filter (``centralized.py``; ``tests/test_robust.py``).
+Where it is exact. Isolated (the neighbourhood is the agent) it is the joint
+Kalman filter of the agent's own sensor. In all-to-all every agent fused the
+same messages, so every CI returns the common prediction and input, the
+replacements change nothing, and diskf-r is the centralized filter with
+the same input model (``centralized.run_centralized_persist``; to round-off,
+``tests/test_robust.py``). In between, steps 3 and 4 keep the agent's own
+correlation between v and d for a fused prior whose correlation is not
+known: an approximation (measured: NEES about 2 in every setting of the
+report).
+
+Other switches (off by default, rows of the ablation table):
+* ``unbiased``: where the neighbourhood's sensors make the input strongly
+  detectable (``gate``; ``equations.strongly_detectable``: rank(HG) = m and
+  every invariant zero of (A, G, H_N) inside the unit circle; ``latch``:
+  and after such a tick while rank(HG) = m holds), the exact Gillijns-De
+  Moor update of ``rkf.rkf_update`` on the CI prior, the input's prior
+  dropped: it assumes nothing about the input there. Its input and
+  cross-covariance (``equations.free_input_gain``) continue the persistent
+  model at the next tick. On by itself (``persist`` off) with ``inflate`` on,
+  it is the first version of diskf-r (the relayed input assumed, not
+  learned, where the gate fails).
+* ``inflate``: the fading factor ``equations.innovation_scale`` on the prior
+  where the measurement shows it too small. With ``persist`` the input's
+  covariance already explains the innovations; measured, it makes the
+  covariance conservative (NEES 1.5 in all-to-all) without lowering the
+  error.
+* ``window``, ``compensate``: the paper's observation window (for the
+  unbiased update) and state compensation.
+* ``joint_input`` off: the message carries the agent's own input estimate
+  instead of its fused one (no relay), and the unbiased update uses the CI
+  of the individual estimates.
 """
 from __future__ import annotations
 
@@ -128,47 +150,42 @@ class DISKFRobust(Algorithm):
         p, o = self.params, self.params.robust
         G = self.model.G
         A = self.model.A_at(state.tick)
-        m = G.shape[-1]
         Ystar, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
         dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
                                              Yp=Yp, Yu=Yu, Ypx=Ypx)
         U, u = nbr_sum(nb.adj, dY, 2), nbr_sum(nb.adj, dy, 1)
-        # 2. the prior: CI of the neighbourhood's predictions
+        # 2. the prior of v = x_k - G d_{k-1}: CI of the neighbourhood's predictions
         if o.prior_ci:
             ones = np.ones(senders.x_pred.shape[:-1], dtype=bool)
             x_c, P_c, _ = eq.input_fusion(nb.adj, senders.x_pred, senders.P_pred, ones)
             Yc = inv_spd(P_c)
         else:
             x_c, P_c, Yc = own.x_pred, own.P_pred, Ystar
-        # 4. the input
-        allowed = eq.window_allows(state.since, p.window) if o.window else None
-        if o.joint_input:
-            d_N, S_N, valid_N = eq.input_estimate(x_c, P_c, U, u, G, allowed, Y=Yc)
+        # 3-4. the state and the input
+        if o.persist:
+            x_bar, P_bar, d_bar, S_bar, C_bar, held = self._persist(state, own, senders, nb, x_c, P_c, U, u, A)
         else:
-            d_N, S_N, valid_N = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
-        if o.unbiased:
+            x_bar, P_bar, d_bar, S_bar, held = self._assume(state, senders, nb, x_c, P_c, U, u)
+            C_bar = state.C
+        feed = np.zeros(held.shape, dtype=bool)
+        if o.unbiased:  # 5. where the heard sensors detect the input: the exact unbiased update
+            allowed = eq.window_allows(state.since, p.window) if o.window else None
+            if o.joint_input:
+                d_N, S_N, valid_N = eq.input_estimate(x_c, P_c, U, u, G, allowed, Y=Yc)
+            else:
+                d_N, S_N, valid_N = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
             feed = eq.strongly_detectable(A, G, U, valid_N) if o.gate else valid_N
             if o.gate and o.latch:
                 feed = feed | (valid_N & state.fed)
-        else:
-            feed = np.zeros_like(valid_N)
-        # 5a. detectable: the exact unbiased (Gillijns-De Moor) update
-        x_g, P_g = rkf_update(x_c, P_c, U, u, G, feed, Y=Yc)
-        if o.persist:
-            x_k, P_k, d_k, S_k, C_k, has_p = self._persist(state, own, senders, nb, x_c, P_c, U, u, A)
-            C_g = np.matmul(P_g, T(eq.free_input_gain(Yc, G)))
-        else:
-            x_k, P_k, d_k, S_k, has_p = self._assume(state, senders, nb, x_c, P_c, U, u)
-            C_k = C_g = state.C
-        f2, f3 = feed[..., None], feed[..., None, None]
-        x_bar, P_bar = np.where(f2, x_g, x_k), np.where(f3, P_g, P_k)
+            x_g, P_g = rkf_update(x_c, P_c, U, u, G, feed, Y=Yc)
+            f2, f3 = feed[..., None], feed[..., None, None]
+            x_bar, P_bar = np.where(f2, x_g, x_bar), np.where(f3, P_g, P_bar)
+            d_bar, S_bar = np.where(f2, d_N, d_bar), np.where(f3, S_N, S_bar)
+            C_bar = np.where(f3, np.matmul(P_g, T(eq.free_input_gain(Yc, G))), C_bar)
+            held = held | feed
         if o.compensate and p.compensation != "none" and p.eps != 0.0:
             gain = eq.compensation_gain(P_bar, p.compensation, p.eps, nb.n_neighbours)
             x_bar = eq.compensation_state(nb.adj, x_bar, gain, own.x_pred, senders.x_pred, p.eps)
-        d_bar = np.where(f2, d_N, d_k)
-        S_bar = np.where(f3, S_N, S_k)
-        C_bar = np.where(f3, C_g, C_k)
-        held = feed | has_p
         since = state.since
         if o.window and p.reset:
             since = np.where(held, 0, since)
@@ -176,8 +193,10 @@ class DISKFRobust(Algorithm):
         return st, Output(x_bar, P_bar, d_bar, held)
 
     def _persist(self, state, own, senders, nb, x_c, P_c, U, u, A):
-        """Step 5b with the persistent input (``persist``): the joint Kalman
-        filter of (x, d) under the random-walk input of ``equations.input_walk``."""
+        """Steps 2-6 with the persistent input (``persist``): the joint Kalman
+        filter of (x, d) under the random-walk input of ``equations.input_walk``.
+        The input counts as held from the first tick the neighbourhood
+        measures (or a neighbour relays a held one)."""
         o = self.params.robust
         G = self.model.G
         m = G.shape[-1]
@@ -208,8 +227,10 @@ class DISKFRobust(Algorithm):
         return x_k, P_k, d_k, S_k, C_k, has_p
 
     def _assume(self, state, senders, nb, x_c, P_c, U, u):
-        """Step 5b without ``persist``: the relayed input assumed, injected
-        with its covariance, the prior inflated, the Kalman update."""
+        """Without ``persist`` (the first diskf-r): the relayed input (or the
+        last fused one) assumed, injected with its covariance
+        (``equations.input_injection``), the prior inflated if ``inflate``,
+        the Kalman update; the input is not updated from the measurement."""
         o = self.params.robust
         G = self.model.G
         if o.relay and o.joint_input:
