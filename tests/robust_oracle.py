@@ -1,13 +1,17 @@
 """A plain per-agent reference of ``diskf-r`` (the test oracle for the
-robust variant), in the spirit of ``diskf_mesh/engine/oracle.py``: explicit loops
+robust variant), in the spirit of ``engine/oracle.py``: explicit loops
 over seeds, ticks, agents and neighbours, textbook formulas on stacked H, R,
-y (never the messages' information form), numpy.linalg / scipy only, and no
+y (never the messages' information form) and on the joint (x, d) covariance
+matrix as one (n + m) x (n + m) array, numpy.linalg / scipy only, and no
 code shared with ``equations``, ``rkf`` or ``linalg``. The invariant zeros
 come from the Rosenbrock pencil (scipy's generalized eigenvalues), not from
 the zero dynamics + Hautus test of ``equations.strongly_detectable``.
 
-Implements the defaults of ``model.RobustOptions`` (every switch as shipped).
-The fading factor is computed from the whitened innovation itself.
+``run_robust`` implements the defaults of ``model.RobustOptions`` (the
+persistent input, every default switch as shipped): the joint Kalman filter
+of (x, d) with a random-walk input, the neighbourhood's CI prior and relayed
+inputs replacing the agent's own marginals (conditionals kept), the Kalman
+update in gain form on the stacked sensors.
 """
 from __future__ import annotations
 
@@ -51,72 +55,70 @@ def strongly_detectable(A, G, H):
             and bool(np.all(np.abs(invariant_zeros(A, G, H)) < 1.0)))
 
 
-def run_robust(trace):
+def _replace(mean, cov, idx_a, a_new, Paa_new):
+    """The joint Gaussian (mean, cov) with the marginal of the components
+    ``idx_a`` replaced, the conditional of the others kept (textbook
+    regression on the full matrix)."""
+    idx_b = np.setdiff1d(np.arange(len(mean)), idx_a)
+    Paa, Pba = cov[np.ix_(idx_a, idx_a)], cov[np.ix_(idx_b, idx_a)]
+    K = Pba @ np.linalg.inv(Paa)
+    out, C = mean.copy(), cov.copy()
+    out[idx_a] = a_new
+    out[idx_b] = mean[idx_b] + K @ (a_new - mean[idx_a])
+    C[np.ix_(idx_a, idx_a)] = Paa_new
+    C[np.ix_(idx_b, idx_a)] = K @ Paa_new
+    C[np.ix_(idx_a, idx_b)] = (K @ Paa_new).T
+    C[np.ix_(idx_b, idx_b)] = cov[np.ix_(idx_b, idx_b)] - K @ Paa @ K.T + K @ Paa_new @ K.T
+    return out, C
+
+
+def run_robust(trace, options):
+    """diskf-r with the default switches; ``options`` gives input_walk and
+    input_prior."""
     model, sensors = trace.model, trace.sensors
     B, K, N = trace.has.shape
     n, m = model.n, model.m
     G = model.G
+    Qd = options.input_walk * np.eye(m)
+    iv, idd = np.arange(n), np.arange(n, n + m)
     out = dict(x=np.zeros((B, K, N, n)), P=np.zeros((B, K, N, n, n)), d=np.zeros((B, K, N, m)),
                v=np.zeros((B, K, N), dtype=bool))
     Hs = [sensors.H[i, : sensors.p[i]] for i in range(N)]
     Rs = [sensors.R[i, : sensors.p[i], : sensors.p[i]] for i in range(N)]
     for b in range(B):
-        x = [model.x0.astype(float).copy() for _ in range(N)]
-        P = [model.P0.astype(float).copy() for _ in range(N)]
-        dh = [np.zeros(m) for _ in range(N)]
-        Sh = [np.eye(m) for _ in range(N)]
+        z = [np.concatenate([model.x0.astype(float), np.zeros(m)]) for _ in range(N)]
+        Pi = [scipy.linalg.block_diag(model.P0, options.input_prior * np.eye(m)) for _ in range(N)]
         held = [False] * N
-        fed = [False] * N
         links = trace.links[min(b, trace.links.shape[0] - 1)]
         for k in range(1, K + 1):
             A = model.A_at(k)
-            pred = [(A @ x[i], A @ P[i] @ A.T + model.Q) for i in range(N)]
+            Tv = scipy.linalg.block_diag(A, np.eye(m))            # (x_{k-1}, d_{k-2}) -> (v_k, d_{k-1})
+            Tx = np.block([[np.eye(n), G], [np.zeros((m, n)), np.eye(m)]])  # (v, d) -> (x, d)
+            pred = [(A @ z[i][:n], A @ Pi[i][:n, :n] @ A.T + model.Q) for i in range(N)]
+            relay = [(z[i][n:], Pi[i][n:, n:] + Qd) for i in range(N)]
             new = []
             for i in range(N):
                 nb = list(np.flatnonzero(links[k - 1, i]))
+                w = Tv @ z[i]
+                W = Tv @ Pi[i] @ Tv.T + scipy.linalg.block_diag(model.Q, Qd)
                 xc, Pc = fast_ci([pred[j][0] for j in nb], [pred[j][1] for j in nb])
+                w, W = _replace(w, W, iv, xc, Pc)
+                relayed = [j for j in nb if held[j]]
+                if relayed:
+                    dr, Sr = fast_ci([relay[j][0] for j in relayed], [relay[j][1] for j in relayed])
+                    w, W = _replace(w, W, idd, dr, Sr)
+                za, Pa = Tx @ w, Tx @ W @ Tx.T
                 meas = [j for j in nb if trace.has[b, k - 1, j]]
                 if meas:
-                    H = np.vstack([Hs[j] for j in meas])
+                    H = np.hstack([np.vstack([Hs[j] for j in meas]), np.zeros((sum(sensors.p[j] for j in meas), m))])
                     R = scipy.linalg.block_diag(*[Rs[j] for j in meas])
                     y = np.concatenate([trace.y[b, k - 1, j, : sensors.p[j]] for j in meas])
-                    rank = np.linalg.matrix_rank(H @ G) == m
-                else:
-                    H, R, y, rank = np.zeros((0, n)), np.zeros((0, 0)), np.zeros(0), False
-                feed = rank and (strongly_detectable(A, G, H) or fed[i])
-                if feed:
-                    # textbook Gillijns-De Moor input estimate and the unbiased state update
-                    Rt = H @ Pc @ H.T + R
-                    F = H @ G
-                    S = np.linalg.inv(F.T @ np.linalg.inv(Rt) @ F)
-                    d = S @ F.T @ np.linalg.inv(Rt) @ (y - H @ xc)
-                    Y = np.linalg.inv(Pc)
-                    Yf = Y - Y @ G @ np.linalg.inv(G.T @ Y @ G) @ G.T @ Y
-                    Pn = np.linalg.inv(Yf + H.T @ np.linalg.inv(R) @ H)
-                    xn = Pn @ (Yf @ xc + H.T @ np.linalg.inv(R) @ y)
-                    vn = True
-                else:
-                    relayed = [j for j in nb if held[j]]
-                    if relayed:
-                        d, S = fast_ci([dh[j] for j in relayed], [Sh[j] for j in relayed])
-                        xs, Ps = xc + G @ d, Pc + G @ S @ G.T
-                    else:
-                        d, S = np.zeros(m), np.eye(m)
-                        xs, Ps = xc, Pc
-                    if meas:  # fading factor from the whitened innovation, then the Kalman update in gain form
-                        Li = np.linalg.inv(np.linalg.cholesky(R))
-                        Cw, nu = Li @ H, Li @ (y - H @ xs)
-                        seen = Cw @ np.linalg.pinv(Cw) @ nu  # the part of nu in the range of Cw
-                        alpha = max(1.0, (seen @ seen - np.linalg.matrix_rank(Cw)) / np.trace(Cw @ Ps @ Cw.T))
-                        Ps = alpha * Ps
-                        L = Ps @ H.T @ np.linalg.inv(H @ Ps @ H.T + R)
-                        xn, Pn = xs + L @ (y - H @ xs), (np.eye(n) - L @ H) @ Ps
-                    else:
-                        xn, Pn = xs, Ps
-                    vn = bool(relayed)
-                new.append((xn, Pn, d, S, vn, feed))
-            for i, (xn, Pn, d, S, vn, feed) in enumerate(new):
-                x[i], P[i], dh[i], Sh[i], held[i], fed[i] = xn, Pn, d, S, vn, feed
-                out["x"][b, k - 1, i], out["P"][b, k - 1, i] = xn, Pn
-                out["d"][b, k - 1, i], out["v"][b, k - 1, i] = d, vn
+                    L = Pa @ H.T @ np.linalg.inv(H @ Pa @ H.T + R)
+                    IL = np.eye(n + m) - L @ H  # Joseph form: well conditioned with the wide input prior
+                    za, Pa = za + L @ (y - H @ za), IL @ Pa @ IL.T + L @ R @ L.T
+                new.append((za, Pa, held[i] or bool(meas) or bool(relayed)))
+            for i, (za, Pa, h) in enumerate(new):
+                z[i], Pi[i], held[i] = za, Pa, h
+                out["x"][b, k - 1, i], out["P"][b, k - 1, i] = za[:n], Pa[:n, :n]
+                out["d"][b, k - 1, i], out["v"][b, k - 1, i] = za[n:], h
     return out
