@@ -268,6 +268,14 @@ def every_setting(cfg: StudyConfig) -> list:
 COMM = {"all": "all-to-all", "ring": "1-hop (ring)", "none": "none"}
 
 
+def bound_rows(tr, scn: Scenario) -> dict:
+    """The two centralized references on ``tr``: Gillijns-De Moor (assumes
+    nothing about the input) and the filter with diskf-r's persistent-input
+    model (the bound of that model)."""
+    return {centralized.NAME: metric_row(tr, centralized.run_centralized(tr)),
+            centralized.PERSIST_NAME: metric_row(tr, centralized.run_centralized_persist(tr, scn.params.robust))}
+
+
 def overview(cfg: StudyConfig) -> dict:
     """{"group / setting": {alg: row}} for every algorithm and the centralized
     bound in every setting (NEES of every estimator included)."""
@@ -277,23 +285,33 @@ def overview(cfg: StudyConfig) -> dict:
         for group, label, scn in settings:
             tr = simulate(scn, cfg.seed_range)
             rows = {a: metric_row(tr, engine.run(tr, a, scn.params)) for a in cfg.algorithms}
-            rows[centralized.NAME] = metric_row(tr, centralized.run_centralized(tr))
+            rows.update(bound_rows(tr, scn))
             out[f"{group} / {label}"] = rows
             bar.update(1)
     return out
 
 
-ROBUST_SWITCHES = ("prior_ci", "joint_input", "gate", "latch", "relay", "inject", "inflate")
-
-
 def robust_variants(base: Params) -> list[Variant]:
-    """diskf-r as shipped, each ingredient off in turn, and the paper's window
-    and compensation switched on."""
+    """diskf-r as shipped, each ingredient switched in turn, the input
+    model's two scales x 0.1 and x 10 (and the prior x 1e-4), the first
+    diskf-r (unbiased gated update, assumed input, fading factor) and the
+    paper's DISKF."""
+    r = base.robust
+    def v(label, **kw):
+        return Variant(label, "diskf-r", replace(base, robust=replace(r, **kw)))
     out = [Variant("diskf-r (all on)", "diskf-r", base)]
-    for sw in ROBUST_SWITCHES:
-        out.append(Variant(f"without {sw}", "diskf-r", replace(base, robust=replace(base.robust, **{sw: False}))))
-    for sw in ("window", "compensate"):
-        out.append(Variant(f"with {sw}", "diskf-r", replace(base, robust=replace(base.robust, **{sw: True}))))
+    for sw in ("prior_ci", "relay", "inject", "joint_input"):
+        out.append(v(f"without {sw}", **{sw: False}))
+    out.append(v("without persist (input assumed, not learned)", persist=False))
+    out.append(v("with unbiased (GDM update where strongly detectable)", unbiased=True))
+    out.append(v("with unbiased, without gate", unbiased=True, gate=False))
+    out.append(v("with inflate", inflate=True))
+    out.append(v("with compensate", compensate=True))
+    for f in (0.1, 10.0):
+        out.append(v(f"input_walk × {f:g} ({r.input_walk * f:g})", input_walk=r.input_walk * f))
+    out.append(v(f"input_prior × 1e-4 ({r.input_prior * 1e-4:g})", input_prior=r.input_prior * 1e-4))
+    out.append(v("first diskf-r (persist off, unbiased + gate + latch, inflate)", persist=False, unbiased=True,
+                 inflate=True))
     out.append(Variant("DISKF (paper)", "diskf", base))
     return out
 
@@ -314,13 +332,18 @@ def rotation(omega: float) -> np.ndarray:
 
 def perturbations(scn: Scenario) -> list:
     """(label, scenario): the target's turn rate x 0.5, 1, 2 and reversed
-    (clockwise, so the y-sensors have the unstable invariant zero), and a
-    wide prior (P0 = 100^2 I: every agent is told its start is that uncertain)."""
+    (clockwise, so the y-sensors have the unstable invariant zero), a wide
+    prior (P0 = 100^2 I: every agent is told its start is that uncertain),
+    and two other inputs: the step late and negative (0 until tick 100, then
+    minus half the shipped step, when diskf-r's input covariance has long
+    settled on "no input") and a step three times as large."""
     w = float(np.arctan2(scn.A[1, 0], scn.A[0, 0]))
     out = [(f"ω = {f:g}·ω₀", replace(scn, A=rotation(f * w))) for f in (0.5, 1.0, 2.0)]
     out.append(("ω = −ω₀ (clockwise)", replace(scn, A=rotation(-w))))
     out.append(("ω = −2·ω₀ (clockwise)", replace(scn, A=rotation(-2 * w))))
     out.append(("wide prior P0 = 100² I", replace(scn, P0=1e4 * np.eye(scn.P0.shape[0]))))
+    out.append(("late step: 0, then −5 from tick 100", replace(scn, input_at=100, input_after=-0.5 * scn.input_after)))
+    out.append(("step × 3 (30)", replace(scn, input_after=3.0 * scn.input_after)))
     return out
 
 
@@ -337,12 +360,12 @@ def robustness(cfg: StudyConfig, algs=("diskf", "diskf-r", "kcf", "diffkf")) -> 
     cells = (("Scenario 1 ring", STATIONARY, RING), ("Scenario 1 none", STATIONARY, NONE),
              (f"Scenario 2 range {PAPER_RANGE:g}", DYNAMIC, range_setting(PAPER_RANGE)), ("Scenario 2 all", DYNAMIC, ALL))
     out = {}
-    with cfg.bar(len(cells) * 6, "robustness") as bar:
+    with cfg.bar(len(cells) * 8, "robustness") as bar:
         for name, scn_name, st in cells:
             for lab, scn in perturbations(cfg.scenario(scn_name, st)):
                 tr = simulate(scn, robust_seeds(cfg))
                 rows = {a: metric_row(tr, engine.run(tr, a, scn.params)) for a in algs}
-                rows[centralized.NAME] = metric_row(tr, centralized.run_centralized(tr))
+                rows.update(bound_rows(tr, scn))
                 out[f"{name} / {lab}"] = rows
                 bar.update(1)
     return out
