@@ -292,3 +292,22 @@ def test_robust_scales_must_be_positive(bad):
         RobustOptions(input_walk=bad)
     with pytest.raises(ValueError):
         RobustOptions(input_prior=bad)
+
+
+def test_robust_scales_from_a_scenario_and_a_trace():
+    """[estimator.robust] takes the two scales as numbers > 0 (and the
+    switches as booleans); a trace carries them back."""
+    import tomllib
+    from diskf_mesh.core.errors import InputError
+    from diskf_mesh.data.scenario import parse_scenario, scenario_path
+    from diskf_mesh.data.trace import estimator_from_json, trace_to_json
+    raw = tomllib.loads(scenario_path("quadrants").read_text())
+    raw["estimator"]["robust"] = {"input_walk": 2.5, "input_prior": 100, "persist": True}
+    scn = parse_scenario(raw)
+    assert scn.params.robust == RobustOptions(input_walk=2.5, input_prior=100.0)
+    doc = trace_to_json(simulate(scn.with_overrides(steps=5), [0]), params=scn.params)
+    assert estimator_from_json(doc).robust == scn.params.robust
+    for bad in ({"input_walk": 0}, {"input_prior": -1.0}, {"input_walk": True}, {"persist": 1}):
+        raw["estimator"]["robust"] = bad
+        with pytest.raises(InputError):
+            parse_scenario(raw)
