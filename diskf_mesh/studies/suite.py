@@ -302,7 +302,7 @@ def robust_variants(base: Params) -> list[Variant]:
     out = [Variant("diskf-r (all on)", "diskf-r", base)]
     for sw in ("prior_ci", "relay", "inject", "joint_input"):
         out.append(v(f"without {sw}", **{sw: False}))
-    out.append(v("without persist (input assumed, not learned)", persist=False))
+    out.append(v("without persist (no input model: no input at all)", persist=False))
     out.append(v("with unbiased (GDM update where strongly detectable)", unbiased=True))
     out.append(v("with unbiased, without gate", unbiased=True, gate=False))
     out.append(v("with inflate", inflate=True))
