@@ -19,7 +19,14 @@ sensors, the centre makes the plain Kalman update without input (as C-DRKF).
 In an all-to-all network this is exactly C-DRKF (every neighbourhood is
 every agent); ``tests/test_robust.py`` checks the two agree.
 
-It runs on the engine's data only (one centre, not a mesh of agents).
+A second centre, ``run_centralized_persist``, runs the joint Kalman filter
+of (x, d) with ``diskf-r``'s persistent-input model (the input a random
+walk): it is the bound of that model, which the first centre is not (an
+estimator that assumes the input persists can be below the assumption-free
+bound, and diskf-r is wherever the input does persist). In all-to-all
+diskf-r equals it to round-off.
+
+Both run on the engine's data only (one centre, not a mesh of agents).
 """
 from __future__ import annotations
 
