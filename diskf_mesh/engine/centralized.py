@@ -27,7 +27,6 @@ import numpy as np
 
 from diskf_mesh.core import equations as eq
 from diskf_mesh.engine.batch import Estimates
-from diskf_mesh.core.linalg import inv_spd
 from diskf_mesh.core.rkf import rkf_update
 from diskf_mesh.data.trace import Trace
 
@@ -49,11 +48,11 @@ def run_centralized(trace: Trace) -> Estimates:
     ds, dv = np.empty((B, K, m)), np.empty((B, K), dtype=bool)
     for k in range(1, K + 1):
         x_pred, P_pred = eq.predict(x, P, model.A_at(k), model.Q)
-        U_j, u_j = eq.measurement_information(sensors.H, sensors.R, trace.y[:, k - 1], trace.has[:, k - 1], info=info)
+        U_j, u_j = eq.measurement_information(info, trace.y[:, k - 1], trace.has[:, k - 1])
         U, u = U_j.sum(axis=1), u_j.sum(axis=1)  # the stacked sensors' H^T R^-1 H, H^T R^-1 y
-        Y = inv_spd(P_pred)
-        d, _, valid = eq.input_estimate(x_pred, P_pred, U, u, model.G, Y=Y)
-        x, P = rkf_update(x_pred, P_pred, U, u, model.G, valid, Y=Y)
+        Y, Ji = eq.information_pair(P_pred, U)
+        d, _, valid = eq.input_estimate(x_pred, Y, Ji, U, u, model.G)
+        x, P = rkf_update(x_pred, Y, U, u, model.G, valid)
         xs[:, k - 1], Ps[:, k - 1], ds[:, k - 1], dv[:, k - 1] = x, P, d, valid
     rep = lambda a: np.repeat(a[:, :, None], N, axis=2)  # noqa: E731
     return Estimates(rep(xs), rep(Ps), rep(ds), rep(dv))

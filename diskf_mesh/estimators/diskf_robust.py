@@ -117,15 +117,14 @@ class DISKFRobust(Algorithm):
             allowed = eq.window_allows(since, self.params.window) if o.window else None
             d, S, valid = self.local_input(loc, allowed)
         st = RobustState(state.x, state.P, np.where(has, 0, since), state.d_hold, state.held,
-                         loc.Y, loc.Yx, S_hold=state.S_hold, tick=k, fed=state.fed)
+                         loc.Y, S_hold=state.S_hold, tick=k, fed=state.fed)
         return st, self.message(loc, d, S, valid)
 
     def fuse(self, state: RobustState, own: Message, senders: Message, nb: Neighbourhood):
         p, o = self.params, self.params.robust
         G = self.model.G
-        Ystar, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
-        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
-                                             Yp=Yp, Yu=Yu, Ypx=Ypx)
+        Ystar, Yp, Yu = self.fusion_inverses(state, own, senders)
+        dy, dY = eq.information_contribution(senders.x_pred, Yp, senders.x_upd, Yu)
         U, u = nbr_sum(nb.adj, dY, 2), nbr_sum(nb.adj, dy, 1)
         # 2. the prior: CI of the neighbourhood's predictions
         if o.prior_ci:
@@ -137,14 +136,14 @@ class DISKFRobust(Algorithm):
         # 4. the input
         allowed = eq.window_allows(state.since, p.window) if o.window else None
         if o.joint_input:
-            d_N, S_N, valid_N = eq.input_estimate(x_c, P_c, U, u, G, allowed, Y=Yc)
+            d_N, S_N, valid_N = eq.input_estimate(x_c, Yc, inv_spd(Yc + U), U, u, G, allowed)
         else:
             d_N, S_N, valid_N = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
         feed = eq.strongly_detectable(self.model.A_at(state.tick), G, U, valid_N) if o.gate else valid_N
         if o.gate and o.latch:
             feed = feed | (valid_N & state.fed)
         # 5a. detectable: the exact unbiased (Gillijns-De Moor) update
-        x_g, P_g = rkf_update(x_c, P_c, U, u, G, feed, Y=Yc)
+        x_g, P_g = rkf_update(x_c, Yc, U, u, G, feed)
         # 5b. otherwise: the relayed input, injected with its covariance, then the Kalman update
         if o.relay and o.joint_input:
             d_p, S_p, has_p = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
@@ -157,7 +156,7 @@ class DISKFRobust(Algorithm):
         if o.inflate:
             alpha = eq.innovation_scale(P_s, U, u, x_s)
             P_s = P_s * alpha[..., None, None]
-        x_k, P_k = eq.local_update(x_s, P_s, U, u)
+        x_k, P_k = eq.local_update(x_s, P_s, *eq.information_pair(P_s, U), u)
         f2, f3 = feed[..., None], feed[..., None, None]
         x_bar, P_bar = np.where(f2, x_g, x_k), np.where(f3, P_g, P_k)
         if o.compensate and p.compensation != "none" and p.eps != 0.0:
