@@ -11,6 +11,15 @@ from diskf_mesh.core.linalg import inv_spd, is_spd, nbr_sum
 G = np.array([[1.0], [1.0]])
 
 
+def local_update(x, P, U, u, has=None):
+    """eq. info_kf_update0 from (P^, U): the information pair inverted here."""
+    return eq.local_update(x, P, *eq.information_pair(P, U), u, has)
+
+
+def input_estimate(x, P, U, u, Gm, allowed=None):
+    return eq.input_estimate(x, *eq.information_pair(P, U), U, u, Gm, allowed)
+
+
 def test_prediction_eq_info_kf_prediction0():
     A = np.array([[0.0, -1.0], [1.0, 0.0]])  # rotation by 90 degrees
     x, P = eq.predict(np.array([1.0, 2.0]), np.diag([1.0, 2.0]), A, 0.2 * np.eye(2))
@@ -22,17 +31,17 @@ def test_measurement_information_padding_and_absence():
     # sensor sees x with R = 2, padded to two rows (zero row in H, 1 in R)
     H = np.array([[1.0, 0.0], [0.0, 0.0]])
     R = np.diag([2.0, 1.0])
-    U, u = eq.measurement_information(H, R, np.array([3.0, 0.0]), np.array(True))
+    U, u = eq.measurement_information(eq.sensor_information(H, R), np.array([3.0, 0.0]), np.array(True))
     np.testing.assert_allclose(U, np.diag([0.5, 0.0]))
     np.testing.assert_allclose(u, [1.5, 0.0])
-    U, u = eq.measurement_information(H, R, np.array([3.0, 0.0]), np.array(False))
+    U, u = eq.measurement_information(eq.sensor_information(H, R), np.array([3.0, 0.0]), np.array(False))
     assert not U.any() and not u.any()
 
 
 def test_local_update_eq_info_kf_update0():
     # P^ = 2I, x^ = (1, 1), sees x = 3 with R = 2:
     # K = P H^T / (H P H^T + R) = (0.5, 0);  x~ = (1 + 0.5 * 2, 1) = (2, 1);  P~ = diag(1, 2)
-    x, P = eq.local_update(np.array([1.0, 1.0]), 2 * np.eye(2), np.diag([0.5, 0.0]), np.array([1.5, 0.0]))
+    x, P = local_update(np.array([1.0, 1.0]), 2 * np.eye(2), np.diag([0.5, 0.0]), np.array([1.5, 0.0]))
     np.testing.assert_allclose(x, [2.0, 1.0])
     np.testing.assert_allclose(P, np.diag([1.0, 2.0]))
 
@@ -40,14 +49,14 @@ def test_local_update_eq_info_kf_update0():
 def test_local_update_without_measurement_is_prediction_bit_for_bit():
     P = np.array([[2.0, 0.3], [0.3, 1.7]])
     x = np.array([0.1, -4.0])
-    xu, Pu = eq.local_update(x, P, np.zeros((2, 2)), np.zeros(2), np.array(False))
+    xu, Pu = local_update(x, P, np.zeros((2, 2)), np.zeros(2), np.array(False))
     assert np.array_equal(xu, x) and np.array_equal(Pu, P)
 
 
 def test_input_estimation_scalar_by_hand():
     # H = (1, 0), G = (1, 1): HG = 1.  R~ = H P^ H^T + R = 2 + 2 = 4
     # M = (1/4)^-1 * 1/4 = 1,  d^ = y - H x^ = 3 - 1 = 2,  S^ = 4
-    d, S, valid = eq.input_estimate(np.array([1.0, 1.0]), 2 * np.eye(2), np.diag([0.5, 0.0]),
+    d, S, valid = input_estimate(np.array([1.0, 1.0]), 2 * np.eye(2), np.diag([0.5, 0.0]),
                                     np.array([1.5, 0.0]), G)
     assert valid
     np.testing.assert_allclose(d, [2.0])
@@ -57,7 +66,7 @@ def test_input_estimation_scalar_by_hand():
 def test_input_estimation_two_rows_by_hand():
     # H = I, R = I, P^ = I, x^ = 0, y = (1, 3): R~ = 2I, F = G
     # F^T R~^-1 F = 1 -> S^ = 1;  M = (1/2, 1/2);  d^ = 2
-    d, S, valid = eq.input_estimate(np.zeros(2), np.eye(2), np.eye(2), np.array([1.0, 3.0]), G)
+    d, S, valid = input_estimate(np.zeros(2), np.eye(2), np.eye(2), np.array([1.0, 3.0]), G)
     assert valid
     np.testing.assert_allclose(d, [2.0])
     np.testing.assert_allclose(S, [[1.0]])
@@ -82,7 +91,7 @@ def test_input_estimation_matches_direct_formula_random():
         d_ref = S_ref @ Fi @ (y - H @ x)
         U = H.T @ np.linalg.solve(R, H)
         u = H.T @ np.linalg.solve(R, y)
-        d, S, valid = eq.input_estimate(x, P, U, u, Gm)
+        d, S, valid = input_estimate(x, P, U, u, Gm)
         assert valid
         np.testing.assert_allclose(d, d_ref, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(S, S_ref, rtol=1e-9, atol=1e-9)
@@ -91,8 +100,8 @@ def test_input_estimation_matches_direct_formula_random():
 @pytest.mark.parametrize("case", ["rank", "absent", "window"])
 def test_input_estimation_skipped(case):
     H = np.array([[1.0, -1.0]]) if case == "rank" else np.array([[1.0, 0.0]])  # H G = 0 for "rank"
-    U, u = eq.measurement_information(H, np.array([[2.0]]), np.array([3.0]), np.array(case != "absent"))
-    d, S, valid = eq.input_estimate(np.zeros(2), np.eye(2), U, u, G, allowed=np.array(case != "window"))
+    U, u = eq.measurement_information(eq.sensor_information(H, np.array([[2.0]])), np.array([3.0]), np.array(case != "absent"))
+    d, S, valid = input_estimate(np.zeros(2), np.eye(2), U, u, G, allowed=np.array(case != "window"))
     assert not valid
     assert np.array_equal(d, [0.0]) and np.array_equal(S, [[1.0]])
 
@@ -133,8 +142,8 @@ def test_ci_of_identical_estimates_returns_that_estimate(a, d, copies):
 def test_information_contribution_recovers_measurement_information():
     x, P = np.array([1.0, 1.0]), 2 * np.eye(2)
     U, u = np.diag([0.5, 0.0]), np.array([1.5, 0.0])
-    xu, Pu = eq.local_update(x, P, U, u)
-    dy, dY = eq.information_contribution(x, P, xu, Pu)
+    xu, Pu = local_update(x, P, U, u)
+    dy, dY = eq.information_contribution(x, inv_spd(P), xu, inv_spd(Pu))
     np.testing.assert_allclose(dY, U, atol=1e-12)
     np.testing.assert_allclose(dy, u, atol=1e-12)
 
@@ -146,7 +155,7 @@ def test_state_fusion_by_hand():
     adj = np.ones((1, 2))
     dY = np.array([np.diag([0.5, 0.0]), np.diag([0.0, 0.5])])
     dy = np.array([[1.5, 0.0], [0.0, 1.0]])
-    x, P = eq.state_fusion(adj, np.zeros((1, 2)), 2 * np.eye(2)[None], dy, dY)
+    x, P = eq.state_fusion(adj, np.zeros((1, 2)), inv_spd(2 * np.eye(2)[None]), dy, dY)
     np.testing.assert_allclose(P[0], np.eye(2))
     np.testing.assert_allclose(x[0], [1.5, 1.0])
 

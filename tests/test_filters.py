@@ -132,7 +132,7 @@ def test_rkf_information_form_equals_gillijns_de_moor_textbook():
         P_ref = Ps - Kg @ (Ps @ C.T - G @ M @ R).T
         U = C.T @ np.linalg.solve(R, C)
         u = C.T @ np.linalg.solve(R, y)
-        x, P = rkf_update(xp, Pp, U, u, G, np.array(True))
+        x, P = rkf_update(xp, np.linalg.inv(Pp), U, u, G, np.array(True))
         np.testing.assert_allclose(x, x_ref, rtol=1e-8, atol=1e-8)
         np.testing.assert_allclose(P, P_ref, rtol=1e-8, atol=1e-8)
 

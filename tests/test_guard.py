@@ -11,8 +11,8 @@ import pytest
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.counters import Counters
 from diskf_mesh.data.faults import FaultConfig, FaultModel
-from diskf_mesh.mesh.guard import REASONS, Guard, fuse_checked
-from diskf_mesh.core.messages import Message, Neighbourhood
+from diskf_mesh.mesh.guard import REASONS, Guard
+from diskf_mesh.core.messages import Message
 from diskf_mesh.mesh.receive import Receiver
 from message_factory import tick_view
 
@@ -173,25 +173,6 @@ def test_rejected_messages_leave_the_estimate_bit_for_bit(view):
     assert c.sent == c.received == c.arrived == 2 * len(view.linked)   # the sender repeated itself
     assert c.rejected_total == len(bad_payloads(view))
     assert c.imbalance() == []
-
-
-def test_fusion_that_still_fails_keeps_the_own_estimate(view):
-    """A set of individually plausible messages that makes fusion fail: the
-    agent fuses its own message alone and goes on."""
-    j = view.linked[0]
-    P = view.messages[j].P_pred
-    liar = Message(**{**{f: getattr(view.messages[j], f) for f in ("x_pred", "x_upd", "d", "S", "d_valid")},
-                      "P_pred": P, "P_upd": np.full((2, 2), np.nan)})
-    rows = sorted([(view.me, view.own.take(0)), (j, liar)], key=lambda r: r[0])
-    senders = Message.stack([m for _, m in rows])
-    own_index = [s for s, _ in rows].index(view.me)
-    mask = np.zeros((1, 2), dtype=bool)
-    mask[0, own_index] = True
-    with np.errstate(all="ignore"):
-        _, out, ok = fuse_checked(view.alg, view.state, view.own, senders, Neighbourhood(np.ones((1, 2)), mask),
-                                  own_index)
-    _, alone = view.fuse([])
-    assert not ok and out.x.tobytes() == alone.x.tobytes()
 
 
 def test_receiver_with_faults_balances_its_books(view):

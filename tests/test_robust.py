@@ -118,9 +118,10 @@ def test_free_input_gain_reads_the_unbiased_input():
     M = rng.normal(size=(2, 2))
     P_pred = M @ M.T + np.eye(2)
     U, u = info(0, 1), rng.normal(size=2)
-    d, _, valid = eq.input_estimate(x_pred, P_pred, U, u, G)
-    x, _ = rkf_update(x_pred, P_pred, U, u, G, valid)
-    L = eq.free_input_gain(np.linalg.inv(P_pred), G)
+    Y, Ji = eq.information_pair(P_pred, U)
+    d, _, valid = eq.input_estimate(x_pred, Y, Ji, U, u, G)
+    x, _ = rkf_update(x_pred, Y, U, u, G, valid)
+    L = eq.free_input_gain(Y, G)
     np.testing.assert_allclose(L @ (x - x_pred), d, rtol=1e-12, atol=1e-12)
 
 

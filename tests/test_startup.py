@@ -13,7 +13,7 @@ from diskf_mesh import __version__
 HEAVY = ("matplotlib", "PIL", "scipy")
 PROBE = """
 import sys
-from diskf_mesh import cli
+from diskf_mesh.cli import main as cli
 try:
     code = cli.main(sys.argv[1:])
 except SystemExit as e:

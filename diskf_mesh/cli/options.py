@@ -14,7 +14,8 @@ from diskf_mesh.core.errors import InputError
 from diskf_mesh.core.model import COMPENSATION_FORMS, Params
 from diskf_mesh.data.argtypes import (  # noqa: F401 (re-exported)
     algorithm_list, algorithm_name, eps_value, positive_int, range_value, seed_value, window_value)
-from diskf_mesh.data.outputs import check_output, check_output_dir, human_stream, json_safe, save_json  # noqa: F401 (re-exported)
+from diskf_mesh.data.outputs import (  # noqa: F401 (re-exported)
+    check_output, check_output_dir, human_stream, json_safe, save_json)
 
 
 def add_command(subparsers, name: str, summary: str, doc: str) -> argparse.ArgumentParser:

@@ -54,39 +54,36 @@ def sensor_information(H: np.ndarray, R: np.ndarray):
     return HtRi, sym(np.matmul(HtRi, H))
 
 
-def measurement_information(H: np.ndarray, R: np.ndarray, y: np.ndarray, has: np.ndarray, *, info=None):
+def measurement_information(info, y: np.ndarray, has: np.ndarray):
     """Information of one measurement: U = H^T R^-1 H, u = H^T R^-1 y.
 
     These are the per-agent terms of the unpacked sums below eq. (state_fusion).
-    H: (..., p, n), R: (..., p, p), y: (..., p), has: (...) bool.
-    Rows of H that are zero (padding of a shorter sensor) contribute nothing,
-    so sensors of different p^i share one padded array. An agent that measured
-    nothing (has=False) contributes zero information.
-    ``info``: ``sensor_information(H, R)`` if already known (the same numbers).
+    ``info`` = ``sensor_information(H, R)``, H: (..., p, n), R: (..., p, p);
+    y: (..., p), has: (...) bool. Rows of H that are zero (padding of a
+    shorter sensor) contribute nothing, so sensors of different p^i share one
+    padded array. An agent that measured nothing (has=False) contributes zero
+    information.
     """
-    HtRi, HtRiH = sensor_information(H, R) if info is None else info
+    HtRi, HtRiH = info
     has = np.asarray(has)
     U = HtRiH * has[..., None, None]
     u = mv(HtRi, np.where(has[..., None], y, 0.0))  # exactly zero where nothing was measured
     return U, u
 
 
-def local_update(x_pred: np.ndarray, P_pred: np.ndarray, U: np.ndarray, u: np.ndarray, has=None, *,
-                 Y=None, Ji=None, Yx=None):
+def local_update(x_pred: np.ndarray, P_pred: np.ndarray, Y: np.ndarray, Ji: np.ndarray, u: np.ndarray, has=None):
     """Eq. (info_kf_update0), information form of the local Kalman update.
 
     P~^-1 = P^^-1 + H^T R^-1 H,   x~ = P~ (P^^-1 x^ + H^T R^-1 y)
     (equal to x^ + L (y - H x^) with L = P~ H^T R^-1).
+    In the information form it works in: ``Y`` = P^^-1 and ``Ji`` =
+    (Y + U)^-1 (``input_estimate`` needs the same two inverses; the caller
+    computes them once per tick, ``information_pair``).
     Where ``has`` is False the update is the prediction, bit for bit, so a
     neighbour that measured nothing contributes exactly zero information.
-    ``Y`` = inv_spd(P_pred), ``Ji`` = inv_spd(Y + U) and ``Yx`` = Y x^, if
-    already computed (``input_estimate`` needs the same two inverses), give
-    the same numbers.
     """
-    if Y is None:
-        Y = inv_spd(P_pred)
-    P_upd = inv_spd(Y + U) if Ji is None else Ji
-    x_upd = mv(P_upd, (mv(Y, x_pred) if Yx is None else Yx) + u)
+    P_upd = Ji
+    x_upd = mv(P_upd, mv(Y, x_pred) + u)
     if has is not None:
         has = np.asarray(has, dtype=bool)
         x_upd = np.where(has[..., None], x_upd, x_pred)
@@ -94,7 +91,15 @@ def local_update(x_pred: np.ndarray, P_pred: np.ndarray, U: np.ndarray, u: np.nd
     return x_upd, P_upd
 
 
-def input_estimate(x_pred, P_pred, U, u, G, allowed=None, rank_rtol: float = 1e-9, *, Y=None, Ji=None):
+def information_pair(P_pred: np.ndarray, U: np.ndarray):
+    """(Y, Ji) = (P^^-1, (P^^-1 + H^T R^-1 H)^-1): the information form of a
+    prediction and of its update (eq. info_kf_update0), inverted once for
+    ``local_update`` and ``input_estimate``."""
+    Y = inv_spd(P_pred)
+    return Y, inv_spd(Y + U)
+
+
+def input_estimate(x_pred, Y, Ji, U, u, G, allowed=None, rank_rtol: float = 1e-9):
     """Eqs. (input_estimation), (input_estimation_mk1), (input_estimation_mk2),
     the covariance S^ below them and the rank condition (eq10).
 
@@ -114,14 +119,9 @@ def input_estimate(x_pred, P_pred, U, u, G, allowed=None, rank_rtol: float = 1e-
     rank(H G) = m fails (this includes "no measurement"), or where ``allowed``
     (the observation time window) forbids input estimation; there d = 0 and
     S = I as inert placeholders.
-    ``Y`` = inv_spd(P_pred) and ``Ji`` = inv_spd(Y + U), if already computed
-    (``local_update`` needs the same two inverses), give the same numbers.
+    ``Y`` = P^^-1 and ``Ji`` = (Y + U)^-1 (``information_pair``).
     """
-    if Y is None:
-        Y = inv_spd(P_pred)
     J = Y + U
-    if Ji is None:
-        Ji = inv_spd(J)
     YJi = np.matmul(Y, Ji)
     C = sym(np.matmul(YJi, U))                     # H^T R~^-1 H
     c = mv(YJi, u - mv(U, x_pred))                 # H^T R~^-1 (y - H x^)
@@ -177,20 +177,16 @@ def input_fusion(adj, d, S, valid):
 # --------------------------------------------------------------------------
 # Step 4: state fusion by information-filter decomposition
 # --------------------------------------------------------------------------
-def information_contribution(x_pred, P_pred, x_upd, P_upd, *, Yp=None, Yu=None, Ypx=None):
+def information_contribution(x_pred, Yp, x_upd, Yu):
     """What a neighbour's local update added, in information form.
 
     dY_j = P~_j^-1 - P^_j^-1           (= H_j^T R_j^-1 H_j)
     dy_j = P~_j^-1 x~_j - P^_j^-1 x^_j (= H_j^T R_j^-1 y_j)
-    The terms inside the sums of eqs. (state_fusion) and (state_fusion_p).
-    ``Yp`` = inv_spd(P_pred), ``Yu`` = inv_spd(P_upd), ``Ypx`` = Yp x^ if
-    already computed.
+    The terms inside the sums of eqs. (state_fusion) and (state_fusion_p);
+    ``Yp`` = P^_j^-1 and ``Yu`` = P~_j^-1, the information form of the
+    message's two covariances.
     """
-    if Yp is None:
-        Yp = inv_spd(P_pred)
-    if Yu is None:
-        Yu = inv_spd(P_upd)
-    return mv(Yu, x_upd) - (mv(Yp, x_pred) if Ypx is None else Ypx), sym_of_inverses(Yu - Yp)
+    return mv(Yu, x_upd) - mv(Yp, x_pred), sym_of_inverses(Yu - Yp)
 
 
 def input_prediction(x_pred, G, d_bar, has=None):
@@ -206,17 +202,15 @@ def input_prediction(x_pred, G, d_bar, has=None):
     return x_pred + np.where(has[..., None], mv(G, d_bar), 0.0)
 
 
-def state_fusion(adj, x_star, P_pred, dy, dY, *, Ystar=None):
+def state_fusion(adj, x_star, Ystar, dy, dY):
     """Eqs. (state_fusion) and (state_fusion_p).
 
         P_bar^-1 = P^*^-1 + sum_j (P~_j^-1 - P^_j^-1)
         x_bar    = P_bar [ sum_j (P~_j^-1 x~_j - P^_j^-1 x^_j) + P^*^-1 x^* ]
 
-    adj: (..., R, S); x_star, P_pred per receiver; dy, dY per sender.
-    ``Ystar`` = inv_spd(P_pred) if already computed.
+    adj: (..., R, S); x_star and ``Ystar`` = P^*^-1 per receiver; dy, dY per
+    sender (``information_contribution``).
     """
-    if Ystar is None:
-        Ystar = inv_spd(P_pred)
     sum_dY, sum_dy = nbr_sum_pair(adj, dY, dy)
     Y_bar = sym_of_inverses(Ystar + sum_dY)  # dY as information_contribution gives it
     P_bar = inv_spd(Y_bar)

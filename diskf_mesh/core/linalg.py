@@ -7,7 +7,7 @@ closed form with the same positive-definiteness check), so a covariance that
 is not positive definite raises instead of silently producing garbage.
 
 A few matrices (an agent process works on a batch of one) take Python-float
-paths (``_few``): there numpy's per-call overhead (about 1 us per ufunc or
+paths (``small.few``): there numpy's per-call overhead (about 1 us per ufunc or
 slice) is most of the time, not the arithmetic. They are used only for
 element-wise arithmetic (+, -, *, /), never for a sum over an axis, a BLAS
 product or an ``einsum``, whose kernels may round differently (pairwise sums,
@@ -22,29 +22,15 @@ from functools import lru_cache
 
 import numpy as np
 
+from diskf_mesh.core.small import (
+    FEW, array, few, inv_2_few, inv_spd_2_few, mv_2x2_few, mv_one, not_pd, sym_2_few)
+
 
 def T(a: np.ndarray) -> np.ndarray:
     """Transpose of the trailing two axes. A single matrix (a model constant
     such as A or G) is copied contiguous: stacked products with a transposed
     view take numpy's slow strided path."""
     return np.ascontiguousarray(a.T) if a.ndim == 2 else a.swapaxes(-1, -2)
-
-
-# Stacks of at most this many matrices (or vectors) take the Python-float
-# paths: below it they are faster than numpy's; above it numpy's loops win.
-FEW = 8
-
-
-def _few(a: np.ndarray, core: int) -> bool:
-    """Whether ``a`` is a non-empty float64 stack of at most ``FEW`` cores of
-    ``core`` entries (a 2 x 2 matrix: core 4), for a Python-float path."""
-    return 0 < a.size <= FEW * core and a.dtype.char == "d"
-
-
-def _array(values: list, shape: tuple) -> np.ndarray:
-    """A float64 array of ``shape`` from a flat list of Python floats (the
-    output of a Python-float path; faster than np.array of nested lists)."""
-    return np.fromiter(values, float, len(values)).reshape(shape)
 
 
 @lru_cache(maxsize=None)
@@ -57,23 +43,13 @@ def identity(n: int) -> np.ndarray:
 
 def sym(a: np.ndarray) -> np.ndarray:
     """Symmetric part, used after every covariance product to keep it symmetric."""
-    if a.ndim > 2 and a.shape[-2:] == (2, 2) and _few(a, 4):
-        return _sym_2_few(a)
+    if a.ndim > 2 and a.shape[-2:] == (2, 2) and few(a, 4):
+        return sym_2_few(a)
     out = a + transposed(a)
     if out.dtype.kind != "f":
         return 0.5 * out
     out *= 0.5  # in place: the same numbers as 0.5 * (a + a^T)
     return out
-
-
-def _sym_2_few(a: np.ndarray) -> np.ndarray:
-    """``sym`` of a few 2 x 2 matrices in Python floats: (a + a^T) * 0.5 entry
-    by entry, as numpy computes it."""
-    out = []
-    for p, q, s, r in a.reshape(-1, 4).tolist():  # [[p, q], [s, r]]
-        off = (q + s) * 0.5
-        out += ((p + p) * 0.5, off, off, (r + r) * 0.5)  # s + q is q + s: IEEE addition commutes
-    return _array(out, a.shape)
 
 
 def transposed(a: np.ndarray) -> np.ndarray:
@@ -97,9 +73,9 @@ def mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     cols = a.shape[-1]
     if cols == 2 and v.size <= 2 * FEW and a.dtype.char == v.dtype.char == "d":  # a few: in Python floats
         if v.size == 2 and a.size == 2 * a.shape[-2] <= 4:
-            return _mv_one(a, v)  # one matrix, one vector (an agent's own), twice as fast
+            return mv_one(a, v)  # one matrix, one vector (an agent's own), twice as fast
         if a.shape[:-1] == v.shape and v.shape[-1] == 2:
-            return _mv_2x2_few(a, v)  # one 2 x 2 matrix per vector (an agent's senders)
+            return mv_2x2_few(a, v)  # one 2 x 2 matrix per vector (an agent's senders)
     if cols == 1:
         return a[..., 0] * v[..., 0, None]
     if cols == 2:
@@ -107,28 +83,6 @@ def mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
         out += a[..., 1] * v[..., 1, None]
         return out
     return np.matmul(a, v[..., None])[..., 0]
-
-
-def _mv_one(a: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``mv`` of one matrix with two columns and one or two rows, and one
-    vector, in Python floats: a[r, 0] v_0 + a[r, 1] v_1 row by row, as the
-    numpy path computes it."""
-    v0, v1 = v.ravel().tolist()
-    m = a.ravel().tolist()
-    out = [m[0] * v0 + m[1] * v1, m[2] * v0 + m[3] * v1] if len(m) == 4 else [m[0] * v0 + m[1] * v1]
-    batch = v.shape[:-1] if v.ndim >= a.ndim - 1 else a.shape[:-2]  # the longer: all ones
-    return _array(out, batch + (len(out),))
-
-
-def _mv_2x2_few(a: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``mv`` of a few 2 x 2 matrices, each with its vector, in Python floats
-    (as ``_mv_one``)."""
-    m, x = a.ravel().tolist(), v.ravel().tolist()
-    out = []
-    for i in range(0, len(x), 2):  # vector i // 2 and its matrix, from m[2 i]
-        x0, x1, k = x[i], x[i + 1], 2 * i
-        out += (m[k] * x0 + m[k + 1] * x1, m[k + 2] * x0 + m[k + 3] * x1)
-    return _array(out, v.shape)
 
 
 def matmul_right(X: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -178,20 +132,16 @@ def inv_spd_cholesky(a: np.ndarray) -> np.ndarray:
     return np.matmul(T(Li), Li)
 
 
-def _not_pd() -> np.linalg.LinAlgError:
-    return np.linalg.LinAlgError("Matrix is not positive definite")
-
-
 def _inv_spd_1(a: np.ndarray) -> np.ndarray:
-    if _few(a, 1):
+    if few(a, 1):
         values = a.ravel().tolist()
         for v in values:
             if v <= 0:  # False for NaN: it propagates, as below
-                raise _not_pd()
-        return _array([1.0 / v for v in values], a.shape)
+                raise not_pd()
+        return array([1.0 / v for v in values], a.shape)
     # fmin skips NaN: a NaN propagates, as through numpy's Cholesky
     if a.size and np.fmin.reduce(a, axis=None) <= 0:
-        raise _not_pd()
+        raise not_pd()
     return 1.0 / a
 
 
@@ -199,13 +149,13 @@ def _inv_spd_2(a: np.ndarray) -> np.ndarray:
     """[[p, q], [q, r]]^-1 = [[r, -q], [-q, p]] / (p r - q^2), q from the lower
     triangle; positive definite iff p > 0 and p r - q^2 > 0 (Sylvester).
     The output is exactly symmetric."""
-    if _few(a, 4):
-        return _inv_spd_2_few(a)
+    if few(a, 4):
+        return inv_spd_2_few(a)
     flat = a.reshape(-1, 4)
     p, q, r = flat[:, 0], flat[:, 2], flat[:, 3]
     det = p * r - q * q
     if flat.size and np.fmin.reduce(np.fmin(p, det), axis=None) <= 0:  # fmin skips NaN (it propagates)
-        raise _not_pd()
+        raise not_pd()
     out = np.empty(flat.shape)  # column by column: long loops, faster than broadcasting over rows of 4
     np.divide(r, det, out=out[:, 0])
     np.divide(q, np.negative(det), out=out[:, 1])
@@ -214,26 +164,12 @@ def _inv_spd_2(a: np.ndarray) -> np.ndarray:
     return out.reshape(a.shape)
 
 
-def _inv_spd_2_few(a: np.ndarray) -> np.ndarray:
-    """``_inv_spd_2`` of a few matrices in Python floats, the same operations:
-    r / det, q / (-det), p / det. A comparison with NaN is False, so a NaN
-    propagates instead of raising, as with ``fmin`` there."""
-    out = []
-    for p, _, q, r in a.reshape(-1, 4).tolist():
-        det = p * r - q * q
-        if p <= 0 or det <= 0:
-            raise _not_pd()
-        off = q / -det
-        out += (r / det, off, off, p / det)
-    return _array(out, a.shape)
-
-
 def inv_spd_each(*stacks: np.ndarray) -> tuple:
     """``inv_spd`` of several stacks of n x n matrices (any leading shapes)
     in one call: the fixed cost of a stacked inverse is paid once. Each
     matrix's inverse is the one ``inv_spd`` gives it alone, bit for bit."""
     n = stacks[0].shape[-1]
-    if len(stacks) == 1 or (n <= 2 and _few(stacks[0], n * n)):  # the Python-float path pays per matrix
+    if len(stacks) == 1 or (n <= 2 and few(stacks[0], n * n)):  # the Python-float path pays per matrix
         return tuple(inv_spd(s) for s in stacks)
     inv = inv_spd(np.concatenate([s.reshape(-1, n, n) for s in stacks]))
     out, start = [], 0
@@ -257,8 +193,8 @@ def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         if (a == 0).any():
             raise np.linalg.LinAlgError("Singular matrix")
         return b / a
-    if _few(a, 4):
-        return np.matmul(_inv_2_few(a), b)
+    if few(a, 4):
+        return np.matmul(inv_2_few(a), b)
     flat = a.reshape(-1, 4)
     det = flat[:, 0] * flat[:, 3] - flat[:, 1] * flat[:, 2]
     if not det.all():
@@ -270,20 +206,6 @@ def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     np.divide(flat[:, 2], minus_det, out=inv[:, 2])
     np.divide(flat[:, 0], det, out=inv[:, 3])
     return np.matmul(inv.reshape(a.shape), b)
-
-
-def _inv_2_few(a: np.ndarray) -> np.ndarray:
-    """The closed-form inverse of ``solve`` for a few 2 x 2 matrices, in
-    Python floats with the same operations: [[d, -b], [-c, a]] entry by
-    entry over det and -det."""
-    out = []
-    for p, q, s, r in a.reshape(-1, 4).tolist():  # [[p, q], [s, r]]
-        det = p * r - q * s
-        if det == 0:  # False for NaN, as ``det.all()`` there
-            raise np.linalg.LinAlgError("Singular matrix")
-        minus_det = -det
-        out += (r / det, q / minus_det, s / minus_det, p / det)
-    return _array(out, a.shape)
 
 
 def congruence(G: np.ndarray, X: np.ndarray) -> np.ndarray:

@@ -3,7 +3,7 @@
 After the input estimate of ``equations.input_estimate``, the RKF measurement
 update gives the minimum-variance unbiased state estimate. In information
 form (equal to the textbook recursion with its pseudo-inverse of R~*, checked
-in ``tests/test_rkf.py``):
+in ``tests/test_filters.py``):
 
     Y   = P^^-1
     Y_G = Y - Y G (G^T Y G)^-1 G^T Y      prior information with the input
@@ -23,10 +23,8 @@ import numpy as np
 from diskf_mesh.core.linalg import T, congruence, inv_spd, mv, sym
 
 
-def rkf_update(x_pred, P_pred, U, u, G, valid, *, Y=None):
-    """The update above; ``Y`` = inv_spd(P_pred) if already computed."""
-    if Y is None:
-        Y = inv_spd(P_pred)
+def rkf_update(x_pred, Y, U, u, G, valid):
+    """The update above, from the prediction in information form (``Y`` = P^^-1)."""
     YG = np.matmul(Y, G)
     GYG = congruence(G, Y)
     Y_free = sym(Y - np.matmul(np.matmul(YG, inv_spd(GYG)), T(YG)))

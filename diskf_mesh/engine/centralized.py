@@ -34,7 +34,7 @@ import numpy as np
 
 from diskf_mesh.core import equations as eq
 from diskf_mesh.engine.batch import Estimates
-from diskf_mesh.core.linalg import inv_spd
+
 from diskf_mesh.core.rkf import rkf_update
 from diskf_mesh.data.trace import Trace
 
@@ -59,9 +59,9 @@ def run_centralized(trace: Trace) -> Estimates:
     for k in range(1, K + 1):
         x_pred, P_pred = eq.predict(x, P, model.A_at(k), model.Q)
         U, u = _stacked_information(trace, k, info)
-        Y = inv_spd(P_pred)
-        d, _, valid = eq.input_estimate(x_pred, P_pred, U, u, model.G, Y=Y)
-        x, P = rkf_update(x_pred, P_pred, U, u, model.G, valid, Y=Y)
+        Y, Ji = eq.information_pair(P_pred, U)
+        d, _, valid = eq.input_estimate(x_pred, Y, Ji, U, u, model.G)
+        x, P = rkf_update(x_pred, Y, U, u, model.G, valid)
         xs[:, k - 1], Ps[:, k - 1], ds[:, k - 1], dv[:, k - 1] = x, P, d, valid
     return _every_agent(N, xs, Ps, ds, dv)
 
@@ -73,8 +73,7 @@ def _every_agent(N, xs, Ps, ds, dv) -> Estimates:
 
 def _stacked_information(trace: Trace, k: int, info):
     """The stacked sensors' H^T R^-1 H and H^T R^-1 y at tick k (every agent)."""
-    U_j, u_j = eq.measurement_information(trace.sensors.H, trace.sensors.R, trace.y[:, k - 1],
-                                          trace.has[:, k - 1], info=info)
+    U_j, u_j = eq.measurement_information(info, trace.y[:, k - 1], trace.has[:, k - 1])
     return U_j.sum(axis=1), u_j.sum(axis=1)
 
 
@@ -105,7 +104,7 @@ def run_centralized_persist(trace: Trace, options) -> Estimates:
         Bc, S = eq.input_walk(A, C, S, Qd)
         U, u = _stacked_information(trace, k, info)
         x_s, P_s, C_s = eq.input_to_state(v, Pv, Bc, d, S, G)
-        x, P = eq.local_update(x_s, P_s, U, u)
+        x, P = eq.local_update(x_s, P_s, *eq.information_pair(P_s, U), u)
         d, C, S = eq.replace_marginal(x_s, P_s, d, C_s, S, x, P)
         held = held | (np.trace(U, axis1=-2, axis2=-1) > 0)
         xs[:, k - 1], Ps[:, k - 1], ds[:, k - 1], dv[:, k - 1] = x, P, d, held

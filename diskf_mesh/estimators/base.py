@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from diskf_mesh.core import equations as eq
-from diskf_mesh.core.linalg import inv_spd, inv_spd_each, mv
-from diskf_mesh.core.messages import Message, Neighbourhood, Output
+from diskf_mesh.core.linalg import inv_spd, inv_spd_each
+from diskf_mesh.core.messages import Message, Neighbourhood
 from diskf_mesh.core.model import LinearModel, Params, Sensors
 
 
@@ -30,9 +30,8 @@ class State:
     d_hold: np.ndarray | None = None  # (..., m) last fused input (DISKF, hold_input)
     held: np.ndarray | None = None    # (...,) whether d_hold holds an estimate
     # Set by ``local`` for the ``fuse`` of the same tick, which then need not
-    # invert the agent's own P^ again: P^^-1 and P^^-1 x^ (None otherwise).
+    # invert the agent's own P^ again: P^^-1 (None otherwise).
     Y_pred: np.ndarray | None = None
-    Yx_pred: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -45,9 +44,8 @@ class Local:
     u: np.ndarray
     x_upd: np.ndarray
     P_upd: np.ndarray
-    Y: np.ndarray | None = None   # P^^-1, computed once for the whole tick
-    Ji: np.ndarray | None = None  # (P^^-1 + U)^-1, P~ before the "no measurement" mask
-    Yx: np.ndarray | None = None  # P^^-1 x^
+    Y: np.ndarray   # P^^-1, computed once for the whole tick
+    Ji: np.ndarray  # (P^^-1 + U)^-1, P~ before the "no measurement" mask
 
 
 class Algorithm:
@@ -74,24 +72,21 @@ class Algorithm:
     def local_kf(self, state: State, k: int, y, has) -> Local:
         """Prediction (info_kf_prediction0) and local update (info_kf_update0)."""
         x_pred, P_pred = eq.predict(state.x, state.P, self.model.A_at(k), self.model.Q)
-        U, u = eq.measurement_information(self.sensors.H, self.sensors.R, y, has, info=self.sensor_info)
-        Y = inv_spd(P_pred)
-        Ji = inv_spd(Y + U)
-        Yx = mv(Y, x_pred)
-        x_upd, P_upd = eq.local_update(x_pred, P_pred, U, u, has, Y=Y, Ji=Ji, Yx=Yx)
-        return Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji, Yx)
+        U, u = eq.measurement_information(self.sensor_info, y, has)
+        Y, Ji = eq.information_pair(P_pred, U)
+        x_upd, P_upd = eq.local_update(x_pred, P_pred, Y, Ji, u, has)
+        return Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji)
 
     @staticmethod
     def for_fuse(state: State, loc: Local, since=None) -> State:
         """``state`` after the local step: the window counter ``since`` if
-        given, and the local step's P^^-1, P^^-1 x^ for ``fusion_inverses``."""
-        return State(state.x, state.P, state.since if since is None else since, state.d_hold, state.held,
-                     loc.Y, loc.Yx)
+        given, and the local step's P^^-1 for ``fusion_inverses``."""
+        return State(state.x, state.P, state.since if since is None else since, state.d_hold, state.held, loc.Y)
 
     @staticmethod
     def fusion_inverses(state: State, own: Message, senders: Message):
-        """(P^*^-1 of each receiver, P^_j^-1 and P~_j^-1 of each sender,
-        P^_j^-1 x^_j or None), every one inverted once per tick.
+        """(P^*^-1 of each receiver, P^_j^-1 and P~_j^-1 of each sender),
+        every one inverted once per tick.
 
         A receiver's own P^^-1 comes from its local step (``State.Y_pred``);
         when the senders are the receivers themselves (the engine's dense
@@ -101,17 +96,16 @@ class Algorithm:
         if Y is None:
             if senders is own:
                 Y, Yu = inv_spd_each(own.P_pred, own.P_upd)
-                return Y, Y, Yu, None
-            Y, Yp, Yu = inv_spd_each(own.P_pred, senders.P_pred, senders.P_upd)
-            return Y, Yp, Yu, None
+                return Y, Y, Yu
+            return inv_spd_each(own.P_pred, senders.P_pred, senders.P_upd)
         if senders is own:
-            return Y, Y, inv_spd(own.P_upd), state.Yx_pred
+            return Y, Y, inv_spd(own.P_upd)
         Yp, Yu = inv_spd_each(senders.P_pred, senders.P_upd)
-        return Y, Yp, Yu, None
+        return Y, Yp, Yu
 
     def local_input(self, loc: Local, allowed=None):
         """The agent's own RKF input estimate (input_estimation)."""
-        return eq.input_estimate(loc.x_pred, loc.P_pred, loc.U, loc.u, self.model.G, allowed, Y=loc.Y, Ji=loc.Ji)
+        return eq.input_estimate(loc.x_pred, loc.Y, loc.Ji, loc.U, loc.u, self.model.G, allowed)
 
     @staticmethod
     def message(loc: Local, d, S, valid, x_upd=None, P_upd=None) -> Message:

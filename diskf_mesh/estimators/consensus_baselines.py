@@ -37,23 +37,22 @@ class KCF(_Consensus):
     label = "KCF"
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
-        Ystar, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
-        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
-                                             Yp=Yp, Yu=Yu, Ypx=Ypx)
-        x, M = eq.state_fusion(nb.adj, own.x_pred, own.P_pred, dy, dY, Ystar=Ystar)
+        Ystar, Yp, Yu = self.fusion_inverses(state, own, senders)
+        dy, dY = eq.information_contribution(senders.x_pred, Yp, senders.x_upd, Yu)
+        x, M = eq.state_fusion(nb.adj, own.x_pred, Ystar, dy, dY)
         gain = eq.compensation_gain(M, "normalized")
         x = eq.compensation_state(nb.adj, x, gain, own.x_pred, senders.x_pred, self.params.consensus_eps)
         return State(x, M, state.since), Output(x, M, own.d, own.d_valid)
 
 
-def diffusion_update(adj, own: Message, senders: Message, inverses=(None, None, None, None)):
+def diffusion_update(adj, own: Message, senders: Message, inverses):
     """Combine the neighbours' priors with equal weights, then adapt with
-    their measurement information. ``inverses``: ``fusion_inverses``, if known."""
-    Ystar, Yp, Yu, Ypx = inverses
+    their measurement information. ``inverses``: ``fusion_inverses`` (P^*^-1,
+    P^_j^-1, P~_j^-1)."""
+    Ystar, Yp, Yu = inverses
     x_comb = nbr_sum(uniform_weights(adj), senders.x_pred, 1)
-    dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
-                                         Yp=Yp, Yu=Yu, Ypx=Ypx)
-    return eq.state_fusion(adj, x_comb, own.P_pred, dy, dY, Ystar=Ystar)
+    dy, dY = eq.information_contribution(senders.x_pred, Yp, senders.x_upd, Yu)
+    return eq.state_fusion(adj, x_comb, Ystar, dy, dY)
 
 
 def consensus_step_problem(eps: float, links: np.ndarray) -> str | None:

@@ -34,10 +34,9 @@ class DISKF(Algorithm):
             x_star = eq.input_prediction(own.x_pred, self.model.G, d_hold, held)
         else:
             x_star = eq.input_prediction(own.x_pred, self.model.G, d_bar)  # d_bar = 0 where not has
-        Ystar, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
-        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
-                                             Yp=Yp, Yu=Yu, Ypx=Ypx)
-        x_bar, P_bar = eq.state_fusion(nb.adj, x_star, own.P_pred, dy, dY, Ystar=Ystar)
+        Ystar, Yp, Yu = self.fusion_inverses(state, own, senders)
+        dy, dY = eq.information_contribution(senders.x_pred, Yp, senders.x_upd, Yu)
+        x_bar, P_bar = eq.state_fusion(nb.adj, x_star, Ystar, dy, dY)
         if p.compensation != "none" and p.eps != 0.0:
             gain = eq.compensation_gain(P_bar, p.compensation, p.eps, nb.n_neighbours)
             x_bar = eq.compensation_state(nb.adj, x_bar, gain, own.x_pred, senders.x_pred, p.eps)

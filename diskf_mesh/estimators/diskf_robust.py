@@ -143,16 +143,15 @@ class DISKFRobust(Algorithm):
             allowed = eq.window_allows(since, self.params.window) if o.window else None
             d, S, valid = self.local_input(loc, allowed)
         st = RobustState(state.x, state.P, np.where(has, 0, since), state.d_hold, state.held,
-                         loc.Y, loc.Yx, S_hold=state.S_hold, tick=k, fed=state.fed, C=state.C)
+                         loc.Y, S_hold=state.S_hold, tick=k, fed=state.fed, C=state.C)
         return st, self.message(loc, d, S, valid)
 
     def fuse(self, state: RobustState, own: Message, senders: Message, nb: Neighbourhood):
         p, o = self.params, self.params.robust
         G = self.model.G
         A = self.model.A_at(state.tick)
-        Ystar, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
-        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
-                                             Yp=Yp, Yu=Yu, Ypx=Ypx)
+        Ystar, Yp, Yu = self.fusion_inverses(state, own, senders)
+        dy, dY = eq.information_contribution(senders.x_pred, Yp, senders.x_upd, Yu)
         U, u = nbr_sum(nb.adj, dY, 2), nbr_sum(nb.adj, dy, 1)
         # 2. the prior of v = x_k - G d_{k-1}: CI of the neighbourhood's predictions
         if o.prior_ci:
@@ -171,13 +170,13 @@ class DISKFRobust(Algorithm):
         if o.unbiased:  # 5. where the heard sensors detect the input: the exact unbiased update
             allowed = eq.window_allows(state.since, p.window) if o.window else None
             if o.joint_input:
-                d_N, S_N, valid_N = eq.input_estimate(x_c, P_c, U, u, G, allowed, Y=Yc)
+                d_N, S_N, valid_N = eq.input_estimate(x_c, Yc, inv_spd(Yc + U), U, u, G, allowed)
             else:
                 d_N, S_N, valid_N = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
             feed = eq.strongly_detectable(A, G, U, valid_N) if o.gate else valid_N
             if o.gate and o.latch:
                 feed = feed | (valid_N & state.fed)
-            x_g, P_g = rkf_update(x_c, P_c, U, u, G, feed, Y=Yc)
+            x_g, P_g = rkf_update(x_c, Yc, U, u, G, feed)
             f2, f3 = feed[..., None], feed[..., None, None]
             x_bar, P_bar = np.where(f2, x_g, x_bar), np.where(f3, P_g, P_bar)
             d_bar, S_bar = np.where(f2, d_N, d_bar), np.where(f3, S_N, S_bar)
@@ -222,7 +221,7 @@ class DISKFRobust(Algorithm):
             alpha = eq.innovation_scale(P_s, U, u, x_s)
             a3 = alpha[..., None, None]
             P_s, C_s, S1 = P_s * a3, C_s * a3, S1 * a3
-        x_k, P_k = eq.local_update(x_s, P_s, U, u)
+        x_k, P_k = eq.local_update(x_s, P_s, *eq.information_pair(P_s, U), u)
         d_k, C_k, S_k = eq.replace_marginal(x_s, P_s, d1, C_s, S1, x_k, P_k)
         return x_k, P_k, d_k, S_k, C_k, has_p
 
@@ -244,6 +243,6 @@ class DISKFRobust(Algorithm):
         if o.inflate:
             alpha = eq.innovation_scale(P_s, U, u, x_s)
             P_s = P_s * alpha[..., None, None]
-        x_k, P_k = eq.local_update(x_s, P_s, U, u)
+        x_k, P_k = eq.local_update(x_s, P_s, *eq.information_pair(P_s, U), u)
         d_k = np.where(has_p[..., None], d_p, 0.0)
         return x_k, P_k, d_k, S_p, has_p

@@ -12,7 +12,7 @@ L-DRKF: local RKF (input from the agent's own measurement only), then one
 from __future__ import annotations
 
 from diskf_mesh.core import equations as eq
-from diskf_mesh.core.linalg import nbr_sum
+from diskf_mesh.core.linalg import inv_spd, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.rkf import rkf_update
 from diskf_mesh.estimators.base import Algorithm, State, uniform_weights
@@ -28,14 +28,13 @@ class CDRKF(Algorithm):
         return self.for_fuse(state, loc), self.message(loc, d, S, valid)
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
-        Y, Yp, Yu, Ypx = self.fusion_inverses(state, own, senders)
-        dy, dY = eq.information_contribution(senders.x_pred, senders.P_pred, senders.x_upd, senders.P_upd,
-                                             Yp=Yp, Yu=Yu, Ypx=Ypx)
+        Y, Yp, Yu = self.fusion_inverses(state, own, senders)
+        dy, dY = eq.information_contribution(senders.x_pred, Yp, senders.x_upd, Yu)
         U = nbr_sum(nb.adj, dY, 2)
         u = nbr_sum(nb.adj, dy, 1)
         G = self.model.G
-        d, _, valid = eq.input_estimate(own.x_pred, own.P_pred, U, u, G, Y=Y)
-        x, P = rkf_update(own.x_pred, own.P_pred, U, u, G, valid, Y=Y)
+        d, _, valid = eq.input_estimate(own.x_pred, Y, inv_spd(Y + U), U, u, G)
+        x, P = rkf_update(own.x_pred, Y, U, u, G, valid)
         return State(x, P, state.since), Output(x, P, d, valid)
 
 
@@ -46,7 +45,7 @@ class LDRKF(Algorithm):
     def local(self, state: State, k: int, y, has):
         loc = self.local_kf(state, k, y, has)
         d, S, valid = self.local_input(loc)
-        x, P = rkf_update(loc.x_pred, loc.P_pred, loc.U, loc.u, self.model.G, valid)
+        x, P = rkf_update(loc.x_pred, loc.Y, loc.U, loc.u, self.model.G, valid)
         return state, self.message(loc, d, S, valid, x_upd=x, P_upd=P)
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):

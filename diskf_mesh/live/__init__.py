@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import socket
-import subprocess
 import sys
 
 from diskf_mesh.core.errors import InputError

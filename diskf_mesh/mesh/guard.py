@@ -66,9 +66,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diskf_mesh.core import small
+from diskf_mesh.core.messages import Message
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.counters import Counters
-from diskf_mesh.core.messages import Message, Neighbourhood
 from diskf_mesh.mesh.profile import NO_PHASES, Phases
 
 REASONS = wire.REASONS + ("key", "unknown-sender", "tick-past", "tick-future", "magnitude", "ill-conditioned",
@@ -218,16 +219,8 @@ def message_problem(msg: Message, c: GuardConfig):
 def _extreme_eigenvalues(M: np.ndarray) -> tuple:
     """(smallest, largest) eigenvalue of a symmetric matrix (lower triangle,
     as ``eigvalsh``)."""
-    k = M.shape[-1]
-    if k == 1:
-        v = float(M[0, 0])
-        return v, v
-    if k == 2:
-        (p, _), (q, r) = M.tolist()
-        hi = 0.5 * (p + r) + math.hypot(0.5 * (p - r), q)
-        # the product of the eigenvalues is the determinant: accurate even
-        # where hi - (the radius) would cancel (an ill-conditioned matrix)
-        return ((p * r - q * q) / hi if hi > 0 else hi), hi
+    if M.shape[-1] <= 2:
+        return small.extreme_eigenvalues(M.tolist())
     ev = np.linalg.eigvalsh(M)
     return float(ev[0]), float(ev[-1])
 
@@ -236,7 +229,7 @@ def _information_gain(P_pred: np.ndarray, P_upd: np.ndarray) -> tuple:
     """(smallest eigenvalue of sym(inv(P_upd) - inv(P_pred)), max |inv(P_upd)|)."""
     k = P_upd.shape[-1]
     if k <= 2:
-        Yu, Yp = _small_inverse(P_upd.tolist()), _small_inverse(P_pred.tolist())
+        Yu, Yp = small.inverse(P_upd.tolist()), small.inverse(P_pred.tolist())
         scale = max(abs(v) for row in Yu for v in row)
         if k == 1:
             return Yu[0][0] - Yp[0][0], scale
@@ -247,34 +240,3 @@ def _information_gain(P_pred: np.ndarray, P_upd: np.ndarray) -> tuple:
     dY = Yu - np.linalg.inv(P_pred)
     return float(np.linalg.eigvalsh(0.5 * (dY + dY.T))[0]), float(np.abs(Yu).max())
 
-
-def _small_inverse(a: list) -> list:
-    """Inverse of a 1x1 or 2x2 matrix given as lists (adjugate over
-    determinant); raises ``numpy.linalg.LinAlgError`` where it is singular,
-    like ``numpy.linalg.inv``."""
-    if len(a) == 1:
-        if a[0][0] == 0.0:
-            raise np.linalg.LinAlgError("Singular matrix")
-        return [[1.0 / a[0][0]]]
-    (p, q), (s, r) = a
-    det = p * r - q * s
-    if det == 0.0:
-        raise np.linalg.LinAlgError("Singular matrix")
-    return [[r / det, -q / det], [-s / det, p / det]]
-
-
-def fuse_checked(alg, state, own: Message, senders: Message, nb: Neighbourhood, own_index: int):
-    """``alg.fuse`` and whether it succeeded. Where fusion raises or gives a
-    non-finite estimate, fuse the agent's own message alone instead (returns
-    ok=False; the caller counts it). ``own_index``: own row among ``senders``."""
-    try:
-        new_state, out = alg.fuse(state, own, senders, nb)
-        if np.isfinite(out.x).all() and np.isfinite(out.P).all():
-            return new_state, out, True
-    except (np.linalg.LinAlgError, FloatingPointError, ValueError):
-        pass
-    only = Message.stack([senders.take(own_index)])
-    mask = np.ones((1, 1), dtype=bool)
-    alone = Neighbourhood(np.ones((1, 1)), mask, nb.gossip_u)
-    new_state, out = alg.fuse(state, own, only, alone)
-    return new_state, out, False

@@ -24,7 +24,7 @@ kind "msg" (agent -> neighbours, one per agent and tick; ``Message``)::
 kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
 
     "s", "n", "m", "dt", "dv", "a" x (n), P (n x n), d (m),
-    "c" the agent's counters so far {name: int} (see ``mesh.agent_loop``),
+    "c" the agent's counters so far {name: int} (``mesh.counters``),
     "f" the senders whose messages of tick k went into this estimate (ids,
         at most ``MAX_LINKS``; optional, default none),
     "nf" the other senders linked at tick k and why their message did not:

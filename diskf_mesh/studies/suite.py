@@ -26,6 +26,7 @@ from diskf_mesh import estimators as algorithms
 from diskf_mesh.engine import centralized
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics
+from diskf_mesh.studies import experiment
 from diskf_mesh.studies.experiment import Setting, run_experiment
 from diskf_mesh.core.model import COMPENSATION_FORMS, Params, RobustOptions
 from diskf_mesh.data.scenario import Scenario, load_scenario, simulate
@@ -80,9 +81,7 @@ def metric_row(trace, est) -> dict:
     """Pooled metrics and their spread (std over seeds), and ``nees_observed``:
     the mean NEES over the agent-ticks whose neighbourhood holds a
     measurement (``observed``)."""
-    row = metrics.compute(trace, est)
-    for k, v in metrics.per_seed(trace, est).items():
-        row[f"{k}_std"] = float(np.nanstd(v)) if np.isfinite(v).any() else float("nan")
+    row = experiment.summarize(trace, est)
     nees = metrics.errors(trace, est)[2]
     heard = observed(trace)
     row["nees_observed"] = float(nees[heard].mean()) if heard.any() else float("nan")
