@@ -52,6 +52,8 @@ in the report's ablation. Per tick, agent i:
    (d_bar_j, S_bar_j + Qd) (the agent's own included) replaces the marginal
    of d, p(v | d) kept. Information about the input travels one hop per
    tick; an agent that has never measured learns it from a neighbour.
+   Measured, it changes little once every agent learns the input itself
+   (the ablation: within 0.5 % of the state error in the shipped settings).
 5. fuse, to the state (``inject``): x = v + G d with
    P = P_v + G B^T + B G^T + G S G^T and C = B + G S
    (``equations.input_to_state``; B = cov(v, d)). The paper's eq.
