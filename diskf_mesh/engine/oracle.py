@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from diskf_mesh.core.messages import Message
-from diskf_mesh.core.model import Params
+from diskf_mesh.estimators import Params
 from diskf_mesh.data.trace import Trace
 
 

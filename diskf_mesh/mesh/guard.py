@@ -275,6 +275,6 @@ def fuse_checked(alg, state, own: Message, senders: Message, nb: Neighbourhood, 
         pass
     only = Message.stack([senders.take(own_index)])
     mask = np.ones((1, 1), dtype=bool)
-    alone = Neighbourhood(np.ones((1, 1)), mask, nb.gossip_u)
+    alone = Neighbourhood(np.ones((1, 1)), mask, nb.draws)
     new_state, out = alg.fuse(state, own, only, alone)
     return new_state, out, False
