@@ -53,7 +53,7 @@ def table(header, rows) -> str:
 
 
 BOUND = "centralized"  # a reference row, never "the best"
-PAPER_ALGS = ("diskf", "cdrkf", "ldrkf", "kcf", "diffkf", "gdkf")
+PAPER_ALGS = paper_values.COLUMNS
 
 
 def best_alg(results: dict, setting: str, key: str, among=None) -> str:
