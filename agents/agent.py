@@ -60,6 +60,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agents import rejoin
+from diskf_mesh import estimators
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.guard import Guard, GuardConfig
 from diskf_mesh.mesh import credentials
@@ -131,7 +132,8 @@ class Agent:
         self.p = int(scn.sensors().p[self.ids.index(agent_id)])
         self.prof = profile
         self.receiver = Receiver(Guard(GuardConfig(
-            keys.run_id, agent_id, frozenset(self.ids), n, m, information_check=algorithm != "ldrkf"),
+            keys.run_id, agent_id, frozenset(self.ids), n, m,
+            information_check=estimators.get(algorithm).information_check),
             profile=profile), faults, on_arrival=self.wake)
         self.counters = self.receiver.counters
         self.verdicts = TickVerdicts()  # per tick: who was fused, why the others were not

@@ -40,7 +40,7 @@ import numpy as np
 
 from diskf_mesh import estimators as algorithms
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.studies.experiment import PAPER_LABELS, summarize
+from diskf_mesh.studies.experiment import LABELS, summarize
 from diskf_mesh.data.faults import FaultConfig, delivered_links
 from diskf_mesh.studies.figures import COLORS
 from diskf_mesh.data.scenario import load_scenario, simulate
@@ -138,7 +138,7 @@ def markdown(rows, losses, seeds, checks) -> str:
                     max(rows[b][L][metric] for b in algs) for L in losses]
             cells = [("-" if not np.isfinite(v) else f"{v:.2f}") + ("*" if np.isfinite(v) and v == b else "")
                      for v, b in zip(vals, best)]
-            out.append(f"| {PAPER_LABELS.get(a, a)} | " + " | ".join(cells) + " |")
+            out.append(f"| {LABELS.get(a, a)} | " + " | ".join(cells) + " |")
         out.append("")
     out.append("`*` best at that loss rate.")
     if checks:
@@ -151,7 +151,7 @@ def markdown(rows, losses, seeds, checks) -> str:
                 "", "| algorithm | loss | max abs difference | relative | dropped | wall time |",
                 "|---|---|---|---|---|---|"]
         for (a, L), c in checks.items():
-            out.append(f"| {PAPER_LABELS.get(a, a)} | {L:.0%} | {c['max_dx']:.1e} | {c['rel_dx']:.1e} | "
+            out.append(f"| {LABELS.get(a, a)} | {L:.0%} | {c['max_dx']:.1e} | {c['rel_dx']:.1e} | "
                        f"{c['lost']:.1%} | {c['wall_s']:.1f} s |")
     return "\n".join(out) + "\n"
 
@@ -166,7 +166,7 @@ def figure(rows, losses, path: Path) -> None:
     for a in rows:
         style = dict(color=COLORS.get(a), lw=2.2 if a == "diskf" else 1.2, marker="o" if a == "diskf" else ".")
         for ax, metric in zip(axes, ("mae_state", "mae_input")):
-            ax.plot(pct, [rows[a][L][metric] for L in losses], label=PAPER_LABELS.get(a, a), **style)
+            ax.plot(pct, [rows[a][L][metric] for L in losses], label=LABELS.get(a, a), **style)
     axes[0].set_ylabel("state MAE")
     axes[1].set_ylabel("input MAE")
     for ax in axes:

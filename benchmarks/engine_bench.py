@@ -80,7 +80,7 @@ def quadrant_tables(seeds: int, scaling_seeds, steps: int, oracle_seeds: int, re
     for a in algorithms.NAMES:
         t = t_engine["alg", a]
         cells = f"{o_rate:,.0f} | {n2 / t / o_rate:.0f}x" if a == "diskf" else "(DISKF only) | -"
-        lines.append(f"| {experiment.PAPER_LABELS[a]} | {t:.3f} | {n2 / t:,.0f} | {cells} |")
+        lines.append(f"| {experiment.LABELS[a]} | {t:.3f} | {n2 / t:,.0f} | {cells} |")
     total = sum(t_engine["alg", a] for a in algorithms.NAMES)
     lines += [f"| all six | {total:.3f} | {6 * n2 / total:,.0f} | | |", "",
               "DISKF by batch size: seeds per topology, 3 topologies stacked (12 x seeds filters per tick).", "",
@@ -161,7 +161,7 @@ def big_table(names, agents: int, steps: int) -> str:
         cmd = [sys.executable, os.path.abspath(__file__), "--child", a, "--agents", str(agents), "--steps", str(steps)]
         info = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
         total = info["sim"] + info["run"]
-        lines.append(f"| {experiment.PAPER_LABELS[a]} | {info['sim']:.2f} | {info['run']:.2f} | {total:.2f} "
+        lines.append(f"| {experiment.LABELS[a]} | {info['sim']:.2f} | {info['run']:.2f} | {total:.2f} "
                      f"| {info['cpu']:.2f} "
                      f"| {agents * steps / info['run_cpu']:,.0f} | {info['maxrss'] / 2**20:.0f} "
                      f"| {info['traced_peak'] / 2**20:.0f} |")

@@ -56,7 +56,7 @@ import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh.mesh import wire
-from diskf_mesh.estimators.consensus_baselines import consensus_step_problem
+from diskf_mesh import estimators
 from diskf_mesh.data.argtypes import positive_int, seed_value
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.mesh.counters import Counters
@@ -685,7 +685,7 @@ def run(args: argparse.Namespace) -> int:
     trace = simulate(scn, [args.seed])
     K = trace.has.shape[1]
     log = Log("world")
-    if spec.algorithm == "kcf" and (problem := consensus_step_problem(scn.params.consensus_eps, trace.links)):
+    if problem := estimators.get(spec.algorithm).warning(scn.params, trace.links):
         log.info(problem)
     bar = tqdm(total=K, desc=f"world {spec.algorithm}", unit="tick", file=sys.stderr,
                disable=args.progress != "bar" or not sys.stderr.isatty())

@@ -2,7 +2,7 @@
 run in-process up to a tick, then one receiver's view of that tick."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -43,7 +43,7 @@ class TickView:
 
     def guard_config(self, **kw) -> GuardConfig:
         return GuardConfig(self.run_id, self.me, frozenset(self.ids), self.n, self.m, ticks=self.ticks,
-                           information_check=self.alg.name != "ldrkf", **kw)
+                           information_check=self.alg.information_check, **kw)
 
     def fuse(self, received):
         """Fuse own message with ``received`` [(sender, Message)] as an agent
@@ -76,7 +76,9 @@ def tick_view(algorithm="diskf", scenario="dynamic", tick=30, me_index=None, see
     one = lambda a: a[0, me_index:me_index + 1]  # noqa: E731
     return TickView(
         alg=alg, run_id=RUN, tick=tick, ticks=scn.steps, ids=ids, me=ids[me_index],
-        state=State(one(state.x), one(state.P), one(state.since)),
+        state=replace(state, Y_pred=None, **{  # this agent's row of every field of the state
+            f.name: one(v) for f in fields(state)
+            if f.name != "Y_pred" and isinstance(v := getattr(state, f.name), np.ndarray)}),
         own=msg.take((0, slice(me_index, me_index + 1))),
         messages={ids[j]: msg.take((0, j)) for j in range(N)},
         linked=tuple(ids[j] for j in range(N) if links[me_index, j] and j != me_index),

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.core.model import COMPENSATION_FORMS, Params
+from diskf_mesh.core.model import COMPENSATION_FORMS
+from diskf_mesh.estimators import Params
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.studies.suite import StudyConfig, compensation_ablation, input_zero
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.core.model import Params
+from diskf_mesh.estimators import Params
 from diskf_mesh.core.rkf import rkf_update
 from diskf_mesh.data.scenario import load_scenario, simulate
 

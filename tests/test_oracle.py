@@ -10,7 +10,7 @@ import pytest
 
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.engine import oracle
-from diskf_mesh.core.model import Params
+from diskf_mesh.estimators import Params
 from diskf_mesh.data.scenario import load_scenario, parse_scenario, simulate
 
 TOL = 1e-9

@@ -11,7 +11,7 @@ from cli_helpers import run_cli
 from diskf_mesh import estimators as algorithms
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics
-from diskf_mesh.core.model import Params
+from diskf_mesh.estimators import Params
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.data.trace import load_trace, trace_from_json, trace_to_json
 

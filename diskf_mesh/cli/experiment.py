@@ -1,10 +1,10 @@
 """``diskf-mesh experiment``: the paper's Table II on a scenario.
 
-Runs every algorithm on seeds 0..S-1 for every topology (default: a
+Runs every estimator on seeds 0..S-1 for every topology (default: a
 range-gated scenario's own range, e.g. dynamic at 120, as up and simulate
 run it; any other scenario on the paper's all, ring, none), prints a table
 shaped like Table II and optionally writes the numbers as JSON
-``{algorithm: {topology: {mae_state, rmse_state, mae_input, rmse_input,
+``{estimator: {topology: {mae_state, rmse_state, mae_input, rmse_input,
 input_coverage, nees, <metric>_std ...}}}``.
 """
 from __future__ import annotations
@@ -12,14 +12,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from diskf_mesh import estimators as algorithms
 from diskf_mesh.studies import experiment
 from diskf_mesh.data.scenario import load_scenario
 from diskf_mesh.cli.options import (
     add_command,
+    add_estimator_choice,
     add_estimator_options,
     add_scenario_options,
-    algorithm_list,
     check_output,
     estimator_params,
     human_stream,
@@ -49,13 +48,12 @@ def default_topologies(scn, topologies, comm_range):
 
 
 def register(subparsers) -> None:
-    p = add_command(subparsers, "experiment", "reproduce Table II: algorithms x topologies x seeds", __doc__)
+    p = add_command(subparsers, "experiment", "reproduce Table II: estimators x topologies x seeds", __doc__)
     add_scenario_options(p)
     p.add_argument("--topology", type=topology_list, metavar="T[,T...]",
                    help="comma list of all, ring, none, range (default: only range when --range is given "
                         "or the scenario is range-gated, e.g. dynamic at its own range; else all,ring,none)")
-    p.add_argument("--algorithms", type=algorithm_list, default="all", metavar="all|A[,A...]",
-                   help=f"'all' or a comma list of {', '.join(algorithms.NAMES)}")
+    add_estimator_choice(p, many=True)
     p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
     add_estimator_options(p)
     p.add_argument("--json", metavar="OUT", help="also write the results as JSON (- for standard output)")
@@ -73,9 +71,9 @@ def run(args: argparse.Namespace) -> int:
     for st in settings:  # fail on a bad override before the long run
         st.apply(scn, args.steps)
     quiet = args.quiet or not sys.stderr.isatty()
-    with tqdm(total=len(settings) * len(args.algorithms), desc="experiment", unit="run",
+    with tqdm(total=len(settings) * len(args.estimators), desc="experiment", unit="run",
               file=sys.stderr, disable=quiet) as bar:
-        results = experiment.run_experiment(scn, settings, args.algorithms, range(args.seeds), args.steps,
+        results = experiment.run_experiment(scn, settings, args.estimators, range(args.seeds), args.steps,
                                             params, progress=bar.update)
     if args.json:
         save_json(args.json, results, "json")

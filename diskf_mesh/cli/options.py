@@ -11,9 +11,9 @@ import argparse
 from dataclasses import replace
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.core.model import COMPENSATION_FORMS, Params
 from diskf_mesh.data.argtypes import (  # noqa: F401 (re-exported)
-    algorithm_list, algorithm_name, eps_value, positive_int, range_value, seed_value, window_value)
+    estimator_list, estimator_name, positive_int, range_value, seed_value, setting_value)
+from diskf_mesh.estimators import NAMES, SETTINGS, Params
 from diskf_mesh.data.outputs import (  # noqa: F401 (re-exported)
     check_output, check_output_dir, human_stream, json_safe, save_json)
 
@@ -34,18 +34,36 @@ def add_scenario_options(parser: argparse.ArgumentParser) -> None:
                         help="agent count of a generated scenario (e.g. random-geometric; default: the scenario's)")
 
 
+def add_estimator_choice(parser, many: bool = False) -> None:
+    """``--estimator NAME`` (``--algorithm`` kept as an alias), or with
+    ``many`` ``--estimators all|A[,A...]`` (alias ``--algorithms``)."""
+    if many:
+        parser.add_argument("--estimators", "--algorithms", dest="estimators", type=estimator_list, default="all",
+                            metavar="all|E[,E...]", help=f"'all' or a comma list of {', '.join(NAMES)}")
+    else:
+        parser.add_argument("--estimator", "--algorithm", dest="estimator", type=estimator_name, default="diskf",
+                            help=f"one of {', '.join(NAMES)} (default diskf)")
+
+
 def add_estimator_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--window", type=window_value, default=argparse.SUPPRESS, metavar="W|none",
-                        help="observation time window in ticks, or none")
-    parser.add_argument("--eps", type=eps_value, default=argparse.SUPPRESS, metavar="E",
-                        help="state compensation step epsilon")
-    parser.add_argument("--compensation", choices=COMPENSATION_FORMS, default=argparse.SUPPRESS,
-                        help="compensation gain form")
+    """One option per scalar setting the registered estimators declare
+    (``estimators.SETTINGS``): ``--window``, ``--eps``, ... Absent options
+    keep the scenario's (or trace's) value."""
+    g = parser.add_argument_group("estimator settings (default: the scenario's [estimator] table)")
+    for s in SETTINGS.values():
+        if s.table:
+            continue  # a sub-table of switches: the scenario's [estimator.<name>]
+        if s.choices:
+            g.add_argument(s.flag, choices=s.choices, default=argparse.SUPPRESS, help=s.doc)
+        else:
+            meta = {bool: "on|off", int: "N", float: "X", str: "TEXT"}.get(s.type, "V") + ("|none" if s.optional else "")
+            g.add_argument(s.flag, type=setting_value(s), default=argparse.SUPPRESS, metavar=meta,
+                           help=f"{s.doc} (default {s.default!r})".replace("%", "%%"))
 
 
 def estimator_params(base: Params, args: argparse.Namespace) -> Params:
     """``base`` with the estimator options the user gave."""
-    given = {k: getattr(args, k) for k in ("window", "eps", "compensation") if hasattr(args, k)}
+    given = {s.name: getattr(args, s.name) for s in SETTINGS.values() if hasattr(args, s.name)}
     try:
         return replace(base, **given)
     except ValueError as e:

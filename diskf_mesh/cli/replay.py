@@ -1,26 +1,25 @@
-"""``diskf-mesh replay``: run one algorithm on recorded data.
+"""``diskf-mesh replay``: run one estimator on recorded data.
 
-Reads a ``diskf-trace/1`` JSON file, runs the algorithm on it in-process and
+Reads a ``diskf-trace/1`` JSON file, runs the estimator on it in-process and
 writes ``diskf-estimates/1`` (with ``metrics`` when the trace has truth).
 The estimator settings are those the trace carries (``simulate`` writes its
 scenario's ``[estimator]`` table into it), so ``simulate`` + ``replay`` gives
 ``experiment``'s estimates bit for bit; ``Params()`` where the trace has
-none, and --window, --eps, --compensation override them. A trace that breaks
+none, and the estimator options (--window, --eps, ...) override them. A trace that breaks
 its schema (docs/formats.md) ends in one line naming the field, exit 2.
 """
 from __future__ import annotations
 
 import argparse
 
-from diskf_mesh import estimators as algorithms
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.trace import estimates_to_json, estimator_from_json, read_json, trace_from_json
 from diskf_mesh.cli.options import (
     add_command,
+    add_estimator_choice,
     add_estimator_options,
-    algorithm_name,
     check_output,
     estimator_params,
     human_stream,
@@ -30,11 +29,10 @@ from diskf_mesh.cli.options import (
 
 
 def register(subparsers) -> None:
-    p = add_command(subparsers, "replay", "run an algorithm on a recorded diskf-trace/1 file", __doc__)
+    p = add_command(subparsers, "replay", "run an estimator on a recorded diskf-trace/1 file", __doc__)
     p.add_argument("trace", metavar="TRACE.json", help="a diskf-trace/1 file, or RUN.mcap: a recording of up --record "
-                   "(re-run on what each agent fused; --algorithm and the estimator options are the recording's)")
-    p.add_argument("--algorithm", type=algorithm_name, default="diskf",
-                   help=f"one of {', '.join(algorithms.NAMES)} (default diskf)")
+                   "(re-run on what each agent fused; --estimator and the estimator options are the recording's)")
+    add_estimator_choice(p)
     add_estimator_options(p)  # default: the trace's "estimator" settings
     p.add_argument("--out", metavar="EST.json", help="where to write diskf-estimates/1 (- for standard output; required for a trace)")
     p.set_defaults(func=run)
@@ -51,12 +49,12 @@ def run(args: argparse.Namespace) -> int:
     doc = read_json(args.trace)
     trace = trace_from_json(doc)
     params = estimator_params(estimator_from_json(doc), args)
-    est = engine.run(trace, args.algorithm, params)
+    est = engine.run(trace, args.estimator, params)
     scores = metrics.compute(trace, est) if trace.truth_x is not None else None
-    save_json(args.out, estimates_to_json(est, args.algorithm, 0, scores))
+    save_json(args.out, estimates_to_json(est, args.estimator, 0, scores))
     B, K, N = trace.shape
     text = human_stream(args.out)
-    print(f"{args.algorithm}: {K} ticks, {N} agents -> {args.out}", file=text)
+    print(f"{args.estimator}: {K} ticks, {N} agents -> {args.out}", file=text)
     for key, value in json_safe(scores or {}).items():
         print(f"  {key:<15}{'-' if value is None else f'{value:.4f}'}", file=text)
     return 0

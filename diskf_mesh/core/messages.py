@@ -53,12 +53,13 @@ class Neighbourhood:
 
     adj:       (..., R, S) 1.0 where receiver r fuses sender s (itself included)
     self_mask: (..., R, S) True where sender s is receiver r
-    gossip_u:  (..., R) one uniform draw per receiver and tick (GDKF only)
+    draws:     (..., R) the estimator's draw of each receiver at this tick
+               (``Estimator.draws``, e.g. GDKF's gossip), None if it has none
     """
 
     adj: np.ndarray
     self_mask: np.ndarray
-    gossip_u: np.ndarray | None = None
+    draws: np.ndarray | None = None
 
     @cached_property
     def n_neighbours(self) -> np.ndarray:

@@ -1,5 +1,7 @@
 """Component vocabulary: the shared motion model, the agents' sensors, the
-estimator parameters. Plain frozen dataclasses over numpy arrays."""
+compensation gain forms and diskf-r's switches. Plain frozen dataclasses
+over numpy arrays. The estimators' parameters are declared by each
+estimator (``estimators.base.Setting``) and gathered in ``estimators.Params``."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -136,37 +138,3 @@ class RobustOptions:
             if isinstance(v, bool) or not np.isfinite(v) or v <= 0:
                 raise ValueError(f"robust.{name}: must be a finite positive number, got {v!r}")
 
-
-@dataclass(frozen=True)
-class Params:
-    """Estimator hyper-parameters.
-
-    window:        observation time window in ticks (None: no window)
-    reset:         reset the window counter when input fusion had a valid input
-    eps:           state compensation step (the paper's epsilon = 0.05)
-    compensation:  gain form of eq. (compensation_state): bounded|paper|normalized|none
-    consensus_eps: KCF consensus step (Olfati-Saber's epsilon)
-    hold_input:    DISKF extension, off by default (the paper's algorithm):
-                   when no neighbour has an input estimate, predict with the
-                   last fused input instead of with none. Helps a lasting
-                   input seen intermittently; hurts isolated agents whose own
-                   estimate is poor (see docs/reproduction.md).
-    robust:        the switches of ``diskf-r`` (``RobustOptions``); the other
-                   algorithms ignore them.
-    """
-
-    window: int | None = 5
-    reset: bool = True
-    eps: float = 0.05
-    compensation: str = "bounded"
-    consensus_eps: float = 0.1
-    hold_input: bool = False
-    robust: RobustOptions = RobustOptions()
-
-    def __post_init__(self):
-        if self.window is not None and (int(self.window) != self.window or self.window < 0):
-            raise ValueError(f"window: must be a non-negative integer or None, got {self.window!r}")
-        if not np.isfinite(self.eps) or self.eps < 0:
-            raise ValueError(f"eps: must be a finite non-negative number, got {self.eps!r}")
-        if self.compensation not in COMPENSATION_FORMS:
-            raise ValueError(f"compensation: must be one of {', '.join(COMPENSATION_FORMS)}, got {self.compensation!r}")

@@ -46,19 +46,18 @@ def range_value(text: str) -> float:
     return _non_negative(text, finite=False)
 
 
-def eps_value(text: str) -> float:
-    """State compensation step: finite, >= 0."""
-    return _non_negative(text, finite=True)
+def setting_value(setting):
+    """The argparse type of an estimator ``Setting`` (``Setting.from_text``)."""
+    def parse(text: str):
+        try:
+            return setting.from_text(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+    parse.__name__ = setting.name  # argparse names the type in "invalid <name> value"
+    return parse
 
 
-def window_value(text: str):
-    """Observation window in ticks (>= 0), or ``none`` for no window."""
-    if text.strip().lower() == "none":
-        return None
-    return _integer(text, 0, "a non-negative integer or 'none'")
-
-
-def algorithm_name(text: str) -> str:
+def estimator_name(text: str) -> str:
     try:
         estimators.get(text.strip())
     except ValueError as e:
@@ -66,7 +65,7 @@ def algorithm_name(text: str) -> str:
     return text.strip()
 
 
-def algorithm_list(text: str) -> list[str]:
+def estimator_list(text: str) -> list[str]:
     try:
         return estimators.parse_list(text)
     except ValueError as e:

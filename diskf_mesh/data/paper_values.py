@@ -1,19 +1,19 @@
 """The numbers the paper prints (``shared/paper/diskf.tex``), for comparison.
 
 Only the two tables carry numbers; Figs. 3, 5 and 6 are plots without
-values in the source. Keys follow ``metrics.METRIC_KEYS`` and the algorithm
-names of ``algorithms.NAMES``.
+values in the source. Keys follow ``metrics.METRIC_KEYS`` and the estimator
+names of ``estimators.NAMES``; ``COLUMNS`` are the paper's six, in its order.
 """
 from __future__ import annotations
 
-_ALGS = ("diskf", "cdrkf", "ldrkf", "kcf", "diffkf", "gdkf")
+COLUMNS = ("diskf", "cdrkf", "ldrkf", "kcf", "diffkf", "gdkf")
 
 
 def _rows(**rows) -> dict:
-    return {metric: dict(zip(_ALGS, values)) for metric, values in rows.items()}
+    return {metric: dict(zip(COLUMNS, values)) for metric, values in rows.items()}
 
 
-# Table II: four static agents (Scenario 1), {topology: {metric: {alg: value}}}
+# Table II: four static agents (Scenario 1), {topology: {metric: {estimator: value}}}
 TABLE_II = {
     "all": _rows(mae_state=(1.91, 1.91, 15.66, 27.90, 27.90, 36.20),
                  rmse_state=(2.66, 2.66, 25.05, 40.45, 40.45, 50.15),

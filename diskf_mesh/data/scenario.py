@@ -11,7 +11,9 @@ Format (see ``scenarios/quadrants.toml`` for a commented example):
     [model]     dynamics = "rotation" (omega, rad/tick) | "matrix" (A)
                 G, Q, x0, P0, position_dims
     [input]     kind = "step" (at, before, after) | "constant" (value)
-    [estimator] window, reset, eps, compensation, consensus_eps
+    [estimator] the estimators' settings (``estimators.Params``: each
+                estimator declares its own, e.g. window, eps, consensus_eps;
+                a dataclass-valued one is a sub-table, [estimator.robust])
     [topology]  kind = "all" | "ring" | "none" | "range"; range
     [[agents]]  id, H, R, sense = "quadrant" | "always" | "range" (sense_range)
                 position = [x, y]                     a static agent, or
@@ -31,7 +33,8 @@ import numpy as np
 
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
-from diskf_mesh.core.model import COMPENSATION_FORMS, LinearModel, Params, RobustOptions, Sensors
+from diskf_mesh.core.model import LinearModel, Sensors
+from diskf_mesh.estimators import SETTINGS, Params
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.data.validate import agent_id, check_keys, index_list, matrix, scalar, setting, spd, vector
 
@@ -178,10 +181,6 @@ INPUT_KEYS = ("kind", "at", "before", "after", "value")
 TOPOLOGY_KEYS = ("kind", "range")
 AGENT_KEYS = ("id", "H", "R", "sense", "sense_range", "position", "path", "period", "phase")
 GENERATE_KEYS = ("kind", "agents", "box", "sense_range", "R", "layout_seed")
-# estimator settings with more than a type to check; every other Params
-# field is read by the type of its default
-ESTIMATOR_CHECKS = {"eps": {"low": 0.0}, "consensus_eps": {"low": 0.0},
-                    "compensation": {"choices": COMPENSATION_FORMS}}
 
 
 def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
@@ -254,30 +253,27 @@ def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
 
 
 def _parse_estimator(est) -> Params:
-    """``Params`` from an ``[estimator]`` table: its keys are Params' fields,
-    each of the type of its default; ``window = "none"`` means no window."""
-    defaults = {f.name: f.default for f in fields(Params)}
-    check_keys(est, defaults, "estimator")
+    """``Params`` from an ``[estimator]`` table: its keys are the settings
+    the registered estimators declare (``estimators.SETTINGS``), each read
+    by its declared kind and checks; ``"none"`` (or -1) is None where a
+    setting is optional; a setting whose kind is a dataclass of switches is
+    a sub-table (``[estimator.robust]``)."""
+    check_keys(est, SETTINGS, "estimator")
     given = {}
     for key, value in est.items():
-        if key == "window" and value in ("none", -1):
+        s, where = SETTINGS[key], f"estimator.{key}"
+        if s.optional and value in ("none", -1):
             given[key] = None
-            continue
-        if key == "robust":  # [estimator.robust]: diskf-r's switches (booleans) and its two scales (numbers > 0)
-            switches = {f.name: f.default for f in fields(RobustOptions)}
+        elif s.table:
+            switches = {f.name: f.default for f in fields(s.type)}
             if not isinstance(value, dict):
-                raise InputError("estimator.robust", "must be a table of switches")
-            check_keys(value, switches, "estimator.robust")
-            given[key] = RobustOptions(**{k: scalar(v, f"estimator.robust.{k}", type(switches[k]),
-                                                    **({} if type(switches[k]) is bool else {"above": 0}))
-                                          for k, v in value.items()})
-            continue
-        kind = {"window": int}.get(key, type(defaults[key]))
-        if kind not in (bool, int, float, str):
-            given[key] = value  # a field without a typed default: Params checks it
-            continue
-        checks = ESTIMATOR_CHECKS.get(key, {"low": 0} if kind in (int, float) else {})
-        given[key] = scalar(value, f"estimator.{key}", kind, **checks)
+                raise InputError(where, "must be a table of switches")
+            check_keys(value, switches, where)
+            given[key] = s.type(**{k: scalar(v, f"{where}.{k}", type(switches[k]),  # switches; scales > 0
+                                             **({} if type(switches[k]) is bool else {"above": 0}))
+                                    for k, v in value.items()})
+        else:
+            given[key] = scalar(value, where, s.type, low=s.low, choices=s.choices)
     try:
         return Params(**given)
     except ValueError as e:

@@ -37,7 +37,8 @@ import numpy as np
 
 from diskf_mesh.data import schemas
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.core.model import LinearModel, Params, RobustOptions, Sensors
+from diskf_mesh.core.model import LinearModel, Sensors
+from diskf_mesh.estimators import SETTINGS, Params
 from diskf_mesh.data.validate import agent_id, index_list, matrix, setting, spd, vector
 
 TRACE_FORMAT = "diskf-trace/1"
@@ -165,10 +166,12 @@ def estimator_from_json(doc: dict) -> Params:
     """The estimator settings a diskf-trace/1 document carries (its
     scenario's ``[estimator]``), ``Params()`` for the ones it does not."""
     given = dict(doc.get("estimator", {}))
-    if given.get("window") is not None:
-        given["window"] = int(given["window"])  # the schema allows 5.0 for an integer
-    if "robust" in given:  # the schema made it an object of booleans
-        given["robust"] = RobustOptions(**given["robust"])
+    for key, value in given.items():
+        s = SETTINGS.get(key)
+        if s is not None and s.table and isinstance(value, dict):  # the schema made it an object of booleans
+            given[key] = s.type(**value)
+        elif s is not None and s.type is int and isinstance(value, float) and value.is_integer():
+            given[key] = int(value)  # the schema allows 5.0 for an integer
     try:
         return Params(**given)
     except ValueError as e:

@@ -1,6 +1,6 @@
 """The in-process engine: every agent of every seed at once, one tick at a time.
 
-Per tick it calls the algorithm's ``local`` on the whole (seeds x agents)
+Per tick it calls the estimator's ``local`` on the whole (seeds x agents)
 batch, lets every agent "hear" the messages allowed by the links, and calls
 ``fuse``. There is no Python loop over agents or seeds; the agent process
 (``agents/``) calls the very same two functions on a batch of one.
@@ -31,11 +31,10 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from diskf_mesh import estimators as algorithms
-from diskf_mesh.estimators.consensus_baselines import consensus_step_problem
+from diskf_mesh import estimators
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
-from diskf_mesh.core.model import Params
 from diskf_mesh.data.trace import Trace
+from diskf_mesh.estimators import Params
 
 NEIGHBOURS = ("auto", "dense", "gather")
 
@@ -55,10 +54,12 @@ class Estimates:
         return Estimates(self.x[index], self.P[index], self.d[index], self.d_valid[index])
 
 
-def gossip_stream(trace: Trace) -> np.ndarray:
-    """(B, K, N) uniform draws, the per-agent streams of ``gossip_draws``."""
+def draw_stream(est, trace: Trace) -> np.ndarray | None:
+    """(B, K, N) the estimator's per-agent draws (``Estimator.draws``) for
+    every seed of ``trace``, or None if it draws nothing."""
     K = trace.y.shape[1]
-    return np.stack([algorithms.gossip_draws(s, trace.sensors.ids, K).T for s in trace.seeds])
+    rows = [est.draws(s, trace.sensors.ids, K) for s in trace.seeds]
+    return None if rows[0] is None else np.stack([r.T for r in rows])
 
 
 # --------------------------------------------------------------------------
@@ -73,9 +74,9 @@ class DenseLinks:
         self.self_mask = np.broadcast_to(np.eye(N, dtype=bool), (B, N, N))
         self.nb = Neighbourhood(self.adj, self.self_mask)  # one per link change: caches what it derives
 
-    def fuse(self, alg, state, msg: Message, gossip_u):
-        nb = self.nb if gossip_u is None else Neighbourhood(self.adj, self.self_mask, gossip_u)
-        return alg.fuse(state, msg, msg, nb)
+    def fuse(self, est, state, msg: Message, draws):
+        nb = self.nb if draws is None else Neighbourhood(self.adj, self.self_mask, draws)
+        return est.fuse(state, msg, msg, nb)
 
 
 class GatheredLinks:
@@ -98,18 +99,18 @@ class GatheredLinks:
         rows = a.reshape((-1,) + a.shape[2:])
         return np.take(rows, self.flat, axis=0).reshape(self.shape + a.shape[2:])
 
-    def fuse(self, alg, state, msg: Message, gossip_u):
+    def fuse(self, est, state, msg: Message, draws):
         own = Message(**{f.name: getattr(msg, f.name)[:, :, None] for f in fields(Message)})
         senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
-        nb = self.nb if gossip_u is None else Neighbourhood(self.adj, self.self_mask, gossip_u[:, :, None])
-        st, out = alg.fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders, nb)
+        nb = self.nb if draws is None else Neighbourhood(self.adj, self.self_mask, draws[:, :, None])
+        st, out = est.fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders, nb)
         squeeze = lambda a: a[:, :, 0]  # noqa: E731
         return per_receiver(st, squeeze), Output(squeeze(out.x), squeeze(out.P), squeeze(out.d), squeeze(out.d_valid))
 
 
 def per_receiver(state, fn):
     """``state`` with ``fn`` applied to every array field (whatever fields the
-    algorithm's state carries), e.g. to add or drop the receiver-batch axis."""
+    estimator's state carries), e.g. to add or drop the receiver-batch axis."""
     return replace(state, **{f.name: fn(v) for f in fields(state)
                              if isinstance(v := getattr(state, f.name), np.ndarray)})
 
@@ -130,38 +131,38 @@ def choose_links(links: np.ndarray, B: int, mode: str = "auto"):
 # --------------------------------------------------------------------------
 # running
 # --------------------------------------------------------------------------
-def run(trace: Trace, algorithm: str, params: Params | None = None, progress=None,
+def run(trace: Trace, estimator: str, params: Params | None = None, progress=None,
         neighbours: str = "auto") -> Estimates:
-    """Run one algorithm on every seed of ``trace``.
+    """Run one estimator (by name) on every seed of ``trace``.
 
     ``progress``, if given, is called with the number of ticks done (counted
     over all seed chunks when a large run is split, see ``seeds_per_chunk``).
     ``neighbours`` picks the message layout (see the module docstring);
-    all give the same estimates."""
-    if algorithm == "kcf":
-        problem = consensus_step_problem((params or Params()).consensus_eps, trace.links)
-        if problem:
-            warnings.warn(problem, RuntimeWarning, stacklevel=2)
+    all give the same estimates. The estimator's ``warning``, if any, is
+    issued as a RuntimeWarning first."""
+    problem = estimators.get(estimator).warning(params or Params(), trace.links)
+    if problem:
+        warnings.warn(problem, RuntimeWarning, stacklevel=2)
     B = trace.has.shape[0]
     chunk = seeds_per_chunk(trace)
     if chunk >= B:
-        return run_batch(trace, algorithm, params, progress, neighbours)
+        return run_batch(trace, estimator, params, progress, neighbours)
     K = trace.has.shape[1]
     parts = []
     for c, start in enumerate(range(0, B, chunk)):
         report = None if progress is None else (lambda k, done=c * K: progress(done + k))
-        parts.append(run_batch(take_seeds(trace, slice(start, start + chunk)), algorithm, params, report, neighbours))
+        parts.append(run_batch(take_seeds(trace, slice(start, start + chunk)), estimator, params, report, neighbours))
     return Estimates(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Estimates)))
 
 
-def run_batch(trace: Trace, algorithm: str, params: Params | None = None, progress=None,
+def run_batch(trace: Trace, estimator: str, params: Params | None = None, progress=None,
               neighbours: str = "auto") -> Estimates:
     """``run`` on all seeds of ``trace`` as one batch."""
-    alg = algorithms.get(algorithm)(trace.model, trace.sensors, params)
+    est = estimators.get(estimator)(trace.model, trace.sensors, params)
     B, K, N = trace.has.shape
     n, m = trace.model.n, trace.model.m
-    state = alg.init((B, N))
-    gossip = gossip_stream(trace) if algorithm == "gdkf" else None
+    state = est.init((B, N))
+    draws = draw_stream(est, trace)
     # tick-major buffers: each tick writes one contiguous block
     xs = np.empty((K, B, N, n))
     Ps = np.empty((K, B, N, n, n))
@@ -171,10 +172,10 @@ def run_batch(trace: Trace, algorithm: str, params: Params | None = None, progre
     changed = link_changes(trace.links)
     view = None
     for k in range(1, K + 1):
-        state, msg = alg.local(state, k, y[k - 1], has[k - 1])
+        state, msg = est.local(state, k, y[k - 1], has[k - 1])
         if changed[k - 1]:
             view = choose_links(trace.links[:, k - 1], B, neighbours)
-        state, out = view.fuse(alg, state, msg, None if gossip is None else gossip[:, k - 1])
+        state, out = view.fuse(est, state, msg, None if draws is None else draws[:, k - 1])
         xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)
@@ -254,13 +255,13 @@ def stack(traces) -> Trace:
     )
 
 
-def run_many(traces, algorithm: str, params: Params | None = None, progress=None) -> list[Estimates]:
+def run_many(traces, estimator: str, params: Params | None = None, progress=None) -> list[Estimates]:
     """``run`` on each trace, batched into one run when they are ``stackable``.
 
     Returns one ``Estimates`` per trace, equal to running each alone."""
     traces = list(traces)
     if len(traces) == 1 or not stackable(traces):
-        return [run(t, algorithm, params, progress) for t in traces]
-    est = run(stack(traces), algorithm, params, progress)
+        return [run(t, estimator, params, progress) for t in traces]
+    est = run(stack(traces), estimator, params, progress)
     bounds = np.cumsum([0] + [t.has.shape[0] for t in traces])
     return [est.take(slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]

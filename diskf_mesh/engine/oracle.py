@@ -9,7 +9,7 @@ information-form shortcuts). It shares no code with ``equations`` or
 ``tests/test_oracle.py`` comparing the two checks the batched
 engine against the paper, not against itself.
 
-Semantics follow ``algorithms/diskf.py`` exactly: the observation window
+Semantics follow ``estimators/diskf.py`` exactly: the observation window
 counter, its reset on a valid fused input, the compensation gain forms, the
 difference of published predictions in the compensation, "no measurement:
 the update is the prediction", and the optional ``hold_input`` extension.
@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from diskf_mesh.core.messages import Message
-from diskf_mesh.core.model import Params
+from diskf_mesh.estimators import Params
 from diskf_mesh.data.trace import Trace
 
 

@@ -1,6 +1,8 @@
-"""What every estimator shares: state, prediction and the local step.
+"""What every estimator shares: its declaration, state, prediction and the
+local step. The interface a new estimator implements is ``Estimator``
+(docs/estimators.md).
 
-An algorithm is two pure functions per tick, split at the single exchange
+An estimator is two pure functions per tick, split at the single exchange
 round (Algorithm 1, step 2):
 
     local(state, k, y, has)          -> (state, Message)   before sending
@@ -9,17 +11,111 @@ round (Algorithm 1, step 2):
 Arrays carry leading batch axes (seeds, agents). The in-process engine calls
 them on every agent at once; an agent process calls them on a batch of one,
 with the messages it actually received as ``senders``.
+
+Everything else the engine, the mesh and the studies need to know about an
+estimator it declares on its class: ``name``, ``label``, ``color``, its
+parameters (``settings``, a tuple of ``Setting``), and the hooks
+``draws`` (per-tick randomness), ``information_check`` (the guard's check of
+a sender's update) and ``warning`` (a stability warning before a run).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core.linalg import inv_spd, inv_spd_each
 from diskf_mesh.core.messages import Message, Neighbourhood
-from diskf_mesh.core.model import LinearModel, Params, Sensors
+from diskf_mesh.core.model import LinearModel, Sensors
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One parameter of an estimator, declared once on its class.
+
+    It is read from the scenario's ``[estimator]`` table (key ``name``), from
+    the command line (``--name`` with dashes, for scalar kinds) and from a
+    trace's ``estimator`` object, and is a field of ``estimators.Params``
+    (every registered estimator's settings; an estimator reads its own as
+    ``self.params.<name>``). Estimators sharing a parameter share its
+    ``Setting`` object (DISKF's window, eps, ... in diskf-r).
+
+    kind:     bool, int, float, str, or a frozen dataclass of booleans
+              (a sub-table ``[estimator.<name>]``); default: type(default)
+    low:      numbers: the smallest value allowed (inclusive)
+    choices:  strings: the values allowed
+    optional: None is a value ("none" in TOML and on the command line)
+    """
+
+    name: str
+    default: object
+    doc: str
+    kind: type | None = None
+    low: float | None = None
+    choices: tuple | None = None
+    optional: bool = False
+
+    @property
+    def type(self) -> type:
+        return self.kind or type(self.default)
+
+    @property
+    def table(self) -> bool:
+        """A sub-table of switches (a dataclass), not a scalar."""
+        return dataclasses.is_dataclass(self.type)
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    def check(self, value):
+        """``value`` if it is allowed, else ValueError ``"name: must be ..."``."""
+        kind, what = self.type, None
+        if value is None:
+            what = None if self.optional else "not None"
+        elif self.table:
+            what = None if isinstance(value, kind) else f"a {kind.__name__}"
+        elif kind is bool:
+            what = None if isinstance(value, (bool, np.bool_)) else "true or false"
+        elif kind is str:
+            what = None if isinstance(value, str) and (self.choices is None or value in self.choices) else (
+                f"one of {', '.join(self.choices)}" if self.choices else "a string")
+        else:
+            number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+            if not number or not math.isfinite(value) or (kind is int and int(value) != value):
+                what = "an integer" if kind is int else "a finite number"
+            elif self.low is not None and value < self.low:
+                what = f">= {self.low:g}"
+            if what and self.low == 0:
+                what = "a non-negative integer" if kind is int else "a finite non-negative number"
+            if what and self.optional:
+                what += " or None"
+        if what:
+            raise ValueError(f"{self.name}: must be {what}, got {value!r}")
+        return value
+
+    def from_text(self, text: str):
+        """A command-line value (``none`` for None where optional)."""
+        t = text.strip()
+        if self.optional and t.lower() == "none":
+            return None
+        kind = self.type
+        try:
+            if kind is bool:
+                value = {"true": True, "on": True, "1": True, "false": False, "off": False, "0": False}[t.lower()]
+            elif kind in (int, float):
+                value = kind(t)
+            else:
+                value = t
+        except (KeyError, ValueError):
+            value = t
+        try:
+            return self.check(value)
+        except ValueError as e:
+            raise ValueError(str(e).partition(": ")[2].replace("None", "'none'")) from None
 
 
 @dataclass(frozen=True)
@@ -27,16 +123,16 @@ class State:
     x: np.ndarray      # (..., n)   x_bar_{k|k}, the fused estimate
     P: np.ndarray      # (..., n, n)
     since: np.ndarray  # (...,) ticks since the observation window was refreshed
-    d_hold: np.ndarray | None = None  # (..., m) last fused input (DISKF, hold_input)
-    held: np.ndarray | None = None    # (...,) whether d_hold holds an estimate
     # Set by ``local`` for the ``fuse`` of the same tick, which then need not
     # invert the agent's own P^ again: P^^-1 (None otherwise).
-    Y_pred: np.ndarray | None = None
+    # Keyword-only, so an estimator's own state (a subclass) lists its
+    # fields positionally after ``since``.
+    Y_pred: np.ndarray | None = field(default=None, kw_only=True)
 
 
 @dataclass(frozen=True)
 class Local:
-    """Quantities of the local step, shared by all algorithms."""
+    """Quantities of the local step, shared by all estimators."""
 
     x_pred: np.ndarray
     P_pred: np.ndarray
@@ -48,17 +144,45 @@ class Local:
     Ji: np.ndarray  # (P^^-1 + U)^-1, P~ before the "no measurement" mask
 
 
-class Algorithm:
-    """Base class; subclasses set ``name`` and implement ``local``/``fuse``."""
+class Estimator:
+    """Base class of every estimator, built-in or plugin: a subclass sets
+    the declaration below and implements ``local`` and ``fuse``.
 
-    name = "base"
-    label = "base"
+    ``params`` is an ``estimators.Params`` (the scenario's ``[estimator]``
+    table); ``None``: every setting at its default."""
 
-    def __init__(self, model: LinearModel, sensors: Sensors, params: Params | None = None):
+    name: str = ""            # the registry's key, the CLI's --estimator value
+    label: str = ""           # in tables, legends and reports
+    color: str | None = None  # a matplotlib colour for its curves (None: the cycle's)
+    settings: tuple = ()      # its ``Setting``s
+    # The guard checks that a sender's (x~, P~) is an information update of
+    # its (x^, P^) (P~ <= P^); off for estimators whose x~ is something else
+    # (L-DRKF sends its RKF estimate there).
+    information_check: bool = True
+
+    def __init__(self, model: LinearModel, sensors: Sensors, params=None):
+        if params is None:
+            from diskf_mesh.estimators import Params  # the registry's, with every registered setting
+            params = Params()
         self.model = model
         self.sensors = sensors
-        self.params = params or Params()
+        self.params = params
         self.sensor_info = eq.sensor_information(sensors.H, sensors.R)  # constant per agent
+
+    # -- hooks -----------------------------------------------------------
+    def draws(self, seed: int, agent_ids, steps: int) -> np.ndarray | None:
+        """Per-tick randomness: (N, steps) uniform draws, one stream per
+        agent seeded by (run seed, agent id), or None (the default). The
+        engine and the agent process hand tick k's draw of each receiver to
+        ``fuse`` as ``Neighbourhood.draws``; each agent process makes its own
+        row, so both see the same numbers."""
+        return None
+
+    @classmethod
+    def warning(cls, params, links: np.ndarray) -> str | None:
+        """Why a run with ``params`` on ``links`` (..., N, N) may go wrong
+        (printed as a warning before it starts), or None."""
+        return None
 
     # -- helpers ---------------------------------------------------------
     def init(self, batch: tuple) -> State:
@@ -66,8 +190,7 @@ class Algorithm:
         n = self.model.n
         x = np.broadcast_to(self.model.x0, batch + (n,)).astype(float).copy()
         P = np.broadcast_to(self.model.P0, batch + (n, n)).astype(float).copy()
-        m = self.model.m
-        return State(x, P, np.zeros(batch, dtype=np.int64), np.zeros(batch + (m,)), np.zeros(batch, dtype=bool))
+        return State(x, P, np.zeros(batch, dtype=np.int64))
 
     def local_kf(self, state: State, k: int, y, has) -> Local:
         """Prediction (info_kf_prediction0) and local update (info_kf_update0)."""
@@ -78,10 +201,11 @@ class Algorithm:
         return Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji)
 
     @staticmethod
-    def for_fuse(state: State, loc: Local, since=None) -> State:
-        """``state`` after the local step: the window counter ``since`` if
-        given, and the local step's P^^-1 for ``fusion_inverses``."""
-        return State(state.x, state.P, state.since if since is None else since, state.d_hold, state.held, loc.Y)
+    def for_fuse(state: State, loc: Local) -> State:
+        """``state`` after the local step: with the local step's P^^-1 for
+        ``fusion_inverses``. An estimator with a state of its own (a subclass
+        of ``State``) builds it with ``Y_pred``."""
+        return State(state.x, state.P, state.since, Y_pred=loc.Y)
 
     @staticmethod
     def fusion_inverses(state: State, own: Message, senders: Message):

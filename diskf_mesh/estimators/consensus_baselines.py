@@ -22,10 +22,12 @@ import numpy as np
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core.linalg import nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
-from diskf_mesh.estimators.base import Algorithm, State, uniform_weights
+from diskf_mesh.estimators.base import Estimator, Setting, State, uniform_weights
+
+CONSENSUS_EPS = Setting("consensus_eps", 0.1, "KCF consensus step (Olfati-Saber's epsilon)", low=0.0)
 
 
-class _Consensus(Algorithm):
+class _Consensus(Estimator):
     def local(self, state: State, k: int, y, has):
         loc = self.local_kf(state, k, y, has)
         d, S, valid = self.local_input(loc)
@@ -35,6 +37,12 @@ class _Consensus(Algorithm):
 class KCF(_Consensus):
     name = "kcf"
     label = "KCF"
+    color = "tab:red"
+    settings = (CONSENSUS_EPS,)
+
+    @classmethod
+    def warning(cls, params, links):
+        return consensus_step_problem(params.consensus_eps, links)
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
         Ystar, Yp, Yu = self.fusion_inverses(state, own, senders)
@@ -72,6 +80,7 @@ def consensus_step_problem(eps: float, links: np.ndarray) -> str | None:
 class DiffKF(_Consensus):
     name = "diffkf"
     label = "DiffKF"
+    color = "tab:purple"
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
         x, P = diffusion_update(nb.adj, own, senders, self.fusion_inverses(state, own, senders))
@@ -100,8 +109,12 @@ def gossip_adjacency(adj, self_mask, u):
 class GDKF(_Consensus):
     name = "gdkf"
     label = "GDKF"
+    color = "tab:cyan"
+
+    def draws(self, seed, agent_ids, steps):
+        return gossip_draws(seed, agent_ids, steps)
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
-        adj = gossip_adjacency(nb.adj, nb.self_mask, nb.gossip_u)
+        adj = gossip_adjacency(nb.adj, nb.self_mask, nb.draws)
         x, P = diffusion_update(adj, own, senders, self.fusion_inverses(state, own, senders))
         return State(x, P, state.since), Output(x, P, own.d, own.d_valid)

@@ -110,20 +110,27 @@ from diskf_mesh.core import equations as eq
 from diskf_mesh.core.linalg import T, inv_spd, mv, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.rkf import rkf_update
-from diskf_mesh.estimators.base import Algorithm, State
+from diskf_mesh.core.model import RobustOptions
+from diskf_mesh.estimators.base import Estimator, Setting
+from diskf_mesh.estimators.diskf import COMPENSATION, EPS, RESET, WINDOW, HeldState
+
+ROBUST = Setting("robust", RobustOptions(), "the switches of diskf-r (model.RobustOptions), "
+                 "the [estimator.robust] table")
 
 
 @dataclass(frozen=True)
-class RobustState(State):
+class RobustState(HeldState):
     S_hold: np.ndarray | None = None  # (..., m, m) covariance of d_hold, the last fused input
     tick: int = 0                     # the tick of the last ``local`` (its A_{k-1} serves ``fuse``)
     fed: np.ndarray | None = None     # (...,) the last tick made the unbiased update (``latch``)
     C: np.ndarray | None = None       # (..., n, m) cov(x_bar error, d_hold error) (``persist``)
 
 
-class DISKFRobust(Algorithm):
+class DISKFRobust(Estimator):
     name = "diskf-r"
     label = "DISKF-R"
+    color = "midnightblue"
+    settings = (WINDOW, RESET, EPS, COMPENSATION, ROBUST)
 
     def init(self, batch: tuple) -> RobustState:
         s = super().init(batch)
@@ -132,7 +139,8 @@ class DISKFRobust(Algorithm):
         scale = o.input_prior if o.persist else 1.0  # persist: the input's prior; else a placeholder
         S = np.broadcast_to(scale * np.eye(m), batch + (m, m)).copy()
         C = np.zeros(batch + (n, m))
-        return RobustState(s.x, s.P, s.since, s.d_hold, s.held, S_hold=S, fed=np.zeros(batch, dtype=bool), C=C)
+        return RobustState(s.x, s.P, s.since, np.zeros(batch + (m,)), np.zeros(batch, dtype=bool),
+                           S_hold=S, fed=np.zeros(batch, dtype=bool), C=C)
 
     def local(self, state: RobustState, k: int, y, has):
         """Step 1 (prediction, local update) and the message."""
@@ -145,7 +153,7 @@ class DISKFRobust(Algorithm):
             allowed = eq.window_allows(since, self.params.window) if o.window else None
             d, S, valid = self.local_input(loc, allowed)
         st = RobustState(state.x, state.P, np.where(has, 0, since), state.d_hold, state.held,
-                         loc.Y, S_hold=state.S_hold, tick=k, fed=state.fed, C=state.C)
+                         Y_pred=loc.Y, S_hold=state.S_hold, tick=k, fed=state.fed, C=state.C)
         return st, self.message(loc, d, S, valid)
 
     def fuse(self, state: RobustState, own: Message, senders: Message, nb: Neighbourhood):

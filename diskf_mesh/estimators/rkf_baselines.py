@@ -15,12 +15,13 @@ from diskf_mesh.core import equations as eq
 from diskf_mesh.core.linalg import inv_spd, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.rkf import rkf_update
-from diskf_mesh.estimators.base import Algorithm, State, uniform_weights
+from diskf_mesh.estimators.base import Estimator, State, uniform_weights
 
 
-class CDRKF(Algorithm):
+class CDRKF(Estimator):
     name = "cdrkf"
     label = "C-DRKF"
+    color = "tab:orange"
 
     def local(self, state: State, k: int, y, has):
         loc = self.local_kf(state, k, y, has)
@@ -38,9 +39,11 @@ class CDRKF(Algorithm):
         return State(x, P, state.since), Output(x, P, d, valid)
 
 
-class LDRKF(Algorithm):
+class LDRKF(Estimator):
     name = "ldrkf"
     label = "L-DRKF"
+    color = "tab:green"
+    information_check = False  # its x~, P~ is the RKF estimate, not an information update of x^, P^
 
     def local(self, state: State, k: int, y, has):
         loc = self.local_kf(state, k, y, has)

@@ -1,4 +1,4 @@
-"""One agent's share of ``engine.run``: the same algorithm functions on a
+"""One agent's share of ``engine.run``: the same estimator functions on a
 batch of one.
 
 The engine calls ``local`` and ``fuse`` on every agent at once with the full
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from diskf_mesh import estimators as algorithms
+from diskf_mesh import estimators
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.data.scenario import Scenario, links_for
 
@@ -27,9 +27,10 @@ class AgentEstimator:
         self.scenario = scn
         self.sensors = scn.sensors().select([self.index])   # this agent's H, R only
         self.algorithm = algorithm
-        self.alg = algorithms.get(algorithm)(scn.model(ticks), self.sensors, params or scn.params)
+        self.alg = estimators.get(algorithm)(scn.model(ticks), self.sensors, params or scn.params)
         self.state = self.alg.init((1, 1))
-        self.gossip = algorithms.gossip_draws(seed, [agent_id], ticks)[0] if algorithm == "gdkf" else None
+        draws = self.alg.draws(seed, [agent_id], ticks)  # this agent's row of the engine's (Estimator.draws)
+        self.draws = None if draws is None else draws[0]
         self._neighbourhoods = {}  # (senders, own position) -> Neighbourhood
 
     @property
@@ -53,8 +54,8 @@ class AgentEstimator:
         rows = [own.take((0, 0)) if j == self.agent_id else others[j] for j in order]
         senders = Message.stack(rows).take(np.newaxis)         # (1, J, ...)
         nb = self._neighbourhood(len(order), order.index(self.agent_id))
-        if self.gossip is not None:
-            nb = Neighbourhood(nb.adj, nb.self_mask, np.array([[self.gossip[k - 1]]]))
+        if self.draws is not None:
+            nb = Neighbourhood(nb.adj, nb.self_mask, np.array([[self.draws[k - 1]]]))
         self.state, out = self.alg.fuse(self.state, own, senders, nb)
         return out
 
@@ -91,7 +92,7 @@ def lockstep(scn: Scenario, algorithm: str, trace, seed: int = 0):
     an agent process), in lockstep over seed 0 of ``trace``, each fusing the
     messages of the agents linked to it: what a fault-free mesh run computes,
     in one process. Yields (k, messages {id: Message}, outputs {id: Output})
-    per tick; ``seed``: the run's seed (GDKF's draws)."""
+    per tick; ``seed``: the run's seed (the estimator's draws)."""
     ids = [a.id for a in scn.agents]
     K = trace.has.shape[1]
     agents = {i: AgentEstimator(scn, i, algorithm, K, seed) for i in ids}

@@ -13,7 +13,8 @@ import argparse
 import sys
 from dataclasses import dataclass
 
-from diskf_mesh.data.argtypes import algorithm_name, positive_int, range_value
+from diskf_mesh import estimators
+from diskf_mesh.data.argtypes import estimator_name, positive_int, range_value
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, load_scenario
 from diskf_mesh.mesh.keys import check_run_id
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
@@ -57,8 +58,8 @@ def setting_label(scn: Scenario) -> str:
 def add_arguments(parser: argparse.ArgumentParser, run_id_default: str | None = DEFAULT_RUN_ID) -> None:
     g = parser.add_argument_group("run")
     g.add_argument("--scenario", default="dynamic", help="a shipped scenario name or a .toml path (default: dynamic)")
-    g.add_argument("--algorithm", type=algorithm_name, default="diskf",
-                   help="diskf, cdrkf, ldrkf, kcf, diffkf or gdkf (default: diskf)")
+    g.add_argument("--estimator", "--algorithm", dest="algorithm", type=estimator_name, default="diskf",
+                   help=f"one of {', '.join(estimators.NAMES)} (default: diskf)")
     g.add_argument("--run-id", default=run_id_default,
                    help="key prefix diskf/<run-id>/ shared by the world and its agents"
                         + (f" (default: {run_id_default})" if run_id_default else " (default: a fresh one)"))

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.core.model import Params
+from diskf_mesh.estimators import Params
 from diskf_mesh.data.trace import Trace, estimator_from_json, trace_from_json
 from diskf_mesh.recording.writer import FORMAT, TRACE_ATTACHMENT
 

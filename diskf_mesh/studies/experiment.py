@@ -1,6 +1,6 @@
-"""Experiments: algorithms x topologies (or ranges) x seeds on a scenario.
+"""Experiments: estimators x topologies (or ranges) x seeds on a scenario.
 
-Results are plain nested dicts ``{algorithm: {setting: {metric: value}}}``
+Results are plain nested dicts ``{estimator: {setting: {metric: value}}}``
 (JSON-ready), with spreads over seeds under ``"<metric>_std"``.
 """
 from __future__ import annotations
@@ -9,14 +9,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diskf_mesh import estimators
 from diskf_mesh.engine import batch as engine
+from diskf_mesh.engine import centralized
 from diskf_mesh.data import metrics
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.core.model import Params
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, simulate
+from diskf_mesh.estimators import Params
 
-PAPER_LABELS = {"diskf": "DISKF", "diskf-r": "DISKF-R", "cdrkf": "C-DRKF", "ldrkf": "L-DRKF", "kcf": "KCF", "diffkf": "DiffKF", "gdkf": "GDKF",
-                "centralized": "Centralized (bound)"}
+# the label of every series a table or figure shows: each estimator's own
+# (``Estimator.label``), and the centralized bound's
+LABELS = {**{name: cls.label for name, cls in estimators.REGISTRY.items()}, centralized.NAME: centralized.LABEL}
 TOPOLOGY_LABELS = {"all": "all-to-all", "ring": "1-hop", "none": "none"}
 TABLE_METRICS = ("mae_state", "rmse_state", "mae_input", "rmse_input", "input_coverage")
 HIGHER_IS_BETTER = frozenset({"input_coverage"})
@@ -71,11 +74,11 @@ def summarize(trace, est) -> dict:
     return row
 
 
-def run_setting(scn: Scenario, setting: Setting, algorithms, seeds, steps=None, params: Params | None = None,
+def run_setting(scn: Scenario, setting: Setting, names, seeds, steps=None, params: Params | None = None,
                 progress=None):
-    """{algorithm: {metric: pooled value, metric_std: spread over seeds}}"""
+    """{estimator: {metric: pooled value, metric_std: spread over seeds}}"""
     return {a: rows[setting.label] for a, rows in
-            run_experiment(scn, [setting], algorithms, seeds, steps, params, progress).items()}
+            run_experiment(scn, [setting], names, seeds, steps, params, progress).items()}
 
 
 def batches(scns, seeds, params: Params | None = None):
@@ -92,14 +95,15 @@ def batches(scns, seeds, params: Params | None = None):
     return [(p, idx) for (p, _), idx in groups.items()]
 
 
-def run_experiment(scn: Scenario, settings, algorithms, seeds, steps=None, params: Params | None = None,
+def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Params | None = None,
                    progress=None) -> dict:
-    """{algorithm: {setting label: {metric: value}}} over all settings.
+    """{estimator: {setting label: {metric: value}}} over all settings, for
+    the estimators ``names``.
 
-    Settings of one algorithm run as one batch where they can (``batches``,
+    Settings of one estimator run as one batch where they can (``batches``,
     ``engine.run_many``), so the per-tick overhead is paid once; the numbers
     are those of separate runs. ``progress``, if given, is called with 1
-    after every (setting, algorithm)."""
+    after every (setting, estimator)."""
     settings = list(settings)
     scns = [st.apply(scn, steps) for st in settings]
     for s in scns:  # before a list of the seeds is made
@@ -108,12 +112,12 @@ def run_experiment(scn: Scenario, settings, algorithms, seeds, steps=None, param
     rows = {}
     for p, idx in batches(scns, seeds, params):
         traces = [simulate(scns[i], seeds) for i in idx]
-        for name in algorithms:
+        for name in names:
             for i, trace, est in zip(idx, traces, engine.run_many(traces, name, p)):
                 rows[name, i] = summarize(trace, est)
                 if progress is not None:
                     progress(1)
-    return {a: {st.label: rows[a, i] for i, st in enumerate(settings)} for a in algorithms}
+    return {a: {st.label: rows[a, i] for i, st in enumerate(settings)} for a in names}
 
 
 def _number(v) -> float:
@@ -130,7 +134,7 @@ def _cell(v: float, best: bool) -> str:
 
 def format_table(results: dict, metric_keys=TABLE_METRICS) -> str:
     """A text table shaped like the paper's Table II: a block of metric rows
-    per setting, algorithms as columns. In every row the best value (lowest
+    per setting, estimators as columns. In every row the best value (lowest
     error, highest input coverage), as printed (two decimals, so ties are all
     marked), carries a ``*``; ``-`` means no value (e.g. no agent ever had an
     input estimate, or a run that measured nothing: None, NaN or an absent
@@ -138,8 +142,8 @@ def format_table(results: dict, metric_keys=TABLE_METRICS) -> str:
     is the share of agent-ticks over which MAE/RMSE(input) are taken."""
     algs = list(results)
     settings = list(dict.fromkeys(st for a in algs for st in (results[a] or {})))
-    width = max(10, *(len(PAPER_LABELS.get(a, str(a))) + 2 for a in algs)) if algs else 10
-    head = f"{'Comm.':<12}{'Metric':<13}" + "".join(f"{PAPER_LABELS.get(a, str(a)):>{width}}" for a in algs)
+    width = max(10, *(len(LABELS.get(a, str(a))) + 2 for a in algs)) if algs else 10
+    head = f"{'Comm.':<12}{'Metric':<13}" + "".join(f"{LABELS.get(a, str(a)):>{width}}" for a in algs)
     lines = [head, "-" * len(head)]
     for st in settings:
         for i, key in enumerate(metric_keys):

@@ -24,14 +24,15 @@ from PIL import Image
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics
 from diskf_mesh.studies import suite as studies
-from diskf_mesh.studies.experiment import PAPER_LABELS
+from diskf_mesh import estimators
+from diskf_mesh.engine import centralized
+from diskf_mesh.studies.experiment import LABELS
 from diskf_mesh.data.outputs import atomic_open
 from diskf_mesh.data.scenario import Scenario, simulate
 
 DPI = 100
-COLORS = {"diskf": "tab:blue", "cdrkf": "tab:orange", "ldrkf": "tab:green", "kcf": "tab:red",
-          "diffkf": "tab:purple", "gdkf": "tab:cyan", "diskf-r": "midnightblue",
-          "centralized": "black"}
+# each estimator's own colour (``Estimator.color``), and the centralized bound's
+COLORS = {**{name: cls.color for name, cls in estimators.REGISTRY.items()}, centralized.NAME: "black"}
 LENGTH = "length units"             # of positions, ranges and position errors
 INPUT = "length units per tick"     # of the input d and its errors
 TICK = "tick"
@@ -39,7 +40,7 @@ STATIC_COLOR, MOBILE_COLOR = "tab:red", "tab:green"
 
 
 def label(alg: str) -> str:
-    return PAPER_LABELS.get(alg, alg)
+    return LABELS.get(alg, alg)
 
 
 def _figure(width: float, height: float, top: float = 0.86, hspace: float = 0.35, wspace: float = 0.35) -> Figure:

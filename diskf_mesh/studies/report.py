@@ -18,7 +18,7 @@ from diskf_mesh.studies import figures
 from diskf_mesh.data import paper_values
 from diskf_mesh.studies import suite as studies
 from diskf_mesh.data.outputs import atomic_open, save_json
-from diskf_mesh.studies.experiment import PAPER_LABELS
+from diskf_mesh.studies.experiment import LABELS
 from diskf_mesh.data.scenario import load_scenario
 
 METRICS = ("mae_state", "rmse_state", "mae_input", "rmse_input")
@@ -53,7 +53,7 @@ def table(header, rows) -> str:
 
 
 BOUND = "centralized"  # a reference row, never "the best"
-PAPER_ALGS = ("diskf", "cdrkf", "ldrkf", "kcf", "diffkf", "gdkf")
+PAPER_ALGS = paper_values.COLUMNS
 
 
 def best_alg(results: dict, setting: str, key: str, among=None) -> str:
@@ -82,7 +82,7 @@ def comparison_table(results: dict, settings, paper: dict | None = None, spread:
                     ours += f" ({num(paper[st][key].get(a))})"
                 cells.append(ours)
             rows.append([comm_name(st) if i == 0 else "", METRIC_NAMES[key]] + cells)
-    return table(["Comm.", "Metric"] + [PAPER_LABELS.get(a, a) for a in algs], rows)
+    return table(["Comm.", "Metric"] + [LABELS.get(a, a) for a in algs], rows)
 
 
 def sweep_table(sweep: dict, key: str, topo: dict) -> str:
@@ -90,7 +90,7 @@ def sweep_table(sweep: dict, key: str, topo: dict) -> str:
     labels = list(next(iter(sweep.values())))
     rows = [[lab, num(topo[lab]["observed"]), num(topo[lab]["mean_degree"])]
             + [_bold_best(sweep, lab, key, num(sweep[a][lab][key]), a) for a in algs] for lab in labels]
-    return table(["range", "nbhd observed", "mean degree"] + [PAPER_LABELS.get(a, a) for a in algs], rows)
+    return table(["range", "nbhd observed", "mean degree"] + [LABELS.get(a, a) for a in algs], rows)
 
 
 def not_best(results: dict, what: str, skip=()) -> list[list[str]]:
@@ -104,7 +104,7 @@ def not_best(results: dict, what: str, skip=()) -> list[list[str]]:
         for key in METRICS:
             b = best_alg(results, st, key, among=PAPER_ALGS)
             lost = b and b != "diskf" and results[b][st][key] < results["diskf"][st][key]
-            cells.append(f"{PAPER_LABELS[b]} {num(results[b][st][key])} (DISKF {num(results['diskf'][st][key])})"
+            cells.append(f"{LABELS[b]} {num(results[b][st][key])} (DISKF {num(results['diskf'][st][key])})"
                          if lost else "DISKF")
         if any(c != "DISKF" for c in cells):
             out.append([what, comm_name(st)] + cells)
@@ -302,7 +302,7 @@ def section_diagnosis(ctx: Context) -> str:
         "only x-measurements cannot keep an input-and-state estimate stable, whatever the filter. C-DRKF and "
         "L-DRKF, with no window, diverge; DISKF's window slows it down. KCF, which never feeds the input into "
         "its state, stays bounded. Isolated agents, mean state error by sensor type:\n\n"
-        + table(["scenario", "sensor", "invariant zero"] + [PAPER_LABELS[a] for a in algs], _iso_rows(diag))
+        + table(["scenario", "sensor", "invariant zero"] + [LABELS[a] for a in algs], _iso_rows(diag))
         + "\n\n" + fig(ctx.f("isolated_by_sensor.png"), "Isolated agents in Scenario 2: x-sensors diverge, y-sensors do not")
         + "\nIn all-to-all (and at long range) neighbourhoods mix x- and y-sensors over a lap, the product of "
         "the zero dynamics contracts, and DISKF matches C-DRKF.\n\n"
@@ -345,7 +345,7 @@ def headline(res: studies.Results) -> str:
         b = best_alg(res.dynamic, r, key, among=PAPER_ALGS)
         v = res.dynamic["diskf"][r][key]
         parts.append(f"{METRIC_NAMES[key]} DISKF {num(v)}: " + (
-            "the lowest of the paper's six" if b == "diskf" else f"not the lowest, {PAPER_LABELS[b]} has {num(res.dynamic[b][r][key])}"))
+            "the lowest of the paper's six" if b == "diskf" else f"not the lowest, {LABELS[b]} has {num(res.dynamic[b][r][key])}"))
     return f"At range {r}: " + "; ".join(parts) + "."
 
 
@@ -422,7 +422,7 @@ BOUND_LABELS = {PBOUND: "Centralized, persistent input (bound of DISKF-R's model
 
 
 def _label(a: str) -> str:
-    return BOUND_LABELS.get(a) or PAPER_LABELS.get(a, a)
+    return BOUND_LABELS.get(a) or LABELS.get(a, a)
 
 
 def overview_table(ov: dict, key: str) -> str:

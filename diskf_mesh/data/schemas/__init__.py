@@ -15,12 +15,14 @@ field.
 from __future__ import annotations
 
 import json
+from dataclasses import fields
 from functools import cache
 
 import numpy as np
 from importlib import resources
 
 from diskf_mesh.core.errors import InputError
+from diskf_mesh.estimators import SETTINGS
 
 FILES = {"diskf-trace/1": "diskf-trace-1.json", "diskf-estimates/1": "diskf-estimates-1.json",
          "diskf-mesh-estimates/1": "diskf-mesh-estimates-1.json"}
@@ -30,8 +32,29 @@ TYPE_NAMES = {"object": "an object", "array": "a list", "number": "a number", "i
 
 
 def schema(fmt: str) -> dict:
-    """The schema of format ``fmt`` (e.g. ``"diskf-trace/1"``) as a dict."""
-    return json.loads(_text(fmt))
+    """The schema of format ``fmt`` (e.g. ``"diskf-trace/1"``) as a dict.
+    A trace's ``estimator`` object also admits the settings of estimator
+    plugins (``estimators.SETTINGS`` beyond the file's), by their declaration."""
+    out = json.loads(_text(fmt))
+    if fmt == "diskf-trace/1":
+        known = out["$defs"]["estimator"]["properties"]
+        known.update({s.name: setting_schema(s) for s in SETTINGS.values() if s.name not in known})
+    return out
+
+
+def setting_schema(s) -> dict:
+    """The JSON Schema of an estimator ``Setting``'s value."""
+    if s.table:
+        one = {"type": "object", "additionalProperties": False,
+               "properties": {f.name: {"type": "boolean"} for f in fields(s.type)}}
+    elif s.choices:
+        one = {"enum": list(s.choices)}
+    else:
+        one = {"type": {bool: "boolean", int: "integer", float: "number", str: "string"}[s.type]}
+        if s.low is not None:
+            one["minimum"] = s.low
+    one = {"anyOf": [one, {"type": "null"}]} if s.optional else one
+    return {**one, "description": s.doc}
 
 
 @cache
