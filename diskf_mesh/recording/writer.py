@@ -8,18 +8,20 @@ The world calls it at fixed points of its lockstep (``sim.world.World``):
                           it (``wire.Report.sent``)
     on_close(k, missing)  tick k is over: everything of tick k is written,
                           the tick's closing record last; the file is
-                          flushed to the OS every ``FLUSH_S`` (and at the
-                          last tick)
+                          flushed to the OS every ``FLUSH_S``
     finish(status, ...)   the run's result; the MCAP summary and footer
 
 The file is written by a process of its own (``python -m
-diskf_mesh.recording.writer``, started by ``Recorder``): the world's hooks
-only hand each closed tick's reports to it as raw bytes through a pipe
-(about 10 us a tick), and the JSON encoding, compression and writing run
-beside the lockstep, not under the world's interpreter lock (a writer
-thread there cost the run 17 % of its ticks/s; docs in the README). A world
-killed at any point (even SIGKILL) closes the pipe; the writer then hands
-what it has to the OS and leaves a file that is readable up to the last
+diskf_mesh.recording.writer``, started by ``Recorder``, niceness ``NICE``):
+the world's hooks only hand each closed tick's reports to it as raw bytes
+through a pipe (about 10 us a tick; a pipe that is full keeps the frames in
+the world until the next tick, so a writer behind never holds up the
+lockstep), and the JSON encoding, compression and writing run beside the
+run, not under the world's interpreter lock (a writer thread there cost the
+run 17 % of its ticks/s). The writer takes the ticks of ``FLUSH_S`` in one
+wake-up and then hands the file to the OS. A world killed at any point
+(even SIGKILL) closes the pipe; the writer writes what the pipe still holds,
+hands it to the OS and leaves a file that is readable up to the last
 tick closed (``recording.reader``). Channels and their JSON
 Schemas: ``recording.schemas``. The run's trace (model, sensors,
 measurements, truth; ``diskf-trace/1``) and estimator settings are attached
@@ -33,7 +35,7 @@ settings as the agents').
 
 Messages are stamped with a tick time: log time = recording start +
 k x ``TICK_PERIOD_S`` (so a viewer's timeline shows ticks evenly), publish
-time = the wall clock when the world wrote it.
+time = the wall clock when the world closed the tick.
 """
 from __future__ import annotations
 
@@ -69,6 +71,7 @@ CHUNK_BYTES = 1 << 20  # a chunk is also closed at every flush
 FLUSH_S = 0.05         # the writer hands the file to the OS at most, and at least, this often
 PIPE_BYTES = 1 << 20   # the pipe to the writer holds this much (Linux; a second of ticks of 100 agents)
 FINISH_S = 120.0       # after the run, how long the world waits for the writer to close the file
+NICE = 10              # the writer's niceness: it yields the cores to the run's processes
 _FRAME = struct.Struct("<I")
 
 
@@ -148,24 +151,34 @@ class Recorder(NoRecorder):
             fcntl.fcntl(self._pipe, getattr(fcntl, "F_SETPIPE_SZ", 1031), PIPE_BYTES)
         except (ImportError, OSError):
             pass  # the default pipe (64 kB) then
+        os.set_blocking(self._pipe, False)  # a writer behind never holds up a tick: the frames wait here
+        self._backlog = bytearray()
         self._failure = None
         self._live = {}                 # k -> live ids
         self._reports = {}              # k -> {agent: wire.Report}
         self._opened_at = None
         self._closed = False
         self._send(("start", {"trace": trace, "scn": scn, "scenario": scenario, "algorithm": algorithm,
-                              "seed": int(seed), "run_id": run_id, "faults": faults}))
+                              "seed": int(seed), "run_id": run_id, "faults": faults}), wait=True)
 
-    def _send(self, item) -> None:
+    def _send(self, item, wait: bool = False) -> None:
+        """One frame to the writer: what the pipe takes now, the rest at the
+        next frame (``wait``: all of it, blocking)."""
         if self._failure is not None:
             return
         data = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
-        view = memoryview(_FRAME.pack(len(data)) + data)
+        self._backlog += _FRAME.pack(len(data)) + data
+        if wait:
+            os.set_blocking(self._pipe, True)
         try:
-            while view:
-                view = view[os.write(self._pipe, view):]
+            while self._backlog:
+                del self._backlog[:os.write(self._pipe, self._backlog)]
+        except BlockingIOError:
+            pass
         except OSError as e:  # the writer is gone (it said why on stderr): the run goes on unrecorded
             self._failure = e
+        if wait:
+            os.set_blocking(self._pipe, False)
 
     # -- hooks (the world's lock held) -----------------------------------------
     def on_open(self, k, live):
@@ -193,7 +206,7 @@ class Recorder(NoRecorder):
         if self._closed:
             return
         self._closed = True
-        self._send(("finish", status, json_safe(metrics or {})))
+        self._send(("finish", status, json_safe(metrics or {})), wait=True)
         try:
             self._proc.stdin.close()
         except OSError:
@@ -376,6 +389,10 @@ def serve(fd: int, path: str, pipe: int = 0) -> int:
     run: one ``warning:`` line, and the pipe is drained to its end."""
     for sig in (signal.SIGINT, signal.SIGTERM):  # a Ctrl-C or a stop of the group is the world's to handle:
         signal.signal(sig, signal.SIG_IGN)       # it finishes the file, or its end closes the pipe
+    try:
+        os.nice(NICE)  # the lockstep's processes first; the pipe and the backlog absorb the lag
+    except OSError:
+        pass
     file = os.fdopen(fd, "wb")
     writer, failure, buf = None, None, bytearray()
     unflushed, flush_due = False, 0.0
@@ -401,6 +418,8 @@ def serve(fd: int, path: str, pipe: int = 0) -> int:
             if unflushed and time.monotonic() >= flush_due:
                 writer.flush()
                 unflushed, flush_due = False, time.monotonic() + FLUSH_S
+            elif unflushed:  # the ticks of the next FLUSH_S come in one wake-up, not one each
+                time.sleep(max(flush_due - time.monotonic(), 0.0))
         except Exception as e:  # noqa: BLE001 - a failed write stops the recording, not the run
             if failure is None:
                 failure = e
