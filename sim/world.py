@@ -104,6 +104,11 @@ class WorldRecord:
     duplicates: Counter = field(default_factory=Counter)  # id (or "world") -> extra processes seen
     pauses: list = field(default_factory=list)         # [{"tick", "why", "seconds"}]
     ended_early: str = ""                      # why the run ended before tick K, if it did
+    labels: tuple = ()                         # the ids as the scenario gave them (results show these)
+
+    def label(self, i):
+        """Agent ``i``'s id as the scenario gave it (``i`` itself if unknown)."""
+        return self.labels[self.ids.index(i)] if self.labels and i in self.ids else i
 
     def estimates(self, fill: bool = False) -> Estimates:
         """Batch of one; with ``fill`` missing entries are x = 0, P = I (for
@@ -159,7 +164,8 @@ class World:
         n, m = trace.model.n, trace.model.m
         self.record = WorldRecord(self.ids, np.full((K, N, n), np.nan), np.full((K, N, n, n), np.nan),
                                   np.full((K, N, m), np.nan), np.zeros((K, N), dtype=bool),
-                                  np.zeros((K, N), dtype=bool), why=np.full((K, N), "", dtype=object))
+                                  np.zeros((K, N), dtype=bool), why=np.full((K, N), "", dtype=object),
+                                  labels=scn.labels)
         self.k = 0
         self.stopping = False
         self.done = False              # tick K is closed
@@ -559,11 +565,12 @@ def completeness(rec: WorldRecord) -> dict:
         miss = ~rec.reported[:, j]
         if miss.any():
             why = Counter(w or "not run" for w in rec.why[miss, j])
-            missing[str(i)] = {"ticks": int(miss.sum()), "why": dict(sorted(why.items()))}
+            missing[str(rec.label(i))] = {"ticks": int(miss.sum()), "why": dict(sorted(why.items()))}
     n = int((~rec.reported).sum())
     return {"complete": n == 0, "agent_ticks": K * N, "missing_agent_ticks": n, "missing_fraction": n / (K * N),
-            "missing": missing, "rejoins": {str(i): v for i, v in sorted(rec.rejoins.items())},
-            "duplicate_ids": {str(i): c for i, c in rec.duplicates.items()}, "pauses": list(rec.pauses),
+            "missing": missing, "rejoins": {str(rec.label(i)): [{**r, "source": rec.label(r["source"])} for r in v]
+                                            for i, v in sorted(rec.rejoins.items())},
+            "duplicate_ids": {str(rec.label(i)): c for i, c in rec.duplicates.items()}, "pauses": list(rec.pauses),
             "ended_early": rec.ended_early}
 
 
@@ -593,19 +600,20 @@ def run_summary(rec: WorldRecord, faults: FaultConfig) -> dict:
     out = {"faults": faults.to_dict(), "counters": {}, "missing_ticks": {}, **completeness(rec)}
     for j, i in enumerate(rec.ids):
         c = Counters.from_dict(rec.agent_counters.get(i, {}))
-        out["counters"][str(i)] = c.to_json()
+        out["counters"][str(rec.label(i))] = c.to_json()
         if c.imbalance():
-            out["counters"][str(i)]["imbalance"] = c.imbalance()
+            out["counters"][str(rec.label(i))]["imbalance"] = c.imbalance()
         missing = (1 + np.flatnonzero(~rec.reported[:, j])).tolist()
         if missing:
-            out["missing_ticks"][str(i)] = missing
+            out["missing_ticks"][str(rec.label(i))] = missing
     return out
 
 
 def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, run_id: str, row: dict) -> dict:
     doc = estimates_to_json(rec.estimates(), algorithm, metrics=row)
-    doc.update(format=ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(rec.ids),
-               reported=rec.reported.tolist(), agent_counters={str(k): v for k, v in rec.agent_counters.items()},
+    doc.update(format=ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(scn.labels),
+               reported=rec.reported.tolist(),
+               agent_counters={str(rec.label(k)): v for k, v in rec.agent_counters.items()},
                world_counters=dict(rec.counters), startup_s=rec.startup_s, ticks_s=rec.ticks_s)
     return doc
 

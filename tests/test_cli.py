@@ -53,7 +53,7 @@ BAD_TRACES = {
     "R not symmetric": (two_row_agent([[2.0, 1.0], [0.0, 2.0]]), "agents[0].R"),
     "H columns": (mutate(("agents", 2, "H"), [[1.0, 0.0, 0.0]]), "agents[2].H"),
     "agent id list": (mutate(("agents", 0, "id"), [1]), "agents[0].id"),
-    "agent id text": (mutate(("agents", 1, "id"), "north"), "agents[1].id"),
+    "agent id empty text": (mutate(("agents", 1, "id"), ""), "agents[1].id"),  # "north" is a valid id
     "agent id negative": (mutate(("agents", 2, "id"), -3), "agents[2].id"),
     "agent ids repeat": (mutate(("agents", 3, "id"), 1), "agents.id"),
     "agents empty": (mutate(("agents",), []), "agents"),

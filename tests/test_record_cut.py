@@ -30,6 +30,20 @@ def closed_ticks(path) -> int:
         return 0
 
 
+def children(pid: int) -> list:
+    """The child processes of ``pid`` (Linux)."""
+    with open(f"/proc/{pid}/task/{pid}/children") as f:
+        return [int(c) for c in f.read().split()]
+
+
+def zombie(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
 @pytest.mark.mesh
 def test_killed_world_leaves_a_readable_recording(tmp_path):
     path = tmp_path / "killed.mcap"
@@ -43,10 +57,16 @@ def test_killed_world_leaves_a_readable_recording(tmp_path):
             assert mesh.world.proc.poll() is None, mesh.world.last_error_line()
             assert time.monotonic() < deadline, "the world did not reach tick 20"
             time.sleep(0.2)
+        writers = children(mesh.world.proc.pid)  # the recording's writer process
+        assert writers
         os.kill(mesh.world.proc.pid, signal.SIGKILL)
         assert mesh.world.proc.wait(10) == -signal.SIGKILL
     finally:
         mesh.stop_all()
+    deadline = time.monotonic() + 60  # it writes what the pipe still held, then leaves
+    while any(os.path.exists(f"/proc/{pid}") and not zombie(pid) for pid in writers):
+        assert time.monotonic() < deadline, "the writer did not end after the world was killed"
+        time.sleep(0.1)
     rec = reader.read(path)
     assert not rec.finished and rec.result is None
     assert 20 <= rec.ticks < 400

@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     params = estimator_params(estimator_from_json(doc), args)
     est = engine.run(trace, args.estimator, params)
     scores = metrics.compute(trace, est) if trace.truth_x is not None else None
-    save_json(args.out, estimates_to_json(est, args.estimator, 0, scores))
+    save_json(args.out, estimates_to_json(est, args.estimator, 0, scores, ids=trace.agent_labels))
     B, K, N = trace.shape
     text = human_stream(args.out)
     print(f"{args.estimator}: {K} ticks, {N} agents -> {args.out}", file=text)

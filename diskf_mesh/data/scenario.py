@@ -36,7 +36,8 @@ from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.core.model import LinearModel, Sensors
 from diskf_mesh.estimators import SETTINGS, Params
 from diskf_mesh.data.trace import Trace
-from diskf_mesh.data.validate import agent_id, check_keys, index_list, matrix, scalar, setting, spd, vector
+from diskf_mesh.data.validate import (agent_id, check_keys, index_list, internal_ids, matrix, scalar, setting, spd,
+                                      unique_ids, vector)
 
 TOPOLOGIES = ("all", "ring", "none", "range")
 SENSE_KINDS = ("quadrant", "always", "range")
@@ -44,7 +45,7 @@ SENSE_KINDS = ("quadrant", "always", "range")
 
 @dataclass(frozen=True)
 class AgentSpec:
-    id: int
+    id: int                                 # the run's integer id (validate.internal_ids)
     H: np.ndarray
     R: np.ndarray
     sense: str = "quadrant"
@@ -53,6 +54,12 @@ class AgentSpec:
     path: np.ndarray | None = None          # (W, 2) closed loop
     period: float = 1.0
     phase: float = 0.0
+    label: int | str | None = None          # the id the scenario gave ("drone-1"); None: ``id``
+
+    @property
+    def name(self) -> int | str:
+        """The agent's id as the user knows it (results, recordings, views)."""
+        return self.id if self.label is None else self.label
 
     @property
     def mobile(self) -> bool:
@@ -94,6 +101,11 @@ class Scenario:
     @property
     def N(self) -> int:
         return len(self.agents)
+
+    @property
+    def labels(self) -> tuple:
+        """Every agent's id as the scenario gave it, in order."""
+        return tuple(a.name for a in self.agents)
 
     def sensors(self) -> Sensors:
         return Sensors.from_list([a.id for a in self.agents], [a.H for a in self.agents], [a.R for a in self.agents])
@@ -236,9 +248,8 @@ def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
         specs = tuple(_parse_agent(a, i, n) for i, a in enumerate(listed))
     if not specs:
         raise InputError("agents", "a scenario needs at least one agent")
-    ids = [a.id for a in specs]
-    if len(set(ids)) != len(ids):
-        raise InputError("agents.id", "agent ids must be unique")
+    labels = unique_ids([a.name for a in specs], "agents.id")
+    specs = tuple(replace(a, id=i) for a, i in zip(specs, internal_ids(labels)))
 
     faults = check_keys(raw.get("faults", {}), [f.name for f in fields(FaultConfig)], "faults")
     FaultConfig.from_mapping(faults)
@@ -295,7 +306,7 @@ def _parse_agent(a, i: int, n: int) -> AgentSpec:
     if path is None and ("period" in a or "phase" in a):
         raise InputError(f"{where}.{'period' if 'period' in a else 'phase'}", "applies only to a mobile agent (path)")
     return AgentSpec(
-        id=agent_id(a.get("id", i + 1), f"{where}.id"), H=H, R=R, sense=sense,
+        id=i + 1, label=agent_id(a.get("id", i + 1), f"{where}.id"), H=H, R=R, sense=sense,
         sense_range=setting(a, "sense_range", where, float, np.inf, low=0.0, allow_inf=True),
         position=None if path is not None else vector(a.get("position", [0.0, 0.0]), f"{where}.position", 2),
         path=None if path is None else matrix(path, f"{where}.path", (None, 2)),
@@ -440,5 +451,5 @@ def simulate(scn: Scenario, seeds, steps: int | None = None) -> Trace:
     return Trace(
         model=model, sensors=sensors, y=y, has=has, links=links,
         truth_x=x, truth_d=np.broadcast_to(d, (B, K, m)).copy(),
-        positions=positions, seeds=seeds, position_dims=scn.position_dims,
+        positions=positions, seeds=seeds, position_dims=scn.position_dims, labels=scn.labels,
     )

@@ -10,7 +10,8 @@ against its schema before anything else.
      "A": n x n  |  "A_seq": K x n x n,   "G": n x m,  "Q": n x n,
      "x0": n,  "P0": n x n,
      "agents": [{"id": 1, "H": p_i x n, "R": p_i x p_i}, ...],   (ids: distinct
-                                                  integers in 0..2^63-1)
+                                                  integers in 0..2^63-1 or
+                                                  names such as "drone-1")
      "y": K entries, each a list with one item per agent: p_i floats or null,
      "links": N x N (static) | K x N x N (dynamic), 0/1, diagonal 1,
      "truth": {"x": K x n, "d": K x m}          (optional; d[k-1] acts
@@ -23,7 +24,7 @@ against its schema before anything else.
 
 ``diskf-estimates/1`` (output of ``replay``)::
 
-    {"format": "diskf-estimates/1", "algorithm": ...,
+    {"format": "diskf-estimates/1", "algorithm": ..., "ids": the trace's ids,
      "x": K x N x n, "P": K x N x n x n,
      "d": K x N x m with null where the agent has no fused input,
      "metrics": {...}                             (when truth was given)}
@@ -39,7 +40,7 @@ from diskf_mesh.data import schemas
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.core.model import LinearModel, Sensors
 from diskf_mesh.estimators import SETTINGS, Params
-from diskf_mesh.data.validate import agent_id, index_list, matrix, setting, spd, vector
+from diskf_mesh.data.validate import agent_id, index_list, internal_ids, matrix, setting, spd, unique_ids, vector
 
 TRACE_FORMAT = "diskf-trace/1"
 ESTIMATES_FORMAT = "diskf-estimates/1"
@@ -54,6 +55,10 @@ class Trace:
     links:  (B or 1, K, N, N) bool, diagonal True
     truth_x (B, K, n), truth_d (B, K, m) or None
     positions (K, N, 2) agent positions, or None (not from a scenario)
+    labels  the agents' ids as the user gave them (integers or names), or
+            None: ``sensors.ids``. ``sensors.ids`` are the integer ids the
+            run uses (``validate.internal_ids``); labels are what results,
+            recordings and views show.
     """
 
     model: LinearModel
@@ -66,6 +71,12 @@ class Trace:
     positions: np.ndarray | None = None
     seeds: tuple = (0,)
     position_dims: tuple = (0, 1)
+    labels: tuple | None = None
+
+    @property
+    def agent_labels(self) -> tuple:
+        """Every agent's id as the user gave it, in the order of the N axis."""
+        return tuple(self.sensors.ids) if self.labels is None else tuple(self.labels)
 
     @property
     def shape(self):
@@ -115,16 +126,15 @@ def trace_from_json(doc: dict) -> Trace:
     else:
         A = np.broadcast_to(matrix(doc.get("A"), "A", (n, n)), (K, n, n))
 
-    ids, Hs, Rs = [], [], []
+    labels, Hs, Rs = [], [], []
     for i, a in enumerate(doc["agents"]):
         H = matrix(a.get("H"), f"agents[{i}].H", (None, n))
         R = spd(matrix(a.get("R"), f"agents[{i}].R", (H.shape[0], H.shape[0])), f"agents[{i}].R")
-        ids.append(agent_id(a.get("id", i + 1), f"agents[{i}].id"))
+        labels.append(agent_id(a.get("id", i + 1), f"agents[{i}].id"))
         Hs.append(H)
         Rs.append(R)
-    if len(set(map(str, ids))) != len(ids):
-        raise InputError("agents.id", "agent ids must be unique")
-    sensors = Sensors.from_list(ids, Hs, Rs)
+    labels = unique_ids(labels, "agents.id")
+    sensors = Sensors.from_list(internal_ids(labels), Hs, Rs)
     N, pmax = sensors.N, sensors.H.shape[1]
 
     y = np.zeros((1, K, N, pmax))
@@ -159,7 +169,7 @@ def trace_from_json(doc: dict) -> Trace:
     model = LinearModel(np.ascontiguousarray(A), G, Q, x0, P0)
     seed = setting(doc, "seed", "", int, 0, low=0)
     return Trace(model, sensors, y, has, links, truth_x, truth_d, None, (int(seed),),
-                 index_list(doc.get("position_dims", list(range(min(n, 2)))), "position_dims", n))
+                 index_list(doc.get("position_dims", list(range(min(n, 2)))), "position_dims", n), labels)
 
 
 def estimator_from_json(doc: dict) -> Params:
@@ -202,7 +212,7 @@ def trace_to_json(tr: Trace, b: int = 0, scenario: str | None = None, params: Pa
     doc["agents"] = [
         {"id": (int(i) if isinstance(i, (int, np.integer)) else i),
          "H": s.H[j, : s.p[j]].tolist(), "R": s.R[j, : s.p[j], : s.p[j]].tolist()}
-        for j, i in enumerate(s.ids)
+        for j, i in enumerate(tr.agent_labels)
     ]
     doc["y"] = [
         [tr.y[b, k, i, : s.p[i]].tolist() if tr.has[b, k, i] else None for i in range(s.N)]
@@ -218,11 +228,14 @@ def trace_to_json(tr: Trace, b: int = 0, scenario: str | None = None, params: Pa
     return doc
 
 
-def estimates_to_json(est, algorithm: str, b: int = 0, metrics: dict | None = None) -> dict:
+def estimates_to_json(est, algorithm: str, b: int = 0, metrics: dict | None = None, ids=None) -> dict:
+    """The ``b``-th seed of ``est`` as a diskf-estimates/1 document; ``ids``:
+    the agents' ids as the user gave them (``Trace.agent_labels``)."""
     d = np.where(est.d_valid[b][..., None], est.d[b], np.nan)
     doc = {
         "format": ESTIMATES_FORMAT,
         "algorithm": algorithm,
+        **({} if ids is None else {"ids": [int(i) if isinstance(i, (int, np.integer)) else i for i in ids]}),
         "x": est.x[b].tolist(),
         "P": est.P[b].tolist(),
         "d": [[None if np.isnan(row[0]) else row.tolist() for row in tick] for tick in d],

@@ -88,10 +88,45 @@ def setting(table: dict, key: str, where: str, kind: type, default=_REQUIRED, **
     return scalar(table[key], _join(where, key), kind, **checks)
 
 
-def agent_id(v, field: str) -> int:
-    """An agent id: an integer in 0..2^63-1 (ids seed per-agent streams and
-    travel in messages as int64)."""
+MAX_NAME = 64  # characters of a string agent id
+
+
+def agent_id(v, field: str):
+    """An agent id as the user gave it: an integer in 0..2^63-1, or a string
+    of 1 to ``MAX_NAME`` printable characters without leading or trailing
+    spaces ("drone-1"). Inside a run every agent has an integer id
+    (``internal_ids``); the user's id is its label."""
+    if isinstance(v, str):
+        if not v or len(v) > MAX_NAME or not v.isprintable() or v.strip() != v:
+            raise InputError(field, f"a string id must be 1 to {MAX_NAME} printable characters without leading "
+                                    f"or trailing spaces, got {_show(v)}")
+        return v
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise InputError(field, f"must be an integer or a string, got {_show(v)}")
     return scalar(v, field, int, low=0, high=MAX_ID)
+
+
+def unique_ids(labels, field: str) -> tuple:
+    """``labels`` if no two ids are equal as text (1 and "1" would name one
+    key, one column of the results)."""
+    seen = {}
+    for j, i in enumerate(labels):
+        if str(i) in seen:
+            raise InputError(field, f"agent ids must be unique: {_show(i)} is given twice "
+                                    f"(agents {seen[str(i)]} and {j})")
+        seen[str(i)] = j
+    return tuple(labels)
+
+
+def internal_ids(labels) -> tuple:
+    """The integer ids a run uses for agents labelled ``labels`` (the mesh's
+    keys and messages, the certificates ``agent-<id>``, the seeded per-agent
+    streams): the ids themselves when every one is an integer, else 1..N in
+    the order given (the ids a scenario without ids gets), so a scenario
+    whose ids are names runs exactly as the same scenario without ids."""
+    if all(isinstance(i, int) for i in labels):
+        return tuple(labels)
+    return tuple(range(1, len(labels) + 1))
 
 
 def index_list(v, field: str, n: int, max_len: int | None = None) -> tuple:

@@ -193,7 +193,7 @@ def scene_doc(scn: Scenario, trace: Trace, run_id: str, algorithm: str) -> dict:
     return {
         "run_id": run_id, "scenario": scn.name, "algorithm": algorithm, "ticks": int(trace.has.shape[1]),
         "ids": [str(a.id) for a in scn.agents], "mobile": [bool(a.mobile) for a in scn.agents],
-        "labels": [("m" if a.mobile else "s") + str(a.id) for a in scn.agents],
+        "labels": [("m" if a.mobile else "s") + str(a.name) for a in scn.agents],
         "bounds": _num([lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad]),
         "truth_path": [_num(p) for p in path], "counters": list(COUNTER_COLUMNS) + ["rejected"],
         "colors": {"static": STATIC, "mobile": MOBILE, "gone": GONE, "truth": TRUTH, "estimate": ESTIMATE,

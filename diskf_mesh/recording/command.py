@@ -20,7 +20,7 @@ def replay_recording(path, out=None) -> int:
     est = replay(rec)
     scores = metrics.compute(take_ticks(rec.trace, rec.ticks), est) if rec.ticks else None
     if out:
-        save_json(out, estimates_to_json(est, rec.algorithm, 0, scores))
+        save_json(out, estimates_to_json(est, rec.algorithm, 0, scores, ids=rec.ids))
     c = compare(rec, est)
     cut = "" if rec.ticks == rec.planned_ticks else f" (of {rec.planned_ticks} planned: the recording was cut short)"
     print(f"{rec.algorithm}: {rec.ticks} ticks{cut}, {len(rec.ids)} agents replayed on what each agent fused"

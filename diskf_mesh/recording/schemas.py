@@ -6,7 +6,7 @@ Every message carries ``tick`` (k >= 1); there is one message per channel
 and tick, holding every agent's (a list; in Foxglove, pick one agent with a
 filter, e.g. ``/agents/estimates.estimates[:]{agent==3}.position_error``).
 Vectors are JSON arrays of numbers, matrices arrays of rows. Agent ids are
-the scenario's.
+the scenario's, integers or names ("drone-1"), as the user gave them.
 """
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ SCHEMA_PREFIX = "diskf."
 
 _NUM = {"type": "number"}
 _INT = {"type": "integer"}
-_IDS = {"type": "array", "items": _INT}
+_ID = {"type": ["integer", "string"], "description": "an agent id as the scenario gave it"}
+_IDS = {"type": "array", "items": _ID}
 _VEC = {"type": "array", "items": _NUM}
 _MAT = {"type": "array", "items": _VEC}
 
@@ -48,14 +49,14 @@ CHANNELS = {
                         wall_s={**_NUM, "description": "seconds since tick 1 opened"}),
     "/agents/sent": _obj("MessagesSent", "every agent message of tick k, the bytes it published (its "
                                          "report carries them), decoded", **_TICK, messages={"type": "array", "items": _obj(
-        "MessageSent", "one agent message", required=("tick", "sender", "to", "bytes"), **_TICK, sender=_INT,
+        "MessageSent", "one agent message", required=("tick", "sender", "to", "bytes"), **_TICK, sender=_ID,
         to={**_IDS, "description": "the agents it is addressed to (in range at its tick)"},
         bytes=_INT, x_pred=_VEC, P_pred=_MAT, x_upd=_VEC, P_upd=_MAT, d=_VEC, S=_MAT,
         d_valid={"type": "boolean"}, undecodable={"type": "string"})}),
     "/agents/delivered": _obj("MessagesDelivered", "what became of every message of tick k at every receiver "
                                                    "linked to its sender", **_TICK, deliveries={"type": "array", "items": _obj(
         "MessageDelivered", "sender's message of tick k at one receiver",
-        required=("sender", "receiver", "verdict", "copies"), sender=_INT, receiver=_INT,
+        required=("sender", "receiver", "verdict", "copies"), sender=_ID, receiver=_ID,
         verdict={"enum": ["fused", "lost", "late", "rejected", "unreported"],
                  "description": "fused; lost (the link dropped it); late (no copy by the tick's close); "
                                 "rejected (reason); unreported (the receiver sent no report of tick k)"},
@@ -64,12 +65,12 @@ CHANNELS = {
         delays_ms={**_VEC, "description": "each copy's delay planned by the fault layer"})}),
     "/agents/estimates": _obj("Estimates", "every agent's fused estimate after tick k, as reported to the world",
                               **_TICK, estimates={"type": "array", "items": _obj(
-        "Estimate", "one agent's", required=("agent", "x", "P", "d_valid", "fused"), agent=_INT,
+        "Estimate", "one agent's", required=("agent", "x", "P", "d_valid", "fused"), agent=_ID,
         x=_VEC, P=_MAT, d={"type": ["array", "null"], "items": _NUM}, d_valid={"type": "boolean"}, fused=_IDS,
         position_error={**_NUM, "description": "distance of the estimated position to the truth"})}),
     "/agents/counters": _obj("Counters", "every agent's message counters after tick k (diskf_mesh.mesh.counters), flat",
                              **_TICK, counters={"type": "array", "items": _obj(
-        "AgentCounters", "one agent's", agent=_INT, counters={"type": "object", "additionalProperties": _INT})}),
+        "AgentCounters", "one agent's", agent=_ID, counters={"type": "object", "additionalProperties": _INT})}),
     "/run/result": _obj("Result", "the run's end: status, ticks closed, metrics (last)",
                         required=("status", "ticks"), status={"type": "string"}, ticks=_INT,
                         metrics={"type": "object"}),

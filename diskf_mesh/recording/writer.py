@@ -8,12 +8,21 @@ The world calls it at fixed points of its lockstep (``sim.world.World``):
                           it (``wire.Report.sent``)
     on_close(k, missing)  tick k is over: everything of tick k is written,
                           the tick's closing record last; the file is
-                          flushed to the OS every ``FLUSH_S`` (and at the
-                          last tick)
+                          flushed to the OS every ``FLUSH_S``
     finish(status, ...)   the run's result; the MCAP summary and footer
 
-so a world killed at any point (even SIGKILL) leaves a file that is readable
-up to the last tick closed before its last flush (``recording.reader``). Channels and their JSON
+The file is written by a process of its own (``python -m
+diskf_mesh.recording.writer``, started by ``Recorder``, niceness ``NICE``):
+the world's hooks only hand each closed tick's reports to it as raw bytes
+through a pipe (about 10 us a tick; a pipe that is full keeps the frames in
+the world until the next tick, so a writer behind never holds up the
+lockstep), and the JSON encoding, compression and writing run beside the
+run, not under the world's interpreter lock (a writer thread there cost the
+run 17 % of its ticks/s). The writer takes the ticks of ``FLUSH_S`` in one
+wake-up and then hands the file to the OS. A world killed at any point
+(even SIGKILL) closes the pipe; the writer writes what the pipe still holds,
+hands it to the OS and leaves a file that is readable up to the last
+tick closed (``recording.reader``). Channels and their JSON
 Schemas: ``recording.schemas``. The run's trace (model, sensors,
 measurements, truth; ``diskf-trace/1``) and estimator settings are attached
 as ``trace.json``, written first, so a recording replays on its own.
@@ -26,17 +35,20 @@ settings as the agents').
 
 Messages are stamped with a tick time: log time = recording start +
 k x ``TICK_PERIOD_S`` (so a viewer's timeline shows ticks evenly), publish
-time = the wall clock when the world wrote it.
+time = the wall clock when the world closed the tick.
 """
 from __future__ import annotations
 
 import json
 import math
+import os
+import pickle
 import platform
-import queue
+import select
+import signal
 import struct
+import subprocess
 import sys
-import threading
 import time
 from dataclasses import asdict
 from importlib import metadata
@@ -56,7 +68,11 @@ FORMAT = "diskf-recording/1"
 TICK_PERIOD_S = 0.1
 TRACE_ATTACHMENT = "trace.json"
 CHUNK_BYTES = 1 << 20  # a chunk is also closed at every flush
-FLUSH_S = 0.05         # the writer thread hands the file to the OS at most, and at least, this often
+FLUSH_S = 0.05         # the writer hands the file to the OS at most, and at least, this often
+PIPE_BYTES = 1 << 20   # the pipe to the writer holds this much (Linux; a second of ticks of 100 agents)
+FINISH_S = 120.0       # after the run, how long the world waits for the writer to close the file
+NICE = 10              # the writer's niceness: it yields the cores to the run's processes
+_FRAME = struct.Struct("<I")
 
 
 def versions() -> dict:
@@ -73,10 +89,11 @@ def _dumps(doc: dict) -> bytes:
     return json.dumps(doc, separators=(",", ":")).encode()
 
 
-def sent_record(sender: int, payload: bytes, tick: int, to) -> dict:
+def sent_record(sender, payload: bytes, tick: int, to) -> dict:
     """An agent's message as it published it, decoded without the guard's
     checks (the record says what was sent); ``to``: the agents it was
-    addressed to, those linked to the sender at ``tick``."""
+    addressed to, those linked to the sender at ``tick`` (``sender`` and
+    ``to`` as the recording names agents)."""
     rec = {"tick": tick, "sender": sender, "to": list(to), "bytes": len(payload)}
     try:
         doc = msgpack.unpackb(payload, raw=False)
@@ -117,16 +134,117 @@ NO_RECORDER = NoRecorder()
 
 
 class Recorder(NoRecorder):
+    """The world's side: opens the file (so a bad path fails the command at
+    once), starts the writer process on it and feeds it one frame per
+    closed tick. Nothing here encodes JSON."""
+
     def __init__(self, path, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
+                 faults: FaultConfig):
+        self.path = str(path)
+        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "wb") as f:
+            self._proc = subprocess.Popen([sys.executable, "-m", "diskf_mesh.recording.writer", str(f.fileno()),
+                                           self.path], stdin=subprocess.PIPE, pass_fds=(f.fileno(),))
+        self._pipe = self._proc.stdin.fileno()
+        try:
+            import fcntl
+            fcntl.fcntl(self._pipe, getattr(fcntl, "F_SETPIPE_SZ", 1031), PIPE_BYTES)
+        except (ImportError, OSError):
+            pass  # the default pipe (64 kB) then
+        os.set_blocking(self._pipe, False)  # a writer behind never holds up a tick: the frames wait here
+        self._backlog = bytearray()
+        self._failure = None
+        self._live = {}                 # k -> live ids
+        self._reports = {}              # k -> {agent: wire.Report}
+        self._opened_at = None
+        self._closed = False
+        self._send(("start", {"trace": trace, "scn": scn, "scenario": scenario, "algorithm": algorithm,
+                              "seed": int(seed), "run_id": run_id, "faults": faults}), wait=True)
+
+    def _send(self, item, wait: bool = False) -> None:
+        """One frame to the writer: what the pipe takes now, the rest at the
+        next frame (``wait``: all of it, blocking)."""
+        if self._failure is not None:
+            return
+        data = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+        self._backlog += _FRAME.pack(len(data)) + data
+        if wait:
+            os.set_blocking(self._pipe, True)
+        try:
+            while self._backlog:
+                del self._backlog[:os.write(self._pipe, self._backlog)]
+        except BlockingIOError:
+            pass
+        except OSError as e:  # the writer is gone (it said why on stderr): the run goes on unrecorded
+            self._failure = e
+        if wait:
+            os.set_blocking(self._pipe, False)
+
+    # -- hooks (the world's lock held) -----------------------------------------
+    def on_open(self, k, live):
+        self._live[k] = tuple(live)
+        if self._opened_at is None:
+            self._opened_at = time.monotonic()
+
+    def on_report(self, report):
+        self._reports.setdefault(report.tick, {})[report.sender] = report
+
+    def on_close(self, k, missing):
+        """Hand tick k to the writer: plain values and the arrays' bytes."""
+        if not self._closed:
+            wall_s = time.monotonic() - (self._opened_at or time.monotonic())
+            reports = [(r.sender, r.x.astype(float, copy=False).tobytes(), r.P.astype(float, copy=False).tobytes(),
+                        r.d.astype(float, copy=False).tobytes(), bool(r.d_valid), r.counters, tuple(r.fused),
+                        tuple(r.not_fused), bytes(r.sent)) for r in self._reports.pop(k, {}).values()]
+            self._send(("tick", k, self._live.pop(k, ()), reports, sorted(missing), wall_s, time.time_ns()))
+
+    def finish(self, status, metrics=None):
+        """The run's result (``status``: "done" or why not; the metrics):
+        the writer adds the MCAP summary and footer and closes the file. If
+        writing failed, one line ``warning: ...`` on stderr (the run is not
+        affected)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._send(("finish", status, json_safe(metrics or {})), wait=True)
+        try:
+            self._proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            code = self._proc.wait(FINISH_S)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            code = self._proc.wait()
+        if code != 0:
+            print(f"warning: recording {self.path}: the writer ended with status {code}", file=sys.stderr)
+
+
+class _Report:
+    """A report as the writer gets it (``Recorder.on_close``)."""
+
+    __slots__ = ("sender", "x", "P", "d", "d_valid", "counters", "fused", "not_fused", "sent")
+
+    def __init__(self, n, m, sender, x, P, d, d_valid, counters, fused, not_fused, sent):
+        self.sender, self.d_valid, self.counters, self.fused, self.not_fused, self.sent = (
+            sender, d_valid, counters, fused, not_fused, sent)
+        self.x = np.frombuffer(x, dtype=float)
+        self.P = np.frombuffer(P, dtype=float).reshape(n, n)
+        self.d = np.frombuffer(d, dtype=float)
+
+
+class TickWriter:
+    """The writer process's side: the MCAP file, one tick at a time."""
+
+    def __init__(self, file, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
                  faults: FaultConfig):
         from mcap.writer import CompressionType, Writer
 
-        self.path = str(path)
         self.trace, self.scn, self.seed = trace, scn, int(seed)
         self.ids = tuple(trace.sensors.ids)
+        self.names = dict(zip(self.ids, trace.agent_labels))  # run id -> the user's id
         self.faults = FaultModel(faults, seed) if faults.active else None
-        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")
+        self._file = file
         self._mcap = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         self._mcap.start(profile="", library=f"diskf-mesh/{__version__}")
         self._channel = {}
@@ -137,26 +255,21 @@ class Recorder(NoRecorder):
         sid = self._mcap.register_schema(scene.NAME, "jsonschema", json.dumps(scene.SCHEMA).encode())
         self._channel[scene.TOPIC] = self._mcap.register_channel(scene.TOPIC, "json", sid)
         self._mobile = [bool(a.mobile) for a in scn.agents]
-        self._colors = {i: scene.agent_color(j) for j, i in enumerate(self.ids)}
+        self._colors = {self.names[i]: scene.agent_color(j) for j, i in enumerate(self.ids)}
         extent = max(np.ptp(trace.positions.reshape(-1, 2), axis=0).max(), 1.0)
         self._radius = 0.012 * float(extent)
         self._t0 = time.time_ns()
         self._period = int(TICK_PERIOD_S * 1e9)
-        self._open = 0
-        self._opened_at = None
-        self._live = {}                 # k -> live ids
-        self._reports = {}              # k -> {agent: wire.Report}
-        self._closed = False
         self._last_closed = 0
-        self._flush_due = 0.0
         self._scenes = []               # per tick, what /scene draws (written at the end)
         K, N = trace.has.shape[1:]
-        n, m = trace.model.n, trace.model.m
+        self.n, self.m = n, m = trace.model.n, trace.model.m
         run = {"format": FORMAT, "run_id": run_id, "scenario": scenario, "scenario_name": scn.name,
                "seed": self.seed, "algorithm": algorithm, "topology": scn.topology,
                "comm_range": scn.comm_range if np.isfinite(scn.comm_range) else "inf",
-               "ids": list(self.ids), "ticks": int(K), "n": int(n), "m": int(m), "params": asdict(scn.params),
-               "faults": faults.to_dict(), "tick_period_s": TICK_PERIOD_S, "versions": versions()}
+               "ids": list(trace.agent_labels), "ticks": int(K), "n": int(n), "m": int(m),
+               "params": asdict(scn.params), "faults": faults.to_dict(), "tick_period_s": TICK_PERIOD_S,
+               "versions": versions()}
         self._put("/run", 0, run)
         self._mcap.flush()  # the channels and /run first
         doc = trace_to_json(trace)
@@ -164,10 +277,6 @@ class Recorder(NoRecorder):
         self._mcap.add_attachment(self._t0, self._t0, TRACE_ATTACHMENT, "application/json", _dumps(doc))
         self._mcap.add_metadata("run", {k: v if isinstance(v, str) else json.dumps(v) for k, v in run.items()})
         self._file.flush()
-        self._queue = queue.SimpleQueue()  # closed ticks, for the writer thread
-        self._failure = None
-        self._thread = threading.Thread(target=self._write_ticks, name="recorder", daemon=True)
-        self._thread.start()
 
     def _time(self, k: int) -> int:
         return self._t0 + k * self._period
@@ -175,64 +284,34 @@ class Recorder(NoRecorder):
     def _put(self, topic: str, k: int, doc: dict, now: int | None = None) -> None:
         self._mcap.add_message(self._channel[topic], self._time(k), _dumps(doc), now or time.time_ns())
 
-    # -- hooks (the world's lock held) -----------------------------------------
-    def on_open(self, k, live):
-        self._open = k
-        self._live[k] = tuple(live)
-        if self._opened_at is None:
-            self._opened_at = time.monotonic()
+    def flush(self) -> None:
+        """Close the open chunk and hand the file to the OS."""
+        self._mcap.flush()
 
-    def on_report(self, report):
-        self._reports.setdefault(report.tick, {})[report.sender] = report
-
-    def on_close(self, k, missing):
-        """Hand tick k to the writer thread: the lockstep opens the next tick
-        at once, and the tick is written while the agents work on it."""
-        if not self._closed:
-            wall_s = time.monotonic() - (self._opened_at or time.monotonic())
-            self._queue.put((k, self._live.pop(k, ()), self._reports.pop(k, {}), sorted(missing), wall_s,
-                             time.time_ns()))
-
-    def _write_ticks(self) -> None:
-        """The writer thread: every closed tick in turn; the file goes to the
-        OS once the thread has caught up (at most every ``FLUSH_S``), and at
-        least every ``FLUSH_S`` while something is unflushed."""
-        unflushed = False
-        while True:
-            try:
-                item = self._queue.get(timeout=FLUSH_S)
-            except queue.Empty:
-                item = ()
-            if item is None:
-                return
-            try:
-                if item and self._failure is None:
-                    self._write_tick(*item)
-                    unflushed = True
-                if unflushed and self._queue.empty() and time.monotonic() >= self._flush_due:
-                    self._mcap.flush()
-                    self._flush_due, unflushed = time.monotonic() + FLUSH_S, False
-            except Exception as e:  # noqa: BLE001 - a failed write stops the recording, not the run
-                self._failure = self._failure or e
-
-    def _write_tick(self, k, live, reports, missing, wall_s, now) -> None:
-        tr, ids = self.trace, self.ids
+    def write_tick(self, k, live, reports, missing, wall_s, now) -> None:
+        """Every channel of closed tick ``k``, ``/world/tick`` last.
+        ``reports``: ``Recorder.on_close``'s tuples."""
+        tr, ids, name = self.trace, self.ids, self.names
+        reports = {r[0]: _Report(self.n, self.m, *r) for r in reports}
         alive = set(live)
         links = tr.links[0, k - 1]
         truth_x = tr.truth_x[0, k - 1]
         dims = list(tr.position_dims)
         put = lambda topic, doc: self._put(topic, k, doc, now)  # noqa: E731
+        names = lambda seq: [name.get(i, i) for i in seq]  # noqa: E731
         put("/world/truth", {"tick": k, "x": truth_x.tolist(), "d": tr.truth_d[0, k - 1].tolist(),
                              "position": truth_x[dims].tolist()})
-        put("/world/agents", {"tick": k, "ids": list(ids), "positions": tr.positions[k - 1].tolist(),
-                              "live": list(live)})
+        put("/world/agents", {"tick": k, "ids": list(tr.agent_labels), "positions": tr.positions[k - 1].tolist(),
+                              "live": names(live)})
         N = len(ids)
-        edges = [[ids[i // N], ids[i % N]] for i in np.flatnonzero(np.triu(links, 1).ravel()).tolist()
+        edges = [[name[ids[i // N]], name[ids[i % N]]]
+                 for i in np.flatnonzero(np.triu(links, 1).ravel()).tolist()
                  if ids[i // N] in alive and ids[i % N] in alive]
         put("/world/links", {"tick": k, "edges": edges})
         order = lambda i: ids.index(i) if i in ids else N  # noqa: E731
         put("/agents/sent", {"tick": k, "messages": [
-            sent_record(r.sender, r.sent, k, sorted({s for s in r.fused} | {s for s, _ in r.not_fused}, key=order))
+            sent_record(name[r.sender], r.sent, k,
+                        names(sorted({s for s in r.fused} | {s for s, _ in r.not_fused}, key=order)))
             for r in (reports[i] for i in ids if i in reports) if r.sent]})
         estimates, counters, deliveries = [], [], []
         for j, i in enumerate(ids):
@@ -240,17 +319,18 @@ class Recorder(NoRecorder):
             if r is not None:
                 x = r.x.tolist()
                 err = math.dist([x[a] for a in dims], truth_x[dims].tolist())
-                estimates.append({"agent": i, "x": x, "P": r.P.tolist(), "d": r.d.tolist() if r.d_valid else None,
-                                  "d_valid": bool(r.d_valid), "fused": list(r.fused), "position_error": err})
-                counters.append({"agent": i, "counters": r.counters})
+                estimates.append({"agent": name[i], "x": x, "P": r.P.tolist(),
+                                  "d": r.d.tolist() if r.d_valid else None, "d_valid": bool(r.d_valid),
+                                  "fused": names(r.fused), "position_error": err})
+                counters.append({"agent": name[i], "counters": r.counters})
                 verdicts = [(s, "fused") for s in r.fused] + list(r.not_fused)
             elif i in alive:
                 verdicts = [(s, "unreported") for s, ln in zip(ids, links[j].tolist()) if ln and s != i and s in alive]
             else:
                 continue
-            for s, v in sorted(verdicts, key=lambda e: ids.index(e[0]) if e[0] in ids else N):
+            for s, v in sorted(verdicts, key=lambda e: order(e[0])):
                 verdict, _, reason = v.partition(":")
-                doc = {"sender": s, "receiver": i, "verdict": verdict}
+                doc = {"sender": name.get(s, s), "receiver": name[i], "verdict": verdict}
                 if reason:
                     doc["reason"] = reason
                 if self.faults is not None:
@@ -262,8 +342,9 @@ class Recorder(NoRecorder):
         put("/agents/delivered", {"tick": k, "deliveries": deliveries})
         put("/agents/estimates", {"tick": k, "estimates": estimates})
         put("/agents/counters", {"tick": k, "counters": counters})
-        self._scenes.append((k, alive, edges, [(e["agent"], e["x"], e["P"]) for e in estimates]))
-        put("/world/tick", {"tick": k, "reported": sorted(reports, key=ids.index), "missing": missing,
+        self._scenes.append((k, {name[i] for i in alive if i in name}, edges,
+                             [(e["agent"], e["x"], e["P"]) for e in estimates]))
+        put("/world/tick", {"tick": k, "reported": names(sorted(reports, key=order)), "missing": names(missing),
                             "wall_s": wall_s})
         self._last_closed = k
 
@@ -274,28 +355,88 @@ class Recorder(NoRecorder):
         tr, dims = self.trace, list(self.trace.position_dims)[:2]
         for k, alive, edges, estimates in self._scenes:
             self._put(scene.TOPIC, k, scene.scene_update(
-                k, self._time(k), self.ids, tr.positions[k - 1], self._mobile, alive, edges,
+                k, self._time(k), tr.agent_labels, tr.positions[k - 1], self._mobile, alive, edges,
                 tr.truth_x[0, max(k - scene.TRAIL, 0):k][:, dims],
                 [(i, [x[a] for a in dims], [[P[a][b] for b in dims] for a in dims]) for i, x, P in estimates],
                 self._colors, self._radius))
         self._scenes = []
 
-    def finish(self, status, metrics=None):
-        """The run's result (``status``: "done" or why not; the metrics),
-        then the MCAP summary and footer; the file is closed. If writing it
-        failed, one line ``warning: ...`` on stderr (the run is not
-        affected)."""
-        if self._closed:
+    def finish(self, status, metrics) -> None:
+        """``/scene``, the run's result, the MCAP summary and footer."""
+        k = self._last_closed
+        self._write_scenes()
+        self._put("/run/result", k, {"status": status, "ticks": k, "metrics": metrics})
+        self._mcap.finish()
+
+
+def _frames(buf: bytearray):
+    """Every whole frame at the start of ``buf`` (taken out of it)."""
+    while len(buf) >= _FRAME.size:
+        size, = _FRAME.unpack_from(buf)
+        if len(buf) < _FRAME.size + size:
             return
-        self._closed = True
-        self._queue.put(None)
-        self._thread.join()
-        if self._failure is None:
-            k = self._last_closed
-            self._write_scenes()
-            self._put("/run/result", k, {"status": status, "ticks": k, "metrics": json_safe(metrics or {})})
-            self._mcap.finish()
-        self._file.close()
-        if self._failure is not None:
-            print(f"warning: recording {self.path} stopped at tick {self._last_closed}: {self._failure}",
-                  file=sys.stderr)
+        data = bytes(buf[_FRAME.size:_FRAME.size + size])
+        del buf[:_FRAME.size + size]
+        yield pickle.loads(data)
+
+
+def serve(fd: int, path: str, pipe: int = 0) -> int:
+    """The writer process: frames from ``pipe`` (``Recorder``) into the MCAP
+    file open on ``fd``, until the world's finish frame or the pipe's end
+    (the world was killed: what is written is handed to the OS, no footer).
+    The file goes to the OS once the frames waiting are written, at most and
+    at least every ``FLUSH_S``. A failed write stops the recording, never the
+    run: one ``warning:`` line, and the pipe is drained to its end."""
+    for sig in (signal.SIGINT, signal.SIGTERM):  # a Ctrl-C or a stop of the group is the world's to handle:
+        signal.signal(sig, signal.SIG_IGN)       # it finishes the file, or its end closes the pipe
+    try:
+        os.nice(NICE)  # the lockstep's processes first; the pipe and the backlog absorb the lag
+    except OSError:
+        pass
+    file = os.fdopen(fd, "wb")
+    writer, failure, buf = None, None, bytearray()
+    unflushed, flush_due = False, 0.0
+    while True:
+        wait = max(flush_due - time.monotonic(), 0.0) if unflushed else None
+        ready, _, _ = select.select([pipe], [], [], wait)
+        chunk = os.read(pipe, PIPE_BYTES) if ready else b""
+        if ready and not chunk:
+            break
+        buf += chunk
+        try:
+            for item in _frames(buf):
+                if failure is not None:
+                    continue
+                if item[0] == "start":
+                    writer = TickWriter(file, **item[1])
+                elif item[0] == "tick":
+                    writer.write_tick(*item[1:])
+                    unflushed = True
+                elif item[0] == "finish":
+                    writer.finish(*item[1:])
+                    unflushed, writer = False, None
+            if unflushed and time.monotonic() >= flush_due:
+                writer.flush()
+                unflushed, flush_due = False, time.monotonic() + FLUSH_S
+            elif unflushed:  # the ticks of the next FLUSH_S come in one wake-up, not one each
+                time.sleep(max(flush_due - time.monotonic(), 0.0))
+        except Exception as e:  # noqa: BLE001 - a failed write stops the recording, not the run
+            if failure is None:
+                failure = e
+                done = writer._last_closed if writer is not None else 0
+                print(f"warning: recording {path} stopped at tick {done}: "
+                      f"{type(e).__name__}: {e}", file=sys.stderr, flush=True)
+    if writer is not None and failure is None and unflushed:
+        try:
+            writer.flush()
+        except Exception:  # noqa: BLE001
+            pass
+    try:
+        file.close()
+    except OSError:
+        pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(serve(int(sys.argv[1]), sys.argv[2]))
