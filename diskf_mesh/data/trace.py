@@ -196,6 +196,11 @@ def load_trace(path) -> Trace:
 # --------------------------------------------------------------------------
 # writing
 # --------------------------------------------------------------------------
+def _json_id(i):
+    """An agent id for JSON: a numpy integer as an int, a name as it is."""
+    return int(i) if isinstance(i, (int, np.integer)) else i
+
+
 def trace_to_json(tr: Trace, b: int = 0, scenario: str | None = None, params: Params | None = None) -> dict:
     """The ``b``-th seed of a trace as a diskf-trace/1 document, with the
     name of the ``scenario`` and the estimator ``params`` it came with."""
@@ -210,7 +215,7 @@ def trace_to_json(tr: Trace, b: int = 0, scenario: str | None = None, params: Pa
         doc["A_seq"] = A.tolist()
     doc.update(G=tr.model.G.tolist(), Q=tr.model.Q.tolist(), x0=tr.model.x0.tolist(), P0=tr.model.P0.tolist())
     doc["agents"] = [
-        {"id": (int(i) if isinstance(i, (int, np.integer)) else i),
+        {"id": _json_id(i),
          "H": s.H[j, : s.p[j]].tolist(), "R": s.R[j, : s.p[j], : s.p[j]].tolist()}
         for j, i in enumerate(tr.agent_labels)
     ]
@@ -235,7 +240,7 @@ def estimates_to_json(est, algorithm: str, b: int = 0, metrics: dict | None = No
     doc = {
         "format": ESTIMATES_FORMAT,
         "algorithm": algorithm,
-        **({} if ids is None else {"ids": [int(i) if isinstance(i, (int, np.integer)) else i for i in ids]}),
+        **({} if ids is None else {"ids": [_json_id(i) for i in ids]}),
         "x": est.x[b].tolist(),
         "P": est.P[b].tolist(),
         "d": [[None if np.isnan(row[0]) else row.tolist() for row in tick] for tick in d],
