@@ -7,6 +7,7 @@
                                            # this file system, e.g. network namespaces)
     [world]
     listen = "tls/10.0.0.1:7447"           # the world's endpoint (it runs as a zenoh router)
+    bind = "tls/0.0.0.0:7447"              # optional: where it listens, if not on that address
     prefix = ["ssh", "w1"]                 # how to run a command there (default: here)
     python = "/opt/diskf/bin/python"       # its interpreter (default: this one)
 
@@ -14,6 +15,7 @@
     agents = "1-25"                        # its agents' ids (ranges and commas: "1-20,31")
     router = "tls/10.0.0.2:7447"           # optional: a router there, listening here;
                                            # without one the agents connect to the world
+    router_bind = "tls/0.0.0.0:7447"       # optional, as the world's bind
     prefix = ["ip", "netns", "exec", "a"]  # optional, as for the world (a string is split
     python = "python3"                     # like a shell would)
 
@@ -41,8 +43,8 @@ from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.launcher import Child
 
 TOP_KEYS = ("credentials", "world", "hosts")
-WORLD_KEYS = ("listen", "prefix", "python")
-HOST_KEYS = ("agents", "router", "prefix", "python")
+WORLD_KEYS = ("listen", "bind", "prefix", "python")
+HOST_KEYS = ("agents", "router", "router_bind", "prefix", "python")
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,7 @@ class Shard:
     router: str | None = None  # the router's listen endpoint, if the host runs one
     prefix: tuple = ()
     python: str | None = None
+    router_bind: str | None = None  # where the router listens, if not on ``router``
 
 
 @dataclass(frozen=True)
@@ -61,6 +64,7 @@ class HostsPlan:
     world_prefix: tuple = ()
     world_python: str | None = None
     credentials: str | None = None
+    world_bind: str | None = None  # where the world listens, if not on ``world_listen``
 
     @property
     def ids(self) -> tuple:
@@ -127,10 +131,14 @@ def parse(doc: dict) -> HostsPlan:
             ids = runspec.parse_ids(str(agents))
         except InputError as e:
             raise InputError("hosts", f"{where}.agents: {e.message}") from None
-        shards.append(Shard(name, ids, _text(table, "router", where), _prefix(table, where),
-                            _text(table, "python", where)))
+        router = _text(table, "router", where)
+        if table.get("router_bind") is not None and router is None:
+            raise InputError("hosts", f"{where}.router_bind needs {where}.router (the address to connect to)")
+        shards.append(Shard(name, ids, router, _prefix(table, where), _text(table, "python", where),
+                            _text(table, "router_bind", where)))
     return HostsPlan(_text(world, "listen", "[world]", required=True), tuple(shards), _prefix(world, "[world]"),
-                     _text(world, "python", "[world]"), _text(doc, "credentials", "the hosts file"))
+                     _text(world, "python", "[world]"), _text(doc, "credentials", "the hosts file"),
+                     _text(world, "bind", "[world]"))
 
 
 def load(path) -> HostsPlan:
@@ -151,14 +159,14 @@ def children(plan: HostsPlan, spec: RunSpec, ticks: int, seed: int, base: ZenohO
     and to the routers before it; a shard's agents are clients of their
     host's router (or of the world)."""
     base = replace(base, no_multicast_scouting=True)
-    wz = replace(base, mode="router", listen=(plan.world_listen,))
+    wz = replace(base, mode="router", listen=(plan.world_bind or plan.world_listen,))
     world = Child("world", [*plan.world_prefix, *runspec.world_command(spec, ticks, seed, wz, world_extra,
                                                                        python=plan.world_python)],
                   logs / "world.log")
     routers, shards, earlier = [], [], []
     for s in plan.shards:
         if s.router:
-            rz = replace(base, listen=(s.router,), connect=(plan.world_listen, *earlier))
+            rz = replace(base, listen=(s.router_bind or s.router,), connect=(plan.world_listen, *earlier))
             routers.append(Child(f"router {s.name}", [*s.prefix, *runspec.router_command(spec.run_id, rz, s.python)],
                                  logs / f"router-{s.name}.log"))
             earlier.append(s.router)
