@@ -25,6 +25,11 @@ a free port of 127.0.0.1 (``tls/``, or ``tcp/`` with ``--insecure``) and
 every agent connects to it (no multicast scouting). With zenoh flags
 (``--mode``, ``--connect``, ``--listen``, ``--no-multicast-scouting``,
 ``--zenoh-config``, ``--cfg``) every child gets exactly those.
+
+``--hosts FILE`` runs over several hosts instead (``sim.hosts``,
+docs/hosts.md): the world as a zenoh router, then per host a router
+(``sim.router``) and a shard of agents (``sim.host``, which starts its
+agents with this module's ``Launcher``), each behind the host's prefix.
 """
 from __future__ import annotations
 

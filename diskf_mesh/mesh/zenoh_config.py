@@ -19,7 +19,9 @@ On one host, peers find each other with no flags (multicast scouting).
 Across hosts, or where multicast does not pass (Docker bridges), give the
 world a ``--listen`` endpoint and every agent ``--connect`` to it plus a
 ``--listen`` of its own: peers learn each other's endpoints from the world
-(gossip) and connect directly.
+(gossip) and connect directly. Many agents, or several hosts: a zenoh
+router per host and the agents its clients (``diskf-mesh router``,
+``diskf-mesh host``, ``up --hosts``; docs/hosts.md).
 """
 from __future__ import annotations
 
