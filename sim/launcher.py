@@ -232,7 +232,7 @@ class Launcher:
             for a in self.agents:
                 if a.proc.poll() not in (None, 0) and a not in bad:
                     bad.append(a)
-            time.sleep(0.05)
+            time.sleep(0.2)
         return bad + [a for a in self.agents if a.proc.returncode != 0 and a not in bad]
 
     def finish(self, timeout: float = 5.0) -> list:
