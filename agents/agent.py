@@ -230,6 +230,10 @@ class Agent:
                     if self.constants in (None, consts):
                         self._repeat_report(t.tick)  # a world that lost the reports of that tick sends it again
                     return True
+                if self.est is not None and self.k + 1 < t.tick <= t.ticks and self.id not in t.live \
+                        and consts == self.constants:  # the world went on without it (its router was gone)
+                    self.newest = max(self.newest, t.tick)
+                    self._resync(f"the world is at tick {t.tick} without this agent")
                 problem = self._tick_problem(t)
                 if problem is not None:
                     return self._refuse(kind, *problem)

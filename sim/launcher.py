@@ -25,6 +25,11 @@ a free port of 127.0.0.1 (``tls/``, or ``tcp/`` with ``--insecure``) and
 every agent connects to it (no multicast scouting). With zenoh flags
 (``--mode``, ``--connect``, ``--listen``, ``--no-multicast-scouting``,
 ``--zenoh-config``, ``--cfg``) every child gets exactly those.
+
+``--hosts FILE`` runs over several hosts instead (``sim.hosts``,
+docs/hosts.md): the world as a zenoh router, then per host a router
+(``sim.router``) and a shard of agents (``sim.host``, which starts its
+agents with this module's ``Launcher``), each behind the host's prefix.
 """
 from __future__ import annotations
 
@@ -126,16 +131,22 @@ def _die_with_parent() -> None:
 
 
 class Launcher:
-    """Starts, watches and stops the children of one run."""
+    """Starts, watches and stops the children of one run: the world (None in
+    a shard of agents without it: ``diskf-mesh host``), ``services`` that run
+    until stopped (a run's zenoh routers) and the agents (or hosts' shards),
+    which leave on the world's stop."""
 
-    def __init__(self, world: Child, agents: list, progress=None, first_tick=None, tolerate_agents: bool = False):
-        """``tolerate_agents``: an agent that fails does not end the run (the
-        world counts its missing ticks); ``failed_agents`` lists them."""
+    def __init__(self, world: Child | None, agents: list, progress=None, first_tick=None,
+                 tolerate_agents: bool = False, services=()):
+        """``tolerate_agents``: an agent (or a service) that fails does not
+        end the run (the world counts its missing ticks); ``failed_agents``
+        lists them."""
         self.world = world
         self.tolerate_agents = tolerate_agents
         self.failed_agents = []
         self.agents = agents
-        self.children = [world, *agents]
+        self.services = list(services)
+        self.children = [*([world] if world is not None else []), *self.services, *agents]
         self.progress = progress
         self.first_tick = first_tick
         self._lines = queue.SimpleQueue()
@@ -153,12 +164,18 @@ class Launcher:
         return child
 
     def start(self) -> None:
-        self.start_world()
+        if self.world is not None:
+            self.start_world()
+        self.start_services()
         self.start_agents()
 
     def start_world(self) -> None:
         self._spawn(self.world, subprocess.PIPE)
         threading.Thread(target=self._read_world, daemon=True).start()
+
+    def start_services(self) -> None:
+        for s in self.services:
+            self._spawn(s, subprocess.DEVNULL)
 
     def start_agents(self) -> None:
         for a in self.agents:
@@ -196,9 +213,10 @@ class Launcher:
                 if rc not in (0, INCOMPLETE):
                     raise ChildFailed(self.world, rc)
                 return rc
-            for a in self.agents:
+            for a in (*self.services, *self.agents):
                 rc = a.proc.poll()
-                if rc and a not in self.failed_agents:  # an agent exits 0 only on the world's "done"
+                # an agent exits 0 only on the world's "done"; a service never ends by itself
+                if (rc or (rc is not None and a in self.services)) and a not in self.failed_agents:
                     if not self.tolerate_agents:
                         raise ChildFailed(a, rc)
                     self.failed_agents.append(a)
@@ -206,12 +224,23 @@ class Launcher:
                 raise ChildFailed(self.world, None, f"still running after {timeout:g} s")
             time.sleep(0.02)
 
+    def wait_agents(self) -> list:
+        """Without a world (a shard): until every agent has ended; the ones
+        that did not exit 0, in the order they ended."""
+        bad = []
+        while any(a.proc.poll() is None for a in self.agents):
+            for a in self.agents:
+                if a.proc.poll() not in (None, 0) and a not in bad:
+                    bad.append(a)
+            time.sleep(0.2)
+        return bad + [a for a in self.agents if a.proc.returncode != 0 and a not in bad]
+
     def finish(self, timeout: float = 5.0) -> list:
         """After the world: agents leave on its stop. Returns the agents that
         did not exit 0 in time (they are stopped), those that failed during
         a tolerated run first."""
         deadline = time.monotonic() + timeout
-        bad = list(self.failed_agents)
+        bad = [a for a in self.failed_agents if a in self.agents]
         for a in self.agents:
             if a in bad:
                 continue
@@ -238,7 +267,7 @@ class Launcher:
             except subprocess.TimeoutExpired:
                 _signal(c.proc, signal.SIGKILL)
                 c.proc.wait(STOP_GRACE_S)
-        if self.world.proc is not None and self.world.proc.stdout:
+        if self.world is not None and self.world.proc is not None and self.world.proc.stdout:
             self.world.proc.stdout.close()
 
 
@@ -268,6 +297,23 @@ def build_children(spec: RunSpec, ticks: int, seed: int, ids, logs: Path, world_
     return world, agents
 
 
+def agent_flags(args: argparse.Namespace, scn, collect_timeout=None, world_timeout=None) -> list:
+    """The flags every agent of a run gets from ``up`` or ``host`` (timeouts,
+    ``--profile``, fault flags that differ from the scenario's ``[faults]``);
+    ``host`` takes the same flags and passes them on."""
+    out = []
+    if collect_timeout is not None:
+        out += ["--collect-timeout", str(collect_timeout)]
+    if world_timeout is not None:
+        out += ["--world-timeout", str(world_timeout)]
+    if args.profile:
+        out += ["--profile", args.profile]
+    faults = faults_from_args(args, scn.faults)
+    if faults != FaultConfig.from_mapping(scn.faults):  # flags given: every child gets them
+        out += faults.to_argv()
+    return out
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("up", help="run the world and every agent as separate processes over Zenoh",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -289,6 +335,9 @@ def register(subparsers) -> None:
     p.add_argument("--profile", metavar="DIR",
                    help="world and agents measure where each tick's time goes: DIR/world.json, "
                         "DIR/agent-<id>.json (benchmarks/mesh_bench.py --profile prints them)")
+    p.add_argument("--hosts", metavar="FILE",
+                   help="run over several hosts: the world, a router and a shard of agents per host, from a TOML "
+                        "file naming them (sim.hosts, docs/hosts.md); no zenoh flags then")
     live.add_arguments(p)
     add_fault_arguments(p)
     zenoh_config.add_arguments(p)
@@ -298,10 +347,10 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.credentials:
         raise InputError("credentials", "up makes fresh credentials for every run (--credentials is for world "
-                                        "and agent started by hand)")
+                                        "and agent started by hand; with --hosts, the file's credentials key)")
     # SIGTERM ends the run like Ctrl-C's path does: through the finally blocks (the children,
     # which get SIGTERM when up dies, and the credentials directory)
-    previous = signal.signal(signal.SIGTERM, _terminated)
+    previous = signal.signal(signal.SIGTERM, terminated)
     try:
         with tempfile.TemporaryDirectory(prefix="diskf-run-") as private:  # 0700; removed however the run ends
             return _run(args, Path(private))
@@ -309,7 +358,7 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, previous)
 
 
-def _terminated(signum, frame):
+def terminated(signum, frame):
     raise SystemExit(128 + signum)
 
 
@@ -333,13 +382,23 @@ def _run(args: argparse.Namespace, private: Path) -> int:
         logs.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
+    plan = None
+    if args.hosts:
+        from sim import hosts
+
+        plan = hosts.load(args.hosts)
+        plan.check(ids)
     zopts = zenoh_config.from_args(args)
-    if not zopts.insecure:  # a fresh CA, one certificate per process; each child reads its own
+    if plan is not None and not zopts.is_default:
+        raise InputError("hosts", "the hosts file names every endpoint: no zenoh flags with --hosts")
+    if plan is not None and plan.credentials and not zopts.insecure:
+        credentials.load(plan.credentials, credentials.WORLD, spec.run_id)  # made for this run, or one line
+        zopts = replace(zopts, credentials=plan.credentials)
+    elif not zopts.insecure:  # a fresh CA, one certificate per process; each child reads its own
         zopts = replace(zopts, credentials=str(credentials.make(private / "credentials", spec.run_id, ids)))
     else:
         print(f"warning: up: --insecure: plain zenoh; any process that reaches it can read and write run "
               f"{spec.run_id}", file=sys.stderr)
-    world_z, agent_z = loopback_options(free_port(), zopts) if zopts.is_default else (zopts, zopts)
     world_extra = ["--progress", "lines", "--json", str(out), "--startup-timeout", str(args.startup_timeout),
                    "--tick-timeout", str(args.tick_timeout)]
     if args.estimates:
@@ -350,18 +409,25 @@ def _run(args: argparse.Namespace, private: Path) -> int:
         world_extra += ["--profile", args.profile]
     if args.allow_missing:
         world_extra += ["--allow-missing", repr(args.allow_missing)]
-    agent_extra = ["--collect-timeout", str(args.collect_timeout),
-                   "--world-timeout", str(args.startup_timeout + 2 * args.tick_timeout)]
-    if args.profile:
-        agent_extra += ["--profile", args.profile]
+    agent_extra = agent_flags(args, scn, args.collect_timeout, args.startup_timeout + 2 * args.tick_timeout)
     faults = faults_from_args(args, scn.faults)
-    if faults != FaultConfig.from_mapping(scn.faults):  # flags given: every child gets them
+    if faults != FaultConfig.from_mapping(scn.faults):  # flags given: the world records them
         world_extra += faults.to_argv()
-        agent_extra += faults.to_argv()
-    world, agents = build_children(spec, ticks, args.seed, ids, logs, world_z, agent_z, world_extra, agent_extra)
+    if plan is not None:
+        world, services, agents = hosts.children(plan, spec, ticks, args.seed, zopts, logs, world_extra,
+                                                 agent_extra)
+        for h in agents:  # each shard's agents' logs next to the run's
+            h.argv += ["--logs", str(logs / h.name.replace(" ", "-"))]
+        agent_z = replace(zopts, mode="client", connect=(plan.world_listen,), no_multicast_scouting=True)
+    else:
+        world_z, agent_z = loopback_options(free_port(), zopts) if zopts.is_default else (zopts, zopts)
+        world, agents = build_children(spec, ticks, args.seed, ids, logs, world_z, agent_z, world_extra,
+                                       agent_extra)
+        services = []
 
     quiet = args.quiet or not sys.stderr.isatty()
-    bar = tqdm(total=ticks, desc=f"{spec.algorithm} x {len(ids)} agents", unit="tick", file=sys.stderr,
+    where = f" on {len(plan.shards)} hosts" if plan is not None else ""
+    bar = tqdm(total=ticks, desc=f"{spec.algorithm} x {len(ids)} agents{where}", unit="tick", file=sys.stderr,
                disable=quiet)
     t0 = time.monotonic()
     timing = {}
@@ -370,7 +436,7 @@ def _run(args: argparse.Namespace, private: Path) -> int:
         bar.update(k - bar.n)
 
     launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()),
-                        tolerate_agents=args.allow_missing > 0)
+                        tolerate_agents=args.allow_missing > 0, services=services)
     live.attach(args, launcher, spec, ticks, agent_z, logs)  # --live: the viewer, one more child
     try:
         launcher.start()
@@ -387,12 +453,12 @@ def _run(args: argparse.Namespace, private: Path) -> int:
         return 130
     bar.close()
     t_end = time.monotonic()
-    bad = launcher.finish()
+    bad = launcher.finish(timeout=5.0 if plan is None else 15.0)  # a shard ends once its agents have
     for a in bad:
         print(f"warning: {a.name} did not leave cleanly after the run: {a.last_error_line()}", file=sys.stderr)
     results = json.loads(out.read_text())
     first = timing.get("first", t_end) - t0
-    print(f"{scn.name}: {len(ids)} agent processes + world, {ticks} ticks, seed {args.seed}, run {spec.run_id}; "
+    print(f"{scn.name}: {len(ids)} agent processes{where} + world, {ticks} ticks, seed {args.seed}, run {spec.run_id}; "
           f"first tick after {first:.2f} s, {ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
     print(format_table(results))
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")

@@ -110,3 +110,66 @@ def test_the_image_lock_pins_every_runtime_dependency_within_its_bounds():
         assert d.specifier.contains(pins[canonicalize_name(d.name)]), f"{d.name}=={pins[canonicalize_name(d.name)]}"
     assert "matplotlib" not in pins
     assert "requirements.lock" in (root / "Dockerfile").read_text()
+
+
+# --------------------------------------------------------------------------
+# docker-compose.hosts.yml: two "hosts" (router + shard each) and the world
+# --------------------------------------------------------------------------
+def _hosts_services() -> dict:
+    return yaml.safe_load((ROOT / "docker-compose.hosts.yml").read_text())["services"]
+
+
+def test_the_hosts_file_runs_the_command_lines_of_up_hosts(tmp_path):
+    """Every service of the two-host file runs what ``up --hosts`` would start
+    for the same plan (``sim.hosts.children``): the world as a router, a
+    router per host connected to the world and the routers before it, a
+    shard per host whose agents are clients of its router."""
+    from sim import hosts
+
+    plan = hosts.parse({"credentials": compose.HOSTS_CREDENTIALS,
+                        "world": {"listen": f"tls/world:{compose.PORT}", "bind": f"tls/0.0.0.0:{compose.PORT}",
+                                  "python": compose.PYTHON},
+                        "hosts": {name: {"agents": ids, "router": f"tls/router-{name}:{compose.PORT}",
+                                         "router_bind": f"tls/0.0.0.0:{compose.PORT}", "python": compose.PYTHON}
+                                  for name, ids in (("a", "1-5"), ("b", "6-9"))}})
+    plan.check([a.id for a in compose.HOSTS_SPEC.load().agents])
+    world, routers, shards = hosts.children(plan, compose.HOSTS_SPEC, compose.TICKS, compose.SEED,
+                                            compose.ZenohOptions(credentials=plan.credentials), tmp_path,
+                                            compose.HOSTS_WORLD_EXTRA)
+    want = {"world": world.argv, "router-a": routers[0].argv, "router-b": routers[1].argv,
+            "host-a": shards[0].argv, "host-b": shards[1].argv}
+    services = _hosts_services()
+    assert set(services) == set(want) | {"credentials"}
+    for name, argv in want.items():
+        assert services[name]["command"] == argv, name
+    w = services["world"]["command"]
+    assert w[w.index("--mode") + 1] == "router"
+    rb = services["router-b"]["command"]
+    assert [rb[i + 1] for i, a in enumerate(rb) if a == "--connect"] == [f"tls/world:{compose.PORT}",
+                                                                       f"tls/router-a:{compose.PORT}"]
+    for name in ("host-a", "host-b"):
+        cmd = services[name]["command"]
+        assert cmd[cmd.index("--mode") + 1] == "client"
+        assert cmd[cmd.index("--connect") + 1] == f"tls/router-{name[-1]}:{compose.PORT}"
+        assert services[name]["depends_on"] == {f"router-{name[-1]}": {"condition": "service_healthy"}}
+    assert services["router-b"]["depends_on"] == {"world": {"condition": "service_healthy"},
+                                                  "router-a": {"condition": "service_healthy"}}
+    for name, s in services.items():
+        cmd = s["command"]
+        assert "--insecure" not in cmd
+        if name != "credentials":
+            assert cmd[cmd.index("--credentials") + 1] == compose.HOSTS_CREDENTIALS
+            assert "credentials:/credentials:ro" in s["volumes"]
+
+
+def test_the_hosts_credentials_service_makes_the_routers_identity(tmp_path, capsys):
+    argv = _hosts_services()["credentials"]["command"]
+    out = tmp_path / "c"
+    assert cli.main([str(out) if a == compose.HOSTS_CREDENTIALS else a for a in argv[1:]]) == 0
+    capsys.readouterr()
+    assert credentials.load(out, credentials.ROUTER, compose.HOSTS_SPEC.run_id).router
+
+
+def test_the_hosts_compose_file_is_up_to_date():
+    assert (ROOT / "docker-compose.hosts.yml").read_text() == compose.render_hosts(), \
+        "regenerate with: python -m sim.compose --hosts > docker-compose.hosts.yml"

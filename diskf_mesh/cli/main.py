@@ -33,6 +33,8 @@ COMMAND_MODULES = (
     "sim.world",
     "agents.agent",
     "sim.launcher",
+    "sim.router",
+    "sim.host",
 )
 
 

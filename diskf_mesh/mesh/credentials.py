@@ -13,6 +13,8 @@ away (nobody can mint another identity for this run afterwards):
         run.json                  run id, agent ids, the identity's name
       agent-<id>/ ...             one per agent of the scenario
       observer/ ...               may only listen (a live viewer, a recorder)
+      router/ ...                 a zenoh router of the run (``diskf-mesh router``,
+                                  docs/hosts.md): it forwards everything of the run
 
 Every identity directory is self-contained: a process reads its own
 directory only (``load``), and a host or container needs only its own.
@@ -35,6 +37,10 @@ peer, by the peer's certificate:
                                    diskf/<run>/world/meas/<i>, the messages addressed to
                                    it, the reports (rejoining); tokens alive/**, ticking/world
     observer     subscribe         diskf/<run>/** (samples and tokens), nothing else
+    router       everything        diskf/<run>/** both ways: it forwards the others' traffic,
+                                   so a receiver behind it sees the router's certificate, not
+                                   the sender's; each router applies the rules above to the
+                                   processes connected to it (docs/hosts.md)
 
 A declaration refused at ingress never enters the receiver's routing
 tables, so the receiver does not send that peer what it asked for. That
@@ -60,6 +66,7 @@ from diskf_mesh.mesh.keys import check_run_id
 FORMAT = "diskf-credentials/1"
 WORLD = "world"
 OBSERVER = "observer"
+ROUTER = "router"
 CA_FILE, CERT_FILE, KEY_FILE, RUN_FILE = "ca.pem", "cert.pem", "key.pem", "run.json"
 VALID_DAYS = 30
 DEFAULT_LISTEN = ("tls/[::]:0",)  # with credentials and no --listen (zenoh's own default is plain TCP)
@@ -70,9 +77,10 @@ def agent_identity(agent_id: int) -> str:
     return f"agent-{int(agent_id)}"
 
 
-def identities(agents, observer: bool = True) -> list:
-    """Every identity of a run: the world, one per agent, the observer."""
-    return [WORLD, *(agent_identity(i) for i in agents), *([OBSERVER] if observer else [])]
+def identities(agents, observer: bool = True, router: bool = True) -> list:
+    """Every identity of a run: the world, one per agent, the observer, the router."""
+    return [WORLD, *(agent_identity(i) for i in agents), *([OBSERVER] if observer else []),
+            *([ROUTER] if router else [])]
 
 
 # --------------------------------------------------------------------------
@@ -91,7 +99,7 @@ def _write(path: Path, data: bytes, mode: int) -> None:
     os.chmod(path, mode)
 
 
-def make(out, run_id: str, agents, observer: bool = True) -> Path:
+def make(out, run_id: str, agents, observer: bool = True, router: bool = True) -> Path:
     """A fresh CA and one certificate + key per identity of run ``run_id``
     in ``out`` (created 0700; an identity directory already there is
     replaced). Returns ``out``."""
@@ -120,7 +128,7 @@ def make(out, run_id: str, agents, observer: bool = True) -> Path:
                                        key_agreement=False, encipher_only=False, decipher_only=False), critical=True)
           .sign(ca_key, hashes.SHA256()))
     ca_pem = ca.public_bytes(serialization.Encoding.PEM)
-    for who in identities(agents, observer):
+    for who in identities(agents, observer, router):
         key = ec.generate_private_key(ec.SECP256R1())
         sans = [x509.DNSName(who)] + [x509.IPAddress(ipaddress.ip_address(h)) if h[0].isdigit() else x509.DNSName(h)
                                       for h in HOSTS]
@@ -137,7 +145,8 @@ def make(out, run_id: str, agents, observer: bool = True) -> Path:
         _write(d / CERT_FILE, cert.public_bytes(serialization.Encoding.PEM), 0o644)
         _write(d / CA_FILE, ca_pem, 0o644)
         _write(d / RUN_FILE, (json.dumps({"format": FORMAT, "run_id": run_id, "agents": agents,
-                                          "observer": observer, "identity": who}) + "\n").encode(), 0o644)
+                                          "observer": observer, "router": router, "identity": who}) + "\n").encode(),
+               0o644)
     return out  # ca_key goes out of scope here: the CA signs nothing more
 
 
@@ -153,6 +162,7 @@ class Identity:
     agents: tuple
     observer: bool
     dir: Path
+    router: bool = False
 
     @property
     def ca(self) -> Path:
@@ -197,7 +207,8 @@ def load(directory, identity: str, run_id: str | None = None) -> Identity:
         check_run_id(doc["run_id"])
     except (KeyError, TypeError, ValueError, InputError):
         raise InputError("credentials", f"{d / RUN_FILE}: bad run id or agent list") from None
-    return Identity(identity, doc["run_id"], agents, bool(doc.get("observer", False)), d)
+    return Identity(identity, doc["run_id"], agents, bool(doc.get("observer", False)), d,
+                    bool(doc.get("router", False)))
 
 
 ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -206,7 +217,7 @@ LISTEN = ("declare_subscriber",)
 WATCH = ("declare_liveliness_subscriber", "liveliness_query")
 
 
-def access_control(run_id: str, agents, observer: bool = True) -> dict:
+def access_control(run_id: str, agents, observer: bool = True, router: bool = False) -> dict:
     """zenoh's ``access_control`` of a run (the table in the module docstring)."""
     r = f"diskf/{run_id}"
     rules, subjects, policies = [], [], []
@@ -238,6 +249,8 @@ def access_control(run_id: str, agents, observer: bool = True) -> dict:
               watch)
     if observer:
         grant(OBSERVER, [f"{r}/**"], rule("observer-watch", WATCH, [f"{r}/**"]))
+    if router:
+        grant(ROUTER, [f"{r}/**"], rule("router-all", ALL_MESSAGES, [f"{r}/**"]))
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 
@@ -258,5 +271,5 @@ def zenoh_settings(ident: Identity) -> list:
     return [
         ("transport/link/protocols", json.dumps(["tls"])),
         ("transport/link/tls", json.dumps(tls)),
-        ("access_control", json.dumps(access_control(ident.run_id, ident.agents, ident.observer))),
+        ("access_control", json.dumps(access_control(ident.run_id, ident.agents, ident.observer, ident.router))),
     ]

@@ -3,9 +3,10 @@ that start them.
 
 ``RunSpec`` holds the scenario (shipped name or path, with the same
 ``--topology``/``--range``/``--agents`` overrides as the engine), the
-algorithm and the run id. ``world_command`` and ``agent_command`` are the one
-place a process's command line is built: the launcher (``up``), the
-benchmark and ``docker-compose.yml`` (checked by a test) all use them.
+algorithm and the run id. ``world_command``, ``agent_command``,
+``router_command`` and ``host_command`` are the one place a process's command
+line is built: the launcher (``up``, ``up --hosts``, ``host``), the
+benchmarks and the compose files (checked by tests) all use them.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import sys
 from dataclasses import dataclass
 
 from diskf_mesh import estimators
+from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.argtypes import estimator_name, positive_int, range_value
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, load_scenario
 from diskf_mesh.mesh.keys import check_run_id
@@ -22,6 +24,9 @@ from diskf_mesh.mesh.zenoh_config import ZenohOptions
 DEFAULT_RUN_ID = "default"
 WORLD_MODULE = "sim.world"
 AGENT_MODULE = "agents.agent"
+ROUTER_MODULE = "sim.router"
+HOST_MODULE = "sim.host"
+HOST_COUNT_FLAG = "--agent-count"  # ``host``'s --agents is its range of ids: the generated count is this
 
 
 @dataclass(frozen=True)
@@ -39,14 +44,14 @@ class RunSpec:
         scn = load_scenario(self.scenario, agents=self.agents)
         return scn.with_overrides(topology=self.topology, comm_range=self.comm_range, steps=ticks)
 
-    def to_argv(self) -> list:
+    def to_argv(self, count_flag: str = "--agents") -> list:
         out = ["--scenario", self.scenario, "--algorithm", self.algorithm, "--run-id", self.run_id]
         if self.topology is not None:
             out += ["--topology", self.topology]
         if self.comm_range is not None:
             out += ["--range", repr(float(self.comm_range))]
         if self.agents is not None:
-            out += ["--agents", str(self.agents)]
+            out += [count_flag, str(self.agents)]
         return out
 
 
@@ -55,7 +60,8 @@ def setting_label(scn: Scenario) -> str:
     return f"range={scn.comm_range:g}" if scn.topology == "range" else scn.topology
 
 
-def add_arguments(parser: argparse.ArgumentParser, run_id_default: str | None = DEFAULT_RUN_ID) -> None:
+def add_arguments(parser: argparse.ArgumentParser, run_id_default: str | None = DEFAULT_RUN_ID,
+                  count_flag: str = "--agents") -> None:
     g = parser.add_argument_group("run")
     g.add_argument("--scenario", default="dynamic", help="a shipped scenario name or a .toml path (default: dynamic)")
     g.add_argument("--estimator", "--algorithm", dest="algorithm", type=estimator_name, default="diskf",
@@ -66,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser, run_id_default: str | None = 
     g.add_argument("--topology", choices=TOPOLOGIES, help="override the scenario's topology")
     g.add_argument("--range", type=range_value, dest="comm_range", metavar="R",
                    help="communication radius (implies --topology range)")
-    g.add_argument("--agents", type=positive_int, metavar="N", help="agent count of a generated scenario")
+    g.add_argument(count_flag, type=positive_int, dest="agents", metavar="N", help="agent count of a generated scenario")
 
 
 def from_args(args: argparse.Namespace, run_id: str | None = None) -> RunSpec:
@@ -85,3 +91,44 @@ def agent_command(spec: RunSpec, agent_id: int, zenoh: ZenohOptions, extra=(), p
     """argv of agent ``agent_id``."""
     return [python or sys.executable, "-m", AGENT_MODULE, "--id", str(agent_id), *spec.to_argv(),
             *zenoh.to_argv(), *extra]
+
+
+def router_command(run_id: str | None, zenoh: ZenohOptions, python: str | None = None) -> list:
+    """argv of a zenoh router of run ``run_id`` (``diskf-mesh router``)."""
+    return [python or sys.executable, "-m", ROUTER_MODULE, *(["--run-id", run_id] if run_id else []),
+            *zenoh.to_argv()]
+
+
+def host_command(spec: RunSpec, ids, zenoh: ZenohOptions, extra=(), python: str | None = None) -> list:
+    """argv of the shard of agents ``ids`` on one host (``diskf-mesh host``)."""
+    return [python or sys.executable, "-m", HOST_MODULE, "--agents", id_ranges(ids), *spec.to_argv(HOST_COUNT_FLAG),
+            *zenoh.to_argv(), *extra]
+
+
+def id_ranges(ids) -> str:
+    """Agent ids as ``host --agents`` takes them: ``1-25,30``."""
+    ids, parts = sorted(set(int(i) for i in ids)), []
+    for i in ids:
+        if parts and parts[-1][1] == i - 1:
+            parts[-1][1] = i
+        else:
+            parts.append([i, i])
+    return ",".join(f"{a}" if a == b else f"{a}-{b}" for a, b in parts)
+
+
+def parse_ids(text: str) -> tuple:
+    """``1-25``, ``1,3,7-9``: agent ids in increasing order (``InputError``
+    on a bad item, an empty or reversed range, or an id given twice)."""
+    out = []
+    for item in str(text).split(","):
+        a, sep, b = item.strip().partition("-")
+        try:
+            lo, hi = int(a), int(b) if sep else int(a)
+        except ValueError:
+            raise InputError("agents", f"expected ids and ranges like 1-25,30, got {text!r}") from None
+        if lo < 0 or hi < lo:
+            raise InputError("agents", f"bad range {item.strip()!r} in {text!r} (ids >= 0, low-high)")
+        out += range(lo, hi + 1)
+    if len(set(out)) != len(out):
+        raise InputError("agents", f"an id is given twice in {text!r}")
+    return tuple(sorted(out))

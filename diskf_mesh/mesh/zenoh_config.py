@@ -1,6 +1,6 @@
 """Zenoh session settings from the command line, as in zenoh-python's examples.
 
-    --mode peer|client         session mode (zenoh's default: peer)
+    --mode peer|client|router  session mode (zenoh's default: peer; docs/hosts.md)
     --connect ENDPOINT         endpoint to connect to, repeatable (tcp/10.0.0.1:7447)
     --listen ENDPOINT          endpoint to listen on, repeatable (tcp/0.0.0.0:7447)
     --no-multicast-scouting    do not discover peers by UDP multicast
@@ -19,7 +19,9 @@ On one host, peers find each other with no flags (multicast scouting).
 Across hosts, or where multicast does not pass (Docker bridges), give the
 world a ``--listen`` endpoint and every agent ``--connect`` to it plus a
 ``--listen`` of its own: peers learn each other's endpoints from the world
-(gossip) and connect directly.
+(gossip) and connect directly. Many agents, or several hosts: a zenoh
+router per host and the agents its clients (``diskf-mesh router``,
+``diskf-mesh host``, ``up --hosts``; docs/hosts.md).
 """
 from __future__ import annotations
 
@@ -31,7 +33,7 @@ from dataclasses import dataclass, replace
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh import credentials as creds
 
-MODES = ("peer", "client")
+MODES = ("peer", "client", "router")
 
 
 @dataclass(frozen=True)
@@ -103,7 +105,7 @@ class ZenohOptions:
             if self.identity is None:
                 raise InputError("credentials", "whose credentials? (no identity given)")
             settings += creds.zenoh_settings(creds.load(self.credentials, self.identity, self.run_id))
-            if not self.listen and not self.config_file:  # zenoh's default listen endpoint is plain TCP
+            if not self.listen and not self.config_file and self.mode != "client":  # zenoh's default is plain TCP
                 settings.append(("listen/endpoints", json.dumps(list(creds.DEFAULT_LISTEN))))
         if self.mode:
             settings.append(("mode", json.dumps(self.mode)))
@@ -128,7 +130,7 @@ class ZenohOptions:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("zenoh")
-    g.add_argument("--mode", "-m", choices=MODES, help="the zenoh session mode (default: peer)")
+    g.add_argument("--mode", "-m", choices=MODES, help="the zenoh session mode (default: peer; router: docs/hosts.md)")
     g.add_argument("--connect", "-e", metavar="ENDPOINT", action="append", default=[],
                    help="endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable)")
     g.add_argument("--listen", "-l", metavar="ENDPOINT", action="append", default=[],
