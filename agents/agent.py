@@ -253,8 +253,9 @@ class Agent:
                 if self.fault_config is not None and self.receiver.faults is None:
                     self.receiver.use_faults(FaultModel(self.fault_config, t.seed))
                 self.ticks[t.tick] = t
-                if self.timing.clock is not None:
-                    self.tick_at[t.tick] = time.monotonic()
+                if self.timing.clock is not None:  # a copy after the deadline is late, even before the close
+                    self.tick_at[t.tick] = now = time.monotonic()
+                    self.receiver.inbox.due(t.tick, now + self.timing.clock.deadline_s)
                     for old in [j for j in self.tick_at if j not in self.ticks]:
                         del self.tick_at[old]
                 # not live at a tick (joining later): linked to no one, nothing to fuse
@@ -518,8 +519,10 @@ class Agent:
         self.counters.published += 1
         self.collecting = True
         clock = self.timing.clock
-        self.deadline = (time.monotonic() + self.timing.collect_timeout if clock is None else
-                         self.tick_at.pop(k, time.monotonic()) + clock.deadline_s)
+        if clock is None:
+            self.deadline = time.monotonic() + self.timing.collect_timeout
+        else:  # from when tick k came: an agent that fell behind closes it at once
+            self.deadline = self.tick_at.pop(k, time.monotonic()) + clock.deadline_s
         prof.waiting = "wait-neighbours"
 
     def _close(self, k: int) -> None:

@@ -194,7 +194,7 @@ class Launcher:
             rc = self.world.proc.poll()
             if rc is not None:
                 self._drain()
-                if rc not in (0, INCOMPLETE):
+                if rc not in (0, INCOMPLETE, realtime.TOO_MANY_MISSES):
                     raise ChildFailed(self.world, rc)
                 return rc
             for a in self.agents:

@@ -97,6 +97,7 @@ class Deadlines:
     message_misses: Counter = field(default_factory=Counter)  # neighbours' messages not in by the deadline
     messages_due: Counter = field(default_factory=Counter)    # neighbours' messages linked (fused or not)
     reports_due: Counter = field(default_factory=Counter)     # live agent-ticks
+    late_by: list = field(default_factory=list)               # seconds after its tick's end each late report came
 
 
 @dataclass
@@ -342,6 +343,7 @@ class World:
         dl = self.record.deadlines
         if r.tick != self._open:  # its tick has ended
             dl.late_reports[r.sender] += 1
+            dl.late_by.append(time.monotonic() - dl.opened_at[r.tick - 1] - self.clock.period_s)
             self.record.why[r.tick - 1, i] = ""
         dl.message_misses[r.sender] += sum(1 for _, v in r.not_fused if v == "late")
         dl.messages_due[r.sender] += len(r.fused) + len(r.not_fused)
@@ -742,6 +744,8 @@ def deadline_summary(rec: WorldRecord, clock: realtime.Clock) -> dict:
     tot["miss_rate"] = tot["total"] / due if due else 0.0
     tot["message_miss_rate"] = tot["messages"] / tot["messages_due"] if tot["messages_due"] else 0.0
     tot["report_miss_rate"] = tot["reports"] / tot["reports_due"] if tot["reports_due"] else 0.0
+    if dl.late_by:
+        tot["late_report_s"] = {"median": float(np.median(dl.late_by)), "max": float(np.max(dl.late_by))}
     return {"rate_hz": clock.rate_hz, "deadline_s": clock.deadline_s, "deadline_misses": {**tot, "per_agent": per},
             "tick_period": realtime.period_stats(dl.opened_at, clock)}
 
