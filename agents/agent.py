@@ -752,7 +752,8 @@ def run(args: argparse.Namespace) -> int:
     scn = spec.load()
     clock = realtime.from_args(args)
     log = Log(f"agent {args.agent_id}")
-    batch_scheduling()
+    if clock is None:  # real time wants the deadline's wake-up at once, not after the running thread's slice
+        batch_scheduling()
     zenoh = zenoh_config.from_args(args, credentials.agent_identity(args.agent_id), spec.run_id)
     prof = Phases(AGENT_PHASES, f"agent {args.agent_id}") if args.profile else NO_PHASES
     try:
