@@ -106,7 +106,7 @@ def main(argv=None) -> int:
             ok = [r["rate"] for r in rows if r["size"] == size and r["algorithm"] == alg
                   and "error" not in r and r["miss_rate"] < MISS_OK]
             n = "9 agents (dynamic)" if size == "dynamic" else f"{size} agents"
-            print(f"{n}, {alg}: highest rate with under 1 % misses: " + (f"{max(ok):g} Hz" if ok else "none tried"))
+            print(f"{n}, {alg}: highest rate with under 1 % misses: " + (f"{max(ok):g} Hz" if ok else "none of the rates tried"))
     return 0
 
 
