@@ -12,6 +12,11 @@ It knows the shared motion model and parameters and only its own sensor
    has opened a later tick;
 4. fuse what it has, report the fused estimate to the world.
 
+With ``--rate`` (real time, ``diskf_mesh.mesh.clock``) step 3 ends at the
+deadline instead: ``--deadline-ms`` after tick k reached this agent (default
+half the period), or at once for an agent that fell behind; what came later
+is a deadline miss, never fused.
+
 Each step is taken by whichever message makes it possible, in the
 transport's callback (zenoh's network thread): the world's tick (its
 measurement came just before) runs steps 1-2, the last neighbour's message
@@ -63,6 +68,7 @@ from agents import rejoin
 from diskf_mesh import estimators
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.guard import Guard, GuardConfig
+from diskf_mesh.mesh import clock as realtime
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
@@ -93,6 +99,7 @@ REPORTS_WAIT_S = 1.0   # a rejoining agent waits at most this long for its neigh
 class AgentTiming:
     collect_timeout: float = 5.0   # wait for neighbours' messages after publishing
     world_timeout: float = 60.0    # longest silence from the world before giving up
+    clock: realtime.Clock | None = None  # real time (``mesh.clock``): fuse at its deadline; None: lockstep
 
 
 class Agent:
@@ -131,9 +138,14 @@ class Agent:
         n, m = scn.G.shape
         self.p = int(scn.sensors().p[self.ids.index(agent_id)])
         self.prof = profile
+        # how far ahead of tick k the world's ticks and neighbours' messages are taken: lockstep one
+        # tick (the guard's window two); real time further, for an agent that fell behind
+        self.lead = 1 if timing.clock is None else realtime.LEAD_TICKS
+        self.kept = AHEAD_KEPT if timing.clock is None else realtime.LEAD_TICKS + 2
         self.receiver = Receiver(Guard(GuardConfig(
             keys.run_id, agent_id, frozenset(self.ids), n, m,
-            information_check=estimators.get(algorithm).information_check),
+            information_check=estimators.get(algorithm).information_check,
+            **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
             profile=profile), faults, on_arrival=self.wake)
         self.counters = self.receiver.counters
         self.verdicts = TickVerdicts()  # per tick: who was fused, why the others were not
@@ -141,7 +153,8 @@ class Agent:
         self.rejoining = False
         self.reports = {}    # k -> {sender: wire.Report}, listened to only while rejoining
         self.est: AgentEstimator | None = None
-        self.ticks = {}      # k -> wire.Tick (k and k + 1; before joining, a few)
+        self.ticks = {}      # k -> wire.Tick (k and k + 1; before joining, a few; real time: up to k + lead)
+        self.tick_at = {}    # k -> when tick k reached this agent (monotonic; real time: its deadline's start)
         self.meas = {}       # k -> wire.Measurement (likewise)
         self.constants = None  # (K, seed, algorithm, topology, range) of the first tick taken
         self.alive = set()   # agent ids of the scenario with a liveliness token
@@ -246,6 +259,11 @@ class Agent:
                 if self.fault_config is not None and self.receiver.faults is None:
                     self.receiver.use_faults(FaultModel(self.fault_config, t.seed))
                 self.ticks[t.tick] = t
+                if self.timing.clock is not None:  # a copy after the deadline is late, even before the close
+                    self.tick_at[t.tick] = now = time.monotonic()
+                    self.receiver.inbox.due(t.tick, now + self.timing.clock.deadline_s)
+                    for old in [j for j in self.tick_at if j not in self.ticks]:
+                        del self.tick_at[old]
                 # not live at a tick (joining later): linked to no one, nothing to fuse
                 self.linked[t.tick] = ((set(neighbours(self.scn, self.id, t.positions)) & set(t.live)) - {self.id}
                                        if self.id in t.live else set())
@@ -307,7 +325,7 @@ class Agent:
         if self.constants is not None and consts != self.constants:
             return "constants", f"tick {t.tick} says (K, seed, algorithm, topology, range) = {consts}, " \
                                 f"the run {self.constants}"
-        if t.tick > t.ticks or (t.tick > self.k + 1 and self.est is not None):
+        if t.tick > t.ticks or (t.tick > self.k + self.lead and self.est is not None):
             return "tick-future", f"tick {t.tick} at tick {self.k} of {t.ticks}"
         return None
 
@@ -316,7 +334,7 @@ class Agent:
         taken: for k or k + 1 (before joining, any later tick of the run),
         every value within ``GuardConfig.max_abs``; else (reason, detail)."""
         K = self.constants[0] if self.constants is not None else math.inf
-        if mm.tick > K or (mm.tick > self.k + 1 and self.est is not None):
+        if mm.tick > K or (mm.tick > self.k + self.lead and self.est is not None):
             return "tick-future", f"measurement of tick {mm.tick} at tick {self.k}"
         limit = self.receiver.guard.config.max_abs
         if mm.has and not all(abs(v) <= limit for v in mm.y.tolist()):
@@ -326,10 +344,11 @@ class Agent:
     def _bound(self, by_tick: dict) -> None:
         """Keep a per-tick map of the world's messages to ticks from k - 1
         (a restart re-initialises from tick k - 1) and at most
-        ``AHEAD_KEPT`` of them (only a joining agent takes more than two)."""
+        ``AHEAD_KEPT`` of them (only a joining agent takes more than two;
+        real time: the lead window)."""
         for old in [j for j in by_tick if j < self.k - 1]:
             del by_tick[old]
-        while len(by_tick) > AHEAD_KEPT:
+        while len(by_tick) > self.kept:
             del by_tick[max(by_tick)]
 
     def _gate(self, sender, payload) -> bool:
@@ -505,7 +524,11 @@ class Agent:
         prof.end("publish")
         self.counters.published += 1
         self.collecting = True
-        self.deadline = time.monotonic() + self.timing.collect_timeout
+        clock = self.timing.clock
+        if clock is None:
+            self.deadline = time.monotonic() + self.timing.collect_timeout
+        else:  # from when tick k came: an agent that fell behind closes it at once
+            self.deadline = self.tick_at.pop(k, time.monotonic()) + clock.deadline_s
         prof.waiting = "wait-neighbours"
 
     def _close(self, k: int) -> None:
@@ -711,6 +734,7 @@ def register(subparsers) -> None:
     p.add_argument("--profile", metavar="DIR",
                    help="measure where each tick's time goes (decode, guard, local, fuse, encode, publish, "
                         "wait) and write DIR/agent-<id>.json at exit")
+    realtime.add_arguments(p, world=False)
     add_fault_arguments(p)
     zenoh_config.add_arguments(p)
     p.set_defaults(func=run)
@@ -732,14 +756,16 @@ def batch_scheduling() -> None:
 def run(args: argparse.Namespace) -> int:
     spec = runspec.from_args(args)
     scn = spec.load()
+    clock = realtime.from_args(args)
     log = Log(f"agent {args.agent_id}")
-    batch_scheduling()
+    if clock is None:  # real time wants the deadline's wake-up at once, not after the running thread's slice
+        batch_scheduling()
     zenoh = zenoh_config.from_args(args, credentials.agent_identity(args.agent_id), spec.run_id)
     prof = Phases(AGENT_PHASES, f"agent {args.agent_id}") if args.profile else NO_PHASES
     try:
         with ZenohTransport(zenoh) as transport:
             agent = Agent(scn, args.agent_id, spec.algorithm, Keys(spec.run_id), transport,
-                          AgentTiming(args.collect_timeout, args.world_timeout), log,
+                          AgentTiming(args.collect_timeout, args.world_timeout, clock), log,
                           fault_config=faults_from_args(args, scn.faults), profile=prof)
             agent.run()
     except MeshError as e:

@@ -55,12 +55,13 @@ from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
+from diskf_mesh.mesh import clock as realtime
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
-from sim.world import INCOMPLETE, add_allow_missing, missing_line
+from sim.world import INCOMPLETE, add_allow_missing, miss_problem, missing_line
 
 STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
 WORLD_STOP_GRACE_S = 20.0  # the world, stopped, writes its results first
@@ -210,7 +211,7 @@ class Launcher:
             rc = self.world.proc.poll()
             if rc is not None:
                 self._drain()
-                if rc not in (0, INCOMPLETE):
+                if rc not in (0, INCOMPLETE, realtime.TOO_MANY_MISSES):
                     raise ChildFailed(self.world, rc)
                 return rc
             for a in (*self.services, *self.agents):
@@ -331,6 +332,7 @@ def register(subparsers) -> None:
     p.add_argument("--collect-timeout", type=float, default=5.0, metavar="S",
                    help="agents: seconds to wait for neighbours' messages (default %(default)s)")
     add_allow_missing(p)
+    realtime.add_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--profile", metavar="DIR",
                    help="world and agents measure where each tick's time goes: DIR/world.json, "
@@ -410,6 +412,7 @@ def _run(args: argparse.Namespace, private: Path) -> int:
     if args.allow_missing:
         world_extra += ["--allow-missing", repr(args.allow_missing)]
     agent_extra = agent_flags(args, scn, args.collect_timeout, args.startup_timeout + 2 * args.tick_timeout)
+    world_extra, agent_extra = [a + b for a, b in zip((world_extra, agent_extra), realtime.argv(args))]
     faults = faults_from_args(args, scn.faults)
     if faults != FaultConfig.from_mapping(scn.faults):  # flags given: the world records them
         world_extra += faults.to_argv()
@@ -463,14 +466,18 @@ def _run(args: argparse.Namespace, private: Path) -> int:
     print(format_table(results))
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
           + (f", recording: {args.record}" if args.record else "") + f", logs: {logs}")
-    return verdict(next(iter(next(iter(results.values())).values())), world_rc, args.allow_missing)
+    row = next(iter(next(iter(results.values())).values()))
+    return verdict(row, world_rc, args.allow_missing, args.max_miss_rate)
 
 
-def verdict(row: dict, world_rc: int, allow_missing: float) -> int:
+def verdict(row: dict, world_rc: int, allow_missing: float, max_miss_rate: float | None = None) -> int:
     """``up``'s exit status from the world's (0 or ``INCOMPLETE``) and its
     results: one line on stderr when agent-ticks are missing."""
     if row.get("complete", True) and world_rc == 0:
         return 0
+    if world_rc == realtime.TOO_MANY_MISSES:
+        print(f"error: {miss_problem(row, max_miss_rate)}", file=sys.stderr)
+        return world_rc
     line = missing_line(row)
     if world_rc == 0:
         print(f"warning: incomplete run accepted (--allow-missing {allow_missing:g}): {line}", file=sys.stderr)

@@ -64,6 +64,7 @@ from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
 from diskf_mesh.engine.batch import Estimates
+from diskf_mesh.mesh import clock as realtime
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
@@ -81,8 +82,22 @@ ESTIMATES_FORMAT = "diskf-mesh-estimates/1"
 @dataclass(frozen=True)
 class WorldTiming:
     startup_timeout: float = 30.0  # for every agent to be ready
-    tick_timeout: float = 10.0     # for the reports of one tick
+    tick_timeout: float = 10.0     # for the reports of one tick (real time: of every tick, after the last)
     leave_timeout: float = 2.0     # after stop, for the agents to leave
+    clock: realtime.Clock | None = None  # real time (``mesh.clock``); None: lockstep
+
+
+@dataclass
+class Deadlines:
+    """A real-time run's clock and deadline misses, per agent id."""
+
+    opened_at: list = field(default_factory=list)       # monotonic time each tick opened
+    report_misses: Counter = field(default_factory=Counter)  # live, no report by the tick's end
+    late_reports: Counter = field(default_factory=Counter)   # of those, came later (taken, counted)
+    message_misses: Counter = field(default_factory=Counter)  # neighbours' messages not in by the deadline
+    messages_due: Counter = field(default_factory=Counter)    # neighbours' messages linked (fused or not)
+    reports_due: Counter = field(default_factory=Counter)     # live agent-ticks
+    late_by: list = field(default_factory=list)               # seconds after its tick's end each late report came
 
 
 @dataclass
@@ -104,6 +119,8 @@ class WorldRecord:
     duplicates: Counter = field(default_factory=Counter)  # id (or "world") -> extra processes seen
     pauses: list = field(default_factory=list)         # [{"tick", "why", "seconds"}]
     ended_early: str = ""                      # why the run ended before tick K, if it did
+    fused: np.ndarray | None = None            # (K, N, N) bool [tick - 1, receiver, sender]: what was fused
+    deadlines: Deadlines | None = None         # real time only
     labels: tuple = ()                         # the ids as the scenario gave them (results show these)
 
     def label(self, i):
@@ -165,7 +182,14 @@ class World:
         self.record = WorldRecord(self.ids, np.full((K, N, n), np.nan), np.full((K, N, n, n), np.nan),
                                   np.full((K, N, m), np.nan), np.zeros((K, N), dtype=bool),
                                   np.zeros((K, N), dtype=bool), why=np.full((K, N), "", dtype=object),
-                                  labels=scn.labels)
+                                  labels=scn.labels,
+                                  fused=np.zeros((K, N, N), dtype=bool),
+                                  deadlines=None if timing.clock is None else Deadlines())
+        self._index = {i: j for j, i in enumerate(self.ids)}
+        self.clock = timing.clock
+        self._owed = {}                # real time: tick -> live agents whose report has not come yet
+        self._ended = 0                # real time: the last tick whose end has passed
+        self._unrecorded = 1           # real time: the first tick not handed to the recorder yet
         self.k = 0
         self.stopping = False
         self.done = False              # tick K is closed
@@ -190,7 +214,8 @@ class World:
         self.prof.begin()
         try:
             with self._cv:
-                if self._open and not self._paused and time.monotonic() - self._main_looks_at > FREEZE_S:
+                if (self._open and not self._paused and self.clock is None
+                        and time.monotonic() - self._main_looks_at > FREEZE_S):
                     self._pause("the world was frozen", self._live_at_open)
                 kind, who = self.keys.parse(key)
                 if kind == "report":
@@ -261,6 +286,8 @@ class World:
             self._why[who] = "left"
             if not self._paused:
                 self._waiting.discard(who)  # gone: the tick does not wait for it
+            for owed in self._owed.values():
+                owed.discard(who)
         self._cv.notify_all()
 
     def _on_world_token(self, nonce_: str, up: bool) -> None:
@@ -285,24 +312,57 @@ class World:
                                    n=self.trace.model.n, m=self.trace.model.m, ticks=self.K, agents=len(self.ids))
         finally:
             self.prof.end("decode")
-        i = self.ids.index(sender)
-        if r.tick < self.k or (r.tick == self.k and not self._open):
+        i = self._index[sender]
+        if self.clock is not None:
+            self._on_clocked_report(r, i)
+        elif r.tick < self.k or (r.tick == self.k and not self._open):
             self.record.counters["stale"] += 1
         elif r.tick > self.k or self.record.reported[r.tick - 1, i]:
             self.record.counters["unexpected"] += 1
         else:
-            rec = self.record
-            rec.x[r.tick - 1, i], rec.P[r.tick - 1, i], rec.d[r.tick - 1, i] = r.x, r.P, r.d
-            rec.d_valid[r.tick - 1, i] = r.d_valid
-            rec.reported[r.tick - 1, i] = True
-            rec.agent_counters[sender] = r.counters
             self._waiting.discard(sender)
-            self.recorder.on_report(r)
+            self._take(r, i)
+
+    def _take(self, r: wire.Report, i: int) -> None:
+        """Record agent ``r.sender``'s (index ``i``) report of its tick."""
+        rec, t = self.record, r.tick - 1
+        rec.x[t, i], rec.P[t, i], rec.d[t, i] = r.x, r.P, r.d
+        rec.d_valid[t, i] = r.d_valid
+        rec.reported[t, i] = True
+        rec.agent_counters[r.sender] = r.counters
+        row = rec.fused[t, i]
+        for s in r.fused:
+            j = self._index.get(s)
+            if j is not None:
+                row[j] = True
+        self.recorder.on_report(r)
+
+    def _on_clocked_report(self, r: wire.Report, i: int) -> None:
+        """Real time: a report owed for its tick is taken whenever it comes;
+        after the tick's end it counts late. Its messages not fused in time
+        (verdict "late") are message deadline misses."""
+        owed = self._owed.get(r.tick)
+        if owed is None or r.sender not in owed:
+            self.record.counters["stale" if r.tick <= self.k else "unexpected"] += 1
+            return
+        owed.discard(r.sender)
+        dl = self.record.deadlines
+        if r.tick != self._open:  # its tick has ended
+            dl.late_reports[r.sender] += 1
+            dl.late_by.append(time.monotonic() - dl.opened_at[r.tick - 1] - self.clock.period_s)
+            self.record.why[r.tick - 1, i] = ""
+        dl.message_misses[r.sender] += sum(1 for _, v in r.not_fused if v == "late")
+        dl.messages_due[r.sender] += len(r.fused) + len(r.not_fused)
+        self._take(r, i)
+        self._to_recorder()
+        if self._ended >= self.K and not any(self._owed.values()):
+            self._cv.notify_all()  # the last report owed: the run is over
 
     # -- the ticks (lock held) ---------------------------------------------------
     def _advance(self) -> None:
-        """Close every tick whose reports are all in, opening the next."""
-        while self._open and not self._waiting and self.failure is None and not self._paused:
+        """Close every tick whose reports are all in, opening the next (real
+        time: the clock does)."""
+        while self.clock is None and self._open and not self._waiting and self.failure is None and not self._paused:
             self._close_tick()
 
     def _live(self, k: int) -> list:
@@ -318,6 +378,9 @@ class World:
         self._waiting = set(live)
         self._live_at_open = tuple(live)
         self._rejected = set()
+        if self.clock is not None:
+            self._owed[k] = set(live)
+            self.record.deadlines.reports_due.update(live)
         for j, i in enumerate(self.ids):
             if i in live:
                 self._why[i] = None
@@ -422,7 +485,7 @@ class World:
         self._main_looks_at = math.inf  # awake: a callback cannot tell a freeze from work
         if self.failure is not None:
             raise self.failure
-        if late > FREEZE_S and self._open and not self._paused:
+        if late > FREEZE_S and self._open and not self._paused and self.clock is None:
             self._pause("the world was frozen", self._live_at_open)
 
     # -- protocol ----------------------------------------------------------
@@ -486,7 +549,9 @@ class World:
 
     def run_ticks(self) -> None:
         """Tick 1 to K, in lockstep (the callbacks drive it; the main thread
-        closes a tick at its deadline)."""
+        closes a tick at its deadline), or on the clock."""
+        if self.clock is not None:
+            return self._run_clocked()
         with self._cv:
             self._open_tick(1)
             self._advance()
@@ -506,6 +571,58 @@ class World:
                     self._advance()
                     continue
                 self._wait(self._deadline)
+
+    # -- real time (lock held; ``mesh.clock``) ------------------------------------
+    def _run_clocked(self) -> None:
+        """Main thread: tick k opens at t0 + (k - 1) / HZ and ends when tick
+        k + 1 opens, whatever came in; after the last tick's end, the reports
+        still owed have ``--tick-timeout`` to come."""
+        period = self.clock.period_s
+        with self._cv:
+            t0 = time.monotonic()
+            for k in range(1, self.K + 2):
+                due = t0 + (k - 1) * period
+                while time.monotonic() < due and not self.interrupted:
+                    self._wait(due)
+                if self.interrupted:
+                    self.record.ended_early = f"interrupted ({self.interrupted})"
+                    break
+                if k > 1:
+                    self._end_tick(k - 1)
+                if k <= self.K:
+                    self.record.deadlines.opened_at.append(time.monotonic())
+                    self._open_tick(k)
+            grace = time.monotonic() + self.timing.tick_timeout
+            while any(self._owed.values()) and time.monotonic() < grace and not self.interrupted:
+                self._wait(grace)
+            self._to_recorder(final=True)
+            self.done = not self.record.ended_early
+
+    def _end_tick(self, k: int) -> None:
+        """Real time: tick k's end. A live agent whose report is not in
+        misses its deadline (its report may still come: ``late_reports``)."""
+        dl = self.record.deadlines
+        for i in sorted(self._owed.get(k, ())):
+            j = self._index[i]
+            self.record.why[k - 1, j] = "rejected" if i in self._rejected else "no report"
+            dl.report_misses[i] += 1
+        self._open, self._ended = 0, k
+        self.prof.tick()
+        if self.progress is not None:
+            self.progress(k)
+        self._to_recorder()
+
+    def _to_recorder(self, final: bool = False) -> None:
+        """Real time: hand the recorder every ended tick, in order, once its
+        reports are all in (or ``LEAD_TICKS`` later, or at the end: the
+        rest are missing). An agent further behind than that is out of the
+        run anyway (``mesh.clock``)."""
+        while self._unrecorded <= self._ended:
+            k = self._unrecorded
+            if self._owed.get(k) and not final and k >= self._ended - realtime.LEAD_TICKS:
+                return
+            self.recorder.on_close(k, self._owed.pop(k, set()))
+            self._unrecorded += 1
 
     def stop(self, why: str) -> None:
         with self._cv:
@@ -583,6 +700,15 @@ def missing_line(c: dict) -> str:
             f"({100 * c['missing_fraction']:.1f} %): {agents}{early}")
 
 
+def miss_problem(row: dict, max_miss_rate: float | None) -> str:
+    """One line if a real-time run's miss rate exceeds ``--max-miss-rate``."""
+    dm = row["deadline_misses"]
+    if max_miss_rate is None or dm["miss_rate"] <= max_miss_rate:
+        return ""
+    return (f"{dm['total']} deadline misses ({100 * dm['miss_rate']:.2f} % of messages and reports: "
+            f"{dm['messages']} messages, {dm['reports']} reports) above --max-miss-rate {max_miss_rate:g}")
+
+
 def fraction(text: str) -> float:
     try:
         v = float(text)
@@ -609,12 +735,42 @@ def run_summary(rec: WorldRecord, faults: FaultConfig) -> dict:
     return out
 
 
+def deadline_summary(rec: WorldRecord, clock: realtime.Clock) -> dict:
+    """A real-time run's ``deadline_misses`` (per agent and in total: its
+    neighbours' messages not fused in time, its reports not in by the tick's
+    end, of which ``late_reports`` came later; ``miss_rate`` = misses over
+    messages and reports due) and ``tick_period`` (``clock.period_stats``)."""
+    dl = rec.deadlines
+    per = {}
+    for i in rec.ids:
+        m, r = dl.message_misses[i], dl.report_misses[i]
+        per[str(rec.label(i))] = {"total": m + r, "messages": m, "reports": r, "late_reports": dl.late_reports[i],
+                       "messages_due": dl.messages_due[i], "reports_due": dl.reports_due[i]}
+    tot = {key: sum(a[key] for a in per.values()) for key in next(iter(per.values()))}
+    due = tot["messages_due"] + tot["reports_due"]
+    tot["miss_rate"] = tot["total"] / due if due else 0.0
+    tot["message_miss_rate"] = tot["messages"] / tot["messages_due"] if tot["messages_due"] else 0.0
+    tot["report_miss_rate"] = tot["reports"] / tot["reports_due"] if tot["reports_due"] else 0.0
+    if dl.late_by:
+        tot["late_report_s"] = {"median": float(np.median(dl.late_by)), "max": float(np.max(dl.late_by))}
+    return {"rate_hz": clock.rate_hz, "deadline_s": clock.deadline_s, "deadline_misses": {**tot, "per_agent": per},
+            "tick_period": realtime.period_stats(dl.opened_at, clock)}
+
+
+def fused_lists(rec: WorldRecord) -> list:
+    """K x N: the ids whose messages agent i fused at tick k (empty where it
+    did not report)."""
+    ids = rec.ids
+    return [[[ids[s] for s in np.flatnonzero(row).tolist()] for row in tick] for tick in rec.fused]
+
+
 def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, run_id: str, row: dict) -> dict:
     doc = estimates_to_json(rec.estimates(), algorithm, metrics=row)
     doc.update(format=ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(scn.labels),
                reported=rec.reported.tolist(),
                agent_counters={str(rec.label(k)): v for k, v in rec.agent_counters.items()},
-               world_counters=dict(rec.counters), startup_s=rec.startup_s, ticks_s=rec.ticks_s)
+               world_counters=dict(rec.counters), startup_s=rec.startup_s, ticks_s=rec.ticks_s,
+               fused=fused_lists(rec))
     return doc
 
 
@@ -657,6 +813,7 @@ def register(subparsers) -> None:
     p.add_argument("--tick-timeout", type=float, default=WorldTiming.tick_timeout, metavar="S",
                    help="seconds to wait for the reports of one tick (default %(default)s)")
     add_allow_missing(p)
+    realtime.add_arguments(p)
     p.add_argument("--progress", choices=PROGRESS, default="bar",
                    help="progress bar on stderr, 'tick k K' lines on stdout (ticks 1 and K, and at most "
                         f"one every {LINES_EVERY_S:g} s between), or none")
@@ -688,6 +845,7 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(sig, interrupt)
     spec = runspec.from_args(args)
     scn = spec.load(args.ticks)
+    clock = realtime.from_args(args)
     zenoh = zenoh_config.from_args(args, credentials.WORLD, spec.run_id)
     faults = faults_from_args(args, scn.faults)  # the agents apply them; the world records them
     trace = simulate(scn, [args.seed])
@@ -714,7 +872,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
             world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
-                          WorldTiming(args.startup_timeout, args.tick_timeout), progress, log, prof, recorder)
+                          WorldTiming(args.startup_timeout, args.tick_timeout, clock=clock), progress, log, prof, recorder)
             world.interrupted, signalled[0] = signalled[0], world
             rec = world.run(allow_missing=args.allow_missing > 0)
     except MeshError as e:
@@ -728,26 +886,32 @@ def run(args: argparse.Namespace) -> int:
     row = result_metrics(trace, rec)
     recorder.finish("done" if world.done else "stopped", row)
     summary = run_summary(rec, faults)
+    if clock is not None:
+        summary.update(deadline_summary(rec, clock))
     results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
     if args.json:
         save_json(args.json, results, "json")
     if args.estimates:
         doc = estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row)
         doc.update(faults=summary["faults"], missing_ticks=summary["missing_ticks"], **completeness(rec))
+        if clock is not None:
+            doc.update(deadline_summary(rec, clock))
         save_json(args.estimates, doc, "estimates")
     for i, c in summary["counters"].items():
         if "imbalance" in c:
             log.info(f"agent {i}'s message counters do not add up: {'; '.join(c['imbalance'])}")
     if args.progress != "lines":
         print(format_table(results))
-    if summary["complete"]:
-        return 0
-    line = missing_line(summary)
-    if summary["missing_fraction"] <= args.allow_missing:
+    if not summary["complete"]:
+        line = missing_line(summary)
+        if summary["missing_fraction"] > args.allow_missing:
+            log.error(f"incomplete run: {line}; metrics cover the rest")
+            return INCOMPLETE
         log.info(f"incomplete run accepted (--allow-missing {args.allow_missing:g}): {line}")
-        return 0
-    log.error(f"incomplete run: {line}; metrics cover the rest")
-    return INCOMPLETE
+    if clock is not None and (bad := miss_problem(summary, args.max_miss_rate)):
+        log.error(bad)
+        return realtime.TOO_MANY_MISSES
+    return 0
 
 
 if __name__ == "__main__":

@@ -9,9 +9,10 @@
     inbox, delayline, counters   where messages wait, late delivery, the counts
     estimator      an agent's estimator: the engine's functions on a batch of one
     runspec        one run's settings as command lines (launcher, compose)
+    clock          real-time mode (--rate): the world's clock, the agents' deadline, misses
     log, profile   logging and per-phase timing
 
-The processes themselves are ``sim.world`` (ground truth, lockstep),
+The processes themselves are ``sim.world`` (ground truth, lockstep or on the clock),
 ``agents.agent`` (one agent) and ``sim.launcher`` (``diskf-mesh up``).
 
 May import: core, estimators, data, engine.

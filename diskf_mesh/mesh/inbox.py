@@ -15,6 +15,10 @@ The estimator fuses only what arrived in time for its tick:
                                       late
     ``close()``                       the run is over: whatever is still held
                                       never made it into fusion, late
+    ``due(tick, at)``                 real time (``mesh.clock``): a copy of
+                                      ``tick`` arriving after the monotonic
+                                      time ``at`` is late, even before
+                                      ``take``: it missed its deadline
 
 Bounded: a (sender, tick) is remembered (to tell a duplicate) only for
 ``keep`` ticks behind the last tick taken; the receiver's guard refuses
@@ -26,19 +30,26 @@ Thread-safe: a transport may offer from its own threads.
 from __future__ import annotations
 
 import threading
+import time
 
 from diskf_mesh.mesh.counters import Counters
 
 
 class Inbox:
-    def __init__(self, counters: Counters | None = None, keep: int | None = None):
+    def __init__(self, counters: Counters | None = None, keep: int | None = None, clock=time.monotonic):
         self.counters = counters if counters is not None else Counters()
         self.keep = keep             # ticks behind the last taken whose arrivals are remembered (None: all)
         self._seen: dict = {}        # tick -> senders arrived so far
         self._held: dict = {}        # tick -> {sender: message}
         self._closed_through = 0     # ticks <= this were fused
         self._closed = False         # the run is over: everything is late
+        self._due: dict = {}         # tick -> deadline (real time): a copy after it is late
+        self._clock = clock
         self._lock = threading.Lock()
+
+    def due(self, tick: int, at: float) -> None:
+        with self._lock:
+            self._due[tick] = at
 
     def offer(self, sender: int, tick: int, message) -> str:
         """Returns what happened: "held", "duplicate" or "late"."""
@@ -50,7 +61,8 @@ class Inbox:
                 c.duplicate += 1
                 return "duplicate"
             seen.add(sender)
-            if self._closed or tick <= self._closed_through:
+            if self._closed or tick <= self._closed_through or (
+                    self._due and tick in self._due and self._clock() > self._due[tick]):
                 c.late += 1
                 return "late"
             self._held.setdefault(tick, {})[sender] = message
@@ -68,6 +80,8 @@ class Inbox:
             c.fused += len(out)
             c.unlinked += len(held) - len(out)
             self._closed_through = max(self._closed_through, tick)
+            for t in [t for t in self._due if t <= tick]:
+                del self._due[t]
             if self.keep is not None:
                 for t in [t for t in self._seen if t < tick - self.keep]:
                     del self._seen[t]

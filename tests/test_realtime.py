@@ -1,0 +1,141 @@
+"""Real-time mode (``--rate``, ``diskf_mesh.mesh.clock``): the world ticks on
+the wall clock, agents fuse what arrived by their deadline, misses are
+counted, and the record of what was fused replays the run bit for bit.
+Lockstep (no ``--rate``) is the engine bit for bit: test_mesh_equivalence."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diskf_mesh.data.faults import FaultConfig, FaultModel
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.recording import reader
+from diskf_mesh.recording.replay import compare, replay
+from mesh_helpers import reference, up
+
+
+SPEC = RunSpec(scenario="dynamic")
+
+
+def row_of(res: dict) -> dict:
+    return next(iter(next(iter(res.values())).values()))
+
+
+def fused_links(doc: dict) -> np.ndarray:
+    """(K, N, N) [tick - 1, receiver, sender] from the estimates document's
+    ``fused`` lists, the diagonal set (an agent fuses its own message)."""
+    ids = doc["ids"]
+    K, N = len(doc["fused"]), len(ids)
+    links = np.zeros((K, N, N), dtype=bool)
+    links[:, np.arange(N), np.arange(N)] = True
+    for k, tick in enumerate(doc["fused"]):
+        for r, senders in enumerate(tick):
+            for s in senders:
+                links[k, r, ids.index(s)] = True
+    return links
+
+
+def assert_bitwise(doc: dict, est: engine.Estimates) -> None:
+    assert np.array(doc["reported"]).all()
+    np.testing.assert_array_equal(np.array(doc["x"], dtype=float), est.x[0])
+    np.testing.assert_array_equal(np.array(doc["P"], dtype=float), est.P[0])
+    valid = np.array([[row is not None for row in tick] for tick in doc["d"]])
+    np.testing.assert_array_equal(valid, est.d_valid[0])
+
+
+def replayed(doc: dict, ticks: int, seed: int = 0) -> engine.Estimates:
+    """The engine on the run's trace with exactly the fused sets the document records."""
+    trace, _ = reference(SPEC, ticks, seed)
+    return engine.run(trace.with_links(fused_links(doc)[None]), SPEC.algorithm, SPEC.load(ticks).params)
+
+
+def test_realtime_run_keeps_its_rate_and_replays_bit_for_bit(tmp_path):
+    ticks, rate = 40, 20.0
+    mcap = tmp_path / "run.mcap"
+    done, doc, res = up(tmp_path, "--scenario", "dynamic", "--ticks", str(ticks), "--rate", str(rate),
+                        "--record", str(mcap), timeout=300)
+    assert done.returncode == 0, done.stderr
+    row = row_of(res)
+    period = row["tick_period"]
+    assert period["ticks"] == ticks
+    # the world opened its ticks on the clock: tick 1 to the end of tick K within 25 % of K / rate
+    span = period["mean_s"] * (ticks - 1) + 1.0 / rate
+    assert abs(span - ticks / rate) <= 0.25 * ticks / rate, period
+    dm = row["deadline_misses"]
+    assert dm["reports_due"] == ticks * 9 and dm["messages_due"] > 0
+    assert dm["total"] == dm["messages"] + dm["reports"] == sum(a["total"] for a in dm["per_agent"].values())
+    assert row["complete"]
+    # the estimates document's fused sets reproduce every estimate bit for bit ...
+    assert_bitwise(doc, replayed(doc, ticks))
+    # ... and so does the recording's (diskf-mesh replay RUN.mcap)
+    rec = reader.read(mcap)
+    assert compare(rec, replay(rec)).equal
+    np.testing.assert_array_equal(rec.fused, fused_links(doc))
+
+
+def test_latency_past_the_deadline_is_missed_never_fused(tmp_path):
+    """Link delays of 0-20 ms against a 10 ms deadline: a message whose
+    every copy is due after the deadline is never fused (the latency runs
+    from when the receiver has the tick, as its deadline does); the rest
+    may be. The run completes with the misses counted."""
+    ticks, rate, deadline_ms = 30, 20.0, 10.0
+    faults = FaultConfig(latency_ms=10.0, jitter_ms=10.0)
+    done, doc, res = up(tmp_path, "--scenario", "dynamic", "--ticks", str(ticks), "--rate", str(rate),
+                        "--deadline-ms", str(deadline_ms), "--latency-ms", "10", "--jitter-ms", "10", timeout=300)
+    assert done.returncode == 0, done.stderr
+    row = row_of(res)
+    assert row["complete"]
+    ids, links = doc["ids"], fused_links(doc)
+    model = FaultModel(faults, 0)
+    trace, _ = reference(SPEC, ticks, 0)
+    late = in_time = fused_late = 0
+    for k in range(1, ticks + 1):
+        for r, receiver in enumerate(ids):
+            for s, sender in enumerate(ids):
+                if r == s or not trace.links[0, k - 1, r, s]:
+                    continue
+                due = min(d.delay_s for d in model.plan(sender, receiver, k))
+                if due > deadline_ms / 1000.0:
+                    late += 1
+                    fused_late += bool(links[k - 1, r, s])
+                else:
+                    in_time += 1
+    assert late > 0 and in_time > 0
+    assert fused_late == 0, "a message due after the deadline was fused"
+    assert row["deadline_misses"]["messages"] >= late
+    assert_bitwise(doc, replayed(doc, ticks))
+
+
+def test_every_message_late_fuses_nothing_and_completes(tmp_path):
+    """Latency far past the deadline: every neighbour's message is a miss,
+    each agent fuses only its own message (the engine with no links), and
+    the run still completes at its rate."""
+    ticks, rate = 20, 20.0
+    done, doc, res = up(tmp_path, "--scenario", "dynamic", "--ticks", str(ticks), "--rate", str(rate),
+                        "--deadline-ms", "10", "--latency-ms", "35", timeout=300)
+    assert done.returncode == 0, done.stderr
+    dm = row_of(res)["deadline_misses"]
+    assert dm["messages"] == dm["messages_due"] > 0
+    assert all(s == [] for tick in doc["fused"] for s in tick)
+    trace, ref = reference(SPEC, ticks, 0)
+    alone = engine.run(trace.with_links(np.broadcast_to(np.eye(9, dtype=bool), trace.links.shape).copy()),
+                       SPEC.algorithm, SPEC.load(ticks).params)
+    assert_bitwise(doc, alone)
+    assert not np.array_equal(alone.x, ref.x)  # fusing nothing is not the lockstep run
+
+
+def test_max_miss_rate_fails_the_run(tmp_path):
+    done, doc, res = up(tmp_path, "--scenario", "dynamic", "--ticks", "10", "--rate", "20",
+                        "--deadline-ms", "10", "--latency-ms", "35", "--max-miss-rate", "0.5", timeout=300)
+    assert done.returncode == 4, done.stderr
+    assert row_of(res)["deadline_misses"]["miss_rate"] > 0.5
+    assert done.stderr.strip().splitlines()[-1].startswith("error: ")
+
+
+@pytest.mark.parametrize("flags", [["--deadline-ms", "10"], ["--rate", "10", "--deadline-ms", "100"],
+                                   ["--rate", "0"], ["--max-miss-rate", "0.1"]])
+def test_bad_realtime_flags_exit_2(tmp_path, flags):
+    done, _, _ = up(tmp_path, "--scenario", "dynamic", "--ticks", "5", *flags, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.strip().startswith("error: ") and len(done.stderr.strip().splitlines()) == 1
