@@ -709,16 +709,6 @@ def miss_problem(row: dict, max_miss_rate: float | None) -> str:
             f"{dm['messages']} messages, {dm['reports']} reports) above --max-miss-rate {max_miss_rate:g}")
 
 
-def fraction(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not 0.0 <= v <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be a fraction between 0 and 1, got {text!r}")
-    return v
-
-
 def run_summary(rec: WorldRecord, faults: FaultConfig) -> dict:
     """The run's faults, every agent's counters (its last report's; a
     restarted agent's count from its restart), the ticks it did not report,
@@ -793,7 +783,7 @@ INCOMPLETE = 3  # exit status of a run with missing agent-ticks beyond --allow-m
 
 
 def add_allow_missing(p) -> None:
-    p.add_argument("--allow-missing", type=fraction, default=0.0, metavar="FRACTION",
+    p.add_argument("--allow-missing", type=realtime.fraction, default=0.0, metavar="FRACTION",
                    help="accept a run that misses at most this share of its agent-ticks (exit 0; the results "
                         "still say complete: false); with it, the run also starts without agents not ready "
                         "after --startup-timeout (default 0: every agent reports every tick, or exit 3)")

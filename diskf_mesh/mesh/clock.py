@@ -86,7 +86,8 @@ def _positive(text: str) -> float:
     return v
 
 
-def _fraction(text: str) -> float:
+def fraction(text: str) -> float:
+    """argparse type: a number in [0, 1] (``--max-miss-rate``, the world's ``--allow-missing``)."""
     try:
         v = float(text)
     except ValueError:
@@ -105,7 +106,7 @@ def add_arguments(parser: argparse.ArgumentParser, world: bool = True) -> None:
                    help="with --rate: an agent fuses what arrived this long after tick k reached it "
                         f"(default {DEADLINE_FRACTION:g} of the period)")
     if world:
-        g.add_argument("--max-miss-rate", type=_fraction, metavar="FRACTION",
+        g.add_argument("--max-miss-rate", type=fraction, metavar="FRACTION",
                        help=f"with --rate: exit {TOO_MANY_MISSES} if more than this share of messages and "
                             "reports missed their deadline (default: misses are reported, exit 0)")
 
