@@ -154,6 +154,7 @@ class Agent:
         self._join_wanted = True  # the main thread declares a (new) ready token
         self.rejoins = []         # (tick, source) of every re-initialisation
         self._worked = False      # has made an estimator once
+        self._started_late = False  # ... first at a tick after 1, re-initialised (a restart, a late twin)
         self._reports_by = None   # joining: until when to wait for the neighbours' reports
         self.last_report = None   # (k, payload) of the last report sent
         self.K = None             # ticks in the run (the world's tick says)
@@ -409,11 +410,11 @@ class Agent:
 
     def _late(self) -> bool:
         """Lock held: this process found the run in progress before it ever
-        worked from a clean start (it would re-initialise from a neighbour):
-        another process of its id that is alive keeps the id, however their
-        nonces compare (that one may be working since tick 1, and its
-        estimate is the engine's; this one's never is)."""
-        return self.rejoining and not self._worked
+        worked, or first worked from a re-initialisation (a neighbour's
+        estimate): another process of its id that is alive keeps the id,
+        however their nonces compare (that one may be working since tick 1,
+        and its estimate is the engine's; this one's never is)."""
+        return self._started_late or (self.rejoining and not self._worked)
 
     def _duplicate(self, other: str, how: str) -> DuplicateProcess:
         return DuplicateProcess(f"agent id {self.id} is already held by another process in run "
@@ -637,6 +638,7 @@ class Agent:
         est = self._make_estimator(self.ticks[self.k])
         if not self._worked:
             self._worked = True
+            self._started_late = self.rejoining and self.k > 1
             self.prof.start()  # measured from the first tick this agent works on
         self.est = est
         if self.rejoining and self.k > 1:  # at tick 1 (a run started without some agents) all start alike
