@@ -167,6 +167,7 @@ class Agent:
         self._join_wanted = True  # the main thread declares a (new) ready token
         self.rejoins = []         # (tick, source) of every re-initialisation
         self._worked = False      # has made an estimator once
+        self._started_late = False  # ... first at a tick after 1, re-initialised (a restart, a late twin)
         self._reports_by = None   # joining: until when to wait for the neighbours' reports
         self.last_report = None   # (k, payload) of the last report sent
         self.K = None             # ticks in the run (the world's tick says)
@@ -412,16 +413,31 @@ class Agent:
             self.log.info(f"the world is back (at tick {self.newest})")
 
     def _on_agent_token(self, who: int, nonce_: str, up: bool) -> None:
-        """An agent's token came or went. One of this agent's id with a
-        smaller nonce (an earlier start) that appears after this one
-        declared its own: two processes started at once, this one leaves."""
+        """An agent's token came or went. One of this agent's id that appears
+        after this one declared its own: two processes started at once. This
+        one leaves if it joined the run late (``_late``), or if the other's
+        nonce is smaller (an earlier start) and this one has not worked on a
+        tick yet; one that works since tick 1 keeps the id (its estimate is
+        the engine's, a late twin's is not)."""
         if who not in self.ids:
             return
         held = self.alive_tokens.setdefault(who, set())
         (held.add if up else held.discard)(nonce_)
         (self.alive.add if held else self.alive.discard)(who)
-        if up and who == self.id and self.claimed and nonce_ < self.nonce and self.failure is None:
+        if not (up and who == self.id and self.claimed and nonce_ != self.nonce and self.failure is None):
+            return
+        if self._late():
+            self.failure = self._duplicate(nonce_, "it holds this id in the run this one joined late")
+        elif nonce_ < self.nonce and not self._worked:
             self.failure = self._duplicate(nonce_, "started earlier")
+
+    def _late(self) -> bool:
+        """Lock held: this process found the run in progress before it ever
+        worked, or first worked from a re-initialisation (a neighbour's
+        estimate): another process of its id that is alive keeps the id,
+        however their nonces compare (that one may be working since tick 1,
+        and its estimate is the engine's; this one's never is)."""
+        return self._started_late or (self.rejoining and not self._worked)
 
     def _duplicate(self, other: str, how: str) -> DuplicateProcess:
         return DuplicateProcess(f"agent id {self.id} is already held by another process in run "
@@ -633,6 +649,10 @@ class Agent:
         re-initialises it) and start working."""
         if self.join_after is None:
             return False
+        twins = self.alive_tokens.get(self.id, set()) - {self.nonce}
+        if self._late() and twins and self.failure is None:  # seen before this one found the run in progress
+            self.failure = self._duplicate(min(twins), "it holds this id in the run this one joined late")
+            return False
         mine = [t for t, tk in self.ticks.items() if t > self.join_after and self.id in tk.live]
         if not mine:
             return False
@@ -645,6 +665,7 @@ class Agent:
         est = self._make_estimator(self.ticks[self.k])
         if not self._worked:
             self._worked = True
+            self._started_late = self.rejoining and self.k > 1
             self.prof.start()  # measured from the first tick this agent works on
         self.est = est
         if self.rejoining and self.k > 1:  # at tick 1 (a run started without some agents) all start alike

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -138,11 +139,12 @@ class Progress:
         return self.mesh.world.proc.returncode
 
 
-def spawn(child: Child) -> Child:
-    """Start one more process (a restart, a duplicate) with the launcher's settings."""
+def spawn(child: Child, env=None) -> Child:
+    """Start one more process (a restart, a duplicate) with the launcher's
+    settings; ``env``: variables added to this process's environment."""
     with open(child.log, "wb") as err:
         child.proc = subprocess.Popen(child.argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
-                                      start_new_session=True)
+                                      start_new_session=True, env=None if env is None else {**os.environ, **env})
     return child
 
 

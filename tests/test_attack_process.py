@@ -18,6 +18,7 @@ import pytest
 from diskf_mesh.data import metrics
 from diskf_mesh.engine.batch import Estimates
 from diskf_mesh.mesh.runspec import RunSpec, world_command
+from diskf_mesh.mesh.transport import ALIVE_DELAY_ENV
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.launcher import Child, free_port, loopback_options
 
@@ -118,8 +119,43 @@ def test_two_processes_with_one_id_at_once(tmp_path):
             twin.proc.kill()
     assert rcs == [0, 2] and others == [0] * 8
     est, row = results(tmp_path)
-    assert row["complete"] is True
+    assert row["complete"] is True and row["rejoins"] == {}
+    assert_all_fused(est, ticks)
     assert_same(est, reference(spec, ticks, seed)[1])
+
+
+def test_a_twin_that_declares_after_the_run_started_leaves(tmp_path):
+    """Two processes for agent 3, the first started (the smaller nonce)
+    descheduled between its claim's query and its token (as on a loaded
+    machine) until the run is ticking with the other: the late one leaves
+    (exit 2), the one working since tick 1 keeps the id and keeps fusing its
+    neighbours; the run equals the engine."""
+    spec = RunSpec(SCENARIO, "diskf", run_id=f"duplate{os.getpid()}")
+    ticks, seed = 300, 1  # long enough that the twin's token comes while the run ticks
+    mesh, progress = lease_mesh(spec, ticks, seed, tmp_path, agent_extra=[])
+    twin = Child("agent 3 (twin)", agent(mesh, 3).argv, tmp_path / "logs" / "twin.log")
+    try:
+        spawn(twin, env={ALIVE_DELAY_ENV: "3"})
+        time.sleep(0.5)  # the twin's nonce is the smaller
+        mesh.start_agents()
+        assert progress.follow(240) == 0, mesh.world.last_error_line()
+        rcs = [agent(mesh, 3).proc.wait(10), twin.proc.wait(30)]
+        others = [a.proc.wait(10) for a in mesh.agents if a.name != "agent 3"]
+    finally:
+        mesh.stop_all()
+        if twin.proc.poll() is None:
+            twin.proc.kill()
+    assert rcs == [0, 2] and others == [0] * 8
+    est, row = results(tmp_path)
+    assert row["complete"] is True and row["rejoins"] == {} and row["duplicate_ids"] == {"3": 1}
+    assert_all_fused(est, ticks)
+    assert_same(est, reference(spec, ticks, seed)[1])
+
+
+def assert_all_fused(est, ticks: int) -> None:
+    """Every agent published every tick and fused every message sent to it."""
+    for i, c in est["agent_counters"].items():
+        assert c["published"] == ticks and c["fused"] == c["sent"] and c["late"] == 0, (i, c)
 
 
 def test_a_second_world_on_one_run_id_is_refused(tmp_path):

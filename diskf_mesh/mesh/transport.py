@@ -26,6 +26,9 @@ OnToken = Callable[[str, bool], None]
 
 ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
 BATCHING = "transport/link/tx/queue/batching"
+# tests only: seconds an agent process waits before declaring its alive token (a process
+# descheduled between its claim's query and its declaration, as on a loaded machine)
+ALIVE_DELAY_ENV = "DISKF_MESH_TEST_ALIVE_DELAY_S"
 PUBLISHERS_KEPT = 64  # declared publishers kept per session (one per key)
 
 
@@ -140,6 +143,8 @@ class ZenohTransport(Transport):
         self._entities.append(self._session.declare_subscriber(key_expr, self._direct(cb)))
 
     def declare_token(self, key):
+        if "/alive/agent/" in key and os.environ.get(ALIVE_DELAY_ENV):  # a test's slow process
+            threading.Event().wait(float(os.environ[ALIVE_DELAY_ENV]))
         token = self._session.liveliness().declare_token(key)
         self._entities.append(token)
         return token
