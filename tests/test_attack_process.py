@@ -18,7 +18,7 @@ import pytest
 from diskf_mesh.data import metrics
 from diskf_mesh.engine.batch import Estimates
 from diskf_mesh.mesh.runspec import RunSpec, world_command
-from diskf_mesh.mesh.transport import ALIVE_DELAY_ENV
+from diskf_mesh.mesh.transport import ALIVE_GATE_ENV
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.launcher import Child, free_port, loopback_options
 
@@ -135,9 +135,12 @@ def test_a_twin_that_declares_after_the_run_started_leaves(tmp_path):
     mesh, progress = lease_mesh(spec, ticks, seed, tmp_path, agent_extra=[])
     twin = Child("agent 3 (twin)", agent(mesh, 3).argv, tmp_path / "logs" / "twin.log")
     try:
-        spawn(twin, env={ALIVE_DELAY_ENV: "3"})
+        gate = tmp_path / "gate"
+        spawn(twin, env={ALIVE_GATE_ENV: str(gate)})
         time.sleep(0.5)  # the twin's nonce is the smaller
         mesh.start_agents()
+        progress.wait_for(20, 120)  # the run ticks with the other agent 3
+        gate.touch()  # only now the twin declares its token
         assert progress.follow(240) == 0, mesh.world.last_error_line()
         rcs = [agent(mesh, 3).proc.wait(10), twin.proc.wait(30)]
         others = [a.proc.wait(10) for a in mesh.agents if a.name != "agent 3"]

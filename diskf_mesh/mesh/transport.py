@@ -18,6 +18,7 @@ import collections
 import os
 import re
 import threading
+import time
 from typing import Callable
 
 OnSample = Callable[[str, bytes], None]
@@ -26,9 +27,9 @@ OnToken = Callable[[str, bool], None]
 
 ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
 BATCHING = "transport/link/tx/queue/batching"
-# tests only: seconds an agent process waits before declaring its alive token (a process
+# tests only: a file an agent process waits for before declaring its alive token (a process
 # descheduled between its claim's query and its declaration, as on a loaded machine)
-ALIVE_DELAY_ENV = "DISKF_MESH_TEST_ALIVE_DELAY_S"
+ALIVE_GATE_ENV = "DISKF_MESH_TEST_ALIVE_GATE"
 PUBLISHERS_KEPT = 64  # declared publishers kept per session (one per key)
 
 
@@ -143,8 +144,11 @@ class ZenohTransport(Transport):
         self._entities.append(self._session.declare_subscriber(key_expr, self._direct(cb)))
 
     def declare_token(self, key):
-        if "/alive/agent/" in key and os.environ.get(ALIVE_DELAY_ENV):  # a test's slow process
-            threading.Event().wait(float(os.environ[ALIVE_DELAY_ENV]))
+        gate = os.environ.get(ALIVE_GATE_ENV) if "/alive/agent/" in key else None
+        if gate:  # a test's slow process: held until the test opens the gate (at most 120 s)
+            stop = time.monotonic() + 120.0
+            while not os.path.exists(gate) and time.monotonic() < stop:
+                threading.Event().wait(0.01)
         token = self._session.liveliness().declare_token(key)
         self._entities.append(token)
         return token
