@@ -61,12 +61,16 @@ from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from sim import zygote as forks
 from sim.world import INCOMPLETE, add_allow_missing, miss_problem, missing_line
 
 STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
 WORLD_STOP_GRACE_S = 20.0  # the world, stopped, writes its results first
 
 
+# an agent forked at once may try the world's port before the world listens: it tries again
+# 50 ms later (zenoh's default: 1 s), then ever less often
+CONNECT_RETRY = "connect/retry:{period_init_ms: 50, period_max_ms: 1000, period_increase_factor: 2}"
 PORTS_BELOW_EPHEMERAL = 12000  # how many ports below the ephemeral range to pick the world's from
 
 
@@ -103,7 +107,7 @@ def loopback_options(port: int, base: ZenohOptions = ZenohOptions()) -> tuple:
     proto = "tls" if base.credentials else "tcp"
     world = replace(base, listen=(f"{proto}/127.0.0.1:{port}",), no_multicast_scouting=True)
     agent = replace(base, connect=(f"{proto}/127.0.0.1:{port}",), listen=(f"{proto}/127.0.0.1:0",),
-                    no_multicast_scouting=True)
+                    no_multicast_scouting=True, cfg=(*base.cfg, CONNECT_RETRY))
     return world, agent
 
 
@@ -138,10 +142,13 @@ class Launcher:
     which leave on the world's stop."""
 
     def __init__(self, world: Child | None, agents: list, progress=None, first_tick=None,
-                 tolerate_agents: bool = False, services=()):
+                 tolerate_agents: bool = False, services=(), zygote: "forks.Zygote | None" = None):
         """``tolerate_agents``: an agent (or a service) that fails does not
         end the run (the world counts its missing ticks); ``failed_agents``
-        lists them."""
+        lists them. The children that are this interpreter's ``python -m``
+        of a mesh command are forked by a zygote (``sim.zygote``; ``zygote``,
+        one started already, or one started at the first such child)."""
+        self.zygote = zygote
         self.world = world
         self.tolerate_agents = tolerate_agents
         self.failed_agents = []
@@ -153,9 +160,27 @@ class Launcher:
         self._lines = queue.SimpleQueue()
 
     def _spawn(self, child: Child, stdout) -> None:
-        with open(child.log, "wb") as err:
-            child.proc = subprocess.Popen(child.argv, stdin=subprocess.DEVNULL, stdout=stdout, stderr=err,
-                                          start_new_session=True, preexec_fn=_die_with_parent)
+        self._spawn_all([child], stdout)
+
+    def _spawn_all(self, children, stdout) -> None:
+        """Start ``children``: the ones a zygote can fork (``sim.zygote``) at
+        once, the others with ``subprocess``."""
+        logs = [open(c.log, "wb") for c in children]
+        try:
+            forked = [c for c in children if forks.forkable(c.argv)] if forks.enabled() else []
+            if forked and self.zygote is None:
+                self.zygote = forks.Zygote()
+            if forked:
+                procs = self.zygote.spawn_all([(c.argv, stdout, logs[children.index(c)]) for c in forked])
+                for c, proc in zip(forked, procs):
+                    c.proc = proc
+            for c, err in zip(children, logs):
+                if c.proc is None:
+                    c.proc = subprocess.Popen(c.argv, stdin=subprocess.DEVNULL, stdout=stdout, stderr=err,
+                                              start_new_session=True, preexec_fn=_die_with_parent)
+        finally:
+            for f in logs:
+                f.close()
 
     def add_child(self, name: str, argv: list, log: Path) -> Child:
         """Start one more child (e.g. the live view), stopped with the others."""
@@ -175,12 +200,10 @@ class Launcher:
         threading.Thread(target=self._read_world, daemon=True).start()
 
     def start_services(self) -> None:
-        for s in self.services:
-            self._spawn(s, subprocess.DEVNULL)
+        self._spawn_all(self.services, subprocess.DEVNULL)
 
     def start_agents(self) -> None:
-        for a in self.agents:
-            self._spawn(a, subprocess.DEVNULL)
+        self._spawn_all(self.agents, subprocess.DEVNULL)
 
     def _read_world(self) -> None:
         for line in self.world.proc.stdout:
@@ -270,6 +293,9 @@ class Launcher:
                 c.proc.wait(STOP_GRACE_S)
         if self.world is not None and self.world.proc is not None and self.world.proc.stdout:
             self.world.proc.stdout.close()
+        if self.zygote is not None:  # every child has ended: it can go (a later child gets a new one)
+            self.zygote.close()
+            self.zygote = None
 
 
 def _signal(proc: subprocess.Popen, sig) -> None:
@@ -353,10 +379,14 @@ def run(args: argparse.Namespace) -> int:
     # SIGTERM ends the run like Ctrl-C's path does: through the finally blocks (the children,
     # which get SIGTERM when up dies, and the credentials directory)
     previous = signal.signal(signal.SIGTERM, terminated)
+    # the zygote's imports go on while up makes the credentials and loads the scenario
+    zygote = forks.Zygote() if forks.enabled() and not args.hosts else None
     try:
         with tempfile.TemporaryDirectory(prefix="diskf-run-") as private:  # 0700; removed however the run ends
-            return _run(args, Path(private))
+            return _run(args, Path(private), zygote)
     finally:
+        if zygote is not None:
+            zygote.close()
         signal.signal(signal.SIGTERM, previous)
 
 
@@ -364,7 +394,7 @@ def terminated(signum, frame):
     raise SystemExit(128 + signum)
 
 
-def _run(args: argparse.Namespace, private: Path) -> int:
+def _run(args: argparse.Namespace, private: Path, zygote=None) -> int:
     from tqdm import tqdm
 
     from diskf_mesh.studies.experiment import format_table
@@ -439,7 +469,7 @@ def _run(args: argparse.Namespace, private: Path) -> int:
         bar.update(k - bar.n)
 
     launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()),
-                        tolerate_agents=args.allow_missing > 0, services=services)
+                        tolerate_agents=args.allow_missing > 0, services=services, zygote=zygote)
     live.attach(args, launcher, spec, ticks, agent_z, logs)  # --live: the viewer, one more child
     try:
         launcher.start()
