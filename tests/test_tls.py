@@ -320,14 +320,19 @@ def _private_dirs(tmp_path) -> list:
 
 
 def _children_argv(up_pid) -> list:
-    out = []
+    """The command lines of up's run processes: its children and the zygote's
+    (``sim.zygote`` forks them), not the zygote's own."""
+    parents, out = {}, {}
     for d in Path("/proc").iterdir():
         try:
-            if d.name.isdigit() and int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == up_pid:
-                out.append([a.decode() for a in (d / "cmdline").read_bytes().split(b"\0") if a])
+            if d.name.isdigit():
+                parents[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                out[int(d.name)] = [a.decode() for a in (d / "cmdline").read_bytes().split(b"\0") if a]
         except (OSError, ValueError, IndexError):
             continue
-    return out
+    mine = {pid for pid, parent in parents.items() if parent == up_pid}
+    mine |= {pid for pid, parent in parents.items() if parent in mine}
+    return [out[pid] for pid in sorted(mine) if out.get(pid) and "sim.zygote" not in out[pid]]
 
 
 @pytest.mark.mesh
