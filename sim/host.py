@@ -9,6 +9,8 @@ Starts one process per agent id of ``--agents`` (ranges and commas:
 the world (a generated scenario's agent count is ``--agent-count`` here,
 ``--agents`` is the ids). The agents are zenoh clients of ``--connect``: this
 host's router (``diskf-mesh router``) or the world (docs/hosts.md);
+a real-time run's ``--rate`` and ``--deadline-ms`` go to every agent
+(``up --hosts --rate HZ`` gives them to every host);
 ``--mode peer`` with a ``--listen`` of their own makes them peers instead.
 The shard waits (``--startup-timeout``) until an endpoint of ``--connect``
 accepts connections, then starts the agents; a shard started after the run
@@ -34,6 +36,7 @@ from pathlib import Path
 
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
+from diskf_mesh.mesh import clock as realtime
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
@@ -55,6 +58,7 @@ def register(subparsers) -> None:
                    help="seconds to wait for the --connect endpoint to answer (default %(default)s)")
     p.add_argument("--logs", metavar="DIR", help="the agents' stderr logs (default: a temporary directory)")
     p.add_argument("--profile", metavar="DIR", help="agents: write DIR/agent-<id>.json (mesh.profile)")
+    realtime.add_arguments(p, world=False)  # the run's --rate and --deadline-ms, as up gives them to every agent
     add_fault_arguments(p)
     zenoh_config.add_arguments(p)
     p.set_defaults(func=run)
@@ -88,7 +92,7 @@ def wait_for(endpoints, timeout: float) -> bool:
 
 
 def shard(args: argparse.Namespace):
-    """(spec, ids, agents' zenoh options), checked (``InputError``)."""
+    """(spec, scenario, ids, agents' zenoh options), checked (``InputError``)."""
     if not args.run_id:
         raise InputError("run-id", "give the run's --run-id (the world's)")
     ids = runspec.parse_ids(args.ids)
@@ -101,6 +105,7 @@ def shard(args: argparse.Namespace):
     z = zenoh_config.from_args(args)
     if not z.connect:
         raise InputError("connect", "give the endpoint of this host's router or of the world (--connect)")
+    realtime.from_args(args)  # a bad --deadline-ms: one line now
     z = replace(z, mode=z.mode or "client", no_multicast_scouting=True)
     if z.credentials and not z.insecure:
         for i in ids:  # every agent's identity is there, for this run (else one line now, not N later)
@@ -108,6 +113,14 @@ def shard(args: argparse.Namespace):
     else:
         z.as_identity(f"host of agent {runspec.id_ranges(ids)}", spec.run_id)  # --insecure: one warning
     return spec, scn, ids, z
+
+
+def agent_children(args: argparse.Namespace, spec, scn, ids, z, logs: Path) -> list:
+    """The shard's agents as ``Child``\\ ren: the flags of ``agent_flags``
+    and the real-time ones (``--rate``, ``--deadline-ms``)."""
+    clock = realtime.from_args(args)
+    extra = agent_flags(args, scn, args.collect_timeout, args.world_timeout) + (clock.to_argv() if clock else [])
+    return [Child(f"agent {i}", runspec.agent_command(spec, i, z, extra), logs / f"agent-{i}.log") for i in ids]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -118,8 +131,7 @@ def run(args: argparse.Namespace) -> int:
         logs.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
-    extra = agent_flags(args, scn, args.collect_timeout, args.world_timeout)
-    agents = [Child(f"agent {i}", runspec.agent_command(spec, i, z, extra), logs / f"agent-{i}.log") for i in ids]
+    agents = agent_children(args, spec, scn, ids, z, logs)
     launcher = Launcher(None, agents, tolerate_agents=True)
     previous = signal.signal(signal.SIGTERM, terminated)
     try:

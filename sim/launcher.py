@@ -379,14 +379,13 @@ def run(args: argparse.Namespace) -> int:
     # SIGTERM ends the run like Ctrl-C's path does: through the finally blocks (the children,
     # which get SIGTERM when up dies, and the credentials directory)
     previous = signal.signal(signal.SIGTERM, terminated)
-    # the zygote's imports go on while up makes the credentials and loads the scenario
-    zygote = forks.Zygote() if forks.enabled() and not args.hosts else None
+    zygote = []  # started once the input is checked; its imports go on while up makes the credentials
     try:
         with tempfile.TemporaryDirectory(prefix="diskf-run-") as private:  # 0700; removed however the run ends
             return _run(args, Path(private), zygote)
     finally:
-        if zygote is not None:
-            zygote.close()
+        for z in zygote:
+            z.close()
         signal.signal(signal.SIGTERM, previous)
 
 
@@ -394,7 +393,7 @@ def terminated(signum, frame):
     raise SystemExit(128 + signum)
 
 
-def _run(args: argparse.Namespace, private: Path, zygote=None) -> int:
+def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
     from tqdm import tqdm
 
     from diskf_mesh.studies.experiment import format_table
@@ -423,6 +422,9 @@ def _run(args: argparse.Namespace, private: Path, zygote=None) -> int:
     zopts = zenoh_config.from_args(args)
     if plan is not None and not zopts.is_default:
         raise InputError("hosts", "the hosts file names every endpoint: no zenoh flags with --hosts")
+    realtime.from_args(args)
+    if plan is None and forks.enabled():
+        zygotes.append(forks.Zygote())
     if plan is not None and plan.credentials and not zopts.insecure:
         credentials.load(plan.credentials, credentials.WORLD, spec.run_id)  # made for this run, or one line
         zopts = replace(zopts, credentials=plan.credentials)
@@ -469,7 +471,8 @@ def _run(args: argparse.Namespace, private: Path, zygote=None) -> int:
         bar.update(k - bar.n)
 
     launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()),
-                        tolerate_agents=args.allow_missing > 0, services=services, zygote=zygote)
+                        tolerate_agents=args.allow_missing > 0, services=services,
+                        zygote=zygotes[0] if zygotes else None)
     live.attach(args, launcher, spec, ticks, agent_z, logs)  # --live: the viewer, one more child
     try:
         launcher.start()

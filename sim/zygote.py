@@ -326,7 +326,7 @@ def _preload() -> str:
     return "" if n == 1 else f"{n} threads after the imports (a fork copies only one)"
 
 
-def _fork(request: bytes, fds: list, parent: int):
+def _fork(request: bytes, fds: list):
     """Fork the child of ``request``; in the parent, return its pid; in the
     child, return (argv, cwd, fds) to run."""
     req = json.loads(request)
@@ -345,10 +345,13 @@ def serve(fd: int):
     sock = socket.socket(fileno=fd)
     set_title([sys.executable, "-m", "sim.zygote", f"(fork server of process {os.getppid()})"])
     why = _preload()
-    sock.send(json.dumps({"ready": not why, "why": why}).encode())
+    try:
+        sock.send(json.dumps({"ready": not why, "why": why}).encode())
+    except OSError:  # the launcher has gone already (e.g. bad input)
+        why = why or "the launcher has gone"
     if why:
+        sock.close()
         return None
-    parent = os.getpid()
     wake_r, wake_w = os.pipe()
     os.set_blocking(wake_w, False)
     signal.set_wakeup_fd(wake_w)
@@ -371,19 +374,22 @@ def serve(fd: int):
                         sel.unregister(sock)
                         continue
                     try:
-                        out = _fork(msg, fds, parent)
+                        out = _fork(msg, fds)
                     except (OSError, ValueError, KeyError) as e:
-                        for f in fds:
-                            os.close(f)
-                        sock.send(json.dumps({"error": str(e)}).encode())
-                        continue
+                        out = {"error": str(e)}
                     if isinstance(out, tuple):  # the child: leave the loop (the finally closes the zygote's files)
                         child = out
                         return child
                     for f in fds:
                         os.close(f)
-                    children.add(out)
-                    sock.send(json.dumps({"pid": out}).encode())
+                    if isinstance(out, int):
+                        children.add(out)
+                        out = {"pid": out}
+                    try:
+                        sock.send(json.dumps(out).encode())
+                    except OSError:
+                        open_ = False
+                        sel.unregister(sock)
                 elif key.fileobj == wake_r:
                     try:
                         os.read(wake_r, 4096)
@@ -403,6 +409,7 @@ def serve(fd: int):
                             sock.send(json.dumps({"exit": pid, "rc": os.waitstatus_to_exitcode(status)}).encode())
                         except OSError:
                             open_ = False
+                            sel.unregister(sock)
     finally:
         if child is not None:  # in the forked child: none of the zygote's files stay open
             signal.set_wakeup_fd(-1)
