@@ -1,18 +1,27 @@
 """The protocol's floor: the lockstep of a mesh run with no estimation work.
 
-    python benchmarks/floor_bench.py [--agents 9,25,50] [--ticks 300] [--repeat 3] [--no-project]
+    python benchmarks/floor_bench.py [--agents 9,25,50] [--ticks 300] [--repeat 3] [--no-project] [--insecure]
 
 A bare world and N bare agents, each its own OS process and zenoh-python
-session, configured as ``diskf-mesh up`` configures them (the world listens
-on 127.0.0.1, every agent connects to it and listens on port 0, no multicast
-scouting), exchange per tick exactly the messages of the project's protocol,
-with the project's sizes and addressing:
+session, configured as ``diskf-mesh up`` configures them: the same zenoh
+options (``sim.launcher.loopback_options``: the world listens on
+127.0.0.1, every agent connects to it and listens on port 0, no multicast
+scouting), over TLS with mutual authentication and the run's access control
+from fresh credentials of the run (``diskf_mesh.mesh.credentials``, one
+identity per process, as ``up`` makes them), the world's batching time
+limit (``sim.world.HOLD_MS``), zenoh's rx runtime of one thread, and the
+project's key layout (``diskf_mesh.mesh.keys``), so the access control
+checks the same keys. With ``--insecure`` both the floor and the project
+run plain zenoh (``up --insecure``). They exchange per tick exactly the
+messages of the project's protocol, with the project's sizes and addressing:
 
 * world -> agent i: its measurement (not express, ~60 bytes), then the tick
   (express; the positions of all N agents and the live set);
 * agent i -> the agents in range at tick k: ONE message of the size of a
   DISKF message (n = 2, m = 1), on the addressed key ``agent/i/msg/_j_l_``
   that every agent subscribes to with ``agent/*/msg/$*_<i>_$*``;
+* liveliness: an alive token per process, then a ready token per agent once
+  it sees the world and every agent (the project's start-up barrier);
 * agent i -> world: its report (the size of a project report) once every
   neighbour's message of tick k is in.
 
@@ -46,9 +55,6 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent))
 
-ROOT = "floor"
-
-
 def cpu_seconds() -> float:
     ru = resource.getrusage(resource.RUSAGE_CHILDREN)
     return ru.ru_utime + ru.ru_stime
@@ -76,17 +82,24 @@ def links_of(scenario: str, agents: int | None, ticks: int):
     return tr.links[0], [a.id for a in scn.agents]
 
 
-def zenoh_session(listen: str | None, connect: str | None):
+def zenoh_session(role: str, identity: str, args):
+    """A session of the floor's ``role`` ("world" or "agent") with the
+    options ``up`` gives that process (see the module docstring)."""
     import zenoh
 
-    os.environ.setdefault("ZENOH_RUNTIME", "(rx: (worker_threads: 1))")
+    from diskf_mesh.mesh.transport import BATCHING, ZENOH_RUNTIME
+    from diskf_mesh.mesh.zenoh_config import ZenohOptions
+    from sim.launcher import loopback_options
+    from sim.world import HOLD_MS
+
+    os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
     zenoh.init_log_from_env_or("error")
-    conf = zenoh.Config()
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps([listen]))
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps([connect]))
+    base = ZenohOptions(credentials=args.credentials) if args.credentials else ZenohOptions(insecure=True)
+    world, agent = loopback_options(args.port, base)
+    opts = (world if role == "world" else agent).as_identity(identity, args.run_id)
+    conf = opts.to_config()
+    if role == "world":
+        conf.insert_json5(f"{BATCHING}/time_limit", str(HOLD_MS))
     return zenoh, zenoh.open(conf)
 
 
@@ -102,14 +115,17 @@ def publisher(zenoh, session, cache: dict, key: str, express: bool = True):
 # the bare agent
 # --------------------------------------------------------------------------
 def agent_main(args) -> int:
+    from diskf_mesh.mesh import credentials
+    from diskf_mesh.mesh.keys import Keys, new_nonce
+
     links, ids = links_of(args.scenario, args.n_agents, args.ticks)
     me = args.id
     j = ids.index(me)
     nbrs = [[ids[s] for s in range(len(ids)) if s != j and links[k, j, s]] for k in range(links.shape[0])]
     sz = sizes()
     msg, report = bytes(sz["msg"]), bytes(sz["report"])
-    zenoh, s = zenoh_session("tcp/127.0.0.1:0", f"tcp/127.0.0.1:{args.port}")
-    run = f"{ROOT}/{args.run_id}"
+    zenoh, s = zenoh_session("agent", credentials.agent_identity(me), args)
+    keys, nonce = Keys(args.run_id), new_nonce()
     pubs = {}
     lock = threading.Lock()
     state = {"k": 1, "tick": set(), "meas": set(), "got": {}, "open": False, "stop": threading.Event()}
@@ -124,12 +140,11 @@ def agent_main(args) -> int:
                     return
                 to = nbrs[k - 1]
                 if to:
-                    publisher(zenoh, s, pubs, f"{run}/agent/{me}/msg/_{'_'.join(map(str, to))}_").put(
-                        msg, attachment=str(k).encode())
+                    publisher(zenoh, s, pubs, keys.msg(me, to=to)).put(msg, attachment=str(k).encode())
                 state["open"] = True
             if state["got"].get(k, 0) < len(nbrs[k - 1]):
                 return
-            publisher(zenoh, s, pubs, f"{run}/agent/{me}/report").put(report)
+            publisher(zenoh, s, pubs, keys.report(me)).put(report)
             state["got"].pop(k, None)
             state["tick"].discard(k)
             state["open"] = False
@@ -158,18 +173,23 @@ def agent_main(args) -> int:
 
     def on_alive(sample):
         with lock:
-            seen.add(str(sample.key_expr).rsplit("/", 1)[-1])
+            kind, who = keys.parse(str(sample.key_expr))
+            seen.add("world" if kind == "alive-world" else str(who))
             if not ready_declared and {str(i) for i in ids} | {"world"} <= seen:
-                ready_declared.append(s.liveliness().declare_token(f"{run}/ready/{me}"))
+                ready_declared.append(s.liveliness().declare_token(keys.ready(me, nonce)))
 
     direct = lambda fn: zenoh.handlers.Callback(fn, indirect=False)  # noqa: E731
-    subs = [s.declare_subscriber(f"{run}/tick", direct(on_tick)),
-            s.declare_subscriber(f"{run}/meas/{me}", direct(on_meas)),
-            s.declare_subscriber(f"{run}/agent/*/msg/$*_{me}_$*", direct(on_msg)),
-            s.liveliness().declare_subscriber(f"{run}/alive/*", direct(on_alive), history=True)]
-    token = s.liveliness().declare_token(f"{run}/alive/{me}")
+    subs = [s.declare_subscriber(keys.tick, direct(on_tick)),
+            s.declare_subscriber(keys.meas(me), direct(on_meas)),
+            s.declare_subscriber(keys.msg_to(me), direct(on_msg)),
+            s.liveliness().declare_subscriber(f"{keys.root}/alive/**", direct(on_alive), history=True)]
+    token = s.liveliness().declare_token(keys.alive(me, nonce))
     state["stop"].wait(args.timeout)
-    del subs, token, ready_declared
+    for sub in subs:  # no callback after this (one would still use the state above)
+        sub.undeclare()
+    with lock:
+        for t in (token, *ready_declared):
+            t.undeclare()
     s.close()
     return 0
 
@@ -178,12 +198,15 @@ def agent_main(args) -> int:
 # the bare world
 # --------------------------------------------------------------------------
 def world_main(args) -> int:
+    from diskf_mesh.mesh import credentials
+    from diskf_mesh.mesh.keys import Keys, new_nonce
+
     links, ids = links_of(args.scenario, args.n_agents, args.ticks)
     N, K = len(ids), args.ticks
     sz = sizes()
     meas, tick = bytes(sz["meas"]), bytes(150 + 16 * N + 8 * N)  # the project's tick: header, positions, live
-    zenoh, s = zenoh_session(f"tcp/127.0.0.1:{args.port}", None)
-    run = f"{ROOT}/{args.run_id}"
+    zenoh, s = zenoh_session("world", credentials.WORLD, args)
+    keys = Keys(args.run_id)
     pubs = {}
     cv = threading.Condition()
     ready, reports = set(), {}
@@ -193,8 +216,8 @@ def world_main(args) -> int:
     def open_tick(k):
         att = str(k).encode()
         for i in ids:
-            publisher(zenoh, s, pubs, f"{run}/meas/{i}", express=False).put(meas, attachment=att)
-        publisher(zenoh, s, pubs, f"{run}/tick").put(tick, attachment=att)
+            publisher(zenoh, s, pubs, keys.meas(i), express=False).put(meas, attachment=att)
+        publisher(zenoh, s, pubs, keys.tick).put(tick, attachment=att)
 
     state = {"k": 0}
 
@@ -212,13 +235,13 @@ def world_main(args) -> int:
 
     def on_ready(sample):
         with cv:
-            ready.add(str(sample.key_expr).rsplit("/", 1)[-1])
+            ready.add(keys.parse(str(sample.key_expr))[1])
             cv.notify_all()
 
     direct = lambda fn: zenoh.handlers.Callback(fn, indirect=False)  # noqa: E731
-    subs = [s.declare_subscriber(f"{run}/agent/*/report", direct(on_report)),
-            s.liveliness().declare_subscriber(f"{run}/ready/*", direct(on_ready), history=True)]
-    token = s.liveliness().declare_token(f"{run}/alive/world")
+    subs = [s.declare_subscriber(f"{keys.root}/agent/*/report", direct(on_report)),
+            s.liveliness().declare_subscriber(keys.ready("*"), direct(on_ready), history=True)]
+    token = s.liveliness().declare_token(keys.world(new_nonce()))
     with cv:
         if not cv.wait_for(lambda: len(ready) >= N, args.timeout):
             print(json.dumps({"error": f"only {len(ready)} of {N} agents ready"}), flush=True)
@@ -227,10 +250,12 @@ def world_main(args) -> int:
         state["k"] = 1
         open_tick(1)
     ok = done.wait(args.timeout)
-    publisher(zenoh, s, pubs, f"{run}/tick").put(b"", attachment=b"-1")
+    publisher(zenoh, s, pubs, keys.tick).put(b"", attachment=b"-1")
     time.sleep(0.2)
     print(json.dumps({"ticks_s": t["end"] - t["first"] if ok else None, "ticks": K, "agents": N}), flush=True)
-    del subs, token
+    for sub in subs:
+        sub.undeclare()
+    token.undeclare()
     s.close()
     return 0 if ok else 1
 
@@ -238,13 +263,18 @@ def world_main(args) -> int:
 # --------------------------------------------------------------------------
 # the benchmark
 # --------------------------------------------------------------------------
-def floor_run(scenario: str, agents: int | None, ticks: int, timeout: float) -> dict:
+def floor_run(scenario: str, agents: int | None, ticks: int, timeout: float, workdir: Path,
+              insecure: bool = False) -> dict:
+    """One floor run; its own fresh credentials in ``workdir`` unless ``insecure``."""
+    from diskf_mesh.mesh import credentials
     from sim.launcher import free_port
 
     _, ids = links_of(scenario, agents, ticks)
     port, run_id = free_port(), f"b{time.monotonic_ns()}"
     common = ["--scenario", scenario, "--ticks", str(ticks), "--port", str(port), "--run-id", run_id,
               "--timeout", str(timeout)] + (["--n-agents", str(agents)] if agents else [])
+    if not insecure:
+        common += ["--credentials", str(credentials.make(workdir / f"credentials-{run_id}", run_id, ids))]
     me = [sys.executable, str(Path(__file__).resolve())]
     cpu0, t0 = cpu_seconds(), time.monotonic()
     world = subprocess.Popen(me + ["world", *common], stdout=subprocess.PIPE, text=True)
@@ -279,6 +309,7 @@ def main(argv=None) -> int:
         p.add_argument("--port", type=int)
         p.add_argument("--run-id")
         p.add_argument("--timeout", type=float)
+        p.add_argument("--credentials")
         a = p.parse_args(argv)
         return world_main(a) if a.role == "world" else agent_main(a)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -288,6 +319,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeat", type=int, default=3, help="pairs of runs per agent count (median kept)")
     p.add_argument("--algorithm", default="diskf")
     p.add_argument("--no-project", action="store_true", help="the floor alone")
+    p.add_argument("--insecure", action="store_true",
+                   help="plain zenoh for both (up --insecure); default: both over TLS with the run's access control")
     p.add_argument("--timeout", type=float, default=600.0)
     p.add_argument("--json", help="also write the rows as JSON")
     args = p.parse_args(argv)
@@ -299,16 +332,17 @@ def main(argv=None) -> int:
         for scenario, n in settings:
             floors, projects = [], []
             for _ in range(max(args.repeat, 1)):
-                f = floor_run(scenario, n, args.ticks, args.timeout)
+                f = floor_run(scenario, n, args.ticks, args.timeout, Path(tmp), args.insecure)
                 floors.append(f)
                 print("floor " + json.dumps(f), file=sys.stderr, flush=True)
                 if not args.no_project:
-                    r = run_one(scenario, n, args.ticks, args.algorithm, Path(tmp))
+                    r = run_one(scenario, n, args.ticks, args.algorithm, Path(tmp), insecure=args.insecure)
                     projects.append(r)
                     print("project " + json.dumps(r), file=sys.stderr, flush=True)
             rows.append((scenario, n, floors, projects))
     print(f"\nThe protocol's floor beside the project ({args.algorithm}), {args.ticks} ticks, one process per agent, "
-          f"zenoh on loopback, median of {args.repeat} interleaved pairs\n")
+          f"zenoh on loopback, {'plain tcp (--insecure)' if args.insecure else 'TLS + access control'} for both, "
+          f"median of {args.repeat} interleaved pairs\n")
     print("| scenario | agents | floor ticks/s | project ticks/s | project / floor: median of pairs (range) "
           "| floor CPU ms/tick | project CPU ms/tick | project first tick (s) |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")

@@ -78,8 +78,9 @@ def cpu_seconds() -> float:
 
 
 def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workdir: Path,
-            with_profile: bool = False, tree: Path | None = None) -> dict:
-    """One ``up`` run; ``tree``: the checkout to run it from (default: this one)."""
+            with_profile: bool = False, tree: Path | None = None, insecure: bool = False) -> dict:
+    """One ``up`` run; ``tree``: the checkout to run it from (default: this one);
+    ``insecure``: ``up --insecure`` (default: TLS and access control, as up runs)."""
     tag = f"{agents}-{time.monotonic_ns()}"
     est, res, prof = workdir / f"est-{tag}.json", workdir / f"res-{tag}.json", workdir / f"prof-{tag}"
     cmd = [sys.executable, "-m", "sim.launcher", "--scenario", scenario, "--ticks", str(ticks),
@@ -89,6 +90,8 @@ def run_one(scenario: str, agents: int | None, ticks: int, algorithm: str, workd
         cmd += ["--agents", str(agents)]
     if with_profile:
         cmd += ["--profile", str(prof)]
+    if insecure:
+        cmd.append("--insecure")
     cpu0, t0 = cpu_seconds(), time.monotonic()
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=1800, cwd=tree)
     wall, cpu = time.monotonic() - t0, cpu_seconds() - cpu0
