@@ -185,9 +185,14 @@ class Launcher:
     def add_child(self, name: str, argv: list, log: Path) -> Child:
         """Start one more child (e.g. the live view), stopped with the others."""
         child = Child(name, argv, log)
-        self._spawn(child, subprocess.DEVNULL)
-        self.children.append(child)
+        self.start_more([child])
         return child
+
+    def start_more(self, children) -> None:
+        """Start more children as the others are (forked where they can be),
+        stopped with the others."""
+        self._spawn_all(list(children), subprocess.DEVNULL)
+        self.children.extend(children)
 
     def start(self) -> None:
         if self.world is not None:

@@ -108,7 +108,7 @@ def test_two_processes_with_one_id_at_once(tmp_path):
     mesh, progress = lease_mesh(spec, ticks, seed, tmp_path, agent_extra=[])
     twin = Child("agent 3 (twin)", agent(mesh, 3).argv, tmp_path / "logs" / "twin.log")
     try:
-        spawn(twin)
+        mesh.start_more([twin])  # started as the agents are, just before them
         mesh.start_agents()
         assert progress.follow(240) == 0, mesh.world.last_error_line()
         rcs = sorted([agent(mesh, 3).proc.wait(10), twin.proc.wait(10)])
