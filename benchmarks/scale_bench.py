@@ -1,10 +1,20 @@
 """Scale benchmark: ``diskf-mesh up --hosts`` with 25, 50, 100 (and 200)
-agent processes in lockstep, 25 agents per "host" (a zenoh router and a
-shard of agents each, on loopback; the world is a router too). Prints one
-markdown table; not a test.
+agent processes, 25 agents per "host" (a zenoh router and a shard of agents
+each, on loopback, or each host in its own network namespace with
+``--netns``; the world is a router too), in lockstep or in real time
+(``--rate``). Prints one markdown table; not a test.
 
     python benchmarks/scale_bench.py [--agents 25,50,100] [--per-host 25] [--ticks 50]
-                                     [--scenario random-geometric] [--single]
+                                     [--scenario random-geometric] [--single] [--rate HZ] [--netns]
+
+    # issue 16's targets: 100 agents on 4 namespace hosts at 5 Hz; 200 on this machine at 2 Hz
+    python benchmarks/scale_bench.py --agents 100 --netns --rate 5 --ticks 100
+    python benchmarks/scale_bench.py --agents 200 --per-host 50 --rate 2 --ticks 40
+
+``--netns`` (root, ``ip netns``): a hub namespace with a bridge, the world
+in a namespace of its own and each host's router and shard in another
+(``ip netns exec`` as the hosts file's prefix), 10.214.<n>.0/24; they are
+deleted at the end.
 
 Columns:
     hosts        routers + shards (``--per-host`` agents each); ``--single``
@@ -16,13 +26,19 @@ Columns:
     world CPU %  the world's share of all CPU over the ticks (world, routers,
                  hosts, agents)
     routers %    the routers' share
-    RSS MB/agent the resident memory of an agent process (median)
+    RSS MB/agent the resident memory of an agent process (median of peaks)
+    PSS MB/agent its proportional share (pages shared with the other agents
+                 forked from the same zygote counted once over all of them):
+                 what each more agent costs the machine
     missing      agent-ticks not reported
+    missed %     real time: agent-ticks whose report was not in by the
+                 tick's end (deadline_misses.reports) or never came, over
+                 all agent-ticks; message misses: neighbours' messages not
+                 fused in time, over those due
 
 CPU is read from /proc for every process of the run, five times a second:
 over the ticks = the last sample before the last report minus the first
 sample after tick 1 (the world's ``startup_s`` and ``ticks_s``). The machine is shared: compare figures of one invocation.
-Real-time runs (``--rate``) are not measured here yet (lockstep only).
 """
 from __future__ import annotations
 
@@ -42,13 +58,67 @@ TICK_S = os.sysconf("SC_CLK_TCK")
 PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
-def hosts_file(path: Path, n: int, per_host: int, port0: int) -> Path:
-    lines = ["[world]", f'listen = "tls/127.0.0.1:{port0}"']
+def hosts_file(path: Path, n: int, per_host: int, port0: int, spaces=None) -> Path:
+    """The hosts file; ``spaces`` (``Namespaces``): the world in the first
+    namespace, host h in namespace h + 1."""
+    world = f"tls/{spaces.addrs[0]}:{port0}" if spaces else f"tls/127.0.0.1:{port0}"
+    lines = ["[world]", f'listen = "{world}"']
+    if spaces:
+        lines.append(f'prefix = ["ip", "netns", "exec", "{spaces.names[0]}"]')
     for h, lo in enumerate(range(1, n + 1, per_host)):
         hi = min(lo + per_host - 1, n)
-        lines += [f"[hosts.h{h}]", f'agents = "{lo}-{hi}"', f'router = "tls/127.0.0.1:{port0 + 1 + h}"']
+        router = f"tls/{spaces.addrs[h + 1]}:{port0}" if spaces else f"tls/127.0.0.1:{port0 + 1 + h}"
+        lines += [f"[hosts.h{h}]", f'agents = "{lo}-{hi}"', f'router = "{router}"']
+        if spaces:
+            lines.append(f'prefix = ["ip", "netns", "exec", "{spaces.names[h + 1]}"]')
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+class Namespaces:
+    """A hub namespace with a bridge, and ``count`` namespaces with a veth
+    pair to it each, addresses 10.214.<net>.<j + 1> (as tests/test_mesh_netns.py)."""
+
+    def __init__(self, count: int):
+        self.tag = f"dks{os.getpid() % 100000}"
+        self.hub = f"{self.tag}h"
+        self.names = [f"{self.tag}n{j}" for j in range(count)]
+        net = os.getpid() % 200 + 20
+        self.addrs = [f"10.214.{net}.{j + 1}" for j in range(count)]
+
+    def __enter__(self):
+        steps = [("netns", "add", self.hub), ("netns", "exec", self.hub, "ip", "link", "add", "br0", "type", "bridge"),
+                 ("netns", "exec", self.hub, "ip", "link", "set", "br0", "up")]
+        for j, (ns, addr) in enumerate(zip(self.names, self.addrs)):
+            a, b = f"{self.tag}a{j}", f"{self.tag}b{j}"
+            steps += [("netns", "add", ns),
+                      ("link", "add", a, "netns", ns, "type", "veth", "peer", "name", b, "netns", self.hub),
+                      ("netns", "exec", self.hub, "ip", "link", "set", b, "master", "br0", "up"),
+                      ("netns", "exec", ns, "ip", "addr", "add", f"{addr}/24", "dev", a),
+                      ("netns", "exec", ns, "ip", "link", "set", a, "up"),
+                      ("netns", "exec", ns, "ip", "link", "set", "lo", "up")]
+        try:
+            for step in steps:
+                subprocess.run(["ip", *step], check=True, capture_output=True, text=True, timeout=20)
+        except (OSError, subprocess.CalledProcessError) as e:
+            self.__exit__()
+            raise SystemExit(f"cannot build the namespaces (root and ip netns needed): "
+                             f"{getattr(e, 'stderr', '') or e}")
+        return self
+
+    def __exit__(self, *exc):
+        for ns in (*self.names, self.hub):
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=20)
+
+
+def pss(pid: int) -> int | None:
+    try:
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            if line.startswith("Pss:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 def sample(run_id: str) -> dict:
@@ -71,21 +141,38 @@ def sample(run_id: str) -> dict:
     return out
 
 
-def one(n: int, per_host: int | None, ticks: int, scenario: str, tmp: Path, port0: int) -> dict:
+def one(n: int, per_host: int | None, ticks: int, scenario: str, tmp: Path, port0: int, rate=None,
+        netns: bool = False) -> dict:
     run_id = f"scale{n}{'h' if per_host else 's'}{os.getpid() % 1000}"
     est = tmp / f"{run_id}.json"
     cmd = [sys.executable, "-m", "sim.launcher", "--scenario", scenario, "--agents", str(n), "--ticks", str(ticks),
            "--run-id", run_id, "--estimates", str(est), "--json", str(tmp / f"{run_id}-res.json"),
            "--logs", str(tmp / run_id), "--quiet", "--startup-timeout", str(60 + 2 * n)]
-    if per_host:
-        cmd += ["--hosts", str(hosts_file(tmp / f"{run_id}.toml", n, per_host, port0))]
-    t0 = time.monotonic()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    samples = []  # (t, {pid: (role, cpu, rss)})
-    while proc.poll() is None:
-        samples.append((time.monotonic() - t0, sample(run_id)))
-        time.sleep(0.2)
-    out, err = proc.communicate()
+    if rate:
+        cmd += ["--rate", str(rate)]
+    spaces = Namespaces(1 + -(-n // per_host)) if netns and per_host else None
+    if spaces:
+        spaces.__enter__()
+    try:
+        if per_host:
+            cmd += ["--hosts", str(hosts_file(tmp / f"{run_id}.toml", n, per_host, port0, spaces))]
+        t0 = time.monotonic()
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        samples = []  # (t, {pid: (role, cpu, rss)})
+        shares, shares_at = {}, -10.0  # agent pid -> PSS, read every 5 s (a costly read)
+        while proc.poll() is None:
+            now = time.monotonic() - t0
+            samples.append((now, sample(run_id)))
+            if now - shares_at >= 5.0:
+                shares_at = now
+                for pid, (role, _, _) in samples[-1][1].items():
+                    if role == "agent" and (v := pss(pid)) is not None:
+                        shares[pid] = max(shares.get(pid, 0), v)
+            time.sleep(0.2)
+        out, err = proc.communicate()
+    finally:
+        if spaces:
+            spaces.__exit__()
     if not est.exists():
         raise SystemExit(f"run of {n} agents failed (exit {proc.returncode}): {err.strip()[-500:]}")
     doc = json.loads(est.read_text())
@@ -105,8 +192,16 @@ def one(n: int, per_host: int | None, ticks: int, scenario: str, tmp: Path, port
             if role == "agent":
                 peak[pid] = max(peak.get(pid, 0), r)
     rss = list(peak.values())
+    dm = doc.get("deadline_misses", {})
+    missed = (dm.get("reports", 0) + doc.get("missing_agent_ticks", 0)) / (n * ticks)
+    first_up = next((float(x) for x in [out.split("s after up started")[0].rsplit("(", 1)[-1]]
+                     if "s after up started" in out), float("nan"))
     return {"agents": n, "hosts": (n + per_host - 1) // per_host if per_host else 1,
-            "mode": "routers" if per_host else "peers", "first": doc["startup_s"], "rate": ticks / max(doc["ticks_s"], 1e-9),
+            "mode": ("netns " if spaces else "") + ("routers" if per_host else "peers"),
+            "target": f"{rate:g} Hz" if rate else "lockstep", "first": doc["startup_s"], "first_up": first_up,
+            "missed": missed, "message_misses": dm.get("message_miss_rate", float("nan")),
+            "pss_mb": statistics.median(shares.values()) / 2**20 if shares else float("nan"),
+            "rate": ticks / max(doc["ticks_s"], 1e-9),
             "cpu_agent_tick_ms": 1000 * cpu.get("agent", 0.0) / (n * ticks),
             "world_share": cpu.get("world", 0.0) / total, "router_share": cpu.get("router", 0.0) / total,
             "rss_mb": statistics.median(rss) / 2**20 if rss else float("nan"),
@@ -120,21 +215,26 @@ def main(argv=None) -> int:
     ap.add_argument("--ticks", type=int, default=50)
     ap.add_argument("--scenario", default="random-geometric")
     ap.add_argument("--single", action="store_true", help="also the one-host peer-to-peer run of each count")
+    ap.add_argument("--rate", type=float, help="real time at this rate (up --rate); default: lockstep")
+    ap.add_argument("--netns", action="store_true", help="every host (and the world) in a network namespace")
     args = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="diskf-scale-") as tmp:
         for n in (int(a) for a in args.agents.split(",")):
             for per_host in ((args.per_host, None) if args.single else (args.per_host,)):
                 print(f"... {n} agents, {'routers' if per_host else 'peers'}", file=sys.stderr, flush=True)
-                rows.append(one(n, per_host, args.ticks, args.scenario, Path(tmp), 17800 + 20 * len(rows)))
-    print(f"lockstep, {args.scenario}, {args.ticks} ticks, {os.cpu_count()} CPUs\n")
-    print("| agents | hosts | shape | first tick s | ticks/s | CPU ms/agent-tick | world CPU % | routers % "
-          "| RSS MB/agent | missing | exit |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+                rows.append(one(n, per_host, args.ticks, args.scenario, Path(tmp), 17800 + 20 * len(rows),
+                                args.rate, args.netns))
+    print(f"{f'real time at {args.rate:g} Hz' if args.rate else 'lockstep'}, {args.scenario}, {args.ticks} ticks, "
+          f"{os.cpu_count()} CPUs\n")
+    print("| agents | hosts | shape | rate | first tick s (world / up) | ticks/s | missed % | message misses % "
+          "| CPU ms/agent-tick | world CPU % | routers % | RSS MB/agent | PSS MB/agent | missing | exit |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['agents']} | {r['hosts']} | {r['mode']} | {r['first']:.1f} | {r['rate']:.1f} | "
+        print(f"| {r['agents']} | {r['hosts']} | {r['mode']} | {r['target']} | {r['first']:.1f} / {r['first_up']:.1f} "
+              f"| {r['rate']:.1f} | {100 * r['missed']:.2f} | {100 * r['message_misses']:.2f} | "
               f"{r['cpu_agent_tick_ms']:.2f} | {100 * r['world_share']:.0f} | {100 * r['router_share']:.0f} | "
-              f"{r['rss_mb']:.0f} | {r['missing']} | {r['status']} |")
+              f"{r['rss_mb']:.0f} | {r['pss_mb']:.0f} | {r['missing']} | {r['status']} |")
     return 0
 
 

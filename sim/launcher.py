@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import json
+import os
 import queue
 import secrets
 import signal
@@ -72,6 +73,16 @@ WORLD_STOP_GRACE_S = 20.0  # the world, stopped, writes its results first
 # 50 ms later (zenoh's default: 1 s), then ever less often
 CONNECT_RETRY = "connect/retry:{period_init_ms: 50, period_max_ms: 1000, period_increase_factor: 2}"
 PORTS_BELOW_EPHEMERAL = 12000  # how many ports below the ephemeral range to pick the world's from
+
+
+def process_age() -> float:
+    """Seconds since this process started (Linux: /proc/self/stat's start
+    time, to 10 ms; elsewhere 0)."""
+    try:
+        start = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19]) / os.sysconf("SC_CLK_TCK")
+        return max(time.clock_gettime(time.CLOCK_BOOTTIME) - start, 0.0)
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0.0
 
 
 def first_ephemeral_port() -> int:
@@ -384,7 +395,9 @@ def run(args: argparse.Namespace) -> int:
     # SIGTERM ends the run like Ctrl-C's path does: through the finally blocks (the children,
     # which get SIGTERM when up dies, and the credentials directory)
     previous = signal.signal(signal.SIGTERM, terminated)
-    zygote = []  # started once the input is checked; its imports go on while up makes the credentials
+    # the zygote (``sim.zygote``): started first thing by the command line (``prestart``), or here once the
+    # input is checked; its imports go on while up makes the credentials
+    zygote = [z for z in [forks.take_prestarted()] if z is not None]
     try:
         with tempfile.TemporaryDirectory(prefix="diskf-run-") as private:  # 0700; removed however the run ends
             return _run(args, Path(private), zygote)
@@ -403,6 +416,7 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
 
     from diskf_mesh.studies.experiment import format_table
 
+    began = time.monotonic() - process_age()  # when `diskf-mesh up` started (its interpreter's start)
     spec = runspec.from_args(args, run_id=args.run_id or secrets.token_hex(4))
     out = Path(args.json or f"results/up-{spec.run_id}.json")
     check_output(out, "json", stdout=False, make_parent=args.json is None)  # before any work
@@ -428,7 +442,7 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
     if plan is not None and not zopts.is_default:
         raise InputError("hosts", "the hosts file names every endpoint: no zenoh flags with --hosts")
     realtime.from_args(args)
-    if plan is None and forks.enabled():
+    if plan is None and forks.enabled() and not zygotes:
         zygotes.append(forks.Zygote())
     if plan is not None and plan.credentials and not zopts.insecure:
         credentials.load(plan.credentials, credentials.WORLD, spec.run_id)  # made for this run, or one line
@@ -500,7 +514,8 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
     results = json.loads(out.read_text())
     first = timing.get("first", t_end) - t0
     print(f"{scn.name}: {len(ids)} agent processes{where} + world, {ticks} ticks, seed {args.seed}, run {spec.run_id}; "
-          f"first tick after {first:.2f} s, {ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
+          f"first tick after {first:.2f} s ({timing.get('first', t_end) - began:.2f} s after up started), "
+          f"{ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
     print(format_table(results))
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
           + (f", recording: {args.record}" if args.record else "") + f", logs: {logs}")

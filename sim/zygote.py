@@ -282,6 +282,29 @@ class Zygote:
                 self._proc.wait(5.0)
 
 
+_early = []  # the zygote prestart() started, until a launcher takes it
+
+
+def prestart(argv) -> None:
+    """``diskf-mesh up`` (``argv`` its arguments, the command first): start
+    the run's zygote before anything else is imported, so that its imports
+    go on beside the launcher's own (two cores: half the wait). Not for
+    ``--help`` or ``--hosts`` (whose children run elsewhere)."""
+    if argv[:1] == ["up"] and enabled() and not _early and not {"-h", "--help", "--hosts"} & set(argv):
+        _early.append(Zygote())
+
+
+def take_prestarted() -> "Zygote | None":
+    """The zygote ``prestart`` started (the caller closes it), or None."""
+    return _early.pop() if _early else None
+
+
+def close_prestarted() -> None:
+    """Close a zygote ``prestart`` started that no launcher took (bad input)."""
+    while _early:
+        _early.pop().close()
+
+
 # --------------------------------------------------------------------------
 # the zygote's side
 # --------------------------------------------------------------------------

@@ -64,7 +64,21 @@ def _one_line(message, category, filename, lineno, line=None) -> str:
 
 def main(argv=None, modules=COMMAND_MODULES) -> int:
     """Run one command; ``modules`` limits the subcommands loaded (a mesh
-    process loads only its own, to start fast)."""
+    process loads only its own, to start fast). ``up`` starts its run's
+    zygote first of all (``sim.zygote.prestart``)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["up"]:
+        from sim import zygote
+
+        zygote.prestart(argv)
+        try:
+            return _main(argv, modules)
+        finally:
+            zygote.close_prestarted()
+    return _main(argv, modules)
+
+
+def _main(argv, modules) -> int:
     args = build_parser(modules).parse_args(argv)
     try:
         with warnings.catch_warnings():
