@@ -38,6 +38,12 @@ COMMAND_MODULES = (
 )
 
 
+# the mesh commands a user starts for a run: only that command's module is loaded (a process of a
+# run starts faster; every other command still loads all of them, for its --help)
+MESH_COMMANDS = {"up": "sim.launcher", "host": "sim.host", "router": "sim.router", "world": "sim.world",
+                 "agent": "agents.agent"}
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse's own usage errors: one line, status 2
         self.exit(2, f"error: {message}\n")
@@ -67,6 +73,8 @@ def main(argv=None, modules=COMMAND_MODULES) -> int:
     process loads only its own, to start fast). ``up`` starts its run's
     zygote first of all (``sim.zygote.prestart``)."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    if modules is COMMAND_MODULES and argv[:1] and argv[0] in MESH_COMMANDS:
+        modules = (MESH_COMMANDS[argv[0]],)
     if argv[:1] == ["up"]:
         from sim import zygote
 
