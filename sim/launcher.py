@@ -72,6 +72,10 @@ WORLD_STOP_GRACE_S = 20.0  # the world, stopped, writes its results first
 # an agent forked at once may try the world's port before the world listens: it tries again
 # 50 ms later (zenoh's default: 1 s), then ever less often
 CONNECT_RETRY = "connect/retry:{period_init_ms: 50, period_max_ms: 1000, period_increase_factor: 2}"
+# of two agents that learn of each other (the world gossips their endpoints), only the one with the
+# greater zenoh id connects: one TLS handshake per pair instead of up to two (zenoh's default,
+# "always", then closes the redundant link); on loopback every agent reaches every other
+GOSSIP_ONE_WAY = 'scouting/gossip/autoconnect_strategy:{peer: {to_router: "always", to_peer: "greater-zid"}}'
 PORTS_BELOW_EPHEMERAL = 12000  # how many ports below the ephemeral range to pick the world's from
 
 
@@ -118,7 +122,7 @@ def loopback_options(port: int, base: ZenohOptions = ZenohOptions()) -> tuple:
     proto = "tls" if base.credentials else "tcp"
     world = replace(base, listen=(f"{proto}/127.0.0.1:{port}",), no_multicast_scouting=True)
     agent = replace(base, connect=(f"{proto}/127.0.0.1:{port}",), listen=(f"{proto}/127.0.0.1:0",),
-                    no_multicast_scouting=True, cfg=(*base.cfg, CONNECT_RETRY))
+                    no_multicast_scouting=True, cfg=(*base.cfg, CONNECT_RETRY, GOSSIP_ONE_WAY))
     return world, agent
 
 
