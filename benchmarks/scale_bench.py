@@ -32,9 +32,10 @@ Columns:
                  what each more agent costs the machine
     missing      agent-ticks not reported
     missed %     real time: agent-ticks whose report was not in by the
-                 tick's end (deadline_misses.reports) or never came, over
-                 all agent-ticks; message misses: neighbours' messages not
-                 fused in time, over those due
+                 tick's end (it never came: missing, or came later:
+                 deadline_misses.late_reports), over all agent-ticks;
+                 message misses: neighbours' messages not fused in time,
+                 over those due
 
 CPU is read from /proc for every process of the run, five times a second:
 over the ticks = the last sample before the last report minus the first
@@ -193,7 +194,8 @@ def one(n: int, per_host: int | None, ticks: int, scenario: str, tmp: Path, port
                 peak[pid] = max(peak.get(pid, 0), r)
     rss = list(peak.values())
     dm = doc.get("deadline_misses", {})
-    missed = (dm.get("reports", 0) + doc.get("missing_agent_ticks", 0)) / (n * ticks)
+    # agent-ticks whose report was not in by the tick's end: never came, or came late
+    missed = (doc.get("missing_agent_ticks", 0) + dm.get("late_reports", 0)) / (n * ticks)
     first_up = next((float(x) for x in [out.split("s after up started")[0].rsplit("(", 1)[-1]]
                      if "s after up started" in out), float("nan"))
     return {"agents": n, "hosts": (n + per_host - 1) // per_host if per_host else 1,
