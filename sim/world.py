@@ -57,7 +57,7 @@ import numpy as np
 from diskf_mesh.data import metrics
 from diskf_mesh.mesh import wire
 from diskf_mesh import estimators
-from diskf_mesh.data.argtypes import positive_int, seed_value
+from diskf_mesh.data.argtypes import fraction, positive_int, seed_value
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.mesh.counters import Counters
 from diskf_mesh.data.faults import FaultConfig
@@ -783,7 +783,7 @@ INCOMPLETE = 3  # exit status of a run with missing agent-ticks beyond --allow-m
 
 
 def add_allow_missing(p) -> None:
-    p.add_argument("--allow-missing", type=realtime.fraction, default=0.0, metavar="FRACTION",
+    p.add_argument("--allow-missing", type=fraction, default=0.0, metavar="FRACTION",
                    help="accept a run that misses at most this share of its agent-ticks (exit 0; the results "
                         "still say complete: false); with it, the run also starts without agents not ready "
                         "after --startup-timeout (default 0: every agent reports every tick, or exit 3)")
