@@ -137,9 +137,11 @@ class Agent(Process):
         # tick (the guard's window two); real time further, for an agent that fell behind
         self.lead = 1 if timing.clock is None else realtime.LEAD_TICKS
         self.kept = AHEAD_KEPT if timing.clock is None else realtime.LEAD_TICKS + 2
+        declared = estimators.get(algorithm)
+        self.exchanged = declared.exchanged  # what its messages carry (``Estimator.exchanged``)
         self.receiver = Receiver(Guard(GuardConfig(
             keys.run_id, agent_id, frozenset(self.ids), n, m,
-            information_check=estimators.get(algorithm).information_check,
+            information_check=declared.information_check, exchanged=declared.exchanged,
             **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
             profile=profile), faults, on_arrival=self.wake)
         self.counters = self.receiver.counters
@@ -502,7 +504,7 @@ class Agent(Process):
         self.own = self.est.local(k, mm.has, mm.y)
         prof.end("local")
         prof.begin()
-        payload = self.own_payload = wire.encode(self.keys.run_id, self.id, k, self.own)
+        payload = self.own_payload = wire.encode(self.keys.run_id, self.id, k, self.own, self.exchanged)
         prof.end("encode")
         prof.begin()
         # addressed to the agents it fuses at tick k: links are symmetric (range, ring, all), so
