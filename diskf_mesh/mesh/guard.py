@@ -206,16 +206,12 @@ def message_problem(wm: wire.WireMessage, c: GuardConfig):
         big = float(np.abs(values).max())
     if big > c.max_abs:
         return "magnitude", f"a value of {big:.3g} (limit {c.max_abs:.3g})"
-    for s in lay.slots:
-        if s.covariance:
-            ev = _extreme_eigenvalues(_rows(values, s) if small_values else getattr(msg, s.name))
-            if not ev[0] > 0 or ev[-1] > c.max_cond * ev[0]:
-                return "ill-conditioned", f"{s.name} eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}"
+    for s in lay.covariances:
+        ev = _extreme_eigenvalues(_rows(values, s) if small_values else getattr(msg, s.name))
+        if not ev[0] > 0 or ev[-1] > c.max_cond * ev[0]:
+            return "ill-conditioned", f"{s.name} eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}"
     if c.information_check:
-        for s in lay.slots:
-            if s.update_of is None:
-                continue
-            of = lay.slot(s.update_of)
+        for s, of in lay.updates:
             low, scale = (_information_gain(_rows(values, of), _rows(values, s)) if small_values else
                           _information_gain(getattr(msg, of.name), getattr(msg, s.name)))
             if low < -c.information_rtol * scale:

@@ -154,9 +154,8 @@ class Layout:
     slots: tuple
     count: int        # floats in all
     spans: tuple      # (start, k) of every k x k covariance, in declared order
-
-    def slot(self, name: str) -> Slot:
-        return next(s for s in self.slots if s.name == name)
+    covariances: tuple  # the covariances' slots, in declared order
+    updates: tuple    # (slot, slot of the covariance it updates), for ``Exchanged.update_of``
 
     def message(self, a: np.ndarray, d_valid: bool) -> Message:
         """The ``Message`` of the float64 array ``a`` (views into it)."""
@@ -182,7 +181,26 @@ def layout(exchanged: tuple, n: int, m: int) -> Layout:
         size = math.prod(shape)
         slots.append(Slot(f.name, Message.ARRAY_FIELDS.index(f.name), i, i + size, shape, f.covariance, f.update_of))
         i += size
-    return Layout(tuple(slots), i, tuple((s.start, s.shape[-1]) for s in slots if s.covariance))
+    by_name = {s.name: s for s in slots}
+    covs = tuple(s for s in slots if s.covariance)
+    return Layout(tuple(slots), i, tuple((s.start, s.shape[-1]) for s in covs), covs,
+                  tuple((s, by_name[s.update_of]) for s in slots if s.update_of is not None))
+
+
+_CODECS: dict = {}  # (id(exchanged), n, m) -> (exchanged, limits, layout): a lookup without hashing the fields
+
+
+def _codec(exchanged: tuple, n: int | None, m: int | None) -> tuple:
+    """(limits, layout) of a "msg" of ``exchanged`` for the receiver's (n, m)
+    (layout None where n or m is not given), remembered per declaration."""
+    key = (id(exchanged), n, m)
+    hit = _CODECS.get(key)
+    if hit is None or hit[0] is not exchanged:
+        if len(_CODECS) >= 256:
+            _CODECS.clear()
+        hit = _CODECS[key] = (exchanged, limits("msg", n, m, exchanged=exchanged),
+                              None if n is None or m is None else layout(exchanged, n, m), _dim_fields(exchanged))
+    return hit[1:]
 
 
 @functools.lru_cache(maxsize=64)
@@ -269,10 +287,10 @@ def _dims(x: np.ndarray, d: np.ndarray) -> tuple:
 def encode(run_id: str, sender: int, tick: int, msg: Message, exchanged: tuple = EXCHANGED) -> bytes:
     """One agent's message: the arrays ``exchanged`` (its estimator's
     declaration); ``msg`` arrays may keep leading batch axes of size 1."""
-    (fn, an), (fm, am) = _dim_fields(exchanged)
+    _, _, ((fn, an), (fm, am)) = _codec(exchanged, None, None)
     n, m = int(np.shape(getattr(msg, fn))[an]), int(np.shape(getattr(msg, fm))[am])
     blob = _f8(*(getattr(msg, f.name) for f in exchanged))
-    if len(blob) != 8 * layout(exchanged, n, m).count:
+    if len(blob) != 8 * _codec(exchanged, n, m)[1].count:
         raise ValueError("encode: a message must hold one agent's arrays")
     return _pack({"v": SCHEMA, "k": "msg", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
                   "dt": DTYPE, "dv": bool(np.asarray(msg.d_valid).reshape(-1)[0]), "a": blob})
@@ -547,10 +565,12 @@ def decode(data, *, run_id: str | None = None, sender: int | None = None,
 
     ``sender`` is the id the key names, ``n``/``m`` the receiver's
     dimensions. A rejection after the tick was read carries it (``tick``)."""
-    doc = _open(data, "msg", run_id, limits("msg", n, m, exchanged=exchanged))
+    lim, lay, _ = _codec(exchanged, n, m)
+    doc = _open(data, "msg", run_id, lim)
     try:
         s, n, m, dv = _estimate_head(doc, sender, n, m)
-        lay = layout(exchanged, n, m)
+        if lay is None:
+            lay = layout(exchanged, n, m)
         values = _values(doc, "a", lay.count)
         a = np.array(values, dtype=float) if type(values) is tuple else values
         _spd(values, a, lay.spans)
