@@ -130,7 +130,8 @@ class Exchanged:
     agent's guard (``diskf_mesh.mesh.guard``) checks every value for
     finiteness and magnitude, and every covariance for symmetry, positive
     definiteness and conditioning. ``Message.d_valid`` always travels (a
-    flag). A ``Message`` field an estimator does not declare arrives as None.
+    flag). A ``Message`` array an estimator does not declare does not travel:
+    a receiving agent's senders hold zeros there.
 
     name:      the ``Message`` field
     shape:     "n", "n n", "m" or "m m": in the state (n) and input (m)
@@ -160,6 +161,28 @@ EXCHANGED = (
     Exchanged("x_upd", "n"), Exchanged("P_upd", "n n", update_of="P_pred"),
     Exchanged("d", "m"), Exchanged("S", "m m"),
 )
+
+
+def check_exchanged(cls) -> None:
+    """ValueError unless ``cls.exchanged`` declares ``Message`` arrays, each
+    once, in the shapes ``Exchanged`` knows, with an n and an m axis among
+    them and every ``update_of`` a declared covariance."""
+    ex = cls.exchanged
+    if not isinstance(ex, tuple) or not ex or not all(isinstance(f, Exchanged) for f in ex):
+        raise ValueError(f"{cls.name}: exchanged must be a non-empty tuple of Exchanged")
+    names = [f.name for f in ex]
+    bad = [n for n in names if n not in Message.ARRAY_FIELDS or names.count(n) > 1]
+    if bad:
+        raise ValueError(f"{cls.name}: exchanged {bad[0]!r}: each must be one of {', '.join(Message.ARRAY_FIELDS)}, once")
+    if any(f.shape not in ("n", "n n", "m", "m m") for f in ex):
+        raise ValueError(f"{cls.name}: an exchanged shape is one of 'n', 'n n', 'm', 'm m'")
+    axes = {d for f in ex for d in f.shape.split()}
+    if axes != {"n", "m"}:
+        raise ValueError(f"{cls.name}: the exchanged arrays must have an n axis and an m axis among them")
+    covs = {f.name: f.shape for f in ex if f.covariance}
+    for f in ex:
+        if f.update_of is not None and (not f.covariance or covs.get(f.update_of) != f.shape):
+            raise ValueError(f"{cls.name}: {f.name} is an update of {f.update_of!r}, a declared covariance of its shape")
 
 
 @dataclass(frozen=True)

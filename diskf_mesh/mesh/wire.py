@@ -156,10 +156,15 @@ class Layout:
     spans: tuple      # (start, k) of every k x k covariance, in declared order
     covariances: tuple  # the covariances' slots, in declared order
     updates: tuple    # (slot, slot of the covariance it updates), for ``Exchanged.update_of``
+    absent: tuple     # (index, zeros) of every ``Message`` array not exchanged (read-only)
 
     def message(self, a: np.ndarray, d_valid: bool) -> Message:
-        """The ``Message`` of the float64 array ``a`` (views into it)."""
+        """The ``Message`` of the float64 array ``a`` (views into it); an
+        array not exchanged is zeros of its usual shape (finite, never
+        read by its estimator's ``fuse``)."""
         parts = [None] * len(_MESSAGE_FIELDS)
+        for i, zeros in self.absent:
+            parts[i] = zeros
         for s in self.slots:
             parts[s.index] = a[s.start:s.stop].reshape(s.shape)
         parts[-1] = np.array(d_valid)
@@ -183,8 +188,14 @@ def layout(exchanged: tuple, n: int, m: int) -> Layout:
         i += size
     by_name = {s.name: s for s in slots}
     covs = tuple(s for s in slots if s.covariance)
+    absent = []
+    for f in EXCHANGED:
+        if f.name not in by_name:
+            zeros = np.zeros(f.dims(n, m))
+            zeros.flags.writeable = False
+            absent.append((Message.ARRAY_FIELDS.index(f.name), zeros))
     return Layout(tuple(slots), i, tuple((s.start, s.shape[-1]) for s in covs), covs,
-                  tuple((s, by_name[s.update_of]) for s in slots if s.update_of is not None))
+                  tuple((s, by_name[s.update_of]) for s in slots if s.update_of is not None), tuple(absent))
 
 
 _CODECS: dict = {}  # (id(exchanged), n, m) -> (exchanged, limits, layout): a lookup without hashing the fields
