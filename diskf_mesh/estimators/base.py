@@ -223,6 +223,7 @@ class Estimator:
     color: str | None = None  # a matplotlib colour for its curves (None: the cycle's)
     settings: tuple = ()      # its ``Setting``s
     exchanged: tuple = EXCHANGED  # its message's arrays (``Exchanged``), in wire order
+    extends: str | None = None    # the estimator this one extends, if any (its family, in reports)
     # The guard checks that a sender's (x~, P~) is an information update of
     # its (x^, P^) (P~ <= P^); off for estimators whose x~ is something else
     # (L-DRKF sends its RKF estimate there).
