@@ -129,13 +129,8 @@ class WorldRecord:
 
     def estimates(self, fill: bool = False) -> Estimates:
         """Batch of one; with ``fill`` missing entries are x = 0, P = I (for
-        metrics, which mask them out)."""
-        x, P, d = self.x, self.P, self.d
-        if fill:
-            miss = ~self.reported
-            x, d = np.where(miss[..., None], 0.0, x), np.where(miss[..., None], 0.0, d)
-            P = np.where(miss[..., None, None], np.eye(P.shape[-1]), P)
-        return Estimates(x[None], P[None], d[None], self.d_valid[None])
+        metrics, which mask them out: ``wire.reported_estimates``)."""
+        return wire.reported_estimates(self.x, self.P, self.d, self.d_valid, self.reported if fill else None)
 
 
 PAUSE_MIN_S = 1.0  # a pause lasts at least this long (the links that closed while frozen close on waking)
