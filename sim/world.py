@@ -49,7 +49,7 @@ import signal
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -74,9 +74,8 @@ from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder
 from diskf_mesh.data.scenario import Scenario, simulate
-from diskf_mesh.data.trace import Trace, estimates_to_json
+from diskf_mesh.data.trace import MESH_ESTIMATES_FORMAT, Trace, estimates_to_json
 
-ESTIMATES_FORMAT = "diskf-mesh-estimates/1"
 
 
 @dataclass(frozen=True)
@@ -726,11 +725,11 @@ def fused_lists(rec: WorldRecord) -> list:
 
 def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, run_id: str, row: dict) -> dict:
     doc = estimates_to_json(rec.estimates(), algorithm, metrics=row)
-    doc.update(format=ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(scn.labels),
+    doc.update(format=MESH_ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(scn.labels),
                reported=rec.reported.tolist(),
                agent_counters={str(rec.label(k)): v for k, v in rec.agent_counters.items()},
                world_counters=dict(rec.counters), startup_s=rec.startup_s, ticks_s=rec.ticks_s,
-               fused=fused_lists(rec))
+               fused=fused_lists(rec), estimator=asdict(scn.params))
     return doc
 
 
