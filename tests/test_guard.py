@@ -299,14 +299,14 @@ def test_what_waits_for_the_worlds_tick_is_bounded_and_gated_on_release(view):
             for t in range(1, 21):
                 rx.on_payload(j, view.payload(j, tick=t), links)
     others = len(view.ids) - 1
-    assert sum(map(len, rx._early.values())) == others * (1 + cfg.max_lead)
+    assert sum(map(len, rx.inbox._early.values())) == others * (1 + cfg.max_lead)
     c = rx.counters
     assert c.sent == c.duplicate == 49 * others * (1 + cfg.max_lead) and c.fused == c.pending == 0
     rx.release(1, view.linked)
     assert c.out_of_range == others - len(view.linked)
     assert [s for s, _ in rx.take(1, view.linked)] == sorted(view.linked)
     rx.advance(10)                          # ticks the agent skipped: never on a link
-    assert rx._early == {} and c.out_of_range == others - len(view.linked) + 2 * others
+    assert rx.inbox._early == {} and c.out_of_range == others - len(view.linked) + 2 * others
     assert rx.close().imbalance() == []
 
 

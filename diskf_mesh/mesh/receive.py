@@ -9,11 +9,12 @@
       -> range gate           the sender not in range at the message's tick:
                               out_of_range += 1, never on a link. A message
                               whose tick the world has not opened here yet
-                              waits for it (``release``), first copy per
-                              (sender, tick), before the link: a link's
-                              latency runs from when its receiver knows
-                              the tick, as in the engine's fault model
-                              (``faults.delivered_links``)
+                              waits for it in the inbox
+                              (``Inbox.wait_for_tick``, ``release``), first
+                              copy per (sender, tick), before the link: a
+                              link's latency runs from when its receiver
+                              knows the tick, as in the engine's fault
+                              model (``faults.delivered_links``)
       -> sent += 1
       -> ``FaultModel.plan``  lost (lost += 1), or one or two copies with delays
       -> ``DelayLine``        holds each copy until it is due
@@ -61,7 +62,6 @@ class Receiver:
         self._events = itertools.count()
         self._lost: dict = {}          # tick -> senders whose message of that tick the link dropped
         self._refused: dict = {}       # tick -> {sender: reason} whose message of that tick was rejected
-        self._early: dict = {}         # tick -> {sender: message} before the world's tick of that tick
         self.tick = 0                  # the agent's current tick, for the guard's window (``advance``)
         self._on_arrival = on_arrival
 
@@ -72,8 +72,7 @@ class Receiver:
         if tick > self.tick:
             with self._lock:
                 self.tick = tick
-                for t in [t for t in self._early if t < tick]:
-                    self.counters.out_of_range += len(self._early.pop(t))
+                self.counters.out_of_range += self.inbox.skipped(tick)
 
     def on_payload(self, sender, payload, links=None) -> bool:
         """A payload on agent ``sender``'s message key (None: the key's id is
@@ -89,12 +88,9 @@ class Receiver:
                 return False
             if links is not None:
                 linked = links.get(wm.tick)
-                if linked is None:  # its tick is not open here yet
-                    early = self._early.setdefault(wm.tick, {})
-                    if wm.sender in early:
+                if linked is None:  # its tick is not open here yet: it waits in the inbox
+                    if not self.inbox.wait_for_tick(wm.sender, wm.tick, wm):
                         self._repeated()
-                    else:
-                        early[wm.sender] = wm
                     return False
                 if wm.sender not in linked:
                     self.counters.out_of_range += 1
@@ -107,7 +103,7 @@ class Receiver:
         """The world's tick ``tick`` is in: what waited for it goes on a link
         (a sender in ``linked``) or is out of range."""
         with self._lock:
-            early = self._early.pop(tick, {})
+            early = self.inbox.opened(tick)
             items = []
             for s, wm in early.items():
                 if s in linked:
