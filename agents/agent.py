@@ -24,9 +24,13 @@ steps 3-4. The main thread only starts the agent, joins the run, and watches
 the timeouts and the stop; it is not woken per message (a thread hop per
 message was most of a message's cost on a busy machine).
 
+The process is a ``diskf_mesh.mesh.process.Process`` (one lock, the
+callback, the failure, the main thread's wait); that module's docstring
+follows one tick world -> agent -> neighbour -> world through this code.
 Neighbours' messages pass the receive path (``diskf_mesh.mesh.receive``: the
-guard rejects what is malformed, the inbox fuses a message at most once and
-discards, counted as late, one for a tick already fused). The world's
+guard decodes each once and rejects what is malformed, the inbox, the one
+place a message waits, fuses it at most once and discards, counted as late,
+one for a tick already fused). The world's
 messages are taken only when they fit the run (``_tick_problem``,
 ``_meas_problem``): a tick for k or k+1 (k the tick being worked on) with the
 run's constants, a measurement for k or k+1 of this agent's length within

@@ -38,8 +38,9 @@ the rejoins (tick and re-initialisation source), duplicate processes and
 pauses. 2: another world already runs this run id (``mesh.keys`` nonces).
 
 The report that completes tick k opens tick k+1 in zenoh's callback itself
-(``World``); ``--profile DIR`` writes where each tick's time went
-(``mesh.profile``).
+(``World``, a ``diskf_mesh.mesh.process.Process``: that module's docstring
+follows one tick world -> agent -> neighbour -> world through this code);
+``--profile DIR`` writes where each tick's time went (``mesh.profile``).
 """
 from __future__ import annotations
 
