@@ -24,9 +24,13 @@ steps 3-4. The main thread only starts the agent, joins the run, and watches
 the timeouts and the stop; it is not woken per message (a thread hop per
 message was most of a message's cost on a busy machine).
 
+The process is a ``diskf_mesh.mesh.process.Process`` (one lock, the
+callback, the failure, the main thread's wait); that module's docstring
+follows one tick world -> agent -> neighbour -> world through this code.
 Neighbours' messages pass the receive path (``diskf_mesh.mesh.receive``: the
-guard rejects what is malformed, the inbox fuses a message at most once and
-discards, counted as late, one for a tick already fused). The world's
+guard decodes each once and rejects what is malformed, the inbox, the one
+place a message waits, fuses it at most once and discards, counted as late,
+one for a tick already fused). The world's
 messages are taken only when they fit the run (``_tick_problem``,
 ``_meas_problem``): a tick for k or k+1 (k the tick being worked on) with the
 run's constants, a measurement for k or k+1 of this agent's length within
@@ -58,7 +62,6 @@ import dataclasses
 import math
 import os
 import sys
-import threading
 import time
 from dataclasses import dataclass
 
@@ -73,8 +76,9 @@ from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
-from diskf_mesh.mesh.keys import Keys, new_nonce, nonce
+from diskf_mesh.mesh.keys import Keys, nonce
 from diskf_mesh.mesh.log import Log
+from diskf_mesh.mesh.process import FREEZE_S, Process
 from diskf_mesh.mesh.profile import AGENT_PHASES, NO_PHASES, Phases
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.data.faults import FaultConfig, FaultModel
@@ -84,13 +88,10 @@ from diskf_mesh.mesh.receive import Receiver
 from diskf_mesh.recording.verdicts import TickVerdicts
 from diskf_mesh.data.scenario import Scenario
 
-POLL_S = 0.5     # the main thread looks at the timeouts at least this often
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
 AHEAD_KEPT = 4   # ticks (and measurements) kept ahead of joining: a restart sees the world's latest
-FREEZE_S = 2.0   # the main thread this late: the process was not running (SIGSTOP, or starved)
 WOKE_S = 3.0     # a world token that goes within this long of waking from a freeze: we were dropped
 PEERS_WAIT_S = 5.0  # a (re)joining agent waits at most this long to see the live agents
-CLAIM_S = 1.0    # the liveliness query for another process holding this id
 DUPLICATE_SAY_S = 0.2  # a duplicate's word to the world is on the wire before it leaves
 REPORTS_WAIT_S = 1.0   # a rejoining agent waits at most this long for its neighbours' reports
 
@@ -102,13 +103,14 @@ class AgentTiming:
     clock: realtime.Clock | None = None  # real time (``mesh.clock``): fuse at its deadline; None: lockstep
 
 
-class Agent:
-    """The protocol of one agent over a ``Transport``. ``run`` returns the
-    number of ticks fused, or raises ``MeshError``.
+class Agent(Process):
+    """The protocol of one agent over a ``Transport`` (a ``mesh.process``:
+    its steps 2 to 5 of a tick). ``run`` returns the number of ticks fused,
+    or raises ``MeshError``.
 
     Everything the transport delivers (the world's messages, neighbours'
     messages, liveliness changes) is handled in the transport's callback,
-    under one lock (``_cv``), and ``_advance`` then takes every step the
+    under one lock (``_cv``, ``_take_in``), and ``_advance`` then takes every step the
     new state allows (open tick k: local step and own message; close it:
     fusion and report). Neighbours' messages that pass the range gate go on
     to the receive path (``diskf_mesh.mesh.receive``: guard, the link's
@@ -125,26 +127,25 @@ class Agent:
         """``faults``: the link faults; or ``fault_config``, seeded with the
         run's seed when the world's first tick tells it. ``profile``: where
         the time of each tick goes (``mesh.profile``), if measured."""
+        super().__init__(keys, transport, log or Log(f"agent {agent_id}"), profile)
         self.scn = scn
         self.ids = tuple(a.id for a in scn.agents)
         if agent_id not in self.ids:
             raise MeshError(f"agent {agent_id} is not in scenario {scn.name!r} (ids {', '.join(map(str, self.ids))})")
         self.id = agent_id
         self.algorithm = algorithm
-        self.keys = keys
-        self.transport = transport
         self.timing = timing
-        self.log = log or Log(f"agent {agent_id}")
         n, m = scn.G.shape
         self.p = int(scn.sensors().p[self.ids.index(agent_id)])
-        self.prof = profile
         # how far ahead of tick k the world's ticks and neighbours' messages are taken: lockstep one
         # tick (the guard's window two); real time further, for an agent that fell behind
         self.lead = 1 if timing.clock is None else realtime.LEAD_TICKS
         self.kept = AHEAD_KEPT if timing.clock is None else realtime.LEAD_TICKS + 2
+        declared = estimators.get(algorithm)
+        self.exchanged = declared.exchanged  # what its messages carry (``Estimator.exchanged``)
         self.receiver = Receiver(Guard(GuardConfig(
             keys.run_id, agent_id, frozenset(self.ids), n, m,
-            information_check=estimators.get(algorithm).information_check,
+            information_check=declared.information_check, exchanged=declared.exchanged,
             **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
             profile=profile), faults, on_arrival=self.wake)
         self.counters = self.receiver.counters
@@ -159,7 +160,6 @@ class Agent:
         self.constants = None  # (K, seed, algorithm, topology, range) of the first tick taken
         self.alive = set()   # agent ids of the scenario with a liveliness token
         self.alive_tokens = {}  # agent id -> nonces of its processes' tokens
-        self.nonce = new_nonce()  # this process's tokens end in it (mesh.keys)
         self.claimed = False      # own alive token declared
         self._ready_token = None
         self._joins = 0           # ready tokens declared so far
@@ -186,37 +186,23 @@ class Agent:
         self.own = None            # this agent's message of tick k while collecting
         self.own_payload = b""     # ... as published (it goes with the report: a recording's "as sent")
         self.deadline = math.inf   # end of the collection of tick k (monotonic)
-        self.failure: BaseException | None = None  # raised in a callback, re-raised by the main thread
-        self._cv = threading.Condition(threading.RLock())  # the protocol state
         self._main_looks_at = 0.0  # when the main thread looks at the timeouts next (monotonic)
         self._advancing = False    # in _advance (a put may deliver to this process on the same thread)
         self._reports_subscribed = False
 
     # -- transport callbacks ---------------------------------------------------
-    def _on_sample(self, key: str, payload) -> None:
-        """Every sample (world's messages, neighbours' messages, reports) and
-        every liveliness change (``payload`` True or False)."""
-        self.prof.begin()
-        try:
-            with self._cv:
-                if key is None or self._handle(key, payload):
-                    self._advance()
-                    self._notify_main()
-        except BaseException as e:  # noqa: BLE001 - a callback must not swallow a failure
-            self._fail(e)
-        finally:
-            self.prof.end("other")
+    def _take_in(self, key: str | None, payload) -> None:
+        """Lock held: every sample (world's messages, neighbours' messages,
+        reports) and every liveliness change (``payload`` True or False);
+        ``key`` None: a delayed copy came (``wake``)."""
+        if key is None or self._handle(key, payload):
+            self._advance()
+            self._notify_main()
 
     def wake(self) -> None:
         """A delayed copy reached the inbox (the fault layer's thread): it may
         complete the tick being collected."""
         self._on_sample(None, None)
-
-    def _fail(self, e: BaseException) -> None:
-        with self._cv:
-            if self.failure is None:
-                self.failure = e
-            self._cv.notify_all()
 
     def _notify_main(self) -> None:
         """Wake the main thread if there is something for it (lock held)."""
@@ -366,8 +352,7 @@ class Agent:
     def _check_world(self, deadline: float, what: str) -> None:
         """Main thread: a failure of a callback, or the world gone or silent
         past ``deadline`` (its last word + ``--world-timeout``)."""
-        if self.failure is not None:
-            raise self.failure
+        self._raise_failure()
         now = time.monotonic()
         if now > deadline:
             if self.world_gone:
@@ -375,18 +360,11 @@ class Agent:
                                 f"and did not come back) while {what}")
             raise MeshError(f"no word from the world for {self.timing.world_timeout:g} s while {what}")
 
-    def _wait(self, until: float) -> None:
-        """Main thread, lock held: sleep until notified or ``until``, at most
-        ``POLL_S``. Waking much later than that means this process was
-        frozen (SIGSTOP): noted, for ``_on_world_token``."""
-        now = time.monotonic()
-        timeout = max(min(until, now + POLL_S), now) - now
-        self._main_looks_at = now + timeout
-        self._cv.wait(timeout)
-        now = time.monotonic()
-        if now - self._main_looks_at > FREEZE_S:
-            self._woke_at = now
-        self._main_looks_at = math.inf  # not waiting: a callback cannot tell a freeze from work
+    def _woke(self, late: float) -> None:
+        """Main thread: waking much later than planned means this process
+        was frozen (SIGSTOP): noted, for ``_on_world_token``."""
+        if late > FREEZE_S:
+            self._woke_at = time.monotonic()
 
     def _was_frozen(self) -> bool:
         """In a callback: this process has just been frozen (its main thread
@@ -447,7 +425,7 @@ class Agent:
         """Main thread: declare this process's alive token, unless another
         process already holds this id (a liveliness query, then what the
         token watch has seen): then this one is the second, and leaves."""
-        others = {nonce(k) for k in self.transport.tokens(self.keys.alive(self.id), CLAIM_S)}
+        others = self._other_nonces(self.keys.alive(self.id))
         with self._cv:
             others |= self.alive_tokens.get(self.id, set())
             others.discard(self.nonce)
@@ -464,9 +442,8 @@ class Agent:
         with self._cv:
             self.last_heard = time.monotonic()
             deadline = self.last_heard + self.timing.world_timeout
-            while not self.world_seen and self.stopped is None:
-                self._check_world(deadline, "waiting for the world")
-                self._wait(deadline)
+            self._wait_until(lambda: self.world_seen or self.stopped is not None, deadline,
+                             lambda: self._check_world(deadline, "waiting for the world"))
 
     def _resync(self, why: str) -> None:
         """Lock held: this agent is out of the run (the world dropped it, or
@@ -531,7 +508,7 @@ class Agent:
         self.own = self.est.local(k, mm.has, mm.y)
         prof.end("local")
         prof.begin()
-        payload = self.own_payload = wire.encode(self.keys.run_id, self.id, k, self.own)
+        payload = self.own_payload = wire.encode(self.keys.run_id, self.id, k, self.own, self.exchanged)
         prof.end("encode")
         prof.begin()
         # addressed to the agents it fuses at tick k: links are symmetric (range, ring, all), so
@@ -608,10 +585,9 @@ class Agent:
             self._join_wanted = False
             old, self._ready_token = self._ready_token, None
             deadline = self.last_heard + self.timing.world_timeout
-            while not (self.world_seen and (self.alive >= set(self.ids) or self.world_ticking)) \
-                    and self.stopped is None and self.failure is None:
-                self._check_world(deadline, "waiting for the world and every agent")
-                self._wait(deadline)
+            self._wait_until(lambda: (self.world_seen and (self.alive >= set(self.ids) or self.world_ticking))
+                             or self.stopped is not None or self.failure is not None, deadline,
+                             lambda: self._check_world(deadline, "waiting for the world and every agent"))
             if self.world_ticking and self.est is None:
                 self._joining(self.newest)
             subscribe = self.rejoining and not self._reports_subscribed
@@ -622,10 +598,9 @@ class Agent:
             self.transport.subscribe(self.keys.report("*"), self._on_sample)
         with self._cv:
             if self.rejoining:
-                peers_by = time.monotonic() + PEERS_WAIT_S
-                while not (not self.ticks or set(self.ticks[max(self.ticks)].live) - {self.id} <= self.alive) \
-                        and time.monotonic() < peers_by and self.stopped is None and self.failure is None:
-                    self._wait(peers_by)
+                self._wait_until(lambda: not self.ticks or set(self.ticks[max(self.ticks)].live) - {self.id}
+                                 <= self.alive or self.stopped is not None or self.failure is not None,
+                                 time.monotonic() + PEERS_WAIT_S)
             self.join_after = self.newest
             self._joins += 1
         self._ready_token = self.transport.declare_token(self.keys.ready(self.id, f"{self.nonce}.{self._joins}"))
@@ -722,8 +697,7 @@ class Agent:
                 if self.est is None and self.stopped is None:
                     self._join()
                 self._advance()
-                if self.failure is not None:
-                    raise self.failure
+                self._raise_failure()
                 if self.stopped is not None and not self.collecting:
                     break
                 what = ("waiting to join" if self.est is None else

@@ -38,8 +38,9 @@ the rejoins (tick and re-initialisation source), duplicate processes and
 pauses. 2: another world already runs this run id (``mesh.keys`` nonces).
 
 The report that completes tick k opens tick k+1 in zenoh's callback itself
-(``World``); ``--profile DIR`` writes where each tick's time went
-(``mesh.profile``).
+(``World``, a ``diskf_mesh.mesh.process.Process``: that module's docstring
+follows one tick world -> agent -> neighbour -> world through this code);
+``--profile DIR`` writes where each tick's time went (``mesh.profile``).
 """
 from __future__ import annotations
 
@@ -47,17 +48,16 @@ import argparse
 import math
 import signal
 import sys
-import threading
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh.mesh import wire
 from diskf_mesh import estimators
-from diskf_mesh.data.argtypes import positive_int, seed_value
+from diskf_mesh.data.argtypes import fraction, positive_int, seed_value
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.mesh.counters import Counters
 from diskf_mesh.data.faults import FaultConfig
@@ -68,15 +68,15 @@ from diskf_mesh.mesh import clock as realtime
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
-from diskf_mesh.mesh.keys import Keys, new_nonce, nonce
+from diskf_mesh.mesh.keys import Keys, nonce
 from diskf_mesh.mesh.log import Log
+from diskf_mesh.mesh.process import FREEZE_S, POLL_S, Process
 from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder
 from diskf_mesh.data.scenario import Scenario, simulate
-from diskf_mesh.data.trace import Trace, estimates_to_json
+from diskf_mesh.data.trace import MESH_ESTIMATES_FORMAT, Trace, estimates_to_json
 
-ESTIMATES_FORMAT = "diskf-mesh-estimates/1"
 
 
 @dataclass(frozen=True)
@@ -129,29 +129,22 @@ class WorldRecord:
 
     def estimates(self, fill: bool = False) -> Estimates:
         """Batch of one; with ``fill`` missing entries are x = 0, P = I (for
-        metrics, which mask them out)."""
-        x, P, d = self.x, self.P, self.d
-        if fill:
-            miss = ~self.reported
-            x, d = np.where(miss[..., None], 0.0, x), np.where(miss[..., None], 0.0, d)
-            P = np.where(miss[..., None, None], np.eye(P.shape[-1]), P)
-        return Estimates(x[None], P[None], d[None], self.d_valid[None])
+        metrics, which mask them out: ``wire.reported_estimates``)."""
+        return wire.reported_estimates(self.x, self.P, self.d, self.d_valid, self.reported if fill else None)
 
 
-POLL_S = 0.5  # the main thread looks at the tick's deadline at least this often
-FREEZE_S = 2.0  # the main thread this late: the world was not running (SIGSTOP)
 PAUSE_MIN_S = 1.0  # a pause lasts at least this long (the links that closed while frozen close on waking)
-CLAIM_S = 1.0   # the liveliness query for another world of this run id
 LATE_READY_S = 5.0  # --allow-missing: after the startup timeout, how long the agents up have to be ready
 LINES_EVERY_S = 0.1  # --progress lines: at most one line this often (and ticks 1 and K)
 HOLD_MS = 5   # a measurement waits at most this long in zenoh's batch for its tick (it comes at once)
 
 
-class World:
-    """The lockstep over a ``Transport``. ``run`` returns the ``WorldRecord``.
+class World(Process):
+    """The lockstep over a ``Transport`` (a ``mesh.process``: steps 1 and 6
+    of a tick). ``run`` returns the ``WorldRecord``.
 
     Reports and liveliness changes are handled in the transport's callback
-    (zenoh's network thread) under one lock (``_cv``): the report that
+    (zenoh's network thread) under one lock (``_cv``, ``_take_in``): the report that
     completes tick k closes it and opens tick k+1 right there (measurements
     and tick out), with no hop to another thread. The main thread waits for
     the agents at the start, for a tick's deadline (``--tick-timeout``: the
@@ -161,16 +154,14 @@ class World:
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
                  timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None,
                  profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER):
+        super().__init__(keys, transport, log or Log("world"), profile)
         self.recorder = recorder  # diskf_mesh.recording: called at open, report, close
         self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
-        self.prof = profile
-        self.keys, self.transport, self.timing = keys, transport, timing
+        self.timing = timing
         self.progress = progress
-        self.log = log or Log("world")
         self.ids = tuple(a.id for a in scn.agents)
         self.p = scn.sensors().p
         self.alive, self.ready = set(), set()
-        self.nonce = new_nonce()
         self._tokens = {"alive": {}, "ready": {}}  # kind -> id -> nonces held
         self._gone_ready = {}          # id -> ready nonces that went (they do not count again)
         self._joins_at = {}            # id -> first tick a (re)joining agent is live at
@@ -193,12 +184,9 @@ class World:
         self.k = 0
         self.stopping = False
         self.done = False              # tick K is closed
-        self.failure: BaseException | None = None  # raised in a callback, re-raised by the main thread
-        self._cv = threading.Condition(threading.RLock())  # everything above, shared with the callbacks
         self._open = 0                 # k while the reports of tick k are being collected
         self._waiting = set()          # live (ready) agents whose report of tick k has not come yet
         self._deadline = math.inf      # end of tick k's collection (monotonic)
-        self._main_looks_at = math.inf  # when the main thread looks at the deadline next (inf: awake)
         self._live_at_open = ()        # the live set of the open tick
         self._sent = []                # [(key, payload)] that opened it (sent again after a pause)
         self._paused = ""              # why the ticks are paused ("" if not)
@@ -209,45 +197,36 @@ class World:
         self._ticking = False          # the "ticking" token is declared
 
     # -- transport callbacks ---------------------------------------------------
-    def _on_sample(self, key: str, payload) -> None:
-        """A report, or a liveliness change (``payload`` True or False)."""
-        self.prof.begin()
-        try:
-            with self._cv:
-                if (self._open and not self._paused and self.clock is None
-                        and time.monotonic() - self._main_looks_at > FREEZE_S):
-                    self._pause("the world was frozen", self._live_at_open)
-                kind, who = self.keys.parse(key)
-                if kind == "report":
-                    try:
-                        self._on_report(who, payload)
-                    except wire.Rejected as e:
-                        self.record.counters[f"rejected:{e.reason}"] += 1
-                        if who in self.ids:
-                            self._rejected.add(who)
-                        self.log.once(("report", who if who in self.ids else None, e.reason),
-                                      f"rejected a report from {key[:200]}: {e}")
-                elif kind == "rejoin" and who in self.ids:
-                    try:
-                        r = wire.decode_rejoin(payload, run_id=self.keys.run_id, sender=who)
-                        self.record.rejoins.setdefault(who, []).append({"tick": r.tick, "source": r.source})
-                    except wire.Rejected as e:
-                        self.record.counters[f"rejected:{e.reason}"] += 1
-                elif kind == "duplicate" and who in self.ids:
-                    self.record.duplicates[who] += 1
-                    self.log.info(f"agent id {who}: a second process (nonce {bytes(payload[:32]).decode(errors='replace')})"
-                                  " found this id held and leaves: duplicate id")
-                elif kind in ("alive", "ready") and who is not None:
-                    self._on_token(kind, who, nonce(key), payload)
-                elif kind == "alive-world":
-                    self._on_world_token(nonce(key), payload)
-                self._advance()
-        except BaseException as e:  # noqa: BLE001 - a callback must not swallow a failure
-            with self._cv:
-                self.failure = self.failure or e
-                self._cv.notify_all()
-        finally:
-            self.prof.end("other")
+    def _take_in(self, key: str, payload) -> None:
+        """Lock held: a report, or a liveliness change (``payload`` True or False)."""
+        if (self._open and not self._paused and self.clock is None
+                and time.monotonic() - self._main_looks_at > FREEZE_S):
+            self._pause("the world was frozen", self._live_at_open)
+        kind, who = self.keys.parse(key)
+        if kind == "report":
+            try:
+                self._on_report(who, payload)
+            except wire.Rejected as e:
+                self.record.counters[f"rejected:{e.reason}"] += 1
+                if who in self.ids:
+                    self._rejected.add(who)
+                self.log.once(("report", who if who in self.ids else None, e.reason),
+                              f"rejected a report from {key[:200]}: {e}")
+        elif kind == "rejoin" and who in self.ids:
+            try:
+                r = wire.decode_rejoin(payload, run_id=self.keys.run_id, sender=who)
+                self.record.rejoins.setdefault(who, []).append({"tick": r.tick, "source": r.source})
+            except wire.Rejected as e:
+                self.record.counters[f"rejected:{e.reason}"] += 1
+        elif kind == "duplicate" and who in self.ids:
+            self.record.duplicates[who] += 1
+            self.log.info(f"agent id {who}: a second process (nonce {bytes(payload[:32]).decode(errors='replace')})"
+                          " found this id held and leaves: duplicate id")
+        elif kind in ("alive", "ready") and who is not None:
+            self._on_token(kind, who, nonce(key), payload)
+        elif kind == "alive-world":
+            self._on_world_token(nonce(key), payload)
+        self._advance()
 
     def _on_token(self, kind: str, who: int, nonce_: str, up: bool) -> None:
         """An agent's alive or ready token (one per process: ``nonce_``) came
@@ -475,16 +454,10 @@ class World:
             return False
         return self._expect <= self.ready or now - self._paused_at >= self.timing.startup_timeout
 
-    def _wait(self, until: float) -> None:
-        """Main thread, lock held: sleep until notified or ``until``, at most ``POLL_S``."""
-        now = time.monotonic()
-        timeout = max(min(until, now + POLL_S), now) - now
-        self._main_looks_at = now + timeout
-        self._cv.wait(timeout)
-        late = time.monotonic() - self._main_looks_at
-        self._main_looks_at = math.inf  # awake: a callback cannot tell a freeze from work
-        if self.failure is not None:
-            raise self.failure
+    def _woke(self, late: float) -> None:
+        """Main thread, after a wait: a callback's failure is raised; waking
+        much later than planned (frozen) pauses the ticks."""
+        self._raise_failure()
         if late > FREEZE_S and self._open and not self._paused and self.clock is None:
             self._pause("the world was frozen", self._live_at_open)
 
@@ -498,7 +471,7 @@ class World:
         self.transport.subscribe(f"{root}/agent/*/duplicate", self._on_sample)
         self.transport.watch_tokens(f"{root}/*/agent/*/*", self._on_sample)
         self.transport.watch_tokens(self.keys.alive_world, self._on_sample)
-        others = {nonce(k) for k in self.transport.tokens(self.keys.alive_world, CLAIM_S)} - {self.nonce}
+        others = self._other_nonces(self.keys.alive_world)
         if others:
             raise DuplicateProcess(f"another world runs run id {self.keys.run_id!r} (token nonce {min(others)}): "
                                    "give each run its own --run-id")
@@ -535,8 +508,7 @@ class World:
         self._declare_ticking()
         late = time.monotonic() + LATE_READY_S
         with self._cv:
-            while not self.ready >= self.alive and time.monotonic() < late:
-                self._wait(late)
+            self._wait_until(lambda: self.ready >= self.alive, late)
             if not self.ready:
                 raise MeshError(f"no agent ready {self.timing.startup_timeout + LATE_READY_S:g} s after the start")
             self.log.info(f"starting without agent {', '.join(str(i) for i in self.ids if i not in self.ready)}"
@@ -582,8 +554,7 @@ class World:
             t0 = time.monotonic()
             for k in range(1, self.K + 2):
                 due = t0 + (k - 1) * period
-                while time.monotonic() < due and not self.interrupted:
-                    self._wait(due)
+                self._wait_until(lambda: self.interrupted, due)
                 if self.interrupted:
                     self.record.ended_early = f"interrupted ({self.interrupted})"
                     break
@@ -593,8 +564,7 @@ class World:
                     self.record.deadlines.opened_at.append(time.monotonic())
                     self._open_tick(k)
             grace = time.monotonic() + self.timing.tick_timeout
-            while any(self._owed.values()) and time.monotonic() < grace and not self.interrupted:
-                self._wait(grace)
+            self._wait_until(lambda: not any(self._owed.values()) or self.interrupted, grace)
             self._to_recorder(final=True)
             self.done = not self.record.ended_early
 
@@ -756,11 +726,11 @@ def fused_lists(rec: WorldRecord) -> list:
 
 def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, run_id: str, row: dict) -> dict:
     doc = estimates_to_json(rec.estimates(), algorithm, metrics=row)
-    doc.update(format=ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(scn.labels),
+    doc.update(format=MESH_ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(scn.labels),
                reported=rec.reported.tolist(),
                agent_counters={str(rec.label(k)): v for k, v in rec.agent_counters.items()},
                world_counters=dict(rec.counters), startup_s=rec.startup_s, ticks_s=rec.ticks_s,
-               fused=fused_lists(rec))
+               fused=fused_lists(rec), estimator=asdict(scn.params))
     return doc
 
 
@@ -783,7 +753,7 @@ INCOMPLETE = 3  # exit status of a run with missing agent-ticks beyond --allow-m
 
 
 def add_allow_missing(p) -> None:
-    p.add_argument("--allow-missing", type=realtime.fraction, default=0.0, metavar="FRACTION",
+    p.add_argument("--allow-missing", type=fraction, default=0.0, metavar="FRACTION",
                    help="accept a run that misses at most this share of its agent-ticks (exit 0; the results "
                         "still say complete: false); with it, the run also starts without agents not ready "
                         "after --startup-timeout (default 0: every agent reports every tick, or exit 3)")

@@ -17,6 +17,20 @@ from diskf_mesh.mesh.receive import Receiver
 from message_factory import tick_view
 
 
+def admit(g, sender, payload, tick):
+    """The guard's message, or None (rejected, or the agent's own)."""
+    out = g.screen(sender, payload, tick)
+    return out if isinstance(out, wire.WireMessage) else None
+
+
+def wait_accounted(rx, tick, expected, deadline):
+    """Poll until every sender in ``expected`` is accounted for at ``tick`` or the deadline."""
+    import time
+    while not set(expected) <= rx.accounted(tick) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return rx.accounted(tick)
+
+
 @pytest.fixture(scope="module")
 def view():
     return tick_view("diskf", tick=30)
@@ -84,7 +98,7 @@ def test_every_bad_input_is_rejected_with_its_reason(view):
     g = Guard(view.guard_config())
     for reason, sender, payload in bad_payloads(view):
         before = dict(g.counters.rejected)
-        assert g.admit(sender, payload, view.tick) is None, reason
+        assert admit(g, sender, payload, view.tick) is None, reason
         assert g.counters.rejected.get(reason, 0) == before.get(reason, 0) + 1, (reason, g.counters.rejected)
     assert set(g.counters.rejected) <= set(REASONS) and "error" not in g.counters.rejected
 
@@ -93,14 +107,14 @@ def test_a_key_without_an_integer_id_is_rejected_without_a_decode(view):
     g = Guard(view.guard_config())
     j = view.linked[0]
     for payload in (view.payload(j), b"junk"):   # the verdict does not depend on the bytes: never decoded
-        assert g.admit(None, payload, view.tick) is None
+        assert admit(g, None, payload, view.tick) is None
     assert g.counters.rejected == {"key": 2}
 
 
 def test_a_good_message_passes_bit_for_bit(view):
     g = Guard(view.guard_config())
     for j in view.linked:
-        wm = g.admit(j, view.payload(j), view.tick)
+        wm = admit(g, j, view.payload(j), view.tick)
         assert (wm.sender, wm.tick, wm.run_id) == (j, view.tick, view.run_id)
         for f in Message.ARRAY_FIELDS:
             assert np.array_equal(getattr(wm.message, f), getattr(view.messages[j], f))
@@ -110,7 +124,7 @@ def test_a_good_message_passes_bit_for_bit(view):
 
 def test_own_messages_are_ignored_silently(view):
     g = Guard(view.guard_config())
-    assert g.admit(view.me, view.payload(view.me), view.tick) is None
+    assert admit(g, view.me, view.payload(view.me), view.tick) is None
     assert g.counters == Counters()
 
 
@@ -118,9 +132,9 @@ def test_ticks_inside_the_window_pass(view):
     g = Guard(view.guard_config(max_lag=3, max_lead=2))
     j = view.linked[0]
     ok = [view.tick - 3, view.tick, view.tick + 2]
-    assert all(g.admit(j, view.payload(j, tick=t), view.tick) for t in ok)
+    assert all(admit(g, j, view.payload(j, tick=t), view.tick) for t in ok)
     bad = [view.tick - 4, view.tick + 3]
-    assert not any(g.admit(j, view.payload(j, tick=t), view.tick) for t in bad)
+    assert not any(admit(g, j, view.payload(j, tick=t), view.tick) for t in bad)
 
 
 def test_logged_once_per_sender_and_reason(view, caplog):
@@ -128,9 +142,9 @@ def test_logged_once_per_sender_and_reason(view, caplog):
     j, k = view.linked[:2]
     with caplog.at_level(logging.WARNING, logger="diskf_mesh.mesh.guard"):
         for _ in range(5):
-            g.admit(j, b"junk", view.tick)
-            g.admit(k, b"junk", view.tick)
-            g.admit(j, view.payload(j, tick=0), view.tick)
+            admit(g, j, b"junk", view.tick)
+            admit(g, k, b"junk", view.tick)
+            admit(g, j, view.payload(j, tick=0), view.tick)
     assert len(caplog.records) == 3
     assert g.by_sender[(j, "not-msgpack")] == 5 and g.by_sender[(k, "not-msgpack")] == 5
     assert g.by_sender[(j, "tick-past")] == 5
@@ -141,7 +155,7 @@ def test_logged_once_per_sender_and_reason(view, caplog):
 def test_guard_never_raises_even_on_non_bytes(view):
     g = Guard(view.guard_config())
     for payload in (None, 12, "text", [b"x"], object()):
-        assert g.admit(view.linked[0], payload, view.tick) is None
+        assert admit(g, view.linked[0], payload, view.tick) is None
     assert "error" not in g.counters.rejected
 
 
@@ -201,7 +215,7 @@ def test_unknown_sender_ids_share_one_row_and_are_never_decoded(view, caplog):
     ids = [int(i) for i in np.random.default_rng(1).integers(100, 2 ** 62, 10_000)]
     with caplog.at_level(logging.WARNING, logger="diskf_mesh.mesh.guard"):
         for i in ids:  # garbage: were it decoded, the reason would be "not-msgpack"
-            assert g.admit(i, b"\xc1" * 300, view.tick) is None
+            assert admit(g, i, b"\xc1" * 300, view.tick) is None
     assert g.counters.rejected == {"unknown-sender": 10_000}
     assert dict(g.by_sender) == {(None, "unknown-sender"): 10_000}
     assert len(caplog.records) == 1
@@ -218,7 +232,7 @@ def test_oversized_payloads_are_refused_before_decoding(view):
              pack({**doc, "a": doc["a"] + b"\x00" * 8})]                          # a bin over the schema's
     assert len(big_map) < wire.MAX_BYTES
     for payload in cases:
-        assert g.admit(j, payload, view.tick) is None
+        assert admit(g, j, payload, view.tick) is None
     assert g.counters.rejected == {"size": len(cases)}
 
 
@@ -236,7 +250,7 @@ def test_a_poisoned_neighbour_is_accounted_for_and_never_fused(view):
     for i in rest:
         rx.on_payload(i, view.payload(i))
     t0 = time.monotonic()
-    assert rx.wait(view.tick, view.linked, t0 + 30.0) >= set(view.linked)
+    assert wait_accounted(rx, view.tick, view.linked, t0 + 30.0) >= set(view.linked)
     assert time.monotonic() - t0 < 1.0                      # no collect timeout for the poisoned one
     assert rx.accounted(view.tick + 7) == set()
     assert rx.refusals(view.tick) == {j: "non-finite"}      # what the report's verdicts say of it
@@ -285,14 +299,14 @@ def test_what_waits_for_the_worlds_tick_is_bounded_and_gated_on_release(view):
             for t in range(1, 21):
                 rx.on_payload(j, view.payload(j, tick=t), links)
     others = len(view.ids) - 1
-    assert sum(map(len, rx._early.values())) == others * (1 + cfg.max_lead)
+    assert sum(map(len, rx.inbox._early.values())) == others * (1 + cfg.max_lead)
     c = rx.counters
     assert c.sent == c.duplicate == 49 * others * (1 + cfg.max_lead) and c.fused == c.pending == 0
     rx.release(1, view.linked)
     assert c.out_of_range == others - len(view.linked)
     assert [s for s, _ in rx.take(1, view.linked)] == sorted(view.linked)
     rx.advance(10)                          # ticks the agent skipped: never on a link
-    assert rx._early == {} and c.out_of_range == others - len(view.linked) + 2 * others
+    assert rx.inbox._early == {} and c.out_of_range == others - len(view.linked) + 2 * others
     assert rx.close().imbalance() == []
 
 

@@ -56,6 +56,34 @@ def test_round_trip_is_exact_and_small():
     assert len(wire.encode("a1b2c3d4", 9, 200, _message(2, 1))) < 200
 
 
+def test_an_estimators_declaration_makes_the_layout_and_the_guards_checks():
+    """``Estimator.exchanged``: the default is the seven fields' bytes; a
+    declaration of fewer arrays sends only those, the rest arrive as zeros,
+    and the guard checks what is declared (here: no P_pred, so no
+    information check, and a bad P_pred cannot be refused)."""
+    from diskf_mesh.estimators import EXCHANGED, Exchanged
+    from diskf_mesh.mesh.guard import Guard, GuardConfig
+
+    msg = _message(2, 1)
+    assert wire.encode(RUN, 3, 12, msg) == wire.encode(RUN, 3, 12, msg, EXCHANGED)
+    few = (Exchanged("x_upd", "n"), Exchanged("P_upd", "n n"), Exchanged("d", "m"), Exchanged("S", "m m"))
+    data = wire.encode(RUN, 3, 12, msg, few)
+    assert len(wire.encode(RUN, 3, 12, msg)) - len(data) == 8 * (2 + 4)
+    w = wire.decode(data, run_id=RUN, sender=3, n=2, m=1, exchanged=few)
+    for f in ("x_upd", "P_upd", "d", "S"):
+        np.testing.assert_array_equal(getattr(w.message, f), getattr(msg, f)[0, 0])
+    assert not w.message.x_pred.any() and w.message.P_pred.shape == (2, 2) and not w.message.P_pred.any()
+    with pytest.raises(wire.Rejected):  # the other layout's bytes do not fit
+        wire.decode(data, run_id=RUN, sender=3, n=2, m=1)
+    guard = Guard(GuardConfig(RUN, 1, frozenset({1, 3}), 2, 1, exchanged=few))
+    assert isinstance(guard.screen(3, data, 12), wire.WireMessage)
+    bad = Message(msg.x_pred, -msg.P_pred, msg.x_upd, msg.P_upd, msg.d, msg.S, msg.d_valid)
+    assert isinstance(guard.screen(3, wire.encode(RUN, 3, 12, bad, few), 12), wire.WireMessage)
+    assert guard.screen(3, wire.encode(RUN, 3, 12, bad), 12).reason == "size"  # not its layout: refused
+    assert Guard(GuardConfig(RUN, 1, frozenset({1, 3}), 2, 1)).screen(3, wire.encode(RUN, 3, 12, bad), 12).reason \
+        == "not-spd"
+
+
 def test_every_rejection_reason():
     _rejects(b"\xc1\xc1 not msgpack", "not-msgpack")
     _rejects(b"", "not-msgpack")

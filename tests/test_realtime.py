@@ -4,9 +4,12 @@ counted, and the record of what was fused replays the run bit for bit.
 Lockstep (no ``--rate``) is the engine bit for bit: test_mesh_equivalence."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
+from diskf_mesh.cli import main as cli
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.mesh.runspec import RunSpec
@@ -105,6 +108,31 @@ def test_latency_past_the_deadline_is_missed_never_fused(tmp_path):
     assert fused_late == 0, "a message due after the deadline was fused"
     assert row["deadline_misses"]["messages"] >= late
     assert_bitwise(doc, replayed(doc, ticks))
+    assert_cli_replays(tmp_path, doc, ticks)
+
+
+def assert_cli_replays(tmp_path, doc: dict, ticks: int) -> None:
+    """``diskf-mesh replay TRACE --fused EST``: the run's trace (``simulate``,
+    same scenario, seed and ticks) on the document's fused sets gives every
+    estimate bit for bit (exit 0); fused sets changed, or a trace of
+    another seed, and it says the run differs (exit 1)."""
+    trace = tmp_path / "trace.json"
+    assert cli.main(["simulate", "--scenario", "dynamic", "--steps", str(ticks), "--out", str(trace)]) == 0
+    est, out = tmp_path / "estimates.json", tmp_path / "replayed.json"
+    assert json.loads(est.read_text()) == doc
+    assert cli.main(["replay", str(trace), "--fused", str(est), "--out", str(out)]) == 0
+    again = json.loads(out.read_text())
+    assert again["x"] == doc["x"] and again["P"] == doc["P"] and again["d"] == doc["d"]
+    # the neighbours' messages fused after tick 10 dropped from the record: the replay differs from the run
+    bent = json.loads(json.dumps(doc))
+    bent["fused"][10:] = [[[s for s in senders if s == i] for i, senders in zip(doc["ids"], tick)]
+                          for tick in doc["fused"][10:]]
+    assert bent["fused"] != doc["fused"]
+    (tmp_path / "bent.json").write_text(json.dumps(bent))
+    assert cli.main(["replay", str(trace), "--fused", str(tmp_path / "bent.json")]) == 1
+    other = tmp_path / "seed1.json"
+    assert cli.main(["simulate", "--scenario", "dynamic", "--steps", str(ticks), "--seed", "1", "--out", str(other)]) == 0
+    assert cli.main(["replay", str(other), "--fused", str(est)]) == 1
 
 
 def test_every_message_late_fuses_nothing_and_completes(tmp_path):

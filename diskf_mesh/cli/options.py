@@ -12,7 +12,8 @@ from dataclasses import replace
 
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.argtypes import (  # noqa: F401 (re-exported)
-    estimator_list, estimator_name, positive_int, range_value, seed_value, setting_value)
+    estimator_list, estimator_name, fraction, milliseconds, positive, positive_int, range_value, seed_value,
+    setting_value)
 from diskf_mesh.estimators import NAMES, SETTINGS, Params
 from diskf_mesh.data.outputs import (  # noqa: F401 (re-exported)
     check_output, check_output_dir, human_stream, json_safe, save_json)

@@ -7,15 +7,25 @@ scenario's ``[estimator]`` table into it), so ``simulate`` + ``replay`` gives
 ``experiment``'s estimates bit for bit; ``Params()`` where the trace has
 none, and the estimator options (--window, --eps, ...) override them. A trace that breaks
 its schema (docs/formats.md) ends in one line naming the field, exit 2.
+
+``--fused EST.json`` replays a mesh run (``up`` or ``world --estimates``, a
+real-time or faulty run included) from its estimates document: the engine runs
+the trace (``simulate`` with the run's scenario, seed and ticks) on exactly the
+messages each agent fused at each tick, with the run's estimator and settings,
+and compares every reported estimate with the run's: exit 0 when all are
+equal bit for bit, 1 when any differs (say, the wrong trace).
 """
 from __future__ import annotations
 
 import argparse
+import sys
 
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.data.trace import estimates_to_json, estimator_from_json, read_json, trace_from_json
+from diskf_mesh.data.trace import (estimates_to_json, estimator_from_json, fused_record_from_json, read_json,
+                                   trace_from_json)
+from diskf_mesh.recording.reader import take_ticks
 from diskf_mesh.cli.options import (
     add_command,
     add_estimator_choice,
@@ -34,6 +44,8 @@ def register(subparsers) -> None:
                    "(re-run on what each agent fused; --estimator and the estimator options are the recording's)")
     add_estimator_choice(p)
     add_estimator_options(p)  # default: the trace's "estimator" settings
+    p.add_argument("--fused", metavar="EST.json", help="a mesh run's estimates (up --estimates): replay it on what each "
+                   "agent fused and compare bit for bit (exit 1 if any estimate differs); the run's estimator and settings")
     p.add_argument("--out", metavar="EST.json", help="where to write diskf-estimates/1 (- for standard output; required for a trace)")
     p.set_defaults(func=run)
 
@@ -43,6 +55,8 @@ def run(args: argparse.Namespace) -> int:
         from diskf_mesh.recording.command import replay_recording
         check_output(args.out, "out")
         return replay_recording(args.trace, args.out)
+    if args.fused is not None:
+        return replay_run(args)
     if args.out is None:
         raise InputError("out", "is required: where to write diskf-estimates/1")
     check_output(args.out, "out")
@@ -58,3 +72,32 @@ def run(args: argparse.Namespace) -> int:
     for key, value in json_safe(scores or {}).items():
         print(f"  {key:<15}{'-' if value is None else f'{value:.4f}'}", file=text)
     return 0
+
+
+def replay_run(args: argparse.Namespace) -> int:
+    """``replay TRACE.json --fused EST.json``: exit 0 when every estimate the
+    run reported is reproduced bit for bit, 1 when not."""
+    from diskf_mesh.recording.replay import compare, replay_fused
+
+    check_output(args.out, "out")
+    doc = read_json(args.trace)
+    trace = trace_from_json(doc)
+    run = fused_record_from_json(read_json(args.fused), trace.agent_labels)
+    K = run.fused.shape[0]
+    if K > trace.shape[1]:
+        raise InputError("fused", f"the run has {K} ticks, the trace only {trace.shape[1]}")
+    params = run.params if run.params is not None else estimator_params(estimator_from_json(doc), args)
+    est = replay_fused(trace, run.fused, run.reported, run.algorithm, params)
+    if args.out:
+        scores = metrics.compute(take_ticks(trace, K), est) if trace.truth_x is not None else None
+        save_json(args.out, estimates_to_json(est, run.algorithm, 0, scores, ids=trace.agent_labels))
+    c = compare(run, est)
+    text = human_stream(args.out)
+    print(f"{run.algorithm}: {K} ticks, {len(trace.agent_labels)} agents replayed on what each agent fused"
+          + (f" -> {args.out}" if args.out else ""), file=text)
+    if c.equal:
+        print(f"  equal to the run bit for bit: x, P, d of {c.agent_ticks} reported agent-ticks", file=text)
+        return 0
+    print(f"error: replay: differs from the run at {c.differing} of {c.agent_ticks} agent-ticks "
+          f"(largest |difference| {c.max_abs:.3g}): not this run's trace, scenario, seed or settings?", file=sys.stderr)
+    return 1

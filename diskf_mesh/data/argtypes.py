@@ -46,6 +46,34 @@ def range_value(text: str) -> float:
     return _non_negative(text, finite=False)
 
 
+def _number(text: str, ok, what: str) -> float:
+    """``float(text)`` if ``ok`` of it holds (NaN never does), else argparse's
+    error "must be <what>"."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not ok(v):
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+    return v
+
+
+def fraction(text: str) -> float:
+    """A number in [0, 1]: a probability (``--loss``), a share (``--allow-missing``,
+    ``--max-miss-rate``)."""
+    return _number(text, lambda v: 0.0 <= v <= 1.0, "a number between 0 and 1")
+
+
+def milliseconds(text: str) -> float:
+    """A finite non-negative number of milliseconds (``--latency-ms``)."""
+    return _number(text, lambda v: math.isfinite(v) and v >= 0, "a finite non-negative number of milliseconds")
+
+
+def positive(text: str) -> float:
+    """A finite number > 0 (``--rate``, ``--deadline-ms``)."""
+    return _number(text, lambda v: math.isfinite(v) and v > 0, "a positive number")
+
+
 def setting_value(setting):
     """The argparse type of an estimator ``Setting`` (``Setting.from_text``)."""
     def parse(text: str):

@@ -39,6 +39,7 @@ from dataclasses import asdict, dataclass, fields, replace
 import numpy as np
 
 from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.argtypes import fraction, milliseconds
 
 PROBABILITIES = ("loss", "duplicate", "reorder")
 DURATIONS = ("latency_ms", "jitter_ms", "reorder_ms")
@@ -110,35 +111,15 @@ def _flag(name: str) -> str:
 # --------------------------------------------------------------------------
 # command line
 # --------------------------------------------------------------------------
-def _probability(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not (0.0 <= v <= 1.0):
-        raise argparse.ArgumentTypeError(f"must be a probability in [0, 1], got {text!r}")
-    return v
-
-
-def _milliseconds(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not (math.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"must be a finite non-negative number of milliseconds, got {text!r}")
-    return v
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The fault flags; each overrides the scenario's ``[faults]`` entry."""
     g = parser.add_argument_group("network faults (per link, seeded; override the scenario's [faults])")
-    g.add_argument("--loss", type=_probability, metavar="P", help="probability that a message is lost")
-    g.add_argument("--latency-ms", type=_milliseconds, metavar="MS", help="fixed link latency")
-    g.add_argument("--jitter-ms", type=_milliseconds, metavar="MS", help="latency varies uniformly by +-MS")
-    g.add_argument("--duplicate", type=_probability, metavar="P", help="probability of a second copy")
-    g.add_argument("--reorder", type=_probability, metavar="P", help="probability that a copy is held back")
-    g.add_argument("--reorder-ms", type=_milliseconds, metavar="MS",
+    g.add_argument("--loss", type=fraction, metavar="P", help="probability that a message is lost")
+    g.add_argument("--latency-ms", type=milliseconds, metavar="MS", help="fixed link latency")
+    g.add_argument("--jitter-ms", type=milliseconds, metavar="MS", help="latency varies uniformly by +-MS")
+    g.add_argument("--duplicate", type=fraction, metavar="P", help="probability of a second copy")
+    g.add_argument("--reorder", type=fraction, metavar="P", help="probability that a copy is held back")
+    g.add_argument("--reorder-ms", type=milliseconds, metavar="MS",
                    help="how long a reordered copy is held back (default 50)")
 
 

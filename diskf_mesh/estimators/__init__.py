@@ -21,7 +21,7 @@ import warnings
 from dataclasses import field, make_dataclass
 from importlib.metadata import entry_points
 
-from diskf_mesh.estimators.base import Estimator, Setting, State
+from diskf_mesh.estimators.base import EXCHANGED, Estimator, Exchanged, Setting, State, check_exchanged
 from diskf_mesh.estimators.consensus_baselines import GDKF, KCF, DiffKF
 from diskf_mesh.estimators.diskf import DISKF
 from diskf_mesh.estimators.diskf_robust import DISKFRobust
@@ -48,6 +48,7 @@ def register(cls, registry: dict, settings: dict) -> None:
         if s.name in settings and settings[s.name] != s:
             raise ValueError(f"{cls.name}: setting {s.name!r} is declared differently by another estimator")
         s.check(s.default)
+    check_exchanged(cls)
     registry[cls.name] = cls
     settings.update({s.name: s for s in cls.settings})
 
@@ -113,5 +114,5 @@ def color(name: str) -> str | None:
     return REGISTRY[name].color if name in REGISTRY else None
 
 
-__all__ = ["Estimator", "Setting", "State", "Params", "REGISTRY", "SETTINGS", "NAMES", "ENTRY_POINTS",
+__all__ = ["Estimator", "Setting", "State", "Exchanged", "EXCHANGED", "Params", "REGISTRY", "SETTINGS", "NAMES", "ENTRY_POINTS",
            "get", "parse_list", "label", "color", "register"]

@@ -14,7 +14,9 @@ with the messages it actually received as ``senders``.
 
 Everything else the engine, the mesh and the studies need to know about an
 estimator it declares on its class: ``name``, ``label``, ``color``, its
-parameters (``settings``, a tuple of ``Setting``), and the hooks
+parameters (``settings``, a tuple of ``Setting``), what its message
+carries (``exchanged``, a tuple of ``Exchanged``: the wire encoding and the
+guard's checks follow from it), and the hooks
 ``draws`` (per-tick randomness), ``information_check`` (the guard's check of
 a sender's update) and ``warning`` (a stability warning before a run).
 """
@@ -119,6 +121,71 @@ class Setting:
 
 
 @dataclass(frozen=True)
+class Exchanged:
+    """One array of the message an estimator's agents exchange (a field of
+    ``Message``), declared once on its class (``Estimator.exchanged``).
+
+    The wire (``diskf_mesh.mesh.wire``) sends the declared arrays, in their
+    order, as one float64 byte string, whole and row-major; the receiving
+    agent's guard (``diskf_mesh.mesh.guard``) checks every value for
+    finiteness and magnitude, and every covariance for symmetry, positive
+    definiteness and conditioning. ``Message.d_valid`` always travels (a
+    flag). A ``Message`` array an estimator does not declare does not travel:
+    a receiving agent's senders hold zeros there.
+
+    name:      the ``Message`` field
+    shape:     "n", "n n", "m" or "m m": in the state (n) and input (m)
+               dimensions
+    update_of: a covariance that is the sender's information update of the
+               named one (P~ of P^): the guard checks it is at least as
+               certain (``Estimator.information_check``)
+    """
+
+    name: str
+    shape: str
+    update_of: str | None = None
+
+    @property
+    def covariance(self) -> bool:
+        """A square matrix: checked symmetric positive definite and conditioned."""
+        return len(self.shape.split()) == 2
+
+    def dims(self, n: int, m: int) -> tuple:
+        """The array's shape for state dimension ``n`` and input dimension ``m``."""
+        return tuple({"n": n, "m": m}[d] for d in self.shape.split())
+
+
+# Algorithm 1, step 2: what every built-in estimator exchanges (``Message``'s arrays)
+EXCHANGED = (
+    Exchanged("x_pred", "n"), Exchanged("P_pred", "n n"),
+    Exchanged("x_upd", "n"), Exchanged("P_upd", "n n", update_of="P_pred"),
+    Exchanged("d", "m"), Exchanged("S", "m m"),
+)
+
+
+def check_exchanged(cls) -> None:
+    """ValueError unless ``cls.exchanged`` declares ``Message`` arrays, each
+    once, in the shapes ``Exchanged`` knows, with an n and an m axis among
+    them and every ``update_of`` a declared covariance."""
+    ex = cls.exchanged
+    if not isinstance(ex, tuple) or not ex or not all(isinstance(f, Exchanged) for f in ex):
+        raise ValueError(f"{cls.name}: exchanged must be a non-empty tuple of Exchanged")
+    names = [f.name for f in ex]
+    bad = [n for n in names if n not in Message.ARRAY_FIELDS or names.count(n) > 1]
+    if bad:
+        raise ValueError(f"{cls.name}: exchanged {bad[0]!r}: each must be one of {', '.join(Message.ARRAY_FIELDS)}, once")
+    if any(f.shape not in ("n", "n n", "m", "m m") for f in ex):
+        raise ValueError(f"{cls.name}: an exchanged shape is one of 'n', 'n n', 'm', 'm m'")
+    axes = {d for f in ex for d in f.shape.split()}
+    if axes != {"n", "m"}:
+        raise ValueError(f"{cls.name}: the exchanged arrays must have an n axis and an m axis among them")
+    covs = {f.name: f.shape for f in ex if f.covariance}
+    for f in ex:
+        if f.update_of is not None and (not f.covariance or covs.get(f.update_of) != f.shape):
+            raise ValueError(f"{cls.name}: {f.name} is an update of {f.update_of!r}, a declared covariance of its shape")
+
+
+@dataclass(frozen=True)
 class State:
     x: np.ndarray      # (..., n)   x_bar_{k|k}, the fused estimate
     P: np.ndarray      # (..., n, n)
@@ -155,6 +222,8 @@ class Estimator:
     label: str = ""           # in tables, legends and reports
     color: str | None = None  # a matplotlib colour for its curves (None: the cycle's)
     settings: tuple = ()      # its ``Setting``s
+    exchanged: tuple = EXCHANGED  # its message's arrays (``Exchanged``), in wire order
+    extends: str | None = None    # the estimator this one extends, if any (its family, in reports)
     # The guard checks that a sender's (x~, P~) is an information update of
     # its (x^, P^) (P~ <= P^); off for estimators whose x~ is something else
     # (L-DRKF sends its RKF estimate there).

@@ -131,6 +131,7 @@ class DISKFRobust(Estimator):
     label = "DISKF-R"
     color = "midnightblue"
     settings = (WINDOW, RESET, EPS, COMPENSATION, ROBUST)
+    extends = "diskf"  # an extension of DISKF under its constraints (the reports' "DISKF family")
 
     def init(self, batch: tuple) -> RobustState:
         s = super().init(batch)

@@ -48,12 +48,12 @@ ahead of the tick it works on.
 from __future__ import annotations
 
 import argparse
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.argtypes import fraction, positive
 
 DEADLINE_FRACTION = 0.5  # default agent deadline: this share of the period after tick k reached it
 LEAD_TICKS = 64          # how far ahead of its tick an agent takes the world's ticks and neighbours' messages
@@ -76,33 +76,12 @@ class Clock:
         return ["--rate", repr(float(self.rate_hz)), "--deadline-ms", repr(1000.0 * self.deadline_s)]
 
 
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return v
-
-
-def fraction(text: str) -> float:
-    """argparse type: a number in [0, 1] (``--max-miss-rate``, the world's ``--allow-missing``)."""
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not 0.0 <= v <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be a fraction between 0 and 1, got {text!r}")
-    return v
-
-
 def add_arguments(parser: argparse.ArgumentParser, world: bool = True) -> None:
     """``--rate``, ``--deadline-ms`` and (``world``) ``--max-miss-rate``."""
     g = parser.add_argument_group("real time (diskf_mesh.mesh.clock; default: lockstep)")
-    g.add_argument("--rate", type=_positive, metavar="HZ",
+    g.add_argument("--rate", type=positive, metavar="HZ",
                    help="run on the wall clock: tick k opens at k/HZ s whether or not the reports came in")
-    g.add_argument("--deadline-ms", type=_positive, metavar="MS",
+    g.add_argument("--deadline-ms", type=positive, metavar="MS",
                    help="with --rate: an agent fuses what arrived this long after tick k reached it "
                         f"(default {DEADLINE_FRACTION:g} of the period)")
     if world:

@@ -3,8 +3,12 @@
 Every payload that arrives on a neighbour's message key goes through
 ``Guard.screen(sender, payload, tick)`` (``sender``: the id the key names,
 parsed once by the agent) before it can reach fusion. It returns the decoded
-``wire.WireMessage`` or a refusal; it never raises. A payload is rejected,
-with one reason, when
+``wire.WireMessage`` or a refusal; it never raises. The payload is decoded
+once (``wire.decode``), and every check below runs once, on the floats the
+decoder read (``WireMessage.values``); what is checked follows from the
+estimator's declaration (``Estimator.exchanged``: every value, every
+covariance, every update of a covariance). A payload is rejected, with one
+reason, when
 
     key             the key's id is not an integer (no decode)
     unknown-sender  the key names an agent that is not in this run's scenario
@@ -24,15 +28,16 @@ with one reason, when
     magnitude       a value beyond ``max_abs`` (finite, but products of it
                     overflow in fusion)
     ill-conditioned a covariance whose condition number exceeds ``max_cond``
-    information     P_upd is not at least as certain as P_pred: the update
-                    would subtract information, and fusing it could leave the
+    information     a covariance declared an update of another (P_upd of
+                    P_pred) is not at least as certain: the update would
+                    subtract information, and fusing it could leave the
                     fused information matrix indefinite (checked only for
-                    algorithms that fuse information, ``information_check``)
+                    estimators that fuse information, ``information_check``)
     error           anything else the checks raised (should never happen;
                     the fuzz test asserts it does not)
     fusion          (counted by the agent, per message of the tick) fusion of
                     messages that all passed failed anyway; the agent fused
-                    its own message alone (see ``fuse_checked``)
+                    its own message alone (``Agent._close``)
     constants       (counted by the agent) a world tick whose run constants
                     (K, seed, algorithm, topology, range) are not those of
                     the run's first tick
@@ -52,10 +57,10 @@ timeout for a neighbour whose message was poisoned, and never fuses it.
 Late and duplicate messages are not errors: they are well-formed, and the
 inbox (``diskf_mesh.mesh.inbox``) counts and drops them.
 
-``fuse_checked`` is the last line: should fusion still fail on messages that
-passed the guard (a well-formed but inconsistent set, e.g. adversarial
-information that is individually plausible), the agent keeps its own
-estimate for that tick instead of stopping.
+The agent's ``_close`` is the last line: should fusion still fail on
+messages that passed the guard (a well-formed but inconsistent set, e.g.
+adversarial information that is individually plausible), the agent keeps
+its own estimate for that tick instead of stopping.
 """
 from __future__ import annotations
 
@@ -67,7 +72,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from diskf_mesh.core import small
-from diskf_mesh.core.messages import Message
+from diskf_mesh.estimators.base import EXCHANGED
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.counters import Counters
 from diskf_mesh.mesh.profile import NO_PHASES, Phases
@@ -92,7 +97,8 @@ class GuardConfig:
     max_abs: float = 1e12
     max_cond: float = 1e10
     information_rtol: float = 1e-6
-    information_check: bool = True  # off for algorithms that never invert a sender's P (L-DRKF)
+    information_check: bool = True  # off for estimators that never invert a sender's P (L-DRKF)
+    exchanged: tuple = EXCHANGED    # the arrays a message carries (``Estimator.exchanged``)
 
 
 @dataclass(frozen=True)
@@ -126,11 +132,11 @@ class Guard:
             return self._reject(None, "key" if sender is None else "unknown-sender")
         if sender == c.me:
             return None
+        prof = self.profile
         try:
-            prof = self.profile
             prof.begin()
             try:
-                wm = wire.decode(payload, run_id=c.run_id, sender=sender, n=c.n, m=c.m)
+                wm = wire.decode(payload, run_id=c.run_id, sender=sender, n=c.n, m=c.m, exchanged=c.exchanged)
             except wire.Rejected as e:
                 # a body naming another agent or run is not this sender's message of its tick (a copy, a
                 # replay): it accounts for no tick, so it cannot stand in for the sender's real message
@@ -141,19 +147,15 @@ class Guard:
                 prof.end("decode")
             prof.begin()
             try:
-                reason = self.check(wm, tick)
+                inside = self.in_window(wm.tick, tick)
+                reason = message_problem(wm, c) if inside else self._off_window(wm.tick, tick)
             finally:
                 prof.end("guard")
             if reason is not None:
-                return self._reject(sender, *reason, wm.tick if self.in_window(wm.tick, tick) else None)
+                return self._reject(sender, *reason, wm.tick if inside else None)
             return wm
         except Exception as e:  # noqa: BLE001 - a guard that raises would stop the agent
             return self._reject(sender, "error", f"{type(e).__name__}: {e}")
-
-    def admit(self, sender, payload, tick: int) -> wire.WireMessage | None:
-        """``screen``'s message, or None (rejected, or the agent's own)."""
-        out = self.screen(sender, payload, tick)
-        return out if isinstance(out, wire.WireMessage) else None
 
     # -- checks beyond the decoder's ---------------------------------------
     def in_window(self, t, tick: int) -> bool:
@@ -162,14 +164,11 @@ class Guard:
         return t is not None and max(1, tick - c.max_lag) <= t <= tick + c.max_lead and (c.ticks is None
                                                                                           or t <= c.ticks)
 
-    def check(self, wm: wire.WireMessage, tick: int):
-        """None, or (reason, detail) for a decoded message."""
-        if not self.in_window(wm.tick, tick):
-            c = self.config
-            if wm.tick < 1 or wm.tick < tick - c.max_lag:
-                return "tick-past", f"tick {wm.tick} at tick {tick}"
-            return "tick-future", f"tick {wm.tick} at tick {tick}"
-        return message_problem(wm.message, self.config)
+    def _off_window(self, t: int, tick: int) -> tuple:
+        """(reason, detail) of a message of tick ``t`` outside the window."""
+        if t < 1 or t < tick - self.config.max_lag:
+            return "tick-past", f"tick {t} at tick {tick}"
+        return "tick-future", f"tick {t} at tick {tick}"
 
     # -- bookkeeping -----------------------------------------------------
     def reject(self, sender, reason: str, detail: str = "") -> None:
@@ -189,47 +188,68 @@ class Guard:
         return Refused(reason, tick)
 
 
-def message_problem(msg: Message, c: GuardConfig):
-    """Numerical checks of one decoded message: None or (reason, detail).
+def message_problem(wm: wire.WireMessage, c: GuardConfig):
+    """The checks of one decoded message beyond the decoder's: None or
+    (reason, detail).
 
     The decoder has checked dtype, shapes, finiteness and that every
-    covariance has a Cholesky factor. Covariances of size 1 and 2 (the
-    usual n, m) are checked in closed form on Python floats, which is ten
-    times faster than numpy's LAPACK calls on such small matrices; larger
-    ones with ``numpy.linalg``."""
-    arrays = [getattr(msg, f) for f in Message.ARRAY_FIELDS]
-    if sum(a.size for a in arrays) <= 64:
-        values = [v for a in arrays for v in a.ravel().tolist()]
+    covariance has a Cholesky factor; these checks run on the floats it
+    read (``wm.values``, laid out as ``wm.layout``). Covariances of size 1
+    and 2 (the usual n, m) are checked in closed form on Python floats,
+    which is ten times faster than numpy's LAPACK calls on such small
+    matrices; larger ones with ``numpy.linalg``."""
+    values, lay, msg = wm.values, wm.layout, wm.message
+    small_values = type(values) is tuple
+    if small_values:
         big = max(max(values), -min(values))  # the largest |v|, in C loops
     else:
-        big = max(float(np.abs(a).max()) for a in arrays)
+        big = float(np.abs(values).max())
     if big > c.max_abs:
         return "magnitude", f"a value of {big:.3g} (limit {c.max_abs:.3g})"
-    for name in ("P_pred", "P_upd", "S"):
-        ev = _extreme_eigenvalues(getattr(msg, name))
+    for s in lay.covariances:
+        ev = _extreme_eigenvalues(_rows(values, s) if small_values else getattr(msg, s.name))
         if not ev[0] > 0 or ev[-1] > c.max_cond * ev[0]:
-            return "ill-conditioned", f"{name} eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}"
+            return "ill-conditioned", f"{s.name} eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}"
     if c.information_check:
-        low, scale = _information_gain(msg.P_pred, msg.P_upd)
-        if low < -c.information_rtol * scale:
-            return "information", f"P_upd adds negative information ({low:.3g})"
+        for s, of in lay.updates:
+            low, scale = (_information_gain(_rows(values, of), _rows(values, s)) if small_values else
+                          _information_gain(getattr(msg, of.name), getattr(msg, s.name)))
+            if low < -c.information_rtol * scale:
+                return "information", f"{s.name} adds negative information ({low:.3g})"
     return None
 
 
-def _extreme_eigenvalues(M: np.ndarray) -> tuple:
+def _rows(values: tuple, s: wire.Slot):
+    """The covariance at ``s`` as nested lists of Python floats (``k`` <= 2),
+    else as a numpy array."""
+    k = s.shape[-1]
+    v = values[s.start:s.stop]
+    if k == 1:
+        return [[v[0]]]
+    if k == 2:
+        return [[v[0], v[1]], [v[2], v[3]]]
+    return np.array(v, dtype=float).reshape(k, k)
+
+
+def _extreme_eigenvalues(M) -> tuple:
     """(smallest, largest) eigenvalue of a symmetric matrix (lower triangle,
-    as ``eigvalsh``)."""
+    as ``eigvalsh``): nested lists of size 1 or 2, or an array."""
+    if isinstance(M, list):
+        return small.extreme_eigenvalues(M)
     if M.shape[-1] <= 2:
         return small.extreme_eigenvalues(M.tolist())
     ev = np.linalg.eigvalsh(M)
     return float(ev[0]), float(ev[-1])
 
 
-def _information_gain(P_pred: np.ndarray, P_upd: np.ndarray) -> tuple:
-    """(smallest eigenvalue of sym(inv(P_upd) - inv(P_pred)), max |inv(P_upd)|)."""
-    k = P_upd.shape[-1]
-    if k <= 2:
-        Yu, Yp = small.inverse(P_upd.tolist()), small.inverse(P_pred.tolist())
+def _information_gain(P_pred, P_upd) -> tuple:
+    """(smallest eigenvalue of sym(inv(P_upd) - inv(P_pred)), max |inv(P_upd)|);
+    nested lists of size 1 or 2, or arrays."""
+    if not isinstance(P_upd, list) and P_upd.shape[-1] <= 2:
+        P_pred, P_upd = P_pred.tolist(), P_upd.tolist()
+    if isinstance(P_upd, list):
+        k = len(P_upd)
+        Yu, Yp = small.inverse(P_upd), small.inverse(P_pred)
         scale = max(abs(v) for row in Yu for v in row)
         if k == 1:
             return Yu[0][0] - Yp[0][0], scale
@@ -239,4 +259,3 @@ def _information_gain(P_pred: np.ndarray, P_upd: np.ndarray) -> tuple:
     Yu = np.linalg.inv(P_upd)
     dY = Yu - np.linalg.inv(P_pred)
     return float(np.linalg.eigvalsh(0.5 * (dY + dY.T))[0]), float(np.abs(Yu).max())
-

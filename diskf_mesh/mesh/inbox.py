@@ -1,4 +1,17 @@
-"""An agent's inbox: neighbours' messages that arrived, held until their tick is fused.
+"""An agent's inbox: the one place a neighbour's message waits.
+
+A message waits here in one of two stages: before its link, for its tick to
+open at this agent (the world's tick gives the links), and after its link
+delivered it, until its tick is fused.
+
+    ``wait_for_tick(sender, tick, m)``  a message whose tick the world has
+                                      not opened here yet: held (first copy
+                                      per (sender, tick); False for a repeat)
+    ``opened(tick)``                  the world's tick is in: what waited for
+                                      it, {sender: message}, goes on a link
+    ``skipped(tick)``                 the agent works on ``tick`` now: how
+                                      many waited for an earlier one (their
+                                      tick was skipped; never on a link)
 
 The estimator fuses only what arrived in time for its tick:
 
@@ -22,9 +35,12 @@ The estimator fuses only what arrived in time for its tick:
 
 Bounded: a (sender, tick) is remembered (to tell a duplicate) only for
 ``keep`` ticks behind the last tick taken; the receiver's guard refuses
-anything older before it gets here.
+anything older before it gets here, and anything further ahead than its
+window, so what waits for its tick is one message per scenario agent and
+tick of the window.
 
-Counts go to a ``Counters`` (arrived, duplicate, fused, late, unlinked).
+Counts go to a ``Counters`` (arrived, duplicate, fused, late, unlinked; the
+receiver counts what waited for a tick and never went on a link).
 Thread-safe: a transport may offer from its own threads.
 """
 from __future__ import annotations
@@ -44,8 +60,30 @@ class Inbox:
         self._closed_through = 0     # ticks <= this were fused
         self._closed = False         # the run is over: everything is late
         self._due: dict = {}         # tick -> deadline (real time): a copy after it is late
+        self._early: dict = {}       # tick -> {sender: message} before the world's tick of that tick
         self._clock = clock
         self._lock = threading.Lock()
+
+    def wait_for_tick(self, sender: int, tick: int, message) -> bool:
+        """Hold ``message`` of ``tick`` until the tick opens here; False (not
+        held) if ``sender`` already has one waiting for it."""
+        with self._lock:
+            early = self._early.setdefault(tick, {})
+            if sender in early:
+                return False
+            early[sender] = message
+            return True
+
+    def opened(self, tick: int) -> dict:
+        """{sender: message} that waited for ``tick``, no longer held."""
+        with self._lock:
+            return self._early.pop(tick, {})
+
+    def skipped(self, tick: int) -> int:
+        """Drop what waited for a tick before ``tick``; how many."""
+        with self._lock:
+            old = [t for t in self._early if t < tick]
+            return sum(len(self._early.pop(t)) for t in old)
 
     def due(self, tick: int, at: float) -> None:
         with self._lock:

@@ -142,11 +142,6 @@ class Keys:
     def ready(self, agent, nonce: str = "*") -> str:
         return f"{self.root}/ready/agent/{agent}/{nonce}"
 
-    @property
-    def tokens(self) -> str:
-        """Every liveliness token of the run (alive and ready)."""
-        return f"{self.root}/*/**"
-
     def parse(self, key: str) -> tuple:
         """(kind, agent id or None) of a key of this run; kind is one of tick,
         meas, stop, msg, report, rejoin, duplicate, alive-world, alive, ready, or None

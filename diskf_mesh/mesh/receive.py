@@ -3,15 +3,18 @@
     payload on a neighbour's key (its id parsed once, by the agent)
       -> ``Guard.screen``     rejected (counted by reason; one that named a
                               tick in the window accounts for its sender at
-                              that tick), or a decoded message (decoded once)
+                              that tick), or a decoded message (decoded
+                              once, every value and the tick window checked
+                              once)
       -> range gate           the sender not in range at the message's tick:
                               out_of_range += 1, never on a link. A message
                               whose tick the world has not opened here yet
-                              waits for it (``release``), first copy per
-                              (sender, tick), before the link: a link's
-                              latency runs from when its receiver knows
-                              the tick, as in the engine's fault model
-                              (``faults.delivered_links``)
+                              waits for it in the inbox
+                              (``Inbox.wait_for_tick``, ``release``), first
+                              copy per (sender, tick), before the link: a
+                              link's latency runs from when its receiver
+                              knows the tick, as in the engine's fault
+                              model (``faults.delivered_links``)
       -> sent += 1
       -> ``FaultModel.plan``  lost (lost += 1), or one or two copies with delays
       -> ``DelayLine``        holds each copy until it is due
@@ -23,16 +26,17 @@ Every map here is bounded by the guard's window (``max_lag`` + ``max_lead``
 + 1 ticks) times the scenario's agents: what a flood of other ids, ticks or
 copies sends costs counts, never memory.
 
-A transport calls ``on_payload`` from its subscriber callback and, per tick,
-``wait(tick, expected, deadline)`` then ``take(tick, linked)``. Without a
-fault model (or with an inactive one) a copy goes straight to the inbox in
-the caller's thread, so a fault-free run is exactly the run without this layer.
+The agent calls ``on_payload`` from its subscriber callback and, per tick,
+closes the tick once every linked sender is ``accounted`` for (or at its
+deadline) with ``take(tick, linked)``; a delayed copy that arrives calls
+``on_arrival`` so the agent looks again. Without a fault model (or with an
+inactive one) a copy goes straight to the inbox in the caller's thread, so a
+fault-free run is exactly the run without this layer.
 """
 from __future__ import annotations
 
 import itertools
 import threading
-import time
 
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.counters import Counters
@@ -51,7 +55,6 @@ class Receiver:
         self.counters: Counters = guard.counters
         self.faults = faults if faults is not None and faults.config.active else None
         self.inbox = Inbox(self.counters, keep=guard.config.max_lag)
-        self._arrived = threading.Condition()
         self._delay = DelayLine(self._arrive_later)
         self._lock = threading.Lock()  # fault streams and counters are touched from zenoh threads
         self._copies_left: dict = {}   # send event -> copies not yet arrived
@@ -59,7 +62,6 @@ class Receiver:
         self._events = itertools.count()
         self._lost: dict = {}          # tick -> senders whose message of that tick the link dropped
         self._refused: dict = {}       # tick -> {sender: reason} whose message of that tick was rejected
-        self._early: dict = {}         # tick -> {sender: message} before the world's tick of that tick
         self.tick = 0                  # the agent's current tick, for the guard's window (``advance``)
         self._on_arrival = on_arrival
 
@@ -70,8 +72,7 @@ class Receiver:
         if tick > self.tick:
             with self._lock:
                 self.tick = tick
-                for t in [t for t in self._early if t < tick]:
-                    self.counters.out_of_range += len(self._early.pop(t))
+                self.counters.out_of_range += self.inbox.skipped(tick)
 
     def on_payload(self, sender, payload, links=None) -> bool:
         """A payload on agent ``sender``'s message key (None: the key's id is
@@ -87,12 +88,9 @@ class Receiver:
                 return False
             if links is not None:
                 linked = links.get(wm.tick)
-                if linked is None:  # its tick is not open here yet
-                    early = self._early.setdefault(wm.tick, {})
-                    if wm.sender in early:
+                if linked is None:  # its tick is not open here yet: it waits in the inbox
+                    if not self.inbox.wait_for_tick(wm.sender, wm.tick, wm):
                         self._repeated()
-                    else:
-                        early[wm.sender] = wm
                     return False
                 if wm.sender not in linked:
                     self.counters.out_of_range += 1
@@ -105,7 +103,7 @@ class Receiver:
         """The world's tick ``tick`` is in: what waited for it goes on a link
         (a sender in ``linked``) or is out of range."""
         with self._lock:
-            early = self._early.pop(tick, {})
+            early = self.inbox.opened(tick)
             items = []
             for s, wm in early.items():
                 if s in linked:
@@ -161,26 +159,12 @@ class Receiver:
                 del self._copies_left[event]
                 self._heard.discard(event)
         self.inbox.offer(wm.sender, wm.tick, wm.message)
-        with self._arrived:
-            self._arrived.notify_all()
 
     @property
     def in_flight(self) -> int:
         """Messages sent on a link of which no copy has arrived yet."""
         with self._lock:
             return sum(1 for e in self._copies_left if e not in self._heard)
-
-    def wait(self, tick: int, expected, deadline: float, clock=time.monotonic) -> set:
-        """Block until every sender in ``expected`` is accounted for at ``tick``
-        (``accounted``) or the monotonic ``deadline`` passes; returns them."""
-        expected = set(expected)
-        with self._arrived:
-            while True:
-                heard = self.accounted(tick)
-                left = deadline - clock()
-                if expected <= heard or left <= 0:
-                    return heard
-                self._arrived.wait(min(left, 0.05))
 
     def accounted(self, tick: int) -> set:
         """Senders of ``tick`` that need no more waiting for: their message

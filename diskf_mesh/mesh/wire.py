@@ -16,10 +16,14 @@ bit for bit what the sender computed.
 kind "msg" (agent -> neighbours, one per agent and tick; ``Message``)::
 
     "s" sender id, "n", "m", "dt", "dv" d_valid (bool),
-    "a" x_pred (n), P_pred (n x n), x_upd (n), P_upd (n x n), d (m), S (m x m)
+    "a" the arrays its estimator exchanges (``Estimator.exchanged``), in the
+        order declared; every built-in estimator's: x_pred (n), P_pred
+        (n x n), x_upd (n), P_upd (n x n), d (m), S (m x m)
 
   It never carries a raw measurement, an H or an R. For n = 2, m = 1 it is
-  about 160 bytes.
+  about 160 bytes. The byte layout of "a" for (exchanged, n, m) is
+  ``layout``: the decoder reads the floats once (``WireMessage.values``, on
+  which the guard's checks run too) and makes the arrays once.
 
 kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
 
@@ -75,8 +79,9 @@ from dataclasses import dataclass, field
 import msgpack
 import numpy as np
 
-from diskf_mesh.mesh.counters import SCALARS
 from diskf_mesh.core.messages import Message
+from diskf_mesh.estimators.base import EXCHANGED
+from diskf_mesh.mesh.counters import SCALARS
 
 SCHEMA = 1
 DTYPE = "<f8"
@@ -116,12 +121,111 @@ class Rejected(ValueError):
 
 @dataclass(frozen=True)
 class WireMessage:
-    """A decoded "msg": ``message`` holds unbatched arrays, x_pred (n,) ..."""
+    """A decoded "msg": ``message`` holds unbatched arrays, x_pred (n,) ...
+    (None for a field its estimator does not exchange); ``values`` the same
+    floats as the decoder read them (a tuple of Python floats for a small
+    message, else a float64 array), laid out as ``layout`` says."""
 
     run_id: str
     sender: int
     tick: int
     message: Message
+    values: tuple | np.ndarray = field(default=(), repr=False, compare=False)
+    layout: "Layout | None" = field(default=None, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class Slot:
+    """Where one exchanged array lies in a message's floats."""
+
+    name: str
+    index: int        # its position among ``Message``'s fields
+    start: int
+    stop: int
+    shape: tuple
+    covariance: bool
+    update_of: str | None
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The floats of a "msg" for one estimator's ``exchanged`` and (n, m)."""
+
+    slots: tuple
+    count: int        # floats in all
+    spans: tuple      # (start, k) of every k x k covariance, in declared order
+    covariances: tuple  # the covariances' slots, in declared order
+    updates: tuple    # (slot, slot of the covariance it updates), for ``Exchanged.update_of``
+    absent: tuple     # (index, zeros) of every ``Message`` array not exchanged (read-only)
+
+    def message(self, a: np.ndarray, d_valid: bool) -> Message:
+        """The ``Message`` of the float64 array ``a`` (views into it); an
+        array not exchanged is zeros of its usual shape (finite, never
+        read by its estimator's ``fuse``)."""
+        parts = [None] * len(_MESSAGE_FIELDS)
+        for i, zeros in self.absent:
+            parts[i] = zeros
+        for s in self.slots:
+            parts[s.index] = a[s.start:s.stop].reshape(s.shape)
+        parts[-1] = np.array(d_valid)
+        return Message(*parts)
+
+
+_MESSAGE_FIELDS = Message.ARRAY_FIELDS + ("d_valid",)
+
+
+@functools.lru_cache(maxsize=64)
+def layout(exchanged: tuple, n: int, m: int) -> Layout:
+    """The layout of a message of the arrays ``exchanged`` (``Exchanged``)
+    for state dimension ``n`` and input dimension ``m``."""
+    slots, i = [], 0
+    for f in exchanged:
+        if f.name not in Message.ARRAY_FIELDS:
+            raise ValueError(f"exchanged field {f.name!r} is not an array of Message")
+        shape = f.dims(n, m)
+        size = math.prod(shape)
+        slots.append(Slot(f.name, Message.ARRAY_FIELDS.index(f.name), i, i + size, shape, f.covariance, f.update_of))
+        i += size
+    by_name = {s.name: s for s in slots}
+    covs = tuple(s for s in slots if s.covariance)
+    absent = []
+    for f in EXCHANGED:
+        if f.name not in by_name:
+            zeros = np.zeros(f.dims(n, m))
+            zeros.flags.writeable = False
+            absent.append((Message.ARRAY_FIELDS.index(f.name), zeros))
+    return Layout(tuple(slots), i, tuple((s.start, s.shape[-1]) for s in covs), covs,
+                  tuple((s, by_name[s.update_of]) for s in slots if s.update_of is not None), tuple(absent))
+
+
+_CODECS: dict = {}  # (id(exchanged), n, m) -> (exchanged, limits, layout): a lookup without hashing the fields
+
+
+def _codec(exchanged: tuple, n: int | None, m: int | None) -> tuple:
+    """(limits, layout) of a "msg" of ``exchanged`` for the receiver's (n, m)
+    (layout None where n or m is not given), remembered per declaration."""
+    key = (id(exchanged), n, m)
+    hit = _CODECS.get(key)
+    if hit is None or hit[0] is not exchanged:
+        if len(_CODECS) >= 256:
+            _CODECS.clear()
+        hit = _CODECS[key] = (exchanged, limits("msg", n, m, exchanged=exchanged),
+                              None if n is None or m is None else layout(exchanged, n, m), _dim_fields(exchanged))
+    return hit[1:]
+
+
+@functools.lru_cache(maxsize=64)
+def _dim_fields(exchanged: tuple) -> tuple:
+    """The first declared array with an n axis and the first with an m axis,
+    and that axis (the header's "n" and "m" are read from them)."""
+    out = []
+    for d in ("n", "m"):
+        hit = next(((f.name, f.shape.split().index(d) - len(f.shape.split())) for f in exchanged
+                    if d in f.shape.split()), None)
+        if hit is None:
+            raise ValueError(f"an estimator's exchanged arrays must include one with an {d} axis")
+        out.append(hit)
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -137,6 +241,21 @@ class Report:
     fused: tuple = ()      # sender ids fused into this estimate
     not_fused: tuple = ()  # ((sender, verdict), ...) the other linked senders
     sent: bytes = b""      # this agent's own message of the tick, as published
+
+
+def reported_estimates(x, P, d, d_valid, reported=None):
+    """The fused estimates of a run's reports, arrays (K, N, ...), as an
+    ``engine.batch.Estimates`` batch of one; with ``reported`` (K, N) the
+    agent-ticks without a report hold x = 0, P = I, d = 0 (for metrics,
+    which mask them out). The world's record and a recording's reader hold
+    these arrays."""
+    from diskf_mesh.engine.batch import Estimates
+
+    if reported is not None:
+        miss = ~reported
+        x, d = np.where(miss[..., None], 0.0, x), np.where(miss[..., None], 0.0, d)
+        P = np.where(miss[..., None, None], np.eye(P.shape[-1]), P)
+    return Estimates(x[None], P[None], d[None], d_valid[None])
 
 
 @dataclass(frozen=True)
@@ -191,11 +310,13 @@ def _dims(x: np.ndarray, d: np.ndarray) -> tuple:
     return int(np.shape(x)[-1]), int(np.shape(d)[-1])
 
 
-def encode(run_id: str, sender: int, tick: int, msg: Message) -> bytes:
-    """One agent's message; ``msg`` arrays may keep leading batch axes of size 1."""
-    n, m = _dims(msg.x_pred, msg.d)
-    blob = _f8(msg.x_pred, msg.P_pred, msg.x_upd, msg.P_upd, msg.d, msg.S)
-    if len(blob) != 8 * (2 * n + 2 * n * n + m + m * m):
+def encode(run_id: str, sender: int, tick: int, msg: Message, exchanged: tuple = EXCHANGED) -> bytes:
+    """One agent's message: the arrays ``exchanged`` (its estimator's
+    declaration); ``msg`` arrays may keep leading batch axes of size 1."""
+    _, _, ((fn, an), (fm, am)) = _codec(exchanged, None, None)
+    n, m = int(np.shape(getattr(msg, fn))[an]), int(np.shape(getattr(msg, fm))[am])
+    blob = _f8(*(getattr(msg, f.name) for f in exchanged))
+    if len(blob) != 8 * _codec(exchanged, n, m)[1].count:
         raise ValueError("encode: a message must hold one agent's arrays")
     return _pack({"v": SCHEMA, "k": "msg", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
                   "dt": DTYPE, "dv": bool(np.asarray(msg.d_valid).reshape(-1)[0]), "a": blob})
@@ -272,16 +393,18 @@ EXTRA_FIELDS = 2
 
 
 @functools.lru_cache(maxsize=64)
-def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | None = None) -> Limits:
+def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | None = None,
+           exchanged: tuple = EXCHANGED) -> Limits:
     """``kind``'s limits: "msg" and "report" for dimensions (a, b) = (n, m)
-    (a report also for the run's ``agents``: its "f" and "nf" name senders),
+    ("msg" of the arrays ``exchanged``; a report also for the run's
+    ``agents``: its "f" and "nf" name senders),
     "tick" for a = N agents, "meas" for a = p values, "stop". A dimension
     not given is the largest any run may have (``MAX_DIM``; for N, what fits
     in ``MAX_BYTES``)."""
     n, m = a or MAX_DIM, b or MAX_DIM
     fields = _FIELDS[kind] + EXTRA_FIELDS
     if kind in ("msg", "report"):
-        floats = 2 * n + 2 * n * n + m + m * m if kind == "msg" else n + n * n + m
+        floats = layout(exchanged, n, m).count if kind == "msg" else n + n * n + m
         size = HEADER_BYTES + 8 * floats
         arrays, bins = floats, 8 * floats
         if kind == "report":  # the counters: MAX_COUNTERS names and ints; "f" and "nf": a few bytes per sender;
@@ -331,6 +454,14 @@ def _open(data, kind: str, run_id: str | None, lim: Limits) -> dict:
 
 
 def _floats(doc: dict, key: str, count: int) -> np.ndarray:
+    """The float64 array of ``doc[key]`` (``count`` floats), checked finite."""
+    values = _values(doc, key, count)
+    return np.array(values, dtype=float) if type(values) is tuple else values
+
+
+def _values(doc: dict, key: str, count: int):
+    """The ``count`` floats of ``doc[key]``, checked finite, read once: a
+    tuple of Python floats for a few (``_SMALL``), else a float64 array."""
     if doc.get("dt", DTYPE) != DTYPE:
         raise Rejected("dtype", f"dtype {doc.get('dt')!r}, expected {DTYPE!r}")
     blob = doc.get(key)
@@ -343,7 +474,7 @@ def _floats(doc: dict, key: str, count: int) -> np.ndarray:
         # NaN and infinity make the sum non-finite (so may huge finite values: then look at each)
         if not math.isfinite(sum(values)) and not all(map(math.isfinite, values)):
             raise Rejected("non-finite", f"field {key!r}")
-        return np.array(values, dtype=float)
+        return values
     a = np.frombuffer(blob, dtype=DTYPE).astype(float)
     if not np.isfinite(a).all():
         raise Rejected("non-finite", f"field {key!r}")
@@ -374,14 +505,18 @@ def _check_sender(doc: dict, sender: int | None) -> int:
     return s
 
 
-def _spd(*mats, rtol: float = 1e-9) -> None:
-    """Symmetric to ``rtol`` of the largest entry, and a Cholesky factor
-    exists. Small matrices (the usual n, m <= 4) are checked in plain Python,
-    which is several times faster than numpy calls on them; this runs for
-    every message received."""
-    for M in mats:
-        k = M.shape[-1]
+def _spd(values, a: np.ndarray, spans, rtol: float = 1e-9) -> None:
+    """Every k x k covariance at ``spans`` ((start, k), ...) of a payload's
+    floats: symmetric to ``rtol`` of the largest entry, and a Cholesky
+    factor exists. ``values`` are the floats as read (``_values``), ``a``
+    the same as a float64 array. Small matrices (the usual n, m <= 4) are
+    checked on the Python floats, which is several times faster than numpy
+    calls on them; this runs for every message received."""
+    small = type(values) is tuple
+    for start, k in spans:
+        stop = start + k * k
         if k > 4:
+            M = a[start:stop].reshape(k, k)
             scale = np.abs(M).max()
             if np.abs(M - M.T).max() > rtol * scale:
                 raise Rejected("not-spd", "a covariance is not symmetric")
@@ -390,12 +525,13 @@ def _spd(*mats, rtol: float = 1e-9) -> None:
             except np.linalg.LinAlgError:
                 raise Rejected("not-spd", "a covariance is not positive definite") from None
             continue
+        v = values[start:stop] if small else a[start:stop].tolist()
         if k == 1:
-            if not M[0, 0] > 0.0:
+            if not v[0] > 0.0:
                 raise Rejected("not-spd", "a variance is not positive")
             continue
         if k == 2:  # the same arithmetic as _cholesky_ok, unrolled
-            (p, q), (s, r) = M.tolist()
+            p, q, s, r = v
             if abs(q - s) > rtol * max(abs(p), abs(q), abs(s), abs(r)):
                 raise Rejected("not-spd", "a covariance is not symmetric")
             if not p > 0.0:
@@ -404,11 +540,11 @@ def _spd(*mats, rtol: float = 1e-9) -> None:
             if not r - low * low > 0.0:
                 raise Rejected("not-spd", "a covariance is not positive definite")
             continue
-        a = M.tolist()
-        scale = max(abs(v) for row in a for v in row)
-        if any(abs(a[i][j] - a[j][i]) > rtol * scale for i in range(k) for j in range(i)):
+        rows = [list(v[i * k:(i + 1) * k]) for i in range(k)]
+        scale = max(abs(x) for x in v)
+        if any(abs(rows[i][j] - rows[j][i]) > rtol * scale for i in range(k) for j in range(i)):
             raise Rejected("not-spd", "a covariance is not symmetric")
-        if not _cholesky_ok(a):
+        if not _cholesky_ok(rows):
             raise Rejected("not-spd", "a covariance is not positive definite")
 
 
@@ -447,21 +583,27 @@ def _estimate_head(doc: dict, sender, n, m) -> tuple:
 
 
 def decode(data, *, run_id: str | None = None, sender: int | None = None,
-           n: int | None = None, m: int | None = None) -> WireMessage:
-    """A neighbour's "msg"; checks everything a receiver relies on.
+           n: int | None = None, m: int | None = None, exchanged: tuple = EXCHANGED) -> WireMessage:
+    """A neighbour's "msg" of the arrays ``exchanged`` (its estimator's
+    declaration); checks everything a receiver relies on: one unpack, the
+    floats read once (finite, every covariance positive definite), the
+    arrays made once.
 
     ``sender`` is the id the key names, ``n``/``m`` the receiver's
     dimensions. A rejection after the tick was read carries it (``tick``)."""
-    doc = _open(data, "msg", run_id, limits("msg", n, m))
+    lim, lay, _ = _codec(exchanged, n, m)
+    doc = _open(data, "msg", run_id, lim)
     try:
         s, n, m, dv = _estimate_head(doc, sender, n, m)
-        a = _floats(doc, "a", 2 * n + 2 * n * n + m + m * m)
-        x_pred, P_pred, x_upd, P_upd, d, S = _split(a, [(n,), (n, n), (n,), (n, n), (m,), (m, m)])
-        _spd(P_pred, P_upd, S)
+        if lay is None:
+            lay = layout(exchanged, n, m)
+        values = _values(doc, "a", lay.count)
+        a = np.array(values, dtype=float) if type(values) is tuple else values
+        _spd(values, a, lay.spans)
     except Rejected as e:
         e.tick = doc["t"]
         raise
-    return WireMessage(doc["run"], s, doc["t"], Message(x_pred, P_pred, x_upd, P_upd, d, S, np.array(dv)))
+    return WireMessage(doc["run"], s, doc["t"], lay.message(a, dv), values, lay)
 
 
 def count_bound(ticks: int | None) -> int:
@@ -481,8 +623,10 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
     ``agents``: the run's agent count, which bounds "f" and "nf"."""
     doc = _open(data, "report", run_id, limits("report", n, m, agents))
     s, n, m, dv = _estimate_head(doc, sender, n, m)
-    x, P, d = _split(_floats(doc, "a", n + n * n + m), [(n,), (n, n), (m,)])
-    _spd(P)
+    values = _values(doc, "a", n + n * n + m)
+    a = np.array(values, dtype=float) if type(values) is tuple else values
+    _spd(values, a, ((n, n),))
+    x, P, d = _split(a, [(n,), (n, n), (m,)])
     c = doc.get("c", {})
     if not isinstance(c, dict) or len(c) > MAX_COUNTERS:
         raise Rejected("schema", "field 'c' is not a map of counters")

@@ -14,20 +14,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diskf_mesh.data.trace import Trace
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.engine.batch import Estimates
 from diskf_mesh.recording.reader import Recording, take_ticks
 
 
-def replay(rec: Recording) -> Estimates:
-    """Ticks 1..K of the recording, re-run on what was fused. Where an agent
-    did not report a tick (so its fusion is unknown) it is taken as fusing
-    what its range links gave it."""
-    trace = take_ticks(rec.trace, rec.ticks)
-    links = rec.fused.copy()
-    missing = ~rec.reported
+def replay_fused(trace: Trace, fused: np.ndarray, reported: np.ndarray, algorithm: str, params) -> Estimates:
+    """The engine on the first K ticks of ``trace`` with exactly the ``fused``
+    sets (K, N, N). Where an agent did not report a tick (so its fusion is
+    unknown) it is taken as fusing what its range links gave it."""
+    trace = take_ticks(trace, fused.shape[0])
+    links = fused.copy()
+    missing = ~reported
     links[missing] = trace.links[0][missing]
-    return engine.run(trace.with_links(links[None]), rec.algorithm, rec.params)
+    return engine.run(trace.with_links(links[None]), algorithm, params)
+
+
+def replay(rec: Recording) -> Estimates:
+    """Ticks 1..K of the recording, re-run on what was fused."""
+    return replay_fused(rec.trace, rec.fused[:rec.ticks], rec.reported, rec.algorithm, rec.params)
 
 
 @dataclass(frozen=True)
@@ -38,7 +44,9 @@ class Comparison:
     max_abs: float              # largest |difference| of x, P, d
 
 
-def compare(rec: Recording, est: Estimates) -> Comparison:
+def compare(rec, est: Estimates) -> Comparison:
+    """``rec``: what a run computed (a ``Recording`` or a ``FusedRecord``:
+    ``reported``, ``x``, ``P``, ``d``, ``d_valid``), against ``est``."""
     r = rec.reported
     x, P, d, dv = est.x[0], est.P[0], est.d[0], est.d_valid[0]
     same_dv = dv == rec.d_valid

@@ -3,10 +3,10 @@ from __future__ import annotations
 
 from collections import Counter
 
-import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh.engine.batch import Estimates
+from diskf_mesh.mesh.wire import reported_estimates
 from diskf_mesh.recording.reader import Recording, take_ticks
 
 VERDICTS = ("fused", "lost", "late", "rejected", "unreported")
@@ -15,10 +15,7 @@ VERDICTS = ("fused", "lost", "late", "rejected", "unreported")
 def recorded_estimates(rec: Recording) -> Estimates:
     """The recorded estimates as a batch of one; agent-ticks without a
     report hold x = 0, P = I (metrics mask them out)."""
-    miss = ~rec.reported
-    x, d = np.where(miss[..., None], 0.0, rec.x), np.where(miss[..., None], 0.0, rec.d)
-    P = np.where(miss[..., None, None], np.eye(rec.P.shape[-1]), rec.P)
-    return Estimates(x[None], P[None], d[None], rec.d_valid[None])
+    return reported_estimates(rec.x, rec.P, rec.d, rec.d_valid, rec.reported)
 
 
 def recorded_metrics(rec: Recording) -> dict:

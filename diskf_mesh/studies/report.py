@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diskf_mesh import estimators
 from diskf_mesh.studies import figures
 from diskf_mesh.data import paper_values
 from diskf_mesh.studies import suite as studies
@@ -54,6 +55,12 @@ def table(header, rows) -> str:
 
 BOUND = "centralized"  # a reference row, never "the best"
 PAPER_ALGS = paper_values.COLUMNS
+# Who the narrative is about, from the declarations: the paper's method (the first column of its
+# tables), the registered estimators that extend it (``Estimator.extends``: diskf-r), and that family
+OURS = PAPER_ALGS[0]
+EXTENSIONS = tuple(name for name, cls in estimators.REGISTRY.items() if cls.extends == OURS)
+EXTENSION = EXTENSIONS[0] if EXTENSIONS else OURS  # the one section 10 is about
+FAMILY = (OURS,) + EXTENSIONS
 
 
 def best_alg(results: dict, setting: str, key: str, among=None) -> str:
@@ -94,8 +101,9 @@ def sweep_table(sweep: dict, key: str, topo: dict) -> str:
 
 
 def not_best(results: dict, what: str, skip=()) -> list[list[str]]:
-    """Table rows for the settings where DISKF is not the lowest in some
-    metric: per metric "DISKF" or "<best> <value> (DISKF <value>)"."""
+    """Table rows for the settings where the paper's method (``OURS``) is
+    not the lowest in some metric: per metric its label, or "<best> <value>
+    (<its label> <value>)"."""
     out = []
     for st in next(iter(results.values())):
         if st in skip:
@@ -103,10 +111,10 @@ def not_best(results: dict, what: str, skip=()) -> list[list[str]]:
         cells = []
         for key in METRICS:
             b = best_alg(results, st, key, among=PAPER_ALGS)
-            lost = b and b != "diskf" and results[b][st][key] < results["diskf"][st][key]
-            cells.append(f"{LABELS[b]} {num(results[b][st][key])} (DISKF {num(results['diskf'][st][key])})"
-                         if lost else "DISKF")
-        if any(c != "DISKF" for c in cells):
+            lost = b and b != OURS and results[b][st][key] < results[OURS][st][key]
+            cells.append(f"{LABELS[b]} {num(results[b][st][key])} ({LABELS[OURS]} {num(results[OURS][st][key])})"
+                         if lost else LABELS[OURS])
+        if any(c != LABELS[OURS] for c in cells):
             out.append([what, comm_name(st)] + cells)
     return out
 
@@ -343,9 +351,9 @@ def headline(res: studies.Results) -> str:
     parts = []
     for key in ("mae_state", "mae_input"):
         b = best_alg(res.dynamic, r, key, among=PAPER_ALGS)
-        v = res.dynamic["diskf"][r][key]
-        parts.append(f"{METRIC_NAMES[key]} DISKF {num(v)}: " + (
-            "the lowest of the paper's six" if b == "diskf" else f"not the lowest, {LABELS[b]} has {num(res.dynamic[b][r][key])}"))
+        v = res.dynamic[OURS][r][key]
+        parts.append(f"{METRIC_NAMES[key]} {LABELS[OURS]} {num(v)}: " + (
+            "the lowest of the paper's six" if b == OURS else f"not the lowest, {LABELS[b]} has {num(res.dynamic[b][r][key])}"))
     return f"At range {r}: " + "; ".join(parts) + "."
 
 
@@ -369,7 +377,7 @@ def window_note(res: studies.Results) -> str:
 
 
 def all_to_all_note(res: studies.Results) -> str:
-    a = res.dynamic["diskf"]["all"]["mae_state"]
+    a = res.dynamic[OURS]["all"]["mae_state"]
     c = res.dynamic["cdrkf"]["all"]["mae_state"]
     return (
         "\n### 8.4 All-to-all in Scenario 2\n\n"
@@ -405,14 +413,14 @@ def hold_note(res: studies.Results) -> str:
 # --------------------------------------------------------------------------
 # beyond the paper
 # --------------------------------------------------------------------------
-ONE_ROUND = ("diskf", "diskf-r", "cdrkf", "ldrkf", "kcf", "diffkf", "gdkf")
+ONE_ROUND = estimators.NAMES  # every estimator: one exchange round per tick is the interface
 NEES_BAND = (1.6, 2.5)  # the 95 % band of the averaged NEES for n = 2 (issue 13)
 
 
 def family_check(rows: dict, key: str) -> tuple:
-    """(best of diskf*, best other one-round (name, value), within 1 %)."""
-    fam = min(rows[a][key] for a in rows if a.startswith("diskf"))
-    others = {a: rows[a][key] for a in rows if a in ONE_ROUND and not a.startswith("diskf") and math.isfinite(rows[a][key])}
+    """(best of the family, best other one-round (name, value), within 1 %)."""
+    fam = min(rows[a][key] for a in rows if a in FAMILY)
+    others = {a: rows[a][key] for a in rows if a in ONE_ROUND and a not in FAMILY and math.isfinite(rows[a][key])}
     b = min(others, key=others.get)
     return fam, (b, others[b]), fam <= 1.01 * others[b]
 
@@ -429,10 +437,10 @@ def overview_table(ov: dict, key: str) -> str:
     rows = []
     for st, r in ov.items():
         fam, (b, bv), ok = family_check(r, key)
-        rows.append([st, num(r["diskf"][key]), num(r["diskf-r"][key]), f"{_label(b)} {num(bv)}",
+        rows.append([st, num(r[OURS][key]), num(r[EXTENSION][key]), f"{_label(b)} {num(bv)}",
                      num(r[BOUND][key]), num(r[PBOUND][key]),
                      "yes" if ok else f"**no** ({num(100 * (fam - bv) / bv, 1)} % above)"])
-    return table(["setting", "DISKF", "DISKF-R", "best other one-round", "Centralized (bound)",
+    return table(["setting", LABELS[OURS], LABELS[EXTENSION], "best other one-round", "Centralized (bound)",
                   "Centralized, persistent input", "DISKF family lowest (or within 1 %)"], rows)
 
 
@@ -463,7 +471,7 @@ def robustness_table(rb: dict) -> str:
         fam, (b, bv), ok = family_check(r, "mae_state")
         fam_i, (bi, biv), ok_i = family_check(r, "mae_input")
         rows.append([st] + [num(r[a]["mae_state"]) for a in algs]
-                    + [num(r["diskf-r"]["mae_input"]), num(r["diskf-r"]["nees_observed"], 1),
+                    + [num(r[EXTENSION]["mae_input"]), num(r[EXTENSION]["nees_observed"], 1),
                        ("yes" if ok else "**no**") + " / " + ("yes" if ok_i else "**no**")])
     return table(["setting / perturbation"] + [f"{_label(a)} MAE(state)" for a in algs]
                  + ["DISKF-R MAE(input)", "DISKF-R NEES observed", "family lowest: state / input"], rows)
@@ -478,22 +486,22 @@ def robust_targets(res: studies.Results) -> list:
     lows = [(st, key) for st, r in ov.items() for key in ("mae_state", "mae_input") if not family_check(r, key)[2]]
     out = [["DISKF family lowest MAE(state) and MAE(input) of the one-round estimators (or within 1 %), every setting",
             "met" if not lows else "not met in " + ", ".join(f"{st} ({METRIC_NAMES[k]})" for st, k in lows)]]
-    out.append(["Scenario 2 range 120: MAE(state) ≤ 20", f"{num(r120['diskf-r']['mae_state'])}: "
-                + ("met" if r120["diskf-r"]["mae_state"] <= 20 else "not met")])
-    out.append(["Scenario 1 ring: MAE(state) ≤ 5", f"{num(ring['diskf-r']['mae_state'])}: "
-                + ("met" if ring["diskf-r"]["mae_state"] <= 5 else "not met")])
+    out.append(["Scenario 2 range 120: MAE(state) ≤ 20", f"{num(r120[EXTENSION]['mae_state'])}: "
+                + ("met" if r120[EXTENSION]["mae_state"] <= 20 else "not met")])
+    out.append(["Scenario 1 ring: MAE(state) ≤ 5", f"{num(ring[EXTENSION]['mae_state'])}: "
+                + ("met" if ring[EXTENSION]["mae_state"] <= 5 else "not met")])
     for st in ("Scenario 1 / all-to-all", "Scenario 2 / all-to-all"):
         r = cell(st)
-        v, c, cp = r["diskf-r"]["mae_state"], r[BOUND]["mae_state"], r[PBOUND]["mae_state"]
+        v, c, cp = r[EXTENSION]["mae_state"], r[BOUND]["mae_state"], r[PBOUND]["mae_state"]
         out.append([f"{st}: MAE(state) within 1 % of the centralized bound",
                     f"{num(v)} against {num(c)}: " + ("met" if v <= 1.01 * c else "not met")
                     + (" (below it: DISKF-R's input model)" if v < c else "")
                     + f"; against the centralized filter of the same model {num(cp)}: "
                     + ("met" if v <= 1.01 * cp else "not met")])
-        nees = r["diskf-r"]["nees"]
+        nees = r[EXTENSION]["nees"]
         out.append([f"{st}: DISKF-R mean NEES inside [{NEES_BAND[0]}, {NEES_BAND[1]}]",
                     f"{num(nees)}: " + ("met" if NEES_BAND[0] <= nees <= NEES_BAND[1] else "not met")])
-    high = [(st, r["diskf-r"]["nees_observed"]) for st, r in ov.items() if not r["diskf-r"]["nees_observed"] <= 4.0]
+    high = [(st, r[EXTENSION]["nees_observed"]) for st, r in ov.items() if not r[EXTENSION]["nees_observed"] <= 4.0]
     out.append(["DISKF-R mean NEES ≤ 2n = 4 over the agent-ticks whose neighbourhood measures, every setting",
                 "met" if not high else "not met in " + ", ".join(f"{st} ({num(v, 1)})" for st, v in high)])
     rb = res.robustness
@@ -501,7 +509,7 @@ def robust_targets(res: studies.Results) -> list:
         lows = [(st, key) for st, r in rb.items() for key in ("mae_state", "mae_input") if not family_check(r, key)[2]]
         out.append(["Robustness (10.5, 40 unseen seeds): DISKF family lowest MAE(state) and MAE(input)",
                     "met" if not lows else "not met in " + ", ".join(f"{st} ({METRIC_NAMES[k]})" for st, k in lows)])
-        high = [(st, r["diskf-r"]["nees_observed"]) for st, r in rb.items() if not r["diskf-r"]["nees_observed"] <= 4.0]
+        high = [(st, r[EXTENSION]["nees_observed"]) for st, r in rb.items() if not r[EXTENSION]["nees_observed"] <= 4.0]
         out.append(["Robustness (10.5): DISKF-R NEES ≤ 4 over observed agent-ticks",
                     "met" if not high else "not met in " + ", ".join(f"{st} ({num(v, 1)})" for st, v in high)])
     return out
