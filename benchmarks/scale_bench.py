@@ -53,6 +53,9 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from sim.netns import Namespaces  # noqa: E402
+
 ROLES = {"sim.world": "world", "agents.agent": "agent", "sim.router": "router", "sim.host": "host",
          "sim.launcher": "up"}
 TICK_S = os.sysconf("SC_CLK_TCK")
@@ -74,42 +77,6 @@ def hosts_file(path: Path, n: int, per_host: int, port0: int, spaces=None) -> Pa
             lines.append(f'prefix = ["ip", "netns", "exec", "{spaces.names[h + 1]}"]')
     path.write_text("\n".join(lines) + "\n")
     return path
-
-
-class Namespaces:
-    """A hub namespace with a bridge, and ``count`` namespaces with a veth
-    pair to it each, addresses 10.214.<net>.<j + 1> (as tests/test_mesh_netns.py)."""
-
-    def __init__(self, count: int):
-        self.tag = f"dks{os.getpid() % 100000}"
-        self.hub = f"{self.tag}h"
-        self.names = [f"{self.tag}n{j}" for j in range(count)]
-        net = os.getpid() % 200 + 20
-        self.addrs = [f"10.214.{net}.{j + 1}" for j in range(count)]
-
-    def __enter__(self):
-        steps = [("netns", "add", self.hub), ("netns", "exec", self.hub, "ip", "link", "add", "br0", "type", "bridge"),
-                 ("netns", "exec", self.hub, "ip", "link", "set", "br0", "up")]
-        for j, (ns, addr) in enumerate(zip(self.names, self.addrs)):
-            a, b = f"{self.tag}a{j}", f"{self.tag}b{j}"
-            steps += [("netns", "add", ns),
-                      ("link", "add", a, "netns", ns, "type", "veth", "peer", "name", b, "netns", self.hub),
-                      ("netns", "exec", self.hub, "ip", "link", "set", b, "master", "br0", "up"),
-                      ("netns", "exec", ns, "ip", "addr", "add", f"{addr}/24", "dev", a),
-                      ("netns", "exec", ns, "ip", "link", "set", a, "up"),
-                      ("netns", "exec", ns, "ip", "link", "set", "lo", "up")]
-        try:
-            for step in steps:
-                subprocess.run(["ip", *step], check=True, capture_output=True, text=True, timeout=20)
-        except (OSError, subprocess.CalledProcessError) as e:
-            self.__exit__()
-            raise SystemExit(f"cannot build the namespaces (root and ip netns needed): "
-                             f"{getattr(e, 'stderr', '') or e}")
-        return self
-
-    def __exit__(self, *exc):
-        for ns in (*self.names, self.hub):
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=20)
 
 
 def pss(pid: int) -> int | None:
@@ -151,9 +118,12 @@ def one(n: int, per_host: int | None, ticks: int, scenario: str, tmp: Path, port
            "--logs", str(tmp / run_id), "--quiet", "--startup-timeout", str(60 + 2 * n)]
     if rate:
         cmd += ["--rate", str(rate)]
-    spaces = Namespaces(1 + -(-n // per_host)) if netns and per_host else None
+    spaces = Namespaces(1 + -(-n // per_host), prefix="dks", octet=214) if netns and per_host else None
     if spaces:
-        spaces.__enter__()
+        try:
+            spaces.__enter__()
+        except OSError as e:
+            raise SystemExit(f"cannot build the namespaces (root and ip netns needed): {e}")
     try:
         if per_host:
             cmd += ["--hosts", str(hosts_file(tmp / f"{run_id}.toml", n, per_host, port0, spaces))]

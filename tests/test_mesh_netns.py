@@ -32,6 +32,7 @@ from diskf_mesh.mesh.runspec import RunSpec, agent_command, world_command
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim import hosts
 from sim.launcher import Child, Launcher
+from sim.netns import Namespaces
 
 from mesh_helpers import Progress, assert_same, reference, spawn, up, with_credentials
 
@@ -42,40 +43,6 @@ PORT = 7447
 
 def _ip(*args) -> subprocess.CompletedProcess:
     return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=20)
-
-
-class Namespaces:
-    """A hub namespace with a bridge, and one namespace per node with a veth
-    pair to the bridge and the address 10.213.<net>.<j + 1>."""
-
-    def __init__(self, count: int):
-        tag = f"dkm{os.getpid() % 100000}"
-        self.hub = f"{tag}h"
-        self.names = [f"{tag}n{j}" for j in range(count)]
-        self.net = os.getpid() % 200 + 20
-        self.addrs = [f"10.213.{self.net}.{j + 1}" for j in range(count)]
-        self.tag = tag
-
-    def create(self) -> None:
-        steps = [("netns", "add", self.hub),
-                 ("netns", "exec", self.hub, "ip", "link", "add", "br0", "type", "bridge"),
-                 ("netns", "exec", self.hub, "ip", "link", "set", "br0", "up")]
-        for j, (ns, addr) in enumerate(zip(self.names, self.addrs)):
-            a, b = f"{self.tag}a{j}", f"{self.tag}b{j}"
-            steps += [("netns", "add", ns),
-                      ("link", "add", a, "netns", ns, "type", "veth", "peer", "name", b, "netns", self.hub),
-                      ("netns", "exec", self.hub, "ip", "link", "set", b, "master", "br0", "up"),
-                      ("netns", "exec", ns, "ip", "addr", "add", f"{addr}/24", "dev", a),
-                      ("netns", "exec", ns, "ip", "link", "set", a, "up"),
-                      ("netns", "exec", ns, "ip", "link", "set", "lo", "up")]
-        for s in steps:
-            r = _ip(*s)
-            if r.returncode != 0:
-                raise OSError(f"ip {' '.join(s)}: {r.stderr.strip()}")
-
-    def delete(self) -> None:
-        for ns in (*self.names, self.hub):
-            _ip("netns", "del", ns)
 
 
 def _skip_reason() -> str | None:
