@@ -23,8 +23,7 @@ import sys
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.data.trace import (estimates_to_json, estimator_from_json, fused_record_from_json, read_json,
-                                   trace_from_json)
+from diskf_mesh.data.trace import estimates_to_json, estimator_from_json, read_json, trace_from_json
 from diskf_mesh.recording.reader import take_ticks
 from diskf_mesh.cli.options import (
     add_command,
@@ -77,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 def replay_run(args: argparse.Namespace) -> int:
     """``replay TRACE.json --fused EST.json``: exit 0 when every estimate the
     run reported is reproduced bit for bit, 1 when not."""
-    from diskf_mesh.recording.replay import compare, replay_fused
+    from diskf_mesh.recording.replay import compare_reported, fused_record_from_json, replay_fused
 
     check_output(args.out, "out")
     doc = read_json(args.trace)
@@ -91,7 +90,7 @@ def replay_run(args: argparse.Namespace) -> int:
     if args.out:
         scores = metrics.compute(take_ticks(trace, K), est) if trace.truth_x is not None else None
         save_json(args.out, estimates_to_json(est, run.algorithm, 0, scores, ids=trace.agent_labels))
-    c = compare(run, est)
+    c = compare_reported(run.estimates, run.reported, est)
     text = human_stream(args.out)
     print(f"{run.algorithm}: {K} ticks, {len(trace.agent_labels)} agents replayed on what each agent fused"
           + (f" -> {args.out}" if args.out else ""), file=text)

@@ -194,58 +194,6 @@ def load_trace(path) -> Trace:
     return trace_from_json(read_json(path))
 
 
-@dataclass(frozen=True)
-class FusedRecord:
-    """What a mesh run's diskf-estimates/1 document (``up``/``world
-    --estimates``) says it computed, on the trace's agent axis: arrays
-    (K, N, ...), NaN where an agent did not report."""
-
-    algorithm: str
-    params: Params | None       # the run's estimator settings (None: the document predates them)
-    x: np.ndarray
-    P: np.ndarray
-    d: np.ndarray
-    d_valid: np.ndarray
-    reported: np.ndarray        # (K, N) bool
-    fused: np.ndarray           # (K, N, N) bool [tick - 1, receiver, sender], the diagonal set
-
-
-def fused_record_from_json(doc: dict, labels) -> FusedRecord:
-    """A run's estimates document with its ``fused`` sets, checked against
-    the agents ``labels`` of the trace it is to be replayed on."""
-    schemas.check(doc, MESH_ESTIMATES_FORMAT)
-    for key in ("fused",):
-        if key not in doc:
-            raise InputError(key, "is missing: not the estimates of a mesh run (up or world --estimates)")
-    ids = [str(i) for i in doc["ids"]]
-    labels = [str(i) for i in labels]
-    if ids != labels:
-        raise InputError("ids", f"the run's agents {ids[:6]}{'...' if len(ids) > 6 else ''} are not the trace's "
-                         f"{labels[:6]}{'...' if len(labels) > 6 else ''}")
-    N, K = len(ids), len(doc["fused"])
-    reported = np.asarray(doc["reported"], dtype=bool)
-    if reported.shape != (K, N) or len(doc["x"]) != K:
-        raise InputError("reported", f"must be {K} x {N} like fused, got {'x'.join(map(str, reported.shape))}")
-    index = {i: j for j, i in enumerate(ids)}
-    fused = np.zeros((K, N, N), dtype=bool)
-    fused[:, np.arange(N), np.arange(N)] = True
-    for k, tick in enumerate(doc["fused"]):
-        if len(tick) != N:
-            raise InputError(f"fused[{k}]", f"must list {N} agents' senders, got {len(tick)}")
-        for r, senders in enumerate(tick):
-            for s in senders:
-                if str(s) not in index:
-                    raise InputError(f"fused[{k}][{r}]", f"names {s!r}, not an agent of the run")
-                fused[k, r, index[str(s)]] = True
-    d = [[row for row in tick] for tick in doc["d"]]
-    d_valid = np.array([[row is not None for row in tick] for tick in d], dtype=bool).reshape(K, N)
-    m = next((len(row) for tick in d for row in tick if row is not None), 1)
-    d_arr = np.array([[row if row is not None else [np.nan] * m for row in tick] for tick in d], dtype=float)
-    params = estimator_from_json(doc) if "estimator" in doc else None
-    return FusedRecord(doc["algorithm"], params, np.array(doc["x"], dtype=float).reshape(K, N, -1),
-                       np.array(doc["P"], dtype=float), d_arr.reshape(K, N, m), d_valid, reported, fused)
-
-
 # --------------------------------------------------------------------------
 # writing
 # --------------------------------------------------------------------------
