@@ -10,6 +10,9 @@ same numbers. No transport or timing here.
 """
 from __future__ import annotations
 
+from dataclasses import fields
+from operator import attrgetter
+
 import numpy as np
 
 from diskf_mesh import estimators
@@ -24,6 +27,7 @@ class AgentEstimator:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} (ids {', '.join(map(str, self.ids))})")
         self.agent_id = agent_id
         self.index = self.ids.index(agent_id)
+        self._position = {j: i for i, j in enumerate(self.ids)}  # scenario order of the senders
         self.scenario = scn
         self.sensors = scn.sensors().select([self.index])   # this agent's H, R only
         self.algorithm = algorithm
@@ -49,11 +53,12 @@ class AgentEstimator:
     def fuse(self, k: int, own: Message, received: dict) -> Output:
         """Steps 3 and 4 with ``received`` {sender id: unbatched Message},
         which may or may not hold this agent's own message (``own`` is used)."""
-        others = {j: m for j, m in received.items() if j != self.agent_id}
-        order = sorted(set(others) | {self.agent_id}, key=self.ids.index)
-        rows = [own.take((0, 0)) if j == self.agent_id else others[j] for j in order]
-        senders = Message.stack(rows).take(np.newaxis)         # (1, J, ...)
-        nb = self._neighbourhood(len(order), order.index(self.agent_id))
+        me, position = self.agent_id, self._position
+        order = sorted({j for j in received if j != me} | {me}, key=position.__getitem__)
+        own_row = tuple(a[0, 0] for a in _row(own))
+        columns = zip(*(own_row if j == me else _row(received[j]) for j in order))
+        senders = Message(*(np.array([c]) for c in columns))  # (1, J, ...): Message.stack(rows)[None]
+        nb = self._neighbourhood(len(order), order.index(me))
         if self.draws is not None:
             nb = Neighbourhood(nb.adj, nb.self_mask, np.array([[self.draws[k - 1]]]))
         self.state, out = self.alg.fuse(self.state, own, senders, nb)
@@ -69,6 +74,9 @@ class AgentEstimator:
             adj.flags.writeable = self_mask.flags.writeable = False
             nb = self._neighbourhoods[(J, own)] = Neighbourhood(adj, self_mask)
         return nb
+
+
+_row = attrgetter(*(f.name for f in fields(Message)))  # a message's fields, in ``Message`` order
 
 
 def neighbours(scn: Scenario, agent_id: int, positions: np.ndarray) -> tuple:
