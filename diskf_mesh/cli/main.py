@@ -76,8 +76,7 @@ def main(argv=None, modules=COMMAND_MODULES) -> int:
     if modules is COMMAND_MODULES and argv[:1] and argv[0] in MESH_COMMANDS:
         modules = (MESH_COMMANDS[argv[0]],)
     if argv[:1] == ["up"]:
-        from sim import zygote
-
+        zygote = importlib.import_module("sim.zygote")  # the apps are reached by name, as COMMAND_MODULES are
         zygote.prestart(argv)
         try:
             return _main(argv, modules)
