@@ -203,7 +203,9 @@ def test_a_shard_started_late_joins_the_run(tmp_path, three_hosts):
 
 
 def test_a_hosts_router_killed_costs_its_agents_ticks_and_they_rejoin(tmp_path, three_hosts):
-    ticks, seed = 200, 6
+    # 600 ticks: forked processes tick 200 in about 3 s, less than the cut-off agents may need to find their
+    # router again (zenoh's reconnect), re-initialise and be live; the run must outlast that to show the rejoin
+    ticks, seed = 600, 6
     spec, world, routers, shards, est_path = _hosts_run(tmp_path, three_hosts, ticks, seed)
     mesh = Launcher(world, shards, services=routers)
     progress = Progress(mesh)
