@@ -63,7 +63,7 @@ from diskf_mesh.mesh.counters import Counters
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
-from diskf_mesh.engine.batch import Estimates
+from diskf_mesh.mesh.reports import RunReports
 from diskf_mesh.mesh import clock as realtime
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
@@ -101,15 +101,11 @@ class Deadlines:
 
 
 @dataclass
-class WorldRecord:
-    """What the world heard. Arrays (K, N, ...), NaN where no report came."""
+class WorldRecord(RunReports):
+    """What the world heard: the reports (``RunReports``; its ``fused``
+    without the diagonal), and what else it saw of the run."""
 
-    ids: tuple
-    x: np.ndarray
-    P: np.ndarray
-    d: np.ndarray
-    d_valid: np.ndarray
-    reported: np.ndarray                       # (K, N) bool
+    ids: tuple = ()
     agent_counters: dict = field(default_factory=dict)   # id -> counters of its last report
     counters: Counter = field(default_factory=Counter)   # the world's own
     startup_s: float = 0.0                     # start to tick 1
@@ -119,18 +115,12 @@ class WorldRecord:
     duplicates: Counter = field(default_factory=Counter)  # id (or "world") -> extra processes seen
     pauses: list = field(default_factory=list)         # [{"tick", "why", "seconds"}]
     ended_early: str = ""                      # why the run ended before tick K, if it did
-    fused: np.ndarray | None = None            # (K, N, N) bool [tick - 1, receiver, sender]: what was fused
     deadlines: Deadlines | None = None         # real time only
     labels: tuple = ()                         # the ids as the scenario gave them (results show these)
 
     def label(self, i):
         """Agent ``i``'s id as the scenario gave it (``i`` itself if unknown)."""
         return self.labels[self.ids.index(i)] if self.labels and i in self.ids else i
-
-    def estimates(self, fill: bool = False) -> Estimates:
-        """Batch of one; with ``fill`` missing entries are x = 0, P = I (for
-        metrics, which mask them out: ``wire.reported_estimates``)."""
-        return wire.reported_estimates(self.x, self.P, self.d, self.d_valid, self.reported if fill else None)
 
 
 PAUSE_MIN_S = 1.0  # a pause lasts at least this long (the links that closed while frozen close on waking)
@@ -170,12 +160,8 @@ class World(Process):
         K, N = trace.has.shape[1:]
         self.K = K
         n, m = trace.model.n, trace.model.m
-        self.record = WorldRecord(self.ids, np.full((K, N, n), np.nan), np.full((K, N, n, n), np.nan),
-                                  np.full((K, N, m), np.nan), np.zeros((K, N), dtype=bool),
-                                  np.zeros((K, N), dtype=bool), why=np.full((K, N), "", dtype=object),
-                                  labels=scn.labels,
-                                  fused=np.zeros((K, N, N), dtype=bool),
-                                  deadlines=None if timing.clock is None else Deadlines())
+        self.record = WorldRecord(**RunReports.empty(K, N, n, m), ids=self.ids, why=np.full((K, N), "", dtype=object),
+                                  labels=scn.labels, deadlines=None if timing.clock is None else Deadlines())
         self._index = {i: j for j, i in enumerate(self.ids)}
         self.clock = timing.clock
         self._owed = {}                # real time: tick -> live agents whose report has not come yet

@@ -10,6 +10,7 @@
     delayline, counters   the simulated links' delays, the counts
     process        the skeleton of the world and agent processes, and one tick through the mesh
     estimator      an agent's estimator: the engine's functions on a batch of one
+    reports        what a run's reports said (the world's record and a recording extend it)
     runspec        one run's settings as command lines (launcher, compose)
     clock          real-time mode (--rate): the world's clock, the agents' deadline, misses
     log, profile   logging and per-phase timing

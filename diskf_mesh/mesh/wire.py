@@ -243,21 +243,6 @@ class Report:
     sent: bytes = b""      # this agent's own message of the tick, as published
 
 
-def reported_estimates(x, P, d, d_valid, reported=None):
-    """The fused estimates of a run's reports, arrays (K, N, ...), as an
-    ``engine.batch.Estimates`` batch of one; with ``reported`` (K, N) the
-    agent-ticks without a report hold x = 0, P = I, d = 0 (for metrics,
-    which mask them out). The world's record and a recording's reader hold
-    these arrays."""
-    from diskf_mesh.engine.batch import Estimates
-
-    if reported is not None:
-        miss = ~reported
-        x, d = np.where(miss[..., None], 0.0, x), np.where(miss[..., None], 0.0, d)
-        P = np.where(miss[..., None, None], np.eye(P.shape[-1]), P)
-    return Estimates(x[None], P[None], d[None], d_valid[None])
-
-
 @dataclass(frozen=True)
 class Tick:
     run_id: str

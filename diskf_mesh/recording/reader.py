@@ -20,6 +20,7 @@ import numpy as np
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.estimators import Params
 from diskf_mesh.data.trace import Trace, estimator_from_json, trace_from_json
+from diskf_mesh.mesh.reports import RunReports
 from diskf_mesh.recording.writer import FORMAT, TRACE_ATTACHMENT
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -28,22 +29,17 @@ _HEAD = struct.Struct("<BQ")
 
 
 @dataclass
-class Recording:
-    """A recording's complete ticks 1..K (arrays (K, N, ...), NaN where an
-    agent did not report)."""
+class Recording(RunReports):
+    """A recording's complete ticks 1..K: what the reports said
+    (``RunReports``: x, P, d, d_valid, reported, and fused with the diagonal
+    True), and the rest of the file."""
 
-    path: str
-    run: dict                   # the /run message
-    trace: Trace                # the whole run's trace (all planned ticks)
-    params: Params
-    ticks: int                  # complete ticks K
-    ids: tuple
-    x: np.ndarray
-    P: np.ndarray
-    d: np.ndarray
-    d_valid: np.ndarray
-    reported: np.ndarray        # (K, N) bool
-    fused: np.ndarray           # (K, N, N) bool: [k-1, receiver, sender] fused (diagonal True)
+    path: str = ""
+    run: dict = field(default_factory=dict)  # the /run message
+    trace: Trace | None = None  # the whole run's trace (all planned ticks)
+    params: Params | None = None
+    ticks: int = 0              # complete ticks K
+    ids: tuple = ()
     sent: list = field(default_factory=list)        # every message sent at ticks <= K (/agents/sent)
     delivered: list = field(default_factory=list)   # every delivery of ticks <= K, with its tick
     counters: dict = field(default_factory=dict)    # (k, agent) -> counters
@@ -136,10 +132,8 @@ def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: b
     while K + 1 in closed:
         K += 1
     where = {i: j for j, i in enumerate(ids)}
-    x, P = np.full((K, N, n), np.nan), np.full((K, N, n, n), np.nan)
-    d, d_valid = np.full((K, N, m), np.nan), np.zeros((K, N), dtype=bool)
-    reported = np.zeros((K, N), dtype=bool)
-    fused = np.zeros((K, N, N), dtype=bool)
+    reports = RunReports.empty(K, N, n, m)
+    x, P, d, d_valid, reported, fused = (reports[f] for f in ("x", "P", "d", "d_valid", "reported", "fused"))
     fused[:, np.arange(N), np.arange(N)] = True
     in_run = lambda topic: [doc for doc in by_topic.get(topic, []) if 1 <= doc["tick"] <= K]  # noqa: E731
     for doc in in_run("/agents/estimates"):
@@ -165,9 +159,9 @@ def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: b
     sent = [m for doc in by_topic.get("/agents/sent", []) for m in doc["messages"] if 1 <= m["tick"] <= K]
     delivered = [{"tick": doc["tick"], **e} for doc in in_run("/agents/delivered") for e in doc["deliveries"]]
     results = by_topic.get("/run/result", [])
-    return Recording(path, run, trace, params, K, ids, x, P, d, d_valid, reported, fused,
-                     sent, delivered, counters, positions, edges,
-                     results[-1] if results else None, finished, by_topic)
+    return Recording(**reports, path=path, run=run, trace=trace, params=params, ticks=K, ids=ids, sent=sent,
+                     delivered=delivered, counters=counters, positions=positions, edges=edges,
+                     result=results[-1] if results else None, finished=finished, messages_by_topic=by_topic)
 
 
 def take_ticks(trace: Trace, K: int) -> Trace:

@@ -3,19 +3,10 @@ from __future__ import annotations
 
 from collections import Counter
 
-
 from diskf_mesh.data import metrics
-from diskf_mesh.engine.batch import Estimates
-from diskf_mesh.mesh.wire import reported_estimates
 from diskf_mesh.recording.reader import Recording, take_ticks
 
 VERDICTS = ("fused", "lost", "late", "rejected", "unreported")
-
-
-def recorded_estimates(rec: Recording) -> Estimates:
-    """The recorded estimates as a batch of one; agent-ticks without a
-    report hold x = 0, P = I (metrics mask them out)."""
-    return reported_estimates(rec.x, rec.P, rec.d, rec.d_valid, rec.reported)
 
 
 def recorded_metrics(rec: Recording) -> dict:
@@ -23,7 +14,7 @@ def recorded_metrics(rec: Recording) -> dict:
     if not rec.reported.any():
         return {}
     trace = take_ticks(rec.trace, rec.ticks)
-    return metrics.summarize(*metrics.errors(trace, recorded_estimates(rec)), mask=rec.reported[None])
+    return metrics.summarize(*metrics.errors(trace, rec.estimates(fill=True)), mask=rec.reported[None])
 
 
 def summary(rec: Recording) -> dict:

@@ -1,0 +1,44 @@
+"""What a run's reports said: one container for the world's record
+(``sim.world.WorldRecord``) and a recording's reader
+(``diskf_mesh.recording.reader.Recording``), which both extend it.
+
+Arrays (K, N, ...) over ticks 1..K and the agents in the scenario's order,
+NaN where no report came.
+
+May import: core, estimators, data, engine (the mesh layer).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from diskf_mesh.engine.batch import Estimates
+
+
+@dataclass
+class RunReports:
+    x: np.ndarray               # (K, N, n) each agent's fused state
+    P: np.ndarray               # (K, N, n, n) its covariance
+    d: np.ndarray               # (K, N, m) its fused input (NaN where it has none)
+    d_valid: np.ndarray         # (K, N) bool
+    reported: np.ndarray        # (K, N) bool: the report of tick k came
+    fused: np.ndarray           # (K, N, N) bool [tick - 1, receiver, sender]: what the receiver fused
+
+    @staticmethod
+    def empty(K: int, N: int, n: int, m: int) -> dict:
+        """The fields of a run with no report yet, for a subclass's constructor."""
+        return dict(x=np.full((K, N, n), np.nan), P=np.full((K, N, n, n), np.nan), d=np.full((K, N, m), np.nan),
+                    d_valid=np.zeros((K, N), dtype=bool), reported=np.zeros((K, N), dtype=bool),
+                    fused=np.zeros((K, N, N), dtype=bool))
+
+    def estimates(self, fill: bool = False) -> Estimates:
+        """The reports as an engine ``Estimates`` batch of one; with ``fill``
+        the agent-ticks without a report hold x = 0, P = I, d = 0 (for
+        metrics, which mask them out)."""
+        x, P, d = self.x, self.P, self.d
+        if fill:
+            miss = ~self.reported
+            x, d = np.where(miss[..., None], 0.0, x), np.where(miss[..., None], 0.0, d)
+            P = np.where(miss[..., None, None], np.eye(P.shape[-1]), P)
+        return Estimates(x[None], P[None], d[None], self.d_valid[None])
