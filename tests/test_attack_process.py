@@ -342,14 +342,15 @@ def test_completeness_in_the_results():
     the one line."""
     from collections import Counter
 
+    from diskf_mesh.mesh.reports import RunReports
     from sim.world import WorldRecord, completeness, missing_line
 
     K, N = 4, 3
     rep = np.ones((K, N), dtype=bool)
     why = np.full((K, N), "", dtype=object)
     rep[1:, 1], why[1, 1], why[2, 1] = False, "left", "rejoining"   # tick 4: never opened ("not run")
-    rec = WorldRecord((1, 2, 3), None, None, None, None, rep, why=why, duplicates=Counter({3: 1}),
-                      rejoins={2: [{"tick": 4, "source": 1}]})
+    rec = WorldRecord(**{**RunReports.empty(K, N, 2, 1), "reported": rep}, ids=(1, 2, 3), why=why,
+                      duplicates=Counter({3: 1}), rejoins={2: [{"tick": 4, "source": 1}]})
     c = completeness(rec)
     assert c["complete"] is False and c["agent_ticks"] == 12 and c["missing_agent_ticks"] == 3
     assert c["missing"] == {"2": {"ticks": 3, "why": {"left": 1, "not run": 1, "rejoining": 1}}}
