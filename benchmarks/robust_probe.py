@@ -8,7 +8,6 @@ from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics
 from diskf_mesh.engine import centralized
 from diskf_mesh.data.scenario import load_scenario, simulate
-from diskf_mesh.estimators import Params
 
 SEEDS = range(int(sys.argv[1]) if len(sys.argv) > 1 else 20)
 

@@ -111,13 +111,10 @@ def test_two_processes_with_one_id_at_once(tmp_path):
         mesh.start_more([twin])  # started as the agents are, just before them
         mesh.start_agents()
         assert progress.follow(240) == 0, mesh.world.last_error_line()
-        rcs = sorted([agent(mesh, 3).proc.wait(10), twin.proc.wait(10)])
-        others = [a.proc.wait(10) for a in mesh.agents if a.name != "agent 3"]
+        rcs, others = exit_statuses(mesh, twin)
     finally:
-        mesh.stop_all()
-        if twin.proc.poll() is None:
-            twin.proc.kill()
-    assert rcs == [0, 2] and others == [0] * 8
+        stop_with_twin(mesh, twin)
+    assert sorted(rcs) == [0, 2] and others == [0] * 8
     est, row = results(tmp_path)
     assert row["complete"] is True and row["rejoins"] == {}
     assert_all_fused(est, ticks)
@@ -142,17 +139,26 @@ def test_a_twin_that_declares_after_the_run_started_leaves(tmp_path):
         progress.wait_for(20, 120)  # the run ticks with the other agent 3
         gate.touch()  # only now the twin declares its token
         assert progress.follow(240) == 0, mesh.world.last_error_line()
-        rcs = [agent(mesh, 3).proc.wait(10), twin.proc.wait(30)]
-        others = [a.proc.wait(10) for a in mesh.agents if a.name != "agent 3"]
+        rcs, others = exit_statuses(mesh, twin, twin_wait=30)
     finally:
-        mesh.stop_all()
-        if twin.proc.poll() is None:
-            twin.proc.kill()
+        stop_with_twin(mesh, twin)
     assert rcs == [0, 2] and others == [0] * 8
     est, row = results(tmp_path)
     assert row["complete"] is True and row["rejoins"] == {} and row["duplicate_ids"] == {"3": 1}
     assert_all_fused(est, ticks)
     assert_same(est, reference(spec, ticks, seed)[1])
+
+
+def exit_statuses(mesh, twin, twin_wait: float = 10.0) -> tuple:
+    """([agent 3's exit status, its twin's], the other agents' exit statuses)."""
+    rcs = [agent(mesh, 3).proc.wait(10), twin.proc.wait(twin_wait)]
+    return rcs, [a.proc.wait(10) for a in mesh.agents if a.name != "agent 3"]
+
+
+def stop_with_twin(mesh, twin) -> None:
+    mesh.stop_all()
+    if twin.proc.poll() is None:
+        twin.proc.kill()
 
 
 def assert_all_fused(est, ticks: int) -> None:

@@ -86,9 +86,8 @@ def fused_record_from_json(doc: dict, labels) -> FusedRecord:
     """A run's estimates document with its ``fused`` sets, checked against
     the agents ``labels`` of the trace it is to be replayed on."""
     schemas.check(doc, MESH_ESTIMATES_FORMAT)
-    for key in ("fused",):
-        if key not in doc:
-            raise InputError(key, "is missing: not the estimates of a mesh run (up or world --estimates)")
+    if "fused" not in doc:
+        raise InputError("fused", "is missing: not the estimates of a mesh run (up or world --estimates)")
     ids = [str(i) for i in doc["ids"]]
     labels = [str(i) for i in labels]
     if ids != labels:
@@ -109,7 +108,7 @@ def fused_record_from_json(doc: dict, labels) -> FusedRecord:
                 if str(s) not in index:
                     raise InputError(f"fused[{k}][{r}]", f"names {s!r}, not an agent of the run")
                 fused[k, r, index[str(s)]] = True
-    d = [[row for row in tick] for tick in doc["d"]]
+    d = doc["d"]
     d_valid = np.array([[row is not None for row in tick] for tick in d], dtype=bool).reshape(K, N)
     m = next((len(row) for tick in d for row in tick if row is not None), 1)
     d_arr = np.array([[row if row is not None else [np.nan] * m for row in tick] for tick in d], dtype=float)

@@ -28,7 +28,7 @@ from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics
 from diskf_mesh.studies import experiment
 from diskf_mesh.studies.experiment import Setting, run_experiment
-from diskf_mesh.core.model import COMPENSATION_FORMS, RobustOptions
+from diskf_mesh.core.model import COMPENSATION_FORMS
 from diskf_mesh.estimators import Params
 from diskf_mesh.data.scenario import Scenario, load_scenario, simulate
 
