@@ -70,6 +70,17 @@ class HostsPlan:
     def ids(self) -> tuple:
         return tuple(sorted(i for s in self.shards for i in s.ids))
 
+    @property
+    def routerless(self) -> tuple:
+        """Names of the hosts without a router: their agents are clients of
+        the world, which forwards their traffic (``credentials.make``'s
+        ``world_routes``)."""
+        return tuple(s.name for s in self.shards if s.router is None)
+
+    @property
+    def world_routes(self) -> bool:
+        return bool(self.routerless)
+
     def check(self, ids) -> None:
         """Every agent id of the scenario (``ids``) on exactly one host."""
         where = {}

@@ -448,11 +448,17 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
     realtime.from_args(args)
     if plan is None and forks.enabled() and not zygotes:
         zygotes.append(forks.Zygote())
+    world_routes = plan is not None and plan.world_routes  # a host without a router: the world forwards for it
     if plan is not None and plan.credentials and not zopts.insecure:
-        credentials.load(plan.credentials, credentials.WORLD, spec.run_id)  # made for this run, or one line
+        ident = credentials.load(plan.credentials, credentials.WORLD, spec.run_id)  # made for this run, or one line
+        if world_routes and not ident.world_routes:
+            raise InputError("hosts", f"host {plan.routerless[0]} has no router, so the world forwards its agents' "
+                                      f"traffic, which {plan.credentials} does not allow (make them with "
+                                      f"`diskf-mesh credentials --world-routes`)")
         zopts = replace(zopts, credentials=plan.credentials)
     elif not zopts.insecure:  # a fresh CA, one certificate per process; each child reads its own
-        zopts = replace(zopts, credentials=str(credentials.make(private / "credentials", spec.run_id, ids)))
+        zopts = replace(zopts, credentials=str(credentials.make(private / "credentials", spec.run_id, ids,
+                                                                world_routes=world_routes)))
     else:
         print(f"warning: up: --insecure: plain zenoh; any process that reaches it can read and write run "
               f"{spec.run_id}", file=sys.stderr)

@@ -10,6 +10,10 @@ and the run id:
     diskf-mesh world --run-id r1 --credentials creds --listen tls/10.0.0.1:7447
     diskf-mesh agent --id 3 --run-id r1 --credentials creds --connect tls/10.0.0.1:7447
 
+A run with a host whose agents connect straight to the world (no router
+there, docs/hosts.md) needs ``--world-routes``: the world then forwards
+their traffic, with a router's rights.
+
 A host or a container needs only its own identity's directory
 (``creds/agent-3``); ``--credentials`` takes either. The zenoh settings they
 turn into and the access rules: docs/security.md.
@@ -45,6 +49,8 @@ def register(subparsers) -> None:
                      help="one certificate per agent of this scenario (a shipped name or a .toml; default: dynamic)")
     who.add_argument("--ids", type=id_list, metavar="LIST", help="or per agent id of this comma list")
     p.add_argument("--agents", type=positive_int, metavar="N", help="agent count of a generated --scenario")
+    p.add_argument("--world-routes", action="store_true",
+                   help="the world may forward the others' traffic (a host without a router; docs/hosts.md)")
     p.add_argument("--replace", action="store_true", help="replace the credentials already in DIR")
     p.set_defaults(func=run)
 
@@ -57,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     if out.is_dir() and any(out.iterdir()) and not args.replace:
         raise InputError("out", f"{out} is not empty (--replace to make new credentials there)")
     ids = args.ids if args.ids is not None else [a.id for a in load_scenario(args.scenario, agents=args.agents).agents]
-    credentials.make(out, args.run_id, ids)
+    credentials.make(out, args.run_id, ids, world_routes=args.world_routes)
     names = credentials.identities(sorted(set(ids)))
     print(f"run {args.run_id}: {len(names)} identities ({', '.join(names)}) in {out}; the CA key is not kept")
     return 0

@@ -16,6 +16,11 @@ away (nobody can mint another identity for this run afterwards):
       router/ ...                 a zenoh router of the run (``diskf-mesh router``,
                                   docs/hosts.md): it forwards everything of the run
 
+``world_routes=True`` (``diskf-mesh credentials --world-routes``; ``up
+--hosts`` when a host has no router) grants the world a router's rights
+as well: a host without a router has its agents connect to the world,
+which then forwards their traffic (docs/hosts.md).
+
 Every identity directory is self-contained: a process reads its own
 directory only (``load``), and a host or container needs only its own.
 
@@ -41,6 +46,8 @@ peer, by the peer's certificate:
                                    so a receiver behind it sees the router's certificate, not
                                    the sender's; each router applies the rules above to the
                                    processes connected to it (docs/hosts.md)
+    world, with  everything        as a router, besides the world's own rules above: only in
+    world_routes                   a run whose credentials say so (a host without a router)
 
 A declaration refused at ingress never enters the receiver's routing
 tables, so the receiver does not send that peer what it asked for. That
@@ -99,10 +106,11 @@ def _write(path: Path, data: bytes, mode: int) -> None:
     os.chmod(path, mode)
 
 
-def make(out, run_id: str, agents, observer: bool = True, router: bool = True) -> Path:
+def make(out, run_id: str, agents, observer: bool = True, router: bool = True, world_routes: bool = False) -> Path:
     """A fresh CA and one certificate + key per identity of run ``run_id``
     in ``out`` (created 0700; an identity directory already there is
-    replaced). Returns ``out``."""
+    replaced); ``world_routes``: the world may forward the others' traffic
+    (module docstring). Returns ``out``."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -145,7 +153,8 @@ def make(out, run_id: str, agents, observer: bool = True, router: bool = True) -
         _write(d / CERT_FILE, cert.public_bytes(serialization.Encoding.PEM), 0o644)
         _write(d / CA_FILE, ca_pem, 0o644)
         _write(d / RUN_FILE, (json.dumps({"format": FORMAT, "run_id": run_id, "agents": agents,
-                                          "observer": observer, "router": router, "identity": who}) + "\n").encode(),
+                                          "observer": observer, "router": router, "world_routes": world_routes,
+                                          "identity": who}) + "\n").encode(),
                0o644)
     return out  # ca_key goes out of scope here: the CA signs nothing more
 
@@ -163,6 +172,7 @@ class Identity:
     observer: bool
     dir: Path
     router: bool = False
+    world_routes: bool = False
 
     @property
     def ca(self) -> Path:
@@ -208,7 +218,7 @@ def load(directory, identity: str, run_id: str | None = None) -> Identity:
     except (KeyError, TypeError, ValueError, InputError):
         raise InputError("credentials", f"{d / RUN_FILE}: bad run id or agent list") from None
     return Identity(identity, doc["run_id"], agents, bool(doc.get("observer", False)), d,
-                    bool(doc.get("router", False)))
+                    bool(doc.get("router", False)), bool(doc.get("world_routes", False)))
 
 
 ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -217,7 +227,8 @@ LISTEN = ("declare_subscriber",)
 WATCH = ("declare_liveliness_subscriber", "liveliness_query")
 
 
-def access_control(run_id: str, agents, observer: bool = True, router: bool = False) -> dict:
+def access_control(run_id: str, agents, observer: bool = True, router: bool = False,
+                   world_routes: bool = False) -> dict:
     """zenoh's ``access_control`` of a run (the table in the module docstring)."""
     r = f"diskf/{run_id}"
     rules, subjects, policies = [], [], []
@@ -235,10 +246,12 @@ def access_control(run_id: str, agents, observer: bool = True, router: bool = Fa
             *rule_ids, "egress"]})
 
     rule("egress", [m for m in ALL_MESSAGES if m != "put"], [f"{r}/**"], flows=("egress",))
-    grant(WORLD, [f"{r}/agent/*/report", f"{r}/agent/*/rejoin", f"{r}/agent/*/duplicate"],
+    routes = (rule("world-routes", ALL_MESSAGES, [f"{r}/**"]),) if world_routes else ()
+    grant(WORLD, [f"{r}/**"] if world_routes else [f"{r}/agent/*/report", f"{r}/agent/*/rejoin",
+                                                    f"{r}/agent/*/duplicate"],
           rule("world-put", ("put",), [f"{r}/world/**"]),
           rule("world-tokens", ("liveliness_token",), [f"{r}/alive/world/*", f"{r}/ticking/world"]),
-          rule("world-watch", WATCH, [f"{r}/*/agent/*/*", f"{r}/alive/world/*"]))
+          rule("world-watch", WATCH, [f"{r}/*/agent/*/*", f"{r}/alive/world/*"]), *routes)
     watch = rule("agent-watch", WATCH, [f"{r}/alive/**", f"{r}/ticking/world"])
     for i in agents:
         who = agent_identity(i)
@@ -271,5 +284,6 @@ def zenoh_settings(ident: Identity) -> list:
     return [
         ("transport/link/protocols", json.dumps(["tls"])),
         ("transport/link/tls", json.dumps(tls)),
-        ("access_control", json.dumps(access_control(ident.run_id, ident.agents, ident.observer, ident.router))),
+        ("access_control", json.dumps(access_control(ident.run_id, ident.agents, ident.observer, ident.router,
+                                                     ident.world_routes))),
     ]
