@@ -4,9 +4,11 @@
 
 A bare world and N bare agents, each its own OS process and zenoh-python
 session, configured as ``diskf-mesh up`` configures them: the same zenoh
-options (``sim.launcher.loopback_options``: the world listens on
+options and shape (``sim.launcher.loopback_options``: the world listens on
 127.0.0.1, every agent connects to it and listens on port 0, no multicast
-scouting), over TLS with mutual authentication and the run's access control
+scouting; above ``sim.launcher.PEERS_UP_TO`` agents
+``routed_loopback_options``: one router, ``diskf-mesh router``, every agent
+its client), over TLS with mutual authentication and the run's access control
 from fresh credentials of the run (``diskf_mesh.mesh.credentials``, one
 identity per process, as ``up`` makes them), the world's batching time
 limit (``sim.world.HOLD_MS``), zenoh's rx runtime of one thread, and the
@@ -89,18 +91,29 @@ def zenoh_session(role: str, identity: str, args):
 
     from diskf_mesh.mesh.transport import BATCHING, ZENOH_RUNTIME
     from diskf_mesh.mesh.zenoh_config import ZenohOptions
-    from sim.launcher import loopback_options
     from sim.world import HOLD_MS
 
     os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
     zenoh.init_log_from_env_or("error")
     base = ZenohOptions(credentials=args.credentials) if args.credentials else ZenohOptions(insecure=True)
-    world, agent = loopback_options(args.port, base)
+    world, _, agent = network_options(args.port, args.router_port, base)
     opts = (world if role == "world" else agent).as_identity(identity, args.run_id)
     conf = opts.to_config()
     if role == "world":
         conf.insert_json5(f"{BATCHING}/time_limit", str(HOLD_MS))
     return zenoh, zenoh.open(conf)
+
+
+def network_options(port: int, router_port: int, base) -> tuple:
+    """(world, router or None, agent) options of ``up``'s shape on one host:
+    a peer mesh (``router_port`` 0) or every agent a client of one router
+    (``sim.launcher.routed_loopback_options``)."""
+    from sim.launcher import loopback_options, routed_loopback_options
+
+    if router_port:
+        return routed_loopback_options(port, router_port, base)
+    world, agent = loopback_options(port, base)
+    return world, None, agent
 
 
 def publisher(zenoh, session, cache: dict, key: str, express: bool = True):
@@ -266,22 +279,31 @@ def world_main(args) -> int:
 def floor_run(scenario: str, agents: int | None, ticks: int, timeout: float, workdir: Path,
               insecure: bool = False) -> dict:
     """One floor run; its own fresh credentials in ``workdir`` unless ``insecure``."""
-    from diskf_mesh.mesh import credentials
-    from sim.launcher import free_port
+    from diskf_mesh.mesh import credentials, runspec
+    from diskf_mesh.mesh.zenoh_config import ZenohOptions
+    from sim.launcher import free_port, network_of
 
     _, ids = links_of(scenario, agents, ticks)
     port, run_id = free_port(), f"b{time.monotonic_ns()}"
-    common = ["--scenario", scenario, "--ticks", str(ticks), "--port", str(port), "--run-id", run_id,
-              "--timeout", str(timeout)] + (["--n-agents", str(agents)] if agents else [])
+    router_port = next(p for p in iter(free_port, None) if p != port) if network_of("auto", len(ids)) == "router" else 0
+    common = ["--scenario", scenario, "--ticks", str(ticks), "--port", str(port), "--router-port", str(router_port),
+              "--run-id", run_id, "--timeout", str(timeout)] + (["--n-agents", str(agents)] if agents else [])
+    base = ZenohOptions(insecure=True)
     if not insecure:
-        common += ["--credentials", str(credentials.make(workdir / f"credentials-{run_id}", run_id, ids))]
+        creds = str(credentials.make(workdir / f"credentials-{run_id}", run_id, ids))
+        common += ["--credentials", creds]
+        base = ZenohOptions(credentials=creds)
     me = [sys.executable, str(Path(__file__).resolve())]
     cpu0, t0 = cpu_seconds(), time.monotonic()
     world = subprocess.Popen(me + ["world", *common], stdout=subprocess.PIPE, text=True)
-    procs = [subprocess.Popen(me + ["agent", "--id", str(i), *common]) for i in ids]
+    router = network_options(port, router_port, base)[1]
+    procs = [subprocess.Popen(runspec.router_command(run_id, router), stderr=subprocess.DEVNULL)] if router else []
+    procs += [subprocess.Popen(me + ["agent", "--id", str(i), *common]) for i in ids]
     try:
         out, _ = world.communicate(timeout=timeout + 30)
     finally:
+        if router:  # a router runs until told to stop
+            procs[0].terminate()
         for p in procs:
             try:
                 p.wait(10)
@@ -307,6 +329,7 @@ def main(argv=None) -> int:
         p.add_argument("--n-agents", type=int)
         p.add_argument("--ticks", type=int)
         p.add_argument("--port", type=int)
+        p.add_argument("--router-port", type=int, default=0)
         p.add_argument("--run-id")
         p.add_argument("--timeout", type=float)
         p.add_argument("--credentials")

@@ -1,0 +1,57 @@
+"""``up --network``: on one host a peer mesh up to ``PEERS_UP_TO`` agents,
+every agent a client of one zenoh router above (the shape of one host of
+``up --hosts``). The shape changes how messages travel, never an estimate."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diskf_mesh.cli import main as cli
+from diskf_mesh.mesh.estimator import neighbours
+from diskf_mesh.mesh.runspec import RunSpec
+from mesh_helpers import reference, up
+from sim.launcher import PEERS_UP_TO, network_of
+
+pytestmark = pytest.mark.mesh
+
+
+def test_auto_is_a_peer_mesh_up_to_the_limit_and_a_router_above():
+    assert network_of("auto", PEERS_UP_TO) == "peers"
+    assert network_of("auto", PEERS_UP_TO + 1) == "router"
+    assert network_of("peers", 100) == "peers" and network_of("router", 2) == "router"
+
+
+def assert_engine_bit_for_bit(doc, spec: RunSpec, ticks: int) -> None:
+    trace, ref = reference(spec, ticks, 0)
+    assert np.array(doc["reported"]).all()
+    assert np.array_equal(np.array(doc["x"], dtype=float), ref.x[0])
+    assert np.array_equal(np.array(doc["P"], dtype=float), ref.P[0])
+    scn, ids = spec.load(ticks), doc["ids"]
+    links = [[sorted(set(neighbours(scn, i, trace.positions[k])) - {i}) for i in ids] for k in range(ticks)]
+    assert [[sorted(s) for s in tick] for tick in doc["fused"]] == links
+
+
+def test_up_through_a_router_equals_the_engine(tmp_path):
+    ticks = 30
+    done, doc, _ = up(tmp_path, "--scenario", "dynamic", "--ticks", str(ticks), "--network", "router")
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "logs" / "router.log").exists()  # the router was one of the run's processes
+    assert_engine_bit_for_bit(doc, RunSpec("dynamic", "diskf"), ticks)
+
+
+def test_more_agents_than_the_limit_go_through_a_router_by_default(tmp_path):
+    n, ticks = PEERS_UP_TO + 1, 10
+    done, doc, _ = up(tmp_path, "--scenario", "random-geometric", "--agents", str(n), "--ticks", str(ticks),
+                      timeout=180)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "logs" / "router.log").exists()
+    assert_engine_bit_for_bit(doc, RunSpec("random-geometric", "diskf", agents=n), ticks)
+
+
+@pytest.mark.parametrize("extra", [["--mode", "peer"], ["--hosts", "hosts.toml"]])
+def test_network_is_refused_with_zenoh_flags_or_hosts(tmp_path, capsys, monkeypatch, extra):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "hosts.toml").write_text('[world]\nlisten = "tls/127.0.0.1:9"\n[hosts.a]\nagents = "1-9"\n')
+    assert cli.main(["up", "--network", "router", "--insecure", "--ticks", "2", "--quiet", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: network:"), err
