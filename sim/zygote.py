@@ -1,7 +1,7 @@
 """A fork server for the processes of a run: import once, fork each process.
 
 Starting a mesh process from a fresh interpreter is mostly importing
-(numpy, zenoh, cryptography, the estimators): about 0.6 s of CPU each,
+(numpy, zenoh, the estimators): about 0.6 s of CPU each,
 so 50 agents on two cores spent most of their start-up doing nothing else.
 ``Zygote`` starts one interpreter (``python -m sim.zygote``) that imports all
 of it once (``PRELOAD``), with one BLAS thread (``BLAS_ENV``), and then, on
@@ -44,8 +44,10 @@ import time
 
 SPAWN_ENV = "DISKF_MESH_SPAWN"  # "exec": no zygote
 FORKED = {"sim.world": "world", "agents.agent": "agent", "sim.router": "router", "sim.host": "host"}
+# not cryptography: only the launcher makes credentials; a child hands its PEM files to zenoh (~70 ms
+# less before the first fork)
 PRELOAD = ("sim.world", "agents.agent", "sim.router", "sim.host", "zenoh", "tqdm", "diskf_mesh.studies.experiment",
-           "cryptography.x509", "cryptography.hazmat.primitives.serialization", "diskf_mesh.cli.main")
+           "diskf_mesh.cli.main")
 # one BLAS thread: the zygote must fork as a single thread (and the agents' matrices are small)
 BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 TITLE_SPACE = 4096  # bytes of command line a child can show
