@@ -18,7 +18,7 @@ deleted at the end.
 
 Columns:
     hosts        routers + shards (``--per-host`` agents each); ``--single``
-                 adds the one-host peer-to-peer run of ``up`` for comparison
+                 adds the one-host run of ``up`` (no --hosts: peers, or one router) for comparison
     first tick   seconds from starting ``up`` to the world opening tick 1
     ticks/s      tick 1 to the last report
     CPU ms/agent-tick  agents' CPU (user + system) over the ticks, per agent
@@ -54,6 +54,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from sim.launcher import network_of  # noqa: E402
 from sim.netns import Namespaces  # noqa: E402
 
 ROLES = {"sim.world": "world", "agents.agent": "agent", "sim.router": "router", "sim.host": "host",
@@ -169,7 +170,7 @@ def one(n: int, per_host: int | None, ticks: int, scenario: str, tmp: Path, port
     first_up = next((float(x) for x in [out.split("s after up started")[0].rsplit("(", 1)[-1]]
                      if "s after up started" in out), float("nan"))
     return {"agents": n, "hosts": (n + per_host - 1) // per_host if per_host else 1,
-            "mode": ("netns " if spaces else "") + ("routers" if per_host else "peers"),
+            "mode": ("netns " if spaces else "") + ("routers" if per_host else f"up ({network_of('auto', n)})"),
             "target": f"{rate:g} Hz" if rate else "lockstep", "first": doc["startup_s"], "first_up": first_up,
             "missed": missed, "message_misses": dm.get("message_miss_rate", float("nan")),
             "pss_mb": statistics.median(shares.values()) / 2**20 if shares else float("nan"),
@@ -186,7 +187,9 @@ def main(argv=None) -> int:
     ap.add_argument("--per-host", type=int, default=25, help="agents per host (default %(default)s)")
     ap.add_argument("--ticks", type=int, default=50)
     ap.add_argument("--scenario", default="random-geometric")
-    ap.add_argument("--single", action="store_true", help="also the one-host peer-to-peer run of each count")
+    ap.add_argument("--single", action="store_true",
+                    help="also the one-host run of each count (up without --hosts: peers, or one router above "
+                         "sim.launcher.PEERS_UP_TO agents)")
     ap.add_argument("--rate", type=float, help="real time at this rate (up --rate); default: lockstep")
     ap.add_argument("--netns", action="store_true", help="every host (and the world) in a network namespace")
     args = ap.parse_args(argv)
