@@ -297,7 +297,8 @@ def floor_run(scenario: str, agents: int | None, ticks: int, timeout: float, wor
     cpu0, t0 = cpu_seconds(), time.monotonic()
     world = subprocess.Popen(me + ["world", *common], stdout=subprocess.PIPE, text=True)
     router = network_options(port, router_port, base)[1]
-    procs = [subprocess.Popen(runspec.router_command(run_id, router), stderr=subprocess.DEVNULL)] if router else []
+    procs = ([subprocess.Popen(runspec.router_command(run_id, router), stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL)] if router else [])
     procs += [subprocess.Popen(me + ["agent", "--id", str(i), *common]) for i in ids]
     try:
         out, _ = world.communicate(timeout=timeout + 30)
