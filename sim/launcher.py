@@ -68,7 +68,7 @@ from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim import zygote as forks
-from sim.world import INCOMPLETE, add_allow_missing, miss_problem, missing_line
+from sim.world import INCOMPLETE, add_allow_missing, miss_line, miss_problem, missing_line
 
 STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
 WORLD_STOP_GRACE_S = 20.0  # the world, stopped, writes its results first
@@ -578,17 +578,20 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
           + (f", recording: {args.record}" if args.record else "") + f", logs: {logs}")
     row = next(iter(next(iter(results.values())).values()))
-    return verdict(row, world_rc, args.allow_missing, args.max_miss_rate)
+    return verdict(row, world_rc, args.allow_missing, realtime.max_miss_rate(args))
 
 
-def verdict(row: dict, world_rc: int, allow_missing: float, max_miss_rate: float | None = None) -> int:
-    """``up``'s exit status from the world's (0 or ``INCOMPLETE``) and its
-    results: one line on stderr when agent-ticks are missing."""
-    if row.get("complete", True) and world_rc == 0:
-        return 0
+def verdict(row: dict, world_rc: int, allow_missing: float, max_miss_rate: float = realtime.MAX_MISS_RATE) -> int:
+    """``up``'s exit status from the world's (0, ``INCOMPLETE`` or
+    ``TOO_MANY_MISSES``) and its results: one line on stderr when agent-ticks
+    are missing or a real-time run missed deadlines."""
     if world_rc == realtime.TOO_MANY_MISSES:
         print(f"error: {miss_problem(row, max_miss_rate)}", file=sys.stderr)
         return world_rc
+    if (row.get("deadline_misses") or {}).get("total"):
+        print(f"warning: real time: {miss_line(row)}", file=sys.stderr)
+    if row.get("complete", True) and world_rc == 0:
+        return 0
     line = missing_line(row)
     if world_rc == 0:
         print(f"warning: incomplete run accepted (--allow-missing {allow_missing:g}): {line}", file=sys.stderr)

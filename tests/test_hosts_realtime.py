@@ -33,7 +33,8 @@ def test_up_hosts_runs_in_real_time_with_every_agents_deadline(tmp_path):
                      f'[hosts.a]\nagents = "1-4"\nrouter = "tls/127.0.0.1:{router_a}"\n'
                      f'[hosts.b]\nagents = "5-9"\nrouter = "tls/127.0.0.1:{router_b}"\n')
     done, doc, res = up(tmp_path, "--hosts", str(hosts), "--scenario", "dynamic", "--ticks", str(ticks),
-                        "--rate", str(rate), "--deadline-ms", "10", "--latency-ms", "35", timeout=300)
+                        "--rate", str(rate), "--deadline-ms", "10", "--latency-ms", "35", "--max-miss-rate", "1",
+                        timeout=300)
     assert done.returncode == 0, done.stderr
     row = next(iter(next(iter(res.values())).values()))
     assert row["complete"] is True

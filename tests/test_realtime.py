@@ -12,6 +12,7 @@ import pytest
 from diskf_mesh.cli import main as cli
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.engine import batch as engine
+from diskf_mesh.mesh import clock as realtime
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.recording import reader
 from diskf_mesh.recording.replay import compare, replay
@@ -57,7 +58,7 @@ def test_realtime_run_keeps_its_rate_and_replays_bit_for_bit(tmp_path):
     ticks, rate = 40, 20.0
     mcap = tmp_path / "run.mcap"
     done, doc, res = up(tmp_path, "--scenario", "dynamic", "--ticks", str(ticks), "--rate", str(rate),
-                        "--record", str(mcap), timeout=300)
+                        "--record", str(mcap), "--max-miss-rate", "1", timeout=300)  # a loaded machine misses
     assert done.returncode == 0, done.stderr
     row = row_of(res)
     period = row["tick_period"]
@@ -85,7 +86,8 @@ def test_latency_past_the_deadline_is_missed_never_fused(tmp_path):
     ticks, rate, deadline_ms = 30, 20.0, 10.0
     faults = FaultConfig(latency_ms=10.0, jitter_ms=10.0)
     done, doc, res = up(tmp_path, "--scenario", "dynamic", "--ticks", str(ticks), "--rate", str(rate),
-                        "--deadline-ms", str(deadline_ms), "--latency-ms", "10", "--jitter-ms", "10", timeout=300)
+                        "--deadline-ms", str(deadline_ms), "--latency-ms", "10", "--jitter-ms", "10",
+                        "--max-miss-rate", "1", timeout=300)
     assert done.returncode == 0, done.stderr
     row = row_of(res)
     assert row["complete"]
@@ -141,16 +143,32 @@ def test_every_message_late_fuses_nothing_and_completes(tmp_path):
     the run still completes at its rate."""
     ticks, rate = 20, 20.0
     done, doc, res = up(tmp_path, "--scenario", "dynamic", "--ticks", str(ticks), "--rate", str(rate),
-                        "--deadline-ms", "10", "--latency-ms", "35", timeout=300)
+                        "--deadline-ms", "10", "--latency-ms", "35", "--max-miss-rate", "1", timeout=300)
     assert done.returncode == 0, done.stderr
     dm = row_of(res)["deadline_misses"]
     assert dm["messages"] == dm["messages_due"] > 0
+    # accepted, but said: one warning line with the count
+    warned = [ln for ln in done.stderr.splitlines() if ln.startswith("warning: real time:")]
+    assert len(warned) == 1 and f"{dm['total']} deadline misses" in warned[0], done.stderr
     assert all(s == [] for tick in doc["fused"] for s in tick)
     trace, ref = reference(SPEC, ticks, 0)
     alone = engine.run(trace.with_links(np.broadcast_to(np.eye(9, dtype=bool), trace.links.shape).copy()),
                        SPEC.algorithm, SPEC.load(ticks).params)
     assert_bitwise(doc, alone)
     assert not np.array_equal(alone.x, ref.x)  # fusing nothing is not the lockstep run
+
+
+def test_a_run_that_did_not_keep_up_fails_by_default(tmp_path):
+    """No --max-miss-rate: more than MAX_MISS_RATE of the deadlines missed
+    (here every neighbour's message) is exit TOO_MANY_MISSES with one line,
+    the results still written."""
+    done, doc, res = up(tmp_path, "--scenario", "dynamic", "--ticks", "10", "--rate", "20",
+                        "--deadline-ms", "10", "--latency-ms", "35", timeout=300)
+    assert done.returncode == realtime.TOO_MANY_MISSES, done.stderr
+    dm = row_of(res)["deadline_misses"]
+    assert dm["miss_rate"] > realtime.MAX_MISS_RATE and dm["messages"] == dm["messages_due"] > 0
+    err = [ln for ln in done.stderr.strip().splitlines() if ln.startswith(("error", "warning"))]
+    assert len(err) == 1 and err[0].startswith("error: ") and "--max-miss-rate 0.05" in err[0], done.stderr
 
 
 def test_max_miss_rate_fails_the_run(tmp_path):
