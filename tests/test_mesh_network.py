@@ -3,13 +3,11 @@ every agent a client of one zenoh router above (the shape of one host of
 ``up --hosts``). The shape changes how messages travel, never an estimate."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from diskf_mesh.cli import main as cli
-from diskf_mesh.mesh.estimator import neighbours
 from diskf_mesh.mesh.runspec import RunSpec
-from mesh_helpers import reference, up
+from mesh_helpers import assert_engine_bit_for_bit, up
 from sim.launcher import PEERS_UP_TO, network_of
 
 pytestmark = pytest.mark.mesh
@@ -19,16 +17,6 @@ def test_auto_is_a_peer_mesh_up_to_the_limit_and_a_router_above():
     assert network_of("auto", PEERS_UP_TO) == "peers"
     assert network_of("auto", PEERS_UP_TO + 1) == "router"
     assert network_of("peers", 100) == "peers" and network_of("router", 2) == "router"
-
-
-def assert_engine_bit_for_bit(doc, spec: RunSpec, ticks: int) -> None:
-    trace, ref = reference(spec, ticks, 0)
-    assert np.array(doc["reported"]).all()
-    assert np.array_equal(np.array(doc["x"], dtype=float), ref.x[0])
-    assert np.array_equal(np.array(doc["P"], dtype=float), ref.P[0])
-    scn, ids = spec.load(ticks), doc["ids"]
-    links = [[sorted(set(neighbours(scn, i, trace.positions[k])) - {i}) for i in ids] for k in range(ticks)]
-    assert [[sorted(s) for s in tick] for tick in doc["fused"]] == links
 
 
 def test_up_through_a_router_equals_the_engine(tmp_path):
