@@ -281,11 +281,11 @@ def floor_run(scenario: str, agents: int | None, ticks: int, timeout: float, wor
     """One floor run; its own fresh credentials in ``workdir`` unless ``insecure``."""
     from diskf_mesh.mesh import credentials, runspec
     from diskf_mesh.mesh.zenoh_config import ZenohOptions
-    from sim.launcher import free_port, network_of
+    from sim.launcher import free_ports, network_of
 
     _, ids = links_of(scenario, agents, ticks)
-    port, run_id = free_port(), f"b{time.monotonic_ns()}"
-    router_port = next(p for p in iter(free_port, None) if p != port) if network_of("auto", len(ids)) == "router" else 0
+    port, router_port = free_ports(2) if network_of("auto", len(ids)) == "router" else (*free_ports(1), 0)
+    run_id = f"b{time.monotonic_ns()}"
     common = ["--scenario", scenario, "--ticks", str(ticks), "--port", str(port), "--router-port", str(router_port),
               "--run-id", run_id, "--timeout", str(timeout)] + (["--n-agents", str(agents)] if agents else [])
     base = ZenohOptions(insecure=True)

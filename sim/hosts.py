@@ -77,10 +77,6 @@ class HostsPlan:
         ``world_routes``)."""
         return tuple(s.name for s in self.shards if s.router is None)
 
-    @property
-    def world_routes(self) -> bool:
-        return bool(self.routerless)
-
     def check(self, ids) -> None:
         """Every agent id of the scenario (``ids``) on exactly one host."""
         where = {}

@@ -131,6 +131,16 @@ def free_port(host: str = "127.0.0.1") -> int:
     raise OSError(f"no free port on {host}")
 
 
+def free_ports(n: int, host: str = "127.0.0.1") -> list:
+    """``n`` different ports free now (``free_port``)."""
+    ports = []
+    while len(ports) < n:
+        p = free_port(host)
+        if p not in ports:
+            ports.append(p)
+    return ports
+
+
 def loopback_options(port: int, base: ZenohOptions = ZenohOptions()) -> tuple:
     """(world, agent) zenoh options for a run confined to 127.0.0.1, a peer
     mesh: over TLS if ``base`` has credentials, plain TCP otherwise."""
@@ -391,6 +401,24 @@ def build_children(spec: RunSpec, ticks: int, seed: int, ids, logs: Path, world_
     return world, agents
 
 
+def one_host_children(spec: RunSpec, ticks: int, seed: int, ids, logs: Path, zopts: ZenohOptions,
+                      network: str = "auto", wait_s: float = 30.0, world_extra=(), agent_extra=()) -> tuple:
+    """(world, services, agents, agents' zenoh options) of ``up`` on this
+    host: with the user's zenoh flags every process gets them as given;
+    without, on loopback, a peer mesh or (``network_of``) a router among
+    the services and every agent its client."""
+    services = []
+    if not zopts.is_default:
+        world_z = agent_z = zopts
+    elif network_of(network, len(ids)) == "router":
+        world_z, router_z, agent_z = routed_loopback_options(*free_ports(2), zopts, wait_s)
+        services = [Child("router", runspec.router_command(spec.run_id, router_z), logs / "router.log")]
+    else:
+        world_z, agent_z = loopback_options(free_port(), zopts)
+    world, agents = build_children(spec, ticks, seed, ids, logs, world_z, agent_z, world_extra, agent_extra)
+    return world, services, agents, agent_z
+
+
 def agent_flags(args: argparse.Namespace, scn, collect_timeout=None, world_timeout=None) -> list:
     """The flags every agent of a run gets from ``up`` or ``host`` (timeouts,
     ``--profile``, fault flags that differ from the scenario's ``[faults]``);
@@ -500,7 +528,7 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
     realtime.from_args(args)
     if plan is None and forks.enabled() and not zygotes:
         zygotes.append(forks.Zygote())
-    world_routes = plan is not None and plan.world_routes  # a host without a router: the world forwards for it
+    world_routes = plan is not None and bool(plan.routerless)  # a host without a router: the world forwards for it
     if plan is not None and plan.credentials and not zopts.insecure:
         ident = credentials.load(plan.credentials, credentials.WORLD, spec.run_id)  # made for this run, or one line
         if world_routes and not ident.world_routes:
@@ -536,19 +564,9 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
             h.argv += ["--logs", str(logs / h.name.replace(" ", "-"))]
         agent_z = replace(zopts, mode="client", connect=(plan.world_listen,), no_multicast_scouting=True)
     else:
-        services = []
-        if not zopts.is_default:  # the user's zenoh flags, as given, for every process
-            world_z = agent_z = zopts
-        elif network_of(args.network, len(ids)) == "router":
-            world_port = free_port()
-            router_port = next(p for p in iter(free_port, None) if p != world_port)
-            world_z, router_z, agent_z = routed_loopback_options(world_port, router_port, zopts,
-                                                                 args.startup_timeout)
-            services = [Child("router", runspec.router_command(spec.run_id, router_z), logs / "router.log")]
-        else:
-            world_z, agent_z = loopback_options(free_port(), zopts)
-        world, agents = build_children(spec, ticks, args.seed, ids, logs, world_z, agent_z, world_extra,
-                                       agent_extra)
+        world, services, agents, agent_z = one_host_children(spec, ticks, args.seed, ids, logs, zopts,
+                                                             args.network, args.startup_timeout, world_extra,
+                                                             agent_extra)
 
     quiet = args.quiet or not sys.stderr.isatty()
     where = f" on {len(plan.shards)} hosts" if plan is not None else (" through a router" if services else "")

@@ -7,6 +7,7 @@ import pytest
 
 from diskf_mesh.cli import main as cli
 from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from mesh_helpers import assert_engine_bit_for_bit, up
 from sim import launcher
 from sim.launcher import PEERS_UP_TO, network_of
@@ -18,6 +19,28 @@ def test_auto_is_a_peer_mesh_up_to_the_limit_and_a_router_above():
     assert network_of("auto", PEERS_UP_TO) == "peers"
     assert network_of("auto", PEERS_UP_TO + 1) == "router"
     assert network_of("peers", 100) == "peers" and network_of("router", 2) == "router"
+
+
+def flag(argv, name):
+    return [argv[i + 1] for i, a in enumerate(argv) if a == name]
+
+
+@pytest.mark.parametrize("n, routed", [(PEERS_UP_TO, False), (PEERS_UP_TO + 1, True)])
+def test_above_the_limit_every_agent_is_a_client_of_the_router_and_only_of_it(tmp_path, n, routed):
+    spec = RunSpec("random-geometric", "diskf", agents=n)
+    ids = [a.id for a in spec.load().agents]
+    world, services, agents, _ = launcher.one_host_children(spec, 5, 0, ids, tmp_path, ZenohOptions(insecure=True))
+    assert len(agents) == n
+    if not routed:  # peers: each agent connects to the world and listens for the others
+        assert services == [] and all(flag(a.argv, "--mode") == [] and flag(a.argv, "--listen") for a in agents)
+        return
+    (router,) = services
+    world_at, router_at = flag(world.argv, "--listen"), flag(router.argv, "--listen")
+    assert flag(world.argv, "--mode") == ["router"] and flag(router.argv, "--connect") == world_at
+    assert router_at != world_at
+    for a in agents:
+        assert flag(a.argv, "--mode") == ["client"] and flag(a.argv, "--connect") == router_at
+        assert flag(a.argv, "--listen") == []
 
 
 def test_up_through_a_router_equals_the_engine(tmp_path):
