@@ -1,0 +1,130 @@
+"""The sans-I/O boundary: events into a protocol machine, effects out of it.
+
+A protocol machine (the world's, an agent's) holds the state of one mesh
+process and nothing else: no thread, no socket, no clock read. Its shell
+(zenoh and the wall clock in ``sim.world`` / ``agents.agent``, or the seeded
+simulated network) reads the clock, hands it one event at a time with the
+time ``now`` (seconds; monotonic or virtual), and carries out the effects
+it returns, in order::
+
+    effects = machine.start(now)
+    effects = machine.handle(event, now)
+
+Events (what happened to the process):
+
+    Sample(key, payload)      a sample on a key the process subscribes to
+    Token(key, up)            a liveliness token appeared (up) or went
+    Timer(name)               a timer the machine set (``SetTimer``) fired
+    Query(qid, key, payload)  a query on a key this process answers
+    Reply(qid, payload)       the answer to a query this process made
+                              (payload None: no answer came)
+    Woke(late)                the process ran again ``late`` seconds after it
+                              should have (it was paused, e.g. SIGSTOP)
+
+Effects (what the process does):
+
+    Publish(key, payload, express)  put bytes on a key
+    DeclareToken(key) / DropToken(key)
+    SetTimer(name, at) / CancelTimer(name)   ``at`` on the shell's clock
+    Ask(qid, key, payload, timeout)          a query; its answer is a Reply
+    Answer(qid, payload)                     the reply to a Query event
+    Finish(status, code, reason)             the process is done: its exit
+                                             status and one line
+
+May import: core, estimators, data, engine (the mesh layer).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+# -- events -------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Sample:
+    key: str
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Token:
+    key: str
+    up: bool
+
+
+@dataclass(frozen=True, slots=True)
+class Timer:
+    name: str
+
+
+@dataclass(frozen=True, slots=True)
+class Query:
+    qid: int
+    key: str
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    qid: int
+    payload: bytes | None
+
+
+@dataclass(frozen=True, slots=True)
+class Woke:
+    late: float
+
+
+Event = Sample | Token | Timer | Query | Reply | Woke
+
+
+# -- effects ------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Publish:
+    key: str
+    payload: bytes
+    express: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class DeclareToken:
+    key: str
+
+
+@dataclass(frozen=True, slots=True)
+class DropToken:
+    key: str
+
+
+@dataclass(frozen=True, slots=True)
+class SetTimer:
+    name: str
+    at: float
+
+
+@dataclass(frozen=True, slots=True)
+class CancelTimer:
+    name: str
+
+
+@dataclass(frozen=True, slots=True)
+class Ask:
+    qid: int
+    key: str
+    payload: bytes
+    timeout: float
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    qid: int
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Finish:
+    status: str
+    code: int
+    reason: str = ""
+
+
+Effect = Publish | DeclareToken | DropToken | SetTimer | CancelTimer | Ask | Answer | Finish
