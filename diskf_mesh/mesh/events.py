@@ -23,6 +23,13 @@ Events (what happened to the process):
 
 Effects (what the process does):
 
+    Subscribe(key)                  deliver the samples of a key expression
+                                    (``Sample`` events) from now on
+    WatchTokens(key)                deliver the liveliness tokens of a key
+                                    expression (``Token`` events), those
+                                    already declared first
+    DeclareQueryable(key)           deliver the queries on a key expression
+                                    (``Query`` events)
     Publish(key, payload, express)  put bytes on a key
     DeclareToken(key) / DropToken(key)
     SetTimer(name, at) / CancelTimer(name)   ``at`` on the shell's clock
@@ -30,6 +37,10 @@ Effects (what the process does):
     Answer(qid, payload)                     the reply to a Query event
     Finish(status, code, reason)             the process is done: its exit
                                              status and one line
+
+A machine reads nothing that differs between two runs of one seed: its
+token nonce and any randomness come in through its constructor, so the
+simulated network (``mesh.simnet``) replays a run event for event.
 
 May import: core, estimators, data, engine (the mesh layer).
 """
@@ -79,6 +90,21 @@ Event = Sample | Token | Timer | Query | Reply | Woke
 
 # -- effects ------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
+class Subscribe:
+    key: str
+
+
+@dataclass(frozen=True, slots=True)
+class WatchTokens:
+    key: str
+
+
+@dataclass(frozen=True, slots=True)
+class DeclareQueryable:
+    key: str
+
+
+@dataclass(frozen=True, slots=True)
 class Publish:
     key: str
     payload: bytes
@@ -127,4 +153,5 @@ class Finish:
     reason: str = ""
 
 
-Effect = Publish | DeclareToken | DropToken | SetTimer | CancelTimer | Ask | Answer | Finish
+Effect = (Subscribe | WatchTokens | DeclareQueryable | Publish | DeclareToken | DropToken | SetTimer | CancelTimer
+          | Ask | Answer | Finish)
