@@ -20,6 +20,9 @@ Events (what happened to the process):
                               (payload None: no answer came)
     Woke(late)                the process ran again ``late`` seconds after it
                               should have (it was paused, e.g. SIGSTOP)
+    Tokens(qid, keys)         the answer to ``AskTokens``: the keys of the
+                              tokens the network holds now
+    Interrupt(why)            the process was told to stop (a signal's name)
 
 Effects (what the process does):
 
@@ -34,6 +37,8 @@ Effects (what the process does):
     DeclareToken(key) / DropToken(key)
     SetTimer(name, at) / CancelTimer(name)   ``at`` on the shell's clock
     Ask(qid, key, payload, timeout)          a query; its answer is a Reply
+    AskTokens(qid, key, timeout)             a liveliness query (who holds a
+                                             token now); its answer is Tokens
     Answer(qid, payload)                     the reply to a Query event
     Finish(status, code, reason)             the process is done: its exit
                                              status and one line
@@ -85,7 +90,18 @@ class Woke:
     late: float
 
 
-Event = Sample | Token | Timer | Query | Reply | Woke
+@dataclass(frozen=True, slots=True)
+class Tokens:
+    qid: int
+    keys: tuple
+
+
+@dataclass(frozen=True, slots=True)
+class Interrupt:
+    why: str
+
+
+Event = Sample | Token | Timer | Query | Reply | Woke | Tokens | Interrupt
 
 
 # -- effects ------------------------------------------------------------------
@@ -141,6 +157,13 @@ class Ask:
 
 
 @dataclass(frozen=True, slots=True)
+class AskTokens:
+    qid: int
+    key: str
+    timeout: float
+
+
+@dataclass(frozen=True, slots=True)
 class Answer:
     qid: int
     payload: bytes
@@ -154,4 +177,4 @@ class Finish:
 
 
 Effect = (Subscribe | WatchTokens | DeclareQueryable | Publish | DeclareToken | DropToken | SetTimer | CancelTimer
-          | Ask | Answer | Finish)
+          | Ask | AskTokens | Answer | Finish)
