@@ -19,7 +19,8 @@ Events (what happened to the process):
     Reply(qid, payload)       the answer to a query this process made
                               (payload None: no answer came)
     Woke(late)                the process ran again ``late`` seconds after it
-                              should have (it was paused, e.g. SIGSTOP)
+                              should have (it was paused, e.g. SIGSTOP); a
+                              shell reports a wake-up later than ``FREEZE_S``
     Tokens(qid, keys)         the answer to ``AskTokens``: the keys of the
                               tokens the network holds now
     Interrupt(why)            the process was told to stop (a signal's name)
@@ -52,6 +53,8 @@ May import: core, estimators, data, engine (the mesh layer).
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+FREEZE_S = 2.0  # a process that runs again this late was not running (SIGSTOP, or starved): ``Woke``
 
 
 # -- events -------------------------------------------------------------------
