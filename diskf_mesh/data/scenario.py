@@ -10,7 +10,8 @@ Format (see ``scenarios/quadrants.toml`` for a commented example):
     name, description, steps
     [model]     dynamics = "rotation" (omega, rad/tick) | "matrix" (A)
                 G, Q, x0, P0, position_dims
-    [input]     kind = "step" (at, before, after) | "constant" (value)
+    [input]     kind = "step" | "constant" | "sine" | "ramp" | "steps" |
+                "telegraph" | "white" | "series" (``data.inputs``)
     [estimator] the estimators' settings (``estimators.Params``: each
                 estimator declares its own, e.g. window, eps, consensus_eps;
                 a dataclass-valued one is a sub-table, [estimator.robust])
@@ -33,6 +34,7 @@ import numpy as np
 
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.data.inputs import InputSpec, parse_input
 from diskf_mesh.core.model import LinearModel, Sensors
 from diskf_mesh.estimators import SETTINGS, Params
 from diskf_mesh.data.trace import Trace
@@ -88,10 +90,7 @@ class Scenario:
     x0: np.ndarray
     P0: np.ndarray
     position_dims: tuple
-    input_kind: str
-    input_at: int
-    input_before: np.ndarray
-    input_after: np.ndarray
+    input: InputSpec
     params: Params
     topology: str
     comm_range: float
@@ -117,12 +116,10 @@ class Scenario:
             raise InputError("steps", f"the scenario's A sequence has {A.shape[0]} entries, {K} requested")
         return LinearModel(np.ascontiguousarray(A[:K]), self.G, self.Q, self.x0, self.P0)
 
-    def inputs(self, steps: int) -> np.ndarray:
-        """d_k for k = 0..steps-1 (d[k] acts between tick k and k+1)."""
-        k = np.arange(steps)[:, None]
-        if self.input_kind == "constant":
-            return np.broadcast_to(self.input_after, (steps, len(self.input_after))).copy()
-        return np.where(k >= self.input_at, self.input_after, self.input_before)
+    def inputs(self, steps: int, seed: int = 0) -> np.ndarray:
+        """d_k for k = 0..steps-1 (d[k] acts between tick k and k+1) under
+        simulation seed ``seed`` (``data.inputs``: its seed rule)."""
+        return self.input.values(steps, seed)
 
     def positions(self, steps: int) -> np.ndarray:
         """Agent positions (steps, N, 2) at ticks 1..steps."""
@@ -183,21 +180,21 @@ def load_scenario(name_or_path: str, agents: int | None = None) -> Scenario:
         raise InputError("scenario", f"cannot read {path}: {e}") from None
     except tomllib.TOMLDecodeError as e:
         raise InputError("scenario", f"{path} is not valid TOML: {e}") from None
-    return parse_scenario(raw, agents=agents)
+    return parse_scenario(raw, agents=agents, base=path.parent)
 
 
 TOP_KEYS = ("name", "description", "steps", "model", "input", "estimator", "topology", "agents", "generate", "faults")
 MODEL_KEYS = {"rotation": ("dynamics", "omega", "G", "Q", "x0", "P0", "position_dims"),
               "matrix": ("dynamics", "A", "G", "Q", "x0", "P0", "position_dims")}
-INPUT_KEYS = ("kind", "at", "before", "after", "value")
 TOPOLOGY_KEYS = ("kind", "range")
 AGENT_KEYS = ("id", "H", "R", "sense", "sense_range", "position", "path", "period", "phase")
 GENERATE_KEYS = ("kind", "agents", "box", "sense_range", "R", "layout_seed")
 
 
-def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
+def parse_scenario(raw: dict, agents: int | None = None, base: Path | None = None) -> Scenario:
     """A ``Scenario`` from a parsed TOML document; every field is typed and
-    range-checked (``validate.setting``), unknown keys are errors."""
+    range-checked (``validate.setting``), unknown keys are errors. ``base``:
+    the folder a relative ``[input] file`` is read from."""
     check_keys(raw, TOP_KEYS, "")
     steps = setting(raw, "steps", "", int, 200, low=1)
     mdl = raw.get("model", {})
@@ -222,11 +219,7 @@ def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
     # the target's position is compared with the agents' 2-D positions
     pos_dims = index_list(mdl.get("position_dims", list(range(min(n, 2)))), "model.position_dims", n, max_len=2)
 
-    inp = check_keys(raw.get("input", {}), INPUT_KEYS, "input")
-    kind = setting(inp, "kind", "input", str, "step", choices=("step", "constant"))
-    before = vector(inp.get("before", [0.0] * m), "input.before", m)
-    after = vector(inp.get("after", inp.get("value", [0.0] * m)), "input.after", m)
-    input_at = setting(inp, "at", "input", int, 0, low=0)
+    input_spec = parse_input(raw.get("input", {}), m, base)
 
     params = _parse_estimator(raw.get("estimator", {}))
 
@@ -257,7 +250,7 @@ def parse_scenario(raw: dict, agents: int | None = None) -> Scenario:
         name=setting(raw, "name", "", str, "custom"),
         description=setting(raw, "description", "", str, ""),
         steps=steps, A=A, G=G, Q=Q, x0=x0, P0=P0, position_dims=pos_dims,
-        input_kind=kind, input_at=input_at, input_before=before, input_after=after,
+        input=input_spec,
         params=params, topology=topology, comm_range=comm_range,
         agents=specs, faults=dict(faults),
     )
@@ -436,11 +429,11 @@ def simulate(scn: Scenario, seeds, steps: int | None = None) -> Trace:
         rng = np.random.default_rng(s)
         W[b] = rng.standard_normal((K, n)) @ Lq.T
         V[b] = np.einsum("iab,kib->kia", Lr, rng.standard_normal((K, N, pmax)))
-    d = scn.inputs(K)
+    d = np.stack([scn.inputs(K, s) for s in seeds])  # (B, K, m)
     x = np.empty((B, K, n))
     prev = np.broadcast_to(model.x0, (B, n))
     for k in range(1, K + 1):
-        prev = prev @ model.A_at(k).T + d[k - 1] @ model.G.T + W[:, k - 1]
+        prev = prev @ model.A_at(k).T + d[:, k - 1] @ model.G.T + W[:, k - 1]
         x[:, k - 1] = prev
     positions = scn.positions(K)
     has = sensing(scn, x[..., list(scn.position_dims)], positions)
@@ -450,6 +443,6 @@ def simulate(scn: Scenario, seeds, steps: int | None = None) -> Trace:
     links = links_for(scn, positions)[None]
     return Trace(
         model=model, sensors=sensors, y=y, has=has, links=links,
-        truth_x=x, truth_d=np.broadcast_to(d, (B, K, m)).copy(),
+        truth_x=x, truth_d=d,
         positions=positions, seeds=seeds, position_dims=scn.position_dims, labels=scn.labels,
     )

@@ -342,8 +342,8 @@ def perturbations(scn: Scenario) -> list:
     out.append(("ω = −ω₀ (clockwise)", replace(scn, A=rotation(-w))))
     out.append(("ω = −2·ω₀ (clockwise)", replace(scn, A=rotation(-2 * w))))
     out.append(("wide prior P0 = 100² I", replace(scn, P0=1e4 * np.eye(scn.P0.shape[0]))))
-    out.append(("late step: 0, then −5 from tick 100", replace(scn, input_at=100, input_after=-0.5 * scn.input_after)))
-    out.append(("step × 3 (30)", replace(scn, input_after=3.0 * scn.input_after)))
+    out.append(("late step: 0, then −5 from tick 100", replace(scn, input=replace(scn.input, at=100, after=-0.5 * scn.input.after))))
+    out.append(("step × 3 (30)", replace(scn, input=replace(scn.input, after=3.0 * scn.input.after))))
     return out
 
 
