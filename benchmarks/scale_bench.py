@@ -7,7 +7,7 @@ each, on loopback, or each host in its own network namespace with
     python benchmarks/scale_bench.py [--agents 25,50,100] [--per-host 25] [--ticks 50]
                                      [--scenario random-geometric] [--single] [--rate HZ] [--netns]
 
-    # issue 16's targets: 100 agents on 4 namespace hosts at 5 Hz; 200 on this machine at 2 Hz
+    # real time at scale: 100 agents on 4 namespace hosts at 5 Hz; 200 agents at 2 Hz
     python benchmarks/scale_bench.py --agents 100 --netns --rate 5 --ticks 100
     python benchmarks/scale_bench.py --agents 200 --per-host 50 --rate 2 --ticks 40
 

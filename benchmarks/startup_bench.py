@@ -9,8 +9,8 @@ the figures of one invocation):
 
     fork    this checkout: the zygote (``sim.zygote``) forks every process
     exec    this checkout, ``DISKF_MESH_SPAWN=exec``: a fresh interpreter each
-    before  ``--before TREE``: another checkout (e.g. main before this
-            work), run with that tree's ``.venv/bin/python``
+    before  ``--before TREE``: another checkout (e.g. an earlier
+            commit), run with that tree's ``.venv/bin/python``
 
 Columns: first tick after the command started (this checkout prints it:
 "s after up started"; for ``before``, the world process's start time

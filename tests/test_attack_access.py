@@ -1,4 +1,4 @@
-"""Who may speak, tried as a hostile local user would (issue 11): one default
+"""Who may speak, tried as a hostile local user would: one default
 ``diskf-mesh up`` run (TLS, mutual authentication, access control; Scenario 2,
 a fixed seed) while attackers who read its run id, port and credentials
 directory off the process table (``/proc/<pid>/cmdline``, as ``ps`` does) try

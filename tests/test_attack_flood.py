@@ -1,4 +1,4 @@
-"""Floods at a real mesh run (issue 11): the receive path's limits hold.
+"""Floods at a real mesh run: the receive path's limits hold.
 
 ``diskf-mesh up`` runs Scenario 2 (seed 7, ``--estimates``) as real processes
 on loopback, in the mesh without access control (an intruder on the host can

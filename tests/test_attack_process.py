@@ -1,4 +1,4 @@
-"""Process faults on the real mesh (issue 11), real processes on loopback:
+"""Process faults on the real mesh, real processes on loopback:
 a duplicate agent id (started mid-run, and two at once), an agent frozen
 (SIGSTOP) past zenoh's lease then woken, a frozen world, kill -9 of three
 agents, kill -9 and restart (re-initialised from the neighbour in range),

@@ -365,7 +365,7 @@ def _bad_target(kind, tmp_path):
     """(path, a check that the node is unchanged afterwards)."""
     if kind in ("/dev/null", "/dev/full"):
         if not os.path.exists(kind) or not stat.S_ISCHR(os.lstat(kind).st_mode):
-            pytest.skip(f"{kind} is not a character device here (a sandbox's plain file); 'fifo' covers special nodes")
+            pytest.skip(f"{kind} is not a character device here (a container's plain file); 'fifo' covers special nodes")
         return kind, lambda: stat.S_ISCHR(os.lstat(kind).st_mode)
     if kind == "fifo":  # a special node every machine can make
         fifo = tmp_path / "pipe.json"

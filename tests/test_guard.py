@@ -208,7 +208,7 @@ def test_receiver_with_faults_balances_its_books(view):
 
 
 # --------------------------------------------------------------------------
-# resources under hostile input (issue 11): bytes in, verdict and counts out
+# resources under hostile input: bytes in, verdict and counts out
 # --------------------------------------------------------------------------
 def test_unknown_sender_ids_share_one_row_and_are_never_decoded(view, caplog):
     g = Guard(view.guard_config())

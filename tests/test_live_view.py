@@ -36,7 +36,7 @@ FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
          "--disable-renderer-backgrounding", "--disable-background-timer-throttling",
          "--disable-backgrounding-occluded-windows"]
 WINDOW = (1100, 700)
-SLOW = 180.0  # seconds: generous, for a 2-core machine busy with other jobs
+SLOW = 180.0  # seconds: generous, for a slow or busy 2-core machine
 
 
 class Browser:

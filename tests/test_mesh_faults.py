@@ -1,4 +1,4 @@
-"""Faults on the real mesh (issue 6): lossy, slow, duplicating and reordering
+"""Faults on the real mesh: lossy, slow, duplicating and reordering
 links, agents killed and restarted, the world killed, another run on the same
 network. Every run completes (or ends as it must), the message counters add up,
 and the estimates are those of the in-process engine on what was delivered."""

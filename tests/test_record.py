@@ -1,4 +1,4 @@
-"""Recordings (issue 14): ``up --record`` -> ``inspect`` -> ``replay`` equals
+"""Recordings: ``up --record`` -> ``inspect`` -> ``replay`` equals
 the run bit for bit, for every estimator, with and without faults; the
 verdict of every message agrees with the agents' counters and the seeded
 fault layer; ``figures --from`` draws the run."""

@@ -1,4 +1,4 @@
-"""Agent ids may be names ("drone-1") in traces and scenarios (issue 14).
+"""Agent ids may be names ("drone-1") in traces and scenarios.
 
 Inside a run every agent has an integer id (``validate.internal_ids``: the
 ids themselves when all are integers, else 1..N in order, the ids a scenario

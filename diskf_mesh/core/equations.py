@@ -1,4 +1,6 @@
-"""The equations of the paper (``shared/paper/diskf.tex``), one function each.
+"""The equations of the paper, one function each: Z. Wu and A. Mehta,
+"Decentralized Input and State Estimation for Multi-agent System with Dynamic
+Topology and Heterogeneous Sensor Network", arXiv:2410.00272 (CITATION.cff).
 
 Every function is pure, works on numpy arrays with any leading batch axes
 (seeds x agents, or a single agent as a batch of one) and names the equation

@@ -1,4 +1,5 @@
-"""The numbers the paper prints (``shared/paper/diskf.tex``), for comparison.
+"""The numbers the paper prints (Wu and Mehta, arXiv:2410.00272: its
+Table I and Table II), for comparison.
 
 Only the two tables carry numbers; Figs. 3, 5 and 6 are plots without
 values in the source. Keys follow ``metrics.METRIC_KEYS`` and the estimator

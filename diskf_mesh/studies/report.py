@@ -165,7 +165,7 @@ def section_setup(ctx: Context) -> str:
         ["KCF consensus step", "not given", f"{p.consensus_eps}"],
         ["Scenario 2 geometry", "a sketch (Fig. 2)", "ours, documented in `scenarios/dynamic.toml`"],
         ["link rule", "\"when the communication ranges of two agents intersect\"",
-         "distance ≤ range (the issue's rule; \"ranges intersect\" could also mean ≤ 2·range)"],
+         "distance ≤ range (the rule used here; \"ranges intersect\" could also mean ≤ 2·range)"],
         ["\"1-hop\" in Scenario 2 (Table I)", "not defined", f"the range-{studies.PAPER_RANGE:g} graph"],
         ["error metrics", "MAE, RMSE, not defined further",
          "Euclidean position error over agents, ticks, seeds; input error only where an agent has a fused input"],
@@ -346,7 +346,7 @@ def variants_note(var: dict) -> str:
 
 
 def headline(res: studies.Results) -> str:
-    """The issue's question at the paper's range, answered from the numbers."""
+    """Which estimator is best at the paper's range, answered from the numbers."""
     r = f"{studies.PAPER_RANGE:g}"
     parts = []
     for key in ("mae_state", "mae_input"):
@@ -414,7 +414,7 @@ def hold_note(res: studies.Results) -> str:
 # beyond the paper
 # --------------------------------------------------------------------------
 ONE_ROUND = estimators.NAMES  # every estimator: one exchange round per tick is the interface
-NEES_BAND = (1.6, 2.5)  # the 95 % band of the averaged NEES for n = 2 (issue 13)
+NEES_BAND = (1.6, 2.5)  # the 95 % band of the averaged NEES for n = 2
 
 
 def family_check(rows: dict, key: str) -> tuple:
@@ -478,7 +478,7 @@ def robustness_table(rb: dict) -> str:
 
 
 def robust_targets(res: studies.Results) -> list:
-    """The issue's targets, each with its measured numbers and met or not."""
+    """The robust variant's targets, each with its measured numbers and met or not."""
     ov = res.overview
     def cell(st):
         return ov[st]
@@ -598,7 +598,7 @@ def section_robust(ctx: Context) -> str:
         "- `diskf-r` for a real network whose unknown input changes slowly or in occasional steps: the lowest "
         "error of the one-round estimators in every setting of 10.2 and 10.5 unless marked there, and a calibrated "
         "covariance (10.3). Its assumption is stated and its sensitivity measured (10.4). Its engine CPU per tick is "
-        "about 1.7 times DISKF's (Table II batch, on a loaded machine: 0.68 s against 0.40 s).\n"
+        "about 1.7 times DISKF's (Table II batch, measured side by side: 0.68 s against 0.40 s).\n"
         "- Where the input may jump arbitrarily every tick, `unbiased = true` uses the assumption-free update "
         "wherever the heard sensors allow it.\n"
         "- The centralized filters are the yardsticks: how far a one-round method is from the optimum of its model.\n"
