@@ -156,8 +156,11 @@ def run(trace: Trace, estimator: str, params: Params | None = None, progress=Non
 
 
 def run_batch(trace: Trace, estimator: str, params: Params | None = None, progress=None,
-              neighbours: str = "auto") -> Estimates:
-    """``run`` on all seeds of ``trace`` as one batch."""
+              neighbours: str = "auto", restart=None, listen=None) -> Estimates:
+    """``run`` on all seeds of ``trace`` as one batch. ``restart(k, est,
+    state) -> state``, if given, may replace agents' states before tick k's
+    local step (a restarted agent, ``engine.verify``); ``listen(k, msg)`` is
+    handed every tick's messages."""
     est = estimators.get(estimator)(trace.model, trace.sensors, params)
     B, K, N = trace.has.shape
     n, m = trace.model.n, trace.model.m
@@ -172,7 +175,11 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
     changed = link_changes(trace.links)
     view = None
     for k in range(1, K + 1):
+        if restart is not None:
+            state = restart(k, est, state)
         state, msg = est.local(state, k, y[k - 1], has[k - 1])
+        if listen is not None:
+            listen(k, msg)
         if changed[k - 1]:
             view = choose_links(trace.links[:, k - 1], B, neighbours)
         state, out = view.fuse(est, state, msg, None if draws is None else draws[:, k - 1])

@@ -37,7 +37,11 @@ kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
         (at most ``MAX_LINKS`` entries of at most ``MAX_VERDICT`` characters;
         optional) - what a recording (``diskf_mesh.recording``) replays,
     "o" the agent's own message of tick k, the very bytes it published
-        (optional, at most ``MAX_BYTES``): a recording's "as sent"
+        (optional, at most ``MAX_BYTES``): a recording's "as sent",
+    "fd" for each sender in "f", in order, the ``digest`` of its message as
+        fused (``message_digest``: 8 bytes; optional): the end-of-run check
+        (``engine.verify``) names a sender whose message the engine does not
+        reproduce
 
 kind "tick" (world -> everyone, opens tick k; ``Tick``)::
 
@@ -71,6 +75,7 @@ one key is read. Report counters are non-negative ints of at most
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 import re
 import struct
@@ -94,6 +99,7 @@ MAX_COUNTERS = 64    # most counters a report may carry (there are about 30)
 PER_TICK = 1 << 20   # most payloads one agent counts per tick of the run (``count_bound``)
 MAX_LINKS = 1024     # most senders a report's "f" and "nf" may name (without the run's agent count)
 MAX_VERDICT = 48     # longest verdict text in a report's "nf"
+DIGEST_BYTES = 8     # a fused message's digest in a report's "fd"
 
 REASONS = (
     "not-msgpack",  # not a msgpack document at all
@@ -241,6 +247,7 @@ class Report:
     fused: tuple = ()      # sender ids fused into this estimate
     not_fused: tuple = ()  # ((sender, verdict), ...) the other linked senders
     sent: bytes = b""      # this agent's own message of the tick, as published
+    digests: tuple = ()    # per sender of ``fused``, in order: ``message_digest`` of what was fused
 
 
 @dataclass(frozen=True)
@@ -307,8 +314,28 @@ def encode(run_id: str, sender: int, tick: int, msg: Message, exchanged: tuple =
                   "dt": DTYPE, "dv": bool(np.asarray(msg.d_valid).reshape(-1)[0]), "a": blob})
 
 
+def digest(payload: bytes) -> bytes:
+    """A message's short digest (``DIGEST_BYTES`` of blake2b): what a report
+    says of each message it fused."""
+    return hashlib.blake2b(payload, digest_size=DIGEST_BYTES).digest()
+
+
+def message_digest(run_id: str, sender: int, tick: int, msg: Message, exchanged: tuple = EXCHANGED) -> bytes:
+    """The digest of ``sender``'s message of ``tick`` as fused: of its
+    encoding (``encode``, deterministic, so an honest message's digest is
+    that of the payload its sender published, and the engine recomputes it)."""
+    return digest(encode(run_id, sender, tick, msg, exchanged))
+
+
+def engine_digests(run_id: str, ids, exchanged: tuple = EXCHANGED):
+    """``engine.verify``'s ``message_digest`` for a run: (tick, sender's index
+    in ``ids``, the engine's Message) -> the digest of its encoding."""
+    ids = list(ids)
+    return lambda k, s, msg: message_digest(run_id, ids[s], k, msg, exchanged)
+
+
 def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None, fused=(),
-                  not_fused=(), sent: bytes = b"") -> bytes:
+                  not_fused=(), sent: bytes = b"", digests=()) -> bytes:
     n, m = _dims(x, d)
     blob = _f8(x, P, d)
     if len(blob) != 8 * (n + n * n + m):
@@ -316,7 +343,8 @@ def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counter
     return _pack({"v": SCHEMA, "k": "report", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
                   "dt": DTYPE, "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
                   "c": {str(k): int(v) for k, v in (counters or {}).items()},
-                  "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused], "o": bytes(sent)})
+                  "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused], "o": bytes(sent),
+                  "fd": [bytes(g) for g in digests]})
 
 
 def encode_tick(t: Tick) -> bytes:
@@ -373,7 +401,7 @@ class Limits:
 
 # fields of each kind (the map's length), and room for a few more (a signature, a binding) that a
 # decoder ignores: each is still bounded by the string, bin and byte limits
-_FIELDS = {"msg": 10, "report": 11, "tick": 12, "meas": 8, "stop": 5, "rejoin": 6}
+_FIELDS = {"msg": 10, "report": 12, "tick": 12, "meas": 8, "stop": 5, "rejoin": 6}
 EXTRA_FIELDS = 2
 
 
@@ -396,7 +424,7 @@ def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | 
             # "o": the agent's own message of the tick, as published (at most a message's size)
             links = agents if agents is not None else MAX_LINKS
             own = limits("msg", a, b).max_bytes
-            size += MAX_COUNTERS * (2 + MAX_STR + 9) + links * (9 + 12 + MAX_VERDICT) + own
+            size += MAX_COUNTERS * (2 + MAX_STR + 9) + links * (9 + 12 + MAX_VERDICT + 2 + DIGEST_BYTES) + own
             fields, arrays, bins = MAX_COUNTERS, max(floats, links), max(bins, own)
         return Limits(size, MAX_STR, bins, arrays, fields)
     if kind == "tick":  # alg, topo; N positions (2 float64) and N live ids (<= 9 bytes each)
@@ -634,7 +662,11 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
     sent = doc.get("o", b"")
     if not isinstance(sent, bytes):
         raise Rejected("schema", "field 'o' is not a byte string")
-    return Report(doc["run"], s, doc["t"], x, P, d, dv, c, tuple(f), tuple((i, v) for i, v in nf), sent)
+    fd = doc.get("fd", [])
+    if not isinstance(fd, list) or len(fd) not in (0, len(f)) or not all(
+            isinstance(g, bytes) and len(g) == DIGEST_BYTES for g in fd):
+        raise Rejected("schema", f"field 'fd' is not one {DIGEST_BYTES}-byte digest per sender of 'f'")
+    return Report(doc["run"], s, doc["t"], x, P, d, dv, c, tuple(f), tuple((i, v) for i, v in nf), sent, tuple(fd))
 
 
 def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -> Tick:

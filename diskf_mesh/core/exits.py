@@ -1,0 +1,32 @@
+"""Every exit status of the commands, in one place.
+
+A run (``up``, ``world``, the simulated network) ends with a status
+(``diskf_mesh.engine.verify``: the end-of-run replay on the engine) and exits
+with the code this table gives it; ``replay RUN.mcap`` and ``replay
+--fused`` exit with the code of the status they find.
+
+    0  OK               exact, or as planned (only the injected faults)
+    1  FAILED           a process failed (its one line says why)
+    2  BAD_INPUT        bad input, or a duplicate process in the run
+    3  INCOMPLETE       agent-ticks missing beyond ``--allow-missing``
+    4  TOO_MANY_MISSES  real time: deadline misses beyond ``--max-miss-rate``
+    5  DEGRADED         complete, but agent-ticks fused fewer messages than
+                        planned (without ``--allow-degraded``)
+    6  DIVERGED         a reported estimate the engine does not reproduce;
+                        never accepted
+"""
+from __future__ import annotations
+
+OK = 0
+FAILED = 1
+BAD_INPUT = 2
+INCOMPLETE = 3
+TOO_MANY_MISSES = 4
+DEGRADED = 5
+DIVERGED = 6
+
+EXACT_STATUS, AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, INCOMPLETE_STATUS = (
+    "exact", "as planned", "degraded", "diverged", "incomplete")
+STATUSES = (EXACT_STATUS, AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, INCOMPLETE_STATUS)
+STATUS_EXIT = {EXACT_STATUS: OK, AS_PLANNED_STATUS: OK, DEGRADED_STATUS: DEGRADED, DIVERGED_STATUS: DIVERGED,
+               INCOMPLETE_STATUS: INCOMPLETE}

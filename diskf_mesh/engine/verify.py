@@ -1,0 +1,362 @@
+"""A run checks itself: the engine replays it from what each agent said it
+fused, and every reported estimate is compared bit for bit.
+
+``verify`` is pure: a run's claims in (``RunClaims``: every agent's reported
+x, P, d per tick, the senders it fused, the digests of the messages it
+fused, the re-initialisations), its ``RunStatus`` out. The mesh's world, the
+simulated network and ``replay RUN.mcap`` / ``replay --fused`` all call it.
+
+The replay is ``engine.run_batch`` on the run's trace with each tick's links
+set to exactly what each agent fused (an agent-tick without a report: the
+planned links, a guess that only matters if it goes on without a
+re-initialisation), and every re-initialised agent restarted at its tick
+from the starting state it was handed (``Restart``). Each tick's messages
+are recomputed from the trace; with a ``message_digest`` (the mesh's wire
+encoding) each digest an agent reported for a fused sender is compared with
+the digest of the engine's message, so a message the engine does not
+reproduce (forged, or an insider's extreme one) is named with its sender.
+
+Statuses (exit statuses: ``diskf_mesh.core.exits``), first that applies:
+
+    diverged     a reported estimate, or a fused message's digest, differs
+                 from the engine's replay where the run's history is known:
+                 the first tick, agent and sender whose message it does not
+                 reproduce (the agent itself when every message it fused was
+                 the engine's)
+    incomplete   some agent-tick was not reported
+    degraded     every agent-tick reported and reproduced, but some fused
+                 fewer messages than planned: how many, which, and the
+                 agents' reasons (lost, late, rejected:<reason>)
+    as planned   every fused set is the fault plan's delivered set (link
+                 faults injected, seeded by the run's seed)
+    exact        every fused set is the nominal links (live and in range)
+
+A history is unknown after an agent-tick that was not reported (what it
+fused is unknown) until that agent is re-initialised or its next report
+equals the replay bit for bit; an estimate built on an unknown sender's
+message whose digest is missing or differs is not verifiable
+(``unverified``), not a divergence.
+
+May import: core, estimators, data (the engine layer).
+"""
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+
+from diskf_mesh.core import exits
+from diskf_mesh.core.exits import (AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, EXACT_STATUS,
+                                   INCOMPLETE_STATUS)
+from diskf_mesh.data.faults import FaultConfig, delivered_links
+from diskf_mesh.data.trace import Trace
+from diskf_mesh.engine import batch
+from diskf_mesh.engine.batch import Estimates
+
+LISTED = 20  # agent-ticks listed by name in the evidence (the counts cover all)
+
+
+@dataclass(frozen=True)
+class Restart:
+    """An agent re-initialised: it worked again from ``tick`` on, starting
+    from the fused estimate of tick - 1 of agent ``source`` (or its prior)."""
+
+    tick: int
+    agent: int                  # index on the trace's agent axis
+    source: int | None          # index of the agent whose estimate it took; None: the prior
+    x: np.ndarray | None = None  # the starting state it was handed; None: ``source``'s report of tick - 1
+    P: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class RunClaims:
+    """What a run says it did, ticks 1..K on the trace's agent axis."""
+
+    x: np.ndarray               # (K, N, n) reported fused state (NaN where not reported)
+    P: np.ndarray               # (K, N, n, n)
+    d: np.ndarray               # (K, N, m)
+    d_valid: np.ndarray         # (K, N) bool
+    reported: np.ndarray        # (K, N) bool
+    fused: np.ndarray           # (K, N, N) bool [tick - 1, receiver, sender]; the diagonal is ignored
+    live: np.ndarray | None = None   # (K, N) bool the agents counted live at each tick (None: all)
+    restarts: tuple = ()        # Restart, ...
+    digests: dict = field(default_factory=dict)   # (tick, receiver, sender) -> digest of the message fused
+    verdicts: dict = field(default_factory=dict)  # (tick, receiver) -> ((sender, why not fused), ...)
+    why: np.ndarray | None = None  # (K, N) why an agent-tick is missing, as the run says
+
+    @property
+    def ticks(self) -> int:
+        return int(self.reported.shape[0])
+
+
+@dataclass(frozen=True)
+class RunStatus:
+    """A run's verdict: one of ``exits.STATUSES``, its one-line ``reason``
+    and JSON-able ``evidence``."""
+
+    status: str
+    reason: str
+    evidence: dict = field(default_factory=dict)
+
+    @property
+    def exit_code(self) -> int:
+        return exits.STATUS_EXIT[self.status]
+
+    def accepted(self, *, allow_missing: float = 0.0, allow_degraded: bool = False) -> bool:
+        """Whether the user accepted this status: exact and as planned always;
+        incomplete within ``allow_missing`` (a share of the agent-ticks);
+        degraded with ``allow_degraded``; diverged never."""
+        if self.status in (EXACT_STATUS, AS_PLANNED_STATUS):
+            return True
+        if self.status == INCOMPLETE_STATUS:
+            return self.evidence.get("missing_fraction", 1.0) <= allow_missing
+        return self.status == DEGRADED_STATUS and allow_degraded
+
+    def to_json(self) -> dict:
+        return {"status": self.status, "reason": self.reason, **self.evidence}
+
+
+# --------------------------------------------------------------------------
+# the links a run should have fused
+# --------------------------------------------------------------------------
+def first_ticks(trace: Trace, K: int) -> Trace:
+    """The first K ticks of a trace (everything is causal: ticks 1..K of a
+    run do not depend on later ones)."""
+    cut = lambda a: None if a is None else a[:, :K]  # noqa: E731
+    return replace(trace, model=replace(trace.model, A=trace.model.A[:K]), y=trace.y[:, :K], has=trace.has[:, :K],
+                   links=trace.links[:, :K], truth_x=cut(trace.truth_x), truth_d=cut(trace.truth_d),
+                   positions=None if trace.positions is None else trace.positions[:K])
+
+
+def nominal_links(trace: Trace, K: int, live: np.ndarray | None = None) -> np.ndarray:
+    """(K, N, N): the range links of ticks 1..K between agents live at the
+    tick (``live`` (K, N); None: all), the diagonal True."""
+    links = np.array(trace.links[0, :K], dtype=bool)
+    if live is not None:
+        links &= live[:, :, None] & live[:, None, :]
+    N = links.shape[-1]
+    links[:, np.arange(N), np.arange(N)] = True
+    return links
+
+
+def planned_links(nominal: np.ndarray, ids, faults: FaultConfig | None, seed: int,
+                  deadline_s: float = np.inf) -> np.ndarray:
+    """The nominal links after the injected faults (``faults.delivered_links``
+    of the run's seed; ``ids``: the run's agent ids in the trace's order):
+    what the agents fuse when every copy due before ``deadline_s`` is in."""
+    if faults is None or not faults.active:
+        return nominal
+    return delivered_links(nominal, list(ids), faults, seed, deadline_s)
+
+
+# --------------------------------------------------------------------------
+# the replay
+# --------------------------------------------------------------------------
+def restarted(est, state, agent: int, x=None, P=None):
+    """``state`` with ``agent``'s slot as a fresh agent's (``est.init``),
+    its fused estimate set to (x, P) and its observation window reset when
+    given: what a re-initialised agent process starts from."""
+    fresh = est.init(state.x.shape[:-1])
+    out = {}
+    for f in fields(state):
+        a = getattr(state, f.name)
+        if isinstance(a, np.ndarray):
+            a = a.copy()
+            a[:, agent] = getattr(fresh, f.name)[:, agent]
+            out[f.name] = a
+    new = replace(state, **out)
+    if x is not None:
+        new.x[:, agent], new.P[:, agent] = x, P
+        new.since[:, agent] = 0
+    return new
+
+
+def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.ndarray | None = None,
+           message_digest=None, wanted=None) -> tuple:
+    """The engine on ticks 1..K of ``trace`` with exactly the fused sets of
+    ``claims`` (an agent-tick without a report: ``planned``'s row), each
+    ``Restart`` applied at its tick. Returns (Estimates, digests): with
+    ``message_digest(k, sender index, Message) -> bytes``, the digest of
+    every engine message (k, sender) in ``wanted`` (a set; None: none)."""
+    K, N = claims.reported.shape
+    tr = first_ticks(trace, K)
+    planned = nominal_links(tr, K, claims.live) if planned is None else planned
+    links = np.array(claims.fused, dtype=bool)
+    links[~claims.reported] = planned[~claims.reported]
+    links[:, np.arange(N), np.arange(N)] = True
+    by_tick = {}
+    for r in claims.restarts:
+        by_tick.setdefault(int(r.tick), []).append(r)
+
+    def restart(k, est, state):
+        for r in by_tick.get(k, ()):
+            x, P = r.x, r.P
+            if x is None and r.source is not None:
+                x, P = claims.x[k - 2, r.source], claims.P[k - 2, r.source]
+                if not claims.reported[k - 2, r.source]:  # not in the claims: the replay's own
+                    x, P = state.x[0, r.source].copy(), state.P[0, r.source].copy()
+            state = restarted(est, state, r.agent, x, P)
+        return state
+
+    digests = {}
+    need = {}
+    for k, s in wanted or ():
+        need.setdefault(k, set()).add(s)
+
+    def listen(k, msg):
+        if message_digest is not None:
+            for s in need.get(k, ()):
+                digests[(k, s)] = message_digest(k, s, msg.take((0, s)))
+
+    est = batch.run_batch(tr.with_links(links[None]), algorithm, params, restart=restart if by_tick else None,
+                          listen=listen if need else None)
+    return est, digests
+
+
+def differing(claims: RunClaims, est: Estimates) -> tuple:
+    """((K, N) bool: reported agent-ticks whose x, P, d_valid or (where
+    valid) d differ from ``est`` bit for bit; (K, N) largest |difference|)."""
+    r = claims.reported
+    x, P, d, dv = est.x[0], est.P[0], est.d[0], est.d_valid[0]
+    both = claims.d_valid & dv
+    with np.errstate(invalid="ignore"):
+        dx = np.abs(x - claims.x).max(-1)
+        dP = np.abs(P - claims.P).max((-1, -2))
+        dd = np.where(both, np.abs(d - claims.d).max(-1), 0.0)
+        bad = r & ((x != claims.x).any(-1) | (P != claims.P).any((-1, -2)) | (dv != claims.d_valid)
+                   | (both & (d != claims.d).any(-1)))
+    gap = np.where(r, np.fmax(np.fmax(dx, dP), dd), 0.0)
+    return bad, np.nan_to_num(gap, nan=np.inf)
+
+
+# --------------------------------------------------------------------------
+# the verdict
+# --------------------------------------------------------------------------
+def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: np.ndarray | None = None,
+           message_digest=None, labels=None) -> RunStatus:
+    """The run's status (module docstring). ``planned``: the fault plan's
+    delivered sets (``planned_links``; None: no faults injected, the
+    nominal links); ``message_digest(k, sender index, Message) -> bytes``:
+    the digest an agent reports of a message it fused (None: digests are not
+    checked); ``labels``: the agents' names in the evidence (default: the
+    trace's)."""
+    K, N = claims.reported.shape
+    names = list(labels if labels is not None else trace.agent_labels)
+    name = lambda j: names[j]  # noqa: E731
+    nominal = nominal_links(trace, K, claims.live)
+    planned = nominal if planned is None else np.asarray(planned, dtype=bool)
+    wanted = {(k, s) for k, _, s in claims.digests} if message_digest is not None else None
+    est, engine_digests = replay(trace, algorithm, params, claims, planned, message_digest, wanted)
+    bad, gap = differing(claims, est)
+    digest_bad = {(k, r, s) for (k, r, s), dg in claims.digests.items()
+                  if (k, s) in engine_digests and engine_digests[(k, s)] != dg}
+    restarts = {(int(r.tick), int(r.agent)) for r in claims.restarts}
+
+    unknown = np.zeros(N, dtype=bool)  # the agent's state after the previous tick is not known
+    first, unverified, diverged = None, 0, []
+    for k in range(1, K + 1):
+        for j in range(N):
+            if (k, j) in restarts:
+                unknown[j] = False
+        sent_unknown = unknown.copy()
+        after = unknown.copy()
+        for j in range(N):
+            if not claims.reported[k - 1, j]:
+                after[j] = True
+                continue
+            senders = [s for s in np.flatnonzero(claims.fused[k - 1, j]).tolist() if s != j]
+            forged = [s for s in senders if (k, j, s) in digest_bad and not sent_unknown[s]]
+            tainted = unknown[j] or any(sent_unknown[s] and ((k, j, s) not in claims.digests
+                                                              or (k, j, s) in digest_bad) for s in senders)
+            if forged or (bad[k - 1, j] and not tainted):
+                diverged.append((k, j, forged))
+                if first is None:
+                    first = (k, j, forged)
+                after[j] = bool(bad[k - 1, j])
+            elif bad[k - 1, j]:
+                unverified += 1
+                after[j] = True
+            else:
+                after[j] = False
+        unknown = after
+
+    complete = bool(claims.reported.all())
+    ev = {"agent_ticks": K * N, "reported": int(claims.reported.sum()), "ticks": K,
+          "differing": int(bad.sum()), "max_abs_difference": float(gap.max()) if gap.size else 0.0,
+          "unverified": unverified, "digests_checked": len(claims.digests) if message_digest else 0,
+          "restarts": len(claims.restarts)}
+    missing = ~claims.reported
+    ev["missing_agent_ticks"] = int(missing.sum())
+    ev["missing_fraction"] = float(missing.sum()) / (K * N) if K * N else 0.0
+
+    if first is not None:
+        k, j, forged = first
+        senders = [name(s) for s in forged]
+        ev["diverged"] = {"tick": k, "agent": name(j), "senders": senders,
+                          "max_abs_difference": float(gap[k - 1, j]), "agent_ticks": len(diverged),
+                          "first": [{"tick": kk, "agent": name(jj), "senders": [name(s) for s in ff]}
+                                    for kk, jj, ff in diverged[:LISTED]]}
+        who = (f"the message of agent {', '.join(map(str, senders))} it fused is not the engine's" if senders
+               else "every message it fused was the engine's: its own estimate is not")
+        return RunStatus(DIVERGED_STATUS, f"agent {name(j)}'s estimate of tick {k} differs from the engine's "
+                         f"replay: {who} ({len(diverged)} agent-ticks diverged)", ev)
+
+    shortfall = _shortfall(claims, planned, nominal, name)
+    ev.update(shortfall)
+    if not complete:
+        why = Counter()
+        if claims.why is not None:
+            why.update(str(w) or "not run" for w in claims.why[missing])
+        ev["missing_why"] = dict(sorted(why.items()))
+        return RunStatus(INCOMPLETE_STATUS, f"{ev['missing_agent_ticks']} of {K * N} agent-ticks not reported "
+                         f"({100 * ev['missing_fraction']:.1f} %)"
+                         + (f": {', '.join(f'{w} {n}' for w, n in ev['missing_why'].items())}" if why else ""), ev)
+    if shortfall["degraded"]["agent_ticks"]:
+        dg = shortfall["degraded"]
+        reasons = ", ".join(f"{w} {n}" for w, n in dg["why"].items())
+        first_one = dg["listed"][0]
+        return RunStatus(DEGRADED_STATUS, f"{dg['agent_ticks']} of {K * N} agent-ticks fused fewer messages than "
+                         f"planned ({dg['messages']} messages: {reasons}); first: agent {first_one['agent']} at "
+                         f"tick {first_one['tick']}; every estimate equals the engine's replay", ev)
+    if shortfall["unplanned"]["agent_ticks"]:
+        first_one = shortfall["unplanned"]["listed"][0]
+        return RunStatus(DEGRADED_STATUS, f"{shortfall['unplanned']['agent_ticks']} agent-ticks fused a sender not "
+                         f"planned (not live, in range and delivered); first: agent {first_one['agent']} at tick "
+                         f"{first_one['tick']}; every estimate equals the engine's replay", ev)
+    if not np.array_equal(planned, nominal):
+        return RunStatus(AS_PLANNED_STATUS, f"every agent-tick fused what the fault plan delivered "
+                         f"({shortfall['planned_out']} of {shortfall['nominal_links']} links dropped by the injected "
+                         "faults); every estimate equals the engine's replay", ev)
+    return RunStatus(EXACT_STATUS, f"all {K * N} agent-ticks reported, fused every nominal link, and equal the "
+                     "engine's replay bit for bit", ev)
+
+
+def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name) -> dict:
+    """The reported agent-ticks whose fused set is not the planned one:
+    fewer (``degraded``, with the agents' reasons) or others (``unplanned``)."""
+    K, N = claims.reported.shape
+    off = ~np.eye(N, dtype=bool)
+    fused = claims.fused & off
+    plan = planned & off
+    r = claims.reported[:, :, None]
+    less = r & plan & ~fused
+    more = r & fused & ~plan
+    short = less.any(-1)
+    why = Counter()
+    listed = []
+    for k0, j in zip(*np.nonzero(short)):
+        k = int(k0) + 1
+        said = dict(claims.verdicts.get((k, int(j)), ()))
+        missing = np.flatnonzero(less[k0, j]).tolist()
+        reasons = [said.get(s, "not said") for s in missing]
+        why.update(reasons)
+        if len(listed) < LISTED:
+            listed.append({"tick": k, "agent": name(int(j)),
+                           "not_fused": {str(name(s)): w for s, w in zip(missing, reasons)}})
+    extra = [{"tick": int(k0) + 1, "agent": name(int(j)), "senders": [name(s) for s in np.flatnonzero(more[k0, j])]}
+             for k0, j in zip(*np.nonzero(more.any(-1)))][:LISTED]
+    return {"degraded": {"agent_ticks": int(short.sum()), "messages": int(less.sum()), "why": dict(sorted(why.items())),
+                         "listed": listed},
+            "unplanned": {"agent_ticks": int(more.any(-1).sum()), "listed": extra},
+            "nominal_links": int((nominal & off).sum()), "planned_out": int((nominal & off & ~plan).sum())}

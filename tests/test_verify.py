@@ -1,0 +1,168 @@
+"""engine.verify on engine-made runs: each status, named where it starts.
+
+A run's claims are made here from the engine itself (what a faithful mesh
+reports), then changed the way a fault, a paused agent, a tampered report
+or a forged message changes them; ``verify`` must give the status and name
+the agent, tick and sender."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from diskf_mesh.core import exits
+from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.engine import verify as V
+from diskf_mesh.estimators import get as get_estimator
+from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.estimator import AgentEstimator
+
+TICKS, SEED, ALG, RUN = 40, 3, "diskf", "verify"
+
+
+@pytest.fixture(scope="module")
+def run():
+    scn = load_scenario("dynamic").with_overrides(steps=TICKS)
+    trace = simulate(scn, [SEED])
+    return scn, trace
+
+
+def digester(trace):
+    return wire.engine_digests(RUN, trace.sensors.ids, get_estimator(ALG).exchanged)
+
+
+def claims_of(scn, trace, links=None, restarts=(), live=None):
+    """What a faithful mesh reports on ``links`` (default: nominal): every
+    agent an ``AgentEstimator`` (a batch of one, as in an agent process)
+    fusing exactly its row of ``links``, a restarted agent a fresh one
+    re-initialised from its source's fused estimate of the tick before (as
+    ``agents.rejoin``), and a digest of every message fused."""
+    K, N = trace.has.shape[1:]
+    ids = list(trace.sensors.ids)
+    links = V.nominal_links(trace, K, live) if links is None else links
+    agents = {i: AgentEstimator(scn, i, ALG, K, SEED) for i in ids}
+    x, P, d = np.full((K, N, 2), np.nan), np.full((K, N, 2, 2), np.nan), np.full((K, N, 1), np.nan)
+    dv, fd = np.zeros((K, N), bool), {}
+    exchanged = get_estimator(ALG).exchanged
+    for k in range(1, K + 1):
+        for r in restarts:
+            if r.tick == k:
+                a = agents[ids[r.agent]] = AgentEstimator(scn, ids[r.agent], ALG, K, SEED)
+                a.state = replace(a.state, x=x[k - 2, r.source].reshape(a.state.x.shape),
+                                  P=P[k - 2, r.source].reshape(a.state.P.shape), since=np.zeros_like(a.state.since))
+        msgs = {i: agents[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :agents[i].p])
+                for j, i in enumerate(ids)}
+        for j, i in enumerate(ids):
+            heard = {}
+            for s in np.flatnonzero(links[k - 1, j]).tolist():
+                if s != j:
+                    heard[ids[s]] = msgs[ids[s]].take((0, 0))
+                    fd[(k, j, s)] = wire.message_digest(RUN, ids[s], k, heard[ids[s]], exchanged)
+            out = agents[i].fuse(k, msgs[i], heard)
+            x[k - 1, j], P[k - 1, j], d[k - 1, j], dv[k - 1, j] = out.x[0, 0], out.P[0, 0], out.d[0, 0], out.d_valid[0, 0]
+    return V.RunClaims(x, P, d, dv, np.ones((K, N), bool), links, live, tuple(restarts), fd)
+
+
+def check(trace, scn, claims, **kw):
+    return V.verify(trace, ALG, scn.params, claims, message_digest=digester(trace), **kw)
+
+
+def with_(claims, **changes):
+    return replace(claims, **changes)
+
+
+def test_exact(run):
+    scn, trace = run
+    st = check(trace, scn, claims_of(scn, trace))
+    assert st.status == "exact", st.reason
+    assert st.exit_code == exits.OK
+    assert st.evidence["differing"] == 0 and st.evidence["digests_checked"] > 0
+
+
+def test_dropped_link_is_degraded_naming_the_agent_tick(run):
+    scn, trace = run
+    links = V.nominal_links(trace, TICKS)
+    k, r, s = next((k, r, s) for k, r, s in zip(*np.nonzero(links)) if r != s and k >= 10)
+    links[k, r, s] = False
+    claims = claims_of(scn, trace, links)
+    claims = with_(claims, verdicts={(k + 1, r): ((s, "late"),)})
+    st = check(trace, scn, claims)
+    assert st.status == "degraded", st.reason
+    assert st.exit_code == exits.DEGRADED
+    dg = st.evidence["degraded"]
+    assert dg["agent_ticks"] == 1 and dg["why"] == {"late": 1}
+    names = trace.agent_labels
+    assert dg["listed"] == [{"tick": int(k) + 1, "agent": names[r], "not_fused": {str(names[s]): "late"}}]
+    assert st.accepted(allow_degraded=True) and not st.accepted()
+
+
+def test_injected_faults_alone_are_as_planned(run):
+    scn, trace = run
+    nominal = V.nominal_links(trace, TICKS)
+    planned = V.planned_links(nominal, trace.sensors.ids, FaultConfig(loss=0.3), SEED)
+    assert (planned != nominal).any()
+    st = check(trace, scn, claims_of(scn, trace, planned), planned=planned)
+    assert st.status == "as planned", st.reason
+    assert st.exit_code == exits.OK
+
+
+def test_tampered_estimate_is_diverged_naming_agent_and_tick(run):
+    scn, trace = run
+    claims = claims_of(scn, trace)
+    claims.x[24, 5, 0] += 1e-9
+    st = check(trace, scn, claims)
+    assert st.status == "diverged", st.reason
+    assert st.exit_code == exits.DIVERGED
+    dv = st.evidence["diverged"]
+    assert (dv["tick"], dv["agent"], dv["senders"]) == (25, trace.agent_labels[5], [])
+    assert not st.accepted(allow_missing=1.0, allow_degraded=True)
+
+
+def test_tampered_message_digest_is_diverged_naming_the_sender(run):
+    scn, trace = run
+    claims = claims_of(scn, trace)
+    key = sorted(k for k in claims.digests if k[0] == 30)[0]
+    claims.digests[key] = bytes(8)
+    st = check(trace, scn, claims)
+    assert st.status == "diverged", st.reason
+    dv = st.evidence["diverged"]
+    k, r, s = key
+    assert (dv["tick"], dv["agent"], dv["senders"]) == (k, trace.agent_labels[r], [trace.agent_labels[s]])
+
+
+def test_a_rejoin_replays_exactly(run):
+    """Agent 2 crashed after tick 14 and restarted at tick 17 from agent 0's
+    fused estimate of tick 16, as a mesh's rejoin does: the replay restarts
+    it there and every estimate is reproduced."""
+    scn, trace = run
+    K, N = TICKS, trace.has.shape[2]
+    live = np.ones((K, N), bool)
+    live[14:16, 2] = False
+    restart = V.Restart(17, 2, 0)
+    claims = claims_of(scn, trace, live=live, restarts=[restart])
+    reported = live.copy()
+    claims = with_(claims, reported=reported)
+    st = check(trace, scn, claims, planned=None)
+    assert st.status == "incomplete", st.reason
+    assert st.evidence["differing"] == 0 and st.evidence["unverified"] == 0
+    assert st.evidence["missing_agent_ticks"] == 2
+    assert st.accepted(allow_missing=2 / (K * N))
+    # without the restart the replay does not reproduce agent 2 (its prior is not agent 0's estimate)
+    st = check(trace, scn, with_(claims, restarts=()))
+    assert st.evidence["differing"] > 0 and st.status != "exact"
+
+
+def test_a_missing_report_then_agreement_is_known_again(run):
+    """A report that did not come (the agent went on) makes its tick
+    unknown; once its next report equals the replay the agent is known
+    again, and a later tampering is still caught."""
+    scn, trace = run
+    claims = claims_of(scn, trace)
+    claims.reported[9, 4] = False
+    st = check(trace, scn, claims)
+    assert st.status == "incomplete" and st.evidence["differing"] == 0
+    claims.x[30, 4, 1] *= 1.5
+    st = check(trace, scn, claims)
+    assert st.status == "diverged" and st.evidence["diverged"]["tick"] == 31
