@@ -79,6 +79,7 @@ from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
 from diskf_mesh.mesh.keys import Keys, nonce
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.process import FREEZE_S, Process
+from diskf_mesh.mesh.stopping import exit_on_sigterm
 from diskf_mesh.mesh.profile import AGENT_PHASES, NO_PHASES, Phases
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.data.faults import FaultConfig, FaultModel
@@ -749,6 +750,7 @@ def batch_scheduling() -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    exit_on_sigterm()  # first thing: stopped at any moment, its session closed (mesh.stopping)
     spec = runspec.from_args(args)
     scn = spec.load()
     clock = realtime.from_args(args)
