@@ -1,0 +1,62 @@
+"""A run's access rules as the simulated network enforces them.
+
+``Access(policy)`` reads zenoh's ``access_control`` document of a run
+(``credentials.access_control``: default deny, one subject per certificate
+common name, rules by message kind, flow and key expression) and answers
+``allowed(identity, message, key, flow)`` the way zenoh applies it to a
+peer's traffic: a put travels from P to Q only if P may put it (ingress at
+Q, by P's certificate) and Q may receive it (egress to Q, by Q's); a
+subscription, a token, a watch, a query or a queryable only if its
+declarer's rules allow that message on that expression. ``Access(None)``
+(a run without credentials) allows everything.
+
+An identity that is no subject of the policy (no certificate of the run)
+may do nothing. Answers are remembered per (identity, message, key, flow).
+
+May import: core, estimators, data, engine (the mesh layer).
+"""
+from __future__ import annotations
+
+from diskf_mesh.mesh.transport import key_matches
+
+
+def _covers(rule: str, expr: str) -> bool:
+    """Whether the rule's key expression covers ``expr`` (a key, or an
+    expression whose wildcards the rule's own wildcards match chunk for chunk)."""
+    return rule == expr or key_matches(rule, expr)
+
+
+class Access:
+    def __init__(self, policy: dict | None):
+        self.enabled = bool(policy and policy.get("enabled", True))
+        self._rules = {}  # identity -> [(flows, messages, key expressions)] allowed
+        self._memo = {}
+        if not self.enabled:
+            return
+        if policy.get("default_permission", "deny") != "deny":
+            raise ValueError("only a default-deny policy is modelled")
+        rules = {r["id"]: r for r in policy.get("rules", ())}
+        names = {s["id"]: tuple(s.get("cert_common_names", ())) for s in policy.get("subjects", ())}
+        for pol in policy.get("policies", ()):
+            granted = [rules[r] for r in pol["rules"] if rules[r].get("permission") == "allow"]
+            for subject in pol["subjects"]:
+                for cn in names.get(subject, ()):
+                    self._rules.setdefault(cn, []).extend(
+                        (frozenset(r["flows"]), frozenset(r["messages"]), tuple(r["key_exprs"])) for r in granted)
+
+    def allowed(self, identity: str | None, message: str, key: str, flow: str = "ingress") -> bool:
+        if not self.enabled:
+            return True
+        memo = (identity, message, key, flow)
+        hit = self._memo.get(memo)
+        if hit is None:
+            hit = any(flow in flows and message in messages and any(_covers(e, key) for e in exprs)
+                      for flows, messages, exprs in self._rules.get(identity, ()))
+            if len(self._memo) > 200_000:
+                self._memo.clear()
+            self._memo[memo] = hit
+        return hit
+
+    def put(self, sender: str | None, receiver: str | None, key: str) -> bool:
+        """A put of ``sender`` on ``key`` reaches ``receiver``."""
+        return self.allowed(sender, "put", key) and self.allowed(receiver, "put", key, "egress")

@@ -1,0 +1,699 @@
+"""A deterministic simulated network: every mesh process in one Python
+process, on a virtual clock, with the real protocol machines.
+
+The processes are sans-I/O machines (``mesh.events``: ``start(now)``,
+``handle(event, now)`` -> effects). ``SimNet`` carries out their effects on
+a virtual clock (``mesh.schedule``): what one publishes reaches every
+process subscribed to a matching key expression (``transport.key_matches``)
+over a link with a delay, jitter, loss, duplication and reordering
+(``Link``), under the access rules of the run's credentials
+(``mesh.access``); liveliness tokens appear and go as zenoh's do (``Lease``);
+queries reach the processes that declared a matching queryable and the
+first answer comes back. Every random draw comes from one seeded
+``numpy.random.Generator`` in event order, so one seed and one fault plan
+give one run, event for event (``Outcome.digest``).
+
+A fault plan (``Fault``) acts on a process at a virtual time or right after
+the n-th event of the run:
+
+    pause     as SIGSTOP: what reaches the process waits; when it runs again
+              it first gets ``Woke(late)``, then what waited, in order. A
+              pause longer than the lease drops the session: the others see
+              its tokens go (and it sees theirs go), what reaches it after
+              that is lost, and once it runs again it reconnects after
+              ``Lease.reconnect``: the tokens come back both ways.
+    crash     the process dies (kill -9): its timers and subscriptions go, its
+              tokens go at once (a closed socket) or, with ``lease=True``,
+              after the lease (a host that vanished).
+    restart   a new machine of a crashed process, with the same id and
+              identity and a new nonce (an incarnation).
+    start     a process added to the run later (a late join).
+
+Links are first in, first out between two processes (zenoh's reliable
+sessions); a reordered copy is held back ``Link.hold`` longer and may be
+overtaken. Loss, duplication and reordering act only on the samples whose
+key matches ``Link.faulty`` (by default every sample; tokens, queries and
+replies are never lost). A process does not hear its own samples (zenoh's
+publishers reach other sessions only) but sees its own tokens.
+
+May import: core, estimators, data, engine (the mesh layer).
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from diskf_mesh.mesh import events as ev
+from diskf_mesh.mesh.access import Access
+from diskf_mesh.mesh.schedule import Schedule, Trace
+
+NO_LOSS = "**"
+
+
+@dataclass(frozen=True)
+class Link:
+    """What a link does to what crosses it (seconds, probabilities)."""
+
+    delay: float = 0.0002     # one way
+    jitter: float = 0.0       # each copy takes delay + jitter * u, u uniform in [0, 1)
+    loss: float = 0.0         # a sample is lost
+    duplicate: float = 0.0    # a second copy of a sample arrives (its own delay)
+    reorder: float = 0.0      # a copy is held back ``hold`` longer, outside the link's order
+    hold: float = 0.05
+    faulty: str = NO_LOSS     # the samples loss, duplication and reordering act on (a key expression)
+
+    def __post_init__(self):
+        for name in ("delay", "jitter", "hold"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"link {name} must be a finite non-negative number of seconds, got {v!r}")
+        for name in ("loss", "duplicate", "reorder"):
+            v = getattr(self, name)
+            if not 0 <= v <= 1:
+                raise ValueError(f"link {name} must be a probability, got {v!r}")
+
+    @property
+    def faults(self) -> bool:
+        return bool(self.loss or self.duplicate or self.reorder)
+
+
+@dataclass(frozen=True)
+class Lease:
+    """zenoh's session lease: a peer silent this long (paused, or its host
+    gone) is dropped with its tokens; the last keep-alive was up to
+    ``keepalive`` before the silence began (zenoh: lease / 4)."""
+
+    lease: float = 10.0
+    keepalive: float = 2.5
+    reconnect: float = 0.2    # a dropped process that runs again is back on the network after this
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One entry of a fault plan: ``kind`` (pause, crash, restart, start) on
+    process ``pid`` at time ``at``, or right after the run's ``after_event``-th
+    event."""
+
+    kind: str
+    pid: str
+    at: float | None = None
+    after_event: int | None = None
+    duration: float = 0.0     # pause: how long
+    lease: bool = False       # crash: its tokens go after the lease, not at once
+
+    def __post_init__(self):
+        if self.kind not in ("pause", "crash", "restart", "start"):
+            raise ValueError(f"unknown fault {self.kind!r}")
+        if (self.at is None) == (self.after_event is None):
+            raise ValueError("a fault is at a time or after an event, one of the two")
+
+
+@dataclass(frozen=True)
+class Boot:
+    """What a machine factory gets to build one incarnation of a process."""
+
+    pid: str
+    identity: str | None
+    incarnation: int          # 0 the first time, then one more per restart
+    nonce: str                # its token suffix (``keys.new_nonce``'s shape: start time in ns, then random)
+    seed: int                 # for any randomness of its own
+    now: float
+
+
+Factory = Callable[[Boot], Any]
+
+
+@dataclass
+class Outcome:
+    """How a simulated run ended."""
+
+    seed: int
+    finishes: dict            # pid -> Finish of its last incarnation (absent: never finished)
+    machines: dict            # pid -> the machine of its last incarnation
+    end: float                # virtual time of the last event that happened
+    events: int
+    digest: str
+    bounded: bool             # every process finished or died before the time limit
+    lines: list | None = None
+    refused: dict = field(default_factory=dict)  # what the access rules refused, by message kind
+    lost: int = 0             # samples lost on links (Link.loss) or to a dropped session
+
+
+class SimError(RuntimeError):
+    """A machine raised: the seed and the event say how to replay it."""
+
+
+class _Proc:
+    """One incarnation of a process."""
+
+    __slots__ = ("pid", "identity", "inc", "factory", "machine", "state", "connected", "backlog", "subs",
+                 "watches", "queryables", "tokens", "timers", "counts", "paused_at", "pause_serial", "order")
+
+    def __init__(self, pid, identity, inc, factory, order):
+        self.pid, self.identity, self.inc, self.factory, self.order = pid, identity, inc, factory, order
+        self.machine = None
+        self.state = "up"         # up, paused, dead, done
+        self.connected = True
+        self.backlog = []         # events that came while paused
+        self.subs, self.watches, self.queryables = [], [], []
+        self.tokens = []          # keys of its declared tokens
+        self.timers = {}          # name -> serial of the timer set last
+        self.counts = {}          # token key -> declarations visible to it (keys its watches match)
+        self.paused_at = 0.0
+        self.pause_serial = 0
+
+    @property
+    def attached(self) -> bool:
+        return self.state in ("up", "paused") and self.connected
+
+    def __repr__(self):
+        return f"{self.pid}#{self.inc}"
+
+
+def _pattern(expr: str) -> str:
+    """The regular expression of a key expression (``**`` any chunks, ``*``
+    one chunk, ``$*`` any characters within a chunk), as ``key_matches``."""
+    chunks = []
+    for c in expr.split("/"):
+        if not (c == "**" and chunks and chunks[-1] == "**"):  # "**/**" is "**"
+            chunks.append(c)
+    if chunks == ["**"]:
+        return ".*"
+    out, lead = "", True  # lead: the next chunk needs no '/' before it
+    for i, c in enumerate(chunks):
+        if c == "**":
+            out += "(?:[^/]+/)*" if i == 0 else "(?:/[^/]+)*"
+            lead = i == 0
+            continue
+        piece = "[^/]*" if c == "*" else "[^/]*".join(map(re.escape, c.split("$*")))
+        out += piece if lead else "/" + piece
+        lead = False
+    return out
+
+
+def _matcher(expr: str):
+    return re.compile(_pattern(expr)).fullmatch
+
+
+class _Routes:
+    """Which subscriptions (queryables, watches) match a key: exact
+    expressions in a dict, wildcard ones as compiled matchers, answers kept
+    per key until the subscriptions change."""
+
+    def __init__(self):
+        self.exact = {}       # expr -> [proc]
+        self.wild = {}        # expr -> (matcher, [proc])
+        self.memo = {}
+
+    def add(self, expr: str, proc) -> None:
+        self.memo.clear()
+        if "*" in expr:
+            self.wild.setdefault(expr, (_matcher(expr), []))[1].append(proc)
+        else:
+            self.exact.setdefault(expr, []).append(proc)
+
+    def remove(self, proc) -> None:
+        self.memo.clear()
+        for e in list(self.exact):
+            self.exact[e] = [p for p in self.exact[e] if p is not proc]
+            if not self.exact[e]:
+                del self.exact[e]
+        for e in list(self.wild):
+            m, ps = self.wild[e]
+            ps = [p for p in ps if p is not proc]
+            if ps:
+                self.wild[e] = (m, ps)
+            else:
+                del self.wild[e]
+
+    def match(self, key: str) -> list:
+        """[(proc, expr)] in a fixed order (processes by start order, then expressions)."""
+        hit = self.memo.get(key)
+        if hit is None:
+            hit = [(p, key) for p in self.exact.get(key, ())]
+            hit += [(p, e) for e, (m, ps) in self.wild.items() if m(key) for p in ps]
+            hit.sort(key=lambda pe: pe[0].order)
+            if len(self.memo) > 100_000:
+                self.memo.clear()
+            self.memo[key] = hit
+        return hit
+
+
+class SimNet:
+    """The world and agents of a run as machines on one virtual network."""
+
+    def __init__(self, seed: int, link: Link = Link(), links: Callable[[str, str], Link | None] | None = None,
+                 policy: dict | None = None, lease: Lease = Lease(), keep_lines: bool = False,
+                 max_time: float = 3600.0, max_events: int = 50_000_000):
+        """``links(sender pid, receiver pid)``: a link other than ``link``
+        (None: ``link``); ``policy``: the run's ``access_control``
+        (``credentials.access_control``; None: no access control)."""
+        self.seed = int(seed)
+        ss = np.random.SeedSequence(self.seed)
+        net, boots = ss.spawn(2)
+        self.rng = np.random.default_rng(net)
+        self._boot_rng = np.random.default_rng(boots)
+        self.link, self._links = link, links
+        self.access = Access(policy)
+        self.lease = lease
+        self.max_time, self.max_events = max_time, max_events
+        self.sched = Schedule()
+        self.trace = Trace(keep=keep_lines)
+        self._procs = {}          # pid -> current incarnation
+        self._all = []            # every incarnation, in start order
+        self._factories = {}      # pid -> (identity, factory)
+        self._subs, self._queryables, self._watches = _Routes(), _Routes(), _Routes()
+        self._channel = {}        # (sender, receiver) -> time the last in-order copy arrives
+        self._link_memo = {}
+        self._by_event = {}       # event number -> [Fault]
+        self._queries = {}        # network query id -> [asker proc, its qid, key] until answered
+        self._next_query = 0
+        self._timer_serial = 0
+        self._finishes = {}
+        self.refused = {}
+        self.lost = 0
+        self._events = 0
+
+    # -- the run's processes and fault plan ---------------------------------
+    def add(self, pid: str, factory: Factory, identity: str | None = None, at: float = 0.0) -> None:
+        """Process ``pid`` (its credentials: ``identity``; default ``pid``),
+        built by ``factory(Boot)``, started at time ``at``."""
+        if pid in self._factories:
+            raise ValueError(f"process {pid!r} is already in the run")
+        self._factories[pid] = (pid if identity is None else identity, factory)
+        self.sched.at(at, ("boot", pid))
+
+    def plan(self, faults) -> None:
+        for f in faults:
+            if f.kind == "start":
+                raise ValueError("a late start is add(pid, factory, at=...)")
+            if f.at is not None:
+                self.sched.at(f.at, ("fault", f))
+            else:
+                self._by_event.setdefault(int(f.after_event), []).append(f)
+
+    # -- running --------------------------------------------------------------
+    def run(self) -> Outcome:
+        sched = self.sched
+        while True:
+            nxt = sched.pop()
+            if nxt is None:
+                break
+            t, item = nxt
+            if t > self.max_time or self._events >= self.max_events:
+                break
+            self._events += 1
+            self._do(item)
+            for f in self._by_event.pop(self._events, ()):
+                self._fault(f)
+            if self._all_over():
+                break
+        bounded = self._all_over()
+        return Outcome(self.seed, dict(self._finishes), {pid: p.machine for pid, p in self._procs.items()},
+                       self.trace.last, self.trace.events, self.trace.digest, bounded, self.trace.lines,
+                       dict(self.refused), self.lost)
+
+    def _all_over(self) -> bool:
+        return bool(self._procs) and all(p.state in ("dead", "done") for p in self._procs.values()) \
+            and not any(item[0] in ("boot", "fault") for _, _, item in self.sched._heap)
+
+    def _do(self, item) -> None:
+        what = item[0]
+        if what == "deliver":
+            _, proc, event, local = item
+            self._deliver(proc, event, local)
+        elif what == "timer":
+            _, proc, name, serial = item
+            if proc.timers.get(name) == serial:
+                self._deliver(proc, ev.Timer(name), True, serial)
+        elif what == "boot":
+            self._boot(item[1])
+        elif what == "fault":
+            self._fault(item[1])
+        elif what == "resume":
+            self._resume(item[1], item[2])
+        elif what == "expire":
+            self._expire(item[1], item[2])
+        elif what == "reconnect":
+            self._reconnect(item[1])
+        elif what == "linger":
+            self._tokens_gone(item[1])
+        elif what == "query-timeout":
+            self._query_timeout(item[1])
+
+    def _deliver(self, proc: _Proc, event, local: bool = False, timer: int | None = None) -> None:
+        """``local``: from the process itself (a timer, its own token, a
+        query's end), not over its session."""
+        if proc.state == "paused" and (local or proc.connected):
+            proc.backlog.append((event, timer))
+            return
+        if proc.state != "up" or not (local or proc.connected):
+            if isinstance(event, ev.Sample):
+                self.lost += 1
+            return
+        self._handle(proc, event)
+
+    def _handle(self, proc: _Proc, event) -> None:
+        now = self.sched.now
+        self._log(proc, event)
+        try:
+            effects = proc.machine.handle(event, now)
+        except Exception as e:
+            raise SimError(f"seed {self.seed}: {proc!r} raised {type(e).__name__} at t={now:.6f} on "
+                           f"{_describe(event)} (event {self._events}; SimNet(seed={self.seed}) with the same "
+                           f"plan replays it)") from e
+        self._apply(proc, effects or ())
+
+    def _log(self, proc, event) -> None:
+        t = self.sched.now
+        who = repr(proc)
+        if isinstance(event, ev.Sample):
+            self.trace.add(t, who, "sample", event.key, event.payload)
+        elif isinstance(event, ev.Token):
+            self.trace.add(t, who, "token+" if event.up else "token-", event.key)
+        elif isinstance(event, ev.Timer):
+            self.trace.add(t, who, "timer", event.name)
+        elif isinstance(event, ev.Query):
+            self.trace.add(t, who, "query", event.key, event.payload)
+        elif isinstance(event, ev.Reply):
+            self.trace.add(t, who, f"reply {event.qid}", "", event.payload)
+        elif isinstance(event, ev.Woke):
+            self.trace.add(t, who, f"woke {event.late!r}")
+        else:
+            self.trace.add(t, who, type(event).__name__)
+
+    # -- processes --------------------------------------------------------------
+    def _boot(self, pid: str) -> None:
+        old = self._procs.get(pid)
+        if old is not None and old.state not in ("dead", "done"):
+            return  # a restart of a process that is running: nothing to do
+        identity, factory = self._factories[pid]
+        inc = 0 if old is None else old.inc + 1
+        now = self.sched.now
+        proc = _Proc(pid, identity, inc, factory, len(self._all))
+        self._procs[pid] = proc
+        self._all.append(proc)
+        r = self._boot_rng.integers(0, 2 ** 32, size=3)
+        boot = Boot(pid, identity, inc, f"{int(round(now * 1e9)):016x}{int(r[0]):08x}",
+                    int(r[1]) << 32 | int(r[2]), now)
+        self.trace.add(now, repr(proc), "boot")
+        try:
+            proc.machine = factory(boot)
+            effects = proc.machine.start(now)
+        except Exception as e:
+            raise SimError(f"seed {self.seed}: {proc!r} raised {type(e).__name__} starting at t={now:.6f}") from e
+        self._apply(proc, effects or ())
+
+    def _fault(self, f: Fault) -> None:
+        now = self.sched.now
+        proc = self._procs.get(f.pid)
+        self.trace.add(now, f.pid, f"fault {f.kind}")
+        if f.kind == "restart":
+            if proc is not None and proc.state in ("dead", "done"):
+                self._boot(f.pid)
+            return
+        if proc is None:
+            return
+        if f.kind == "pause" and proc.state == "up" and f.duration > 0:
+            proc.state, proc.paused_at = "paused", now
+            proc.pause_serial += 1
+            self.sched.at(now + f.duration, ("resume", proc, proc.pause_serial))
+            # the last keep-alive went out up to ``keepalive`` before the pause
+            expiry = self.lease.lease - self.lease.keepalive * float(self.rng.random())
+            if f.duration > expiry:
+                self.sched.at(now + expiry, ("expire", proc, proc.pause_serial))
+        elif f.kind == "crash" and proc.state in ("up", "paused"):
+            self._end(proc, "dead", lingering=f.lease)
+
+    def _end(self, proc: _Proc, state: str, lingering: bool = False) -> None:
+        """The process is gone (crashed, or finished): nothing reaches it any more."""
+        was_attached = proc.attached
+        proc.state = state
+        proc.timers.clear()
+        proc.backlog.clear()
+        for routes in (self._subs, self._queryables, self._watches):
+            routes.remove(proc)
+        if not was_attached:
+            proc.tokens.clear()  # already invisible to the others
+        elif lingering:
+            self.sched.at(self.sched.now + self.lease.lease, ("linger", proc))
+        else:
+            self._tokens_gone(proc)
+
+    def _tokens_gone(self, proc: _Proc) -> None:
+        for key in proc.tokens:
+            self._token_to_all(proc, key, -1)
+        proc.tokens.clear()
+
+    def _resume(self, proc: _Proc, serial: int) -> None:
+        if proc.state != "paused" or proc.pause_serial != serial:
+            return
+        now = self.sched.now
+        proc.state = "up"
+        backlog, proc.backlog = proc.backlog, []
+        if not proc.connected:
+            self.sched.at(now + self.lease.reconnect, ("reconnect", proc))
+        self._handle(proc, ev.Woke(now - proc.paused_at))
+        for event, timer in backlog:
+            if proc.state != "up":
+                break
+            if timer is not None and proc.timers.get(event.name) != timer:
+                continue  # set again or cancelled since
+            if timer is not None:
+                del proc.timers[event.name]
+            self._handle(proc, event)
+
+    def _expire(self, proc: _Proc, serial: int) -> None:
+        """A paused process's lease ran out: the others drop its session, it drops theirs."""
+        if proc.state != "paused" or proc.pause_serial != serial or not proc.connected:
+            return
+        self.trace.add(self.sched.now, repr(proc), "lease expired")
+        self._session(proc, -1)
+        proc.connected = False
+
+    def _reconnect(self, proc: _Proc) -> None:
+        if proc.state not in ("up", "paused") or proc.connected:
+            return
+        self.trace.add(self.sched.now, repr(proc), "reconnected")
+        proc.connected = True
+        self._session(proc, +1)
+
+    def _session(self, proc: _Proc, delta: int) -> None:
+        """``proc``'s links to every other process went down (-1) or came up (+1):
+        the tokens across them go or come, both ways."""
+        for key in proc.tokens:
+            self._token_to_all(proc, key, delta, others_only=True)
+        for owner in self._all:
+            if owner is not proc and owner.tokens and self._visible(owner, proc, assume_attached=True):
+                for key in owner.tokens:
+                    self._token_to(owner, proc, key, delta)
+
+    # -- effects ---------------------------------------------------------------
+    def _apply(self, proc: _Proc, effects) -> None:
+        now = self.sched.now
+        for e in effects:
+            if proc.state in ("dead", "done"):
+                return
+            if isinstance(e, ev.Publish):
+                self._publish(proc, e.key, e.payload)
+            elif isinstance(e, ev.SetTimer):
+                self._timer_serial += 1
+                proc.timers[e.name] = self._timer_serial
+                self.sched.at(e.at, ("timer", proc, e.name, self._timer_serial))
+            elif isinstance(e, ev.CancelTimer):
+                proc.timers.pop(e.name, None)
+            elif isinstance(e, ev.Subscribe):
+                if self._may(proc, "declare_subscriber", e.key):
+                    proc.subs.append(e.key)
+                    self._subs.add(e.key, proc)
+            elif isinstance(e, ev.WatchTokens):
+                if self._may(proc, "declare_liveliness_subscriber", e.key):
+                    self._watch(proc, e.key)
+            elif isinstance(e, ev.DeclareQueryable):
+                if self._may(proc, "declare_queryable", e.key):
+                    proc.queryables.append(e.key)
+                    self._queryables.add(e.key, proc)
+            elif isinstance(e, ev.DeclareToken):
+                if self._may(proc, "liveliness_token", e.key):
+                    proc.tokens.append(e.key)
+                    if proc.connected:
+                        self._token_to_all(proc, e.key, +1)
+                    else:
+                        self._token_to(proc, proc, e.key, +1)
+            elif isinstance(e, ev.DropToken):
+                if e.key in proc.tokens:
+                    proc.tokens.remove(e.key)
+                    if proc.connected:
+                        self._token_to_all(proc, e.key, -1)
+                    else:
+                        self._token_to(proc, proc, e.key, -1)
+            elif isinstance(e, ev.Ask):
+                self._ask(proc, e)
+            elif isinstance(e, ev.Answer):
+                self._answer(proc, e)
+            elif isinstance(e, ev.Finish):
+                self._finishes[proc.pid] = e
+                self.trace.add(now, repr(proc), f"finish {e.status} {e.code}", e.reason)
+                self._end(proc, "done")
+                return
+            else:
+                raise SimError(f"seed {self.seed}: {proc!r} returned {e!r}, not an effect")
+
+    def _may(self, proc: _Proc, message: str, key: str) -> bool:
+        if self.access.allowed(proc.identity, message, key):
+            return True
+        self.refused[message] = self.refused.get(message, 0) + 1
+        self.trace.add(self.sched.now, repr(proc), f"refused {message}", key)
+        return False
+
+    # -- samples -----------------------------------------------------------------
+    def _link(self, a: _Proc, b: _Proc) -> Link:
+        if self._links is None:
+            return self.link
+        k = (a.pid, b.pid)
+        hit = self._link_memo.get(k)
+        if hit is None:
+            hit = self._links(a.pid, b.pid) or self.link
+            self._link_memo[k] = hit
+        return hit
+
+    def _arrival(self, a: _Proc, b: _Proc, link: Link, held: bool = False) -> float:
+        """When a copy sent now from a to b arrives: in the link's order, unless held back."""
+        now = self.sched.now
+        t = now + link.delay + (link.jitter * float(self.rng.random()) if link.jitter else 0.0)
+        if held:
+            return t + link.hold
+        ch = (a, b)
+        t = max(t, self._channel.get(ch, 0.0))
+        self._channel[ch] = t
+        return t
+
+    def _send(self, a: _Proc, b: _Proc, event, faulty: bool = False) -> None:
+        link = self._link(a, b)
+        if a is b:
+            self.sched.at(self.sched.now, ("deliver", b, event, True))
+            return
+        if faulty and link.faults:
+            rng = self.rng
+            if link.loss and rng.random() < link.loss:
+                self.lost += 1
+                return
+            copies = 2 if link.duplicate and rng.random() < link.duplicate else 1
+            for _ in range(copies):
+                held = bool(link.reorder and rng.random() < link.reorder)
+                self.sched.at(self._arrival(a, b, link, held), ("deliver", b, event, False))
+            return
+        self.sched.at(self._arrival(a, b, link), ("deliver", b, event, False))
+
+    def _publish(self, proc: _Proc, key: str, payload: bytes) -> None:
+        if not proc.connected:
+            return
+        self.trace.add(self.sched.now, repr(proc), "put", key, payload)
+        access = self.access
+        event = ev.Sample(key, bytes(payload))
+        for q, _expr in self._subs.match(key):
+            if q is proc or not q.attached:
+                continue
+            if access.enabled and not access.put(proc.identity, q.identity, key):
+                self.refused["put"] = self.refused.get("put", 0) + 1
+                continue
+            link = self._link(proc, q)
+            self._send(proc, q, event, faulty=link.faults and _faulty(link, key))
+
+    # -- liveliness ----------------------------------------------------------------
+    def _watch(self, proc: _Proc, expr: str) -> None:
+        """A new watch: the tokens visible now come first (zenoh's history)."""
+        m = _matcher(expr)
+        older = [mm for _, mm in proc.watches]
+        proc.watches.append((expr, m))
+        self._watches.add(expr, proc)
+        news = {}  # key -> a process holding it (its link carries the news)
+        for owner in self._all:
+            if owner.tokens and self._visible(owner, proc):
+                for key in owner.tokens:
+                    if m(key):
+                        if not any(mm(key) for mm in older):  # not counted so far
+                            proc.counts[key] = proc.counts.get(key, 0) + 1
+                        news.setdefault(key, owner)
+        for key, owner in news.items():
+            if proc.counts.get(key, 0) > 0:
+                self._send(owner, proc, ev.Token(key, True))
+
+    def _visible(self, owner: _Proc, proc: _Proc, assume_attached: bool = False) -> bool:
+        """Whether ``owner``'s tokens reach ``proc`` now (a crashed process's
+        linger until its lease runs out)."""
+        if owner is proc:
+            return proc.state in ("up", "paused")
+        owner_on = owner.attached or (owner.state == "dead" and owner.connected)
+        return owner_on and (assume_attached or proc.attached)
+
+    def _token_to_all(self, owner: _Proc, key: str, delta: int, others_only: bool = False) -> None:
+        watchers = {}
+        for q, _ in self._watches.match(key):
+            watchers[q] = watchers.get(q, 0) + 1
+        for q, n in watchers.items():
+            if q is owner:
+                if not others_only and q.state in ("up", "paused"):
+                    self._token_to(owner, q, key, delta, n)
+            elif q.attached:
+                self._token_to(owner, q, key, delta, n)
+
+    def _token_to(self, owner: _Proc, q: _Proc, key: str, delta: int, watches: int | None = None) -> None:
+        """One declaration of ``key`` became visible (+1) or invisible (-1) to ``q``."""
+        if watches is None:
+            watches = sum(1 for _, m in q.watches if m(key))
+        if not watches:
+            return
+        before = q.counts.get(key, 0)
+        after = max(0, before + delta)
+        q.counts[key] = after
+        if (before == 0) != (after == 0):
+            for _ in range(watches):
+                self._send(owner, q, ev.Token(key, after > 0))
+
+    # -- queries -------------------------------------------------------------------
+    def _ask(self, proc: _Proc, e: ev.Ask) -> None:
+        self._next_query += 1
+        nq = self._next_query
+        self._queries[nq] = [proc, e.qid, e.key]
+        self.trace.add(self.sched.now, repr(proc), f"ask {e.qid}", e.key, e.payload)
+        targets = []
+        if proc.connected and self._may(proc, "query", e.key):
+            seen = []
+            for q, _ in self._queryables.match(e.key):
+                if q is not proc and q.attached and q not in seen:
+                    seen.append(q)
+            targets = seen
+        for q in targets:
+            self._send(proc, q, ev.Query(nq, e.key, bytes(e.payload)))
+        # no queryable: the answer "none" comes after a round trip
+        wait = e.timeout if targets else 2 * self.link.delay
+        self.sched.at(self.sched.now + wait, ("query-timeout", nq))
+
+    def _answer(self, proc: _Proc, e: ev.Answer) -> None:
+        """The first answer goes back to the asker; later ones are dropped."""
+        self.trace.add(self.sched.now, repr(proc), f"answer {e.qid}", "", e.payload)
+        q = self._queries.get(e.qid)
+        if q is None or not proc.connected or not self._may(proc, "reply", q[2]):
+            return
+        del self._queries[e.qid]
+        self._send(proc, q[0], ev.Reply(q[1], bytes(e.payload)))
+
+    def _query_timeout(self, nq: int) -> None:
+        q = self._queries.pop(nq, None)
+        if q is not None:
+            self._deliver(q[0], ev.Reply(q[1], None), True)
+
+
+def _faulty(link: Link, key: str) -> bool:
+    return link.faulty == NO_LOSS or bool(_matcher(link.faulty)(key))
+
+
+def _describe(event) -> str:
+    if isinstance(event, (ev.Sample, ev.Query)):
+        return f"{type(event).__name__}({event.key!r}, {len(event.payload)} bytes)"
+    return repr(event)
