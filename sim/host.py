@@ -109,7 +109,7 @@ def shard(args: argparse.Namespace):
     z = replace(z, mode=z.mode or "client", no_multicast_scouting=True)
     if z.credentials and not z.insecure:
         for i in ids:  # every agent's identity is there, for this run (else one line now, not N later)
-            credentials.load(z.credentials, credentials.agent_identity(i), spec.run_id)
+            z.identity_of(credentials.agent_identity(i), spec.run_id)
     else:
         z.as_identity(f"host of agent {runspec.id_ranges(ids)}", spec.run_id)  # --insecure: one warning
     return spec, scn, ids, z
@@ -120,7 +120,8 @@ def agent_children(args: argparse.Namespace, spec, scn, ids, z, logs: Path) -> l
     and the real-time ones (``--rate``, ``--deadline-ms``)."""
     clock = realtime.from_args(args)
     extra = agent_flags(args, scn, args.collect_timeout, args.world_timeout) + (clock.to_argv() if clock else [])
-    return [Child(f"agent {i}", runspec.agent_command(spec, i, z, extra), logs / f"agent-{i}.log") for i in ids]
+    return [Child(f"agent {i}", runspec.agent_command(spec, i, z, extra), logs / f"agent-{i}.log",
+                  identities=(credentials.agent_identity(i),)) for i in ids]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -132,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:
         raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
     agents = agent_children(args, spec, scn, ids, z, logs)
-    launcher = Launcher(None, agents, tolerate_agents=True)
+    launcher = Launcher(None, agents, tolerate_agents=True, keys=z.held)  # each agent is handed its own
     previous = signal.signal(signal.SIGTERM, terminated)
     try:
         if not wait_for(z.connect, args.startup_timeout):

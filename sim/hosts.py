@@ -37,7 +37,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import runspec
+from diskf_mesh.mesh import credentials, runspec
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim.launcher import Child
@@ -169,16 +169,17 @@ def children(plan: HostsPlan, spec: RunSpec, ticks: int, seed: int, base: ZenohO
     wz = replace(base, mode="router", listen=(plan.world_bind or plan.world_listen,))
     world = Child("world", [*plan.world_prefix, *runspec.world_command(spec, ticks, seed, wz, world_extra,
                                                                        python=plan.world_python)],
-                  logs / "world.log")
+                  logs / "world.log", identities=(credentials.WORLD,))
     routers, shards, earlier = [], [], []
     for s in plan.shards:
         if s.router:
             rz = replace(base, listen=(s.router_bind or s.router,), connect=(plan.world_listen, *earlier))
             routers.append(Child(f"router {s.name}", [*s.prefix, *runspec.router_command(spec.run_id, rz, s.python)],
-                                 logs / f"router-{s.name}.log"))
+                                 logs / f"router-{s.name}.log", identities=(credentials.ROUTER,)))
             earlier.append(s.router)
         hz = replace(base, mode="client", connect=(s.router or plan.world_listen,))
         shards.append(Child(f"host {s.name}", [*s.prefix, *runspec.host_command(spec, s.ids, hz, agent_extra,
                                                                                  s.python)],
-                            logs / f"host-{s.name}.log"))
+                            logs / f"host-{s.name}.log",
+                            identities=tuple(credentials.agent_identity(i) for i in s.ids)))
     return world, routers, shards

@@ -15,10 +15,15 @@ line when agent-ticks are missing (the world's verdict, ``sim.world``); 1
 when a child failed; 2 on bad input.
 
 Every run is authenticated: ``up`` makes a fresh certificate authority and
-one certificate per process (``diskf_mesh.mesh.credentials``) in a private
-(0700) directory, gives each child ``--credentials DIR`` (a child reads its
-own identity's files only), and removes the directory when it ends, however
-it ends. ``--insecure`` runs plain zenoh instead.
+one certificate and key per process (``diskf_mesh.mesh.credentials``) in
+memory, never on disk, and hands each child its own identity alone, with
+the run's CA certificate, on its standard input (``--credentials -``: an
+in-memory file the child reads and closes at once). The router's identity
+is made only when a router runs, the observer's only for ``--live``. The
+launcher and every child that holds a key are closed to the user's other
+processes (``credentials.keep_private``), so a compromised child finds no
+identity but its own, and a killed run leaves no key behind. ``--insecure``
+runs plain zenoh instead.
 
 Without zenoh flags the processes meet on loopback only: the world listens on
 a free port of 127.0.0.1 (``tls/``, or ``tcp/`` with ``--insecure``) and
@@ -189,6 +194,7 @@ class Child:
     argv: list
     log: Path
     proc: subprocess.Popen | None = None
+    identities: tuple = ()  # the identities it is handed (``Launcher``'s ``keys``), on its standard input
 
     def last_error_line(self) -> str:
         try:
@@ -196,6 +202,21 @@ class Child:
         except OSError:
             return ""
         return lines[-1] if lines else ""
+
+
+def secret_file(data: bytes) -> int:
+    """A file descriptor of an in-memory file holding ``data``, at its
+    start (Linux: a memfd; elsewhere an unnamed temporary file): it has no
+    path, and it is gone once the last process holding it closes it or dies."""
+    try:
+        fd = os.memfd_create("diskf-identity", os.MFD_CLOEXEC)
+    except (AttributeError, OSError):
+        f = tempfile.TemporaryFile()
+        fd = os.dup(f.fileno())
+        f.close()
+    os.write(fd, data)
+    os.lseek(fd, 0, os.SEEK_SET)
+    return fd
 
 
 def _die_with_parent() -> None:
@@ -214,13 +235,17 @@ class Launcher:
     which leave on the world's stop."""
 
     def __init__(self, world: Child | None, agents: list, progress=None, first_tick=None,
-                 tolerate_agents: bool = False, services=(), zygote: "forks.Zygote | None" = None):
+                 tolerate_agents: bool = False, services=(), zygote: "forks.Zygote | None" = None,
+                 keys: dict | None = None):
         """``tolerate_agents``: an agent (or a service) that fails does not
         end the run (the world counts its missing ticks); ``failed_agents``
         lists them. The children that are this interpreter's ``python -m``
         of a mesh command are forked by a zygote (``sim.zygote``; ``zygote``,
-        one started already, or one started at the first such child)."""
+        one started already, or one started at the first such child).
+        ``keys``: the run's identities by name (``credentials.issue``); a
+        child gets those its ``identities`` name on its standard input."""
         self.zygote = zygote
+        self.keys = keys or {}
         self.world = world
         self.tolerate_agents = tolerate_agents
         self.failed_agents = []
@@ -234,6 +259,12 @@ class Launcher:
     def _spawn(self, child: Child, stdout) -> None:
         self._spawn_all([child], stdout)
 
+    def _stdin(self, child: Child):
+        """A file descriptor of ``child``'s identities (``secret_file``), or None."""
+        if not child.identities or not self.keys:
+            return None
+        return secret_file(credentials.bundle([self.keys[name] for name in child.identities]))
+
     def _spawn_all(self, children, stdout) -> None:
         """Start ``children``: the ones a zygote can fork (``sim.zygote``) at
         once, the others with ``subprocess``."""
@@ -243,20 +274,34 @@ class Launcher:
             if forked and self.zygote is None:
                 self.zygote = forks.Zygote()
             if forked:
-                procs = self.zygote.spawn_all([(c.argv, stdout, logs[children.index(c)]) for c in forked])
+                ins = [self._stdin(c) for c in forked]
+                try:
+                    procs = self.zygote.spawn_all([(c.argv, stdout, logs[children.index(c)], fd)
+                                                   for c, fd in zip(forked, ins)])
+                finally:
+                    for fd in ins:
+                        if fd is not None:
+                            os.close(fd)
                 for c, proc in zip(forked, procs):
                     c.proc = proc
             for c, err in zip(children, logs):
                 if c.proc is None:
-                    c.proc = subprocess.Popen(c.argv, stdin=subprocess.DEVNULL, stdout=stdout, stderr=err,
-                                              start_new_session=True, preexec_fn=_die_with_parent)
+                    fd = self._stdin(c)
+                    try:
+                        c.proc = subprocess.Popen(c.argv, stdin=subprocess.DEVNULL if fd is None else fd,
+                                                  stdout=stdout, stderr=err, start_new_session=True,
+                                                  preexec_fn=_die_with_parent)
+                    finally:
+                        if fd is not None:
+                            os.close(fd)
         finally:
             for f in logs:
                 f.close()
 
-    def add_child(self, name: str, argv: list, log: Path) -> Child:
-        """Start one more child (e.g. the live view), stopped with the others."""
-        child = Child(name, argv, log)
+    def add_child(self, name: str, argv: list, log: Path, identities=()) -> Child:
+        """Start one more child (e.g. the live view), stopped with the others;
+        ``identities``: those it is handed (``keys``)."""
+        child = Child(name, argv, log, identities=tuple(identities))
         self.start_more([child])
         return child
 
@@ -395,9 +440,10 @@ class ChildFailed(RuntimeError):
 # --------------------------------------------------------------------------
 def build_children(spec: RunSpec, ticks: int, seed: int, ids, logs: Path, world_zenoh: ZenohOptions,
                    agent_zenoh: ZenohOptions, world_extra=(), agent_extra=()) -> tuple:
-    world = Child("world", runspec.world_command(spec, ticks, seed, world_zenoh, world_extra), logs / "world.log")
-    agents = [Child(f"agent {i}", runspec.agent_command(spec, i, agent_zenoh, agent_extra), logs / f"agent-{i}.log")
-              for i in ids]
+    world = Child("world", runspec.world_command(spec, ticks, seed, world_zenoh, world_extra), logs / "world.log",
+                  identities=(credentials.WORLD,))
+    agents = [Child(f"agent {i}", runspec.agent_command(spec, i, agent_zenoh, agent_extra), logs / f"agent-{i}.log",
+                    identities=(credentials.agent_identity(i),)) for i in ids]
     return world, agents
 
 
@@ -412,7 +458,8 @@ def one_host_children(spec: RunSpec, ticks: int, seed: int, ids, logs: Path, zop
         world_z = agent_z = zopts
     elif network_of(network, len(ids)) == "router":
         world_z, router_z, agent_z = routed_loopback_options(*free_ports(2), zopts, wait_s)
-        services = [Child("router", runspec.router_command(spec.run_id, router_z), logs / "router.log")]
+        services = [Child("router", runspec.router_command(spec.run_id, router_z), logs / "router.log",
+                          identities=(credentials.ROUTER,))]
     else:
         world_z, agent_z = loopback_options(free_port(), zopts)
     world, agents = build_children(spec, ticks, seed, ids, logs, world_z, agent_z, world_extra, agent_extra)
@@ -474,15 +521,14 @@ def run(args: argparse.Namespace) -> int:
     if args.credentials:
         raise InputError("credentials", "up makes fresh credentials for every run (--credentials is for world "
                                         "and agent started by hand; with --hosts, the file's credentials key)")
-    # SIGTERM ends the run like Ctrl-C's path does: through the finally blocks (the children,
-    # which get SIGTERM when up dies, and the credentials directory)
+    # SIGTERM ends the run like Ctrl-C's path does: through the finally blocks (the children get
+    # SIGTERM when up dies)
     previous = signal.signal(signal.SIGTERM, terminated)
     # the zygote (``sim.zygote``): started first thing by the command line (``prestart``), or here once the
     # input is checked; its imports go on while up makes the credentials
     zygote = [z for z in [forks.take_prestarted()] if z is not None]
     try:
-        with tempfile.TemporaryDirectory(prefix="diskf-run-") as private:  # 0700; removed however the run ends
-            return _run(args, Path(private), zygote)
+        return _run(args, zygote)
     finally:
         for z in zygote:
             z.close()
@@ -493,7 +539,18 @@ def terminated(signum, frame):
     raise SystemExit(128 + signum)
 
 
-def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
+def run_identities(run_id: str, ids, children, observer: bool, world_routes: bool = False) -> dict:
+    """The identities of one ``up`` run, in memory (``credentials.issue``):
+    the world and every agent, the router only if one of ``children`` is
+    handed it (a router runs), the observer only if one watches
+    (``--live``). This process then holds every key: it is closed to the
+    user's other processes (``credentials.keep_private``)."""
+    routers = any(credentials.ROUTER in c.identities for c in children)
+    credentials.keep_private()
+    return credentials.issue(run_id, ids, observer=observer, router=routers, world_routes=world_routes)
+
+
+def _run(args: argparse.Namespace, zygotes: list) -> int:
     from tqdm import tqdm
 
     from diskf_mesh.studies.experiment import format_table
@@ -529,6 +586,7 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
     if plan is None and forks.enabled() and not zygotes:
         zygotes.append(forks.Zygote())
     world_routes = plan is not None and bool(plan.routerless)  # a host without a router: the world forwards for it
+    keys = None
     if plan is not None and plan.credentials and not zopts.insecure:
         ident = credentials.load(plan.credentials, credentials.WORLD, spec.run_id)  # made for this run, or one line
         if world_routes and not ident.world_routes:
@@ -536,9 +594,8 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
                                       f"traffic, which {plan.credentials} does not allow (make them with "
                                       f"`diskf-mesh credentials --world-routes`)")
         zopts = replace(zopts, credentials=plan.credentials)
-    elif not zopts.insecure:  # a fresh CA, one certificate per process; each child reads its own
-        zopts = replace(zopts, credentials=str(credentials.make(private / "credentials", spec.run_id, ids,
-                                                                world_routes=world_routes)))
+    elif not zopts.insecure:  # a fresh CA, one certificate per process, in memory (below): each child gets its own
+        zopts = replace(zopts, credentials=zenoh_config.STDIN)
     else:
         print(f"warning: up: --insecure: plain zenoh; any process that reaches it can read and write run "
               f"{spec.run_id}", file=sys.stderr)
@@ -568,6 +625,8 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
                                                              args.network, args.startup_timeout, world_extra,
                                                              agent_extra)
 
+    if zopts.credentials == zenoh_config.STDIN:
+        keys = run_identities(spec.run_id, ids, [world, *services, *agents], args.live is not None, world_routes)
     quiet = args.quiet or not sys.stderr.isatty()
     where = f" on {len(plan.shards)} hosts" if plan is not None else (" through a router" if services else "")
     bar = tqdm(total=ticks, desc=f"{spec.algorithm} x {len(ids)} agents{where}", unit="tick", file=sys.stderr,
@@ -580,7 +639,7 @@ def _run(args: argparse.Namespace, private: Path, zygotes: list) -> int:
 
     launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()),
                         tolerate_agents=args.allow_missing > 0, services=services,
-                        zygote=zygotes[0] if zygotes else None)
+                        zygote=zygotes[0] if zygotes else None, keys=keys)
     live.attach(args, launcher, spec, ticks, agent_z, logs)  # --live: the viewer, one more child
     try:
         launcher.start()

@@ -54,10 +54,10 @@ def options(args: argparse.Namespace):
     run_id = args.run_id
     if run_id is not None:
         check_run_id(run_id)
-    elif args.credentials and not args.insecure:
-        run_id = credentials.load(args.credentials, credentials.ROUTER).run_id
-    opts = zenoh_config.from_args(args, credentials.ROUTER, run_id)
-    return replace(opts, mode="router"), run_id
+    opts = zenoh_config.from_args(args)
+    if run_id is None and opts.credentials and not opts.insecure:
+        run_id = opts.identity_of(credentials.ROUTER).run_id
+    return replace(opts.as_identity(credentials.ROUTER, run_id), mode="router"), run_id
 
 
 def run(args: argparse.Namespace) -> int:

@@ -222,15 +222,16 @@ class Zygote:
         return self.spawn_all([(argv, stdout, stderr)])[0]
 
     def spawn_all(self, jobs) -> list:
-        """``spawn`` of every (argv, stdout, stderr) of ``jobs``, the requests
-        sent at once (the zygote forks them back to back); a list of
-        ``ForkedProcess`` (None where it could not: exec that one)."""
+        """``spawn`` of every (argv, stdout, stderr[, stdin]) of ``jobs`` (stdin:
+        a file descriptor, else /dev/null), the requests sent at once (the
+        zygote forks them back to back); a list of ``ForkedProcess`` (None
+        where it could not: exec that one)."""
         with self._lock:
             if not jobs or not self._wait_ready():
                 return [None] * len(jobs)
             sent = []  # (argv, read end of its stdout pipe or None)
             with open(os.devnull, "rb") as null_in, open(os.devnull, "wb") as null_out:
-                for argv, stdout, stderr in jobs:
+                for argv, stdout, stderr, *stdin in jobs:
                     pipe_r = None
                     if stdout == subprocess.PIPE:
                         pipe_r, out_fd = os.pipe()
@@ -239,7 +240,8 @@ class Zygote:
                                         else stdout.fileno())
                     try:
                         request = json.dumps({"argv": list(argv), "cwd": os.getcwd()}).encode()
-                        socket.send_fds(self._sock, [request], [null_in.fileno(), out_fd, stderr.fileno()])
+                        socket.send_fds(self._sock, [request], [stdin[0] if stdin and stdin[0] is not None
+                                                                else null_in.fileno(), out_fd, stderr.fileno()])
                     except OSError as e:
                         self.usable, self.why = False, str(e)
                         if pipe_r is not None:

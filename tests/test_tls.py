@@ -19,14 +19,9 @@ Whole mesh runs under attack: tests/test_attack_access.py.
 from __future__ import annotations
 
 import json
-import os
-import signal
 import stat
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import pytest
 from cryptography import x509
@@ -302,68 +297,3 @@ def test_multicast_scouting_finds_the_run_over_tls_only(creds, tmp_path):
         pytest.skip("multicast scouting does not work here")
     assert {p for _, p in at_world.got} == {b"agent 1"}
     assert heard.got == []
-
-
-# --------------------------------------------------------------------------
-# up's private directory
-# --------------------------------------------------------------------------
-def _up(tmp_path, *args) -> subprocess.Popen:
-    env = {**os.environ, "TMPDIR": str(tmp_path / "tmp")}  # where up's private directory goes
-    (tmp_path / "tmp").mkdir(exist_ok=True)
-    return subprocess.Popen([sys.executable, "-m", "sim.launcher", "--scenario", "quadrants", "--quiet",
-                             "--logs", str(tmp_path / "logs"), "--json", str(tmp_path / "r.json"), *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-
-
-def _private_dirs(tmp_path) -> list:
-    return sorted((tmp_path / "tmp").glob("diskf-run-*"))
-
-
-def _children_argv(up_pid) -> list:
-    """The command lines of up's run processes: its children and the zygote's
-    (``sim.zygote`` forks them), not the zygote's own."""
-    parents, out = {}, {}
-    for d in Path("/proc").iterdir():
-        try:
-            if d.name.isdigit():
-                parents[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-                out[int(d.name)] = [a.decode() for a in (d / "cmdline").read_bytes().split(b"\0") if a]
-        except (OSError, ValueError, IndexError):
-            continue
-    mine = {pid for pid, parent in parents.items() if parent == up_pid}
-    mine |= {pid for pid, parent in parents.items() if parent in mine}
-    return [out[pid] for pid in sorted(mine) if out.get(pid) and "sim.zygote" not in out[pid]]
-
-
-@pytest.mark.mesh
-@pytest.mark.parametrize("ending", ["success", "failure", "ctrl-c"])
-def test_up_keeps_its_credentials_private_and_removes_them(tmp_path, ending):
-    args = {"success": ["--ticks", "20"], "failure": ["--ticks", "20", "--startup-timeout", "0.01"],
-            "ctrl-c": ["--ticks", "100000"]}[ending]
-    proc = _up(tmp_path, *args)
-    try:
-        deadline = time.monotonic() + 60
-        while len(_children_argv(proc.pid)) < 5 and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-        if ending != "failure":
-            private, = _private_dirs(tmp_path)
-            assert stat.S_IMODE(private.stat().st_mode) == 0o700
-            argvs = _children_argv(proc.pid)
-            assert len(argvs) == 5  # the world and four agents, each given the directory, not a secret
-            for argv in argvs:
-                creds = Path(argv[argv.index("--credentials") + 1])
-                assert creds.is_relative_to(private)
-                assert not any("PRIVATE KEY" in a or a.endswith(".pem") for a in argv)
-        if ending == "ctrl-c":
-            time.sleep(1.0)
-            proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate(timeout=10)
-    if ending == "failure":
-        assert proc.returncode not in (0, 130), err  # a child failed (the world: no agents in time)
-    else:
-        assert proc.returncode == {"success": 0, "ctrl-c": 130}[ending], err
-    assert _private_dirs(tmp_path) == []

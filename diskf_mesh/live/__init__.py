@@ -19,6 +19,7 @@ import socket
 import sys
 
 from diskf_mesh.core.errors import InputError
+from diskf_mesh.mesh import credentials
 
 DEFAULT_PORT = 9090
 MODULE = "diskf_mesh.live.viewer"
@@ -56,6 +57,7 @@ def attach(args, launcher, spec, ticks: int, zenoh, logs):
 
     _check_port(args.live)
     child = launcher.add_child("live view", viewer_command(spec, ticks, args.seed, args.live, zenoh,
-                                                            logs / "live-status.json"), logs / "live.log")
+                                                            logs / "live-status.json"), logs / "live.log",
+                               identities=(credentials.OBSERVER,))
     print(f"live view: {page_url(args.live)}", file=sys.stderr, flush=True)
     return child

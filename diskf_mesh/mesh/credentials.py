@@ -1,9 +1,13 @@
 """Who may speak in a mesh run: one certificate per process identity, and
 the zenoh configuration that makes zenoh enforce it (docs/security.md).
 
-``make(out, run_id, agents)`` creates a fresh certificate authority for one
-run, issues one certificate and key per identity, and throws the CA's key
-away (nobody can mint another identity for this run afterwards):
+``issue(run_id, agents)`` creates a fresh certificate authority for one
+run, issues one certificate and key per identity, in memory, and throws the
+CA's key away (nobody can mint another identity for this run afterwards).
+``up`` hands each of its processes its own identity alone (``bundle``) on
+standard input (``--credentials -``), so no key of its runs is ever on
+disk. ``make(out, run_id, agents)`` (``diskf-mesh credentials``, for
+processes started by hand) writes them to disk:
 
     out/                          0700
       world/                      0700, one directory per identity
@@ -60,17 +64,20 @@ and token to every identity of the run.
 """
 from __future__ import annotations
 
+import base64
 import datetime
 import ipaddress
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh.keys import check_run_id
 
 FORMAT = "diskf-credentials/1"
+BUNDLE_FORMAT = "diskf-identities/1"  # identities handed over in memory (``bundle``)
+PR_SET_DUMPABLE = 4
 WORLD = "world"
 OBSERVER = "observer"
 ROUTER = "router"
@@ -106,23 +113,17 @@ def _write(path: Path, data: bytes, mode: int) -> None:
     os.chmod(path, mode)
 
 
-def make(out, run_id: str, agents, observer: bool = True, router: bool = True, world_routes: bool = False) -> Path:
-    """A fresh CA and one certificate + key per identity of run ``run_id``
-    in ``out`` (created 0700; an identity directory already there is
-    replaced); ``world_routes``: the world may forward the others' traffic
-    (module docstring). Returns ``out``."""
+def issue(run_id: str, agents, observer: bool = True, router: bool = True, world_routes: bool = False) -> dict:
+    """A fresh CA and one certificate + key per identity of run ``run_id``,
+    in memory: {identity name: ``Identity``}. The CA's key is not kept
+    (nobody can mint another identity of the run afterwards)."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
     from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
     check_run_id(run_id)
-    agents = sorted({int(i) for i in agents})
-    out = Path(out)
-    try:
-        _private_dir(out)
-    except OSError as e:
-        raise InputError("out", f"cannot create {out}: {e.strerror or e}") from None
+    agents = tuple(sorted({int(i) for i in agents}))
     name = lambda cn: x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])  # noqa: E731
     now = datetime.datetime.now(datetime.timezone.utc)
     start, end = now - datetime.timedelta(minutes=5), now + datetime.timedelta(days=VALID_DAYS)
@@ -136,6 +137,7 @@ def make(out, run_id: str, agents, observer: bool = True, router: bool = True, w
                                        key_agreement=False, encipher_only=False, decipher_only=False), critical=True)
           .sign(ca_key, hashes.SHA256()))
     ca_pem = ca.public_bytes(serialization.Encoding.PEM)
+    out = {}
     for who in identities(agents, observer, router):
         key = ec.generate_private_key(ec.SECP256R1())
         sans = [x509.DNSName(who)] + [x509.IPAddress(ipaddress.ip_address(h)) if h[0].isdigit() else x509.DNSName(h)
@@ -147,16 +149,29 @@ def make(out, run_id: str, agents, observer: bool = True, router: bool = True, w
                 .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
                                                       ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
                 .sign(ca_key, hashes.SHA256()))
-        d = _private_dir(out / who)
-        _write(d / KEY_FILE, key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                                               serialization.NoEncryption()), 0o600)
-        _write(d / CERT_FILE, cert.public_bytes(serialization.Encoding.PEM), 0o644)
-        _write(d / CA_FILE, ca_pem, 0o644)
-        _write(d / RUN_FILE, (json.dumps({"format": FORMAT, "run_id": run_id, "agents": agents,
-                                          "observer": observer, "router": router, "world_routes": world_routes,
-                                          "identity": who}) + "\n").encode(),
-               0o644)
+        out[who] = Identity(who, run_id, agents, observer, None, router, world_routes, ca_pem,
+                            cert.public_bytes(serialization.Encoding.PEM),
+                            key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                              serialization.NoEncryption()))
     return out  # ca_key goes out of scope here: the CA signs nothing more
+
+
+def make(out, run_id: str, agents, observer: bool = True, router: bool = True, world_routes: bool = False) -> Path:
+    """``issue``, written to ``out`` (created 0700; an identity directory
+    already there is replaced) as in the module docstring. Returns ``out``."""
+    check_run_id(run_id)
+    out = Path(out)
+    try:
+        _private_dir(out)
+    except OSError as e:
+        raise InputError("out", f"cannot create {out}: {e.strerror or e}") from None
+    for who, ident in issue(run_id, agents, observer, router, world_routes).items():
+        d = _private_dir(out / who)
+        _write(d / KEY_FILE, ident.key_pem, 0o600)
+        _write(d / CERT_FILE, ident.cert_pem, 0o644)
+        _write(d / CA_FILE, ident.ca_pem, 0o644)
+        _write(d / RUN_FILE, (json.dumps(ident.description()) + "\n").encode(), 0o644)
+    return out
 
 
 # --------------------------------------------------------------------------
@@ -164,61 +179,114 @@ def make(out, run_id: str, agents, observer: bool = True, router: bool = True, w
 # --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Identity:
-    """The files of one identity, read by that process only."""
+    """One identity of a run: its certificate, its private key, the run's CA
+    certificate (PEM bytes, held in memory) and what the run says of it."""
 
     name: str
     run_id: str
     agents: tuple
     observer: bool
-    dir: Path
+    dir: Path | None = None  # where it was read from (None: handed over in memory)
     router: bool = False
     world_routes: bool = False
+    ca_pem: bytes = field(default=b"", repr=False)
+    cert_pem: bytes = field(default=b"", repr=False)
+    key_pem: bytes = field(default=b"", repr=False)
 
-    @property
-    def ca(self) -> Path:
-        return self.dir / CA_FILE
-
-    @property
-    def cert(self) -> Path:
-        return self.dir / CERT_FILE
-
-    @property
-    def key(self) -> Path:
-        return self.dir / KEY_FILE
+    def description(self) -> dict:
+        """The identity's ``run.json``."""
+        return {"format": FORMAT, "run_id": self.run_id, "agents": list(self.agents), "observer": self.observer,
+                "router": self.router, "world_routes": self.world_routes, "identity": self.name}
 
 
-def load(directory, identity: str, run_id: str | None = None) -> Identity:
-    """Identity ``identity`` from ``directory`` (a run's credentials
-    directory, or that identity's own directory). ``InputError`` if the
-    files are missing, the key is readable by others, or they belong to
-    another identity or run."""
-    base = Path(directory)
-    d = base if (base / RUN_FILE).is_file() else base / identity
-    try:
-        doc = json.loads((d / RUN_FILE).read_text())
-        for f in (CA_FILE, CERT_FILE, KEY_FILE):
-            if not (d / f).is_file():
-                raise FileNotFoundError(str(d / f))
-        mode = (d / KEY_FILE).stat().st_mode & 0o777
-    except (OSError, ValueError) as e:
-        raise InputError("credentials", f"no credentials for {identity} in {base}: "
-                                        f"{getattr(e, 'strerror', None) or e}") from None
+def _identity(doc, name: str, where: str, ca=b"", cert=b"", key=b"", d: Path | None = None) -> Identity:
+    """An ``Identity`` from a ``run.json`` document ``doc`` (checked)."""
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise InputError("credentials", f"{d / RUN_FILE} is not a {FORMAT} file")
-    if doc.get("identity") != identity:
-        raise InputError("credentials", f"{d} holds the credentials of {doc.get('identity')!r}, not {identity!r}")
-    if run_id is not None and doc.get("run_id") != run_id:
-        raise InputError("credentials", f"{base} is for run {doc.get('run_id')!r}, not {run_id!r} "
-                                        f"(give --run-id {doc.get('run_id')})")
-    if mode & 0o077:
-        raise InputError("credentials", f"{d / KEY_FILE} is readable by others (mode {mode:o}); it must be 0600")
+        raise InputError("credentials", f"{where} is not a {FORMAT} file")
+    if doc.get("identity") != name:
+        raise InputError("credentials", f"{where} holds the credentials of {doc.get('identity')!r}, not {name!r}")
     try:
         agents = tuple(int(i) for i in doc["agents"])
         check_run_id(doc["run_id"])
     except (KeyError, TypeError, ValueError, InputError):
-        raise InputError("credentials", f"{d / RUN_FILE}: bad run id or agent list") from None
-    return Identity(identity, doc["run_id"], agents, bool(doc.get("observer", False)), d,
-                    bool(doc.get("router", False)), bool(doc.get("world_routes", False)))
+        raise InputError("credentials", f"{where}: bad run id or agent list") from None
+    return Identity(name, doc["run_id"], agents, bool(doc.get("observer", False)), d, bool(doc.get("router", False)),
+                    bool(doc.get("world_routes", False)), ca, cert, key)
+
+
+def _check_run(ident: Identity, run_id: str | None, where) -> Identity:
+    if run_id is not None and ident.run_id != run_id:
+        raise InputError("credentials", f"{where} is for run {ident.run_id!r}, not {run_id!r} "
+                                        f"(give --run-id {ident.run_id})")
+    return ident
+
+
+def load(directory, identity: str, run_id: str | None = None) -> Identity:
+    """Identity ``identity`` from ``directory`` (a run's credentials
+    directory, or that identity's own directory), read into memory.
+    ``InputError`` if the files are missing, the key is readable by others,
+    or they belong to another identity or run."""
+    base = Path(directory)
+    d = base if (base / RUN_FILE).is_file() else base / identity
+    try:
+        doc = json.loads((d / RUN_FILE).read_text())
+        mode = (d / KEY_FILE).stat().st_mode & 0o777
+        pems = [(d / f).read_bytes() for f in (CA_FILE, CERT_FILE, KEY_FILE)]
+    except (OSError, ValueError) as e:
+        raise InputError("credentials", f"no credentials for {identity} in {base}: "
+                                        f"{getattr(e, 'strerror', None) or e}") from None
+    ident = _check_run(_identity(doc, identity, str(d / RUN_FILE), *pems, d=d), run_id, base)
+    if mode & 0o077:
+        raise InputError("credentials", f"{d / KEY_FILE} is readable by others (mode {mode:o}); it must be 0600")
+    return ident
+
+
+# --------------------------------------------------------------------------
+# handing them over in memory (``up``: each child its own, on its standard input)
+# --------------------------------------------------------------------------
+def bundle(idents) -> bytes:
+    """The identities ``idents`` as one document (``BUNDLE_FORMAT``), for
+    ``--credentials -`` (read from standard input)."""
+    return json.dumps({"format": BUNDLE_FORMAT, "identities": [
+        {**i.description(), "ca": i.ca_pem.decode(), "cert": i.cert_pem.decode(), "key": i.key_pem.decode()}
+        for i in idents]}).encode()
+
+
+def unbundle(data: bytes, where: str = "standard input") -> dict:
+    """{name: ``Identity``} of a ``bundle`` document; ``InputError`` if it is not one."""
+    try:
+        doc = json.loads(data)
+        items = doc["identities"] if isinstance(doc, dict) and doc.get("format") == BUNDLE_FORMAT else None
+        if not isinstance(items, list):
+            raise ValueError
+        out = {}
+        for item in items:
+            pems = [item[f].encode() for f in ("ca", "cert", "key")]
+            out[item["identity"]] = _identity(item, item["identity"], where, *pems)
+    except (ValueError, TypeError, KeyError, AttributeError):
+        raise InputError("credentials", f"{where} holds no {BUNDLE_FORMAT} document") from None
+    return out
+
+
+def pick(held: dict, identity: str, run_id: str | None = None, where: str = "standard input") -> Identity:
+    """``identity`` of the identities ``held`` (``unbundle``), for run ``run_id``."""
+    if identity not in held:
+        raise InputError("credentials", f"no credentials for {identity} on {where} "
+                                        f"(it holds {', '.join(sorted(held)) or 'none'})")
+    return _check_run(held[identity], run_id, where)
+
+
+def keep_private() -> None:
+    """Make this process's memory and open files unreadable by other
+    processes of its user (Linux: not dumpable, so ``/proc/PID/mem``,
+    ``/proc/PID/fd`` and ptrace need CAP_SYS_PTRACE). Called by every
+    process that holds a private key."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_DUMPABLE, 0, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
 
 
 ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -272,10 +340,11 @@ def zenoh_settings(ident: Identity) -> list:
     """(config path, JSON5 value) pairs that make a zenoh session this
     identity: TLS only, mutual authentication, the run's access control.
     Endpoints and the mode stay with the command line's flags."""
-    tls = {
-        "root_ca_certificate": str(ident.ca),
-        "listen_certificate": str(ident.cert), "listen_private_key": str(ident.key),
-        "connect_certificate": str(ident.cert), "connect_private_key": str(ident.key),
+    b64 = lambda pem: base64.b64encode(pem).decode()  # noqa: E731
+    tls = {  # inline: zenoh reads no file, and no key is written anywhere for it
+        "root_ca_certificate_base64": b64(ident.ca_pem),
+        "listen_certificate_base64": b64(ident.cert_pem), "listen_private_key_base64": b64(ident.key_pem),
+        "connect_certificate_base64": b64(ident.cert_pem), "connect_private_key_base64": b64(ident.key_pem),
         "enable_mtls": True,
         # a peer is who its certificate says (the access control checks that), wherever it
         # listens: an address found by scouting or gossip is not in any certificate

@@ -11,7 +11,8 @@
                                (``diskf-mesh credentials``): TLS links only, mutual
                                authentication, the run's access control
                                (``diskf_mesh.mesh.credentials``); the flags above are
-                               applied on top
+                               applied on top. ``-``: read from standard input (how
+                               ``up`` hands each process its own identity, in memory)
     --insecure                 run without credentials (plain zenoh): a world or an
                                agent refuses to start without one of the two
 
@@ -27,13 +28,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh import credentials as creds
 
 MODES = ("peer", "client", "router")
+STDIN = "-"  # --credentials -: the identities are on standard input (``credentials.bundle``)
 
 
 @dataclass(frozen=True)
@@ -48,6 +51,7 @@ class ZenohOptions:
     insecure: bool = False
     identity: str | None = None     # whose credentials (not a flag: the process knows who it is)
     run_id: str | None = None       # the run they must be for
+    held: dict = field(default_factory=dict, compare=False, repr=False)  # read from standard input: name -> Identity
 
     def to_argv(self) -> list:
         """The flags that reproduce these options (for child processes)."""
@@ -75,6 +79,13 @@ class ZenohOptions:
         """No network setting given (credentials or not)."""
         return replace(self, credentials=None, insecure=False, identity=None, run_id=None) == ZenohOptions()
 
+    def identity_of(self, name: str, run_id: str | None = None):
+        """The ``credentials.Identity`` ``name`` of these options' credentials
+        (a directory, or the identities read from standard input)."""
+        if self.credentials == STDIN:
+            return creds.pick(self.held, name, run_id)
+        return creds.load(self.credentials, name, run_id)
+
     def as_identity(self, identity: str, run_id: str) -> "ZenohOptions":
         """These options for the mesh process ``identity`` of run ``run_id``:
         its credentials checked now (``InputError``), or, with ``--insecure``,
@@ -83,7 +94,7 @@ class ZenohOptions:
         if opts.credentials and opts.insecure:
             raise InputError("insecure", "give --credentials DIR or --insecure, not both")
         if opts.credentials:
-            creds.load(opts.credentials, identity, run_id)
+            opts.identity_of(identity, run_id)
         elif opts.insecure:
             print(f"warning: {identity}: --insecure: no TLS, no access control; any process that reaches this "
                   f"zenoh network can read and write run {run_id}", file=sys.stderr, flush=True)
@@ -104,7 +115,7 @@ class ZenohOptions:
         if self.credentials:
             if self.identity is None:
                 raise InputError("credentials", "whose credentials? (no identity given)")
-            settings += creds.zenoh_settings(creds.load(self.credentials, self.identity, self.run_id))
+            settings += creds.zenoh_settings(self.identity_of(self.identity, self.run_id))
             if not self.listen and not self.config_file and self.mode != "client":  # zenoh's default is plain TCP
                 settings.append(("listen/endpoints", json.dumps(list(creds.DEFAULT_LISTEN))))
         if self.mode:
@@ -141,7 +152,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="any zenoh setting as a config path and a JSON5 value (repeatable)")
     g.add_argument("--credentials", metavar="DIR",
                    help="the run's credentials (diskf-mesh credentials): TLS, mutual authentication and access "
-                        "control; this process reads its own identity's files only")
+                        "control; this process reads its own identity's files only ('-': from standard input)")
     g.add_argument("--insecure", action="store_true",
                    help="run without credentials: plain zenoh, anyone on the network can read and write the run")
 
@@ -151,5 +162,27 @@ def from_args(args: argparse.Namespace, identity: str | None = None, run_id: str
     agent), checked for that identity of run ``run_id`` (``as_identity``)."""
     opts = ZenohOptions(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
                         no_multicast_scouting=args.no_multicast_scouting, config_file=args.zenoh_config,
-                        cfg=tuple(args.cfg), credentials=args.credentials, insecure=args.insecure)
+                        cfg=tuple(args.cfg), credentials=args.credentials, insecure=args.insecure,
+                        held=read_stdin() if args.credentials == STDIN and not args.insecure else {})
     return opts if identity is None else opts.as_identity(identity, run_id)
+
+
+def read_stdin() -> dict:
+    """The identities on standard input (``credentials.bundle``), read once:
+    standard input then becomes /dev/null, so the only copy of the keys is
+    this process's memory, which ``credentials.keep_private`` closes to the
+    user's other processes."""
+    if os.isatty(0):
+        raise InputError("credentials", "--credentials -: the identities are read from standard input, which is a "
+                                        "terminal (give a directory made by `diskf-mesh credentials`)")
+    chunks = []
+    while True:
+        chunk = os.read(0, 1 << 16)
+        if not chunk:
+            break
+        chunks.append(chunk)
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)
+    os.close(null)
+    creds.keep_private()
+    return creds.unbundle(b"".join(chunks))
