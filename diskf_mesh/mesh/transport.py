@@ -2,7 +2,8 @@
 
 A ``Transport`` publishes bytes on a key, delivers the samples of a key
 expression to a callback, declares liveliness tokens and reports tokens
-appearing and going. ``ZenohTransport`` is the real one; ``LocalBus`` hands
+appearing and going, and carries queries (a process answers the queries on
+a key expression; another asks one and gets the first answer, or none). ``ZenohTransport`` is the real one; ``LocalBus`` hands
 samples between threads of one process (for tests of the protocol).
 
 Callbacks run on the transport's own threads (zenoh's network thread, one
@@ -23,6 +24,8 @@ from typing import Callable
 
 OnSample = Callable[[str, bytes], None]
 OnToken = Callable[[str, bool], None]
+OnQuery = Callable[[str, bytes, Callable[[bytes], None]], None]  # (key, payload, reply)
+OnReply = Callable[[bytes | None], None]
 
 
 ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
@@ -71,6 +74,18 @@ class Transport:
     def watch_tokens(self, key_expr: str, on_change: OnToken) -> None:  # pragma: no cover
         """``on_change(key, alive)`` for tokens matching ``key_expr``, those
         already declared included."""
+        raise NotImplementedError
+
+    def declare_queryable(self, key_expr: str, on_query: OnQuery) -> None:  # pragma: no cover
+        """``on_query(key, payload, reply)`` for every query on ``key_expr``;
+        ``reply(payload)`` answers it, once, at any time later (or never:
+        the asker's timeout)."""
+        raise NotImplementedError
+
+    def query(self, key: str, payload: bytes, timeout: float, on_reply: OnReply) -> None:  # pragma: no cover
+        """Ask the queryables of ``key``; ``on_reply(payload)`` once, with the
+        first answer, or ``on_reply(None)`` if none came within ``timeout``
+        seconds. Returns at once."""
         raise NotImplementedError
 
     def close(self) -> None:  # pragma: no cover
@@ -165,6 +180,30 @@ class ZenohTransport(Transport):
 
         self._entities.append(self._session.liveliness().declare_subscriber(key_expr, self._direct(cb), history=True))
 
+    def declare_queryable(self, key_expr, on_query):
+        def cb(query):
+            key = str(query.key_expr)
+
+            def reply(payload):
+                try:
+                    query.reply(key, payload)
+                finally:
+                    query.drop()  # answered: the asker need not wait for its timeout
+
+            on_query(key, b"" if query.payload is None else query.payload.to_bytes(), reply)
+
+        self._entities.append(self._session.declare_queryable(key_expr, self._direct(cb)))
+
+    def query(self, key, payload, timeout, on_reply):
+        once = _Once(on_reply)
+
+        def cb(reply):
+            if reply.ok is not None:
+                once(reply.ok.payload.to_bytes())
+
+        self._session.get(key, self._zenoh.handlers.Callback(cb, lambda: once(None), indirect=False),
+                          payload=payload, timeout=timeout)
+
     def close(self):
         if self._session.is_closed():
             return
@@ -174,6 +213,22 @@ class ZenohTransport(Transport):
             except Exception:  # already gone with the session: nothing to release
                 pass
         self._session.close()
+
+
+class _Once:
+    """A query's ``on_reply``, called at most once (the first answer, or
+    None when the query ends without one)."""
+
+    def __init__(self, on_reply: OnReply):
+        self._on_reply, self._lock, self._done = on_reply, threading.Lock(), False
+
+    def __call__(self, payload) -> bool:
+        with self._lock:
+            if self._done:
+                return False
+            self._done = True
+        self._on_reply(payload)
+        return True
 
 
 # --------------------------------------------------------------------------
@@ -211,6 +266,7 @@ class LocalBus:
         self._lock = threading.RLock()
         self._subs = []      # (owner, expr, callback)
         self._watchers = []  # (owner, expr, callback)
+        self._queryables = []  # (owner, expr, callback)
         self._tokens = {}    # key -> owner count
 
     def transport(self) -> "LocalTransport":
@@ -298,11 +354,28 @@ class LocalTransport(Transport):
         for k in present:
             self._post(on_change, k, True)
 
+    def declare_queryable(self, key_expr, on_query):
+        with self._bus._lock:
+            self._bus._queryables.append((self, key_expr, on_query))
+
+    def query(self, key, payload, timeout, on_reply):
+        """Each answer is delivered on this transport's thread; no answer
+        within ``timeout`` (a timer thread) delivers None."""
+        with self._bus._lock:
+            targets = [(owner, cb) for owner, e, cb in self._bus._queryables if key_matches(e, key)]
+        once = _Once(lambda p: self._post(on_reply, p))
+        timer = threading.Timer(timeout, once, args=(None,))
+        timer.daemon = True
+        timer.start()
+        for owner, cb in targets:
+            owner._post(cb, key, bytes(payload), once)
+
     def close(self):
         if self._closed:
             return
         with self._bus._lock:
             self._bus._subs = [s for s in self._bus._subs if s[0] is not self]
+            self._bus._queryables = [q for q in self._bus._queryables if q[0] is not self]
             self._bus._watchers = [w for w in self._bus._watchers if w[0] is not self]
             gone = []
             for k in self._tokens:

@@ -1,0 +1,222 @@
+"""The world's protocol machine with no transport and no clock: events in, effects out."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diskf_mesh.data.scenario import simulate
+from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.clock import Clock
+from diskf_mesh.mesh.estimator import neighbours
+from diskf_mesh.mesh.events import (AskTokens, Answer, DeclareQueryable, DeclareToken, Finish, Interrupt, Publish,
+                                    Query, Sample, SetTimer, Subscribe, Timer, Token, Tokens, WatchTokens, Woke)
+from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.world_machine import (CLAIM, DUPLICATE, FAILED, PAUSE_MIN_S, WorldMachine, WorldTiming)
+
+TICKS = 6
+RUN = "wm"
+NONCE = "0000000000000010aaaaaaaa"
+
+
+@pytest.fixture(scope="module")
+def run():
+    spec = RunSpec("quadrants", "kcf", run_id=RUN, topology="ring")
+    scn = spec.load(TICKS)
+    return scn, simulate(scn, [0])
+
+
+def machine(run, **timing) -> WorldMachine:
+    scn, trace = run
+    return WorldMachine(scn, trace, "kcf", 0, Keys(RUN), NONCE, WorldTiming(**{"startup_timeout": 30.0,
+                                                                                 "tick_timeout": 10.0, **timing}))
+
+
+def published(effects, key=None) -> list:
+    return [e for e in effects if isinstance(e, Publish) and (key is None or e.key == key)]
+
+
+def ticks_opened(effects) -> list:
+    return [wire.decode_tick(e.payload).tick for e in published(effects, Keys(RUN).tick)]
+
+
+def ready(w: WorldMachine, ids, now: float, nonce: str = "n1") -> list:
+    keys, out = Keys(RUN), []
+    for i in ids:
+        out += w.handle(Token(keys.alive(i, nonce), True), now)
+        out += w.handle(Token(keys.ready(i, nonce), True), now)
+    return out
+
+
+def gone(w: WorldMachine, i, now: float, nonce: str = "n1") -> list:
+    keys = Keys(RUN)
+    return w.handle(Token(keys.ready(i, nonce), False), now) + w.handle(Token(keys.alive(i, nonce), False), now)
+
+
+def report(w: WorldMachine, i, k: int, now: float, x=None, P=None, fused=()) -> list:
+    n, m = w.trace.model.n, w.trace.model.m
+    x = np.full(n, float(i)) if x is None else x
+    P = np.eye(n) if P is None else P
+    payload = wire.encode_report(RUN, i, k, x, P, np.zeros(m), False, fused=fused)
+    return w.handle(Sample(Keys(RUN).report(i), payload), now)
+
+
+def started(run, **timing) -> tuple:
+    """A machine whose agents are all ready: (machine, effects of tick 1)."""
+    w = machine(run, **timing)
+    w.start(0.0)
+    w.handle(Tokens(CLAIM, ()), 0.0)
+    return w, ready(w, w.ids, 0.1)
+
+
+def test_start_listens_and_claims(run):
+    w = machine(run)
+    out = w.start(0.0)
+    keys = Keys(RUN)
+    assert Subscribe(keys.report("*")) in out and DeclareQueryable(keys.start("*")) in out
+    assert any(isinstance(e, WatchTokens) for e in out)
+    assert out[-1] == AskTokens(CLAIM, keys.alive_world, 1.0)
+    out = w.handle(Tokens(CLAIM, (keys.world(NONCE),)), 0.5)  # its own token only
+    assert out == [DeclareToken(keys.world(NONCE)), SetTimer("startup", 30.0)]
+
+
+def test_another_world_holds_the_run_id(run):
+    w = machine(run)
+    w.start(0.0)
+    out = w.handle(Tokens(CLAIM, (Keys(RUN).world("0000000000000001bbbbbbbb"),)), 0.5)
+    assert out[-1].code == DUPLICATE and not published(out)
+    assert w.handle(Token(Keys(RUN).ready(1, "x"), True), 0.6) == []  # finished: nothing more
+
+
+def test_every_ready_token_opens_tick_1(run):
+    w, out = started(run)
+    scn, trace = run
+    keys = Keys(RUN)
+    meas = [e for e in published(out) if e.key != keys.tick]
+    assert [e.key for e in meas] == [keys.meas(i) for i in w.ids] and not any(e.express for e in meas)
+    assert ticks_opened(out) == [1] and published(out)[-1].express
+    t = wire.decode_tick(published(out)[-1].payload)
+    assert t.live == w.ids and np.array_equal(t.positions, trace.positions[0])
+    assert DeclareToken(keys.ticking) in out and SetTimer("tick", 10.1) in out
+    for j, i in enumerate(w.ids):
+        m = wire.decode_measurement(meas[j].payload)
+        assert m.agent == i and m.has == bool(trace.has[0, 0, j])
+
+
+def test_all_reports_of_tick_k_open_tick_k_plus_1(run):
+    w, _ = started(run)
+    for i in w.ids[:-1]:
+        assert ticks_opened(report(w, i, 1, 0.2)) == []
+    assert ticks_opened(report(w, w.ids[-1], 1, 0.3)) == [2]
+    assert w.record.reported[0].all() and w.record.x[0, 0, 0] == w.ids[0]
+
+
+def test_tick_timer_opens_next_tick_and_records_the_missing_one(run):
+    w, _ = started(run)
+    for i in w.ids[1:]:
+        report(w, i, 1, 0.2)
+    out = w.handle(Timer("tick"), 10.1)
+    assert ticks_opened(out) == [2]
+    assert not w.record.reported[0, 0] and w.record.why[0, 0] == "no report"
+    assert w.record.counters["missing-report"] == 1
+    assert report(w, w.ids[0], 1, 10.2) == [] and w.record.counters["stale"] == 1
+
+
+def test_whole_run_stops_and_finishes_when_the_agents_leave(run):
+    w, _ = started(run)
+    for k in range(1, TICKS + 1):
+        for i in w.ids:
+            out = report(w, i, k, float(k))
+    assert published(out, Keys(RUN).stop) and w.done and w.phase == "leaving"
+    for i in w.ids[:-1]:
+        assert not any(isinstance(e, Finish) for e in gone(w, i, 7.0))
+    out = gone(w, w.ids[-1], 7.1)
+    assert out[-1] == Finish("done", 0, "") and w.record.reported.all() and w.record.live.all()
+
+
+def test_startup_timeout_names_the_missing_agents(run):
+    w = machine(run)
+    w.start(0.0)
+    w.handle(Tokens(CLAIM, ()), 0.0)
+    ready(w, w.ids[1:], 0.1)
+    out = w.handle(Timer("startup"), 30.0)
+    assert out[-1].code == FAILED and f"no agent process for id {w.ids[0]}" in out[-1].reason
+
+
+def test_frozen_world_pauses_and_sends_the_open_tick_again(run):
+    w, first = started(run)
+    report(w, w.ids[0], 1, 0.2)
+    out = w.handle(Woke(5.0), 5.3)
+    assert w._paused and not published(out)
+    assert w.handle(Timer("tick"), 5.4) == []  # a paused tick does not close
+    out = w.handle(Timer("pause"), 5.3 + PAUSE_MIN_S)  # every agent still there: resume
+    assert [e.key for e in published(out)] == [e.key for e in published(first)]
+    assert w.record.pauses == [{"tick": 1, "why": "the world was frozen", "seconds": PAUSE_MIN_S}]
+    assert ticks_opened(sum((report(w, i, 1, 6.5) for i in w.ids[1:]), [])) == [2]
+
+
+def test_a_gone_agent_is_dropped_and_comes_back_two_ticks_later(run):
+    w, _ = started(run)
+    a = w.ids[0]
+    gone(w, a, 0.15)
+    out = sum((report(w, i, 1, 0.2) for i in w.ids[1:]), [])
+    assert ticks_opened(out) == [2] and a not in wire.decode_tick(published(out, Keys(RUN).tick)[0].payload).live
+    ready(w, [a], 0.25, nonce="n2")
+    out = sum((report(w, i, 2, 0.3) for i in w.ids[1:]), [])
+    assert a not in wire.decode_tick(published(out, Keys(RUN).tick)[0].payload).live  # tick 3: rejoining
+    out = sum((report(w, i, 3, 0.4) for i in w.ids[1:]), [])
+    assert a in wire.decode_tick(published(out, Keys(RUN).tick)[0].payload).live     # tick 4: live
+    j = w.ids.index(a)
+    assert list(w.record.why[:3, j]) == ["left", "left", "rejoining"] and not w.record.live[1:3, j].any()
+
+
+def test_rejoin_query_is_answered_with_a_neighbours_reported_estimate(run):
+    w, _ = started(run)
+    scn, trace = run
+    a = w.ids[0]
+    near = set(neighbours(scn, a, trace.positions[0])) - {a}
+    best = min(near)
+    n = trace.model.n
+    for i in w.ids:  # the lowest-id neighbour is the most certain
+        report(w, i, 1, 0.2, P=np.eye(n) * (0.5 if i == best else 2.0))
+    keys = Keys(RUN)
+    assert w.handle(Query(7, keys.start(a), wire.encode_join(RUN, a, 3)), 0.3) == []  # tick 2 not over yet
+    out = sum((report(w, i, 2, 0.4) for i in w.ids), [])
+    answers = [e for e in out if isinstance(e, Answer)]
+    assert len(answers) == 1 and answers[0].qid == 7
+    s = wire.decode_start(answers[0].payload, run_id=RUN, agent=a, tick=3)
+    assert s.source in near
+    out = w.handle(Query(8, keys.start(a), wire.encode_join(RUN, a, 2)), 0.5)  # tick 1 is over: at once
+    s = wire.decode_start(out[0].payload, run_id=RUN, agent=a, tick=2)
+    assert s.source == best and np.array_equal(s.x, np.full(n, float(best)))
+    assert np.array_equal(s.P, np.eye(n) * 0.5)
+    assert w.record.starts[-1].source == best and w.record.rejoins[a][-1] == {"tick": 2, "source": best}
+
+
+def test_rejoin_with_no_neighbour_reported_starts_from_the_prior(run):
+    w, _ = started(run)
+    a = w.ids[0]
+    report(w, a, 1, 0.2)  # only itself reported tick 1
+    w.handle(Timer("tick"), 10.1)
+    out = w.handle(Query(1, Keys(RUN).start(a), wire.encode_join(RUN, a, 2)), 10.2)
+    s = wire.decode_start(out[0].payload, run_id=RUN, agent=a, tick=2)
+    model = w.trace.model
+    assert s.source is None and np.array_equal(s.x, np.ravel(model.x0)) and np.array_equal(s.P, model.P0)
+
+
+def test_interrupt_ends_the_run_early(run):
+    w, _ = started(run)
+    out = w.handle(Interrupt("SIGTERM"), 1.0)
+    assert published(out, Keys(RUN).stop) and w.record.ended_early == "interrupted (SIGTERM)"
+    out = w.handle(Timer("leave"), 3.0)
+    assert out[-1] == Finish("stopped", 0, "interrupted (SIGTERM)") and not w.done
+
+
+def test_real_time_opens_ticks_on_the_clock(run):
+    w, out = started(run, clock=Clock(10.0, 0.05))
+    assert ticks_opened(out) == [1] and SetTimer("clock", 0.1 + 0.1) in out
+    out = w.handle(Timer("clock"), 0.2)
+    assert ticks_opened(out) == [2]  # whatever came in
+    assert w.record.deadlines.report_misses == {i: 1 for i in w.ids}
+    report(w, w.ids[0], 1, 0.25)  # late, still taken
+    assert w.record.reported[0, 0] and w.record.deadlines.late_reports[w.ids[0]] == 1
