@@ -205,8 +205,8 @@ def test_experiment_json_shape(tmp_path, capsys):
     code, out, err = run_cli(["experiment", "--seeds", "2", "--steps", "30", "--json", out_path], capsys)
     assert code == 0 and err == ""  # no progress bar when stderr is not a terminal
     results = json.loads(out_path.read_text())
-    assert list(results) == list(algorithms.NAMES)
-    for per_topology in results.values():
+    assert list(results) == [*algorithms.NAMES, "provenance"]  # the estimators, then what made them
+    for per_topology in list(results.values())[:-1]:
         assert list(per_topology) == ["all", "ring", "none"]
         for row in per_topology.values():
             assert set(METRIC_KEYS) <= set(row)
@@ -221,7 +221,7 @@ def test_experiment_subset_and_range(tmp_path, capsys):
                             "--range", "250", *QUICK, "--json", out_path], capsys)
     assert code == 0
     results = json.loads(out_path.read_text())
-    assert list(results) == ["diskf", "kcf"]
+    assert list(results) == ["diskf", "kcf", "provenance"]
     assert list(results["diskf"]) == ["none", "range=250"]
 
 
@@ -473,7 +473,7 @@ def test_json_dash_writes_to_stdout(tmp_path, capsys):
     code, out, err = run_cli(["experiment", *QUICK, "--algorithms", "diskf", "--json", "-"], capsys)
     assert code == 0
     results = json.loads(out)  # stdout carries the JSON alone; the table went to stderr
-    assert list(results) == ["diskf"] and "MAE(state)" in err
+    assert list(results) == ["diskf", "provenance"] and "MAE(state)" in err
     code, out, err = run_cli(["simulate", "--steps", "5", "--out", "-"], capsys)
     assert code == 0 and json.loads(out)["format"] == "diskf-trace/1"
     code, out, err = run_cli(["replay", _trace(tmp_path), "--out", "-"], capsys)

@@ -6,6 +6,7 @@ import re
 from pathlib import Path
 
 from cli_helpers import run_cli
+from diskf_mesh.data import provenance
 
 SHORT = ["--seeds", "2", "--steps", "30", "--quiet"]
 FIGURES = {
@@ -40,6 +41,7 @@ def test_report_command_writes_markdown_figures_and_json(tmp_path, capsys):
     assert all((tmp_path / l).is_file() for l in links)
     doc = json.loads((tmp_path / "results.json").read_text())
     assert set(doc) >= {"table_ii", "dynamic", "sweep", "compensation", "window", "diagnostics"}
+    assert list(doc["provenance"]) == list(provenance.KEYS) and doc["provenance"]["seeds"] == [0, 1]
     assert doc["compensation"]["dynamic"]["all-to-all"]["bit_identical"] is True
     assert "2 seeds" in md and "30 ticks" in md
 

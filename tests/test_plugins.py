@@ -113,7 +113,7 @@ def test_up_runs_the_plugin_and_equals_the_engine(env, tmp_path):
     assert valid.any()
     assert_same(json.loads(est.read_text()), Estimates(np.array(doc["x"])[None], np.array(doc["P"])[None],
                                                        d[None], valid[None]))
-    assert list(json.loads(res.read_text())) == [NAME]
+    assert list(json.loads(res.read_text())) == [NAME, "provenance"]
 
 
 # -- the registry's rules, in-process --------------------------------------

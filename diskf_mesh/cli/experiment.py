@@ -13,6 +13,7 @@ import argparse
 import sys
 
 from diskf_mesh.studies import experiment
+from diskf_mesh.data import provenance
 from diskf_mesh.data.scenario import load_scenario
 from diskf_mesh.cli.options import (
     add_command,
@@ -65,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     check_output(args.json, "json")
+    started = provenance.now()
     scn = load_scenario(args.scenario, agents=args.agents)
     settings = experiment.settings_for(*default_topologies(scn, args.topology, args.comm_range))
     params = estimator_params(scn.params, args)
@@ -75,9 +77,11 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr, disable=quiet) as bar:
         results = experiment.run_experiment(scn, settings, args.estimators, range(args.seeds), args.steps,
                                             params, progress=bar.update)
-    if args.json:
-        save_json(args.json, results, "json")
     steps = args.steps or scn.steps
+    if args.json:
+        prov = provenance.record(scenario=scn, seeds=range(args.seeds), ticks=steps, estimator=args.estimators,
+                                 settings=params, faults=scn.faults, status="done", started=started, argv=args.argv)
+        save_json(args.json, provenance.attach(results, prov), "json")
     text = human_stream(args.json)
     print(f"Scenario {scn.name}: {args.seeds} seeds x {steps} ticks, {scn.N} agents; "
           f"* marks the best value of each row", file=text)

@@ -87,6 +87,7 @@ def main(argv=None, modules=COMMAND_MODULES) -> int:
 
 def _main(argv, modules) -> int:
     args = build_parser(modules).parse_args(argv)
+    args.argv = list(argv)  # the command line, for the provenance of what it writes
     try:
         with warnings.catch_warnings():
             warnings.formatwarning = _one_line  # restored on leaving the block

@@ -21,7 +21,7 @@ import argparse
 import sys
 
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.data import metrics
+from diskf_mesh.data import metrics, provenance
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.trace import estimates_to_json, estimator_from_json, read_json, trace_from_json
 from diskf_mesh.recording.reader import take_ticks
@@ -53,18 +53,21 @@ def run(args: argparse.Namespace) -> int:
     if str(args.trace).endswith(".mcap"):
         from diskf_mesh.recording.command import replay_recording
         check_output(args.out, "out")
-        return replay_recording(args.trace, args.out)
+        return replay_recording(args.trace, args.out, argv=args.argv)
     if args.fused is not None:
         return replay_run(args)
     if args.out is None:
         raise InputError("out", "is required: where to write diskf-estimates/1")
     check_output(args.out, "out")
+    started = provenance.now()
     doc = read_json(args.trace)
     trace = trace_from_json(doc)
     params = estimator_params(estimator_from_json(doc), args)
     est = engine.run(trace, args.estimator, params)
     scores = metrics.compute(trace, est) if trace.truth_x is not None else None
-    save_json(args.out, estimates_to_json(est, args.estimator, 0, scores, ids=trace.agent_labels))
+    prov = trace_provenance(args, doc, trace, params, "done", started)
+    save_json(args.out, provenance.attach(estimates_to_json(est, args.estimator, 0, scores, ids=trace.agent_labels),
+                                          prov))
     B, K, N = trace.shape
     text = human_stream(args.out)
     print(f"{args.estimator}: {K} ticks, {N} agents -> {args.out}", file=text)
@@ -73,12 +76,22 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def trace_provenance(args, doc: dict, trace, params, status: str, started: str, estimator=None) -> dict:
+    """A replay's provenance: its input is the trace (its scenario's name,
+    the SHA-256 of the trace's content)."""
+    return provenance.record(scenario={"name": doc.get("scenario"), "sha256": provenance.content_hash(doc)},
+                             seeds=[doc.get("seed", 0)], ticks=trace.shape[1], estimator=estimator or args.estimator,
+                             settings=params, faults=doc.get("faults"), status=status, started=started,
+                             argv=args.argv)
+
+
 def replay_run(args: argparse.Namespace) -> int:
     """``replay TRACE.json --fused EST.json``: exit 0 when every estimate the
     run reported is reproduced bit for bit, 1 when not."""
     from diskf_mesh.recording.replay import compare_reported, fused_record_from_json, replay_fused
 
     check_output(args.out, "out")
+    started = provenance.now()
     doc = read_json(args.trace)
     trace = trace_from_json(doc)
     run = fused_record_from_json(read_json(args.fused), trace.agent_labels)
@@ -87,10 +100,12 @@ def replay_run(args: argparse.Namespace) -> int:
         raise InputError("fused", f"the run has {K} ticks, the trace only {trace.shape[1]}")
     params = run.params if run.params is not None else estimator_params(estimator_from_json(doc), args)
     est = replay_fused(trace, run.fused, run.reported, run.algorithm, params)
+    c = compare_reported(run.estimates, run.reported, est)
     if args.out:
         scores = metrics.compute(take_ticks(trace, K), est) if trace.truth_x is not None else None
-        save_json(args.out, estimates_to_json(est, run.algorithm, 0, scores, ids=trace.agent_labels))
-    c = compare_reported(run.estimates, run.reported, est)
+        prov = trace_provenance(args, doc, trace, params, "equal" if c.equal else "differs", started, run.algorithm)
+        save_json(args.out, provenance.attach(estimates_to_json(est, run.algorithm, 0, scores, ids=trace.agent_labels),
+                                              prov))
     text = human_stream(args.out)
     print(f"{run.algorithm}: {K} ticks, {len(trace.agent_labels)} agents replayed on what each agent fused"
           + (f" -> {args.out}" if args.out else ""), file=text)

@@ -17,7 +17,8 @@ A fault plan (``Fault``) acts on a process at a virtual time or right after
 the n-th event of the run:
 
     pause     as SIGSTOP: what reaches the process waits; when it runs again
-              it first gets ``Woke(late)``, then what waited, in order. A
+              it first gets ``Woke(late)`` (a pause longer than
+              ``events.FREEZE_S``, as its shell would), then what waited, in order. A
               pause longer than the lease drops the session: the others see
               its tokens go (and it sees theirs go), what reaches it after
               that is lost, and once it runs again it reconnects after
@@ -27,7 +28,9 @@ the n-th event of the run:
               after the lease (a host that vanished).
     restart   a new machine of a crashed process, with the same id and
               identity and a new nonce (an incarnation).
-    start     a process added to the run later (a late join).
+    interrupt ``Interrupt(why)`` (SIGTERM, SIGINT) handed to the process.
+
+A process that joins late is ``add``-ed with a later start time.
 
 Links are first in, first out between two processes (zenoh's reliable
 sessions); a reordered copy is held back ``Link.hold`` longer and may be
@@ -104,9 +107,10 @@ class Fault:
     after_event: int | None = None
     duration: float = 0.0     # pause: how long
     lease: bool = False       # crash: its tokens go after the lease, not at once
+    why: str = "SIGTERM"      # interrupt: the signal
 
     def __post_init__(self):
-        if self.kind not in ("pause", "crash", "restart", "start"):
+        if self.kind not in ("pause", "crash", "restart", "interrupt"):
             raise ValueError(f"unknown fault {self.kind!r}")
         if (self.at is None) == (self.after_event is None):
             raise ValueError("a fault is at a time or after an event, one of the two")
@@ -289,8 +293,6 @@ class SimNet:
 
     def plan(self, faults) -> None:
         for f in faults:
-            if f.kind == "start":
-                raise ValueError("a late start is add(pid, factory, at=...)")
             if f.at is not None:
                 self.sched.at(f.at, ("fault", f))
             else:
@@ -344,6 +346,8 @@ class SimNet:
             self._tokens_gone(item[1])
         elif what == "query-timeout":
             self._query_timeout(item[1])
+        elif what == "tokens-now":
+            self._tokens_now(*item[1:])
 
     def _deliver(self, proc: _Proc, event, local: bool = False, timer: int | None = None) -> None:
         """``local``: from the process itself (a timer, its own token, a
@@ -383,6 +387,8 @@ class SimNet:
             self.trace.add(t, who, f"reply {event.qid}", "", event.payload)
         elif isinstance(event, ev.Woke):
             self.trace.add(t, who, f"woke {event.late!r}")
+        elif isinstance(event, ev.Tokens):
+            self.trace.add(t, who, f"tokens {event.qid}", " ".join(event.keys))
         else:
             self.trace.add(t, who, type(event).__name__)
 
@@ -426,6 +432,8 @@ class SimNet:
             expiry = self.lease.lease - self.lease.keepalive * float(self.rng.random())
             if f.duration > expiry:
                 self.sched.at(now + expiry, ("expire", proc, proc.pause_serial))
+        elif f.kind == "interrupt":
+            self._deliver(proc, ev.Interrupt(f.why), True)
         elif f.kind == "crash" and proc.state in ("up", "paused"):
             self._end(proc, "dead", lingering=f.lease)
 
@@ -457,7 +465,8 @@ class SimNet:
         backlog, proc.backlog = proc.backlog, []
         if not proc.connected:
             self.sched.at(now + self.lease.reconnect, ("reconnect", proc))
-        self._handle(proc, ev.Woke(now - proc.paused_at))
+        if now - proc.paused_at > ev.FREEZE_S:  # as a shell: a shorter stop is a slow process
+            self._handle(proc, ev.Woke(now - proc.paused_at))
         for event, timer in backlog:
             if proc.state != "up":
                 break
@@ -531,6 +540,8 @@ class SimNet:
                         self._token_to_all(proc, e.key, -1)
                     else:
                         self._token_to(proc, proc, e.key, -1)
+            elif isinstance(e, ev.AskTokens):
+                self._ask_tokens(proc, e)
             elif isinstance(e, ev.Ask):
                 self._ask(proc, e)
             elif isinstance(e, ev.Answer):
@@ -673,6 +684,21 @@ class SimNet:
         # no queryable: the answer "none" comes after a round trip
         wait = e.timeout if targets else 2 * self.link.delay
         self.sched.at(self.sched.now + wait, ("query-timeout", nq))
+
+    def _ask_tokens(self, proc: _Proc, e: ev.AskTokens) -> None:
+        """A liveliness query: the tokens held when it reaches the others
+        (one link delay), back one delay later; none if the asker is cut off."""
+        self.trace.add(self.sched.now, repr(proc), f"ask-tokens {e.qid}", e.key)
+        if not (proc.connected and self._may(proc, "liveliness_query", e.key)):
+            self.sched.at(self.sched.now + e.timeout, ("deliver", proc, ev.Tokens(e.qid, ()), True))
+            return
+        self.sched.at(self.sched.now + self.link.delay, ("tokens-now", proc, e.qid, e.key))
+
+    def _tokens_now(self, proc: _Proc, qid: int, expr: str) -> None:
+        m = _matcher(expr)
+        keys = sorted({key for owner in self._all if owner.tokens and self._visible(owner, proc)
+                       for key in owner.tokens if m(key)})
+        self.sched.at(self.sched.now + self.link.delay, ("deliver", proc, ev.Tokens(qid, tuple(keys)), True))
 
     def _answer(self, proc: _Proc, e: ev.Answer) -> None:
         """The first answer goes back to the asker; later ones are dropped."""

@@ -59,6 +59,16 @@ kind "rejoin" (agent -> world, once per (re)join; ``Rejoin``): "t" the tick it
 joined at, "s" sender, "src" the agent whose fused estimate of tick "t" - 1 it
 re-initialised from, or -1 for its prior.
 
+kind "join" (agent -> world, the payload of its query on ``Keys.start``;
+``Join``): "t" the tick J it (re)joins at, "s" sender.
+
+kind "start" (world -> agent, the answer to its "join"; ``Start``): "t" the
+tick J it joins at, "s" the agent it is for, "src" the agent whose fused
+estimate of tick J - 1 it starts from, or -1 for the prior; "n", "m", "dt",
+"dv", "a" x (n), P (n x n), d (m) of that estimate. ``decode_start`` checks
+it as the guard checks a message: finite, P positive definite, no value
+beyond ``max_abs``, P's condition number at most ``max_cond``.
+
 ``decode_*`` either returns a dataclass or raises ``Rejected`` with one of
 ``REASONS``, never anything else, whatever the bytes.
 
@@ -111,6 +121,8 @@ REASONS = (
     "non-finite",   # NaN or infinity
     "not-spd",      # a covariance that is not symmetric positive definite
     "size",         # larger than the schema allows: the payload, or a string, map, array or bin in it
+    "magnitude",    # a starting estimate with a value beyond the guard's max_abs (``decode_start``)
+    "ill-conditioned",  # a starting estimate whose P is worse conditioned than the guard's max_cond
 )
 
 
@@ -287,6 +299,25 @@ class Rejoin:
     source: int | None  # None: the prior
 
 
+@dataclass(frozen=True)
+class Join:
+    run_id: str
+    sender: int
+    tick: int           # the tick it (re)joins at
+
+
+@dataclass(frozen=True)
+class Start:
+    run_id: str
+    agent: int
+    tick: int           # the tick the agent joins at; the estimate is of the tick before
+    source: int | None  # whose fused estimate; None: the prior
+    x: np.ndarray       # (n,)
+    P: np.ndarray       # (n, n)
+    d: np.ndarray       # (m,)
+    d_valid: bool
+
+
 # --------------------------------------------------------------------------
 # encoding
 # --------------------------------------------------------------------------
@@ -367,6 +398,20 @@ def encode_rejoin(run_id: str, sender: int, tick: int, source: int | None) -> by
                   "src": -1 if source is None else int(source)})
 
 
+def encode_join(run_id: str, sender: int, tick: int) -> bytes:
+    return _pack({"v": SCHEMA, "k": "join", "run": run_id, "t": int(tick), "s": int(sender)})
+
+
+def encode_start(run_id: str, agent: int, tick: int, source: int | None, x, P, d, d_valid) -> bytes:
+    n, m = _dims(x, d)
+    blob = _f8(x, P, d)
+    if len(blob) != 8 * (n + n * n + m):
+        raise ValueError("encode_start: a starting estimate must hold one agent's arrays")
+    return _pack({"v": SCHEMA, "k": "start", "run": run_id, "t": int(tick), "s": int(agent),
+                  "src": -1 if source is None else int(source), "n": n, "m": m, "dt": DTYPE,
+                  "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob})
+
+
 # --------------------------------------------------------------------------
 # decoding
 # --------------------------------------------------------------------------
@@ -401,7 +446,7 @@ class Limits:
 
 # fields of each kind (the map's length), and room for a few more (a signature, a binding) that a
 # decoder ignores: each is still bounded by the string, bin and byte limits
-_FIELDS = {"msg": 10, "report": 12, "tick": 12, "meas": 8, "stop": 5, "rejoin": 6}
+_FIELDS = {"msg": 10, "report": 12, "tick": 12, "meas": 8, "stop": 5, "rejoin": 6, "join": 5, "start": 11}
 EXTRA_FIELDS = 2
 
 
@@ -433,7 +478,10 @@ def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | 
     if kind == "meas":
         p = a or MAX_DIM
         return Limits(HEADER_BYTES + 8 * p, MAX_STR, 8 * p, p, fields)
-    if kind == "rejoin":  # ints only
+    if kind == "start":
+        floats = n + n * n + m
+        return Limits(HEADER_BYTES + 8 * floats, MAX_STR, 8 * floats, floats, fields)
+    if kind in ("rejoin", "join"):  # ints only
         return Limits(HEADER_BYTES, MAX_STR, 0, 0, fields)
     return Limits(HEADER_BYTES + MAX_WHY, MAX_WHY, 0, 0, fields)
 
@@ -714,3 +762,32 @@ def decode_rejoin(data, *, run_id: str | None = None, sender: int | None = None)
     doc = _open(data, "rejoin", run_id, limits("rejoin"))
     s, src = _check_sender(doc, sender), _field(doc, "src", int)
     return Rejoin(doc["run"], s, doc["t"], None if src < 0 else src)
+
+
+def decode_join(data, *, run_id: str | None = None, sender: int | None = None) -> Join:
+    doc = _open(data, "join", run_id, limits("join"))
+    return Join(doc["run"], _check_sender(doc, sender), doc["t"])
+
+
+def decode_start(data, *, run_id: str | None = None, agent: int | None = None, tick: int | None = None,
+                 n: int | None = None, m: int | None = None, max_abs: float = math.inf,
+                 max_cond: float = math.inf) -> Start:
+    """The estimate a (re)joining agent starts from, for ``agent`` joining at
+    ``tick``, checked as the guard checks a message (``guard.GuardConfig``'s
+    ``max_abs`` and ``max_cond``)."""
+    doc = _open(data, "start", run_id, limits("start", n, m))
+    s, n, m, dv = _estimate_head(doc, agent, n, m)
+    if tick is not None and doc["t"] != tick:
+        raise Rejected("schema", f"tick {doc['t']}, expected {tick}")
+    src = _field(doc, "src", int)
+    values = _values(doc, "a", n + n * n + m)
+    a = np.array(values, dtype=float)
+    _spd(values, a, ((n, n),))
+    big = float(np.abs(a).max())
+    if big > max_abs:
+        raise Rejected("magnitude", f"a value of {big:.3g} (limit {max_abs:.3g})")
+    x, P, d = _split(a, [(n,), (n, n), (m,)])
+    ev = np.linalg.eigvalsh(P)
+    if not ev[0] > 0 or ev[-1] > max_cond * ev[0]:
+        raise Rejected("ill-conditioned", f"P eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}")
+    return Start(doc["run"], s, doc["t"], None if src < 0 else src, x, P, d, dv)

@@ -12,7 +12,7 @@ import numpy as np
 from diskf_mesh import estimators
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.engine import centralized
-from diskf_mesh.data import metrics
+from diskf_mesh.data import metrics, provenance
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, simulate
 from diskf_mesh.estimators import Params
@@ -140,7 +140,7 @@ def format_table(results: dict, metric_keys=TABLE_METRICS) -> str:
     input estimate, or a run that measured nothing: None, NaN or an absent
     key or setting all print ``-``). Input coverage, not in the paper's table,
     is the share of agent-ticks over which MAE/RMSE(input) are taken."""
-    algs = list(results)
+    algs = [a for a in results if a != provenance.KEY]  # a results document's own provenance is no estimator
     settings = list(dict.fromkeys(st for a in algs for st in (results[a] or {})))
     width = max(10, *(len(LABELS.get(a, str(a))) + 2 for a in algs)) if algs else 10
     head = f"{'Comm.':<12}{'Metric':<13}" + "".join(f"{LABELS.get(a, str(a)):>{width}}" for a in algs)

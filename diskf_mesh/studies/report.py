@@ -18,6 +18,7 @@ from diskf_mesh import estimators
 from diskf_mesh.studies import figures
 from diskf_mesh.data import paper_values
 from diskf_mesh.studies import suite as studies
+from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import atomic_open, save_json
 from diskf_mesh.studies.experiment import LABELS
 from diskf_mesh.data.scenario import load_scenario
@@ -639,10 +640,15 @@ def render(res: studies.Results, figdir: str = "figures") -> str:
 def write_report(cfg: studies.StudyConfig, out_dir) -> list[Path]:
     """Run every study, write the figures, the markdown and the JSON."""
     out = Path(out_dir)
+    started = provenance.now()
     res = studies.run_all(cfg)
     paths = figures.make_figures(cfg, out / "figures", res)
     md = out / "reproduction.md"
     with atomic_open(md, "w") as f:
         f.write(render(res, "figures"))
-    save_json(out / "results.json", res.to_json(), "out")
+    scns = [load_scenario(studies.STATIONARY), load_scenario(studies.DYNAMIC)]
+    prov = provenance.record(scenario=scns, seeds=cfg.seed_range, ticks=cfg.steps or scns[0].steps,
+                             estimator=cfg.algorithms, settings={s.name: s.params for s in scns}, status="done",
+                             started=started)
+    save_json(out / "results.json", provenance.attach(res.to_json(), prov), "out")
     return [md, out / "results.json", *paths]
