@@ -58,6 +58,7 @@ from diskf_mesh.data import metrics
 from diskf_mesh.mesh import wire
 from diskf_mesh import estimators
 from diskf_mesh.data.argtypes import fraction, positive_int, seed_value
+from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.mesh.counters import Counters
 from diskf_mesh.data.faults import FaultConfig
@@ -728,13 +729,13 @@ def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, ru
     return doc
 
 
-def open_recorder(path, trace, scn, spec, seed, faults):
+def open_recorder(path, trace, scn, spec, seed, faults, prov=None):
     from diskf_mesh.core.errors import InputError
     from diskf_mesh.recording.writer import Recorder
 
     try:
         return Recorder(path, trace, scn, scenario=spec.scenario, algorithm=spec.algorithm, seed=seed,
-                        run_id=spec.run_id, faults=faults)
+                        run_id=spec.run_id, faults=faults, provenance=prov)
     except OSError as e:
         raise InputError("record", f"cannot write {path}: {e.strerror or e}") from None
 
@@ -797,6 +798,7 @@ def run(args: argparse.Namespace) -> int:
 
     for sig in (signal.SIGTERM, signal.SIGINT):  # from the start: up may stop the world while it starts
         signal.signal(sig, interrupt)
+    started = provenance.now()
     spec = runspec.from_args(args)
     scn = spec.load(args.ticks)
     clock = realtime.from_args(args)
@@ -822,7 +824,9 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
 
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
-    recorder = open_recorder(args.record, trace, scn, spec, args.seed, faults) if args.record else NO_RECORDER
+    prov = provenance.record(scenario=scn, seeds=[args.seed], ticks=K, estimator=spec.algorithm, settings=scn.params,
+                             faults=faults, started=started, argv=getattr(args, "argv", None))
+    recorder = open_recorder(args.record, trace, scn, spec, args.seed, faults, prov) if args.record else NO_RECORDER
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
             world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
@@ -843,14 +847,15 @@ def run(args: argparse.Namespace) -> int:
     if clock is not None:
         summary.update(deadline_summary(rec, clock))
     results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
+    prov["status"] = summary.get("status") or ("complete" if summary["complete"] else "incomplete")
     if args.json:
-        save_json(args.json, results, "json")
+        save_json(args.json, provenance.attach(results, prov), "json")
     if args.estimates:
         doc = estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row)
         doc.update(faults=summary["faults"], missing_ticks=summary["missing_ticks"], **completeness(rec))
         if clock is not None:
             doc.update(deadline_summary(rec, clock))
-        save_json(args.estimates, doc, "estimates")
+        save_json(args.estimates, provenance.attach(doc, prov), "estimates")
     for i, c in summary["counters"].items():
         if "imbalance" in c:
             log.info(f"agent {i}'s message counters do not add up: {'; '.join(c['imbalance'])}")

@@ -31,13 +31,17 @@ _TICK = {"tick": {**_INT, "minimum": 1, "description": "tick k (1..K)"}}
 
 # topic -> JSON Schema of its messages
 CHANNELS = {
-    "/run": _obj("Run", "what ran: scenario, seed, estimator, faults, ids, dimensions, versions (once, first)",
+    "/run": _obj("Run", "what ran: scenario, seed, estimator, faults, ids, dimensions, versions, provenance (once, first)",
                  required=("format", "run_id", "scenario", "seed", "algorithm", "ids", "ticks"),
                  format={"type": "string"}, run_id={"type": "string"}, scenario={"type": "string"},
                  scenario_name={"type": "string"}, seed=_INT, algorithm={"type": "string"},
                  topology={"type": "string"}, comm_range={"type": ["number", "string"]},
                  ids=_IDS, ticks=_INT, n=_INT, m=_INT, params={"type": "object"}, faults={"type": "object"},
-                 tick_period_s=_NUM, versions={"type": "object"}),
+                 tick_period_s=_NUM, versions={"type": "object"},
+                 provenance={"type": ["object", "null"],
+                             "description": "what made the run (diskf_mesh.data.provenance: command, scenario and "
+                                            "its hash, seeds, ticks, estimator, settings, faults, versions, git "
+                                            "commit, start time)"}),
     "/world/truth": _obj("Truth", "ground truth of tick k: the target's state x and the input d acting "
                                   "between tick k-1 and k", **_TICK, x=_VEC, d=_VEC, position=_VEC),
     "/world/agents": _obj("Agents", "every agent's position at tick k (scenario order) and the live set",

@@ -43,7 +43,6 @@ import json
 import math
 import os
 import pickle
-import platform
 import select
 import signal
 import struct
@@ -58,6 +57,7 @@ import msgpack
 import numpy as np
 
 from diskf_mesh import __version__
+from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import json_safe
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.data.trace import trace_to_json
@@ -76,12 +76,13 @@ _FRAME = struct.Struct("<I")
 
 
 def versions() -> dict:
-    out = {"diskf-mesh": __version__, "python": platform.python_version()}
-    for dist in ("numpy", "eclipse-zenoh", "mcap", "msgpack"):
+    """``provenance.versions()`` and the recording's own libraries."""
+    out = provenance.versions()
+    for dist in ("mcap", "msgpack"):
         try:
             out[dist] = metadata.version(dist)
         except metadata.PackageNotFoundError:
-            out[dist] = "absent"
+            out[dist] = None
     return out
 
 
@@ -139,7 +140,7 @@ class Recorder(NoRecorder):
     closed tick. Nothing here encodes JSON."""
 
     def __init__(self, path, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
-                 faults: FaultConfig):
+                 faults: FaultConfig, provenance: dict | None = None):
         self.path = str(path)
         Path(self.path).parent.mkdir(parents=True, exist_ok=True)
         with open(self.path, "wb") as f:
@@ -159,7 +160,8 @@ class Recorder(NoRecorder):
         self._opened_at = None
         self._closed = False
         self._send(("start", {"trace": trace, "scn": scn, "scenario": scenario, "algorithm": algorithm,
-                              "seed": int(seed), "run_id": run_id, "faults": faults}), wait=True)
+                              "seed": int(seed), "run_id": run_id, "faults": faults, "provenance": provenance}),
+                   wait=True)
 
     def _send(self, item, wait: bool = False) -> None:
         """One frame to the writer: what the pipe takes now, the rest at the
@@ -237,7 +239,7 @@ class TickWriter:
     """The writer process's side: the MCAP file, one tick at a time."""
 
     def __init__(self, file, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
-                 faults: FaultConfig):
+                 faults: FaultConfig, provenance: dict | None = None):
         from mcap.writer import CompressionType, Writer
 
         self.trace, self.scn, self.seed = trace, scn, int(seed)
@@ -269,7 +271,7 @@ class TickWriter:
                "comm_range": scn.comm_range if np.isfinite(scn.comm_range) else "inf",
                "ids": list(trace.agent_labels), "ticks": int(K), "n": int(n), "m": int(m),
                "params": asdict(scn.params), "faults": faults.to_dict(), "tick_period_s": TICK_PERIOD_S,
-               "versions": versions()}
+               "versions": versions(), "provenance": provenance}
         self._put("/run", 0, run)
         self._mcap.flush()  # the channels and /run first
         doc = trace_to_json(trace)
