@@ -9,7 +9,7 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,6 +24,8 @@ class RunReports:
     d_valid: np.ndarray         # (K, N) bool
     reported: np.ndarray        # (K, N) bool: the report of tick k came
     fused: np.ndarray           # (K, N, N) bool [tick - 1, receiver, sender]: what the receiver fused
+    digests: dict = field(default_factory=dict)   # (tick, receiver, sender) -> digest of the message fused
+    verdicts: dict = field(default_factory=dict)  # (tick, receiver) -> ((sender, why not fused), ...)
 
     @staticmethod
     def empty(K: int, N: int, n: int, m: int) -> dict:
@@ -31,6 +33,22 @@ class RunReports:
         return dict(x=np.full((K, N, n), np.nan), P=np.full((K, N, n, n), np.nan), d=np.full((K, N, m), np.nan),
                     d_valid=np.zeros((K, N), dtype=bool), reported=np.zeros((K, N), dtype=bool),
                     fused=np.zeros((K, N, N), dtype=bool))
+
+    def note_fused(self, tick: int, i: int, fused, not_fused, digests, index) -> None:
+        """Receiver ``i``'s report of ``tick``: the senders it fused (ids;
+        ``index`` maps an id to its place on the agent axis, unknown ids are
+        skipped), why the others were not, and the digests of what it fused
+        (one per sender of ``fused``, or none)."""
+        row = self.fused[tick - 1, i]
+        for n, s in enumerate(fused):
+            j = index.get(s)
+            if j is not None:
+                row[j] = True
+                if digests:
+                    self.digests[(tick, i, j)] = bytes(digests[n])
+        said = tuple((index[s], str(v)) for s, v in not_fused if s in index)
+        if said:
+            self.verdicts[(tick, i)] = said
 
     def estimates(self, fill: bool = False) -> Estimates:
         """The reports as an engine ``Estimates`` batch of one; with ``fill``

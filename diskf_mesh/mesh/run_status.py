@@ -1,0 +1,124 @@
+"""A mesh run's status at its end: what the world heard, checked by the engine.
+
+``run_status`` turns a run's reports (a ``mesh.reports.RunReports``: the
+world's record, a recording) into ``engine.verify.RunClaims`` and asks
+``engine.verify`` for the status: the world's end of run (``sim.world``),
+the simulated network and ``replay RUN.mcap`` call it, so every run is
+checked the same way. Message digests are the wire's
+(``wire.engine_digests``); the planned links are the live range links after
+the run's seeded link faults (``verify.planned_links``).
+
+``accept`` is the one place a status meets the user's tolerances
+(``--allow-missing``, ``--allow-degraded``, real time's ``--max-miss-rate``)
+and becomes an exit status (``core.exits``).
+
+May import: core, estimators, data, engine (the mesh layer).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from diskf_mesh import estimators
+from diskf_mesh.core import exits
+from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.data.trace import Trace
+from diskf_mesh.engine import verify
+from diskf_mesh.engine.verify import Restart, RunClaims, RunStatus
+from diskf_mesh.mesh import wire
+
+
+def restarts_of(rejoins: dict, starts, index: dict) -> tuple:
+    """``verify.Restart``s of a run: ``rejoins`` {agent id: [{"tick",
+    "source"}]} (what the world answered and the agents said they used),
+    with the starting state the world handed where ``starts`` (``wire.Start``
+    answers) holds it for that agent, tick and source."""
+    handed = {(s.agent, s.tick, s.source): s for s in starts or ()}
+    out = []
+    for agent, runs in sorted(rejoins.items(), key=lambda kv: index.get(kv[0], -1)):
+        if agent not in index:
+            continue
+        for r in runs:
+            tick, src = int(r["tick"]), r["source"]
+            if tick < 2 or (src is not None and src not in index):
+                continue
+            s = handed.get((agent, tick, src))
+            out.append(Restart(tick, index[agent], None if src is None else index[src],
+                               None if s is None or src is None else np.asarray(s.x, dtype=float),
+                               None if s is None or src is None else np.asarray(s.P, dtype=float)))
+    return tuple(out)
+
+
+def restarts_to_json(restarts, names) -> list:
+    """``Restart``s as JSON, agents by ``names`` (in the trace's order)."""
+    return [{"tick": r.tick, "agent": names[r.agent], "source": None if r.source is None else names[r.source],
+             "x": None if r.x is None else np.asarray(r.x).tolist(),
+             "P": None if r.P is None else np.asarray(r.P).tolist()} for r in restarts]
+
+
+def restarts_from_json(docs, names) -> tuple:
+    """``restarts_to_json`` read back (agents unknown to ``names`` skipped)."""
+    index = {n: j for j, n in enumerate(names)}
+    arr = lambda v: None if v is None else np.asarray(v, dtype=float)  # noqa: E731
+    return tuple(Restart(int(d["tick"]), index[d["agent"]], None if d["source"] is None else index[d["source"]],
+                         arr(d.get("x")), arr(d.get("P")))
+                 for d in docs or () if d["agent"] in index and (d["source"] is None or d["source"] in index))
+
+
+def claims_of(rec, ids, restarts=None) -> RunClaims:
+    """``rec`` (a ``RunReports``, ticks 1..K, ``fused`` with or without the
+    diagonal; ``live``, ``why``, ``rejoins`` and ``starts`` when it has
+    them) as the engine's claims; ``ids`` the run's agent ids in the trace's
+    order; ``restarts`` (``Restart``s) instead of the record's rejoins."""
+    index = {i: j for j, i in enumerate(ids)}
+    if restarts is None:
+        restarts = restarts_of(getattr(rec, "rejoins", {}), getattr(rec, "starts", ()), index)
+    return RunClaims(rec.x, rec.P, rec.d, rec.d_valid, rec.reported, rec.fused, getattr(rec, "live", None),
+                     tuple(restarts), dict(rec.digests), dict(rec.verdicts), getattr(rec, "why", None))
+
+
+def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: int,
+               faults: FaultConfig | None = None, deadline_s: float = math.inf, labels=None,
+               restarts=None) -> RunStatus:
+    """The status of a run whose reports are ``rec`` (``claims_of``), on
+    ``trace`` (the run's simulation; its agent axis the run's ids), with the
+    run's estimator, run id (its messages' digests), seed and link faults;
+    ``deadline_s``: real time's deadline (a copy planned later is not
+    planned to be fused). The evidence lists the ``restarts`` replayed
+    (``restarts_to_json``), so a recording replays them."""
+    ids = list(trace.sensors.ids)
+    claims = claims_of(rec, ids, restarts)
+    names = list(labels if labels is not None else trace.agent_labels)
+    K = claims.ticks
+    planned = None
+    if faults is not None and faults.active:
+        planned = verify.planned_links(verify.nominal_links(trace, K, claims.live), ids, faults, seed, deadline_s)
+    digest = wire.engine_digests(run_id, ids, estimators.get(algorithm).exchanged)
+    st = verify.verify(trace, algorithm, params, claims, planned=planned, message_digest=digest, labels=names)
+    st.evidence["restarts"] = restarts_to_json(claims.restarts, names)
+    return st
+
+
+def accept(status: RunStatus, *, allow_missing: float = 0.0, allow_degraded: bool = False,
+           miss_rate: float | None = None, max_miss_rate: float | None = None) -> tuple:
+    """(exit status, level, line) of a run with ``status`` under the user's
+    tolerances; level "" (exact, as planned: nothing to say), "warning" (a
+    status the user accepted) or "error". Real time (``miss_rate`` given):
+    deadline misses within ``max_miss_rate`` are accepted degradation, more
+    exit ``TOO_MANY_MISSES`` (the caller's line names the misses).
+    ``diverged`` is never accepted."""
+    s = status.status
+    if s == exits.DIVERGED_STATUS:
+        return exits.DIVERGED, "error", f"diverged: {status.reason}"
+    if miss_rate is not None and max_miss_rate is not None and miss_rate > max_miss_rate:
+        return exits.TOO_MANY_MISSES, "error", ""
+    if s in (exits.EXACT_STATUS, exits.AS_PLANNED_STATUS):
+        return exits.OK, "", ""
+    realtime_ok = s == exits.DEGRADED_STATUS and miss_rate is not None
+    if status.accepted(allow_missing=allow_missing, allow_degraded=allow_degraded or realtime_ok):
+        how = (f"--allow-missing {allow_missing:g}" if s == exits.INCOMPLETE_STATUS else
+               "--allow-degraded" if allow_degraded or miss_rate is None else f"--max-miss-rate {max_miss_rate:g}")
+        return exits.OK, "warning", f"{s} run accepted ({how}): {status.reason}"
+    hint = "--allow-missing" if s == exits.INCOMPLETE_STATUS else "--allow-degraded"
+    return status.exit_code, "error", f"{s} run: {status.reason} ({hint} accepts it)"
