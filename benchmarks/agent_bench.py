@@ -8,9 +8,9 @@ one thread. Prints figures; not a test.
 The payloads of every tick are made first, from the scenario's trace and the
 other agents' messages (``mesh.estimator.lockstep``): the world's tick and
 this agent's measurement, then its in-range neighbours' messages on their
-addressed keys. Then an ``Agent`` with a transport that publishes nowhere
-takes them through ``_on_sample``, the callback zenoh calls in a real run:
-decode, guard, local step, encode, fusion, report. The table splits the time
+addressed keys. Then the agent's machine (``mesh.agent_machine``) takes them
+as the events its shell hands it in a real run (``handle(Sample)``, the
+effects dropped): decode, guard, local step, encode, fusion, report. The table splits the time
 into the estimator's two calls (math) and the rest (protocol); the best of
 ``--repeat`` rounds is kept (the machine is shared). In a mesh run the same
 work costs about twice this, since ten processes share two cores and their
@@ -24,13 +24,13 @@ import time
 
 import numpy as np
 
-from agents.agent import Agent
 from diskf_mesh import estimators as algorithms
 from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.agent_machine import AgentMachine
 from diskf_mesh.mesh.estimator import AgentEstimator, lockstep, neighbours
+from diskf_mesh.mesh.events import AskTokens, Sample, Token, Tokens
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.transport import LocalBus
 from diskf_mesh.data.scenario import simulate
 
 RUN = "bench"
@@ -58,25 +58,25 @@ def recorded_ticks(spec: RunSpec, ticks: int, me: int) -> list:
 
 
 def one_round(spec: RunSpec, me: int, feed: list) -> dict:
-    """Seconds in all of ``_on_sample`` and in the estimator's two calls."""
+    """Seconds in all of the machine's ``handle`` and in the estimator's two calls."""
     scn = spec.load(len(feed))
     keys = Keys(RUN)
-    agent = Agent(scn, me, spec.algorithm, keys, LocalBus().transport())  # on a bus of its own: puts go nowhere
-    agent._on_sample(keys.alive_world, True)
+    agent = AgentMachine(scn, me, spec.algorithm, keys, "bench")
+    agent.start(0.0)
+    ask, = [e for e in agent.handle(Token(keys.world("w"), True), 0.0) if isinstance(e, AskTokens)]
+    agent.handle(Tokens(ask.qid, ()), 0.0)
     for i in (a.id for a in scn.agents):
-        agent._on_sample(keys.alive(i), True)
+        agent.handle(Token(keys.alive(i, "bench" if i == me else "w"), True), 0.0)
     math_s = [0.0]
     total = 0.0
     for samples in feed:
         for key, payload in samples:
+            joined = agent.est is not None
             t0 = time.perf_counter()
-            agent._on_sample(key, payload)
+            agent.handle(Sample(key, payload), 0.0)
             total += time.perf_counter() - t0
-            if agent.est is None and agent.ticks and agent.meas:
-                with agent._cv:  # what the main thread does once (not timed): make the estimator
-                    if agent._join():
-                        timed(agent.est, math_s)
-                    agent._advance()
+            if not joined and agent.est is not None:
+                timed(agent.est, math_s)  # made on tick 1: its local step is not in the math
     if agent.k != len(feed) + 1:
         raise RuntimeError(f"the agent stopped at tick {agent.k}")
     return {"total": total, "math": math_s[0]}

@@ -314,36 +314,42 @@ def test_what_waits_for_the_worlds_tick_is_bounded_and_gated_on_release(view):
 # the world's messages at an agent (agents.agent), fed bytes on a LocalBus
 # --------------------------------------------------------------------------
 class FedAgent:
-    """An ``Agent`` of Scenario 2 working on tick ``k`` (ticks before it
-    fed as the world and its neighbours send them), for tests of what it
-    takes from the world."""
+    """An agent's machine (``mesh.agent_machine``) of Scenario 2 working on
+    tick ``k`` (ticks before it fed as the world and its neighbours send
+    them), for tests of what it takes from the world."""
 
     K = 30
 
     def __init__(self, k: int = 5):
-        from agents.agent import Agent
+        from diskf_mesh.mesh.agent_machine import AgentMachine
         from diskf_mesh.mesh.estimator import lockstep
+        from diskf_mesh.mesh.events import AskTokens, Token, Tokens
         from diskf_mesh.mesh.keys import Keys
-        from diskf_mesh.mesh.transport import LocalBus
         from diskf_mesh.data.scenario import load_scenario, simulate
         self.scn = scn = load_scenario("dynamic")
         self.trace = simulate(scn, [0], steps=self.K)
         self.ids = [a.id for a in scn.agents]
         self.me = self.ids[4]
         self.keys = Keys("fed")
-        self.agent = Agent(scn, self.me, "diskf", self.keys, LocalBus().transport())
-        self.agent._on_sample(self.keys.alive_world, True)
+        self.agent = AgentMachine(scn, self.me, "diskf", self.keys, "n0")
+        self.agent.start(0.0)
+        ask, = [e for e in self.agent.handle(Token(self.keys.world("w"), True), 0.0) if isinstance(e, AskTokens)]
+        self.agent.handle(Tokens(ask.qid, ()), 0.0)
         for i in self.ids:
-            self.agent._on_sample(self.keys.alive(i), True)
+            self.token(self.keys.alive(i, "n0" if i == self.me else f"n{i}"))
         self.msgs = {t: m for t, m, _ in lockstep(scn, "diskf", self.trace)}
         for t in range(1, k):
             self.world(t)
-            if t == 1:
-                with self.agent._cv:
-                    assert self.agent._join()
-                    self.agent._advance()
             self.neighbours(t)
         assert self.agent.k == k and not self.agent.collecting
+
+    def sample(self, key: str, payload: bytes) -> None:
+        from diskf_mesh.mesh.events import Sample
+        self.agent.handle(Sample(key, payload), 0.0)
+
+    def token(self, key: str, up: bool = True) -> None:
+        from diskf_mesh.mesh.events import Token
+        self.agent.handle(Token(key, up), 0.0)
 
     def tick(self, t: int, **change) -> bytes:
         tick = wire.Tick("fed", t, self.K, 0, "diskf", self.scn.topology, self.scn.comm_range,
@@ -356,20 +362,20 @@ class FedAgent:
         return wire.encode_measurement("fed", t, self.me, True, y)
 
     def world(self, t: int) -> None:
-        self.agent._on_sample(self.keys.meas(self.me), self.meas(t))
-        self.agent._on_sample(self.keys.tick, self.tick(t))
+        self.sample(self.keys.meas(self.me), self.meas(t))
+        self.sample(self.keys.tick, self.tick(t))
 
     def neighbours(self, t: int) -> None:
         from diskf_mesh.mesh.estimator import neighbours
         for o in neighbours(self.scn, self.me, self.trace.positions[t - 1]):
             if o != self.me:
-                self.agent._on_sample(self.keys.msg(o, to=[self.me]), wire.encode("fed", o, t, self.msgs[t][o]))
+                self.sample(self.keys.msg(o, to=[self.me]), wire.encode("fed", o, t, self.msgs[t][o]))
 
 
 def test_an_agent_takes_world_ticks_only_for_k_and_k1_with_the_run_constants():
     fed = FedAgent(k=5)
     a = fed.agent
-    sample = lambda b: a._on_sample(fed.keys.tick, b)  # noqa: E731
+    sample = lambda b: fed.sample(fed.keys.tick, b)  # noqa: E731
     for t in range(7, 1007):                  # far-future ticks (within and beyond the run)
         sample(fed.tick(t))
     sample(fed.tick(6, seed=1))               # k + 1 with another seed, algorithm, topology, range, K
@@ -387,7 +393,7 @@ def test_an_agent_takes_world_ticks_only_for_k_and_k1_with_the_run_constants():
 def test_an_agent_takes_measurements_only_for_k_and_k1_of_its_length_within_max_abs():
     fed = FedAgent(k=5)
     a = fed.agent
-    sample = lambda b: a._on_sample(fed.keys.meas(fed.me), b)  # noqa: E731
+    sample = lambda b: fed.sample(fed.keys.meas(fed.me), b)  # noqa: E731
     for t in range(7, 507):
         sample(fed.meas(t))
     sample(fed.meas(5, y=[1e300]))
@@ -405,8 +411,8 @@ def test_an_agent_keeps_only_the_scenarios_agents_and_bounded_tables():
     fed = FedAgent(k=3)
     a = fed.agent
     for i in range(1000, 3000):
-        a._on_sample(fed.keys.alive(i), True)
-        a._on_sample(fed.keys.msg(i, to=[fed.me]), b"\xc1" * 100)
+        fed.token(fed.keys.alive(i))
+        fed.sample(fed.keys.msg(i, to=[fed.me]), b"\xc1" * 100)
     assert a.alive == set(fed.ids)
     assert a.counters.rejected == {"unknown-sender": 2000}
     assert dict(a.receiver.guard.by_sender) == {(None, "unknown-sender"): 2000}

@@ -18,7 +18,7 @@ from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.recording import reader
 from diskf_mesh.recording.replay import compare, replay
-from diskf_mesh.recording.verdicts import TickVerdicts
+from diskf_mesh.mesh.verdicts import TickVerdicts
 
 from mesh_helpers import start_mesh
 

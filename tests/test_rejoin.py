@@ -1,9 +1,9 @@
-"""A restarted agent's re-initialisation (``agents.rejoin``), without zenoh."""
+"""A restarted agent's re-initialisation (``mesh.rejoin``), without zenoh."""
 from __future__ import annotations
 
 import numpy as np
 
-from agents.rejoin import reinitialise
+from diskf_mesh.mesh.rejoin import in_range, most_certain, start_from
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.estimator import AgentEstimator
 from diskf_mesh.data.scenario import load_scenario
@@ -24,25 +24,23 @@ def estimator():
 def test_takes_the_most_certain_linked_neighbour():
     _, est = estimator()
     reports = {1: report(1, 4.0), 2: report(2, 0.5, (7.0, 8.0)), 3: report(3, 2.0, (5.0, 6.0))}
-    assert reinitialise(est, reports, linked={1, 3}) == 3   # 2 is more certain but not linked
+    src = most_certain(reports, linked={1, 3})
+    assert src == 3                                  # 2 is more certain but not linked
+    start_from(est, reports[src].x, reports[src].P)
     assert est.state.x.shape == (1, 1, 2) and est.state.P.shape == (1, 1, 2, 2)
     np.testing.assert_array_equal(est.state.x[0, 0], [5.0, 6.0])
     np.testing.assert_array_equal(est.state.P[0, 0], 2.0 * np.eye(2))
     assert (est.state.since == 0).all()
 
 
-def test_no_linked_neighbour_keeps_the_prior():
-    scn, est = estimator()
-    before = est.state
-    assert reinitialise(est, {1: report(1, 1.0)}, linked={2}) is None
-    assert est.state is before
-    np.testing.assert_array_equal(est.state.x[0, 0], scn.x0)
+def test_no_linked_neighbour_means_the_prior():
+    assert most_certain({1: report(1, 1.0)}, linked={2}) is None
+    assert most_certain({2: report(2, 1.0), 1: report(1, 1.0)}, linked={1, 2}) == 1   # a tie: the smaller id
 
 
 def test_in_range_follows_the_scenario_geometry():
     """Who a rejoining agent re-initialises from is found from the
     scenario's motion alone: the same links as the simulation's."""
-    from agents.rejoin import in_range
     from diskf_mesh.data.scenario import simulate
 
     scn = load_scenario("dynamic").with_overrides(steps=120)

@@ -1,66 +1,48 @@
 """Holds message copies until the fault model says they arrive.
 
-``DelayLine(deliver)`` calls ``deliver(item)`` once per submitted copy, after
-its delay: a copy with no delay is delivered at once in the caller's thread,
-delayed ones by one daemon thread in due order (ties in submission order).
-``close()`` stops the thread within its timeout and returns the copies that
-were still in flight, so the caller can count them (a copy that had not
-arrived when the run ended missed its tick: late).
+A pure queue on its owner's clock (no thread, no clock read): the receive
+path (``mesh.receive``) pushes each delayed copy with the time it is due,
+and its agent's machine sets a timer at ``next_at`` and takes ``due(now)``
+when it fires, so a shell with the wall clock and the simulated network
+with a virtual one deliver the same copies in the same order.
+
+    ``push(item, at)``  hold ``item`` until ``at``
+    ``due(now)``        the items due by ``now``, in due order (ties in the
+                        order they were pushed), no longer held
+    ``next_at``         when the next item is due (inf: none held)
+    ``drain()``         every item still held, in due order (the run is
+                        over: a copy that had not arrived missed its tick)
 """
 from __future__ import annotations
 
 import heapq
 import itertools
-import threading
-import time
+import math
 
 
 class DelayLine:
-    def __init__(self, deliver, clock=time.monotonic):
-        self._deliver = deliver
-        self._clock = clock
+    def __init__(self):
         self._heap: list = []
         self._seq = itertools.count()
-        self._cv = threading.Condition()
-        self._thread: threading.Thread | None = None
-        self._closed = False
 
-    def submit(self, item, delay_s: float) -> None:
-        if delay_s <= 0.0:
-            self._deliver(item)
-            return
-        with self._cv:
-            if self._closed:
-                return
-            heapq.heappush(self._heap, (self._clock() + delay_s, next(self._seq), item))
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._run, name="delayline", daemon=True)
-                self._thread.start()
-            self._cv.notify()
+    def push(self, item, at: float) -> None:
+        heapq.heappush(self._heap, (at, next(self._seq), item))
+
+    def due(self, now: float) -> list:
+        out = []
+        while self._heap and self._heap[0][0] <= now:
+            out.append(heapq.heappop(self._heap)[2])
+        return out
+
+    @property
+    def next_at(self) -> float:
+        return self._heap[0][0] if self._heap else math.inf
 
     @property
     def in_flight(self) -> int:
-        with self._cv:
-            return len(self._heap)
+        return len(self._heap)
 
-    def _run(self) -> None:
-        while True:
-            with self._cv:
-                while not self._closed and (not self._heap or self._heap[0][0] > self._clock()):
-                    wait = None if not self._heap else self._heap[0][0] - self._clock()
-                    self._cv.wait(timeout=wait if wait is None else max(wait, 0.0))
-                if self._closed:
-                    return
-                _, _, item = heapq.heappop(self._heap)
-            self._deliver(item)  # outside the lock: the callback may submit again
-
-    def close(self, timeout: float = 1.0) -> list:
-        """Stop; return the items not yet delivered, in due order."""
-        with self._cv:
-            self._closed = True
-            left = [item for _, _, item in sorted(self._heap)]
-            self._heap.clear()
-            self._cv.notify_all()
-        if self._thread is not None:
-            self._thread.join(timeout)
+    def drain(self) -> list:
+        left = [item for _, _, item in sorted(self._heap)]
+        self._heap.clear()
         return left

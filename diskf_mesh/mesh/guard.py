@@ -77,8 +77,9 @@ from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.counters import Counters
 from diskf_mesh.mesh.profile import NO_PHASES, Phases
 
-REASONS = wire.REASONS + ("key", "unknown-sender", "tick-past", "tick-future", "magnitude", "ill-conditioned",
-                          "information", "error", "fusion", "constants")
+REASONS = wire.REASONS + tuple(r for r in ("key", "unknown-sender", "tick-past", "tick-future", "magnitude",
+                                           "ill-conditioned", "information", "error", "fusion", "constants")
+                                if r not in wire.REASONS)
 LOGGER = logging.getLogger("diskf_mesh.mesh.guard")
 
 

@@ -15,7 +15,8 @@ delivered it, until its tick is fused.
 
 The estimator fuses only what arrived in time for its tick:
 
-    ``offer(sender, tick, message)``  a copy that arrived: the first copy of
+    ``offer(sender, tick, message, now)``  a copy that arrived at ``now``:
+                                      the first copy of
                                       (sender, tick) is held; a later one is a
                                       duplicate (fused at most once); one for
                                       a tick already fused is late
@@ -29,8 +30,8 @@ The estimator fuses only what arrived in time for its tick:
     ``close()``                       the run is over: whatever is still held
                                       never made it into fusion, late
     ``due(tick, at)``                 real time (``mesh.clock``): a copy of
-                                      ``tick`` arriving after the monotonic
-                                      time ``at`` is late, even before
+                                      ``tick`` arriving after ``at`` (the
+                                      agent's clock) is late, even before
                                       ``take``: it missed its deadline
 
 Bounded: a (sender, tick) is remembered (to tell a duplicate) only for
@@ -40,19 +41,17 @@ window, so what waits for its tick is one message per scenario agent and
 tick of the window.
 
 Counts go to a ``Counters`` (arrived, duplicate, fused, late, unlinked; the
-receiver counts what waited for a tick and never went on a link).
-Thread-safe: a transport may offer from its own threads.
+receiver counts what waited for a tick and never went on a link). No lock
+and no clock: its agent's machine calls it, one event at a time, with the
+time the event came.
 """
 from __future__ import annotations
-
-import threading
-import time
 
 from diskf_mesh.mesh.counters import Counters
 
 
 class Inbox:
-    def __init__(self, counters: Counters | None = None, keep: int | None = None, clock=time.monotonic):
+    def __init__(self, counters: Counters | None = None, keep: int | None = None):
         self.counters = counters if counters is not None else Counters()
         self.keep = keep             # ticks behind the last taken whose arrivals are remembered (None: all)
         self._seen: dict = {}        # tick -> senders arrived so far
@@ -61,82 +60,72 @@ class Inbox:
         self._closed = False         # the run is over: everything is late
         self._due: dict = {}         # tick -> deadline (real time): a copy after it is late
         self._early: dict = {}       # tick -> {sender: message} before the world's tick of that tick
-        self._clock = clock
-        self._lock = threading.Lock()
 
     def wait_for_tick(self, sender: int, tick: int, message) -> bool:
         """Hold ``message`` of ``tick`` until the tick opens here; False (not
         held) if ``sender`` already has one waiting for it."""
-        with self._lock:
-            early = self._early.setdefault(tick, {})
-            if sender in early:
-                return False
-            early[sender] = message
-            return True
+        early = self._early.setdefault(tick, {})
+        if sender in early:
+            return False
+        early[sender] = message
+        return True
 
     def opened(self, tick: int) -> dict:
         """{sender: message} that waited for ``tick``, no longer held."""
-        with self._lock:
-            return self._early.pop(tick, {})
+        return self._early.pop(tick, {})
 
     def skipped(self, tick: int) -> int:
         """Drop what waited for a tick before ``tick``; how many."""
-        with self._lock:
-            old = [t for t in self._early if t < tick]
-            return sum(len(self._early.pop(t)) for t in old)
+        old = [t for t in self._early if t < tick]
+        return sum(len(self._early.pop(t)) for t in old)
 
     def due(self, tick: int, at: float) -> None:
-        with self._lock:
-            self._due[tick] = at
+        self._due[tick] = at
 
-    def offer(self, sender: int, tick: int, message) -> str:
-        """Returns what happened: "held", "duplicate" or "late"."""
-        with self._lock:
-            c = self.counters
-            c.arrived += 1
-            seen = self._seen.setdefault(tick, set())
-            if sender in seen:
-                c.duplicate += 1
-                return "duplicate"
-            seen.add(sender)
-            if self._closed or tick <= self._closed_through or (
-                    self._due and tick in self._due and self._clock() > self._due[tick]):
-                c.late += 1
-                return "late"
-            self._held.setdefault(tick, {})[sender] = message
-            return "held"
+    def offer(self, sender: int, tick: int, message, now: float = 0.0) -> str:
+        """A copy that arrived at ``now``; returns what happened: "held",
+        "duplicate" or "late"."""
+        c = self.counters
+        c.arrived += 1
+        seen = self._seen.setdefault(tick, set())
+        if sender in seen:
+            c.duplicate += 1
+            return "duplicate"
+        seen.add(sender)
+        if self._closed or tick <= self._closed_through or (
+                self._due and tick in self._due and now > self._due[tick]):
+            c.late += 1
+            return "late"
+        self._held.setdefault(tick, {})[sender] = message
+        return "held"
 
     def take(self, tick: int, linked) -> list:
         """[(sender, message)] of ``tick`` from ``linked`` senders, by sender id."""
-        with self._lock:
-            c = self.counters
-            for t in [t for t in self._held if t < tick]:  # skipped ticks: never fused
-                c.late += len(self._held.pop(t))
-            held = self._held.pop(tick, {})
-            linked = set(linked)
-            out = sorted((s, msg) for s, msg in held.items() if s in linked) if held else []
-            c.fused += len(out)
-            c.unlinked += len(held) - len(out)
-            self._closed_through = max(self._closed_through, tick)
-            for t in [t for t in self._due if t <= tick]:
-                del self._due[t]
-            if self.keep is not None:
-                for t in [t for t in self._seen if t < tick - self.keep]:
-                    del self._seen[t]
-            return out
+        c = self.counters
+        for t in [t for t in self._held if t < tick]:  # skipped ticks: never fused
+            c.late += len(self._held.pop(t))
+        held = self._held.pop(tick, {})
+        linked = set(linked)
+        out = sorted((s, msg) for s, msg in held.items() if s in linked) if held else []
+        c.fused += len(out)
+        c.unlinked += len(held) - len(out)
+        self._closed_through = max(self._closed_through, tick)
+        for t in [t for t in self._due if t <= tick]:
+            del self._due[t]
+        if self.keep is not None:
+            for t in [t for t in self._seen if t < tick - self.keep]:
+                del self._seen[t]
+        return out
 
     def senders(self, tick: int) -> set:
         """Who has been heard for ``tick`` so far (to stop waiting early)."""
-        with self._lock:
-            return set(self._held.get(tick, ()))
+        return set(self._held.get(tick, ()))
 
     @property
     def pending(self) -> int:
-        with self._lock:
-            return sum(len(h) for h in self._held.values())
+        return sum(len(h) for h in self._held.values())
 
     def close(self) -> None:
-        with self._lock:
-            self.counters.late += sum(len(h) for h in self._held.values())
-            self._held.clear()
-            self._closed = True
+        self.counters.late += sum(len(h) for h in self._held.values())
+        self._held.clear()
+        self._closed = True

@@ -19,6 +19,9 @@ letters, digits, ``-`` and ``_``):
     diskf/<run>/agent/<id>/rejoin      agent -> world    it re-initialised, from which source ("rejoin")
     diskf/<run>/agent/<id>/duplicate   agent -> world    a second process of this id, leaving; the
                                                          payload is its nonce ("duplicate")
+    diskf/<run>/start/<id>             query, agent -> world: agent id (re)joins at tick J; the
+                                                         world answers with the estimate it
+                                                         starts from ("start")
     diskf/<run>/alive/world/<nonce>    liveliness token  the world is up
     diskf/<run>/ticking/world          liveliness token  the world has started tick 1: an agent
                                                          that sees it before it is ready is a
@@ -123,6 +126,11 @@ class Keys:
     def duplicate(self, agent) -> str:
         return f"{self.root}/agent/{agent}/duplicate"
 
+    def start(self, agent) -> str:
+        """The key of agent ``agent``'s query for its starting estimate
+        (``"*"``: the world's queryable of every agent's)."""
+        return f"{self.root}/start/{agent}"
+
     # liveliness (``nonce="*"``: the expression of every process's token)
     @property
     def alive_world(self) -> str:
@@ -195,11 +203,12 @@ _SHAPES = {
     ("agent", "#", "report"): "report",
     ("agent", "#", "rejoin"): "rejoin",
     ("agent", "#", "duplicate"): "duplicate",
+    ("start", "#"): "start",
     ("alive", "world", "*"): "alive-world",
     ("ticking", "world"): "ticking",
     ("alive", "agent", "#", "*"): "alive",
     ("ready", "agent", "#", "*"): "ready",
 }
 # (first segment, segment count) -> index of the id segment
-_ID_POS = {("world", 3): 2, ("agent", 3): 1, ("alive", 4): 2, ("ready", 4): 2}
+_ID_POS = {("world", 3): 2, ("agent", 3): 1, ("alive", 4): 2, ("ready", 4): 2, ("start", 2): 1}
 _NONCE_POS = {("alive", 3): 2, ("alive", 4): 3, ("ready", 4): 3}  # "*" in _SHAPES: any nonce

@@ -1,0 +1,282 @@
+"""The agent's protocol machine (``mesh.agent_machine``) without any transport:
+events in, effects out, a virtual clock."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.agent_machine import ASK_S, AgentMachine, AgentTiming
+from diskf_mesh.mesh.estimator import lockstep, neighbours
+from diskf_mesh.mesh.events import (Ask, AskTokens, DeclareToken, DropToken, Finish, Publish, Reply, Sample,
+                                    SetTimer, Subscribe, Timer, Token, Tokens, WatchTokens, Woke)
+from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.transport import key_matches
+
+RUN = "m"
+K = 12
+SEED = 3
+
+
+@pytest.fixture(scope="module")
+def run():
+    scn = load_scenario("dynamic").with_overrides(steps=K)
+    trace = simulate(scn, [SEED])
+    return scn, trace, engine.run(trace, "diskf", scn.params)
+
+
+def of(effects, kind):
+    return [e for e in effects if isinstance(e, kind)]
+
+
+class World:
+    """The world's side of a run, by hand: the samples it sends and the
+    tokens every process holds."""
+
+    def __init__(self, scn, trace):
+        self.scn, self.trace, self.keys = scn, trace, Keys(RUN)
+        self.ids = [a.id for a in scn.agents]
+
+    def tick(self, k, live=None):
+        return Sample(self.keys.tick, wire.encode_tick(wire.Tick(
+            RUN, k, K, SEED, "diskf", self.scn.topology, self.scn.comm_range, self.trace.positions[k - 1],
+            tuple(self.ids if live is None else live))))
+
+    def meas(self, k, i):
+        j = self.ids.index(i)
+        p = int(self.scn.sensors().p[j])
+        has = bool(self.trace.has[0, k - 1, j])
+        return Sample(self.keys.meas(i), wire.encode_measurement(RUN, k, i, has, self.trace.y[0, k - 1, j, :p]))
+
+    def stop(self, k=K, why="done"):
+        return Sample(self.keys.stop, wire.encode_stop(RUN, k, why))
+
+    def tokens(self, ticking=False):
+        out = [Token(self.keys.world("w0"), True)] + [Token(self.keys.alive(i, f"n{i}"), True) for i in self.ids]
+        return out + ([Token(self.keys.ticking, True)] if ticking else [])
+
+
+def started(scn, i, now=0.0, ticking=False, timing=AgentTiming(), faults=None):
+    """Agent ``i``'s machine through its start-up: subscribed, id claimed,
+    alive and ready tokens declared; returns (machine, effects so far)."""
+    w = World(scn, None)
+    m = AgentMachine(scn, i, "diskf", Keys(RUN), f"n{i}", timing, faults)
+    out = m.start(now)
+    assert {e.key for e in of(out, Subscribe)} == {m.keys.tick, m.keys.meas(i), m.keys.stop, m.keys.msg_to(i)}
+    assert of(out, WatchTokens)
+    for tok in w.tokens(ticking):
+        if tok.key != m.keys.alive(i, f"n{i}"):
+            out += m.handle(tok, now)
+    ask, = of(out, AskTokens)
+    assert ask.key == m.keys.alive(i)
+    out += m.handle(Tokens(ask.qid, ()), now)
+    assert DeclareToken(m.keys.alive(i, f"n{i}")) in out
+    out += m.handle(Token(m.keys.alive(i, f"n{i}"), True), now)
+    return m, out
+
+
+def test_one_tick_publishes_one_message_then_one_report_equal_to_the_engine(run):
+    scn, trace, ref = run
+    w = World(scn, trace)
+    ids = w.ids
+    me = ids[4]
+    m, out = started(scn, me)
+    assert of(out, DeclareToken)[-1].key.startswith(m.keys.ready(me, ""))
+    msgs = {k: mm for k, mm, _ in lockstep(scn, "diskf", trace, SEED)}
+    out = m.handle(w.meas(1, me), 0.1)
+    assert of(out, Publish) == []                        # the tick is not in yet
+    out = m.handle(w.tick(1), 0.2)
+    pub, = of(out, Publish)                              # exactly one message, to the agents in range
+    linked = set(neighbours(scn, me, trace.positions[0])) - {me}
+    assert pub.key == m.keys.msg(me, to=linked)
+    assert pub.payload == wire.encode(RUN, me, 1, msgs[1][me])
+    assert SetTimer("collect", 0.2 + m.timing.collect_timeout) in out
+    reports = []
+    for j in sorted(linked):
+        out = m.handle(Sample(m.keys.msg(j, to=[me]), wire.encode(RUN, j, 1, msgs[1][j])), 0.3)
+        reports += [e for e in of(out, Publish) if e.key == m.keys.report(me)]
+    r = wire.decode_report(reports[0].payload, run_id=RUN, sender=me)
+    assert len(reports) == 1 and r.tick == 1 and r.fused == tuple(sorted(linked)) and r.not_fused == ()
+    i = ids.index(me)
+    assert r.x.tobytes() == ref.x[0, 0, i].tobytes() and r.P.tobytes() == ref.P[0, 0, i].tobytes()
+
+
+def test_the_collect_timer_closes_the_tick_with_what_came(run):
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, _ = started(scn, me)
+    msgs = {k: mm for k, mm, _ in lockstep(scn, "diskf", trace, SEED)}
+    m.handle(w.meas(1, me), 1.0)
+    m.handle(w.tick(1), 1.0)
+    linked = sorted(set(neighbours(scn, me, trace.positions[0])) - {me})
+    assert len(linked) >= 2
+    out = m.handle(Sample(m.keys.msg(linked[0], to=[me]), wire.encode(RUN, linked[0], 1, msgs[1][linked[0]])), 1.5)
+    assert of(out, Publish) == []
+    out = m.handle(Timer("collect"), 1.0 + m.timing.collect_timeout)
+    rep, = of(out, Publish)
+    r = wire.decode_report(rep.payload, run_id=RUN, sender=me)
+    assert r.fused == (linked[0],) and r.not_fused == tuple((j, "late") for j in linked[1:])
+    assert m.k == 2 and not m.collecting
+
+
+def test_a_whole_run_of_machines_equals_the_engine_bit_for_bit(run):
+    """Every agent a machine, messages routed by key, the world by hand:
+    every report is the engine's, and the world's stop ends each with 0."""
+    scn, trace, ref = run
+    w = World(scn, trace)
+    machines = {i: started(scn, i)[0] for i in w.ids}
+    now = 0.0
+    got = {}
+    for k in range(1, K + 1):
+        queue = []
+        for i, m in machines.items():
+            queue += m.handle(w.meas(k, i), now)
+        for i, m in machines.items():
+            queue += m.handle(w.tick(k), now)
+        while queue:
+            e = queue.pop(0)
+            assert isinstance(e, (Publish, SetTimer)), e
+            if not isinstance(e, Publish):
+                continue
+            kind, sender = m.keys.parse(e.key)
+            if kind == "report":
+                got[(k, sender)] = wire.decode_report(e.payload, run_id=RUN, sender=sender)
+                continue
+            for i, m2 in machines.items():
+                if key_matches(m2.keys.msg_to(i), e.key):
+                    queue += m2.handle(Sample(e.key, e.payload), now)
+        now += 0.01
+    for j, i in enumerate(w.ids):
+        for k in range(1, K + 1):
+            r = got[(k, i)]
+            assert r.x.tobytes() == ref.x[0, k - 1, j].tobytes() and r.P.tobytes() == ref.P[0, k - 1, j].tobytes()
+    for m in machines.values():
+        fin, = m.handle(w.stop(), now)
+        assert fin == Finish("done", 0, "")
+
+
+def test_delayed_copies_are_timers_of_the_machine(run):
+    """A link latency: each neighbour's copy waits for the machine's delay
+    timer; nothing arrives before it fires."""
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, _ = started(scn, me, faults=FaultConfig(latency_ms=100))
+    msgs = {k: mm for k, mm, _ in lockstep(scn, "diskf", trace, SEED)}
+    m.handle(w.meas(1, me), 0.0)
+    m.handle(w.tick(1), 0.0)
+    linked = sorted(set(neighbours(scn, me, trace.positions[0])) - {me})
+    timers = []
+    for j in linked:
+        out = m.handle(Sample(m.keys.msg(j, to=[me]), wire.encode(RUN, j, 1, msgs[1][j])), 0.0)
+        assert of(out, Publish) == []
+        timers += [e for e in of(out, SetTimer) if e.name == "delay"]
+    assert timers == [SetTimer("delay", 0.1)]
+    out = m.handle(Timer("delay"), 0.1)
+    rep, = of(out, Publish)
+    assert wire.decode_report(rep.payload, run_id=RUN, sender=me).fused == tuple(linked)
+
+
+def test_a_rejoining_agent_asks_the_world_and_starts_from_its_answer(run):
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    J = 6
+    m, out = started(scn, me, ticking=True)             # a restart: the world ticks already
+    assert m.rejoining and of(out, DeclareToken)[-1].key.startswith(m.keys.ready(me, ""))
+    others = [i for i in w.ids if i != me]
+    assert of(m.handle(w.tick(J - 1, live=others), 0.0), Ask) == []   # the world is at J - 1 without it
+    m.handle(w.meas(J, me), 10.0)
+    out = m.handle(w.tick(J), 10.0)
+    ask, = of(out, Ask)
+    assert ask.key == m.keys.start(me) and wire.decode_join(ask.payload, sender=me).tick == J
+    assert of(out, Publish) == []                       # no message before the start is in
+    x, P = np.array([3.0, -1.0]), np.diag([0.5, 0.25])
+    out = m.handle(Reply(ask.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 10.1)
+    assert Publish(m.keys.rejoin(me), wire.encode_rejoin(RUN, me, J, 7)) in out
+    assert m.rejoins == [(J, 7)]
+    msg = [e for e in of(out, Publish) if m.keys.parse(e.key)[0] == "msg"]
+    assert len(msg) == 1                                # then its one message of tick J, from the answer
+    assert m.est is not None and m.k == J and m.collecting
+
+
+def test_an_answer_that_fails_the_guard_leaves_the_prior(run):
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, _ = started(scn, me, ticking=True)
+    m.handle(w.tick(3, live=[i for i in w.ids if i != me]), 0.0)
+    m.handle(w.meas(4, me), 10.0)
+    ask, = of(m.handle(w.tick(4), 10.0), Ask)
+    bad = wire.encode_start(RUN, me, 4, 2, np.array([1.0, 0.0]), np.diag([1e-6, 1e6]), np.zeros(1), False)
+    m.handle(Reply(ask.qid, bad), 10.1)
+    assert m.rejoins == [(4, None)] and m.counters.rejected == {"ill-conditioned": 1}
+
+
+def test_no_answer_in_time_starts_from_the_prior(run):
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, _ = started(scn, me, ticking=True)
+    m.handle(w.tick(3, live=[i for i in w.ids if i != me]), 0.0)
+    m.handle(w.meas(4, me), 10.0)
+    out = m.handle(w.tick(4), 10.0)
+    assert SetTimer("ask", 10.0 + ASK_S) in out
+    out = m.handle(Timer("ask"), 10.0 + ASK_S)
+    assert m.rejoins == [(4, None)] and len([e for e in of(out, Publish) if "/msg/" in e.key]) == 1
+
+
+def test_another_process_with_this_id_makes_this_one_leave_with_2(run):
+    scn, _, _ = run
+    me = 1
+    m = AgentMachine(scn, me, "diskf", Keys(RUN), "n2")
+    m.start(0.0)
+    ask, = of(m.handle(Token(m.keys.world("w0"), True), 0.0), AskTokens)
+    out = m.handle(Tokens(ask.qid, (m.keys.alive(me, "n1"),)), 0.5)
+    assert Publish(m.keys.duplicate(me), b"n2") in out and not of(out, DeclareToken)
+    fin, = m.handle(Timer("leave"), 0.7)
+    assert fin.code == 2 and m.handle(Timer("world"), 100.0) == []
+
+
+def test_a_silent_world_ends_the_agent_at_its_timeout(run):
+    scn, _, _ = run
+    m = AgentMachine(scn, 1, "diskf", Keys(RUN), "n1", AgentTiming(world_timeout=30.0))
+    out = m.start(5.0)
+    assert SetTimer("world", 35.0) in out
+    fin, = m.handle(Timer("world"), 35.0)
+    assert fin.code == 1 and "no word from the world for 30 s" in fin.reason
+
+
+def test_frozen_past_the_lease_it_rejoins(run):
+    """Woke (the shell found it had been paused), then the world's token
+    goes: this agent was dropped, it withdraws its ready token and rejoins."""
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, out = started(scn, me)
+    ready = of(out, DeclareToken)[-1].key
+    m.handle(w.meas(1, me), 0.0)
+    m.handle(w.tick(1), 0.0)
+    m.handle(Timer("collect"), 5.0)
+    assert m.est is not None and m.k == 2
+    m.handle(Woke(8.0), 20.0)
+    out = m.handle(Token(m.keys.world("w0"), False), 20.5)
+    assert m.est is None and m.rejoining
+    assert out == [DropToken(ready), DeclareToken(m.keys.ready(me, "n5.2"))]
+
+
+def test_the_world_going_without_a_freeze_is_waited_for(run):
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, out = started(scn, me)
+    m.handle(w.meas(1, me), 0.0)
+    m.handle(w.tick(1), 0.0)
+    m.handle(Timer("collect"), 5.0)
+    assert m.handle(Token(m.keys.world("w0"), False), 20.5) == [] and m.est is not None
+    fin, = m.handle(Timer("world"), 5.0 + 60.0)
+    assert fin.code == 1 and "the world is gone" in fin.reason
