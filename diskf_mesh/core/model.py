@@ -138,3 +138,28 @@ class RobustOptions:
             if isinstance(v, bool) or not np.isfinite(v) or v <= 0:
                 raise ValueError(f"robust.{name}: must be a finite positive number, got {v!r}")
 
+
+
+@dataclass(frozen=True)
+class AutoOptions:
+    """The settings of ``diskf-auto`` (``estimators/diskf_auto.py``), the
+    ``[estimator.auto]`` table: which input models its bank holds
+    (``input_models.default_bank``; at least one) and the chance per tick
+    that the input changes model (the IMM chain's ``switch``, 0 < switch < 1).
+
+    none:      a model without input
+    walk:      random walks at three scales (persistent inputs)
+    zero_mean: zero-mean inputs at two scales (noise-like, switching inputs)
+    switch:    the models' Markov chain: 1 - switch to stay
+    """
+
+    none: bool = True
+    walk: bool = True
+    zero_mean: bool = True
+    switch: float = 0.01
+
+    def __post_init__(self):
+        if not (self.none or self.walk or self.zero_mean):
+            raise ValueError("auto: at least one of none, walk, zero_mean must be true")
+        if isinstance(self.switch, bool) or not np.isfinite(self.switch) or not 0 < self.switch < 1:
+            raise ValueError(f"auto.switch: must be a number between 0 and 1 (exclusive), got {self.switch!r}")

@@ -1,0 +1,234 @@
+"""Input models: what an estimator assumes of the unknown input between ticks
+(``diskf-r``, ``diskf-auto``; our derivations, not the paper's equations).
+
+The paper's DISKF assumes nothing of the input (its unbiased estimate, eqs.
+input_estimation .. input_estimation_mk2). A filter that predicts with an
+input needs a model of how it moves from one tick to the next. Every model
+here is the first-order recursion
+
+    d_{k-1} = rho d_{k-2} + eta,    eta ~ N(0, q I)                  (IM)
+
+with its scale q in the input's units squared per tick:
+
+    walk            rho = 1: the random walk (a persistent input: steps,
+                    ramps, slow sines, a fault that stays)
+    mean-reverting  0 <= rho < 1: the input returns to zero; rho = 0 is a
+                    zero-mean input of variance q, independent from tick to
+                    tick (noise-like, switching, fast inputs)
+    none            rho = 0, q = 0: no input at all
+
+``input_scales`` gives the scales of a model and its sensors in input
+units, from which the defaults follow (never a number fitted to a
+scenario).
+
+Every function is pure, with leading batch axes.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from diskf_mesh.core.linalg import T, inv_spd, mv, solve, sym
+
+INPUT_MODELS = ("walk", "mean-reverting", "none")
+
+
+def model_rho(kind: str, rho: float) -> float:
+    """rho of (IM) for a model kind: 1 for the walk, ``rho`` for the
+    mean-reverting input, 0 for none."""
+    return {"walk": 1.0, "mean-reverting": float(rho), "none": 0.0}[kind]
+
+
+def input_predict(A, C, d, S, rho, q):
+    """The joint prediction of (v_k, d_{k-1}), v_k = x_k - G d_{k-1}, under
+    (IM): with the fused (x_bar, d_bar) of tick k-1, joint error covariance
+    [[P_bar, C], [C^T, S]], the errors of v = A x_bar and of rho d_bar are
+    A e_x - w and rho e_d - eta, so
+
+        d'        = rho d
+        cov(v, d) = rho A C
+        cov(d)    = rho^2 S + q I
+
+    and cov(v) = A P_bar A^T + Q (the message's P^). With rho = 1 it is
+    ``equations.input_walk``. A: (n, n); C: (..., n, m); d: (..., m);
+    S: (..., m, m); rho, q: floats or arrays broadcasting against the
+    batch. Returns (rho d, rho A C, rho^2 S + q I).
+    """
+    rho = np.asarray(rho, dtype=float)
+    q = np.asarray(q, dtype=float)
+    m = S.shape[-1]
+    r1, r2 = rho[..., None], rho[..., None, None]
+    return d * r1, np.matmul(A, C) * r2, sym(S * (r2 * r2) + q[..., None, None] * np.eye(m))
+
+
+def input_scales(Q, G, H, R, p=None):
+    """(q_process, q_sensor): the process noise and the sensors' noise
+    expressed in the input's units squared, per input component.
+
+        q_process = tr(G^+ Q G^+T) / m
+        q_sensor  = median over sensors i of tr(F_i^+ R_i F_i^+T) / m,
+                    F_i = H_i G (sensors whose F_i = 0 are left out)
+
+    q_process is the variance of the input that would explain the process
+    noise; q_sensor that of the input one tick of one sensor resolves.
+    Q: (n, n); G: (n, m); H: (N, p, n) and R: (N, p, p) (padded as
+    ``model.Sensors``; ``p`` the true row counts). Where no sensor sees the
+    input, q_sensor = q_process.
+    """
+    m = G.shape[-1]
+    Gp = np.linalg.pinv(G)
+    q_process = float(np.trace(Gp @ Q @ Gp.T)) / m
+    vals = []
+    for i in range(H.shape[0]):
+        rows = H.shape[1] if p is None else int(p[i])
+        F = H[i, :rows] @ G
+        if np.abs(F).max() > 0:
+            Fp = np.linalg.pinv(F)
+            vals.append(float(np.trace(Fp @ R[i, :rows, :rows] @ Fp.T)) / m)
+    q_sensor = float(np.median(vals)) if vals else q_process
+    return max(q_process, 1e-300), max(q_sensor, 1e-300)
+
+
+def information_loglik(x, P, Y, Ji, U, u):
+    """The log-likelihood of the neighbourhood's measurement given the prior
+    N(x, P), up to a term the same for every prior (for the model weights
+    of ``diskf-auto``), from the measurement information alone:
+
+        log N(y; H x, H P H^T + R) = c(y, R) + x^T u - x^T U x / 2
+                                     + g^T (P^-1 + U)^-1 g / 2 - log det(I + P U) / 2,
+        g = u - U x
+
+    (Woodbury: (H P H^T + R)^-1 = R^-1 - R^-1 H (P^-1 + U)^-1 H^T R^-1, and
+    det(H P H^T + R) = det R det(I + P U)); c collects y^T R^-1 y and
+    log det R. No H, R or y is needed, only U = H^T R^-1 H and
+    u = H^T R^-1 y; 0 where nothing is measured (U = 0, u = 0).
+    ``Y`` = P^-1 and ``Ji`` = (P^-1 + U)^-1 (``equations.information_pair``).
+    """
+    g = u - mv(U, x)
+    quad = 2.0 * _dot(x, u) - _dot(x, mv(U, x)) + _dot(g, mv(Ji, g))
+    # log det(I + P U) = log det(P (Y + U)) = -log det(Y) - log det(Ji)
+    logdet = -(np.linalg.slogdet(Y)[1] + np.linalg.slogdet(Ji)[1])
+    return 0.5 * (quad - logdet)
+
+
+def _dot(a, b):
+    """Sum over the last axis, entry by entry in order (the same bits for
+    any batch shape)."""
+    out = a[..., 0] * b[..., 0]
+    for i in range(1, a.shape[-1]):
+        out = out + a[..., i] * b[..., i]
+    return out
+
+
+def model_weights(mu, Pi):
+    """IMM mixing (Blom and Bar-Shalom): the predicted model probabilities
+    c_j = sum_i Pi_ij mu_i and the mixing weights w_ij = Pi_ij mu_i / c_j.
+    mu: (..., M); Pi: (M, M) rows sum to 1. Returns (c, w) with w (..., M, M),
+    w[..., i, j] the weight of model i in model j's mixed prior."""
+    joint = mu[..., :, None] * Pi
+    c = joint[..., 0, :]
+    for i in range(1, mu.shape[-1]):
+        c = c + joint[..., i, :]
+    return c, joint / c[..., None, :]
+
+
+def mix(w, z, Z):
+    """Gaussian mixture moments: for every column j of the weights w
+    (..., M, J), the mean sum_i w_ij z_i and covariance
+    sum_i w_ij (Z_i + (z_i - mean)(z_i - mean)^T). z: (..., M, k);
+    Z: (..., M, k, k). Returns (..., J, k), (..., J, k, k). Sums run over i
+    in order (the same bits for any batch shape)."""
+    M = z.shape[-2]
+    wi = lambda i: w[..., i, :]  # noqa: E731  (..., J)
+    mean = wi(0)[..., None] * z[..., 0:1, :]
+    for i in range(1, M):
+        mean = mean + wi(i)[..., None] * z[..., i:i + 1, :]
+    cov = None
+    for i in range(M):
+        dz = z[..., i:i + 1, :] - mean                        # (..., J, k)
+        term = (Z[..., i:i + 1, :, :] + dz[..., :, None] * dz[..., None, :]) * wi(i)[..., None, None]
+        cov = term if cov is None else cov + term
+    return mean, sym(cov)
+
+
+def update_probabilities(c, loglik, floor: float):
+    """mu_j proportional to c_j exp(loglik_j), normalised, then floored at
+    ``floor`` and normalised again (no model is ever ruled out for good,
+    and every mixture keeps a positive-definite input covariance).
+    c, loglik: (..., M)."""
+    top = loglik.max(axis=-1, keepdims=True)
+    mu = c * np.exp(loglik - top)
+    mu = mu / _sum_last(mu)[..., None]
+    mu = np.maximum(mu, floor)
+    return mu / _sum_last(mu)[..., None]
+
+
+def _sum_last(a):
+    out = a[..., 0]
+    for i in range(1, a.shape[-1]):
+        out = out + a[..., i]
+    return out
+
+
+def transition_matrix(M: int, switch: float) -> np.ndarray:
+    """The models' Markov chain: stay with probability 1 - ``switch``, move
+    to each other model with switch / (M - 1)."""
+    if M == 1:
+        return np.ones((1, 1))
+    Pi = np.full((M, M), switch / (M - 1))
+    np.fill_diagonal(Pi, 1.0 - switch)
+    return Pi
+
+
+def joint(x, P, d, S, C):
+    """(z, Z): the joint (x, d) mean and covariance [[P, C], [C^T, S]]."""
+    z = np.concatenate([x, d], axis=-1)
+    top = np.concatenate([P, C], axis=-1)
+    bottom = np.concatenate([T(C), S], axis=-1)
+    return z, np.concatenate([top, bottom], axis=-2)
+
+
+def split(z, Z, n: int):
+    """The inverse of ``joint``: (x, P, d, S, C)."""
+    return z[..., :n], Z[..., :n, :n], z[..., n:], Z[..., n:, n:], Z[..., :n, n:]
+
+
+def affine_prior(x_from, P_from, x_to, P_to, v, Pv, B):
+    """The affine map that takes the Gaussian (x_from, P_from) to
+    (x_to, P_to), x -> x_to + L_to L_from^-1 (x - x_from) (L the Cholesky
+    factors), applied to (v, Pv) with cross-covariance B to the input:
+    (v', Pv', B'). ``diskf-auto`` moves each model's own prediction with the
+    map that takes its agent's published prediction to the neighbourhood's
+    CI prior: exact (the identity) where the two are equal (an isolated
+    agent; all-to-all) and positive definite always."""
+    L_to = np.linalg.cholesky(P_to)
+    L_from = np.linalg.cholesky(P_from)
+    Mt = np.matmul(L_to, solve(L_from, np.broadcast_to(np.eye(L_from.shape[-1]), L_from.shape)))
+    Mt = Mt[..., None, :, :]  # over the models' axis
+    v_new = x_to[..., None, :] + mv(Mt, v - x_from[..., None, :])
+    return v_new, sym(np.matmul(np.matmul(Mt, Pv), T(Mt))), np.matmul(Mt, B)
+
+
+REVERT = float(np.exp(-0.1))  # rho of the bank's mean-reverting models: a memory of 10 ticks
+
+
+def default_bank(q_process: float, q_sensor: float, none: bool = True, walk: bool = True, zero_mean: bool = True):
+    """The input models ``diskf-auto`` weighs, from the scales of
+    ``input_scales``: (names, rho (M,), q (M,)).
+
+    The scales run from lo = min(q_process, q_sensor) to
+    hi = 100 max(q_process, q_sensor) (an input ten times the sensor's noise
+    per tick): no input; random walks at lo, sqrt(lo hi) and hi (an input
+    that stays, drifts, or jumps); a zero-mean input at q_sensor and at hi
+    (noise-like or switching inputs, small and large)."""
+    lo, hi = min(q_process, q_sensor), 100.0 * max(q_process, q_sensor)
+    bank = []
+    if none:
+        bank.append(("none", 0.0, 0.0))
+    if walk:
+        bank += [("walk lo", 1.0, lo), ("walk mid", 1.0, float(np.sqrt(lo * hi))), ("walk hi", 1.0, hi)]
+    if zero_mean:
+        bank += [("zero-mean lo", 0.0, q_sensor), ("zero-mean hi", 0.0, hi)]
+        mid = float(np.sqrt(lo * hi))
+        bank += [("reverting mid", REVERT, mid), ("reverting hi", REVERT, hi)]
+    names, rho, q = zip(*bank)
+    return names, np.array(rho), np.array(q)

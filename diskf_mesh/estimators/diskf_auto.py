@@ -1,0 +1,162 @@
+"""``diskf-auto``: DISKF with the input model chosen from the data (our
+extension of Algorithm 1, not the paper's).
+
+``diskf-r`` assumes one input model (a random walk of a given scale). Which
+one fits depends on the input met: a persistent input wants the walk, an
+input that switches or has no input at all wants a zero-mean model or none,
+and a scale wrong by orders of magnitude costs either way. ``diskf-auto``
+runs a bank of the input models of ``core.input_models`` (``default_bank``:
+no input, random walks and zero-mean inputs at scales from the scenario's
+own Q, G and the sensors' R) and mixes them as the interacting multiple
+model filter does (Blom and Bar-Shalom 1988):
+
+1. local, as ``diskf-r``: the prediction x^ = A x_bar and the local
+   update of the agent's *combined* estimate; the message is diskf-r's
+   (x^, P^, x~, P~, the combined fused input d, S). Nothing else travels:
+   no model weights, no H, R or y; one message per tick.
+2. fuse, mixing: each model's prior is the mixture of the last posteriors
+   under the models' Markov chain (``input_models.model_weights``, ``mix``).
+3. fuse, per model: the input model's prediction (``input_predict``); the
+   neighbourhood's CI prior (as ``diskf-r``) reached by the affine map that
+   takes the agent's published prediction to it (``affine_prior``: the
+   identity where the agent is alone or every agent fused the same), the
+   conditional of the input kept (``equations.replace_marginal``); the
+   neighbours' relayed inputs for a persistent model (rho > 0); the input
+   into the state (``equations.input_to_state``); the neighbourhood's
+   stacked measurement information (exact from the messages) by the joint
+   Kalman update.
+4. fuse, weights: each model's likelihood of the neighbourhood's
+   measurement, from U and u alone (``information_loglik``), updates the
+   model probabilities; the output is the mixture's mean and covariance.
+
+With one model in the bank it is ``diskf-r`` with that input model.
+Evidence accumulates over ticks in the model probabilities (the chain's
+``switch`` probability keeps them from locking), so an agent that measures
+rarely still learns which model fits from its neighbourhood's measurements.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from diskf_mesh.core import equations as eq
+from diskf_mesh.core import input_models as im
+from diskf_mesh.core.linalg import T, nbr_sum
+from diskf_mesh.core.messages import Message, Neighbourhood, Output
+from diskf_mesh.core.model import AutoOptions
+from diskf_mesh.estimators.base import Estimator, Setting, State
+
+AUTO = Setting("auto", AutoOptions(), "the input models diskf-auto weighs and its chain (model.AutoOptions), "
+               "the [estimator.auto] table")
+
+
+@dataclass(frozen=True)
+class AutoState(State):
+    mu: np.ndarray | None = None      # (..., M) model probabilities
+    z: np.ndarray | None = None       # (..., M, n + m) each model's joint (x, d) posterior
+    Z: np.ndarray | None = None       # (..., M, n + m, n + m)
+    d_hold: np.ndarray | None = None  # (..., m) the combined input (the message's d)
+    S_hold: np.ndarray | None = None  # (..., m, m)
+    held: np.ndarray | None = None    # (...,) an input estimate exists
+    tick: int = 0
+
+
+class DISKFAuto(Estimator):
+    name = "diskf-auto"
+    label = "DISKF-auto"
+    color = "crimson"
+    settings = (AUTO,)
+    extends = "diskf"
+
+    def __init__(self, model, sensors, params=None):
+        super().__init__(model, sensors, params)
+        o = self.params.auto
+        q_process, q_sensor = im.input_scales(model.Q, model.G, sensors.H, sensors.R, sensors.p)
+        self.bank, self.rho, self.q = im.default_bank(q_process, q_sensor, o.none, o.walk, o.zero_mean)
+        self.Pi = im.transition_matrix(len(self.bank), o.switch)
+        self.prior = 100.0 * float(self.q.max()) if self.q.max() > 0 else 1.0
+
+    def init(self, batch: tuple) -> AutoState:
+        s = super().init(batch)
+        n, m, M = self.model.n, self.model.m, len(self.bank)
+        S0 = np.broadcast_to(self.prior * np.eye(m), batch + (m, m)).copy()
+        z, Z = im.joint(s.x, s.P, np.zeros(batch + (m,)), S0, np.zeros(batch + (n, m)))
+        return AutoState(s.x, s.P, s.since, mu=np.full(batch + (M,), 1.0 / M),
+                         z=np.repeat(z[..., None, :], M, axis=-2), Z=np.repeat(Z[..., None, :, :], M, axis=-3),
+                         d_hold=np.zeros(batch + (m,)), S_hold=S0, held=np.zeros(batch, dtype=bool))
+
+    def local(self, state: AutoState, k: int, y, has):
+        loc = self.local_kf(state, k, y, has)
+        st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
+                       Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, tick=k)
+        return st, self.message(loc, state.d_hold, state.S_hold, state.held)
+
+    def fuse(self, state: AutoState, own: Message, senders: Message, nb: Neighbourhood):
+        n, G = self.model.n, self.model.G
+        A = self.model.A_at(state.tick)
+        _, Yp, Yu = self.fusion_inverses(state, own, senders)
+        dy, dY = eq.information_contribution(senders.x_pred, Yp, senders.x_upd, Yu)
+        U, u = nbr_sum(nb.adj, dY, 2), nbr_sum(nb.adj, dy, 1)
+        ones = np.ones(senders.x_pred.shape[:-1], dtype=bool)
+        x_c, P_c, _ = eq.input_fusion(nb.adj, senders.x_pred, senders.P_pred, ones)  # the CI prior
+        # 2. mixing
+        c, w = im.model_weights(state.mu, self.Pi)
+        z0, Z0 = im.mix(w, state.z, state.Z)
+        x0, P0, d0, S0, C0 = im.split(z0, Z0, n)
+        # 3. per model: predict, the CI prior, the relayed inputs, the input into the state
+        d1, B, S1 = im.input_predict(A, C0, d0, S0, self.rho, self.q)
+        v, Pv = eq.predict(x0, P0, A, self.model.Q)
+        v_c, Pv_c, _ = im.affine_prior(own.x_pred, own.P_pred, x_c, P_c, v, Pv, B)
+        d1, B, S1 = eq.replace_marginal(v, Pv, d1, B, S1, v_c, Pv_c)
+        v, Pv = v_c, Pv_c
+        d1, B, S1, v, Pv, relayed = self._relay(senders, nb, d1, B, S1, v, Pv)
+        x_s, P_s, C_s = eq.input_to_state(v, Pv, B, d1, S1, G)
+        # 4. the measurement: likelihoods and the joint update
+        U_m, u_m = U[..., None, :, :], u[..., None, :]
+        Y, Ji = eq.information_pair(P_s, U_m)
+        loglik = im.information_loglik(x_s, P_s, Y, Ji, U_m, u_m)
+        x_k, P_k = eq.local_update(x_s, P_s, Y, Ji, u_m)
+        d_k, C_k, S_k = eq.replace_marginal(x_s, P_s, d1, C_s, S1, x_k, P_k)
+        mu = im.update_probabilities(c, loglik, FLOOR)
+        z, Z = im.joint(x_k, P_k, d_k, S_k, C_k)
+        zc, Zc = im.mix(mu[..., :, None], z, Z)
+        x, P, d, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
+        held = state.held | (np.trace(U, axis1=-2, axis2=-1) > 0) | relayed
+        st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, tick=state.tick)
+        return st, Output(x, P, d, held)
+
+    def _relay(self, senders, nb, d1, B, S1, v, Pv):
+        """The neighbours' relayed inputs (their combined d, S) under each
+        persistent model (rho > 0): the fast CI of the other neighbours'
+        (rho d_j, rho^2 S_j + q I), then the fast CI of that with the
+        model's own prediction (d, S), replaces the model's input marginal,
+        p(v | d) kept. The agent's own message is left out: its combined
+        input mixes the models this one is to stay apart from."""
+        m = d1.shape[-1]
+        others = nb.adj * ~nb.self_mask
+        relayed = np.zeros(d1.shape[:-2], dtype=bool)
+        out = [d1, B, S1, v, Pv]
+        for j, (rho, q) in enumerate(zip(self.rho, self.q)):
+            if rho == 0.0:
+                continue
+            d_n, S_n, has_n = eq.input_fusion(others, rho * senders.d, rho * rho * senders.S + q * np.eye(m),
+                                              senders.d_valid)
+            dj, Bj, Sj, vj, Pvj = d1[..., j, :], B[..., j, :, :], S1[..., j, :, :], v[..., j, :], Pv[..., j, :, :]
+            pair = np.ones(has_n.shape + (1, 2))
+            d_r, S_r, _ = eq.input_fusion(pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
+                                          np.stack([np.ones_like(has_n), has_n], axis=-1))
+            d_r, S_r = d_r[..., 0, :], S_r[..., 0, :, :]
+            v_r, Bt_r, Pv_r = eq.replace_marginal(dj, Sj, vj, T(Bj), Pvj, d_r, S_r)
+            r1, r2 = has_n[..., None], has_n[..., None, None]
+            for a, new in zip(out, (d_r, T(Bt_r), S_r, v_r, Pv_r)):
+                sel = r1 if a.ndim == d1.ndim else r2
+                if a.ndim == d1.ndim:
+                    a[..., j, :] = np.where(sel, new, a[..., j, :])
+                else:
+                    a[..., j, :, :] = np.where(sel, new, a[..., j, :, :])
+            relayed = relayed | has_n
+        return (*out, relayed)
+
+
+FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
