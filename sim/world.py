@@ -37,10 +37,12 @@ holds what was measured either way, with ``complete``, the missing counts,
 the rejoins (tick and re-initialisation source), duplicate processes and
 pauses. 2: another world already runs this run id (``mesh.keys`` nonces).
 
-The report that completes tick k opens tick k+1 in zenoh's callback itself
-(``World``, a ``diskf_mesh.mesh.process.Process``: that module's docstring
-follows one tick world -> agent -> neighbour -> world through this code);
-``--profile DIR`` writes where each tick's time went (``mesh.profile``).
+The protocol is ``diskf_mesh.mesh.world_machine.WorldMachine`` (no I/O);
+``World`` runs it in a ``mesh.shell.Shell`` over zenoh and the wall clock:
+the report that completes tick k opens tick k+1 in zenoh's callback itself
+(``mesh.process``'s docstring follows one tick world -> agent -> neighbour
+-> world through the code); ``--profile DIR`` writes where each tick's time
+went (``mesh.profile``).
 """
 from __future__ import annotations
 
@@ -50,12 +52,11 @@ import signal
 import sys
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 
 import numpy as np
 
 from diskf_mesh.data import metrics
-from diskf_mesh.mesh import wire
 from diskf_mesh import estimators
 from diskf_mesh.data.argtypes import fraction, positive_int, seed_value
 from diskf_mesh.data import provenance
@@ -64,15 +65,15 @@ from diskf_mesh.mesh.counters import Counters
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
-from diskf_mesh.mesh.reports import RunReports
 from diskf_mesh.mesh import clock as realtime
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
-from diskf_mesh.mesh.keys import Keys, nonce
+from diskf_mesh.mesh.keys import Keys, new_nonce
 from diskf_mesh.mesh.log import Log
-from diskf_mesh.mesh.process import FREEZE_S, POLL_S, Process
 from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
+from diskf_mesh.mesh.shell import Shell
+from diskf_mesh.mesh.world_machine import DUPLICATE, WorldMachine, WorldRecord, WorldTiming
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder
 from diskf_mesh.data.scenario import Scenario, simulate
@@ -80,538 +81,53 @@ from diskf_mesh.data.trace import MESH_ESTIMATES_FORMAT, Trace, estimates_to_jso
 
 
 
-@dataclass(frozen=True)
-class WorldTiming:
-    startup_timeout: float = 30.0  # for every agent to be ready
-    tick_timeout: float = 10.0     # for the reports of one tick (real time: of every tick, after the last)
-    leave_timeout: float = 2.0     # after stop, for the agents to leave
-    clock: realtime.Clock | None = None  # real time (``mesh.clock``); None: lockstep
-
-
-@dataclass
-class Deadlines:
-    """A real-time run's clock and deadline misses, per agent id."""
-
-    opened_at: list = field(default_factory=list)       # monotonic time each tick opened
-    report_misses: Counter = field(default_factory=Counter)  # live, no report by the tick's end
-    late_reports: Counter = field(default_factory=Counter)   # of those, came later (taken, counted)
-    message_misses: Counter = field(default_factory=Counter)  # neighbours' messages not in by the deadline
-    messages_due: Counter = field(default_factory=Counter)    # neighbours' messages linked (fused or not)
-    reports_due: Counter = field(default_factory=Counter)     # live agent-ticks
-    late_by: list = field(default_factory=list)               # seconds after its tick's end each late report came
-
-
-@dataclass
-class WorldRecord(RunReports):
-    """What the world heard: the reports (``RunReports``; its ``fused``
-    without the diagonal), and what else it saw of the run."""
-
-    ids: tuple = ()
-    agent_counters: dict = field(default_factory=dict)   # id -> counters of its last report
-    counters: Counter = field(default_factory=Counter)   # the world's own
-    startup_s: float = 0.0                     # start to tick 1
-    ticks_s: float = 0.0                       # tick 1 to the last report
-    why: np.ndarray | None = None              # (K, N) why an agent-tick is missing ("" if reported or not run)
-    rejoins: dict = field(default_factory=dict)        # id -> [{"tick", "source"}]
-    duplicates: Counter = field(default_factory=Counter)  # id (or "world") -> extra processes seen
-    pauses: list = field(default_factory=list)         # [{"tick", "why", "seconds"}]
-    ended_early: str = ""                      # why the run ended before tick K, if it did
-    deadlines: Deadlines | None = None         # real time only
-    labels: tuple = ()                         # the ids as the scenario gave them (results show these)
-
-    def label(self, i):
-        """Agent ``i``'s id as the scenario gave it (``i`` itself if unknown)."""
-        return self.labels[self.ids.index(i)] if self.labels and i in self.ids else i
-
-
-PAUSE_MIN_S = 1.0  # a pause lasts at least this long (the links that closed while frozen close on waking)
-LATE_READY_S = 5.0  # --allow-missing: after the startup timeout, how long the agents up have to be ready
 LINES_EVERY_S = 0.1  # --progress lines: at most one line this often (and ticks 1 and K)
 HOLD_MS = 5   # a measurement waits at most this long in zenoh's batch for its tick (it comes at once)
 
 
-class World(Process):
-    """The lockstep over a ``Transport`` (a ``mesh.process``: steps 1 and 6
-    of a tick). ``run`` returns the ``WorldRecord``.
-
-    Reports and liveliness changes are handled in the transport's callback
-    (zenoh's network thread) under one lock (``_cv``, ``_take_in``): the report that
-    completes tick k closes it and opens tick k+1 right there (measurements
-    and tick out), with no hop to another thread. The main thread waits for
-    the agents at the start, for a tick's deadline (``--tick-timeout``: the
-    reports that did not come are counted missing), for the end and for the
-    agents to leave after the stop."""
+class World:
+    """The world process: its protocol (``mesh.world_machine.WorldMachine``)
+    run by a ``mesh.shell.Shell`` over ``transport`` on the wall clock.
+    ``run`` returns the ``WorldRecord``; a run that could not go on raises
+    ``MeshError`` (``DuplicateProcess``: another world holds the run id).
+    ``interrupted = why`` (a signal handler) ends the run early at the
+    shell's next look."""
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
                  timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None,
-                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER):
-        super().__init__(keys, transport, log or Log("world"), profile)
-        self.recorder = recorder  # diskf_mesh.recording: called at open, report, close
-        self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
-        self.timing = timing
-        self.progress = progress
-        self.ids = tuple(a.id for a in scn.agents)
-        self.p = scn.sensors().p
-        self.alive, self.ready = set(), set()
-        self._tokens = {"alive": {}, "ready": {}}  # kind -> id -> nonces held
-        self._gone_ready = {}          # id -> ready nonces that went (they do not count again)
-        self._joins_at = {}            # id -> first tick a (re)joining agent is live at
-        self._why = dict.fromkeys(self.ids, "never joined")  # id -> why it is not live (None: live)
-        self._rejected = set()         # ids whose report of the open tick was rejected
-        K, N = trace.has.shape[1:]
-        self.K = K
-        n, m = trace.model.n, trace.model.m
-        self.record = WorldRecord(**RunReports.empty(K, N, n, m), ids=self.ids, why=np.full((K, N), "", dtype=object),
-                                  labels=scn.labels, deadlines=None if timing.clock is None else Deadlines())
-        self._index = {i: j for j, i in enumerate(self.ids)}
-        self.clock = timing.clock
-        self._owed = {}                # real time: tick -> live agents whose report has not come yet
-        self._ended = 0                # real time: the last tick whose end has passed
-        self._unrecorded = 1           # real time: the first tick not handed to the recorder yet
-        self.k = 0
-        self.stopping = False
-        self.done = False              # tick K is closed
-        self._open = 0                 # k while the reports of tick k are being collected
-        self._waiting = set()          # live (ready) agents whose report of tick k has not come yet
-        self._deadline = math.inf      # end of tick k's collection (monotonic)
-        self._live_at_open = ()        # the live set of the open tick
-        self._sent = []                # [(key, payload)] that opened it (sent again after a pause)
-        self._paused = ""              # why the ticks are paused ("" if not)
-        self._paused_at = 0.0
-        self._expect = set()           # the agents a pause waits for
-        self._pending = 0              # the tick to open after a pause (0: the open tick goes on)
-        self.interrupted = ""          # a signal's name: end the run early (the main thread looks)
-        self._ticking = False          # the "ticking" token is declared
+                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER, faults: FaultConfig | None = None):
+        self.machine = WorldMachine(scn, trace, algorithm, seed, keys, new_nonce(), timing, faults=faults,
+                                    log=log, progress=progress, profile=profile, recorder=recorder)
+        self.shell = Shell(self.machine, transport, profile)
 
-    # -- transport callbacks ---------------------------------------------------
-    def _take_in(self, key: str, payload) -> None:
-        """Lock held: a report, or a liveliness change (``payload`` True or False)."""
-        if (self._open and not self._paused and self.clock is None
-                and time.monotonic() - self._main_looks_at > FREEZE_S):
-            self._pause("the world was frozen", self._live_at_open)
-        kind, who = self.keys.parse(key)
-        if kind == "report":
-            try:
-                self._on_report(who, payload)
-            except wire.Rejected as e:
-                self.record.counters[f"rejected:{e.reason}"] += 1
-                if who in self.ids:
-                    self._rejected.add(who)
-                self.log.once(("report", who if who in self.ids else None, e.reason),
-                              f"rejected a report from {key[:200]}: {e}")
-        elif kind == "rejoin" and who in self.ids:
-            try:
-                r = wire.decode_rejoin(payload, run_id=self.keys.run_id, sender=who)
-                self.record.rejoins.setdefault(who, []).append({"tick": r.tick, "source": r.source})
-            except wire.Rejected as e:
-                self.record.counters[f"rejected:{e.reason}"] += 1
-        elif kind == "duplicate" and who in self.ids:
-            self.record.duplicates[who] += 1
-            self.log.info(f"agent id {who}: a second process (nonce {bytes(payload[:32]).decode(errors='replace')})"
-                          " found this id held and leaves: duplicate id")
-        elif kind in ("alive", "ready") and who is not None:
-            self._on_token(kind, who, nonce(key), payload)
-        elif kind == "alive-world":
-            self._on_world_token(nonce(key), payload)
-        self._advance()
+    @property
+    def record(self) -> WorldRecord:
+        return self.machine.record
 
-    def _on_token(self, kind: str, who: int, nonce_: str, up: bool) -> None:
-        """An agent's alive or ready token (one per process: ``nonce_``) came
-        or went. A second process's alive token for one id is a duplicate
-        (logged, counted; the later one leaves by itself). A ready token that
-        went does not count if it comes back, except while the world pauses
-        (zenoh re-announces the tokens of a process that reconnects: a
-        frozen agent rejoins with a new one)."""
-        if who not in self.ids:
-            return
-        held = self._tokens[kind].setdefault(who, set())
-        gone = self._gone_ready.setdefault(who, set())
-        if up:
-            if kind == "ready" and nonce_ in gone and not self._paused:
-                return
-            if kind == "alive" and held and nonce_ not in held:
-                self.record.duplicates[who] += 1
-                self.log.info(f"agent id {who}: a second process (token {nonce_}) besides {min(held)}: duplicate id")
-            held.add(nonce_)
-        else:
-            held.discard(nonce_)
-            if kind == "ready":
-                gone.add(nonce_)
-        was_alive, was_ready = who in self.alive, who in self.ready
-        alive = bool(self._tokens["alive"].get(who))
-        ready = alive and bool(self._tokens["ready"].get(who))
-        (self.alive.add if alive else self.alive.discard)(who)
-        (self.ready.add if ready else self.ready.discard)(who)
-        if self.k and not self.stopping and was_alive != alive:
-            self.log.info(f"tick {self.k}: agent {who} " + ("is back" if alive else "is gone (its liveliness "
-                                                                                     "token went)"))
-        if ready and not was_ready and self.k and not (self._paused and who in self._expect):
-            self._joins_at[who] = self.k + 2  # its first tick: the reports of the one before reach it
-            self._why[who] = "rejoining"
-        if not ready and was_ready:
-            self._why[who] = "left"
-            if not self._paused:
-                self._waiting.discard(who)  # gone: the tick does not wait for it
-            for owed in self._owed.values():
-                owed.discard(who)
-        self._cv.notify_all()
+    @property
+    def done(self) -> bool:
+        """Tick K is closed."""
+        return self.machine.done
 
-    def _on_world_token(self, nonce_: str, up: bool) -> None:
-        """Another world's token in this run id: the later started of two
-        leaves (the other counts it)."""
-        if nonce_ == self.nonce or not up:
-            return
-        if nonce_ < self.nonce:
-            self.failure = self.failure or DuplicateProcess(
-                f"another world runs run id {self.keys.run_id!r} (token nonce {nonce_}, started earlier): "
-                "this one leaves; give each run its own --run-id")
-        else:
-            self.record.duplicates["world"] += 1
-            self.log.info(f"a second world (token {nonce_}) in run id {self.keys.run_id!r}: it leaves")
+    @property
+    def interrupted(self) -> str:
+        return self.shell._interrupt
 
-    def _on_report(self, sender, payload) -> None:
-        if sender not in self.ids:
-            raise wire.Rejected("sender", f"unknown agent {sender}")
-        self.prof.begin()
-        try:
-            r = wire.decode_report(payload, run_id=self.keys.run_id, sender=sender,
-                                   n=self.trace.model.n, m=self.trace.model.m, ticks=self.K, agents=len(self.ids))
-        finally:
-            self.prof.end("decode")
-        i = self._index[sender]
-        if self.clock is not None:
-            self._on_clocked_report(r, i)
-        elif r.tick < self.k or (r.tick == self.k and not self._open):
-            self.record.counters["stale"] += 1
-        elif r.tick > self.k or self.record.reported[r.tick - 1, i]:
-            self.record.counters["unexpected"] += 1
-        else:
-            self._waiting.discard(sender)
-            self._take(r, i)
-
-    def _take(self, r: wire.Report, i: int) -> None:
-        """Record agent ``r.sender``'s (index ``i``) report of its tick."""
-        rec, t = self.record, r.tick - 1
-        rec.x[t, i], rec.P[t, i], rec.d[t, i] = r.x, r.P, r.d
-        rec.d_valid[t, i] = r.d_valid
-        rec.reported[t, i] = True
-        rec.agent_counters[r.sender] = r.counters
-        row = rec.fused[t, i]
-        for s in r.fused:
-            j = self._index.get(s)
-            if j is not None:
-                row[j] = True
-        self.recorder.on_report(r)
-
-    def _on_clocked_report(self, r: wire.Report, i: int) -> None:
-        """Real time: a report owed for its tick is taken whenever it comes;
-        after the tick's end it counts late. Its messages not fused in time
-        (verdict "late") are message deadline misses."""
-        owed = self._owed.get(r.tick)
-        if owed is None or r.sender not in owed:
-            self.record.counters["stale" if r.tick <= self.k else "unexpected"] += 1
-            return
-        owed.discard(r.sender)
-        dl = self.record.deadlines
-        if r.tick != self._open:  # its tick has ended
-            dl.late_reports[r.sender] += 1
-            dl.late_by.append(time.monotonic() - dl.opened_at[r.tick - 1] - self.clock.period_s)
-            self.record.why[r.tick - 1, i] = ""
-        dl.message_misses[r.sender] += sum(1 for _, v in r.not_fused if v == "late")
-        dl.messages_due[r.sender] += len(r.fused) + len(r.not_fused)
-        self._take(r, i)
-        self._to_recorder()
-        if self._ended >= self.K and not any(self._owed.values()):
-            self._cv.notify_all()  # the last report owed: the run is over
-
-    # -- the ticks (lock held) ---------------------------------------------------
-    def _advance(self) -> None:
-        """Close every tick whose reports are all in, opening the next (real
-        time: the clock does)."""
-        while self.clock is None and self._open and not self._waiting and self.failure is None and not self._paused:
-            self._close_tick()
-
-    def _live(self, k: int) -> list:
-        return [i for i in self.ids if i in self.ready and self._joins_at.get(i, 0) <= k]
-
-    def _open_tick(self, k: int) -> None:
-        """Send each live agent its measurement of tick k, then the tick. The
-        measurements are not express: each waits in its agent's link for the
-        (express) tick, so an agent gets both in one write and wakes once."""
-        tr, run, prof = self.trace, self.keys.run_id, self.prof
-        live = self._live(k)
-        self.k = self._open = k
-        self._waiting = set(live)
-        self._live_at_open = tuple(live)
-        self._rejected = set()
-        if self.clock is not None:
-            self._owed[k] = set(live)
-            self.record.deadlines.reports_due.update(live)
-        for j, i in enumerate(self.ids):
-            if i in live:
-                self._why[i] = None
-            else:
-                self.record.why[k - 1, j] = self._why[i] or "left"
-        self.recorder.on_open(k, live)
-        prof.begin()
-        out = [(self.keys.meas(i), wire.encode_measurement(run, k, i, bool(tr.has[0, k - 1, j]),
-                                                           tr.y[0, k - 1, j, : self.p[j]]))
-               for i, j in ((i, self.ids.index(i)) for i in live)]
-        out.append((self.keys.tick, wire.encode_tick(wire.Tick(
-            run, k, tr.has.shape[1], self.seed, self.algorithm, self.scn.topology, self.scn.comm_range,
-            tr.positions[k - 1], tuple(live)))))
-        prof.end("encode")
-        self._sent = out
-        prof.begin()
-        self._publish(out)
-        prof.end("publish")
-        prof.waiting = "wait-reports"
-        self._deadline = time.monotonic() + self.timing.tick_timeout
-        if self._deadline < self._main_looks_at:
-            self._cv.notify_all()
-
-    def _publish(self, out: list) -> None:
-        for key, payload in out[:-1]:
-            self.transport.put(key, payload, express=False)
-        self.transport.put(*out[-1])
-
-    def _close_tick(self) -> None:
-        """Tick k is over (every live agent reported, or its deadline passed):
-        what did not come is missing; open tick k+1 (or pause, if every agent
-        is gone), or end."""
-        k = self.k
-        for j, i in enumerate(self.ids):
-            if i in self._live_at_open and not self.record.reported[k - 1, j]:
-                self.record.why[k - 1, j] = ("rejected" if i in self._rejected else
-                                             "left" if i not in self.ready else "no report")
-        for i in sorted(self._waiting):
-            self.record.counters["missing-report"] += 1
-            self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
-        self.recorder.on_close(k, self._waiting)
-        self._open, self._waiting, self._deadline = 0, set(), math.inf
-        self.prof.tick()
-        if self.progress is not None:
-            self.progress(k)
-        if k >= self.K:
-            self.done = True
-            self._cv.notify_all()
-        elif not self._live(k + 1) and not self.ready:
-            self._pending = k + 1
-            self._pause("every agent is gone", self._live_at_open)
-        else:
-            self._open_tick(k + 1)
-
-    # -- pauses (lock held) ----------------------------------------------------
-    def _pause(self, why: str, expect) -> None:
-        """Stop ticking until the agents ``expect`` are back (``_resume``)."""
-        self._paused, self._paused_at, self._expect = why, time.monotonic(), set(expect)
-        self.log.info(f"tick {self.k}: {why}: waiting up to {self.timing.startup_timeout:g} s for agents "
-                      f"{', '.join(map(str, sorted(self._expect))) or '(none)'} to come back")
-        self._cv.notify_all()
-
-    def _resume(self) -> None:
-        """Main thread: end the pause. The open tick is sent again (to the
-        agents that missed it; one that had reported it sends its report
-        again) with a new deadline; or the tick after a run without agents
-        opens; or, if no agent came back, the run ends early."""
-        now = time.monotonic()
-        self.record.pauses.append({"tick": self.k, "why": self._paused, "seconds": round(now - self._paused_at, 3)})
-        self.log.info(f"tick {self.k}: resuming after {now - self._paused_at:.1f} s with agents "
-                      f"{', '.join(map(str, sorted(self.ready))) or '(none)'}")
-        self._paused, self._expect = "", set()
-        if not self.ready:
-            self.record.ended_early = f"no agent came back within {self.timing.startup_timeout:g} s"
-            self._open, self._waiting = 0, set()
-            self.done = True
-            return
-        if self._pending:
-            k, self._pending = self._pending, 0
-            self._open_tick(k)
-            return
-        k = self.k
-        self._waiting = {i for i in self._live_at_open
-                         if i in self.ready and not self.record.reported[k - 1, self.ids.index(i)]}
-        self._publish(self._sent)
-        self._deadline = now + self.timing.tick_timeout
-        self._advance()
-
-    def _pause_over(self) -> bool:
-        now = time.monotonic()
-        if now - self._paused_at < PAUSE_MIN_S:
-            return False
-        return self._expect <= self.ready or now - self._paused_at >= self.timing.startup_timeout
-
-    def _woke(self, late: float) -> None:
-        """Main thread, after a wait: a callback's failure is raised; waking
-        much later than planned (frozen) pauses the ticks."""
-        self._raise_failure()
-        if late > FREEZE_S and self._open and not self._paused and self.clock is None:
-            self._pause("the world was frozen", self._live_at_open)
-
-    # -- protocol ----------------------------------------------------------
-    def start(self) -> None:
-        """Subscribe, watch the tokens, and declare this world's token unless
-        another world of this run id holds one (exit 2)."""
-        root = self.keys.root
-        self.transport.subscribe(f"{root}/agent/*/report", self._on_sample)
-        self.transport.subscribe(f"{root}/agent/*/rejoin", self._on_sample)
-        self.transport.subscribe(f"{root}/agent/*/duplicate", self._on_sample)
-        self.transport.watch_tokens(f"{root}/*/agent/*/*", self._on_sample)
-        self.transport.watch_tokens(self.keys.alive_world, self._on_sample)
-        others = self._other_nonces(self.keys.alive_world)
-        if others:
-            raise DuplicateProcess(f"another world runs run id {self.keys.run_id!r} (token nonce {min(others)}): "
-                                   "give each run its own --run-id")
-        self.transport.declare_token(self.keys.world(self.nonce))
-
-    def wait_agents(self, allow_missing: bool = False) -> None:
-        """Until every agent is ready; after ``--startup-timeout`` fail naming
-        the missing ones, or (``allow_missing``) start with the agents up:
-        the world declares its ``ticking`` token (they stop waiting for the
-        missing peers and declare ready, as a restart does) and starts with
-        those ready ``LATE_READY_S`` later."""
-        t0 = time.monotonic()
-        deadline = t0 + self.timing.startup_timeout
-        with self._cv:
-            while not self.ready >= set(self.ids):
-                if self.interrupted:
-                    self.record.ended_early = f"interrupted ({self.interrupted}) before tick 1"
-                    return
-                if time.monotonic() >= deadline and allow_missing and self.alive:
-                    break
-                if time.monotonic() >= deadline:
-                    absent = [i for i in self.ids if i not in self.alive]
-                    stuck = [i for i in self.ids if i in self.alive and i not in self.ready]
-                    parts = []
-                    if absent:
-                        parts.append(f"no agent process for id {', '.join(map(str, absent))} (no liveliness token)")
-                    if stuck:
-                        parts.append(f"agent {', '.join(map(str, stuck))} up but not connected to every peer")
-                    raise MeshError(f"after {self.timing.startup_timeout:g} s waiting for the agents: "
-                                    + "; ".join(parts))
-                self._wait(deadline)
-            else:
-                return
-        self._declare_ticking()
-        late = time.monotonic() + LATE_READY_S
-        with self._cv:
-            self._wait_until(lambda: self.ready >= self.alive, late)
-            if not self.ready:
-                raise MeshError(f"no agent ready {self.timing.startup_timeout + LATE_READY_S:g} s after the start")
-            self.log.info(f"starting without agent {', '.join(str(i) for i in self.ids if i not in self.ready)}"
-                          f" (not ready after {self.timing.startup_timeout:g} s; --allow-missing)")
-
-    def _declare_ticking(self) -> None:
-        if not self._ticking:
-            self._ticking = True
-            self.transport.declare_token(self.keys.ticking)  # an agent starting from now on is rejoining
-
-    def run_ticks(self) -> None:
-        """Tick 1 to K, in lockstep (the callbacks drive it; the main thread
-        closes a tick at its deadline), or on the clock."""
-        if self.clock is not None:
-            return self._run_clocked()
-        with self._cv:
-            self._open_tick(1)
-            self._advance()
-            while not self.done:
-                if self.interrupted:
-                    self.record.ended_early = f"interrupted ({self.interrupted})"
-                    break
-                if self._paused:
-                    if self._pause_over():
-                        self._resume()
-                        continue
-                    self._wait(self._paused_at + PAUSE_MIN_S if time.monotonic() - self._paused_at < PAUSE_MIN_S
-                               else self._paused_at + self.timing.startup_timeout)
-                    continue
-                if time.monotonic() >= self._deadline:
-                    self._close_tick()
-                    self._advance()
-                    continue
-                self._wait(self._deadline)
-
-    # -- real time (lock held; ``mesh.clock``) ------------------------------------
-    def _run_clocked(self) -> None:
-        """Main thread: tick k opens at t0 + (k - 1) / HZ and ends when tick
-        k + 1 opens, whatever came in; after the last tick's end, the reports
-        still owed have ``--tick-timeout`` to come."""
-        period = self.clock.period_s
-        with self._cv:
-            t0 = time.monotonic()
-            for k in range(1, self.K + 2):
-                due = t0 + (k - 1) * period
-                self._wait_until(lambda: self.interrupted, due)
-                if self.interrupted:
-                    self.record.ended_early = f"interrupted ({self.interrupted})"
-                    break
-                if k > 1:
-                    self._end_tick(k - 1)
-                if k <= self.K:
-                    self.record.deadlines.opened_at.append(time.monotonic())
-                    self._open_tick(k)
-            grace = time.monotonic() + self.timing.tick_timeout
-            self._wait_until(lambda: not any(self._owed.values()) or self.interrupted, grace)
-            self._to_recorder(final=True)
-            self.done = not self.record.ended_early
-
-    def _end_tick(self, k: int) -> None:
-        """Real time: tick k's end. A live agent whose report is not in
-        misses its deadline (its report may still come: ``late_reports``)."""
-        dl = self.record.deadlines
-        for i in sorted(self._owed.get(k, ())):
-            j = self._index[i]
-            self.record.why[k - 1, j] = "rejected" if i in self._rejected else "no report"
-            dl.report_misses[i] += 1
-        self._open, self._ended = 0, k
-        self.prof.tick()
-        if self.progress is not None:
-            self.progress(k)
-        self._to_recorder()
-
-    def _to_recorder(self, final: bool = False) -> None:
-        """Real time: hand the recorder every ended tick, in order, once its
-        reports are all in (or ``LEAD_TICKS`` later, or at the end: the
-        rest are missing). An agent further behind than that is out of the
-        run anyway (``mesh.clock``)."""
-        while self._unrecorded <= self._ended:
-            k = self._unrecorded
-            if self._owed.get(k) and not final and k >= self._ended - realtime.LEAD_TICKS:
-                return
-            self.recorder.on_close(k, self._owed.pop(k, set()))
-            self._unrecorded += 1
-
-    def stop(self, why: str) -> None:
-        with self._cv:
-            self.stopping = True
-            self._open = 0
-        self.transport.put(self.keys.stop, wire.encode_stop(self.keys.run_id, self.k, why))
-        deadline = time.monotonic() + self.timing.leave_timeout
-        with self._cv:
-            while self.alive and time.monotonic() < deadline:
-                self._cv.wait(max(0.0, min(deadline - time.monotonic(), POLL_S)))
+    @interrupted.setter
+    def interrupted(self, why: str) -> None:
+        if why:
+            self.shell.interrupt(why)
 
     def run(self, allow_missing: bool = False) -> WorldRecord:
         """The whole run; ``allow_missing``: start without the agents not
         ready after ``--startup-timeout`` (they never joined)."""
-        t0 = time.monotonic()
-        self.start()
-        self.wait_agents(allow_missing)
-        t1 = time.monotonic()
-        self.record.startup_s = t1 - t0
-        if self.record.ended_early:
-            self.stop(self.record.ended_early)
-            return self.record
-        self._declare_ticking()
-        self.prof.start()
-        try:
-            self.run_ticks()
-        finally:
-            self.prof.stop()
-            self.record.ticks_s = time.monotonic() - t1
-            self.stop("done" if self.done and not self.record.ended_early else
-                      self.record.ended_early or "world stopped")
-        return self.record
+        self.machine.allow_missing = allow_missing
+        end = self.shell.run()
+        if end.code == DUPLICATE:
+            raise DuplicateProcess(end.reason)
+        if end.code:
+            raise MeshError(end.reason)
+        return self.machine.record
 
 
 # --------------------------------------------------------------------------

@@ -1,7 +1,9 @@
 """The skeleton of a mesh process, and one tick through the mesh in the order the code runs it.
 
-Both mesh processes, the world (``sim.world.World``) and an agent
-(``agents.agent.Agent``), are a ``Process``:
+The world's protocol is a state machine with no I/O
+(``mesh.world_machine.WorldMachine``), run by the generic ``mesh.shell.Shell``
+(the same lock, callbacks and main thread as below, for any machine). An
+agent (``agents.agent.Agent``) is a ``Process``:
 
     one lock      the protocol state sits behind ``_cv`` (a condition on a
                   re-entrant lock: a put may deliver to this process on the
@@ -24,7 +26,7 @@ Both mesh processes, the world (``sim.world.World``) and an agent
 One tick k through the mesh (lockstep; real time differs only in who closes
 a tick, ``mesh.clock``):
 
- 1. world      ``World._open_tick(k)``: each live agent's measurement
+ 1. world      ``WorldMachine._open_tick(k)``: each live agent's measurement
                (``wire.encode_measurement``, on the agent's own key, not
                express) and then the tick (``wire.encode_tick``: every
                position and the live set), published.
@@ -55,10 +57,12 @@ a tick, ``mesh.clock``):
                ``Receiver.take`` -> ``AgentEstimator.fuse`` ->
                ``wire.encode_report`` (the fused estimate, the counters, what
                was fused and why the rest was not) on its report key.
- 6. world      ``World._take_in`` -> ``_on_report`` (``wire.decode_report``)
-               -> ``_take`` records it; the last report of tick k closes it
-               (``_advance`` -> ``_close_tick``) and opens tick k + 1
-               (``_open_tick``, step 1) in the same callback.
+ 6. world      ``Shell`` -> ``WorldMachine.handle(Sample)`` -> ``_on_report``
+               (``wire.decode_report``) -> ``_take`` records it; the last
+               report of tick k closes it (``_advance`` -> ``_close_tick``)
+               and opens tick k + 1 (``_open_tick``, step 1): the machine
+               returns the ``Publish`` effects and the shell puts them, in
+               the same callback.
 
 May import: core, estimators, data, engine (the mesh layer).
 """

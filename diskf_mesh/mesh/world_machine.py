@@ -73,7 +73,6 @@ from diskf_mesh.mesh.keys import Keys, nonce as nonce_of
 from diskf_mesh.mesh.log import Log
 from diskf_mesh.mesh.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.reports import RunReports
-from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder
 
 PAUSE_MIN_S = 1.0    # a pause lasts at least this long (the links that closed while frozen close on waking)
 LATE_READY_S = 5.0   # allow_missing: after the startup timeout, how long the agents up have to be ready
@@ -150,12 +149,13 @@ class WorldMachine:
     ``timing``; ``allow_missing``: start without the agents not ready after
     ``startup_timeout``; ``faults``: the link faults the agents apply (kept
     for the run's verification). Observers: ``log``, ``progress(k)`` after
-    each tick, ``profile``, ``recorder``."""
+    each tick, ``profile``, ``recorder`` (``diskf_mesh.recording.writer``'s
+    hooks ``on_open``, ``on_report``, ``on_close``; None: not recorded)."""
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, nonce: str,
                  timing: WorldTiming = WorldTiming(), allow_missing: bool = False,
                  faults: FaultConfig | None = None, log: Log | None = None, progress=None,
-                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER):
+                 profile: Phases = NO_PHASES, recorder=None):
         self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
         self.keys, self.nonce, self.timing = keys, nonce, timing
         self.allow_missing, self.faults = allow_missing, faults
@@ -385,7 +385,8 @@ class WorldMachine:
                 self.record.live[k - 1, j] = True
             else:
                 self.record.why[k - 1, j] = self._why[i] or "left"
-        self.recorder.on_open(k, live)
+        if self.recorder is not None:
+            self.recorder.on_open(k, live)
         prof.begin()
         out = [(self.keys.meas(i), wire.encode_measurement(run, k, i, bool(tr.has[0, k - 1, j]),
                                                            tr.y[0, k - 1, j, : self.p[j]]))
@@ -455,7 +456,8 @@ class WorldMachine:
         rec.reported[t, i] = True
         rec.agent_counters[r.sender] = r.counters
         rec.note_fused(r.tick, i, r.fused, r.not_fused, r.digests, self._index)
-        self.recorder.on_report(r)
+        if self.recorder is not None:
+            self.recorder.on_report(r)
 
     def _advance(self, now: float) -> None:
         """Close every tick whose reports are all in, opening the next (real
@@ -476,7 +478,8 @@ class WorldMachine:
         for i in sorted(self._waiting):
             self.record.counters["missing-report"] += 1
             self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
-        self.recorder.on_close(k, self._waiting)
+        if self.recorder is not None:
+            self.recorder.on_close(k, self._waiting)
         self._open, self._waiting, self._closed = 0, set(), k
         self._cancel_timer("tick")
         self.prof.tick()
@@ -554,7 +557,9 @@ class WorldMachine:
             k = self._unrecorded
             if self._owed.get(k) and not final and k >= self._ended - realtime.LEAD_TICKS:
                 return
-            self.recorder.on_close(k, self._owed.pop(k, set()))
+            missing = self._owed.pop(k, set())
+            if self.recorder is not None:
+                self.recorder.on_close(k, missing)
             self._unrecorded += 1
 
     def _end_clocked(self, now: float) -> None:
