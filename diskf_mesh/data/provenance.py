@@ -117,15 +117,17 @@ def command_line(argv=None) -> list:
 
 
 def record(*, scenario, seeds, ticks: int, estimator, settings=None, faults=None, status: str | None = None,
-           started: str | None = None, argv=None) -> dict:
+           started: str | None = None, argv=None, command: list | None = None) -> dict:
     """The provenance object of a result (``KEYS``, in that order).
     ``scenario``: a loaded ``Scenario`` (or an already made {"name",
     "sha256"}), or a list of them for a result of several scenarios;
-    ``settings``, ``faults``: dataclasses or dicts."""
+    ``settings``, ``faults``: dataclasses or dicts; ``command``: the
+    command line when it is not ``diskf-mesh`` and ``argv`` (the Python
+    API gives the interpreter's)."""
     one = lambda s: s if isinstance(s, dict) else scenario_ref(s)  # noqa: E731
     ref = [one(s) for s in scenario] if isinstance(scenario, (list, tuple)) else one(scenario)
     return {
-        "command": command_line(argv),
+        "command": list(command) if command is not None else command_line(argv),
         "scenario": ref,
         "seeds": [int(s) for s in seeds],
         "ticks": int(ticks),
