@@ -9,10 +9,13 @@ the world, stopped, still writes what it measured. With ``--allow-missing``
 an agent that fails does not end the run: the world accounts its missing
 ticks.
 
-Exit status: 0 when every agent reported every tick (or the missing share is
-within ``--allow-missing``: a warning line says what is missing); 3 with one
-line when agent-ticks are missing (the world's verdict, ``sim.world``); 1
-when a child failed; 2 on bad input.
+Exit status: the world's, from the run's status (``diskf_mesh.engine.verify``:
+the world replays the run on the engine before it says ``exact``;
+``diskf_mesh.core.exits``): 0 exact or as planned; 3 with one line when
+agent-ticks are missing (0 within ``--allow-missing``: a warning line says
+what is missing); 4 a real-time run beyond ``--max-miss-rate``; 5 degraded
+(``--allow-degraded`` accepts it); 6 diverged (never accepted); 1 when a
+child failed; 2 on bad input.
 
 Every run is authenticated: ``up`` makes a fresh certificate authority and
 one certificate and key per process (``diskf_mesh.mesh.credentials``) in
@@ -73,7 +76,9 @@ from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim import zygote as forks
-from sim.world import INCOMPLETE, add_allow_missing, miss_line, miss_problem, missing_line
+from diskf_mesh.core import exits
+from diskf_mesh.engine.verify import RunStatus
+from sim.world import add_allow_missing, exit_status, miss_line
 
 STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
 WORLD_STOP_GRACE_S = 20.0  # the world, stopped, writes its results first
@@ -346,7 +351,7 @@ class Launcher:
                     self.progress(k, int(parts[2]))
 
     def wait(self, timeout: float) -> int:
-        """Until the world ends; returns its exit status, 0 or ``INCOMPLETE``
+        """Until the world ends; returns its exit status, one of ``WORLD_VERDICTS``
         (a run with missing agent-ticks: the world wrote its results and its
         verdict). Raises ``ChildFailed`` on the first failure (any other
         status of the world; an agent's, unless ``tolerate_agents``)."""
@@ -356,7 +361,7 @@ class Launcher:
             rc = self.world.proc.poll()
             if rc is not None:
                 self._drain()
-                if rc not in (0, INCOMPLETE, realtime.TOO_MANY_MISSES):
+                if rc not in WORLD_VERDICTS:
                     raise ChildFailed(self.world, rc)
                 return rc
             for a in (*self.services, *self.agents):
@@ -609,6 +614,8 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         world_extra += ["--profile", args.profile]
     if args.allow_missing:
         world_extra += ["--allow-missing", repr(args.allow_missing)]
+    if args.allow_degraded:
+        world_extra += ["--allow-degraded"]
     agent_extra = agent_flags(args, scn, args.collect_timeout, args.startup_timeout + 2 * args.tick_timeout)
     world_extra, agent_extra = [a + b for a, b in zip((world_extra, agent_extra), realtime.argv(args))]
     faults = faults_from_args(args, scn.faults)
@@ -668,26 +675,25 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
           + (f", recording: {args.record}" if args.record else "") + f", logs: {logs}")
     row = next(iter(next(iter(results.values())).values()))
-    return verdict(row, world_rc, args.allow_missing, realtime.max_miss_rate(args))
+    return verdict(row, args)
 
 
-def verdict(row: dict, world_rc: int, allow_missing: float, max_miss_rate: float = realtime.MAX_MISS_RATE) -> int:
-    """``up``'s exit status from the world's (0, ``INCOMPLETE`` or
-    ``TOO_MANY_MISSES``) and its results: one line on stderr when agent-ticks
-    are missing or a real-time run missed deadlines."""
-    if world_rc == realtime.TOO_MANY_MISSES:
-        print(f"error: {miss_problem(row, max_miss_rate)}", file=sys.stderr)
-        return world_rc
-    if (row.get("deadline_misses") or {}).get("total"):
+# the world's exit statuses that carry a run's results (``core.exits``); any other is a failure
+WORLD_VERDICTS = (exits.OK, exits.INCOMPLETE, exits.TOO_MANY_MISSES, exits.DEGRADED, exits.DIVERGED)
+
+
+def verdict(row: dict, args) -> int:
+    """``up``'s exit status: the world's (``sim.world.exit_status``, from the
+    status the world checked and wrote in its results, under the same
+    flags), with one line on stderr when the run is not exact or as
+    planned, or a real-time run missed deadlines."""
+    status = RunStatus(row["status"], row["reason"], row.get("evidence", {}))
+    code, level, line = exit_status(status, row, args, realtime.from_args(args))
+    if (row.get("deadline_misses") or {}).get("total") and code != exits.TOO_MANY_MISSES:
         print(f"warning: real time: {miss_line(row)}", file=sys.stderr)
-    if row.get("complete", True) and world_rc == 0:
-        return 0
-    line = missing_line(row)
-    if world_rc == 0:
-        print(f"warning: incomplete run accepted (--allow-missing {allow_missing:g}): {line}", file=sys.stderr)
-        return 0
-    print(f"error: incomplete run: {line}", file=sys.stderr)
-    return world_rc
+    if level:
+        print(f"{level}: {line}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

@@ -52,16 +52,20 @@ import signal
 import sys
 import time
 from collections import Counter
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh import estimators
-from diskf_mesh.data.argtypes import fraction, positive_int, seed_value
+from diskf_mesh.data.argtypes import positive_int, seed_value
 from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import check_output, save_json
+from diskf_mesh.core import exits
+from diskf_mesh.data.outputs import json_safe
+from diskf_mesh.engine.verify import RunStatus
 from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.mesh.run_status import accept, add_tolerances, run_status
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
@@ -228,6 +232,38 @@ def deadline_summary(rec: WorldRecord, clock: realtime.Clock) -> dict:
             "tick_period": realtime.period_stats(dl.opened_at, clock)}
 
 
+def checked_status(rec: WorldRecord, trace: Trace, scn: Scenario, spec, seed: int, faults: FaultConfig,
+                   clock: realtime.Clock | None) -> RunStatus:
+    """The run checked by the engine (``mesh.run_status``): ``exact``, ``as
+    planned``, ``degraded``, ``diverged`` or ``incomplete``, with its reason
+    and evidence."""
+    return run_status(rec, trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=seed, faults=faults,
+                      deadline_s=math.inf if clock is None else clock.deadline_s, labels=scn.labels)
+
+
+def status_fields(status: RunStatus) -> dict:
+    """The status in the result JSON and the estimates document: ``status``,
+    ``reason`` (one line) and ``evidence``."""
+    return {"status": status.status, "reason": status.reason, "evidence": json_safe(status.evidence)}
+
+
+def exit_status(status: RunStatus, summary: dict, args, clock: realtime.Clock | None) -> tuple:
+    """(exit status, level, line) of the run (``mesh.run_status.accept``
+    under ``--allow-missing``, ``--allow-degraded`` and, in real time,
+    ``--max-miss-rate``); an incomplete run's line names what is missing
+    per agent and why."""
+    if status.status == exits.INCOMPLETE_STATUS:
+        status = replace(status, reason=missing_line(summary))
+    miss = summary["deadline_misses"]["miss_rate"] if clock is not None else None
+    max_rate = realtime.max_miss_rate(args) if clock is not None else None
+    code, level, line = accept(status, allow_missing=args.allow_missing,
+                               allow_degraded=getattr(args, "allow_degraded", False), miss_rate=miss,
+                               max_miss_rate=max_rate)
+    if code == exits.TOO_MANY_MISSES:
+        line = miss_problem(summary, max_rate)
+    return code, level, line
+
+
 def fused_lists(rec: WorldRecord) -> list:
     """K x N: the ids whose messages agent i fused at tick k (empty where it
     did not report)."""
@@ -260,14 +296,11 @@ def open_recorder(path, trace, scn, spec, seed, faults, prov=None):
 # command line
 # --------------------------------------------------------------------------
 PROGRESS = ("bar", "lines", "none")
-INCOMPLETE = 3  # exit status of a run with missing agent-ticks beyond --allow-missing
+INCOMPLETE = exits.INCOMPLETE  # exit status of a run with missing agent-ticks beyond --allow-missing
 
 
 def add_allow_missing(p) -> None:
-    p.add_argument("--allow-missing", type=fraction, default=0.0, metavar="FRACTION",
-                   help="accept a run that misses at most this share of its agent-ticks (exit 0; the results "
-                        "still say complete: false); with it, the run also starts without agents not ready "
-                        "after --startup-timeout (default 0: every agent reports every tick, or exit 3)")
+    add_tolerances(p, "; with it, the run also starts without agents not ready after --startup-timeout")
 
 
 def register(subparsers) -> None:
@@ -358,17 +391,20 @@ def run(args: argparse.Namespace) -> int:
         if prof:
             prof.write(args.profile, "world")
     row = result_metrics(trace, rec)
-    recorder.finish("done" if world.done else "stopped", row)
     summary = run_summary(rec, faults)
     if clock is not None:
         summary.update(deadline_summary(rec, clock))
+    status = checked_status(rec, trace, scn, spec, args.seed, faults, clock)
+    summary.update(status_fields(status))
+    recorder.finish("done" if world.done else "stopped", row, status.to_json())
     results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
-    prov["status"] = summary.get("status") or ("complete" if summary["complete"] else "incomplete")
+    prov["status"] = status.status
     if args.json:
         save_json(args.json, provenance.attach(results, prov), "json")
     if args.estimates:
         doc = estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row)
-        doc.update(faults=summary["faults"], missing_ticks=summary["missing_ticks"], **completeness(rec))
+        doc.update(faults=summary["faults"], missing_ticks=summary["missing_ticks"], **completeness(rec),
+                   **status_fields(status))
         if clock is not None:
             doc.update(deadline_summary(rec, clock))
         save_json(args.estimates, provenance.attach(doc, prov), "estimates")
@@ -377,16 +413,12 @@ def run(args: argparse.Namespace) -> int:
             log.info(f"agent {i}'s message counters do not add up: {'; '.join(c['imbalance'])}")
     if args.progress != "lines":
         print(format_table(results))
-    if not summary["complete"]:
-        line = missing_line(summary)
-        if summary["missing_fraction"] > args.allow_missing:
-            log.error(f"incomplete run: {line}; metrics cover the rest")
-            return INCOMPLETE
-        log.info(f"incomplete run accepted (--allow-missing {args.allow_missing:g}): {line}")
-    if clock is not None and (bad := miss_problem(summary, realtime.max_miss_rate(args))):
-        log.error(bad)
-        return realtime.TOO_MANY_MISSES
-    return 0
+    code, level, line = exit_status(status, summary, args, clock)
+    if level == "error":
+        log.error(line)
+    elif level:
+        log.info(line)
+    return code
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from diskf_mesh.cli import main as cli
+from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.mesh import clock as realtime
@@ -117,7 +118,7 @@ def assert_cli_replays(tmp_path, doc: dict, ticks: int) -> None:
     """``diskf-mesh replay TRACE --fused EST``: the run's trace (``simulate``,
     same scenario, seed and ticks) on the document's fused sets gives every
     estimate bit for bit (exit 0); fused sets changed, or a trace of
-    another seed, and it says the run differs (exit 1)."""
+    another seed, and it says the run diverged (``exits.DIVERGED``)."""
     trace = tmp_path / "trace.json"
     assert cli.main(["simulate", "--scenario", "dynamic", "--steps", str(ticks), "--out", str(trace)]) == 0
     est, out = tmp_path / "estimates.json", tmp_path / "replayed.json"
@@ -131,10 +132,10 @@ def assert_cli_replays(tmp_path, doc: dict, ticks: int) -> None:
                           for tick in doc["fused"][10:]]
     assert bent["fused"] != doc["fused"]
     (tmp_path / "bent.json").write_text(json.dumps(bent))
-    assert cli.main(["replay", str(trace), "--fused", str(tmp_path / "bent.json")]) == 1
+    assert cli.main(["replay", str(trace), "--fused", str(tmp_path / "bent.json")]) == exits.DIVERGED
     other = tmp_path / "seed1.json"
     assert cli.main(["simulate", "--scenario", "dynamic", "--steps", str(ticks), "--seed", "1", "--out", str(other)]) == 0
-    assert cli.main(["replay", str(other), "--fused", str(est)]) == 1
+    assert cli.main(["replay", str(other), "--fused", str(est)]) == exits.DIVERGED
 
 
 def test_every_message_late_fuses_nothing_and_completes(tmp_path):

@@ -22,6 +22,7 @@ import numpy as np
 
 from diskf_mesh import estimators
 from diskf_mesh.core import exits
+from diskf_mesh.data.argtypes import fraction
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.engine import verify
@@ -59,11 +60,11 @@ def restarts_to_json(restarts, names) -> list:
 
 def restarts_from_json(docs, names) -> tuple:
     """``restarts_to_json`` read back (agents unknown to ``names`` skipped)."""
-    index = {n: j for j, n in enumerate(names)}
+    index = {str(n): j for j, n in enumerate(names)}  # JSON may have turned an id into a string
     arr = lambda v: None if v is None else np.asarray(v, dtype=float)  # noqa: E731
-    return tuple(Restart(int(d["tick"]), index[d["agent"]], None if d["source"] is None else index[d["source"]],
-                         arr(d.get("x")), arr(d.get("P")))
-                 for d in docs or () if d["agent"] in index and (d["source"] is None or d["source"] in index))
+    return tuple(Restart(int(d["tick"]), index[str(d["agent"])],
+                         None if d["source"] is None else index[str(d["source"])], arr(d.get("x")), arr(d.get("P")))
+                 for d in docs or () if str(d["agent"]) in index and (d["source"] is None or str(d["source"]) in index))
 
 
 def claims_of(rec, ids, restarts=None) -> RunClaims:
@@ -98,6 +99,19 @@ def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: 
     st = verify.verify(trace, algorithm, params, claims, planned=planned, message_digest=digest, labels=names)
     st.evidence["restarts"] = restarts_to_json(claims.restarts, names)
     return st
+
+
+def add_tolerances(p, missing_also: str = "") -> None:
+    """``--allow-missing`` and ``--allow-degraded``: the statuses a user
+    accepts (``accept``)."""
+    p.add_argument("--allow-missing", type=fraction, default=0.0, metavar="FRACTION",
+                   help="accept a run that misses at most this share of its agent-ticks (exit 0; the results "
+                        f"still say incomplete){missing_also} (default 0: every agent reports every tick, or exit "
+                        f"{exits.INCOMPLETE})")
+    p.add_argument("--allow-degraded", action="store_true",
+                   help="accept a run whose agent-ticks fused fewer messages than planned, e.g. a paused or slow "
+                        f"agent's (exit 0, the results say degraded; without it exit {exits.DEGRADED}); a run "
+                        f"whose estimates the engine does not reproduce (diverged) always exits {exits.DIVERGED}")
 
 
 def accept(status: RunStatus, *, allow_missing: float = 0.0, allow_degraded: bool = False,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import struct
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
 
@@ -20,6 +20,7 @@ import numpy as np
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.estimators import Params
 from diskf_mesh.data.trace import Trace, estimator_from_json, trace_from_json
+from diskf_mesh.engine.verify import first_ticks
 from diskf_mesh.mesh.reports import RunReports
 from diskf_mesh.recording.writer import FORMAT, TRACE_ATTACHMENT
 
@@ -45,6 +46,7 @@ class Recording(RunReports):
     counters: dict = field(default_factory=dict)    # (k, agent) -> counters
     positions: np.ndarray | None = None             # (K, N, 2)
     edges: list = field(default_factory=list)       # per tick, [[a, b], ...]
+    live: np.ndarray | None = None              # (K, N) the live set of each tick
     result: dict | None = None  # /run/result, when the run ended and wrote it
     finished: bool = False      # the file has its footer (the world closed it)
     messages_by_topic: dict = field(default_factory=dict)
@@ -132,10 +134,16 @@ def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: b
     while K + 1 in closed:
         K += 1
     where = {i: j for j, i in enumerate(ids)}
-    reports = RunReports.empty(K, N, n, m)
-    x, P, d, d_valid, reported, fused = (reports[f] for f in ("x", "P", "d", "d_valid", "reported", "fused"))
-    fused[:, np.arange(N), np.arange(N)] = True
+    reports = RunReports(**RunReports.empty(K, N, n, m))
+    x, P, d, d_valid, reported, fused = (reports.x, reports.P, reports.d, reports.d_valid, reports.reported,
+                                         reports.fused)
     in_run = lambda topic: [doc for doc in by_topic.get(topic, []) if 1 <= doc["tick"] <= K]  # noqa: E731
+    delivered = [{"tick": doc["tick"], **e} for doc in in_run("/agents/delivered") for e in doc["deliveries"]]
+    said = {}
+    for e in delivered:
+        if e["verdict"] != "fused" and e["receiver"] in where:
+            said.setdefault((e["tick"], e["receiver"]), []).append(
+                (e["sender"], e["verdict"] + (f":{e['reason']}" if e.get("reason") else "")))
     for doc in in_run("/agents/estimates"):
         k = doc["tick"]
         for e in doc["estimates"]:
@@ -147,27 +155,26 @@ def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: b
             if e["d"] is not None:
                 d[k - 1, j] = e["d"]
             reported[k - 1, j] = True
-            for s in e["fused"]:
-                fused[k - 1, j, where[s]] = True
+            reports.note_fused(k, j, e["fused"], said.get((k, e["agent"]), ()),
+                               [bytes.fromhex(g) for g in e.get("digests", ())], where)
+    fused[:, np.arange(N), np.arange(N)] = True
     positions = np.full((K, N, 2), np.nan)
+    live = np.zeros((K, N), dtype=bool)
     edges = [[] for _ in range(K)]
     for doc in in_run("/world/agents"):
         positions[doc["tick"] - 1] = doc["positions"]
+        for i in doc.get("live", ()):
+            if i in where:
+                live[doc["tick"] - 1, where[i]] = True
     for doc in in_run("/world/links"):
         edges[doc["tick"] - 1] = doc["edges"]
     counters = {(doc["tick"], c["agent"]): c["counters"] for doc in in_run("/agents/counters") for c in doc["counters"]}
     sent = [m for doc in by_topic.get("/agents/sent", []) for m in doc["messages"] if 1 <= m["tick"] <= K]
-    delivered = [{"tick": doc["tick"], **e} for doc in in_run("/agents/delivered") for e in doc["deliveries"]]
     results = by_topic.get("/run/result", [])
-    return Recording(**reports, path=path, run=run, trace=trace, params=params, ticks=K, ids=ids, sent=sent,
+    fields_ = {f: getattr(reports, f) for f in ("x", "P", "d", "d_valid", "reported", "fused", "digests", "verdicts")}
+    return Recording(**fields_, live=live, path=path, run=run, trace=trace, params=params, ticks=K, ids=ids, sent=sent,
                      delivered=delivered, counters=counters, positions=positions, edges=edges,
                      result=results[-1] if results else None, finished=finished, messages_by_topic=by_topic)
 
 
-def take_ticks(trace: Trace, K: int) -> Trace:
-    """The first K ticks of a trace (everything is causal: ticks 1..K of a
-    run do not depend on later ones)."""
-    cut = lambda a: None if a is None else a[:, :K]  # noqa: E731
-    return replace(trace, model=replace(trace.model, A=trace.model.A[:K]), y=trace.y[:, :K], has=trace.has[:, :K],
-                   links=trace.links[:, :K], truth_x=cut(trace.truth_x), truth_d=cut(trace.truth_d),
-                   positions=None if trace.positions is None else trace.positions[:K])
+take_ticks = first_ticks  # the first K ticks of a trace (``engine.verify.first_ticks``)

@@ -1,42 +1,69 @@
-"""``diskf-mesh replay RUN.mcap``: the engine on exactly what each agent fused.
+"""``diskf-mesh replay RUN.mcap``: the run checked again, from its recording.
 
 Each agent's report of tick k named the senders it fused (``recording.
-verdicts``); those make a per-tick (N, N) delivered matrix, and the
-in-process engine runs the recording's trace on it (``Trace.with_links``,
-the path ``faults.delivered_links`` feeds for a fault layer known in
-advance). The mesh computes the engine's bits (README, "mesh == engine"),
-so the replay reproduces every recorded estimate bit for bit; ``compare``
-says whether it did.
+verdicts``) and the digests of their messages; the world's result names the
+re-initialisations (tick, agent, source, the starting state it handed). The
+engine replays the recording's trace on exactly those fused sets with those
+restarts (``engine.verify``, the check every run makes at its end) and
+compares every recorded estimate bit for bit: ``recording_status`` is the
+run's status (exact, as planned, degraded, diverged, incomplete), ``compare``
+the plain comparison.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data import schemas
+from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.trace import MESH_ESTIMATES_FORMAT, Trace, estimator_from_json
 from diskf_mesh.estimators import Params
-from diskf_mesh.engine import batch as engine
+from diskf_mesh.engine import verify
 from diskf_mesh.engine.batch import Estimates
-from diskf_mesh.recording.reader import Recording, take_ticks
+from diskf_mesh.engine.verify import RunClaims, RunStatus
+from diskf_mesh.mesh.reports import RunReports
+from diskf_mesh.mesh.run_status import restarts_from_json, run_status
+from diskf_mesh.recording.reader import Recording
 
 
-def replay_fused(trace: Trace, fused: np.ndarray, reported: np.ndarray, algorithm: str, params) -> Estimates:
-    """The engine on the first K ticks of ``trace`` with exactly the ``fused``
-    sets (K, N, N). Where an agent did not report a tick (so its fusion is
-    unknown) it is taken as fusing what its range links gave it."""
-    trace = take_ticks(trace, fused.shape[0])
-    links = fused.copy()
-    missing = ~reported
-    links[missing] = trace.links[0][missing]
-    return engine.run(trace.with_links(links[None]), algorithm, params)
+def recorded_restarts(rec: Recording) -> tuple:
+    """The re-initialisations the world's result lists (``verify.Restart``s)."""
+    docs = ((rec.result or {}).get("verification") or {}).get("restarts")
+    return restarts_from_json(docs, list(rec.ids))
+
+
+def recording_status(rec: Recording) -> RunStatus:
+    """The recorded run checked by the engine: its status, reason, evidence."""
+    run = rec.run
+    faults = FaultConfig.from_mapping(run.get("faults") or {})
+    return run_status(rec, verify.first_ticks(rec.trace, rec.ticks), rec.algorithm, rec.params,
+                      run_id=run["run_id"], seed=int(run["seed"]), faults=faults, deadline_s=math.inf,
+                      labels=list(rec.ids), restarts=recorded_restarts(rec))
 
 
 def replay(rec: Recording) -> Estimates:
-    """Ticks 1..K of the recording, re-run on what was fused."""
-    return replay_fused(rec.trace, rec.fused[:rec.ticks], rec.reported, rec.algorithm, rec.params)
+    """Ticks 1..K of the recording, re-run on what was fused, each restart at its tick."""
+    claims = RunClaims(rec.x, rec.P, rec.d, rec.d_valid, rec.reported, rec.fused, rec.live,
+                       recorded_restarts(rec))
+    return verify.replay(rec.trace, rec.algorithm, rec.params, claims)[0]
+
+
+def replay_fused(trace: Trace, fused: np.ndarray, reported: np.ndarray, algorithm: str, params, restarts=(),
+                 run: Estimates | None = None) -> Estimates:
+    """The engine on the first K ticks of ``trace`` with exactly the ``fused``
+    sets (K, N, N), each ``verify.Restart`` at its tick (a restart without
+    its starting state takes its source's estimate in ``run``). Where an
+    agent did not report a tick (so its fusion is unknown) it is taken as
+    fusing what its range links gave it."""
+    K, N = reported.shape
+    if run is None:
+        nan = np.full((1, K, N), np.nan)
+        run = Estimates(nan, nan, nan, np.zeros((1, K, N), bool))
+    claims = RunClaims(run.x[0], run.P[0], run.d[0], run.d_valid[0], reported, fused, None, tuple(restarts))
+    return verify.replay(trace, algorithm, params, claims)[0]
 
 
 @dataclass(frozen=True)
@@ -54,19 +81,11 @@ def compare(rec: Recording, est: Estimates) -> Comparison:
 
 def compare_reported(run: Estimates, reported: np.ndarray, est: Estimates) -> Comparison:
     """What a run computed (``run``, one seed) at its ``reported`` (K, N)
-    agent-ticks against ``est``, bit for bit."""
-    r = reported
-    x, P, d, dv = est.x[0], est.P[0], est.d[0], est.d_valid[0]
-    rx, rP, rd, rdv = run.x[0], run.P[0], run.d[0], run.d_valid[0]
-    same_dv = dv == rdv
-    both = rdv & dv
-    diff_x = np.where(r[..., None], x != rx, False).any(-1)
-    diff_P = np.where(r[..., None, None], P != rP, False).any((-1, -2))
-    diff_d = np.where(both[..., None], d != rd, False).any(-1)
-    bad = r & (diff_x | diff_P | diff_d | ~same_dv)
-    gaps = [np.abs(x - rx)[r], np.abs(P - rP)[r], np.abs(d - rd)[both]]
-    max_abs = max((float(g.max()) for g in gaps if g.size), default=0.0)
-    return Comparison(int(r.sum()), not bad.any(), int(bad.sum()), max_abs)
+    agent-ticks against ``est``, bit for bit (``verify.differing``)."""
+    K, N = reported.shape
+    claims = RunClaims(run.x[0], run.P[0], run.d[0], run.d_valid[0], reported, np.zeros((K, N, N), bool))
+    bad, gap = verify.differing(claims, est)
+    return Comparison(int(reported.sum()), not bad.any(), int(bad.sum()), float(gap.max()) if gap.size else 0.0)
 
 
 @dataclass(frozen=True)
@@ -80,6 +99,20 @@ class FusedRecord:
     estimates: Estimates        # (1, K, N, ...)
     reported: np.ndarray        # (K, N) bool
     fused: np.ndarray           # (K, N, N) bool [tick - 1, receiver, sender], the diagonal set
+    restarts: tuple = ()        # verify.Restart: the re-initialisations the run's evidence lists
+    run_id: str = ""
+    seed: int = 0
+    faults: FaultConfig = FaultConfig()
+    miss_rate: float | None = None  # a real-time run's share of deadline misses (None: lockstep)
+
+
+def fused_status(run: FusedRecord, trace: Trace, params) -> RunStatus:
+    """A run's estimates document checked by the engine on ``trace``."""
+    K, N = run.reported.shape
+    e = run.estimates
+    reports = RunReports(e.x[0], e.P[0], e.d[0], e.d_valid[0], run.reported, run.fused)
+    return run_status(reports, verify.first_ticks(trace, K), run.algorithm, params, run_id=run.run_id,
+                      seed=run.seed, faults=run.faults, labels=list(trace.agent_labels), restarts=run.restarts)
 
 
 def fused_record_from_json(doc: dict, labels) -> FusedRecord:
@@ -114,5 +147,8 @@ def fused_record_from_json(doc: dict, labels) -> FusedRecord:
     d_arr = np.array([[row if row is not None else [np.nan] * m for row in tick] for tick in d], dtype=float)
     params = estimator_from_json(doc) if "estimator" in doc else None
     x, P = np.array(doc["x"], dtype=float).reshape(K, N, -1), np.array(doc["P"], dtype=float)
+    restarts = restarts_from_json((doc.get("evidence") or {}).get("restarts"), labels)
     return FusedRecord(doc["algorithm"], params, Estimates(x[None], P[None], d_arr.reshape(1, K, N, m), d_valid[None]),
-                       reported, fused)
+                       reported, fused, restarts, str(doc.get("run_id", "")), int(doc.get("seed", 0)),
+                       FaultConfig.from_mapping(doc.get("faults") or {}),
+                       (doc.get("deadline_misses") or {}).get("miss_rate"))

@@ -71,13 +71,20 @@ CHANNELS = {
                               **_TICK, estimates={"type": "array", "items": _obj(
         "Estimate", "one agent's", required=("agent", "x", "P", "d_valid", "fused"), agent=_ID,
         x=_VEC, P=_MAT, d={"type": ["array", "null"], "items": _NUM}, d_valid={"type": "boolean"}, fused=_IDS,
+        digests={"type": "array", "items": {"type": "string"}, "description": "per sender of fused, in order: "
+                 "the hex digest of its message as fused (diskf_mesh.mesh.wire.message_digest)"},
         position_error={**_NUM, "description": "distance of the estimated position to the truth"})}),
     "/agents/counters": _obj("Counters", "every agent's message counters after tick k (diskf_mesh.mesh.counters), flat",
                              **_TICK, counters={"type": "array", "items": _obj(
         "AgentCounters", "one agent's", agent=_ID, counters={"type": "object", "additionalProperties": _INT})}),
-    "/run/result": _obj("Result", "the run's end: status, ticks closed, metrics (last)",
+    "/run/result": _obj("Result", "the run's end: status, ticks closed, metrics, the run checked by the "
+                                  "engine (last)",
                         required=("status", "ticks"), status={"type": "string"}, ticks=_INT,
-                        metrics={"type": "object"}),
+                        metrics={"type": "object"},
+                        verification={"type": "object", "description": "the end-of-run replay on the engine "
+                                      "(diskf_mesh.engine.verify): status (exact, as planned, degraded, diverged, "
+                                      "incomplete), reason, its evidence, and the restarts it replayed (tick, "
+                                      "agent, source, the starting x and P the world handed it)"}),
 }
 
 

@@ -27,6 +27,8 @@ def summary(rec: Recording) -> dict:
         "format": run["format"],
         "finished": rec.finished,
         "status": (rec.result or {}).get("status", "cut short" if not rec.finished else "unknown"),
+        "run_status": {k: v for k, v in ((rec.result or {}).get("verification") or {}).items()
+                       if k in ("status", "reason")},
         "run_id": run["run_id"],
         "scenario": run["scenario"],
         "algorithm": run["algorithm"],
@@ -60,6 +62,8 @@ def format_summary(s: dict) -> str:
     state = "complete" if s["finished"] else "cut short (no footer): read up to its last closed tick"
     lines = [
         f"{s['file']}: {s['format']}, {state}; status {s['status']}",
+        ("checked by the engine at the run's end: " + (f"{s['run_status']['status']}: {s['run_status']['reason']}"
+                                                       if s["run_status"] else "not recorded (replay checks it)")),
         f"run {s['run_id']}: scenario {s['scenario']}, "
         + (f"range {s['comm_range']:g}" if s["topology"] == "range" else f"topology {s['topology']}")
         + f", {s['algorithm']}, seed {s['seed']}, faults: {faults}",

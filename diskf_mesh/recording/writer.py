@@ -127,7 +127,7 @@ class NoRecorder:
     def on_close(self, k, missing):
         pass
 
-    def finish(self, status, metrics=None):
+    def finish(self, status, metrics=None, verification=None):
         pass
 
 
@@ -197,18 +197,20 @@ class Recorder(NoRecorder):
             wall_s = time.monotonic() - (self._opened_at or time.monotonic())
             reports = [(r.sender, r.x.astype(float, copy=False).tobytes(), r.P.astype(float, copy=False).tobytes(),
                         r.d.astype(float, copy=False).tobytes(), bool(r.d_valid), r.counters, tuple(r.fused),
-                        tuple(r.not_fused), bytes(r.sent)) for r in self._reports.pop(k, {}).values()]
+                        tuple(r.not_fused), bytes(r.sent), tuple(r.digests)) for r in self._reports.pop(k, {}).values()]
             self._send(("tick", k, self._live.pop(k, ()), reports, sorted(missing), wall_s, time.time_ns()))
 
-    def finish(self, status, metrics=None):
-        """The run's result (``status``: "done" or why not; the metrics):
-        the writer adds the MCAP summary and footer and closes the file. If
+    def finish(self, status, metrics=None, verification=None):
+        """The run's result (``status``: "done" or why not; the metrics;
+        ``verification``: the run's checked status, ``RunStatus.to_json`` with
+        its ``restarts``): the writer adds the MCAP summary and footer and
+        closes the file. If
         writing failed, one line ``warning: ...`` on stderr (the run is not
         affected)."""
         if self._closed:
             return
         self._closed = True
-        self._send(("finish", status, json_safe(metrics or {})), wait=True)
+        self._send(("finish", status, json_safe(metrics or {}), json_safe(verification)), wait=True)
         try:
             self._proc.stdin.close()
         except OSError:
@@ -225,11 +227,12 @@ class Recorder(NoRecorder):
 class _Report:
     """A report as the writer gets it (``Recorder.on_close``)."""
 
-    __slots__ = ("sender", "x", "P", "d", "d_valid", "counters", "fused", "not_fused", "sent")
+    __slots__ = ("sender", "x", "P", "d", "d_valid", "counters", "fused", "not_fused", "sent", "digests")
 
-    def __init__(self, n, m, sender, x, P, d, d_valid, counters, fused, not_fused, sent):
+    def __init__(self, n, m, sender, x, P, d, d_valid, counters, fused, not_fused, sent, digests=()):
         self.sender, self.d_valid, self.counters, self.fused, self.not_fused, self.sent = (
             sender, d_valid, counters, fused, not_fused, sent)
+        self.digests = digests
         self.x = np.frombuffer(x, dtype=float)
         self.P = np.frombuffer(P, dtype=float).reshape(n, n)
         self.d = np.frombuffer(d, dtype=float)
@@ -323,7 +326,8 @@ class TickWriter:
                 err = math.dist([x[a] for a in dims], truth_x[dims].tolist())
                 estimates.append({"agent": name[i], "x": x, "P": r.P.tolist(),
                                   "d": r.d.tolist() if r.d_valid else None, "d_valid": bool(r.d_valid),
-                                  "fused": names(r.fused), "position_error": err})
+                                  "fused": names(r.fused), "digests": [bytes(g).hex() for g in r.digests],
+                                  "position_error": err})
                 counters.append({"agent": name[i], "counters": r.counters})
                 verdicts = [(s, "fused") for s in r.fused] + list(r.not_fused)
             elif i in alive:
@@ -363,11 +367,14 @@ class TickWriter:
                 self._colors, self._radius))
         self._scenes = []
 
-    def finish(self, status, metrics) -> None:
+    def finish(self, status, metrics, verification=None) -> None:
         """``/scene``, the run's result, the MCAP summary and footer."""
         k = self._last_closed
         self._write_scenes()
-        self._put("/run/result", k, {"status": status, "ticks": k, "metrics": metrics})
+        doc = {"status": status, "ticks": k, "metrics": metrics}
+        if verification:
+            doc["verification"] = verification
+        self._put("/run/result", k, doc)
         self._mcap.finish()
 
 
