@@ -8,7 +8,13 @@
     receive        an agent's receive path: gate -> guard -> faults -> inbox
     inbox          the one place a neighbour's message waits (for its tick, for fusion)
     delayline, counters   the simulated links' delays, the counts
-    process        the skeleton of the world and agent processes, and one tick through the mesh
+    process        a mesh process (a machine in a shell), and one tick through the mesh
+    events         the sans-I/O boundary: events into a protocol machine, effects out
+    agent_machine  an agent's protocol: one tick in order (open, collect, close), joining, rejoining
+    world_machine  the world's protocol: ticks, reports, liveliness, pauses, the rejoin answers
+    shell          runs a machine over a Transport on the wall clock (one lock, timers, Woke)
+    rejoin         where a (re)joining agent starts: a neighbour's fused estimate, or the prior
+    verdicts       what an agent reports about each tick's messages (fused, lost, late, rejected)
     estimator      an agent's estimator: the engine's functions on a batch of one
     reports        what a run's reports said (the world's record and a recording extend it)
     runspec        one run's settings as command lines (launcher, compose)
