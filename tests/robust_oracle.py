@@ -72,14 +72,34 @@ def _replace(mean, cov, idx_a, a_new, Paa_new):
     return out, C
 
 
+def scales(model, sensors):
+    """(q_process, q_sensor) written out: tr(G^+ Q G^+T) / m and the median
+    over sensors of tr(F^+ R F^+T) / m, F = H G."""
+    m = model.m
+    Gp = np.linalg.pinv(model.G)
+    qp = np.trace(Gp @ model.Q @ Gp.T) / m
+    qs = []
+    for i in range(sensors.N):
+        F = sensors.H[i, : sensors.p[i]] @ model.G
+        if np.any(F != 0):
+            Fp = np.linalg.pinv(F)
+            qs.append(np.trace(Fp @ sensors.R[i, : sensors.p[i], : sensors.p[i]] @ Fp.T) / m)
+    return qp, (np.median(qs) if qs else qp)
+
+
 def run_robust(trace, options):
-    """diskf-r with the default switches; ``options`` gives input_walk and
-    input_prior."""
+    """diskf-r with the default switches; ``options`` gives the input model
+    (walk, mean-reverting with input_rho, none), input_walk and input_prior
+    (None: sqrt(q_process q_sensor) and 1e4 max(q_process, q_sensor))."""
     model, sensors = trace.model, trace.sensors
     B, K, N = trace.has.shape
     n, m = model.n, model.m
     G = model.G
-    Qd = options.input_walk * np.eye(m)
+    qp, qs = scales(model, sensors)
+    rho = {"walk": 1.0, "mean-reverting": options.input_rho, "none": 0.0}[options.input_model]
+    q = 0.0 if options.input_model == "none" else (np.sqrt(qp * qs) if options.input_walk is None else options.input_walk)
+    prior = 1e4 * max(qp, qs) if options.input_prior is None else options.input_prior
+    Qd = q * np.eye(m)
     iv, idd = np.arange(n), np.arange(n, n + m)
     out = dict(x=np.zeros((B, K, N, n)), P=np.zeros((B, K, N, n, n)), d=np.zeros((B, K, N, m)),
                v=np.zeros((B, K, N), dtype=bool))
@@ -87,15 +107,15 @@ def run_robust(trace, options):
     Rs = [sensors.R[i, : sensors.p[i], : sensors.p[i]] for i in range(N)]
     for b in range(B):
         z = [np.concatenate([model.x0.astype(float), np.zeros(m)]) for _ in range(N)]
-        Pi = [scipy.linalg.block_diag(model.P0, options.input_prior * np.eye(m)) for _ in range(N)]
+        Pi = [scipy.linalg.block_diag(model.P0, prior * np.eye(m)) for _ in range(N)]
         held = [False] * N
         links = trace.links[min(b, trace.links.shape[0] - 1)]
         for k in range(1, K + 1):
             A = model.A_at(k)
-            Tv = scipy.linalg.block_diag(A, np.eye(m))            # (x_{k-1}, d_{k-2}) -> (v_k, d_{k-1})
+            Tv = scipy.linalg.block_diag(A, rho * np.eye(m))      # (x_{k-1}, d_{k-2}) -> (v_k, d_{k-1})
             Tx = np.block([[np.eye(n), G], [np.zeros((m, n)), np.eye(m)]])  # (v, d) -> (x, d)
             pred = [(A @ z[i][:n], A @ Pi[i][:n, :n] @ A.T + model.Q) for i in range(N)]
-            relay = [(z[i][n:], Pi[i][n:, n:] + Qd) for i in range(N)]
+            relay = [(rho * z[i][n:], rho * rho * Pi[i][n:, n:] + Qd) for i in range(N)]
             new = []
             for i in range(N):
                 nb = list(np.flatnonzero(links[k - 1, i]))
@@ -103,7 +123,7 @@ def run_robust(trace, options):
                 W = Tv @ Pi[i] @ Tv.T + scipy.linalg.block_diag(model.Q, Qd)
                 xc, Pc = fast_ci([pred[j][0] for j in nb], [pred[j][1] for j in nb])
                 w, W = _replace(w, W, iv, xc, Pc)
-                relayed = [j for j in nb if held[j]]
+                relayed = [j for j in nb if held[j]] if rho > 0 else []
                 if relayed:
                     dr, Sr = fast_ci([relay[j][0] for j in relayed], [relay[j][1] for j in relayed])
                     w, W = _replace(w, W, idd, dr, Sr)
@@ -120,5 +140,5 @@ def run_robust(trace, options):
             for i, (za, Pa, h) in enumerate(new):
                 z[i], Pi[i], held[i] = za, Pa, h
                 out["x"][b, k - 1, i], out["P"][b, k - 1, i] = za[:n], Pa[:n, :n]
-                out["d"][b, k - 1, i], out["v"][b, k - 1, i] = za[n:], h
+                out["d"][b, k - 1, i], out["v"][b, k - 1, i] = za[n:], h and options.input_model != "none"
     return out

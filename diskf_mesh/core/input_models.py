@@ -88,6 +88,16 @@ def input_scales(Q, G, H, R, p=None):
     return max(q_process, 1e-300), max(q_sensor, 1e-300)
 
 
+def default_scales(q_process: float, q_sensor: float):
+    """(walk, prior): the scale-aware defaults of one input model
+    (``diskf-r``'s ``input_walk`` and ``input_prior`` when not given): the
+    geometric mean sqrt(q_process q_sensor) per tick, between an input as
+    small as the process noise and one a single measurement resolves, and a
+    prior 10^4 max(q_process, q_sensor) (an input up to a hundred times the
+    larger noise scale)."""
+    return float(np.sqrt(q_process * q_sensor)), 1e4 * max(q_process, q_sensor)
+
+
 def information_loglik(x, P, Y, Ji, U, u):
     """The log-likelihood of the neighbourhood's measurement given the prior
     N(x, P), up to a term the same for every prior (for the model weights

@@ -92,12 +92,19 @@ class RobustOptions:
     switch each; the derivations are in that module's docstrings and the
     ablation table of docs/reproduction.md turns each on or off.
 
-    persist:     the input persists (a random walk): the joint Kalman filter of
-                 (x, d), the cross-covariance carried (default on)
-    input_walk:  Qd = input_walk * I, the random walk's covariance per tick
-                 (input units squared)
+    persist:     the input follows an input model (``input_model``): the joint
+                 Kalman filter of (x, d), the cross-covariance carried (default on)
+    input_model: ``walk`` (the random walk d_{k-1} = d_{k-2} + eta, default),
+                 ``mean-reverting`` (d_{k-1} = input_rho d_{k-2} + eta) or
+                 ``none`` (no input) (``input_models``, eq. IM)
+    input_rho:   rho of the mean-reverting model, 0 <= rho < 1 (0: a zero-mean
+                 input of variance input_walk per tick)
+    input_walk:  eta ~ N(0, input_walk * I), the model's covariance per tick
+                 (input units squared); None: from the scenario's scales,
+                 sqrt(q_process q_sensor) (``input_models.default_scales``)
     input_prior: S0 = input_prior * I, the input's covariance before any
-                 measurement (wide: nothing is known)
+                 measurement (input units squared); None: 10^4 max(q_process,
+                 q_sensor), an input a hundred times the larger noise scale
     prior_ci:    fuse the neighbours' predictions by covariance intersection
                  before adding their measurement information
     relay:       carry the fused input forward and share it: the message's
@@ -129,14 +136,27 @@ class RobustOptions:
     inflate: bool = False
     persist: bool = True
     unbiased: bool = False
-    input_walk: float = 1.0
-    input_prior: float = 1e4
+    input_model: str = "walk"
+    input_rho: float = 0.0
+    input_walk: float | None = None
+    input_prior: float | None = None
+
+    CHOICES = {"input_model": ("walk", "mean-reverting", "none")}  # the string fields' values (input_models.INPUT_MODELS)
 
     def __post_init__(self):
         for name in ("input_walk", "input_prior"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not np.isfinite(v) or v <= 0:
+            if v is not None and (not _number(v) or not np.isfinite(v) or v <= 0):
                 raise ValueError(f"robust.{name}: must be a finite positive number, got {v!r}")
+        if self.input_model not in self.CHOICES["input_model"]:
+            raise ValueError(f"robust.input_model: must be one of {', '.join(self.CHOICES['input_model'])}, "
+                             f"got {self.input_model!r}")
+        if not _number(self.input_rho) or not 0 <= self.input_rho < 1:
+            raise ValueError(f"robust.input_rho: must be a number with 0 <= rho < 1, got {self.input_rho!r}")
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
 

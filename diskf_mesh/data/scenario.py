@@ -25,6 +25,7 @@ Format (see ``scenarios/quadrants.toml`` for a commented example):
 """
 from __future__ import annotations
 
+import difflib
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
@@ -159,13 +160,20 @@ def shipped_scenarios() -> list[str]:
 
 def scenario_path(name_or_path: str) -> Path:
     p = Path(name_or_path)
+    if p.is_dir():
+        raise InputError("scenario", f"{name_or_path} is a folder; give a scenario's .toml file or a shipped name "
+                                     f"({', '.join(shipped_scenarios())})")
     if p.suffix == ".toml" or p.exists():
         if not p.is_file():
             raise InputError("scenario", f"no such file: {name_or_path}")
         return p
     root = resources.files("diskf_mesh") / "scenarios" / f"{name_or_path}.toml"
     if not root.is_file():
-        raise InputError("scenario", f"unknown scenario {name_or_path!r}; shipped: {', '.join(shipped_scenarios())}, or give a .toml path")
+        shipped = shipped_scenarios()
+        close = difflib.get_close_matches(str(name_or_path), shipped, n=1, cutoff=0.6)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        raise InputError("scenario", f"unknown scenario {name_or_path!r}; {hint}shipped: {', '.join(shipped)}, "
+                                     "or give a .toml path")
     return Path(str(root))
 
 
@@ -269,19 +277,34 @@ def _parse_estimator(est) -> Params:
         if s.optional and value in ("none", -1):
             given[key] = None
         elif s.table:
-            switches = {f.name: f.default for f in fields(s.type)}
-            if not isinstance(value, dict):
-                raise InputError(where, "must be a table of switches")
-            check_keys(value, switches, where)
-            given[key] = s.type(**{k: scalar(v, f"{where}.{k}", type(switches[k]),  # switches; scales > 0
-                                             **({} if type(switches[k]) is bool else {"above": 0}))
-                                    for k, v in value.items()})
+            given[key] = _sub_table(s.type, value, where)
         else:
             given[key] = scalar(value, where, s.type, low=s.low, choices=s.choices)
     try:
         return Params(**given)
     except ValueError as e:
         raise InputError("estimator", str(e)) from None
+
+
+def _sub_table(kind, value, where: str):
+    """A dataclass of settings (``[estimator.robust]``) from its table: each
+    field read as the kind of its default (a default of None: a number;
+    ``kind.CHOICES`` lists a string field's values), then the dataclass's
+    own checks, an error naming the field."""
+    defaults = {f.name: f.default for f in fields(kind)}
+    if not isinstance(value, dict):
+        raise InputError(where, "must be a table of settings")
+    check_keys(value, defaults, where)
+    choices = getattr(kind, "CHOICES", {})
+    read = {}
+    for k, v in value.items():
+        t = float if defaults[k] is None else type(defaults[k])
+        read[k] = scalar(v, f"{where}.{k}", t, choices=choices.get(k))
+    try:
+        return kind(**read)
+    except ValueError as e:
+        field, _, msg = str(e).partition(": ")
+        raise InputError(f"estimator.{field}", msg) from None
 
 
 def _parse_agent(a, i: int, n: int) -> AgentSpec:

@@ -33,6 +33,8 @@ from __future__ import annotations
 import numpy as np
 
 from diskf_mesh.core import equations as eq
+from diskf_mesh.core import input_models as im
+from diskf_mesh.estimators.diskf_robust import input_model_of
 from diskf_mesh.engine.batch import Estimates
 
 from diskf_mesh.core.rkf import rkf_update
@@ -79,9 +81,10 @@ def _stacked_information(trace: Trace, k: int, info):
 
 def run_centralized_persist(trace: Trace, options) -> Estimates:
     """The centre with ``diskf-r``'s persistent-input model (``options``:
-    ``model.RobustOptions``, its ``input_walk`` and ``input_prior``): the
-    joint Kalman filter of (x_k, d_{k-1}) with d a random walk
-    (``equations.input_walk``), every measurement stacked. This is the
+    ``model.RobustOptions``: its input model, ``input_walk`` and
+    ``input_prior``): the joint Kalman filter of (x_k, d_{k-1}) with d
+    following the input model (``input_models.input_predict``), every
+    measurement stacked. This is the
     bound of diskf-r's own model, as ``run_centralized`` is the bound of the
     model that assumes nothing about the input: diskf-r in an all-to-all
     network is this filter (``tests/test_robust.py``). The input estimate is
@@ -89,23 +92,24 @@ def run_centralized_persist(trace: Trace, options) -> Estimates:
     model, sensors = trace.model, trace.sensors
     B, K, N = trace.has.shape
     n, m = model.n, model.m
-    G, Qd = model.G, options.input_walk * np.eye(m)
+    G = model.G
+    rho, q, prior = input_model_of(options, model, sensors)
     info = eq.sensor_information(sensors.H, sensors.R)
     x = np.broadcast_to(model.x0, (B, n)).astype(float).copy()
     P = np.broadcast_to(model.P0, (B, n, n)).astype(float).copy()
     d, C = np.zeros((B, m)), np.zeros((B, n, m))
-    S = np.broadcast_to(options.input_prior * np.eye(m), (B, m, m)).copy()
+    S = np.broadcast_to(prior * np.eye(m), (B, m, m)).copy()
     held = np.zeros(B, dtype=bool)
     xs, Ps = np.empty((B, K, n)), np.empty((B, K, n, n))
     ds, dv = np.empty((B, K, m)), np.empty((B, K), dtype=bool)
     for k in range(1, K + 1):
         A = model.A_at(k)
         v, Pv = eq.predict(x, P, A, model.Q)
-        Bc, S = eq.input_walk(A, C, S, Qd)
+        d, Bc, S = im.input_predict(A, C, d, S, rho, q)
         U, u = _stacked_information(trace, k, info)
         x_s, P_s, C_s = eq.input_to_state(v, Pv, Bc, d, S, G)
         x, P = eq.local_update(x_s, P_s, *eq.information_pair(P_s, U), u)
         d, C, S = eq.replace_marginal(x_s, P_s, d, C_s, S, x, P)
         held = held | (np.trace(U, axis1=-2, axis2=-1) > 0)
-        xs[:, k - 1], Ps[:, k - 1], ds[:, k - 1], dv[:, k - 1] = x, P, d, held
+        xs[:, k - 1], Ps[:, k - 1], ds[:, k - 1], dv[:, k - 1] = x, P, d, held & (options.input_model != "none")
     return _every_agent(N, xs, Ps, ds, dv)

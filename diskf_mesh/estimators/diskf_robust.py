@@ -107,7 +107,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from diskf_mesh.core import equations as eq
-from diskf_mesh.core.linalg import T, inv_spd, mv, nbr_sum
+from diskf_mesh.core import input_models as im
+from diskf_mesh.core.linalg import T, inv_spd, mv, nbr_sum, sym
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.rkf import rkf_update
 from diskf_mesh.core.model import RobustOptions
@@ -116,6 +117,17 @@ from diskf_mesh.estimators.diskf import COMPENSATION, EPS, RESET, WINDOW, HeldSt
 
 ROBUST = Setting("robust", RobustOptions(), "the switches of diskf-r (model.RobustOptions), "
                  "the [estimator.robust] table")
+
+
+def input_model_of(o: RobustOptions, model, sensors):
+    """(rho, q, prior) of ``[estimator.robust]``'s input model on this model
+    and these sensors: the model's rho (``input_models.model_rho``), its
+    scale per tick (``input_walk``; 0 for ``none``) and the input's prior
+    variance (``input_prior``), each from the scenario's scales where not
+    given (``input_models.default_scales``)."""
+    walk, prior = im.default_scales(*im.input_scales(model.Q, model.G, sensors.H, sensors.R, sensors.p))
+    q = 0.0 if o.input_model == "none" else (walk if o.input_walk is None else o.input_walk)
+    return im.model_rho(o.input_model, o.input_rho), q, (prior if o.input_prior is None else o.input_prior)
 
 
 @dataclass(frozen=True)
@@ -133,11 +145,15 @@ class DISKFRobust(Estimator):
     settings = (WINDOW, RESET, EPS, COMPENSATION, ROBUST)
     extends = "diskf"  # an extension of DISKF under its constraints (the reports' "DISKF family")
 
+    def __init__(self, model, sensors, params=None):
+        super().__init__(model, sensors, params)
+        self.rho, self.walk, self.prior = input_model_of(self.params.robust, model, sensors)
+
     def init(self, batch: tuple) -> RobustState:
         s = super().init(batch)
         n, m = self.model.n, self.model.m
         o = self.params.robust
-        scale = o.input_prior if o.persist else 1.0  # persist: the input's prior; else a placeholder
+        scale = self.prior if o.persist else 1.0  # persist: the input's prior; else a placeholder
         S = np.broadcast_to(scale * np.eye(m), batch + (m, m)).copy()
         C = np.zeros(batch + (n, m))
         return RobustState(s.x, s.P, s.since, np.zeros(batch + (m,)), np.zeros(batch, dtype=bool),
@@ -148,7 +164,10 @@ class DISKFRobust(Estimator):
         o = self.params.robust
         loc = self.local_kf(state, k, y, has)
         since = state.since + 1
-        if o.joint_input:
+        if o.persist and o.input_model == "none":  # no input: nothing to share (S = I, a placeholder)
+            d, S, valid = np.zeros_like(state.d_hold), np.broadcast_to(np.eye(self.model.m), state.S_hold.shape), \
+                np.zeros_like(state.held)
+        elif o.joint_input:
             d, S, valid = state.d_hold, state.S_hold, state.held  # the last fused input (relay)
         else:
             allowed = eq.window_allows(since, self.params.window) if o.window else None
@@ -200,7 +219,7 @@ class DISKFRobust(Estimator):
         if o.window and p.reset:
             since = np.where(held, 0, since)
         st = RobustState(x_bar, P_bar, since, d_bar, held, S_hold=S_bar, tick=state.tick, fed=feed, C=C_bar)
-        return st, Output(x_bar, P_bar, d_bar, held)
+        return st, Output(x_bar, P_bar, d_bar, held & (o.input_model != "none" or not o.persist))
 
     def _persist(self, state, own, senders, nb, x_c, P_c, U, u, A):
         """Steps 2-6 with the persistent input (``persist``): the joint Kalman
@@ -210,15 +229,15 @@ class DISKFRobust(Estimator):
         o = self.params.robust
         G = self.model.G
         m = G.shape[-1]
-        Qd = o.input_walk * np.eye(m)
-        B, S1 = eq.input_walk(A, state.C, state.S_hold, Qd)
-        d1 = state.d_hold
+        rho, q = self.rho, self.walk
+        d1, B, S1 = im.input_predict(A, state.C, state.d_hold, state.S_hold, rho, q)
         if o.prior_ci:  # the neighbourhood's CI prior replaces the own v, p(d | v) kept
             d1, B, S1 = eq.replace_marginal(own.x_pred, own.P_pred, d1, B, S1, x_c, P_c)
         v, Pv = x_c, P_c
         has_p = state.held | (np.trace(U, axis1=-2, axis2=-1) > 0)
-        if o.relay and o.joint_input:  # the relayed inputs replace the own d, p(v | d) kept
-            d_r, S_r, has_r = eq.input_fusion(nb.adj, senders.d, senders.S + Qd, senders.d_valid)
+        if o.relay and o.joint_input and rho > 0:  # the relayed inputs replace the own d, p(v | d) kept
+            d_r, S_r, has_r = eq.input_fusion(nb.adj, rho * senders.d, sym(rho * rho * senders.S + q * np.eye(m)),
+                                              senders.d_valid)
             v_r, Bt_r, Pv_r = eq.replace_marginal(d1, S1, v, T(B), Pv, d_r, S_r)
             r1, r2 = has_r[..., None], has_r[..., None, None]
             v, Pv, B = np.where(r1, v_r, v), np.where(r2, Pv_r, Pv), np.where(r2, T(Bt_r), B)

@@ -1,0 +1,121 @@
+"""The input models of ``core.input_models`` against hand-worked numbers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diskf_mesh.core import input_models as im
+from diskf_mesh.core import equations as eq
+
+
+def test_input_predict_hand_worked():
+    # A = [[0, -1], [1, 0]], C = [1, 2]^T, d = 4, S = 3.
+    # walk (rho 1, q 0.5): d 4, A C = [-2, 1]^T, S 3.5 (as equations.input_walk)
+    # mean-reverting rho 0.5, q 0.5: d 2, 0.5 A C = [-1, 0.5]^T, S 0.25 * 3 + 0.5 = 1.25
+    # none (0, 0): d 0, cross 0, S 0
+    A = np.array([[0.0, -1.0], [1.0, 0.0]])
+    C, d, S = np.array([[1.0], [2.0]]), np.array([4.0]), np.array([[3.0]])
+    for rho, q, want in ((1.0, 0.5, ([4.0], [[-2.0], [1.0]], [[3.5]])),
+                         (0.5, 0.5, ([2.0], [[-1.0], [0.5]], [[1.25]])),
+                         (0.0, 0.0, ([0.0], [[0.0], [0.0]], [[0.0]]))):
+        got = im.input_predict(A, C, d, S, rho, q)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(g, w)
+    # the walk is equations.input_walk bit for bit
+    B, S1 = eq.input_walk(A, C, S, 0.5 * np.eye(1))
+    _, B2, S2 = im.input_predict(A, C, d, S, 1.0, 0.5)
+    assert np.array_equal(B, B2) and np.array_equal(S1, S2)
+    # per model along a batch axis: rho (M,), q (M,)
+    dd, BB, SS = im.input_predict(A, C[None].repeat(3, 0), d[None].repeat(3, 0), S[None].repeat(3, 0),
+                                  np.array([1.0, 0.5, 0.0]), np.array([0.5, 0.5, 0.0]))
+    np.testing.assert_allclose(SS[:, 0, 0], [3.5, 1.25, 0.0])
+
+
+def test_input_scales_hand_worked():
+    # G = [1, 1]^T, Q = 0.2 I: G^+ = [0.5, 0.5], G^+ Q G^+T = 0.2 * 0.5 = 0.1.
+    # sensors x (R 2), y (R 2), both (R 4 I): F = 1, 1, [1, 1]^T:
+    # 2, 2, F^+ = [0.5, 0.5]: 0.25 * 4 * 2 = 2 -> median 2. A sensor with F = 0 is left out.
+    G, Q = np.array([[1.0], [1.0]]), 0.2 * np.eye(2)
+    H = np.zeros((4, 2, 2))
+    H[0, 0, 0] = H[1, 0, 1] = 1.0
+    H[2] = np.eye(2)
+    H[3, 0] = [1.0, -1.0]  # (1, -1) G = 0: does not see the input
+    R = np.broadcast_to(np.eye(2), (4, 2, 2)).copy()
+    R[0, 0, 0] = R[1, 0, 0] = 2.0
+    R[2] *= 4.0
+    qp, qs = im.input_scales(Q, G, H, R, np.array([1, 1, 2, 1]))
+    assert qp == pytest.approx(0.1) and qs == pytest.approx(2.0)
+    walk, prior = im.default_scales(qp, qs)
+    assert walk == pytest.approx(np.sqrt(0.2)) and prior == pytest.approx(2e4)
+
+
+def test_information_loglik_is_the_gaussian_likelihood_up_to_a_constant():
+    # the same measurement y under two priors: the difference of the log
+    # densities N(y; H x, H P H^T + R) equals the difference of information_loglik
+    rng = np.random.default_rng(0)
+    H = np.array([[1.0, 0.0], [0.5, 2.0], [0.0, 1.0]])
+    R = np.diag([2.0, 1.0, 0.5])
+    y = np.array([1.0, -2.0, 0.5])
+    U, u = H.T @ np.linalg.solve(R, H), H.T @ np.linalg.solve(R, y)
+
+    def logpdf(x, P):
+        Sg = H @ P @ H.T + R
+        r = y - H @ x
+        return -0.5 * (r @ np.linalg.solve(Sg, r) + np.linalg.slogdet(Sg)[1] + 3 * np.log(2 * np.pi))
+
+    def ll(x, P):
+        Y = np.linalg.inv(P)
+        return im.information_loglik(x, P, Y, np.linalg.inv(Y + U), U, u)
+
+    x1, x2 = rng.standard_normal(2), rng.standard_normal(2)
+    P1, P2 = np.array([[2.0, 0.3], [0.3, 1.0]]), np.array([[0.5, 0.0], [0.0, 4.0]])
+    assert ll(x1, P1) - ll(x2, P2) == pytest.approx(logpdf(x1, P1) - logpdf(x2, P2), rel=1e-12)
+    # nothing measured: 0 for every prior
+    Z = np.zeros((2, 2))
+    assert im.information_loglik(x1, P1, np.linalg.inv(P1), P1, Z, np.zeros(2)) == pytest.approx(0.0, abs=1e-15)
+
+
+def test_model_weights_and_mix_hand_worked():
+    # two models, mu = (0.8, 0.2), switch 0.1: c = (0.8 * 0.9 + 0.2 * 0.1, 0.8 * 0.1 + 0.2 * 0.9) = (0.74, 0.26)
+    Pi = im.transition_matrix(2, 0.1)
+    np.testing.assert_allclose(Pi, [[0.9, 0.1], [0.1, 0.9]])
+    c, w = im.model_weights(np.array([0.8, 0.2]), Pi)
+    np.testing.assert_allclose(c, [0.74, 0.26])
+    np.testing.assert_allclose(w[:, 0], [0.72 / 0.74, 0.02 / 0.74])
+    # mixture of N(0, 1) and N(2, 1) with weights 0.5, 0.5: mean 1, variance 1 + 1 = 2
+    z, Z = np.array([[0.0], [2.0]]), np.array([[[1.0]], [[1.0]]])
+    mean, cov = im.mix(np.array([[0.5], [0.5]]), z, Z)
+    np.testing.assert_allclose(mean, [[1.0]])
+    np.testing.assert_allclose(cov, [[[2.0]]])
+
+
+def test_update_probabilities_hand_worked():
+    # c = (0.5, 0.5), log-likelihoods (0, log 3): mu = (0.25, 0.75); a floor of 0.3 lifts the first
+    mu = im.update_probabilities(np.array([0.5, 0.5]), np.array([0.0, np.log(3.0)]), 1e-6)
+    np.testing.assert_allclose(mu, [0.25, 0.75])
+    mu = im.update_probabilities(np.array([0.5, 0.5]), np.array([0.0, 1000.0]), 0.3)  # no overflow
+    np.testing.assert_allclose(mu, [0.3 / 1.3, 1.0 / 1.3])
+
+
+def test_affine_prior_hand_worked():
+    # from N(0, 4) to N(1, 1): x -> 1 + (1 / 2) x. A model at v = 2, Pv = 8, B = 2:
+    # v' = 2, Pv' = 8 / 4 = 2, B' = 1. Where from == to it is the identity.
+    v, Pv, B = np.array([[2.0]]), np.array([[[8.0]]]), np.array([[[2.0]]])
+    vn, Pn, Bn = im.affine_prior(np.array([0.0]), np.array([[4.0]]), np.array([1.0]), np.array([[1.0]]), v, Pv, B)
+    np.testing.assert_allclose(vn, [[2.0]])
+    np.testing.assert_allclose(Pn, [[[2.0]]])
+    np.testing.assert_allclose(Bn, [[[1.0]]])
+    P = np.array([[2.0, 0.5], [0.5, 1.0]])
+    vn, Pn, _ = im.affine_prior(np.zeros(2), P, np.zeros(2), P, np.ones((1, 2)), P[None], np.ones((1, 2, 1)))
+    np.testing.assert_allclose(vn, np.ones((1, 2)))
+    np.testing.assert_allclose(Pn, P[None])
+
+
+def test_default_bank_follows_the_scales():
+    names, rho, q = im.default_bank(0.1, 2.0)
+    lo, hi = 0.1, 200.0
+    assert names[0] == "none" and rho[0] == 0.0 and q[0] == 0.0
+    np.testing.assert_allclose(q[1:4], [lo, np.sqrt(lo * hi), hi])
+    assert set(rho[1:4]) == {1.0}
+    names, _, _ = im.default_bank(0.1, 2.0, none=False, zero_mean=False)
+    assert names == ("walk lo", "walk mid", "walk hi")
