@@ -1,9 +1,8 @@
 """Who may speak, tried as a hostile local user would: one default
 ``diskf-mesh up`` run (TLS, mutual authentication, access control; Scenario 2,
-a fixed seed) while attackers who read its run id, port and credentials
-directory off the process table (``/proc/<pid>/cmdline``, as ``ps`` does) try
-to hear it and to feed it, all at once, from before the first tick to the
-end:
+a fixed seed) while attackers who read its run id and port off the process
+table (``/proc/<pid>/cmdline``, as ``ps`` does) try to hear it and to feed
+it, all at once, from before the first tick to the end:
 
 * three uncredentialed zenoh sessions: plain TCP to the world's port, TLS
   with a certificate named ``world`` of their own CA, and multicast
@@ -11,8 +10,9 @@ end:
   agent messages (real arrays, false senders, this tick and the next),
   ``world/stop``, ticks, measurements, reports, and liveliness tokens
   (every agent alive and ready, the world alive and ticking);
-* a credentialed agent: sessions with agent 3's certificate of the
-  run's own CA (read from the run's directory, i.e. agent 3 compromised).
+* a credentialed agent: sessions with agent 3's certificate and key of the
+  run's own CA, taken from agent 3's memory (agent 3 compromised: all it
+  holds is its own identity, tests/test_identities.py).
   It publishes the same forgeries for every other agent and for the world,
   and replays every message
   addressed to it with its tick rewritten (one ahead), on the real sender's
@@ -35,6 +35,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import msgpack
@@ -46,8 +47,9 @@ from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.transport import MeshError, ZenohTransport
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.zenoh_config import STDIN, ZenohOptions
 
+from memory_probe import identity_of
 from mesh_helpers import assert_same, reference
 from message_factory import tick_view
 
@@ -70,8 +72,10 @@ def start_up(tmp: Path, run_id: str, *extra) -> subprocess.Popen:
 
 
 def from_process_table(run_id: str, timeout: float = 30.0) -> dict:
-    """What ``ps`` shows of the run's world process: its flags."""
+    """What ``ps`` shows of the run's world process (its flags) and the pid
+    of agent ``INSIDER``."""
     deadline = time.monotonic() + timeout
+    seen = {}
     while time.monotonic() < deadline:
         for d in Path("/proc").iterdir():
             if not d.name.isdigit():
@@ -82,9 +86,29 @@ def from_process_table(run_id: str, timeout: float = 30.0) -> dict:
                 continue
             if "sim.world" in argv and run_id in argv:
                 flag = lambda f: argv[argv.index(f) + 1] if f in argv else None  # noqa: E731
-                return {"listen": flag("--listen"), "credentials": flag("--credentials")}
+                seen.update(listen=flag("--listen"), credentials=flag("--credentials"))
+            if "agents.agent" in argv and run_id in argv and argv[argv.index("--id") + 1] == str(INSIDER):
+                seen["insider"] = int(d.name)
+        if len(seen) == 3:
+            return seen
         time.sleep(0.05)
-    raise AssertionError(f"no world process of run {run_id} within {timeout} s")
+    raise AssertionError(f"no world and agent {INSIDER} of run {run_id} within {timeout} s: {seen}")
+
+
+def stolen_identity(pid: int, run_id: str, ids, timeout: float = 30.0) -> ZenohOptions:
+    """Agent ``INSIDER``'s identity, taken from its process's memory once it
+    holds it, as zenoh options."""
+    name = credentials.agent_identity(INSIDER)
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            ident = identity_of(pid, name, run_id, ids)
+            break
+        except (KeyError, StopIteration, OSError):
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+    return ZenohOptions(credentials=STDIN, held={name: ident})
 
 
 class Attacker(threading.Thread):
@@ -168,7 +192,8 @@ def attacked(tmp_path_factory):
     attackers = []
     try:
         seen = from_process_table(run_id)
-        assert seen["listen"].startswith("tls/127.0.0.1:") and seen["credentials"]  # the default: TLS, loopback
+        assert seen["listen"].startswith("tls/127.0.0.1:") and seen["credentials"] == STDIN  # TLS, loopback
+        stolen = stolen_identity(seen["insider"], run_id, ids)
         port = seen["listen"].rsplit(":", 1)[1]
         everything = [f"{keys.root}/**"]
         forged = "0000000000000000deadbeef"  # the earliest nonce there can be: it would win every id's claim
@@ -185,7 +210,7 @@ def attacked(tmp_path_factory):
             # one session listens, another speaks: a session hears its own tokens
             attackers += [Attacker(name, opts, everything, [], lambda k: []),
                           Attacker(f"{name} speaking", opts, [], all_tokens, forge_all)]
-        # agent 3's own certificate, from the run's directory: replays what it is sent, tick rewritten
+        # agent 3's own certificate, from its memory: replays what it is sent, tick rewritten
         insider_keys = [k for k in all_tokens if k not in (keys.alive(INSIDER, forged), keys.ready(INSIDER, forged + ".1"))]
 
         def replay(att, key, payload):
@@ -197,18 +222,18 @@ def attacked(tmp_path_factory):
                 att.transport.put(keys.msg(INSIDER, to=[sender]), forged)       # on its own key
 
         insider = Attacker("agent 3's certificate",
-                           ZenohOptions(connect=(f"tls/127.0.0.1:{port}",), listen=("tls/127.0.0.1:0",),
-                                        no_multicast_scouting=True, credentials=seen["credentials"],
-                                        identity=credentials.agent_identity(INSIDER), run_id=run_id),
+                           replace(stolen, connect=(f"tls/127.0.0.1:{port}",), listen=("tls/127.0.0.1:0",),
+                                   no_multicast_scouting=True, identity=credentials.agent_identity(INSIDER),
+                                   run_id=run_id),
                            [keys.msg_to(INSIDER)], insider_keys, forgeries(run_id, ids, skip=(INSIDER,)),
                            on_sample=replay)
         insider.replays = []
         attackers.append(insider)
         # and what agent 3 may not hear: the others' measurements, and everything
         eavesdropper = Attacker("agent 3 eavesdropping",
-                                ZenohOptions(connect=(f"tls/127.0.0.1:{port}",), listen=("tls/127.0.0.1:0",),
-                                             no_multicast_scouting=True, credentials=seen["credentials"],
-                                             identity=credentials.agent_identity(INSIDER), run_id=run_id),
+                                replace(stolen, connect=(f"tls/127.0.0.1:{port}",), listen=("tls/127.0.0.1:0",),
+                                        no_multicast_scouting=True, identity=credentials.agent_identity(INSIDER),
+                                        run_id=run_id),
                                 [keys.meas(i) for i in ids if i != INSIDER] + [f"{keys.root}/world/meas/*",
                                                                                f"{keys.root}/agent/**"],
                                 [], lambda k: [])
@@ -257,14 +282,14 @@ def test_a_credentialed_agent_cannot_speak_or_listen_for_another(attacked):
     assert insider.replays and len(insider.replays) == min(len(insider.heard), 500)
     assert {Keys(attacked["spec"].run_id).parse(k)[0] for k in insider.heard} <= {"msg"}
     # subscribed to every measurement and every agent key, agent 3 hears nothing it may not hear: no
-    # other agent's measurement (its own it may), no message addressed to others (the fused reports it may hear, as a
-    # rejoining agent does: zenoh sends a new peer the puts of its identity before its declarations settle)
+    # other agent's measurement (its own it may), no message addressed to others, no report (the world's and
+    # the observer's alone)
     eavesdropper = attacked["attackers"]["agent 3 eavesdropping"]
     keys = Keys(attacked["spec"].run_id)
     assert eavesdropper.opened
     for key in eavesdropper.heard:
         kind, _ = keys.parse(key)
-        assert (kind == "report" or (kind == "msg" and f"_{INSIDER}_" in key.rsplit("/", 1)[1])
+        assert ((kind == "msg" and f"_{INSIDER}_" in key.rsplit("/", 1)[1])
                 or key == keys.meas(INSIDER)), key  # its own measurement it may hear: it is agent 3
     # what a replay or a forgery did not do: the run is intact
     assert_run_intact(attacked)

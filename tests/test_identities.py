@@ -5,8 +5,9 @@ the run (docs/security.md):
   alone, with the CA certificate, on its standard input; the router's
   identity exists only when a router runs;
 * what each running child can read (its command line, environment, open
-  files) holds no private key, and no key is on disk, before, during or
-  after a run, however it ends (``kill -9`` of ``up`` included);
+  files) holds no private key, its memory holds one key only, its own, and
+  no key is on disk, before, during or after a run, however it ends
+  (``kill -9`` of ``up`` included);
 * a process holding a key is closed to its user's other processes: a
   sibling of the same user cannot open its files or read its memory.
 """
@@ -29,6 +30,7 @@ from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import STDIN, ZenohOptions
+from memory_probe import certificates, pems, public_key, usable_keys
 from sim.launcher import Child, Launcher, one_host_children, run_identities
 
 RUN = "ident-test"
@@ -178,6 +180,13 @@ def _wait_children(proc, n: int, timeout: float = 90.0) -> dict:
     return kids
 
 
+def _identity_name(argv) -> str:
+    module = argv[argv.index("-m") + 1]
+    if module == "agents.agent":
+        return credentials.agent_identity(int(argv[argv.index("--id") + 1]))
+    return {"sim.world": credentials.WORLD, "sim.router": credentials.ROUTER}[module]
+
+
 @pytest.mark.mesh
 def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path):
     proc = _up(tmp_path, "--ticks", "100000")
@@ -189,6 +198,12 @@ def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path
             for where, data in _readable(pid):
                 assert KEY_MARK not in data, (argv[:3], where)
             assert os.readlink(f"/proc/{pid}/fd/0") == "/dev/null"  # the identity was read, and let go
+            # all a compromised child finds in its memory: one key, its own, and no other identity's certificate
+            found = pems(pid)
+            certs = certificates(found)
+            name = _identity_name(argv)
+            assert usable_keys(found) == [public_key(certs[name])], name
+            assert all(cn == name or c.subject == certs[name].issuer for cn, c in certs.items()), sorted(certs)
         assert _key_files(tmp_path, "/dev/shm") == []
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=120)

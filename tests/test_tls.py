@@ -250,6 +250,51 @@ def test_an_identity_speaks_for_itself_only(creds, acl):
         assert others_meas.got
 
 
+def start_key(agent) -> str:
+    """The key of an agent's query for its starting estimate (``Keys.start``)."""
+    return f"{KEYS.root}/start/{agent}"
+
+
+def _ask(t, key, seconds=2.0):
+    """The first answer to a query on ``key`` (None: none in ``seconds``)."""
+    got, done = [], threading.Event()
+    t.query(key, b"", seconds, lambda payload: (got.append(payload), done.set()))
+    done.wait(seconds + 1.0)
+    return got[0] if got else None
+
+
+@pytest.mark.parametrize("acl", ["on", "off (control)"])
+def test_reports_and_starting_estimates_reach_only_whom_they_are_for(creds, acl):
+    """An agent subscribed to every report hears none (the world and the
+    observer do); an agent asks the world for its own starting estimate
+    only, and only the world answers it (not the observer pretending to)."""
+    off = ["access_control/enabled:false"] if acl != "on" else []
+    port = free_port()
+    ep = dict(connect=[f"tls/127.0.0.1:{port}"], listen=["tls/127.0.0.1:0"], cfg=off)
+    with ZenohTransport(session(creds, "world", listen=[f"tls/127.0.0.1:{port}"], cfg=off)) as w, \
+            ZenohTransport(session(creds, "agent-1", **ep)) as a1, \
+            ZenohTransport(session(creds, "agent-2", **ep)) as a2, \
+            ZenohTransport(session(creds, "observer", **ep)) as obs:
+        at_world, at_observer = Sink(w, KEYS.report("*")), Sink(obs, KEYS.report("*"))
+        eavesdropper = Sink(a2, KEYS.report("*"))
+        w.declare_queryable(start_key("*"), lambda key, payload, reply: reply(b"the world's answer for " +
+                                                                               key.encode()))
+        obs.declare_queryable(start_key("*"), lambda key, payload, reply: reply(b"the observer as the world"))
+        time.sleep(SETTLE_S)
+        publish_for(a1, [(KEYS.report(1), b"agent 1's report")])
+        own = _ask(a1, start_key(1))
+        others = _ask(a2, start_key(1))
+        time.sleep(0.3)
+    assert {p for _, p in at_world.got} == {p for _, p in at_observer.got} == {b"agent 1's report"}
+    if acl == "on":
+        assert eavesdropper.got == []
+        assert own == b"the world's answer for " + start_key(1).encode()
+        assert others is None
+    else:  # without the access control the same listening and asking succeed
+        assert {p for _, p in eavesdropper.got} == {b"agent 1's report"}
+        assert others is not None
+
+
 def test_a_new_peer_is_not_sent_what_it_may_not_hear(creds):
     """Until a new peer's declarations arrive, zenoh sends it every put; the
     egress rules keep the world's measurement of agent 1 from agent 2 even

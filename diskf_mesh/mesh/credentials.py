@@ -40,11 +40,14 @@ peer, by the peer's certificate:
                  liveliness token  diskf/<run>/alive/world/<nonce>, diskf/<run>/ticking/world
                  subscribe         diskf/<run>/agent/*/{report,rejoin,duplicate};
                                    tokens diskf/<run>/*/agent/*/*, diskf/<run>/alive/world/*
+                 answer queries    diskf/<run>/start/* (an agent's starting estimate)
     agent-<i>    put               diskf/<run>/agent/<i>/**
                  liveliness token  diskf/<run>/alive/agent/<i>/<nonce>, diskf/<run>/ready/agent/<i>/<nonce>
                  subscribe         the world's tick and stop, its own measurement
                                    diskf/<run>/world/meas/<i>, the messages addressed to
-                                   it, the reports (rejoining); tokens alive/**, ticking/world
+                                   it; tokens alive/**, ticking/world (no report: the
+                                   reports reach the world and the observer only)
+                 query             diskf/<run>/start/<i> (its own starting estimate)
     observer     subscribe         diskf/<run>/** (samples and tokens), nothing else
     router       everything        diskf/<run>/** both ways: it forwards the others' traffic,
                                    so a receiver behind it sees the router's certificate, not
@@ -293,6 +296,7 @@ ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declar
                 "liveliness_token", "liveliness_query", "declare_liveliness_subscriber")
 LISTEN = ("declare_subscriber",)
 WATCH = ("declare_liveliness_subscriber", "liveliness_query")
+ANSWER = ("declare_queryable", "reply")
 
 
 def access_control(run_id: str, agents, observer: bool = True, router: bool = False,
@@ -319,14 +323,15 @@ def access_control(run_id: str, agents, observer: bool = True, router: bool = Fa
                                                     f"{r}/agent/*/duplicate"],
           rule("world-put", ("put",), [f"{r}/world/**"]),
           rule("world-tokens", ("liveliness_token",), [f"{r}/alive/world/*", f"{r}/ticking/world"]),
-          rule("world-watch", WATCH, [f"{r}/*/agent/*/*", f"{r}/alive/world/*"]), *routes)
+          rule("world-watch", WATCH, [f"{r}/*/agent/*/*", f"{r}/alive/world/*"]),
+          rule("world-answer", ANSWER, [f"{r}/start/*"]), *routes)
     watch = rule("agent-watch", WATCH, [f"{r}/alive/**", f"{r}/ticking/world"])
     for i in agents:
         who = agent_identity(i)
-        grant(who, [f"{r}/world/tick", f"{r}/world/stop", f"{r}/world/meas/{i}", f"{r}/agent/*/msg/$*_{i}_$*",
-                    f"{r}/agent/*/report"],
+        grant(who, [f"{r}/world/tick", f"{r}/world/stop", f"{r}/world/meas/{i}", f"{r}/agent/*/msg/$*_{i}_$*"],
               rule(f"{who}-put", ("put",), [f"{r}/agent/{i}/**"]),
               rule(f"{who}-tokens", ("liveliness_token",), [f"{r}/alive/agent/{i}/*", f"{r}/ready/agent/{i}/*"]),
+              rule(f"{who}-ask", ("query",), [f"{r}/start/{i}"]),
               watch)
     if observer:
         grant(OBSERVER, [f"{r}/**"], rule("observer-watch", WATCH, [f"{r}/**"]))

@@ -95,8 +95,8 @@ class GuardConfig:
     ticks: int | None = None        # last tick of the run, if known
     max_lag: int = 16               # oldest accepted tick: current - max_lag
     max_lead: int = 2               # newest accepted tick: current + max_lead
-    max_abs: float = 1e12
-    max_cond: float = 1e10
+    max_abs: float = wire.MAX_ABS   # what a report and a starting estimate may hold too
+    max_cond: float = wire.MAX_COND
     information_rtol: float = 1e-6
     information_check: bool = True  # off for estimators that never invert a sender's P (L-DRKF)
     exchanged: tuple = EXCHANGED    # the arrays a message carries (``Estimator.exchanged``)

@@ -94,6 +94,7 @@ from dataclasses import dataclass, field
 import msgpack
 import numpy as np
 
+from diskf_mesh.core.small import extreme_eigenvalues
 from diskf_mesh.core.messages import Message
 from diskf_mesh.estimators.base import EXCHANGED
 from diskf_mesh.mesh.counters import SCALARS
@@ -109,6 +110,10 @@ MAX_COUNTERS = 64    # most counters a report may carry (there are about 30)
 PER_TICK = 1 << 20   # most payloads one agent counts per tick of the run (``count_bound``)
 MAX_LINKS = 1024     # most senders a report's "f" and "nf" may name (without the run's agent count)
 MAX_VERDICT = 48     # longest verdict text in a report's "nf"
+# what an estimate may hold (a message, a report, a starting estimate; ``guard.GuardConfig``): finite values
+# beyond MAX_ABS overflow in products, a covariance conditioned worse than MAX_COND loses its inverse
+MAX_ABS = 1e12
+MAX_COND = 1e10
 DIGEST_BYTES = 8     # a fused message's digest in a report's "fd"
 
 REASONS = (
@@ -624,6 +629,21 @@ def _cholesky_ok(a: list) -> bool:
     return True
 
 
+def estimate_problem(a: np.ndarray, P: np.ndarray, max_abs: float = MAX_ABS, max_cond: float = MAX_COND):
+    """The guard's checks of an estimate beyond finiteness and positive
+    definiteness (``guard.message_problem`` for messages): None, or
+    ("magnitude" | "ill-conditioned", detail) when a value of ``a`` (every
+    float of it) is beyond ``max_abs`` or the condition number of ``P``
+    exceeds ``max_cond``."""
+    big = float(np.abs(a).max()) if a.size else 0.0
+    if big > max_abs:
+        return "magnitude", f"a value of {big:.3g} (limit {max_abs:.3g})"
+    ev = extreme_eigenvalues(P.tolist()) if P.shape[-1] <= 2 else np.linalg.eigvalsh(P)[[0, -1]]
+    if not ev[0] > 0 or ev[-1] > max_cond * ev[0]:
+        return "ill-conditioned", f"P eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}"
+    return None
+
+
 def _split(a: np.ndarray, shapes) -> list:
     out, i = [], 0
     for shp in shapes:
@@ -679,15 +699,19 @@ _COUNTER = re.compile(r"rejected\.[a-z][a-z-]{0,31}")
 
 def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
                   n: int | None = None, m: int | None = None, ticks: int | None = None,
-                  agents: int | None = None) -> Report:
+                  agents: int | None = None, max_abs: float = MAX_ABS, max_cond: float = MAX_COND) -> Report:
     """``ticks``: the run's length, which bounds every counter (``count_bound``);
-    ``agents``: the run's agent count, which bounds "f" and "nf"."""
+    ``agents``: the run's agent count, which bounds "f" and "nf". The
+    estimate passes the checks of a message (``estimate_problem``)."""
     doc = _open(data, "report", run_id, limits("report", n, m, agents))
     s, n, m, dv = _estimate_head(doc, sender, n, m)
     values = _values(doc, "a", n + n * n + m)
     a = np.array(values, dtype=float) if type(values) is tuple else values
     _spd(values, a, ((n, n),))
     x, P, d = _split(a, [(n,), (n, n), (m,)])
+    problem = estimate_problem(a, P, max_abs, max_cond)
+    if problem is not None:
+        raise Rejected(*problem)
     c = doc.get("c", {})
     if not isinstance(c, dict) or len(c) > MAX_COUNTERS:
         raise Rejected("schema", "field 'c' is not a map of counters")
@@ -770,8 +794,8 @@ def decode_join(data, *, run_id: str | None = None, sender: int | None = None) -
 
 
 def decode_start(data, *, run_id: str | None = None, agent: int | None = None, tick: int | None = None,
-                 n: int | None = None, m: int | None = None, max_abs: float = math.inf,
-                 max_cond: float = math.inf) -> Start:
+                 n: int | None = None, m: int | None = None, max_abs: float = MAX_ABS,
+                 max_cond: float = MAX_COND) -> Start:
     """The estimate a (re)joining agent starts from, for ``agent`` joining at
     ``tick``, checked as the guard checks a message (``guard.GuardConfig``'s
     ``max_abs`` and ``max_cond``)."""
@@ -783,11 +807,8 @@ def decode_start(data, *, run_id: str | None = None, agent: int | None = None, t
     values = _values(doc, "a", n + n * n + m)
     a = np.array(values, dtype=float)
     _spd(values, a, ((n, n),))
-    big = float(np.abs(a).max())
-    if big > max_abs:
-        raise Rejected("magnitude", f"a value of {big:.3g} (limit {max_abs:.3g})")
     x, P, d = _split(a, [(n,), (n, n), (m,)])
-    ev = np.linalg.eigvalsh(P)
-    if not ev[0] > 0 or ev[-1] > max_cond * ev[0]:
-        raise Rejected("ill-conditioned", f"P eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}")
+    problem = estimate_problem(a, P, max_abs, max_cond)
+    if problem is not None:
+        raise Rejected(*problem)
     return Start(doc["run"], s, doc["t"], None if src < 0 else src, x, P, d, dv)
