@@ -55,3 +55,42 @@ def test_the_limits_of_reports_are_those_of_messages():
     assert wire.estimate_problem(np.zeros(1), np.diag([2 * c.max_cond, 1.0]))[0] == "ill-conditioned"
     big = np.diag([1.0, 1.0, 1.0, 1e11])  # n > 2: numpy's eigenvalues
     assert wire.estimate_problem(np.zeros(1), big)[0] == "ill-conditioned"
+
+
+def test_a_forged_report_never_becomes_a_state_a_start_or_a_metric():
+    """The world's machine is fed agent ``best``'s report of tick 1 with
+    x = 1e300 and the most certain P of all (it would be every rejoining
+    neighbour's starting estimate): it is refused, the tick goes on
+    without it, and a rejoining neighbour starts from another's estimate."""
+    from diskf_mesh.data.scenario import simulate
+    from diskf_mesh.mesh.estimator import neighbours
+    from diskf_mesh.mesh.events import Answer, Query, Sample, Timer, Token, Tokens
+    from diskf_mesh.mesh.keys import Keys
+    from diskf_mesh.mesh.runspec import RunSpec
+    from diskf_mesh.mesh.world_machine import CLAIM, WorldMachine, WorldTiming
+
+    spec = RunSpec("quadrants", "kcf", run_id=RUN, topology="ring")
+    scn = spec.load(6)
+    trace = simulate(scn, [0])
+    keys = Keys(RUN)
+    w = WorldMachine(scn, trace, "kcf", 0, keys, "0000000000000010aaaaaaaa", WorldTiming(30.0, 10.0))
+    w.start(0.0)
+    w.handle(Tokens(CLAIM, ()), 0.0)
+    for i in w.ids:
+        w.handle(Token(keys.alive(i, "n1"), True), 0.1)
+        w.handle(Token(keys.ready(i, "n1"), True), 0.1)
+    a = w.ids[0]
+    best = min(set(neighbours(scn, a, trace.positions[0])) - {a})
+    n, m = trace.model.n, trace.model.m
+    for i in w.ids:
+        x = np.full(n, 1e300 if i == best else float(i))
+        P = np.eye(n) * (0.1 if i == best else 2.0)
+        w.handle(Sample(keys.report(i), wire.encode_report(RUN, i, 1, x, P, np.zeros(m), False)), 0.2)
+    w.handle(Timer("tick"), 10.1)  # tick 1 ends without the refused report
+    out = w.handle(Query(1, keys.start(a), wire.encode_join(RUN, a, 2)), 10.2)
+    start = wire.decode_start(next(e for e in out if isinstance(e, Answer)).payload, run_id=RUN, agent=a, tick=2)
+    j = w.ids.index(best)
+    assert w.record.counters["rejected:magnitude"] == 1
+    assert not w.record.reported[0, j] and w.record.why[0, j] == "rejected"
+    assert start.source != best and np.abs(start.x).max() < 1e3
+    assert np.nanmax(np.abs(w.record.x)) < 1e3  # what the metrics are computed from
