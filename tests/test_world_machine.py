@@ -190,7 +190,9 @@ def test_rejoin_query_is_answered_with_a_neighbours_reported_estimate(run):
     s = wire.decode_start(out[0].payload, run_id=RUN, agent=a, tick=2)
     assert s.source == best and np.array_equal(s.x, np.full(n, float(best)))
     assert np.array_equal(s.P, np.eye(n) * 0.5)
-    assert w.record.starts[-1].source == best and w.record.rejoins[a][-1] == {"tick": 2, "source": best}
+    assert w.record.starts[-1].source == best and a not in w.record.rejoins  # answered, not started yet
+    w.handle(Sample(keys.rejoin(a), wire.encode_rejoin(RUN, a, 2, best)), 0.6)
+    assert w.record.rejoins[a] == [{"tick": 2, "source": best}]
 
 
 def test_rejoin_with_no_neighbour_reported_starts_from_the_prior(run):

@@ -43,7 +43,9 @@ A run, in the order of this module:
                once tick J - 1 is over the world answers with the most
                certain fused estimate that an agent in range reported for
                J - 1, or the prior (``start_state``); each answer is kept
-               (``WorldRecord.starts``) so the run can be replayed.
+               (``WorldRecord.starts``), and the agent's word that it
+               started from it (``rejoin``) is a rejoin
+               (``WorldRecord.rejoins``): the run can be replayed.
  7. the end    after tick K (or an interrupt, or no agent left): publish
                stop, wait up to ``leave_timeout`` for the agents to leave,
                then ``Finish``.
@@ -705,8 +707,7 @@ class WorldMachine:
             if final or tick - 1 <= self._closed:
                 s = self.start_state(who, tick)
                 self._emit(Answer(qid, wire.encode_start(s.run_id, who, tick, s.source, s.x, s.P, s.d, s.d_valid)))
-                self.record.starts.append(s)
-                self._rejoined(who, tick, s.source)
+                self.record.starts.append(s)  # a rejoin once the agent says it started from it
             else:
                 keep.append((qid, who, tick))
         self._starts_owed = keep
@@ -729,8 +730,9 @@ class WorldMachine:
                           np.array(model.P0, dtype=float).reshape(model.n, model.n), np.zeros(model.m), False)
 
     def _rejoined(self, agent: int, tick: int, source) -> None:
-        """Agent ``agent`` started at ``tick`` from ``source`` (what the
-        world answered, or what the agent says it used)."""
+        """Agent ``agent`` says it started at ``tick`` from ``source`` (an
+        answer of ``start_state``, or the prior): a rejoin. An answer no
+        agent started from (a duplicate process that left) is none."""
         runs = self.record.rejoins.setdefault(agent, [])
         entry = {"tick": int(tick), "source": source}
         if runs and runs[-1]["tick"] == entry["tick"]:
