@@ -164,6 +164,7 @@ class WorldMachine:
         self.log, self.progress, self.prof, self.recorder = log or Log("world"), progress, profile, recorder
         self.clock = timing.clock
         self.ids = tuple(a.id for a in scn.agents)
+        self._every = frozenset(self.ids)
         self._index = {i: j for j, i in enumerate(self.ids)}
         self.p = scn.sensors().p
         K, N = trace.has.shape[1:]
@@ -249,7 +250,7 @@ class WorldMachine:
         are ready, close the ticks whose reports are in, end a pause whose
         agents are back, answer the rejoin queries whose tick is over, leave
         once the agents have left."""
-        if self.phase == "startup" and self.ready >= set(self.ids):
+        if self.phase == "startup" and self.ready >= self._every:
             self._begin_ticks(now)
         elif self.phase == "late-ready" and self.ready >= self.alive:
             self._late_ready_over(now)
@@ -745,8 +746,9 @@ class WorldMachine:
     # ======================================================================
     def _interrupt(self, why: str, now: float) -> None:
         """A signal: end the run where it is."""
-        if self.phase in ("claim", "new"):
-            return self._finish("stopped", 0, f"interrupted ({why}) before tick 1")
+        if self.phase in ("claim", "new"):  # nothing declared yet: nothing to stop
+            self.record.ended_early = f"interrupted ({why}) before tick 1"
+            return self._finish("stopped", 0, self.record.ended_early)
         if self.phase in ("startup", "late-ready"):
             self.record.ended_early = f"interrupted ({why}) before tick 1"
         elif self.phase == "ticking":
@@ -760,6 +762,8 @@ class WorldMachine:
         if self.phase == "ticking":
             self.prof.stop()
             self.record.ticks_s = now - self._t1
+            if self.clock is not None:
+                self._to_recorder(final=True)  # the ended ticks; the rest are missing
         for name in list(self._timers):
             self._cancel_timer(name)
         self._open, self._waiting = 0, set()
