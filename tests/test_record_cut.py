@@ -118,16 +118,16 @@ def _report(**kw) -> bytes:
 
 
 def test_report_carries_fused_senders_and_verdicts():
-    r = wire.decode_report(_report(fused=(1, 4), not_fused=((2, "lost"), (5, "rejected:not-spd")), sent=b"\x81"),
-                           run_id="r")
-    assert r.fused == (1, 4) and r.not_fused == ((2, "lost"), (5, "rejected:not-spd")) and r.sent == b"\x81"
+    r = wire.decode_report(_report(fused=(1, 4), not_fused=((2, "lost"), (5, "rejected:not-spd")),
+                                   sent_digest=b"\x81" * 8), run_id="r")
+    assert r.fused == (1, 4) and r.not_fused == ((2, "lost"), (5, "rejected:not-spd")) and r.sent_digest == b"\x81" * 8
     old = wire.decode_report(wire.encode_report("r", 3, 7, np.zeros(2), np.eye(2), np.zeros(1), True))
-    assert old.fused == () and old.not_fused == () and old.sent == b""
+    assert old.fused == () and old.not_fused == () and old.sent_digest == b""
 
 
 @pytest.mark.parametrize("fields", [
     {"f": list(range(wire.MAX_LINKS + 1))}, {"f": ["1"]}, {"f": [True]}, {"nf": [[1]]}, {"nf": [[1, 2]]},
-    {"nf": [[1, "x" * (wire.MAX_VERDICT + 1)]]}, {"nf": {"1": "lost"}}, {"o": "not bytes"},
+    {"nf": [[1, "x" * (wire.MAX_VERDICT + 1)]]}, {"nf": {"1": "lost"}}, {"od": "not bytes"}, {"od": b"\x81"},
 ])
 def test_report_verdicts_are_bounded(fields):
     import msgpack

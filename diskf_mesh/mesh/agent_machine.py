@@ -30,7 +30,8 @@ differs only in when a tick is closed, ``mesh.clock``):
     lost, refused), at the collect timer, when a later tick is already in,
     or at the stop: fuse what came (``AgentEstimator.fuse``), report to the
     world (``wire.encode_report``: the fused estimate, the counters, who was
-    fused and why the others were not).
+    fused and why the others were not, the digests of the messages fused and
+    of its own as published; never a message itself).
 
 ``_step`` takes every step the state allows after every event, so a
 sample that completes a tick closes it (and may open the next) at once.
@@ -178,6 +179,7 @@ class AgentMachine:
         self.k = 1                # the tick being worked on
         self.collecting = False   # tick k is open: own message out, neighbours' being collected
         self.own = None           # this agent's message of tick k while collecting
+        self.own_digest = b""     # ... the digest of its payload as published (in the report)
         self.deadline = math.inf  # end of the collection of tick k
         self.last_report = None   # (k, payload) of the last report sent
         self._delay_at = math.inf  # when the delay timer is set for (inf: not set)
@@ -396,6 +398,7 @@ class AgentMachine:
         prof.end("local")
         prof.begin()
         payload = wire.encode(self.keys.run_id, self.id, k, self.own, self.exchanged)
+        self.own_digest = wire.digest(payload)  # the report says what was sent, not the message itself
         prof.end("encode")
         # addressed to the agents it fuses at tick k: links are symmetric (range, ring, all), so
         # these are the agents that fuse it
@@ -454,7 +457,7 @@ class AgentMachine:
         prof.begin()
         digests = [wire.message_digest(self.keys.run_id, s, k, fused[s], self.exchanged) for s in fused_ids]
         report = wire.encode_report(self.keys.run_id, self.id, k, out.x[0, 0], out.P[0, 0], out.d[0, 0],
-                                    out.d_valid[0, 0], counters, fused_ids, not_fused, digests=digests)
+                                    out.d_valid[0, 0], counters, fused_ids, not_fused, self.own_digest, digests)
         prof.end("encode")
         self._out.append(Publish(self.keys.report(self.id), report))
         self.last_report = (k, report)

@@ -36,8 +36,10 @@ kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
         "late" (no copy by the tick's close) or "rejected:<reason>"
         (at most ``MAX_LINKS`` entries of at most ``MAX_VERDICT`` characters;
         optional) - what a recording (``diskf_mesh.recording``) replays,
-    "o" the agent's own message of tick k, the very bytes it published
-        (optional, at most ``MAX_BYTES``): a recording's "as sent",
+    "od" the ``digest`` of the agent's own message of tick k, as it
+        published it (8 bytes; optional): a recording's "as sent" (the
+        message itself never travels to the world: a report carries no
+        message another agent could not hear otherwise),
     "fd" for each sender in "f", in order, the ``digest`` of its message as
         fused (``message_digest``: 8 bytes; optional): the end-of-run check
         (``engine.verify``) names a sender whose message the engine does not
@@ -263,7 +265,7 @@ class Report:
     counters: dict = field(default_factory=dict)
     fused: tuple = ()      # sender ids fused into this estimate
     not_fused: tuple = ()  # ((sender, verdict), ...) the other linked senders
-    sent: bytes = b""      # this agent's own message of the tick, as published
+    sent_digest: bytes = b""  # ``digest`` of this agent's own message of the tick, as published
     digests: tuple = ()    # per sender of ``fused``, in order: ``message_digest`` of what was fused
 
 
@@ -371,7 +373,7 @@ def engine_digests(run_id: str, ids, exchanged: tuple = EXCHANGED):
 
 
 def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None, fused=(),
-                  not_fused=(), sent: bytes = b"", digests=()) -> bytes:
+                  not_fused=(), sent_digest: bytes = b"", digests=()) -> bytes:
     n, m = _dims(x, d)
     blob = _f8(x, P, d)
     if len(blob) != 8 * (n + n * n + m):
@@ -379,7 +381,7 @@ def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counter
     return _pack({"v": SCHEMA, "k": "report", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
                   "dt": DTYPE, "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
                   "c": {str(k): int(v) for k, v in (counters or {}).items()},
-                  "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused], "o": bytes(sent),
+                  "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused], "od": bytes(sent_digest),
                   "fd": [bytes(g) for g in digests]})
 
 
@@ -471,9 +473,9 @@ def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | 
         size = HEADER_BYTES + 8 * floats
         arrays, bins = floats, 8 * floats
         if kind == "report":  # the counters: MAX_COUNTERS names and ints; "f" and "nf": a few bytes per sender;
-            # "o": the agent's own message of the tick, as published (at most a message's size)
+            # "od": the digest of the agent's own message
             links = agents if agents is not None else MAX_LINKS
-            own = limits("msg", a, b).max_bytes
+            own = 2 + DIGEST_BYTES
             size += MAX_COUNTERS * (2 + MAX_STR + 9) + links * (9 + 12 + MAX_VERDICT + 2 + DIGEST_BYTES) + own
             fields, arrays, bins = MAX_COUNTERS, max(floats, links), max(bins, own)
         return Limits(size, MAX_STR, bins, arrays, fields)
@@ -731,9 +733,9 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
             isinstance(e, list) and len(e) == 2 and _is_int(e[0]) and isinstance(e[1], str)
             and len(e[1]) <= MAX_VERDICT for e in nf):
         raise Rejected("schema", f"field 'nf' is not a list of at most {links} [id, verdict] pairs")
-    sent = doc.get("o", b"")
-    if not isinstance(sent, bytes):
-        raise Rejected("schema", "field 'o' is not a byte string")
+    sent = doc.get("od", b"")
+    if not isinstance(sent, bytes) or len(sent) not in (0, DIGEST_BYTES):
+        raise Rejected("schema", f"field 'od' is not a {DIGEST_BYTES}-byte digest")
     fd = doc.get("fd", [])
     if not isinstance(fd, list) or len(fd) not in (0, len(f)) or not all(
             isinstance(g, bytes) and len(g) == DIGEST_BYTES for g in fd):

@@ -51,12 +51,15 @@ CHANNELS = {
     "/world/tick": _obj("TickClosed", "tick k is over: who reported, who did not (written last; a tick "
                                       "without it is incomplete)", **_TICK, reported=_IDS, missing=_IDS,
                         wall_s={**_NUM, "description": "seconds since tick 1 opened"}),
-    "/agents/sent": _obj("MessagesSent", "every agent message of tick k, the bytes it published (its "
-                                         "report carries them), decoded", **_TICK, messages={"type": "array", "items": _obj(
-        "MessageSent", "one agent message", required=("tick", "sender", "to", "bytes"), **_TICK, sender=_ID,
+    "/agents/sent": _obj("MessagesSent", "every agent message of tick k, named by the digest of the bytes it "
+                                         "published (its report carries the digest, never the message)", **_TICK,
+                         messages={"type": "array", "items": _obj(
+        "MessageSent", "one agent message", required=("tick", "sender", "to", "digest"), **_TICK, sender=_ID,
         to={**_IDS, "description": "the agents it is addressed to (in range at its tick)"},
-        bytes=_INT, x_pred=_VEC, P_pred=_MAT, x_upd=_VEC, P_upd=_MAT, d=_VEC, S=_MAT,
-        d_valid={"type": "boolean"}, undecodable={"type": "string"})}),
+        digest={"type": "string", "description": "hex digest of the payload it published "
+                                                 "(diskf_mesh.mesh.wire.digest)"},
+        differs={**_IDS, "description": "receivers that fused a message of this sender and tick with another "
+                                        "digest (not what it sent)"})}),
     "/agents/delivered": _obj("MessagesDelivered", "what became of every message of tick k at every receiver "
                                                    "linked to its sender", **_TICK, deliveries={"type": "array", "items": _obj(
         "MessageDelivered", "sender's message of tick k at one receiver",

@@ -21,7 +21,6 @@ def summary(rec: Recording) -> dict:
     run = rec.run
     verdicts = Counter(doc["verdict"] for doc in rec.delivered)
     reasons = Counter(doc.get("reason", "") for doc in rec.delivered if doc["verdict"] == "rejected")
-    sent_bytes = [doc["bytes"] for doc in rec.sent]
     return {
         "file": rec.path,
         "format": run["format"],
@@ -45,8 +44,7 @@ def summary(rec: Recording) -> dict:
         "agent_ticks": int(rec.reported.size),
         "messages": {
             "sent": len(rec.sent),
-            "bytes": int(sum(sent_bytes)),
-            "undecodable": sum(1 for doc in rec.sent if "undecodable" in doc),
+            "fused_unlike_sent": sum(len(doc.get("differs", ())) for doc in rec.sent),
             "delivered": {v: verdicts.get(v, 0) for v in VERDICTS},
             "rejected": dict(sorted(reasons.items())),
             "duplicate_copies": sum(max(doc.get("copies", 1) - 1, 0) for doc in rec.delivered),
@@ -70,8 +68,8 @@ def format_summary(s: dict) -> str:
         "versions: " + ", ".join(f"{k} {v}" for k, v in s["versions"].items()),
         f"ticks: {ticks}; agents: {s['agents']} (ids {', '.join(map(str, s['ids']))}); "
         f"reports: {s['reported']} of {s['agent_ticks']} agent-ticks",
-        f"messages sent: {m['sent']} ({m['bytes']} bytes"
-        + (f", {m['undecodable']} undecodable" if m["undecodable"] else "") + ")",
+        f"messages sent: {m['sent']}"
+        + (f" ({m['fused_unlike_sent']} fused with another digest than sent)" if m["fused_unlike_sent"] else ""),
         "delivered, per linked receiver: " + ", ".join(f"{v} {n}" for v, n in m["delivered"].items())
         + f"; duplicate copies {m['duplicate_copies']}",
     ]

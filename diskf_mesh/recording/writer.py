@@ -4,8 +4,8 @@ The world calls it at fixed points of its lockstep (``sim.world.World``):
 
     on_open(k, live)      tick k opened for the agents in ``live``
     on_report(report)     an agent's accepted report of the open tick, with
-                          the agent's own message of the tick as it published
-                          it (``wire.Report.sent``)
+                          the digest of the agent's own message of the tick
+                          as it published it (``wire.Report.sent_digest``)
     on_close(k, missing)  tick k is over: everything of tick k is written,
                           the tick's closing record last; the file is
                           flushed to the OS every ``FLUSH_S``
@@ -28,8 +28,11 @@ measurements, truth; ``diskf-trace/1``) and estimator settings are attached
 as ``trace.json``, written first, so a recording replays on its own.
 
 What each agent sent and did with its neighbours' messages comes from its
-reports (``recording.verdicts``; the report carries the agent's own message
-as published, so recording adds no message to the wire); the copies and delays of each message are the
+reports (``mesh.verdicts``; a report carries the digest of the agent's own
+message as published and of each message it fused, never a message, so
+recording adds no message to the wire and no message reaches the world);
+a message that a receiver fused with another digest than its sender's is
+listed (``differs``). The copies and delays of each message are the
 seeded fault layer's plan (``faults.FaultModel``, the same seed and
 settings as the agents').
 
@@ -53,7 +56,6 @@ from dataclasses import asdict
 from importlib import metadata
 from pathlib import Path
 
-import msgpack
 import numpy as np
 
 from diskf_mesh import __version__
@@ -90,28 +92,15 @@ def _dumps(doc: dict) -> bytes:
     return json.dumps(doc, separators=(",", ":")).encode()
 
 
-def sent_record(sender, payload: bytes, tick: int, to) -> dict:
-    """An agent's message as it published it, decoded without the guard's
-    checks (the record says what was sent); ``to``: the agents it was
-    addressed to, those linked to the sender at ``tick`` (``sender`` and
-    ``to`` as the recording names agents)."""
-    rec = {"tick": tick, "sender": sender, "to": list(to), "bytes": len(payload)}
-    try:
-        doc = msgpack.unpackb(payload, raw=False)
-        n, m, blob = doc["n"], doc["m"], doc["a"]
-        a = struct.unpack(f"<{len(blob) // 8}d", blob)
-        sizes = (n, n * n, n, n * n, m, m * m)
-        if len(a) != sum(sizes):
-            raise ValueError("arrays of the wrong size")
-        parts, i = [], 0
-        for size in sizes:
-            parts.append(list(a[i:i + size]))
-            i += size
-        rows = lambda v, k: [v[r * k:(r + 1) * k] for r in range(k)]  # noqa: E731
-        rec.update(x_pred=parts[0], P_pred=rows(parts[1], n), x_upd=parts[2], P_upd=rows(parts[3], n),
-                   d=parts[4], S=rows(parts[5], m), d_valid=bool(doc.get("dv")))
-    except Exception as e:  # noqa: BLE001 - anything on the wire is recorded, readable or not
-        rec["undecodable"] = f"{type(e).__name__}: {e}"[:200]
+def sent_record(sender, digest: bytes, tick: int, to, differs=()) -> dict:
+    """An agent's message as it published it: its digest (``wire.digest``,
+    hex); ``to``: the agents it was addressed to, those linked to the sender
+    at ``tick``; ``differs``: the receivers that fused a message of this
+    sender and tick with another digest (``sender``, ``to`` and
+    ``differs`` as the recording names agents)."""
+    rec = {"tick": tick, "sender": sender, "to": list(to), "digest": bytes(digest).hex()}
+    if differs:
+        rec["differs"] = list(differs)
     return rec
 
 
@@ -197,7 +186,8 @@ class Recorder(NoRecorder):
             wall_s = time.monotonic() - (self._opened_at or time.monotonic())
             reports = [(r.sender, r.x.astype(float, copy=False).tobytes(), r.P.astype(float, copy=False).tobytes(),
                         r.d.astype(float, copy=False).tobytes(), bool(r.d_valid), r.counters, tuple(r.fused),
-                        tuple(r.not_fused), bytes(r.sent), tuple(r.digests)) for r in self._reports.pop(k, {}).values()]
+                        tuple(r.not_fused), bytes(r.sent_digest), tuple(r.digests))
+                       for r in self._reports.pop(k, {}).values()]
             self._send(("tick", k, self._live.pop(k, ()), reports, sorted(missing), wall_s, time.time_ns()))
 
     def finish(self, status, metrics=None, verification=None):
@@ -227,11 +217,11 @@ class Recorder(NoRecorder):
 class _Report:
     """A report as the writer gets it (``Recorder.on_close``)."""
 
-    __slots__ = ("sender", "x", "P", "d", "d_valid", "counters", "fused", "not_fused", "sent", "digests")
+    __slots__ = ("sender", "x", "P", "d", "d_valid", "counters", "fused", "not_fused", "sent_digest", "digests")
 
-    def __init__(self, n, m, sender, x, P, d, d_valid, counters, fused, not_fused, sent, digests=()):
-        self.sender, self.d_valid, self.counters, self.fused, self.not_fused, self.sent = (
-            sender, d_valid, counters, fused, not_fused, sent)
+    def __init__(self, n, m, sender, x, P, d, d_valid, counters, fused, not_fused, sent_digest, digests=()):
+        self.sender, self.d_valid, self.counters, self.fused, self.not_fused, self.sent_digest = (
+            sender, d_valid, counters, fused, not_fused, sent_digest)
         self.digests = digests
         self.x = np.frombuffer(x, dtype=float)
         self.P = np.frombuffer(P, dtype=float).reshape(n, n)
@@ -313,11 +303,17 @@ class TickWriter:
                  for i in np.flatnonzero(np.triu(links, 1).ravel()).tolist()
                  if ids[i // N] in alive and ids[i % N] in alive]
         put("/world/links", {"tick": k, "edges": edges})
+        fused_as = {}  # sender -> {receiver: the digest it fused}
+        for r in reports.values():
+            for s, g in zip(r.fused, r.digests):
+                fused_as.setdefault(s, {})[r.sender] = bytes(g)
         order = lambda i: ids.index(i) if i in ids else N  # noqa: E731
         put("/agents/sent", {"tick": k, "messages": [
-            sent_record(name[r.sender], r.sent, k,
-                        names(sorted({s for s in r.fused} | {s for s, _ in r.not_fused}, key=order)))
-            for r in (reports[i] for i in ids if i in reports) if r.sent]})
+            sent_record(name[r.sender], r.sent_digest, k,
+                        names(sorted({s for s in r.fused} | {s for s, _ in r.not_fused}, key=order)),
+                        names(sorted((i for i, g in fused_as.get(r.sender, {}).items() if g != r.sent_digest),
+                                     key=order)))
+            for r in (reports[i] for i in ids if i in reports) if r.sent_digest]})
         estimates, counters, deliveries = [], [], []
         for j, i in enumerate(ids):
             r = reports.get(i)
