@@ -127,3 +127,54 @@ def test_a_paused_agent_is_degraded_and_still_reproduced(tmp_path, pause_s):
     assert dg["agent_ticks"] == short >= 1 and set(dg["why"]) <= {"late", "lost"}
     # the paused agent closed its tick late without its neighbours' messages, or they closed without its message
     assert all(e["agent"] == victim or set(e["not_fused"]) == {str(victim)} for e in dg["listed"]), dg["listed"]
+
+
+def test_a_restarted_agent_replays_exactly_from_its_recording(tmp_path):
+    """kill -9 of agent 5 mid-run and the same command again: the world
+    hands the restart its starting state; its own check and ``replay
+    RUN.mcap`` replay the restart from it and reproduce every reported
+    estimate (status incomplete: the ticks it missed; accepted with
+    --allow-missing)."""
+    from diskf_mesh.cli import main as cli
+    from sim.launcher import Child
+
+    from mesh_helpers import spawn
+
+    spec = RunSpec(SCENARIO, "diskf", run_id=f"restart{os.getpid()}")
+    ticks, seed, victim = 120, 4, 5
+    record = tmp_path / "run.mcap"
+    world_z, agent_z = loopback_options(free_port(), with_credentials(spec, tmp_path, ticks))
+    mesh = start_mesh(spec, ticks, seed, tmp_path, world_z, agent_z,
+                      world_extra=["--progress", "lines", "--json", str(tmp_path / "res.json"), "--record", str(record)],
+                      agent_extra=["--latency-ms", "25", "--collect-timeout", "1", "--world-timeout", "30"])
+    progress = Progress(mesh)
+    restarted = None
+    try:
+        mesh.start_agents()
+        progress.wait_for(15, 120)
+        old = next(a for a in mesh.agents if a.name == f"agent {victim}")
+        os.kill(old.proc.pid, signal.SIGKILL)
+        old.proc.wait(5)
+        restarted = spawn(Child(f"agent {victim} (restarted)", old.argv, tmp_path / "logs" / "restarted.log"))
+        rc = progress.follow(300)
+    finally:
+        mesh.stop_all()
+        if restarted is not None and restarted.proc.poll() is None:
+            restarted.proc.kill()
+            restarted.proc.wait(5)
+    row = row_of(tmp_path)
+    assert rc == exits.INCOMPLETE, mesh.world.last_error_line()
+    ev = row["evidence"]
+    assert row["status"] == "incomplete", row["reason"]
+    assert [r["agent"] for r in ev["restarts"]] == [victim], ev["restarts"]
+    assert ev["differing"] == 0 and ev["unverified"] == 0, row["reason"]
+    # the recording: replay restarts the agent from the recorded starting state
+    assert cli.main(["replay", str(record)]) == exits.INCOMPLETE
+    assert cli.main(["replay", str(record), "--allow-missing", "1"]) == 0
+    from diskf_mesh.recording.reader import read
+    from diskf_mesh.recording.replay import compare, recording_status, replay
+
+    rec = read(record)
+    assert compare(rec, replay(rec)).equal
+    st = recording_status(rec)
+    assert st.status == "incomplete" and st.evidence["differing"] == 0 and st.evidence["digests_checked"] > 0
