@@ -75,6 +75,7 @@ from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.recording.writer import failure_line
 from sim import zygote as forks
 from diskf_mesh.core import exits
 from diskf_mesh.engine.verify import RunStatus
@@ -672,27 +673,33 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
           f"first tick after {first:.2f} s ({timing.get('first', t_end) - began:.2f} s after up started), "
           f"{ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
     print(format_table(results))
-    print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
-          + (f", recording: {args.record}" if args.record else "") + f", logs: {logs}")
     row = next(iter(next(iter(results.values())).values()))
+    print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
+          + (f", recording: {args.record}" if args.record and not row.get("recording_failed") else "")
+          + f", logs: {logs}")
     return verdict(row, args)
 
 
 # the world's exit statuses that carry a run's results (``core.exits``); any other is a failure
-WORLD_VERDICTS = (exits.OK, exits.INCOMPLETE, exits.TOO_MANY_MISSES, exits.DEGRADED, exits.DIVERGED)
+WORLD_VERDICTS = (exits.OK, exits.INCOMPLETE, exits.TOO_MANY_MISSES, exits.DEGRADED, exits.DIVERGED,
+                  exits.RECORDING_FAILED)
 
 
 def verdict(row: dict, args) -> int:
     """``up``'s exit status: the world's (``sim.world.exit_status``, from the
     status the world checked and wrote in its results, under the same
     flags), with one line on stderr when the run is not exact or as
-    planned, or a real-time run missed deadlines."""
+    planned, a real-time run missed deadlines, or the recording could not
+    be written whole."""
     status = RunStatus(row["status"], row["reason"], row.get("evidence", {}))
     code, level, line = exit_status(status, row, args, realtime.from_args(args))
     if (row.get("deadline_misses") or {}).get("total") and code != exits.TOO_MANY_MISSES:
         print(f"warning: real time: {miss_line(row)}", file=sys.stderr)
     if level:
         print(f"{level}: {line}", file=sys.stderr)
+    if row.get("recording_failed"):
+        print(f"error: {failure_line(row['recording_failed'])}", file=sys.stderr)
+        return code or exits.RECORDING_FAILED
     return code
 
 

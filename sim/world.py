@@ -79,7 +79,7 @@ from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
 from diskf_mesh.mesh.shell import Shell
 from diskf_mesh.mesh.world_machine import DUPLICATE, WorldMachine, WorldRecord, WorldTiming
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
-from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder
+from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder, failure_line
 from diskf_mesh.data.scenario import Scenario, simulate
 from diskf_mesh.data.trace import MESH_ESTIMATES_FORMAT, Trace, estimates_to_json
 
@@ -396,7 +396,9 @@ def run(args: argparse.Namespace) -> int:
         summary.update(deadline_summary(rec, clock))
     status = checked_status(rec, trace, scn, spec, args.seed, faults, clock)
     summary.update(status_fields(status))
-    recorder.finish("done" if world.done else "stopped", row, status.to_json())
+    recording = recorder.finish("done" if world.done else "stopped", row, status.to_json())
+    if recording:  # the run is measured, the file is not whole: the results say so, and the exit status
+        summary["recording_failed"] = recording
     results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
     prov["status"] = status.status
     if args.json:
@@ -418,6 +420,9 @@ def run(args: argparse.Namespace) -> int:
         log.error(line)
     elif level:
         log.info(line)
+    if recording:
+        log.error(failure_line(recording))
+        return code or exits.RECORDING_FAILED
     return code
 
 

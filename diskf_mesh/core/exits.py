@@ -14,6 +14,9 @@ with the code this table gives it; ``replay RUN.mcap`` and ``replay
                         planned (without ``--allow-degraded``)
     6  DIVERGED         a reported estimate the engine does not reproduce;
                         never accepted
+    7  RECORDING_FAILED the run's recording could not be written whole (a
+                        full disk): its line names the file and the last
+                        tick it holds
 """
 from __future__ import annotations
 
@@ -24,6 +27,7 @@ INCOMPLETE = 3
 TOO_MANY_MISSES = 4
 DEGRADED = 5
 DIVERGED = 6
+RECORDING_FAILED = 7
 
 EXACT_STATUS, AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, INCOMPLETE_STATUS = (
     "exact", "as planned", "degraded", "diverged", "incomplete")

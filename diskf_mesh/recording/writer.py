@@ -117,10 +117,20 @@ class NoRecorder:
         pass
 
     def finish(self, status, metrics=None, verification=None):
-        pass
+        """None: nothing failed (``Recorder.finish``)."""
+        return None
 
 
 NO_RECORDER = NoRecorder()
+
+
+def failure_line(failed: dict) -> str:
+    """One line of a recording that failed (``Recorder.finish``'s dict): the
+    file, why, and the last tick it holds."""
+    held = failed.get("written")
+    return (f"recording {failed['path']} failed: {failed['error']}; "
+            + ("nothing readable was written" if not held else f"it holds ticks 1 to {held}")
+            + f" of {failed['ticks']}")
 
 
 class Recorder(NoRecorder):
@@ -133,8 +143,11 @@ class Recorder(NoRecorder):
         self.path = str(path)
         Path(self.path).parent.mkdir(parents=True, exist_ok=True)
         with open(self.path, "wb") as f:
+            # its standard output says, at its end, the last tick in the file and what failed (``serve``)
             self._proc = subprocess.Popen([sys.executable, "-m", "diskf_mesh.recording.writer", str(f.fileno()),
-                                           self.path], stdin=subprocess.PIPE, pass_fds=(f.fileno(),))
+                                           self.path], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                          pass_fds=(f.fileno(),))
+        self._ticks = int(trace.has.shape[1])
         self._pipe = self._proc.stdin.fileno()
         try:
             import fcntl
@@ -144,6 +157,7 @@ class Recorder(NoRecorder):
         os.set_blocking(self._pipe, False)  # a writer behind never holds up a tick: the frames wait here
         self._backlog = bytearray()
         self._failure = None
+        self.failed = None              # what ``finish`` found, if writing failed
         self._live = {}                 # k -> live ids
         self._reports = {}              # k -> {agent: wire.Report}
         self._opened_at = None
@@ -194,11 +208,11 @@ class Recorder(NoRecorder):
         """The run's result (``status``: "done" or why not; the metrics;
         ``verification``: the run's checked status, ``RunStatus.to_json`` with
         its ``restarts``): the writer adds the MCAP summary and footer and
-        closes the file. If
-        writing failed, one line ``warning: ...`` on stderr (the run is not
-        affected)."""
+        closes the file. Returns None, or if writing failed (a full disk, a
+        writer that died) {"path", "error", "written": the last tick the
+        file holds, "ticks"} (``failure_line``)."""
         if self._closed:
-            return
+            return self.failed
         self._closed = True
         self._send(("finish", status, json_safe(metrics or {}), json_safe(verification)), wait=True)
         try:
@@ -206,12 +220,20 @@ class Recorder(NoRecorder):
         except OSError:
             pass
         try:
-            code = self._proc.wait(FINISH_S)
+            self._proc.wait(FINISH_S)  # its one line of standard output fits in the pipe
         except subprocess.TimeoutExpired:
             self._proc.kill()
-            code = self._proc.wait()
-        if code != 0:
-            print(f"warning: recording {self.path}: the writer ended with status {code}", file=sys.stderr)
+            self._proc.wait()
+        said = self._proc.stdout.read()
+        self._proc.stdout.close()
+        try:
+            end = json.loads(said.decode().strip().splitlines()[-1])
+        except (ValueError, IndexError, UnicodeDecodeError):
+            end = {"written": None, "error": None}
+        if self._proc.returncode != 0 or end.get("error"):
+            self.failed = {"path": self.path, "written": end.get("written"), "ticks": self._ticks,
+                           "error": end.get("error") or f"the writer ended with status {self._proc.returncode}"}
+        return self.failed
 
 
 class _Report:
@@ -256,6 +278,7 @@ class TickWriter:
         self._t0 = time.time_ns()
         self._period = int(TICK_PERIOD_S * 1e9)
         self._last_closed = 0
+        self.written = 0                # the last tick handed to the OS whole (a failure leaves the file so)
         self._scenes = []               # per tick, what /scene draws (written at the end)
         K, N = trace.has.shape[1:]
         self.n, self.m = n, m = trace.model.n, trace.model.m
@@ -282,6 +305,8 @@ class TickWriter:
     def flush(self) -> None:
         """Close the open chunk and hand the file to the OS."""
         self._mcap.flush()
+        self._file.flush()
+        self.written = self._last_closed
 
     def write_tick(self, k, live, reports, missing, wall_s, now) -> None:
         """Every channel of closed tick ``k``, ``/world/tick`` last.
@@ -303,11 +328,11 @@ class TickWriter:
                  for i in np.flatnonzero(np.triu(links, 1).ravel()).tolist()
                  if ids[i // N] in alive and ids[i % N] in alive]
         put("/world/links", {"tick": k, "edges": edges})
+        order = lambda i: ids.index(i) if i in ids else N  # noqa: E731
         fused_as = {}  # sender -> {receiver: the digest it fused}
         for r in reports.values():
             for s, g in zip(r.fused, r.digests):
                 fused_as.setdefault(s, {})[r.sender] = bytes(g)
-        order = lambda i: ids.index(i) if i in ids else N  # noqa: E731
         put("/agents/sent", {"tick": k, "messages": [
             sent_record(name[r.sender], r.sent_digest, k,
                         names(sorted({s for s in r.fused} | {s for s, _ in r.not_fused}, key=order)),
@@ -390,8 +415,11 @@ def serve(fd: int, path: str, pipe: int = 0) -> int:
     file open on ``fd``, until the world's finish frame or the pipe's end
     (the world was killed: what is written is handed to the OS, no footer).
     The file goes to the OS once the frames waiting are written, at most and
-    at least every ``FLUSH_S``. A failed write stops the recording, never the
-    run: one ``warning:`` line, and the pipe is drained to its end."""
+    at least every ``FLUSH_S``. A failed write (a full disk) stops the
+    recording, never the run: the pipe is drained to its end. Its last act
+    is one JSON line on standard output, ``{"written": the last tick the
+    file holds, "error": why writing failed or null}``; exit status 1 if it
+    failed."""
     for sig in (signal.SIGINT, signal.SIGTERM):  # a Ctrl-C or a stop of the group is the world's to handle:
         signal.signal(sig, signal.SIG_IGN)       # it finishes the file, or its end closes the pipe
     try:
@@ -400,7 +428,7 @@ def serve(fd: int, path: str, pipe: int = 0) -> int:
         pass
     file = os.fdopen(fd, "wb")
     writer, failure, buf = None, None, bytearray()
-    unflushed, flush_due = False, 0.0
+    unflushed, flush_due, written, finished = False, 0.0, 0, 0
     while True:
         wait = max(flush_due - time.monotonic(), 0.0) if unflushed else None
         ready, _, _ = select.select([pipe], [], [], wait)
@@ -419,7 +447,7 @@ def serve(fd: int, path: str, pipe: int = 0) -> int:
                     unflushed = True
                 elif item[0] == "finish":
                     writer.finish(*item[1:])
-                    unflushed, writer = False, None
+                    unflushed, writer, finished = False, None, writer._last_closed
             if unflushed and time.monotonic() >= flush_due:
                 writer.flush()
                 unflushed, flush_due = False, time.monotonic() + FLUSH_S
@@ -427,20 +455,25 @@ def serve(fd: int, path: str, pipe: int = 0) -> int:
                 time.sleep(max(flush_due - time.monotonic(), 0.0))
         except Exception as e:  # noqa: BLE001 - a failed write stops the recording, not the run
             if failure is None:
-                failure = e
-                done = writer._last_closed if writer is not None else 0
-                print(f"warning: recording {path} stopped at tick {done}: "
-                      f"{type(e).__name__}: {e}", file=sys.stderr, flush=True)
+                failure, written = e, (writer.written if writer is not None else 0)
     if writer is not None and failure is None and unflushed:
         try:
             writer.flush()
-        except Exception:  # noqa: BLE001
-            pass
+        except Exception as e:  # noqa: BLE001
+            failure, written = e, writer.written
+    if failure is None:
+        written = writer.written if writer is not None else finished
     try:
         file.close()
+    except OSError as e:
+        if failure is None:
+            failure = e
+    why = None if failure is None else (getattr(failure, "strerror", None) or f"{type(failure).__name__}: {failure}")
+    try:
+        os.write(1, (json.dumps({"written": written, "error": why}) + "\n").encode())
     except OSError:
         pass
-    return 0
+    return 0 if failure is None else 1
 
 
 if __name__ == "__main__":
