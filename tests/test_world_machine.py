@@ -222,3 +222,57 @@ def test_real_time_opens_ticks_on_the_clock(run):
     assert w.record.deadlines.report_misses == {i: 1 for i in w.ids}
     report(w, w.ids[0], 1, 0.25)  # late, still taken
     assert w.record.reported[0, 0] and w.record.deadlines.late_reports[w.ids[0]] == 1
+
+
+def test_real_time_start_waits_for_a_late_report_in_range(run):
+    """Real time: tick 1 has ended but a neighbour in range still owes its
+    report of it; the rejoin answer waits for that report (not the prior)."""
+    scn, trace = run
+    w, _ = started(run, clock=Clock(10.0, 0.05))
+    a = w.ids[0]
+    near = sorted(set(neighbours(scn, a, trace.positions[0])) - {a})
+    for i in w.ids:
+        if i not in near:
+            report(w, i, 1, 0.15)
+    w.handle(Timer("clock"), 0.2)  # tick 1 ends, tick 2 opens
+    assert w.handle(Query(3, Keys(RUN).start(a), wire.encode_join(RUN, a, 2)), 0.21) == []
+    assert len(near) == 2 and not any(isinstance(e, Answer) for e in report(w, near[1], 1, 0.22))
+    out = report(w, near[0], 1, 0.23)  # the last late one in range: the answer comes with it
+    s = wire.decode_start(next(e for e in out if isinstance(e, Answer)).payload, run_id=RUN, agent=a, tick=2)
+    assert s.source == near[0]  # equally certain: the lower id
+
+
+def test_every_agent_gone_pauses_and_ends_the_run_early(run):
+    w, _ = started(run)
+    for i in w.ids:
+        gone(w, i, 0.2)
+    out = w.handle(Timer("tick"), 10.1)  # tick 1 closes with no one: pause before tick 2
+    assert w._paused == "every agent is gone" and not published(out)
+    w.handle(Timer("pause"), 10.1 + PAUSE_MIN_S)
+    out = w.handle(Timer("pause"), 40.1)  # startup_timeout later, still no one
+    assert published(out, Keys(RUN).stop) and w.record.ended_early.startswith("no agent came back")
+    assert out[-1] == Finish("stopped", 0, w.record.ended_early)  # no agent left to wait for
+
+
+def test_allow_missing_starts_with_the_agents_that_are_ready(run):
+    scn, trace = run
+    w = WorldMachine(scn, trace, "kcf", 0, Keys(RUN), NONCE, WorldTiming(30.0, 10.0), allow_missing=True)
+    w.start(0.0)
+    w.handle(Tokens(CLAIM, ()), 0.0)
+    keys = Keys(RUN)
+    ready(w, w.ids[1:-1], 0.1)
+    w.handle(Token(keys.alive(w.ids[-1], "n1"), True), 0.1)  # up, not ready yet
+    out = w.handle(Timer("startup"), 30.0)
+    assert DeclareToken(keys.ticking) in out and not ticks_opened(out)
+    out = w.handle(Token(keys.ready(w.ids[-1], "n1"), True), 31.0)  # every agent up is ready: tick 1
+    t = wire.decode_tick(published(out, keys.tick)[0].payload)
+    assert t.tick == 1 and t.live == w.ids[1:] and w.record.why[0, 0] == "never joined"
+
+
+def test_a_second_world_leaves_and_the_first_counts_it(run):
+    keys = Keys(RUN)
+    w, _ = started(run)
+    assert w.handle(Token(keys.world("ffffffffffffffff00000000"), True), 1.0) == []
+    assert w.record.duplicates["world"] == 1
+    out = w.handle(Token(keys.world("0000000000000001cccccccc"), True), 1.1)  # an earlier one: this one leaves
+    assert out[-1].code == DUPLICATE and not published(out)

@@ -701,17 +701,29 @@ class WorldMachine:
         self._starts_owed.append((q.qid, who, join.tick))
 
     def _answer_starts(self, final: bool = False) -> None:
-        """Answer every rejoin query whose tick J - 1 is over (its reports
-        are final), or all of them at the end of the run."""
+        """Answer every rejoin query whose tick J - 1's reports are final, or
+        all of them at the end of the run."""
         keep = []
         for qid, who, tick in self._starts_owed:
-            if final or tick - 1 <= self._closed:
+            if final or self._reports_final(who, tick - 1):
                 s = self.start_state(who, tick)
                 self._emit(Answer(qid, wire.encode_start(s.run_id, who, tick, s.source, s.x, s.P, s.d, s.d_valid)))
                 self.record.starts.append(s)  # a rejoin once the agent says it started from it
             else:
                 keep.append((qid, who, tick))
         self._starts_owed = keep
+
+    def _reports_final(self, agent: int, k: int) -> bool:
+        """Whether the reports of tick ``k`` that ``agent``'s start may come
+        from are all in: lockstep, tick k is closed; real time, tick k has
+        ended and no agent in range of ``agent`` still owes its report (a
+        late one is still taken), or tick k + 1 has ended too."""
+        if k > self._closed:
+            return False
+        if self.clock is None or k < 1 or k + 1 <= self._ended:
+            return True
+        near = set(neighbours(self.scn, agent, self.trace.positions[k - 1]))
+        return not (self._owed.get(k, set()) & near)
 
     def start_state(self, agent: int, tick: int) -> wire.Start:
         """Agent ``agent``'s starting state at ``tick``: of the agents in
