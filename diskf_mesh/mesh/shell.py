@@ -66,9 +66,9 @@ class Shell:
         self._main_looks_at = math.inf  # when the main thread looks next (inf: awake, or a callback said Woke)
 
     # -- events into the machine (lock held) -----------------------------------
-    def _handle(self, event) -> None:
+    def _handle(self, event, now: float | None = None) -> None:
         if self._finish is None:
-            self._do(self.machine.handle(event, self.clock()))
+            self._do(self.machine.handle(event, self.clock() if now is None else now))
 
     def _feed(self, event) -> None:
         """A transport callback's event: first ``Woke`` if the main thread
@@ -76,11 +76,11 @@ class Shell:
         self.prof.begin()
         try:
             with self._cv:
-                late = self.clock() - self._main_looks_at
-                if late > FREEZE_S:
-                    self._main_looks_at = math.inf  # said once; the main thread does not say it again
-                    self._handle(Woke(late))
-                self._handle(event)
+                now = self.clock()
+                if now - self._main_looks_at > FREEZE_S:
+                    late, self._main_looks_at = now - self._main_looks_at, math.inf  # said once, not by main again
+                    self._handle(Woke(late), now)
+                self._handle(event, now)
         except BaseException as e:  # noqa: BLE001 - a callback must not swallow a failure
             self._fail(e)
         finally:
@@ -107,7 +107,7 @@ class Shell:
                 self.prof.end("publish")
             elif isinstance(e, SetTimer):
                 self._timers[e.name] = e.at
-                if e.at < self._main_looks_at:
+                if e.at < self._main_looks_at != math.inf:  # it sleeps past it (awake, it looks anyway)
                     self._cv.notify_all()
             elif isinstance(e, CancelTimer):
                 self._timers.pop(e.name, None)
