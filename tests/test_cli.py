@@ -492,21 +492,40 @@ with atomic_open(sys.argv[1]) as f:
 """
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_temporary_file_removed_when_killed_mid_write(sig, tmp_path):
+@pytest.mark.parametrize("named", [False, True], ids=["unnamed", "named (no O_TMPFILE)"])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGKILL])
+def test_no_temporary_file_left_when_killed_mid_write(sig, named, tmp_path):
+    """The file being written has no name (``O_TMPFILE``) until every byte
+    is in: a kill at any moment, SIGKILL too, leaves the target as it was
+    and nothing else. Where unnamed files are missing, a named temporary
+    file is removed on every signal but SIGKILL."""
     target = tmp_path / "out.json"
     target.write_text("old")
-    p = subprocess.Popen([sys.executable, "-c", WRITER_SCRIPT, str(target)], stdout=subprocess.PIPE,
+    no_unnamed = "import diskf_mesh.data.outputs as o; o._unnamed = lambda folder: None\n"
+    script = (no_unnamed if named else "") + WRITER_SCRIPT
+    p = subprocess.Popen([sys.executable, "-c", script, str(target)], stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     try:
         assert p.stdout.readline() == "writing\n"
-        assert len(list(tmp_path.glob(".out.json.*.tmp"))) == 1  # the write is under way
+        assert len(list(tmp_path.glob(".out.json.*.tmp"))) == named  # the write is under way
         p.send_signal(sig)
         p.wait(30)
     finally:
         p.kill()
     assert p.returncode != 0
-    assert sorted(tmp_path.iterdir()) == [target] and target.read_text() == "old"
+    left = sorted(tmp_path.iterdir())
+    if named and sig == signal.SIGKILL:  # the control: SIGKILL leaves a named temporary file behind
+        assert len(left) == 2 and left[0].stat().st_size == len("partial")
+        return
+    assert left == [target] and target.read_text() == "old"
+
+
+def test_a_large_file_is_written_whole(tmp_path):
+    from diskf_mesh.data.outputs import atomic_open
+    target, data = tmp_path / "big.bin", bytes(range(256)) * (3 * 4096 + 7)  # 3 MiB and a bit
+    with atomic_open(target, "wb") as f:
+        f.write(data)
+    assert target.read_bytes() == data and list(tmp_path.iterdir()) == [target]
 
 
 def test_temporary_file_removed_on_error(tmp_path):

@@ -142,7 +142,7 @@ def _descendants(pid: int) -> dict:
 def _readable(pid: int) -> list:
     """(where, bytes) of what process ``pid`` has at hand: its command line,
     its environment and every open file that is not a socket or a pipe."""
-    out = [("cmdline", Path(f"/proc/{pid}/cmdline").read_bytes()), ("environ", Path(f"/proc/{pid}/environ").read_bytes())]
+    out = [(what, Path(f"/proc/{pid}/{what}").read_bytes()) for what in ("cmdline", "environ")]
     for fd in Path(f"/proc/{pid}/fd").iterdir():
         try:
             target = os.readlink(fd)
@@ -233,6 +233,7 @@ def test_kill_9_of_up_leaves_no_key_and_no_process(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert _key_files(tmp_path, "/dev/shm") == []
+    assert list(tmp_path.rglob("*.tmp")) == []  # no temporary file of an output either
 
 
 # --------------------------------------------------------------------------

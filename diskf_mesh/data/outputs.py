@@ -12,16 +12,21 @@ with one ``error:`` line and exit status 2 before a long run, not after it:
   a plain file, or a link into a copy;
 - ``-`` is standard output, where the command supports it.
 
-``atomic_open`` writes a temporary file in the target's folder and renames
-it over the target, so a reader never sees half a file. The temporary file
-is removed on every exit path: an exception, Ctrl-C, and SIGTERM (turned into
+``atomic_open`` writes a file with no name in the target's folder (Linux:
+``O_TMPFILE``), gives it a name once every byte is written (or, where the
+system cannot name it, copies it in the kernel to a named temporary file)
+and renames it over the target, so a reader never sees half a file and a
+process killed while it writes (SIGKILL included) leaves no temporary file:
+an unnamed file is gone with the process. Where the file system has no
+unnamed files, a named temporary file is written instead and removed on
+every exit path but SIGKILL: an exception, Ctrl-C, and SIGTERM (turned into
 a clean ``SystemExit`` for the duration of the write when nobody else
-handles it). Only SIGKILL can leave one behind: it exists only while the
-bytes are written, never during the run. Files are created with mode
-0666 & ~umask, like any file the user's shell would create.
+handles it). The probe of ``check_output`` is an unnamed file too. Files are created
+with mode 0666 & ~umask, like any file the user's shell would create.
 """
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -67,11 +72,56 @@ def _create(path: Path) -> int:
     return os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
 
 
-def _probe(folder: Path, text: str, option: str) -> None:
-    """Create and remove a file in ``folder``: the only sure test of writing
-    (permissions, read-only mounts, quotas of inodes)."""
-    probe = _temp_name(folder / "probe")
+def _unnamed(folder: Path) -> int | None:
+    """A new file with no name in ``folder`` (``O_TMPFILE``), mode 0666 &
+    ~umask; None where the platform or the file system has none. A
+    permission error is raised."""
+    flag = getattr(os, "O_TMPFILE", None)
+    if flag is None or not os.path.isdir("/proc/self/fd"):  # naming it later goes through /proc
+        return None
     try:
+        return os.open(folder, flag | os.O_RDWR | getattr(os, "O_CLOEXEC", 0), 0o666)
+    except OSError as e:
+        if e.errno in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL, errno.ENOENT):
+            return None  # no unnamed files there (ENOENT: some kernels, for a folder that exists)
+        raise
+
+
+def _name(fd: int, path: Path) -> None:
+    """Give the unnamed file ``fd`` the name ``path`` (which must not exist),
+    or where the system cannot (some sandboxes: EXDEV), a copy of it made in
+    the kernel: the named file exists only for the copy."""
+    try:
+        os.link(f"/proc/self/fd/{fd}", path, follow_symlinks=True)
+        return
+    except OSError as e:
+        if e.errno not in (errno.EXDEV, errno.ENOENT, errno.EPERM, errno.EINVAL, errno.EOPNOTSUPP):
+            raise
+    out = _create(path)
+    try:
+        size, done = os.fstat(fd).st_size, 0
+        while done < size:
+            try:
+                n = os.copy_file_range(fd, out, size - done, done, done)
+            except (AttributeError, OSError):
+                n = 0
+            if not n:  # no copy in the kernel here: read and write
+                n = os.pwrite(out, os.pread(fd, min(size - done, 1 << 20), done), done)
+            done += n
+    finally:
+        os.close(out)
+
+
+def _probe(folder: Path, text: str, option: str) -> None:
+    """Create a file in ``folder`` (an unnamed one, else one removed at
+    once): the only sure test of writing (permissions, read-only mounts,
+    quotas of inodes)."""
+    try:
+        fd = _unnamed(folder)
+        if fd is not None:
+            os.close(fd)
+            return
+        probe = _temp_name(folder / "probe")
         os.close(_create(probe))
     except OSError as e:
         raise InputError(option, f"cannot write {text}: {_why(e)}") from None
@@ -149,10 +199,16 @@ def atomic_open(path, mode: str = "w", option: str = "out"):
     _refuse_special(path, str(path), option)
     with _sigterm_exits():
         tmp = _temp_name(path)
-        fd = _create(tmp)
+        fd = _unnamed(path.parent)
+        unnamed = fd is not None
+        if not unnamed:  # no unnamed files here: a named one from the start
+            fd = _create(tmp)
         try:
             with os.fdopen(fd, mode) as f:
                 yield f
+                if unnamed:  # every byte is in: a name now, the target's next
+                    f.flush()
+                    _name(fd, tmp)
             os.replace(tmp, path)
         except BaseException:
             tmp.unlink(missing_ok=True)

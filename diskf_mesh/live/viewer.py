@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import sys
 import threading
@@ -38,6 +37,7 @@ from importlib import resources
 
 from diskf_mesh.mesh import wire
 from diskf_mesh.data.argtypes import positive_int, seed_value
+from diskf_mesh.data.outputs import atomic_open
 from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
@@ -183,10 +183,8 @@ class Watch:
 def write_status(path: str | None, **status) -> None:
     if not path:
         return
-    tmp = f"{path}.tmp"
-    with open(tmp, "w") as f:
+    with atomic_open(path, "w", "status") as f:  # a viewer killed while writing leaves no temporary file
         json.dump(status, f)
-    os.replace(tmp, path)
 
 
 # --------------------------------------------------------------------------
