@@ -76,6 +76,7 @@ from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from diskf_mesh.recording.writer import failure_line
+from sim import simulated
 from sim import zygote as forks
 from diskf_mesh.core import exits
 from diskf_mesh.engine.verify import RunStatus
@@ -92,7 +93,7 @@ CONNECT_RETRY = "connect/retry:{period_init_ms: 50, period_max_ms: 1000, period_
 # agent a client of one router (one link each): measured on 2 cores (benchmarks/scale_bench.py --single),
 # 25 agents start in 1.1 s instead of 2.0 and tick 6 % faster, 50 agents in 2.8 s instead of 9.5
 PEERS_UP_TO = 16
-NETWORKS = ("auto", "peers", "router")
+NETWORKS = ("auto", "peers", "router", "simulated")
 # of two agents that learn of each other (the world gossips their endpoints), only the one with the
 # greater zenoh id connects: one TLS handshake per pair instead of up to two (zenoh's default,
 # "always", then closes the redundant link); on loopback every agent reaches every other
@@ -513,10 +514,12 @@ def register(subparsers) -> None:
                         "DIR/agent-<id>.json (benchmarks/mesh_bench.py --profile prints them)")
     p.add_argument("--network", choices=NETWORKS, default="auto",
                    help=f"on one host: a peer mesh, or every agent a client of one zenoh router (default auto: "
-                        f"peers up to {PEERS_UP_TO} agents, a router above; docs/hosts.md)")
+                        f"peers up to {PEERS_UP_TO} agents, a router above; docs/hosts.md); simulated: every "
+                        f"process in this one, on a simulated network (sim.simulated, docs/simnet.md)")
     p.add_argument("--hosts", metavar="FILE",
                    help="run over several hosts: the world, a router and a shard of agents per host, from a TOML "
                         "file naming them (sim.hosts, docs/hosts.md); no zenoh flags then")
+    simulated.add_arguments(p)
     live.add_arguments(p)
     add_fault_arguments(p)
     zenoh_config.add_arguments(p)
@@ -588,6 +591,10 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         raise InputError("hosts", "the hosts file names every endpoint: no zenoh flags with --hosts")
     if args.network != "auto" and (plan is not None or not zopts.is_default):
         raise InputError("network", "chooses the shape of a run on one host: not with --hosts or zenoh flags")
+    if args.network == "simulated":  # every process in this one (sim.simulated)
+        return verdict(simulated.run(args, spec, scn, out), args)
+    if simulated.given(args):
+        raise InputError("network", "the --net-* options need --network simulated")
     realtime.from_args(args)
     if plan is None and forks.enabled() and not zygotes:
         zygotes.append(forks.Zygote())

@@ -101,7 +101,7 @@ def test_one_seed_one_run_event_for_event():
 
 
 def test_a_run_does_not_depend_on_the_hash_seed():
-    code = ("from tests.test_simnet import ping_pong; from diskf_mesh.mesh.simnet import Link;"
+    code = ("import sys; sys.path.insert(0, 'tests'); from test_simnet import ping_pong; from diskf_mesh.mesh.simnet import Link;"
             "print(ping_pong(3, link=Link(delay=0.001, jitter=0.01, loss=0.3, duplicate=0.3, reorder=0.3), "
             "n=20)[1].digest)")
     digests = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,

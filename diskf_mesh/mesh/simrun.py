@@ -1,0 +1,114 @@
+"""A whole mesh run on the simulated network (``mesh.simnet``).
+
+``simulate_run`` puts the world (``mesh.world_machine``) and every agent of a
+scenario (``mesh.agent_machine``) as machines on one ``SimNet``, each under
+its own identity of the run's access rules (``credentials.access_control``),
+runs it on the virtual clock, and checks the result the way every run is
+checked (``mesh.run_status``: the engine replays what each agent said it
+fused). A ``SimPlan`` says what the network does: the links, a fault plan
+(pauses, crashes, restarts, interrupts), twins (a second process holding
+an agent's id), late starts. The agents' own link faults (``FaultConfig``,
+the plan every run can recompute from its seed) come with ``faults``.
+
+Process ids: ``world``, ``agent-<id>``, a twin ``agent-<id>~<n>``; a world
+twin ``world~<n>``.
+
+May import: core, estimators, data, engine (the mesh layer).
+"""
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass, field
+
+from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.data.scenario import Scenario
+from diskf_mesh.data.trace import Trace
+from diskf_mesh.mesh import credentials
+from diskf_mesh.mesh.agent_machine import AgentMachine, AgentTiming
+from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.log import Log
+from diskf_mesh.mesh.run_status import run_status
+from diskf_mesh.mesh.simnet import Lease, Link, Outcome, SimNet
+from diskf_mesh.mesh.world_machine import WorldMachine, WorldTiming
+
+WORLD = "world"
+
+
+def agent_pid(agent_id, twin: int = 0) -> str:
+    return credentials.agent_identity(agent_id) + (f"~{twin}" if twin else "")
+
+
+@dataclass(frozen=True)
+class SimPlan:
+    """What the simulated network does to a run."""
+
+    link: Link = Link()
+    links: object = None             # (sender pid, receiver pid) -> Link or None (``link``)
+    faults: tuple = ()               # simnet.Fault, ...
+    twins: tuple = ()                # (agent id or "world", start time), ...: a second process of that id
+    late: dict = field(default_factory=dict)  # agent id -> start time (default 0)
+    lease: Lease = Lease()
+    secure: bool = True              # the credentials' access rules (False: anyone may do anything)
+    world_timing: WorldTiming = WorldTiming()
+    agent_timing: AgentTiming = AgentTiming()
+    max_time: float = 3600.0
+
+
+@dataclass
+class SimRun:
+    outcome: Outcome
+    world: WorldMachine              # the world of the run (its last incarnation)
+    status: object                   # engine.verify.RunStatus, or None if the world never finished
+    log: str                         # every process's lines
+
+    @property
+    def record(self):
+        return self.world.record
+
+
+def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_seed: int | None = None,
+                 plan: SimPlan = SimPlan(), faults: FaultConfig | None = None, run_id: str = "sim",
+                 keep_lines: bool = False, quiet: bool = True, verify: bool = True, progress=None,
+                 recorder=None) -> SimRun:
+    """The run of ``scn`` (simulated as ``trace``, seed ``seed``) with
+    ``algorithm`` on the simulated network seeded by ``net_seed`` (default
+    ``seed``) under ``plan``. ``quiet``: the processes' lines go to
+    ``SimRun.log`` instead of stderr; ``progress(k)``, ``recorder``: the
+    world's observers (``WorldMachine``)."""
+    keys = Keys(run_id)
+    ids = tuple(a.id for a in scn.agents)
+    stream = io.StringIO() if quiet else None
+    policy = credentials.access_control(run_id, ids, observer=False, router=False) if plan.secure else None
+    net = SimNet(seed if net_seed is None else net_seed, link=plan.link, links=plan.links, policy=policy,
+                 lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time)
+
+    def world(boot):
+        first = boot.pid == WORLD and boot.incarnation == 0  # the observers watch the run's own world
+        return WorldMachine(scn, trace, algorithm, seed, keys, boot.nonce, plan.world_timing, faults=faults,
+                            log=Log(f"world {boot.pid}#{boot.incarnation}" if boot.incarnation else boot.pid, stream),
+                            progress=progress if first else None, recorder=recorder if first else None)
+
+    def agent(i):
+        def make(boot):
+            who = f"agent {i}" + (f" ({boot.pid}#{boot.incarnation})" if boot.incarnation or "~" in boot.pid else "")
+            return AgentMachine(scn, i, algorithm, keys, boot.nonce, plan.agent_timing, faults=faults,
+                                log=Log(who, stream))
+        return make
+
+    net.add(WORLD, world, identity=credentials.WORLD)
+    for i in ids:
+        net.add(agent_pid(i), agent(i), identity=credentials.agent_identity(i), at=float(plan.late.get(i, 0.0)))
+    for n, (who, at) in enumerate(plan.twins, start=1):
+        if who == WORLD:
+            net.add(f"{WORLD}~{n}", world, identity=credentials.WORLD, at=float(at))
+        else:
+            net.add(agent_pid(who, n), agent(who), identity=credentials.agent_identity(who), at=float(at))
+    net.plan(plan.faults)
+    out = net.run()
+    w = out.machines[WORLD]
+    status = None
+    if verify and WORLD in out.finishes and w.record.reported.any():
+        status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
+                            labels=scn.labels)
+    return SimRun(out, w, status, stream.getvalue() if stream is not None else "")
+

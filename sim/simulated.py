@@ -1,0 +1,133 @@
+"""``diskf-mesh up --network simulated``: the whole mesh in this one process.
+
+The world and every agent run their real protocol machines
+(``mesh.world_machine``, ``mesh.agent_machine``: the encoders, the guard,
+the estimators, the rejoin, the run's access rules) on the deterministic
+simulated network (``mesh.simnet``, ``mesh.simrun``) instead of zenoh: a
+virtual clock, and links with a latency and loss model seeded by
+``--net-seed`` (default ``--seed``). The run is checked and reported as a
+process mesh's is (the engine's replay, the status, the results table and
+JSON, the exit status), so a user studies 1,000 agents, or a network slower
+than loopback, on a laptop. The time a run takes on the network is virtual:
+the line after the run gives it next to the wall time.
+
+    --net-delay-ms MS    one-way delay of every link (default 0.2)
+    --net-jitter-ms MS   plus a uniform extra delay in [0, MS) per copy
+    --net-loss P         each agent-to-agent message is lost with probability P
+                         (the network's loss, outside the run's fault plan:
+                         what is lost is not fused, so the run is degraded)
+    --net-seed S         the network's seed
+
+The run's own seeded link faults (``--loss``, ``--latency-ms``, ...) apply
+in each agent as in a process mesh (the run is then ``as planned``).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.argtypes import fraction, milliseconds, seed_value
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("simulated network (--network simulated)")
+    g.add_argument("--net-delay-ms", type=milliseconds, default=0.2, metavar="MS",
+                   help="one-way delay of every link (default %(default)s)")
+    g.add_argument("--net-jitter-ms", type=milliseconds, default=0.0, metavar="MS",
+                   help="a uniform extra delay in [0, MS) per copy (default %(default)s)")
+    g.add_argument("--net-loss", type=fraction, default=0.0, metavar="P",
+                   help="probability that the network loses an agent's message (default %(default)s)")
+    g.add_argument("--net-seed", type=seed_value, default=None, metavar="S",
+                   help="the simulated network's seed (default: --seed)")
+
+
+def given(args: argparse.Namespace) -> bool:
+    """Whether a --net-* option was given (they need --network simulated)."""
+    return (args.net_delay_ms, args.net_jitter_ms, args.net_loss, args.net_seed) != (0.2, 0.0, 0.0, None)
+
+
+def run(args: argparse.Namespace, spec, scn, out) -> dict:
+    """The run; prints what ``up`` prints and returns the results row (for ``up``'s verdict)."""
+    from tqdm import tqdm
+
+    from diskf_mesh.data import provenance
+    from diskf_mesh.data.faults import from_args as faults_from_args
+    from diskf_mesh.data.outputs import save_json
+    from diskf_mesh.data.scenario import simulate
+    from diskf_mesh.mesh import clock as realtime
+    from diskf_mesh.mesh import runspec
+    from diskf_mesh.mesh.agent_machine import AgentTiming
+    from diskf_mesh.mesh.keys import Keys
+    from diskf_mesh.mesh.simnet import Link
+    from diskf_mesh.mesh.simrun import SimPlan, simulate_run
+    from diskf_mesh.mesh.world_machine import WorldTiming
+    from diskf_mesh.studies.experiment import format_table
+    from sim.world import (checked_status, deadline_summary, estimates_doc, open_recorder, result_metrics,
+                           run_summary, status_fields)
+
+    for flag, value in (("live", getattr(args, "live", None)), ("profile", args.profile), ("logs", args.logs)):
+        if value:
+            raise InputError(flag, "is for process meshes, not --network simulated")
+    clock = realtime.from_args(args)
+    faults = faults_from_args(args, scn.faults)
+    trace = simulate(scn, [args.seed])
+    K, N = trace.has.shape[1], len(scn.agents)
+    net_seed = args.seed if args.net_seed is None else args.net_seed
+    keys = Keys(spec.run_id)
+    link = Link(delay=args.net_delay_ms / 1000, jitter=args.net_jitter_ms / 1000, loss=args.net_loss,
+                faulty=keys.msgs)
+    world_timing = WorldTiming(args.startup_timeout, args.tick_timeout, clock=clock)
+    agent_timing = AgentTiming(args.collect_timeout, args.startup_timeout + 2 * args.tick_timeout, clock)
+    bound = args.startup_timeout + K * (args.tick_timeout + args.collect_timeout) + 60.0
+    plan = SimPlan(link, secure=not args.insecure, world_timing=world_timing, agent_timing=agent_timing,
+                   max_time=bound)
+    prov = provenance.record(scenario=scn, seeds=[args.seed], ticks=K, estimator=spec.algorithm,
+                             settings=scn.params, faults=faults, started=provenance.now(),
+                             argv=getattr(args, "argv", None))
+    recorder = open_recorder(args.record, trace, scn, spec, args.seed, faults, prov) if args.record else None
+    bar = tqdm(total=K, desc=f"{spec.algorithm} x {N} agents, simulated network", unit="tick", file=sys.stderr,
+               disable=args.quiet or not sys.stderr.isatty())
+    t0 = time.monotonic()
+    try:
+        r = simulate_run(scn, trace, spec.algorithm, args.seed, net_seed=net_seed, plan=plan, faults=faults,
+                         run_id=spec.run_id, verify=False, progress=lambda k: bar.update(1), recorder=recorder)
+    finally:
+        bar.close()
+    wall = time.monotonic() - t0
+    rec, end = r.record, r.outcome.finishes.get("world")
+    if end is not None and end.code and not rec.reported.any():
+        if recorder is not None:
+            recorder.finish(f"failed: {end.reason}")
+        raise SystemExit(f"error: world: {end.reason}")
+    row = result_metrics(trace, rec)
+    summary = run_summary(rec, faults)
+    if clock is not None:
+        summary.update(deadline_summary(rec, clock))
+    status = checked_status(rec, trace, scn, spec, args.seed, faults, clock)
+    summary.update(status_fields(status))
+    summary["network"] = {"kind": "simulated", "delay_ms": args.net_delay_ms, "jitter_ms": args.net_jitter_ms,
+                          "loss": args.net_loss, "seed": net_seed, "virtual_s": r.outcome.end,
+                          "events": r.outcome.events, "wall_s": wall, "digest": r.outcome.digest}
+    if recorder is not None:
+        recorder.finish("done" if r.world.done else "stopped", row, status.to_json())
+    results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
+    prov["status"] = status.status
+    save_json(out, provenance.attach(results, prov), "json")
+    if args.estimates:
+        doc = estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row)
+        doc.update(faults=summary["faults"], missing_ticks=summary["missing_ticks"], **status_fields(status))
+        save_json(args.estimates, provenance.attach(doc, prov), "estimates")
+    if r.log:
+        sys.stderr.write(r.log)
+    rate = K / wall if wall > 0 else math.inf
+    print(f"{scn.name}: {N} agents + world on a simulated network (delay {args.net_delay_ms:g} ms, jitter "
+          f"{args.net_jitter_ms:g} ms, loss {args.net_loss:g}, network seed {net_seed}), {K} ticks, seed {args.seed}, "
+          f"run {spec.run_id}; {r.outcome.end:.3f} s of network time in {wall:.2f} s, {rate:.1f} ticks/s, "
+          f"{r.outcome.events} events")
+    print(format_table(results))
+    print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
+          + (f", recording: {args.record}" if args.record else ""))
+    return results[spec.algorithm][runspec.setting_label(scn)]

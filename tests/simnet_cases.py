@@ -1,0 +1,217 @@
+"""Schedules for the simulated network's property tests, and the invariants
+every run must keep.
+
+``build(draw)`` makes one ``Case`` (a small world, a link model, a fault
+plan) from a source of choices: hypothesis (``from_hypothesis``: shrinks to
+a small failing case) or one integer seed (``from_seed``: a sweep, and a
+seed that replays alone). ``run(case)`` runs it; ``check(case, run)``
+asserts the invariants:
+
+    (a) a run reported ``exact`` equals the engine on the nominal links, bit for bit
+    (b) any other run names the agent-ticks whose fused set differs from
+        the plan, and the engine's replay of the fused sets reproduces every
+        verifiable estimate (an honest run never ``diverged``)
+    (c) nothing is fused from a sender not linked at that tick
+    (d) every run ends in bounded virtual time with a status
+    (e) a rejoining agent starts from a neighbour's estimate whenever a
+        neighbour in range reported the tick before
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.engine import batch
+from diskf_mesh.engine.verify import nominal_links
+from diskf_mesh.mesh.agent_machine import AgentTiming
+from diskf_mesh.mesh.events import FREEZE_S
+from diskf_mesh.mesh.simnet import Fault, Lease, Link
+from diskf_mesh.mesh.simrun import WORLD, SimPlan, agent_pid, simulate_run
+from diskf_mesh.mesh.world_machine import WorldTiming
+from diskf_mesh.recording.replay import compare_reported
+
+ALGORITHMS = ("diskf", "diskf", "diskf", "kcf", "diffkf", "diskf-r")
+MSGS = "diskf/sim/agent/*/msg/**"
+STATUSES = ("exact", "as planned", "degraded", "diverged", "incomplete")
+
+
+@dataclass(frozen=True)
+class Case:
+    agents: int
+    ticks: int
+    algorithm: str
+    seed: int
+    link: Link = Link()
+    faults: tuple = ()          # simnet.Fault
+    twins: tuple = ()           # (agent id or "world", start time)
+    late: tuple = ()            # (agent id, start time)
+    injected: FaultConfig | None = None  # the agents' own seeded link faults (the plan)
+    lease: Lease = Lease()
+    world_timing: WorldTiming = WorldTiming()
+    agent_timing: AgentTiming = AgentTiming()
+    scenario: str = "random-geometric"
+    notes: tuple = field(default=(), compare=False)
+
+    @property
+    def bound(self) -> float:
+        """Virtual time a run may take: start-up, every tick at its timeout,
+        every pause, the agents' patience with a silent world, the leave."""
+        w, a = self.world_timing, self.agent_timing
+        paused = sum(f.duration for f in self.faults if f.kind == "pause")
+        started = max([0.0] + [t for _, t in self.twins] + [t for _, t in self.late])
+        return started + w.startup_timeout * 3 + self.ticks * (w.tick_timeout + a.collect_timeout) + paused \
+            + a.world_timeout * 2 + w.leave_timeout + self.lease.lease * (1 + len(self.faults))
+
+
+def build(draw) -> Case:
+    """One case from ``draw``: ``draw.int(lo, hi)`` and ``draw.pick(seq)``."""
+    N, K = draw.int(3, 9), draw.int(20, 60)
+    algorithm = draw.pick(ALGORITHMS)
+    seed = draw.int(0, 2 ** 16)
+    wt, at, lease = WorldTiming(), AgentTiming(), Lease()
+    delay = draw.pick((0.0002, 0.002, 0.02))
+    jitter = draw.pick((0.0, delay, 10 * delay))
+    # durations around every timeout of the protocol
+    timeouts = (FREEZE_S, at.collect_timeout, wt.tick_timeout, lease.lease, wt.startup_timeout, at.world_timeout)
+    around = lambda: max(0.001, draw.pick(timeouts) + draw.pick((-0.3, -0.01, 0.01, 0.3)))  # noqa: E731
+    hold = draw.pick((2 * delay, at.collect_timeout * 0.9, at.collect_timeout * 1.1))
+    link = Link(delay, jitter)
+    if draw.int(0, 3) == 0:  # the network loses, duplicates and reorders agents' messages
+        link = Link(delay, jitter, loss=draw.pick((0.0, 0.05, 0.3)), duplicate=draw.pick((0.0, 0.1, 0.5)),
+                    reorder=draw.pick((0.0, 0.1, 0.5)), hold=hold, faulty=MSGS)
+    elif draw.int(0, 5) == 0:  # every sample may come twice
+        link = Link(delay, jitter, duplicate=draw.pick((0.1, 0.5)), hold=hold)
+    injected = None
+    if draw.int(0, 4) == 0:
+        injected = FaultConfig(loss=draw.pick((0.0, 0.1, 0.3)), duplicate=draw.pick((0.0, 0.1)),
+                               latency_ms=draw.pick((0.0, 1.0)), jitter_ms=draw.pick((0.0, 1.0)),
+                               reorder=draw.pick((0.0, 0.1)))
+    pids = [WORLD] + [agent_pid(i) for i in range(1, N + 1)]
+    events = K * N * 8
+    faults = []
+    for _ in range(draw.pick((0, 0, 1, 1, 2, 3))):
+        kind = draw.pick(("pause", "pause", "crash", "crash-restart", "world-pause", "interrupt"))
+        pid = WORLD if kind == "world-pause" else draw.pick(pids[1:] if kind != "interrupt" else pids)
+        e = draw.int(1, events)
+        if kind in ("pause", "world-pause"):
+            faults.append(Fault("pause", pid, after_event=e, duration=around()))
+        elif kind == "interrupt":
+            faults.append(Fault("interrupt", pid, after_event=e, why=draw.pick(("SIGTERM", "SIGINT"))))
+        else:
+            faults.append(Fault("crash", pid, after_event=e, lease=bool(draw.int(0, 1))))
+            if kind == "crash-restart":
+                faults.append(Fault("restart", pid, after_event=e + draw.int(1, events)))
+    twins = ()
+    if draw.int(0, 7) == 0:
+        twins = ((draw.int(1, N), draw.pick((0.0, 0.0001, delay * K))),)
+    late = ()
+    if draw.int(0, 7) == 0:
+        late = ((draw.int(1, N), draw.pick((0.001, delay * K / 2, around()))),)
+    return Case(N, K, algorithm, seed, link, tuple(faults), twins, late, injected, lease, wt, at)
+
+
+class _Hypothesis:
+    def __init__(self, data):
+        self.data = data
+
+    def int(self, lo, hi):
+        from hypothesis import strategies as st
+        return self.data.draw(st.integers(lo, hi))
+
+    def pick(self, seq):
+        from hypothesis import strategies as st
+        return self.data.draw(st.sampled_from(seq))
+
+
+class _Seeded:
+    def __init__(self, seed):
+        self.rng = np.random.default_rng([0x5EED, seed])
+
+    def int(self, lo, hi):
+        return int(self.rng.integers(lo, hi + 1))
+
+    def pick(self, seq):
+        return seq[int(self.rng.integers(len(seq)))]
+
+
+def from_hypothesis(data) -> Case:
+    return build(_Hypothesis(data))
+
+
+def from_seed(seed: int) -> Case:
+    return build(_Seeded(seed))
+
+
+@functools.lru_cache(maxsize=64)
+def world(scenario: str, N: int, K: int, seed: int):
+    scn = load_scenario(scenario, agents=N).with_overrides(steps=K)
+    return scn, simulate(scn, [seed])
+
+
+def run(case: Case, keep_lines: bool = False):
+    scn, trace = world(case.scenario, case.agents, case.ticks, case.seed)
+    plan = SimPlan(case.link, faults=case.faults, twins=case.twins, late=dict(case.late), lease=case.lease,
+                   world_timing=case.world_timing, agent_timing=case.agent_timing, max_time=case.bound)
+    return simulate_run(scn, trace, case.algorithm, case.seed, plan=plan, faults=case.injected,
+                        keep_lines=keep_lines)
+
+
+def check(case: Case, r) -> None:
+    """The invariants (module docstring); an AssertionError names the broken one."""
+    scn, trace = world(case.scenario, case.agents, case.ticks, case.seed)
+    out, rec = r.outcome, r.record
+    # (d) bounded, with a status
+    assert out.bounded, f"(d) the run did not end by t={case.bound:g} (last event at {out.end:g})"
+    assert WORLD in out.finishes or _world_crashed(case), "(d) the world never finished"
+    if r.status is None:
+        assert _world_crashed(case) or not rec.reported.any(), "(d) a run that reported has no status"
+        return
+    st = r.status
+    assert st.status in STATUSES, st
+    K = rec.reported.shape[0]
+    live = rec.live
+    nominal = nominal_links(trace, K, live)
+    N = nominal.shape[-1]
+    off = ~np.eye(N, dtype=bool)
+    fused = rec.fused & off
+    # (c) nothing fused from a sender not linked (in range, both live) at that tick
+    stray = fused & ~nominal
+    assert not stray.any(), f"(c) fused a sender not linked: (tick, agent, sender) {np.argwhere(stray)[:5] + [1, 0, 0]}"
+    # (a) exact: the engine on the nominal links, bit for bit
+    if st.status == "exact":
+        assert rec.reported.all(), "(a) exact with agent-ticks missing"
+        est = batch.run(trace, case.algorithm, scn.params)
+        cmp = compare_reported(rec.estimates(), rec.reported, _first(est, K))
+        assert cmp.equal, f"(a) exact but {cmp.differing} agent-ticks differ from the engine (max {cmp.max_abs:g})"
+        assert (fused == nominal & off)[rec.reported].all()
+    # (b) an honest run never diverges; a shortfall is counted agent-tick by agent-tick
+    assert st.status != "diverged", f"(b) honest run diverged: {st.reason}"
+    if st.status in ("degraded", "as planned", "incomplete"):
+        short = rec.reported[..., None] & nominal & off & ~fused
+        if st.status == "degraded" and case.injected is None:
+            assert st.evidence["degraded"]["agent_ticks"] == int(short.any(-1).sum()), "(b) degraded count"
+        if rec.reported.all():
+            assert st.evidence["differing"] == 0, f"(b) {st.evidence['differing']} estimates not reproduced"
+    # (e) a rejoin starts from a neighbour's estimate when a neighbour in range reported the tick before
+    ids = list(rec.ids)
+    for agent, rejoins in rec.rejoins.items():
+        j = ids.index(agent)
+        for rj in rejoins:
+            J = int(rj["tick"])
+            if J < 2 or rj["source"] is not None:
+                continue
+            near = [s for s in range(N) if s != j and trace.links[0, J - 2, j, s] and rec.reported[J - 2, s]]
+            assert not near, (f"(e) agent {agent} rejoined at tick {J} from the prior though "
+                              f"{[ids[s] for s in near]} in range reported tick {J - 1}")
+
+
+def _first(est, K):
+    return batch.Estimates(est.x[:, :K], est.P[:, :K], est.d[:, :K], est.d_valid[:, :K])
+
+
+def _world_crashed(case: Case) -> bool:
+    return any(f.pid == WORLD and f.kind in ("crash", "interrupt") for f in case.faults)
