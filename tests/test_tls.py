@@ -19,9 +19,11 @@ Whole mesh runs under attack: tests/test_attack_access.py.
 from __future__ import annotations
 
 import json
+import os
 import stat
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from cryptography import x509
@@ -209,6 +211,46 @@ def test_a_session_without_the_runs_certificate_gets_nothing_in_or_out(creds, ot
     except MeshError:
         pass
     assert sink.got == [] and heard == []
+
+
+def _listening() -> set:
+    """The local addresses (``/proc/net/tcp`` hex) of this process's
+    listening TCP sockets."""
+    inodes = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[len("socket:["):-1])
+    out = set()
+    for table in ("/proc/self/net/tcp", "/proc/self/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A" and fields[9] in inodes:  # LISTEN
+                out.add(fields[1].rsplit(":", 1)[0])
+    return out
+
+
+LOOPBACK_HEX = {"0100007F", "00000000000000000000000001000000"}  # 127.0.0.1, ::1
+
+
+@pytest.mark.skipif(not Path("/proc/self/net/tcp").exists(), reason="needs Linux's /proc/net/tcp")
+@pytest.mark.parametrize("how", ["credentials", "insecure", "--listen (control)"])
+def test_a_process_started_by_hand_listens_on_loopback_unless_told(creds, how):
+    before = _listening()
+    opts = {"credentials": session(creds, "agent-1"),
+            "insecure": ZenohOptions(insecure=True, no_multicast_scouting=True),
+            "--listen (control)": session(creds, "agent-1", listen=["tls/0.0.0.0:0"])}[how]
+    with ZenohTransport(opts):
+        time.sleep(0.3)
+        opened = _listening() - before
+    assert opened
+    if how == "--listen (control)":
+        assert opened == {"00000000"}
+    else:
+        assert opened <= LOOPBACK_HEX
 
 
 # --------------------------------------------------------------------------

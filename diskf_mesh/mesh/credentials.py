@@ -86,7 +86,6 @@ OBSERVER = "observer"
 ROUTER = "router"
 CA_FILE, CERT_FILE, KEY_FILE, RUN_FILE = "ca.pem", "cert.pem", "key.pem", "run.json"
 VALID_DAYS = 30
-DEFAULT_LISTEN = ("tls/[::]:0",)  # with credentials and no --listen (zenoh's own default is plain TCP)
 HOSTS = ("127.0.0.1", "localhost")  # subjectAltNames of every certificate, next to its identity
 
 

@@ -17,6 +17,9 @@
                                agent refuses to start without one of the two
 
 On one host, peers find each other with no flags (multicast scouting).
+Without ``--listen`` (or a configuration file), a process listens on
+loopback only (``LOOPBACK``: TLS with credentials, TCP with ``--insecure``),
+so nothing off this host reaches it unless told where to listen.
 Across hosts, or where multicast does not pass (Docker bridges), give the
 world a ``--listen`` endpoint and every agent ``--connect`` to it plus a
 ``--listen`` of its own: peers learn each other's endpoints from the world
@@ -37,6 +40,8 @@ from diskf_mesh.mesh import credentials as creds
 
 MODES = ("peer", "client", "router")
 STDIN = "-"  # --credentials -: the identities are on standard input (``credentials.bundle``)
+# where a process listens without --listen (zenoh's own default is plain TCP on every interface)
+LOOPBACK = {"tls": "tls/127.0.0.1:0", "tcp": "tcp/127.0.0.1:0"}
 
 
 @dataclass(frozen=True)
@@ -116,8 +121,8 @@ class ZenohOptions:
             if self.identity is None:
                 raise InputError("credentials", "whose credentials? (no identity given)")
             settings += creds.zenoh_settings(self.identity_of(self.identity, self.run_id))
-            if not self.listen and not self.config_file and self.mode != "client":  # zenoh's default is plain TCP
-                settings.append(("listen/endpoints", json.dumps(list(creds.DEFAULT_LISTEN))))
+        if not self.listen and not self.config_file and self.mode != "client":
+            settings.append(("listen/endpoints", json.dumps([LOOPBACK["tls" if self.credentials else "tcp"]])))
         if self.mode:
             settings.append(("mode", json.dumps(self.mode)))
         if self.connect:
@@ -145,7 +150,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--connect", "-e", metavar="ENDPOINT", action="append", default=[],
                    help="endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable)")
     g.add_argument("--listen", "-l", metavar="ENDPOINT", action="append", default=[],
-                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; default: loopback only)")
     g.add_argument("--no-multicast-scouting", action="store_true", help="disable multicast scouting")
     g.add_argument("--zenoh-config", metavar="FILE", help="a zenoh configuration file (JSON5)")
     g.add_argument("--cfg", metavar="KEY:VALUE", action="append", default=[],
