@@ -194,7 +194,10 @@ def test_a_rejoining_agent_asks_the_world_and_starts_from_its_answer(run):
     out = m.handle(w.tick(J), 10.0)
     ask, = of(out, Ask)
     assert ask.key == m.keys.start(me) and wire.decode_join(ask.payload, sender=me).tick == J
-    assert of(out, Publish) == []                       # no message before the start is in
+    confirm, = of(out, AskTokens)                       # and once more: does another process hold the id?
+    assert confirm.key == m.keys.alive(me)
+    assert of(out, Publish) == []                       # no message before both are in
+    assert of(m.handle(Tokens(confirm.qid, (m.keys.alive(me, "n5"),)), 10.05), Publish) == []
     x, P = np.array([3.0, -1.0]), np.diag([0.5, 0.25])
     out = m.handle(Reply(ask.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 10.1)
     assert Publish(m.keys.rejoin(me), wire.encode_rejoin(RUN, me, J, 7)) in out
@@ -211,7 +214,9 @@ def test_an_answer_that_fails_the_guard_leaves_the_prior(run):
     m, _ = started(scn, me, ticking=True)
     m.handle(w.tick(3, live=[i for i in w.ids if i != me]), 0.0)
     m.handle(w.meas(4, me), 10.0)
-    ask, = of(m.handle(w.tick(4), 10.0), Ask)
+    out = m.handle(w.tick(4), 10.0)
+    ask, = of(out, Ask)
+    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), 10.0)
     bad = wire.encode_start(RUN, me, 4, 2, np.array([1.0, 0.0]), np.diag([1e-6, 1e6]), np.zeros(1), False)
     m.handle(Reply(ask.qid, bad), 10.1)
     assert m.rejoins == [(4, None)] and m.counters.rejected == {"ill-conditioned": 1}
@@ -226,8 +231,31 @@ def test_no_answer_in_time_starts_from_the_prior(run):
     m.handle(w.meas(4, me), 10.0)
     out = m.handle(w.tick(4), 10.0)
     assert SetTimer("ask", 10.0 + ASK_S) in out
+    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), 10.0)
     out = m.handle(Timer("ask"), 10.0 + ASK_S)
     assert m.rejoins == [(4, None)] and len([e for e in of(out, Publish) if "/msg/" in e.key]) == 1
+
+
+def test_a_late_joiner_that_finds_its_id_held_just_before_joining_leaves(run):
+    """A second process of an id, started while the run goes, whose claim
+    did not see the first (its session had not heard every token yet): the
+    world counts the id live (the first process), so this one would join;
+    its second query before the first tick finds the first: exit 2, and
+    nothing of it is published."""
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, out = started(scn, me, ticking=True)
+    m.handle(w.meas(6, me), 1.0)
+    out = m.handle(w.tick(6), 1.0)
+    confirm, = of(out, AskTokens)
+    ask, = of(out, Ask)
+    out = m.handle(Reply(ask.qid, wire.encode_start(RUN, me, 6, None, np.zeros(2), np.eye(2), np.zeros(1), False)),
+                   1.1)
+    assert of(out, Publish) == []
+    out = m.handle(Tokens(confirm.qid, (m.keys.alive(me, "n0"), m.keys.alive(me, "n5"))), 2.0)
+    fin, = out
+    assert fin.code == 2 and "n0" in fin.reason and m.est is None
 
 
 def test_another_process_with_this_id_makes_this_one_leave_with_2(run):

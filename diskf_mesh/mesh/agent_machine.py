@@ -171,6 +171,8 @@ class AgentMachine:
         self.rejoining = False    # joining a run in progress: starts from the world's answer
         self._asked = None        # (qid, tick) of the query for the starting estimate
         self._start = None        # (tick, wire.Start or None) the world's answer (None: the prior)
+        self._confirm_qid = None  # a late joiner's second liveliness query for its id, just before it joins
+        self._confirmed = False   # ... answered: no other process holds the id
         self.rejoins = []         # (tick, source) of every re-initialisation
         self._worked = False      # has made an estimator once
         self._started_late = False  # ... first at a tick after 1, re-initialised (a restart, a late twin)
@@ -219,7 +221,10 @@ class AgentMachine:
         elif kind is Reply:
             self._on_reply(event.qid, event.payload)
         elif kind is Tokens:
-            self._on_claim(event.qid, event.keys, now)
+            if event.qid == self._confirm_qid:
+                self._on_confirm(event.keys)
+            else:
+                self._on_claim(event.qid, event.keys, now)
         elif kind is Woke:
             if event.late > FREEZE_S:
                 self._woke_at = now
@@ -630,6 +635,17 @@ class AgentMachine:
         self.phase = "gather"
         self._out.append(DeclareToken(self.keys.alive(self.id, self.nonce)))
 
+    def _on_confirm(self, keys) -> None:
+        """A process that found the run in progress asks once more, just
+        before its first tick, whether another process holds its id: the
+        world counts an id live whichever process holds it, and a session
+        that started a moment ago may not have heard every token at its
+        claim. Another one: this one leaves (exit 2)."""
+        others = ({nonce_of(k) for k in keys} | self.alive_tokens.get(self.id, set())) - {self.nonce}
+        if others:
+            return self._duplicate(min(others), "it holds this id in the run this one joined late")
+        self._confirmed = True
+
     def _peers_seen(self) -> bool:
         """The agents the world counts live at its newest tick are seen (so
         this agent's first message reaches them)."""
@@ -671,12 +687,16 @@ class AgentMachine:
         if self.k not in self.meas:
             return
         k, restart = self.k, self.rejoining and self.k > 1  # at tick 1 all start alike
-        if restart and (self._start is None or self._start[0] != k):
+        confirm = restart and self._late() and not self._confirmed
+        if restart and (self._start is None or self._start[0] != k or confirm):
             if self._asked is None or self._asked[1] != k:
                 qid = next(self._qids)
                 self._asked, self._start = (qid, k), None
                 self._out += [Ask(qid, self.keys.start(self.id), wire.encode_join(self.keys.run_id, self.id, k),
                                   ASK_S), SetTimer("ask", now + ASK_S)]
+            if confirm and self._confirm_qid is None:
+                self._confirm_qid = next(self._qids)
+                self._out.append(AskTokens(self._confirm_qid, self.keys.alive(self.id), CLAIM_S))
             return
         t = self.ticks[k]
         mine_ = (self.algorithm, self.scn.topology, self.scn.comm_range)

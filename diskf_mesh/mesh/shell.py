@@ -13,9 +13,11 @@ run as a process:
                   event goes to the machine on that thread, with no hop to
                   another (a report that completes a tick opens the next in
                   zenoh's callback)
-    the main      thread starts the machine, runs the liveliness queries
-                  (``AskTokens``, outside the lock: they wait on the
-                  network), fires the timers (``Timer``) when they are due,
+    the main      thread starts the machine, does the liveliness work
+                  (``AskTokens``, ``DeclareToken``, ``DropToken``, in order,
+                  outside the lock and off the transport's thread: they wait
+                  on the network, and a callback held up would stall every
+                  sample behind it), fires the timers (``Timer``) when they are due,
                   and sleeps until the earliest one (at most ``POLL_S`` at a
                   time). Waking more than ``FREEZE_S`` later than planned,
                   or a callback finding the main thread that late, means the
@@ -59,7 +61,7 @@ class Shell:
         self._tokens = {}             # key -> the transport's token
         self._queries = {}            # qid -> reply function of a query the machine has not answered yet
         self._qids = itertools.count(1)
-        self._asks = []               # AskTokens for the main thread
+        self._asks = []               # AskTokens, DeclareToken, DropToken for the main thread, in order
         self._finish: Finish | None = None
         self._failure: BaseException | None = None
         self._interrupt = ""          # set by ``interrupt`` (no lock: a signal handler may call it)
@@ -121,15 +123,9 @@ class Shell:
                 self.transport.watch_tokens(e.key, lambda key, up: self._feed(Token(key, bool(up))))
             elif isinstance(e, DeclareQueryable):
                 self.transport.declare_queryable(e.key, self._on_query)
-            elif isinstance(e, DeclareToken):
-                self._tokens[e.key] = self.transport.declare_token(e.key)
-            elif isinstance(e, DropToken):
-                token = self._tokens.pop(e.key, None)
-                if token is not None:
-                    token.undeclare()
             elif isinstance(e, Ask):
                 self.transport.query(e.key, e.payload, e.timeout, lambda p, qid=e.qid: self._feed(Reply(qid, p)))
-            elif isinstance(e, AskTokens):
+            elif isinstance(e, (AskTokens, DeclareToken, DropToken)):  # the main thread, off the lock
                 self._asks.append(e)
                 self._cv.notify_all()
             elif isinstance(e, Finish):
@@ -151,10 +147,17 @@ class Shell:
         while True:
             with self._cv:
                 asks, self._asks = self._asks, []
-            for a in asks:  # a liveliness query waits on the network: not under the lock
-                keys = tuple(self.transport.tokens(a.key, a.timeout))
-                with self._cv:
-                    self._handle(Tokens(a.qid, keys))
+            for a in asks:  # liveliness waits on the network: not under the lock, not on its thread
+                if isinstance(a, DeclareToken):
+                    self._tokens[a.key] = self.transport.declare_token(a.key)
+                elif isinstance(a, DropToken):
+                    token = self._tokens.pop(a.key, None)
+                    if token is not None:
+                        token.undeclare()
+                else:
+                    keys = tuple(self.transport.tokens(a.key, a.timeout))
+                    with self._cv:
+                        self._handle(Tokens(a.qid, keys))
             with self._cv:
                 if self._failure is not None:
                     raise self._failure
