@@ -14,6 +14,7 @@ it, all at once, from before the first tick to the end:
   run's own CA, taken from agent 3's memory (agent 3 compromised: all it
   holds is its own identity, tests/test_identities.py).
   It publishes the same forgeries for every other agent and for the world,
+  on its own key a report with x = 1e300 (refused by the world's decoder),
   and replays every message
   addressed to it with its tick rewritten (one ahead), on the real sender's
   key and on its own; and it subscribes to every measurement and every
@@ -221,12 +222,17 @@ def attacked(tmp_path_factory):
                 att.transport.put(key, forged)                                  # as the real sender
                 att.transport.put(keys.msg(INSIDER, to=[sender]), forged)       # on its own key
 
+        forge_others = forgeries(run_id, ids, skip=(INSIDER,))
+
+        def forge(k):  # and on its own key, a report no honest agent could send (x = 1e300)
+            return forge_others(k) + [(keys.report(INSIDER), wire.encode_report(
+                run_id, INSIDER, k, np.array([1e300, 0.0]), 0.1 * np.eye(2), np.zeros(1), True))]
+
         insider = Attacker("agent 3's certificate",
                            replace(stolen, connect=(f"tls/127.0.0.1:{port}",), listen=("tls/127.0.0.1:0",),
                                    no_multicast_scouting=True, identity=credentials.agent_identity(INSIDER),
                                    run_id=run_id),
-                           [keys.msg_to(INSIDER)], insider_keys, forgeries(run_id, ids, skip=(INSIDER,)),
-                           on_sample=replay)
+                           [keys.msg_to(INSIDER)], insider_keys, forge, on_sample=replay)
         insider.replays = []
         attackers.append(insider)
         # and what agent 3 may not hear: the others' measurements, and everything
@@ -272,6 +278,13 @@ def test_an_uncredentialed_session_hears_nothing_and_gets_nothing_in(attacked, w
     listener, speaker = attacked["attackers"][who], attacked["attackers"][f"{who} speaking"]
     assert listener.heard == [], (who, listener.heard[:5])
     assert speaker.error is not None or speaker.puts > 0  # it tried (or zenoh would not even open it)
+
+
+def test_a_forged_report_on_the_insiders_own_key_is_refused(attacked):
+    est = json.loads((attacked["tmp"] / "est.json").read_text())
+    assert est["world_counters"].get("rejected:magnitude", 0) > 0  # they came, and every one was refused
+    assert np.abs(np.array(est["x"], dtype=float)).max() < 1e6
+    assert_run_intact(attacked)
 
 
 def test_a_credentialed_agent_cannot_speak_or_listen_for_another(attacked):
