@@ -148,7 +148,7 @@ def from_seed(seed: int) -> Case:
 
 @functools.lru_cache(maxsize=64)
 def world(scenario: str, N: int, K: int, seed: int):
-    scn = load_scenario(scenario, agents=N).with_overrides(steps=K)
+    scn = load_scenario(scenario, agents=N if scenario == "random-geometric" else None).with_overrides(steps=K)
     return scn, simulate(scn, [seed])
 
 

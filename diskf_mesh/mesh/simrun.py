@@ -49,6 +49,9 @@ class SimPlan:
     late: dict = field(default_factory=dict)  # agent id -> start time (default 0)
     lease: Lease = Lease()
     secure: bool = True              # the credentials' access rules (False: anyone may do anything)
+    router: bool = False             # the rules have a router identity (that may put anything of the run)
+    wrap: dict = field(default_factory=dict)  # pid -> f(machine) -> machine (a compromised process)
+    extra: tuple = ()                # (pid, identity, factory(Boot), start time), ...: other processes
     world_timing: WorldTiming = WorldTiming()
     agent_timing: AgentTiming = AgentTiming()
     max_time: float = 3600.0
@@ -78,7 +81,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     keys = Keys(run_id)
     ids = tuple(a.id for a in scn.agents)
     stream = io.StringIO() if quiet else None
-    policy = credentials.access_control(run_id, ids, observer=False, router=False) if plan.secure else None
+    policy = credentials.access_control(run_id, ids, observer=False, router=plan.router) if plan.secure else None
     net = SimNet(seed if net_seed is None else net_seed, link=plan.link, links=plan.links, policy=policy,
                  lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time)
 
@@ -95,14 +98,20 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
                                 log=Log(who, stream))
         return make
 
-    net.add(WORLD, world, identity=credentials.WORLD)
+    def add(pid, factory, identity, at=0.0):
+        wrap = plan.wrap.get(pid)
+        net.add(pid, factory if wrap is None else (lambda boot: wrap(factory(boot))), identity=identity, at=at)
+
+    add(WORLD, world, credentials.WORLD)
     for i in ids:
-        net.add(agent_pid(i), agent(i), identity=credentials.agent_identity(i), at=float(plan.late.get(i, 0.0)))
+        add(agent_pid(i), agent(i), credentials.agent_identity(i), float(plan.late.get(i, 0.0)))
     for n, (who, at) in enumerate(plan.twins, start=1):
         if who == WORLD:
-            net.add(f"{WORLD}~{n}", world, identity=credentials.WORLD, at=float(at))
+            add(f"{WORLD}~{n}", world, credentials.WORLD, float(at))
         else:
-            net.add(agent_pid(who, n), agent(who), identity=credentials.agent_identity(who), at=float(at))
+            add(agent_pid(who, n), agent(who), credentials.agent_identity(who), float(at))
+    for pid, identity, factory, at in plan.extra:
+        add(pid, factory, identity, float(at))
     net.plan(plan.faults)
     out = net.run()
     w = out.machines[WORLD]

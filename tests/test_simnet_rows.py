@@ -1,0 +1,173 @@
+"""The attacks and faults that once ended in a wrong estimate reported as
+complete, driven on the simulated network with the real machines: each run
+now ends with a status that says what happened, and the estimates it
+reports are the engine's replay of what was fused.
+
+    a paused agent           longer than the collect timeout, shorter than the lease
+    a compromised process    holding only its own identity, it forges another agent's messages
+    an extreme message       an insider's own, well-formed, far out
+    a forged report          an agent's report with an absurd estimate
+    a rejoin                 a crashed agent restarts and starts from a neighbour's estimate
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from diskf_mesh import estimators
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.engine import batch
+from diskf_mesh.mesh import events as ev
+from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.agent_machine import AgentTiming
+from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.simnet import Fault, Link
+from diskf_mesh.mesh.simrun import SimPlan, agent_pid, simulate_run
+
+K = 40
+RUN = "sim"
+KEYS = Keys(RUN)
+EXCHANGED = estimators.get("diskf").exchanged
+
+
+@pytest.fixture(scope="module")
+def quadrants():
+    scn = load_scenario("quadrants").with_overrides(steps=K)  # four agents, every one linked to every other
+    return scn, simulate(scn, [0])
+
+
+def run(quadrants, **plan):
+    scn, trace = quadrants
+    return simulate_run(scn, trace, "diskf", 0, run_id=RUN, plan=SimPlan(Link(delay=0.002), **plan))
+
+
+class Tamper:
+    """A machine whose effects pass through ``edit(effect) -> effect``."""
+
+    def __init__(self, inner, edit):
+        self.inner, self.edit = inner, edit
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def start(self, now):
+        return [self.edit(e) for e in self.inner.start(now)]
+
+    def handle(self, event, now):
+        return [self.edit(e) for e in self.inner.handle(event, now)]
+
+
+def extreme(payload: bytes, sender: int) -> bytes:
+    m = wire.decode(payload, run_id=RUN, sender=sender, exchanged=EXCHANGED)
+    n = m.message.x_pred.shape[-1]
+    far = dataclasses.replace(m.message, x_pred=np.full(n, 9e11), x_upd=np.full(n, 9e11), P_pred=1e-6 * np.eye(n),
+                              P_upd=1e-6 * np.eye(n))
+    return wire.encode(RUN, sender, m.tick, far, EXCHANGED)
+
+
+def engine(quadrants):
+    scn, trace = quadrants
+    return batch.run(trace, "diskf", scn.params)
+
+
+def test_nominal_run_is_exact_and_the_engine(quadrants):
+    r = run(quadrants)
+    assert r.status.status == "exact"
+    assert np.array_equal(r.record.x, engine(quadrants).x[0])
+
+
+def test_a_paused_agent_is_degraded_not_complete(quadrants):
+    # agent 2 stops for 5 s at tick ~10: longer than the 2 s collect timeout, shorter than the 10 s lease
+    r = run(quadrants, agent_timing=AgentTiming(collect_timeout=2.0),
+            faults=(Fault("pause", agent_pid(2), at=10 * 3 * 0.002, duration=5.0),))
+    st = r.status
+    assert st.status == "degraded", st.reason
+    assert st.evidence["degraded"]["agent_ticks"] >= 1 and st.evidence["differing"] == 0
+    assert not np.array_equal(r.record.x, engine(quadrants).x[0])  # what it fused differs from the nominal links
+
+
+class Forger:
+    """Forges agent 4's message of every tick, far out, as soon as the world's
+    tick opens it (from agent 4's message of the tick before, as agent 1 hears it)."""
+
+    def __init__(self, boot):
+        self.last = None
+
+    def start(self, now):
+        return [ev.Subscribe(KEYS.msg_to(1)), ev.Subscribe(KEYS.tick)]
+
+    def handle(self, e, now):
+        kind, who = KEYS.parse(e.key)
+        if kind == "msg" and who == 4:
+            self.last = wire.decode(e.payload, run_id=RUN, sender=4, exchanged=EXCHANGED)
+        elif kind == "tick" and self.last is not None:
+            k = wire.decode_tick(e.payload, run_id=RUN).tick
+            forged = extreme(wire.encode(RUN, 4, k, self.last.message, EXCHANGED), 4)
+            return [ev.Publish(KEYS.msg(4, to=[1, 2, 3]), forged)]
+        return []
+
+
+def fast_intruder(sender, receiver):
+    """The intruder's links are faster than the agents': its forgery comes first."""
+    return Link(delay=0.0005) if sender == "intruder" else None
+
+
+def test_a_compromised_process_cannot_speak_for_another_agent(quadrants):
+    # it listens as agent 1 would (it holds agent 1's identity, the only one it finds) and forges agent 4
+    r = run(quadrants, links=fast_intruder, extra=(("intruder", "agent-1", Forger, 0.0),))
+    assert r.outcome.refused.get("put", 0) > 0  # the access rules refuse every forged put
+    assert r.status.status == "exact"
+    assert np.array_equal(r.record.x, engine(quadrants).x[0])
+
+
+def test_with_a_router_identity_handed_out_the_forgery_is_caught_as_diverged(quadrants):
+    # the run's credentials as they once were: the compromised process finds the router's identity too
+    r = run(quadrants, router=True, links=fast_intruder, extra=(("intruder", "router", Forger, 0.0),))
+    assert r.status.status == "diverged", r.status.reason
+    assert r.status.evidence["diverged"]["senders"] == [4]
+
+
+def test_an_extreme_insider_message_is_never_reported_exact(quadrants):
+    def edit(e):
+        if isinstance(e, ev.Publish) and KEYS.parse(e.key) == ("msg", 3):
+            m = wire.decode(e.payload, run_id=RUN, sender=3, exchanged=EXCHANGED)
+            if m.tick == 20:
+                return dataclasses.replace(e, payload=extreme(e.payload, 3))
+        return e
+
+    r = run(quadrants, wrap={agent_pid(3): lambda m: Tamper(m, edit)})
+    st = r.status
+    assert st.status in ("diverged", "degraded"), st.reason
+    if st.status == "diverged":  # fused: the engine does not reproduce agent 3's message
+        assert st.evidence["diverged"]["tick"] == 20 and st.evidence["diverged"]["senders"] == [3]
+    else:  # refused by the guard: fewer messages fused, every estimate the engine's replay
+        assert st.evidence["differing"] == 0 and np.abs(r.record.x[r.record.reported]).max() < 1e6
+
+
+def test_a_forged_report_is_never_taken(quadrants):
+    def edit(e):
+        if isinstance(e, ev.Publish) and KEYS.parse(e.key) == ("report", 3):
+            rp = wire.decode_report(e.payload, run_id=RUN, sender=3)
+            if rp.tick == 20:
+                return dataclasses.replace(e, payload=wire.encode_report(
+                    RUN, 3, rp.tick, np.full_like(rp.x, 1e300), rp.P, rp.d, rp.d_valid, rp.counters, rp.fused,
+                    rp.not_fused, rp.sent_digest, rp.digests))
+        return e
+
+    r = run(quadrants, wrap={agent_pid(3): lambda m: Tamper(m, edit)})
+    st = r.status
+    assert st.status in ("incomplete", "diverged"), st.reason
+    assert np.isfinite(r.record.x[r.record.reported]).all()
+    assert not r.record.reported[19, 2] or st.status == "diverged"
+
+
+def test_a_restarted_agent_starts_from_a_neighbours_estimate(quadrants):
+    tick = 3 * 0.002  # a tick takes three link delays: tick, message, report
+    r = run(quadrants, faults=(Fault("crash", agent_pid(2), at=10 * tick), Fault("restart", agent_pid(2), at=15 * tick)))
+    rejoins = r.record.rejoins.get(2, [])
+    assert rejoins and all(rj["source"] is not None for rj in rejoins), rejoins
+    st = r.status
+    assert st.status == "incomplete" and st.evidence["differing"] == 0, st.reason
+    assert r.record.reported[-1].all()  # back to the end of the run
