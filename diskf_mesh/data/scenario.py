@@ -37,7 +37,7 @@ from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.inputs import InputSpec, parse_input
 from diskf_mesh.core.model import LinearModel, Sensors
-from diskf_mesh.estimators import SETTINGS, Params
+from diskf_mesh.estimators import REGISTRY, SETTINGS, Params
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.data.validate import (agent_id, check_keys, index_list, internal_ids, matrix, scalar, setting, spd,
                                       unique_ids, vector)
@@ -254,6 +254,11 @@ def parse_scenario(raw: dict, agents: int | None = None, base: Path | None = Non
 
     faults = check_keys(raw.get("faults", {}), [f.name for f in fields(FaultConfig)], "faults")
     FaultConfig.from_mapping(faults)
+    sensors = Sensors.from_list([a.id for a in specs], [a.H for a in specs], [a.R for a in specs])
+    for cls in REGISTRY.values():  # a setting an estimator refuses for this model and these sensors
+        refused = cls.refuse(params, LinearModel(A[None] if A.ndim == 2 else A, G, Q, x0, P0), sensors)
+        if refused:
+            raise InputError(*refused)
     return Scenario(
         name=setting(raw, "name", "", str, "custom"),
         description=setting(raw, "description", "", str, ""),

@@ -32,6 +32,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from diskf_mesh import estimators
+from diskf_mesh.core.errors import InputError
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.estimators import Params
@@ -138,8 +139,12 @@ def run(trace: Trace, estimator: str, params: Params | None = None, progress=Non
     ``progress``, if given, is called with the number of ticks done (counted
     over all seed chunks when a large run is split, see ``seeds_per_chunk``).
     ``neighbours`` picks the message layout (see the module docstring);
-    all give the same estimates. The estimator's ``warning``, if any, is
-    issued as a RuntimeWarning first."""
+    all give the same estimates. A setting the estimator refuses
+    (``Estimator.refuse``) raises ``InputError`` first; its ``warning``, if
+    any, is issued as a RuntimeWarning."""
+    refused = estimators.get(estimator).refuse(params or Params(), trace.model, trace.sensors)
+    if refused:
+        raise InputError(*refused)
     problem = estimators.get(estimator).warning(params or Params(), trace.links)
     if problem:
         warnings.warn(problem, RuntimeWarning, stacklevel=2)

@@ -253,6 +253,13 @@ class Estimator:
         (printed as a warning before it starts), or None."""
         return None
 
+    @classmethod
+    def refuse(cls, params, model: LinearModel, sensors: Sensors) -> tuple | None:
+        """A setting of ``params`` that cannot work with this model and
+        these sensors, as (field, why), or None. Checked before any run
+        (loading a scenario, ``engine.run``): one error line, exit 2."""
+        return None
+
     # -- helpers ---------------------------------------------------------
     def init(self, batch: tuple) -> State:
         """Every agent starts from the common prior (x0, P0) (Algorithm 1)."""

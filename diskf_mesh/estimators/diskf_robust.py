@@ -149,6 +149,24 @@ class DISKFRobust(Estimator):
         super().__init__(model, sensors, params)
         self.rho, self.walk, self.prior = input_model_of(self.params.robust, model, sensors)
 
+    @classmethod
+    def refuse(cls, params, model, sensors):
+        """``unbiased`` with no input (``input_model = "none"``), or where
+        not even every sensor together sees every input component
+        (rank(H G) < m for the stacked H): the unbiased update could never
+        run."""
+        o = params.robust
+        if not o.unbiased:
+            return None
+        if o.persist and o.input_model == "none":
+            return "estimator.robust.unbiased", "true needs an input; input_model = 'none' assumes there is none"
+        rows = np.concatenate([sensors.H[i, : sensors.p[i]] for i in range(sensors.N)])
+        r, m = np.linalg.matrix_rank(rows @ model.G), model.m
+        if r < m:
+            return "estimator.robust.unbiased", (f"true needs rank(H G) = m = {m} for some neighbourhood, but all "
+                                                 f"sensors together reach rank {r}: the unbiased update can never run")
+        return None
+
     def init(self, batch: tuple) -> RobustState:
         s = super().init(batch)
         n, m = self.model.n, self.model.m
@@ -207,6 +225,10 @@ class DISKFRobust(Estimator):
             if o.gate and o.latch:
                 feed = feed | (valid_N & state.fed)
             x_g, P_g = rkf_update(x_c, Yc, U, u, G, feed)
+            # the guard: only where the unbiased update is at least as certain as the model's own (trace), so
+            # its covariance never grows past that of a filter that is bounded (an invariant zero on the unit
+            # circle, e.g. a position sensor of an acceleration input, leaves the unbiased error unbounded)
+            feed = feed & (np.trace(P_g, axis1=-2, axis2=-1) <= np.trace(P_bar, axis1=-2, axis2=-1))
             f2, f3 = feed[..., None], feed[..., None, None]
             x_bar, P_bar = np.where(f2, x_g, x_bar), np.where(f3, P_g, P_bar)
             d_bar, S_bar = np.where(f2, d_N, d_bar), np.where(f3, S_N, S_bar)

@@ -1,0 +1,337 @@
+"""The held-out suite: every estimator on inputs, models and networks no
+default was chosen on.
+
+Cases (``cases``): every ``[input]`` kind on both shipped scenarios in every
+topology the report shows (Scenario 1: all-to-all, ring, isolated; Scenario
+2: range 120 and all-to-all); a constant-velocity model (n = 4) with a small
+2-D acceleration input; a 3-D state with p_i = 2 sensors; Scenario 1 with
+p_i = 2 sensors, with mixed sensors, with the turn rate omega from 0.05 to
+0.6, with R x 0.01 and x 100; random geometric networks of 25 and 50 agents.
+
+Per case and estimator (``run_case``): the state MAE, the input MAE, the
+mean NEES over the (tick, agent) cells whose neighbourhood measures, and the
+share of the cells where every seed's neighbourhood measures whose NEES,
+averaged over the S seeds, lies in the chi-square 95 % band of that average
+([chi2_{Sn}(0.025), chi2_{Sn}(0.975)] / S, n the state dimension). The mean
+NEES target uses the same band (the band of S runs: the cells of one run
+are correlated in time, so the far narrower band of every cell taken as
+independent would not be honest). A run whose covariance stops being positive
+definite or finite counts as diverged.
+
+``targets`` checks the suite against the three targets: the DISKF family's
+best (every estimator whose name starts with ``diskf``) within 1 % of the
+best baseline, ``diskf-auto`` within 10 % of each case's best, and its mean
+NEES inside the band for the mean over every observed cell.
+
+    python -m diskf_mesh.studies.heldout --seeds 20 --json heldout.json --markdown heldout.md
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from diskf_mesh import estimators as algorithms
+from diskf_mesh.data import metrics
+from diskf_mesh.data.inputs import parse_input
+from diskf_mesh.data.scenario import Scenario, load_scenario, parse_scenario, simulate
+from diskf_mesh.engine import batch as engine
+
+FAMILY_PREFIX = "diskf"
+AUTO = "diskf-auto"
+
+# the [input] tables of the shipped scenarios' cases (input units: Scenario 1's step is 10)
+SHIPPED_INPUTS = {
+    "step": None,  # the scenario's own: 0, then 10 from tick 10
+    "zero": dict(kind="constant", value=0.0),
+    "constant 5": dict(kind="constant", value=5.0),
+    "sine fast": dict(kind="sine", amplitude=10.0, period=10.0),
+    "sine slow": dict(kind="sine", amplitude=10.0, period=80.0),
+    "steps": dict(kind="steps", scale=10.0, interval=30.0),
+    "telegraph 3": dict(kind="telegraph", amplitude=10.0, interval=3, random=False),
+    "telegraph random": dict(kind="telegraph", amplitude=5.0, interval=10.0),
+    "white": dict(kind="white", scale=3.0),
+    "ramp": dict(kind="ramp", at=10, slope=0.1),
+    "series": dict(kind="series", values=[0.0] * 20 + [8.0] * 40 + [-4.0] * 40 + [2.0 * (k % 10) for k in range(100)]),
+}
+VARIANT_INPUTS = ("step", "zero", "sine fast")
+# the constant-velocity model's 2-D acceleration inputs (about 0.1)
+CV_INPUTS = {
+    "zero": dict(kind="constant", value=[0.0, 0.0]),
+    "steps 0.1": dict(kind="steps", scale=[0.1, 0.1], interval=40.0),
+    "sine 0.1": dict(kind="sine", amplitude=[0.1, 0.05], period=60.0),
+    "telegraph 0.1": dict(kind="telegraph", amplitude=[0.1, -0.1], interval=20.0),
+    "white 0.05": dict(kind="white", scale=[0.05, 0.05]),
+}
+TOPOLOGIES_1 = (("all", None), ("ring", None), ("none", None))
+TOPOLOGIES_2 = (("range", 120.0), ("all", None))
+
+
+@dataclass(frozen=True)
+class Case:
+    group: str
+    label: str
+    scenario: Scenario
+
+
+def _with_input(scn: Scenario, table) -> Scenario:
+    return scn if table is None else replace(scn, input=parse_input(table, scn.G.shape[1]))
+
+
+def _topo(scn: Scenario, topology: str, comm_range) -> Scenario:
+    return scn.with_overrides(topology=topology, comm_range=comm_range)
+
+
+def _topo_label(topology: str, comm_range) -> str:
+    return f"range {comm_range:g}" if topology == "range" else topology
+
+
+def rotation(omega: float) -> np.ndarray:
+    c, s = math.cos(omega), math.sin(omega)
+    return np.array([[c, -s], [s, c]])
+
+
+def constant_velocity(topology: str) -> Scenario:
+    """n = 4 (x, vx, y, vy), one tick per step, an acceleration input of
+    dimension 2; six agents measuring x, y or both (R = 1) at every tick."""
+    agents = []
+    for i in range(6):
+        H = [[[1, 0, 0, 0]], [[0, 0, 1, 0]], [[1, 0, 0, 0], [0, 0, 1, 0]]][i % 3]
+        agents.append(dict(id=i + 1, H=H, R=np.eye(len(H)).tolist(), sense="always", position=[0.0, 0.0]))
+    raw = dict(
+        name="constant-velocity", steps=200,
+        model=dict(dynamics="matrix", A=[[1, 1, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1], [0, 0, 0, 1]],
+                   G=[[0.5, 0], [1, 0], [0, 0.5], [0, 1]], Q=np.diag([1e-2, 1e-3, 1e-2, 1e-3]).tolist(),
+                   x0=[0.0, 1.0, 0.0, 0.5], P0=np.diag([1.0, 0.1, 1.0, 0.1]).tolist(), position_dims=[0, 2]),
+        topology=dict(kind=topology), agents=agents)
+    return parse_scenario(raw)
+
+
+def three_d(base: Scenario) -> Scenario:
+    """Scenario 1 with a third state component (a decaying altitude, also
+    pushed by the input) and p_i = 2 sensors: (x, z) or (y, z)."""
+    A = np.zeros((3, 3))
+    A[:2, :2] = base.A
+    A[2, 2] = 0.95
+    agents = tuple(replace(a, H=np.array([[1.0, 0, 0], [0, 0, 1.0]]) if a.H[0, 0] else np.array([[0, 1.0, 0], [0, 0, 1.0]]),
+                           R=2.0 * np.eye(2)) for a in base.agents)
+    return replace(base, A=A, G=np.array([[1.0], [1.0], [0.5]]), Q=0.2 * np.eye(3), x0=np.array([200.0, 0.0, 0.0]),
+                   P0=np.eye(3), agents=agents)
+
+
+def two_sensors(base: Scenario) -> Scenario:
+    """Every agent measures x and y (p_i = 2)."""
+    return replace(base, agents=tuple(replace(a, H=np.eye(2), R=2.0 * np.eye(2)) for a in base.agents))
+
+
+def mixed_sensors(base: Scenario) -> Scenario:
+    """x, y, both (p = 2) and x + y: four sensor kinds."""
+    Hs = [np.array([[1.0, 0.0]]), np.array([[0.0, 1.0]]), np.eye(2), np.array([[1.0, 1.0]])]
+    Rs = [np.array([[2.0]]), np.array([[2.0]]), 2.0 * np.eye(2), np.array([[4.0]])]
+    return replace(base, agents=tuple(replace(a, H=Hs[i % 4], R=Rs[i % 4]) for i, a in enumerate(base.agents)))
+
+
+def scaled_R(base: Scenario, f: float) -> Scenario:
+    return replace(base, agents=tuple(replace(a, R=f * a.R) for a in base.agents))
+
+
+def cases() -> list[Case]:
+    """Every case of the suite, in order."""
+    out = []
+    q, dyn = load_scenario("quadrants"), load_scenario("dynamic")
+    for name, table in SHIPPED_INPUTS.items():
+        for t, r in TOPOLOGIES_1:
+            out.append(Case("inputs", f"S1 {_topo_label(t, r)}, {name}", _topo(_with_input(q, table), t, r)))
+        for t, r in TOPOLOGIES_2:
+            out.append(Case("inputs", f"S2 {_topo_label(t, r)}, {name}", _topo(_with_input(dyn, table), t, r)))
+    for t, _ in TOPOLOGIES_1:
+        cv = constant_velocity(t)
+        for name, table in CV_INPUTS.items():
+            out.append(Case("constant velocity", f"CV {t}, {name}", _with_input(cv, table)))
+    variants = [("3-D state", "3-D", three_d(q)), ("p_i = 2", "p=2", two_sensors(q)),
+                ("mixed sensors", "mixed", mixed_sensors(q))]
+    variants += [("omega", f"ω={w:g}", replace(q, A=rotation(w))) for w in (0.05, 0.3, 0.6)]
+    variants += [("R scale", f"R×{f:g}", scaled_R(q, f)) for f in (0.01, 100.0)]
+    for group, tag, scn in variants:
+        for name in VARIANT_INPUTS:
+            for t, r in TOPOLOGIES_1:
+                out.append(Case(group, f"{tag} {t}, {name}", _topo(_with_input(scn, SHIPPED_INPUTS[name]), t, r)))
+    for N in (25, 50):
+        rg = load_scenario("random-geometric", agents=N)
+        for name in VARIANT_INPUTS:
+            out.append(Case("random geometric", f"RG{N}, {name}", _with_input(rg, SHIPPED_INPUTS[name])))
+    return out
+
+
+def chi2_band(dof: int, seeds: int, p: float = 0.95):
+    """The band of a NEES averaged over ``seeds`` runs of dimension ``dof``:
+    [chi2_{S dof}((1-p)/2), chi2_{S dof}((1+p)/2)] / S, the quantiles by
+    Wilson and Hilferty's approximation (within 0.1 % at S dof >= 20)."""
+    k = dof * seeds
+    z = 1.959963984540054 if p == 0.95 else float(np.sqrt(2) * _erfinv(p))
+    q = lambda zz: k * (1 - 2 / (9 * k) + zz * math.sqrt(2 / (9 * k))) ** 3  # noqa: E731
+    return q(-z) / seeds, q(z) / seeds
+
+
+def _erfinv(y: float) -> float:  # pragma: no cover - only for p other than 0.95
+    lo, hi = 0.0, 6.0
+    for _ in range(80):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if math.erf(mid) < y else (lo, mid)
+    return lo
+
+
+def observed(trace) -> np.ndarray:
+    """(B, K, N): the agent's neighbourhood (itself included) measured."""
+    B, K, N = trace.has.shape
+    L = np.broadcast_to(trace.links, (B, K, N, N)).astype(float)
+    return np.einsum("bkij,bkj->bki", L, trace.has.astype(float)) > 0
+
+
+def run_case(case: Case, seeds, steps: int | None = None, names=None) -> dict:
+    """{estimator: row} for one case; a row holds mae_state, mae_input,
+    nees (over the observed cells), nees_band_share and diverged."""
+    scn = case.scenario.with_overrides(steps=steps)
+    tr = simulate(scn, seeds)
+    seen = observed(tr)
+    band = chi2_band(tr.model.n, len(tr.seeds))
+    rows = {}
+    for name in names or algorithms.NAMES:
+        try:
+            with np.errstate(all="ignore"):
+                est = engine.run(tr, name, scn.params)
+                ok = bool(np.isfinite(est.P).all() and np.isfinite(est.x).all())
+            if not ok:
+                raise np.linalg.LinAlgError("not finite")
+            e_state, e_in, nees = metrics.errors(tr, est)
+        except (np.linalg.LinAlgError, FloatingPointError):
+            rows[name] = dict(mae_state=float("nan"), mae_input=float("nan"), nees=float("nan"),
+                              nees_band_share=float("nan"), diverged=True)
+            continue
+        s = metrics.summarize(e_state, e_in, nees)
+        cell = nees.mean(axis=0)[seen.all(axis=0)]  # every seed's neighbourhood measured there
+        rows[name] = dict(mae_state=s["mae_state"], mae_input=s["mae_input"],
+                          nees=float(nees[seen].mean()) if seen.any() else float("nan"),
+                          nees_band_share=float(((cell >= band[0]) & (cell <= band[1])).mean()) if cell.size else float("nan"),
+                          diverged=False)
+    return rows
+
+
+def targets(results: list[dict], seeds: int) -> dict:
+    """The three targets over the suite's results [{case, n, rows}]."""
+    fam_ok = auto_ok = nees_ok = nees_cases = diverged = 0
+    misses = {"family": [], "auto": [], "nees": []}
+    for r in results:
+        rows = r["rows"]
+        mae = {k: v["mae_state"] for k, v in rows.items() if not v["diverged"]}
+        diverged += sum(v["diverged"] for v in rows.values())
+        fam = min((v for k, v in mae.items() if k.startswith(FAMILY_PREFIX)), default=math.inf)
+        base = min((v for k, v in mae.items() if not k.startswith(FAMILY_PREFIX)), default=math.inf)
+        if fam <= 1.01 * base:
+            fam_ok += 1
+        else:
+            misses["family"].append(r["case"])
+        if AUTO in mae:
+            if mae[AUTO] <= 1.10 * min(mae.values()):
+                auto_ok += 1
+            else:
+                misses["auto"].append(r["case"])
+            lo, hi = chi2_band(r["n"], seeds)
+            nees = rows[AUTO]["nees"]
+            if math.isfinite(nees):
+                nees_cases += 1
+                if lo <= nees <= hi:
+                    nees_ok += 1
+                else:
+                    misses["nees"].append(r["case"])
+    n = len(results)
+    return dict(cases=n, family_within_1pct=fam_ok, auto_within_10pct=auto_ok, auto_nees_in_band=nees_ok,
+                auto_nees_cases=nees_cases, diverged_runs=diverged, misses=misses)
+
+
+def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True) -> dict:
+    """The whole suite (or the cases whose label contains ``select``)."""
+    all_cases = [c for c in cases() if select is None or select in c.label or select == c.group]
+    results = []
+    t0 = time.monotonic()
+    for i, c in enumerate(all_cases, 1):
+        rows = run_case(c, range(seeds), steps, names)
+        tr_n = c.scenario.G.shape[0]
+        results.append(dict(case=c.label, group=c.group, n=tr_n, rows=rows))
+        if progress:
+            best = min((v["mae_state"] for v in rows.values() if not v["diverged"]), default=math.nan)
+            auto = rows.get(AUTO, {}).get("mae_state", math.nan)
+            print(f"[{i}/{len(all_cases)} {time.monotonic() - t0:6.0f} s] {c.label}: best {best:.3g}, "
+                  f"{AUTO} {auto:.3g}", file=sys.stderr, flush=True)
+    return dict(seeds=seeds, steps=steps, results=results, targets=targets(results, seeds))
+
+
+def markdown(doc: dict) -> str:
+    """The suite as tables: the targets, then every case x estimator."""
+    res = doc["results"]
+    names = list(res[0]["rows"]) if res else []
+    t = doc["targets"]
+    n = t["cases"]
+    pct = lambda a, b: f"{a} of {b} ({100 * a / max(b, 1):.0f} %)"  # noqa: E731
+    lines = [f"Seeds 0..{doc['seeds'] - 1}, {doc['steps'] or 'the scenario’s'} ticks, {n} cases.", "",
+             "| target | reached |", "|---|---|",
+             f"| DISKF family’s best within 1 % of the best baseline (≥ 95 %) | {pct(t['family_within_1pct'], n)} |",
+             f"| `{AUTO}` within 10 % of the case’s best (≥ 90 %) | {pct(t['auto_within_10pct'], n)} |",
+             f"| `{AUTO}` mean NEES in the χ² 95 % band (≥ 90 %) | {pct(t['auto_nees_in_band'], t['auto_nees_cases'])} |",
+             f"| runs whose covariance diverged | {t['diverged_runs']} |", ""]
+    for what, key, fmt in (("State MAE", "mae_state", "{:.3g}"), ("Input MAE", "mae_input", "{:.3g}"),
+                           ("NEES (observed cells) / share of cells in band", "nees", None)):
+        lines += [f"### {what}", "", "| case | " + " | ".join(algorithms.label(k) for k in names) + " |",
+                  "|---|" + "---|" * len(names)]
+        for r in res:
+            rows = r["rows"]
+            best = min((v["mae_state"] for v in rows.values() if not v["diverged"]), default=math.nan)
+            cells = []
+            for k in names:
+                v = rows[k]
+                if v["diverged"]:
+                    cells.append("diverged")
+                elif fmt is None:
+                    cells.append(f"{v['nees']:.2g} / {100 * v['nees_band_share']:.0f} %"
+                                 if math.isfinite(v["nees_band_share"]) else f"{v['nees']:.2g}")
+                else:
+                    s = fmt.format(v[key]) if math.isfinite(v[key]) else "–"
+                    cells.append(f"**{s}**" if key == "mae_state" and v[key] == best else s)
+            lines.append(f"| {r['case']} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m diskf_mesh.studies.heldout", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--steps", type=int, default=None)
+    ap.add_argument("--select", default=None, help="only the cases whose label contains this (or a group name)")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--markdown", default=None)
+    a = ap.parse_args(argv)
+    if a.seeds < 1 or (a.steps is not None and a.steps < 1):
+        print("error: --seeds and --steps must be at least 1", file=sys.stderr)
+        return 2
+    doc = run(a.seeds, a.steps, select=a.select)
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(doc, f, indent=1, default=float)
+    text = markdown(doc)
+    if a.markdown:
+        with open(a.markdown, "w") as f:
+            f.write(text + "\n")
+    t = doc["targets"]
+    print(json.dumps({k: v for k, v in t.items() if k != "misses"}))
+    for k, v in t["misses"].items():
+        print(f"misses ({k}): {'; '.join(v)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

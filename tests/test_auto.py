@@ -1,0 +1,139 @@
+"""diskf-auto: the batched engine == a plain per-agent loop (``auto_oracle``),
+every agent alone (as in an agent process) == the engine bit for bit, and
+its settings; the no-divergence cases of every estimator, and the settings
+an estimator refuses before a run."""
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.core.model import AutoOptions, RobustOptions
+from diskf_mesh.data.scenario import load_scenario, parse_scenario, simulate
+from diskf_mesh.engine import batch as engine
+from diskf_mesh.estimators import NAMES
+from diskf_mesh.mesh.estimator import lockstep
+from diskf_mesh.studies import heldout
+
+sys.path.insert(0, str(Path(__file__).parent))
+import auto_oracle  # noqa: E402
+
+
+def assert_matches_oracle(scn, seeds, tol):
+    tr = simulate(scn, seeds)
+    want = auto_oracle.run_auto(tr, scn.params.auto)
+    est = engine.run(tr, "diskf-auto", scn.params)
+    np.testing.assert_array_equal(est.d_valid, want["v"])
+    for f in ("x", "P", "d"):
+        np.testing.assert_allclose(getattr(est, f), want[f], rtol=tol, atol=tol)
+
+
+@pytest.mark.parametrize("name,topology,variant", [
+    ("quadrants", "ring", "R"), ("dynamic", None, "R"), ("quadrants", "all", "mixed")])
+def test_auto_matches_oracle(name, topology, variant):
+    """To 1e-9 where the bank's wide input prior is well conditioned against
+    the sensors (R x 0.1; mixed sensors of which one sees both axes)."""
+    scn = load_scenario(name).with_overrides(topology=topology, steps=40)
+    scn = heldout.scaled_R(scn, 0.1) if variant == "R" else heldout.mixed_sensors(scn)
+    assert_matches_oracle(scn, [0, 1], 1e-9)
+
+
+def test_auto_matches_oracle_isolated_shipped():
+    """Isolated agents of Scenario 1: long unobserved stretches under the
+    wide prior, where the information form and the gain form agree to 1e-8."""
+    scn = load_scenario("quadrants").with_overrides(topology="none", steps=60)
+    assert_matches_oracle(scn, [0], 1e-8)
+
+
+@pytest.mark.parametrize("neighbours", ["dense", "gather"])
+def test_auto_agents_alone_equal_engine(neighbours):
+    """Every agent a batch of one (as in an agent process): the engine's bits."""
+    scn = load_scenario("dynamic").with_overrides(steps=40)
+    tr = simulate(scn, [0])
+    ref = engine.run(tr, "diskf-auto", scn.params, neighbours=neighbours)
+    for k, _, outs in lockstep(scn, "diskf-auto", tr):
+        for j, a in enumerate(scn.agents):
+            assert np.array_equal(outs[a.id].x[0, 0], ref.x[0, k - 1, j])
+            assert np.array_equal(outs[a.id].P[0, 0], ref.P[0, k - 1, j])
+            assert np.array_equal(outs[a.id].d[0, 0], ref.d[0, k - 1, j])
+
+
+def test_auto_settings_from_a_scenario():
+    raw = {"model": {"G": [[1.0], [1.0]], "Q": [[0.2, 0], [0, 0.2]], "x0": [0, 0], "P0": [[1, 0], [0, 1]],
+                     "A": [[1, 0], [0, 1]]},
+           "agents": [{"H": [[1.0, 0.0]], "R": [[2.0]]}], "estimator": {"auto": {"switch": 0.02, "none": False}}}
+    assert parse_scenario(raw).params.auto == AutoOptions(switch=0.02, none=False)
+    for bad, field in (({"switch": 0.0}, "estimator.auto.switch"), ({"switch": 1}, "estimator.auto.switch"),
+                       ({"none": False, "walk": False, "zero_mean": False}, "estimator.auto"),
+                       ({"walk": 1}, "estimator.auto.walk")):
+        raw["estimator"]["auto"] = bad
+        with pytest.raises(InputError) as e:
+            parse_scenario(raw)
+        assert e.value.field == field
+
+
+def test_auto_bank_choice_changes_the_estimate():
+    scn = load_scenario("quadrants").with_overrides(topology="ring", steps=30)
+    tr = simulate(scn, [0])
+    a = engine.run(tr, "diskf-auto", scn.params)
+    b = engine.run(tr, "diskf-auto", replace(scn.params, auto=AutoOptions(zero_mean=False)))
+    assert not np.array_equal(a.x, b.x)
+
+
+# --------------------------------------------------------------------------
+# no divergence, and the settings that cannot work
+# --------------------------------------------------------------------------
+HARD = ["CV none, steps 0.1", "CV ring, white 0.05", "S1 none, sine fast", "S2 range 120, telegraph 3",
+        "3-D none, step", "R×100 none, zero", "ω=0.6 none, sine fast"]
+
+
+@pytest.mark.parametrize("label", HARD)
+def test_no_estimator_diverges(label):
+    """Every estimator's covariance stays finite and positive definite at
+    every tick (a Cholesky factorisation exists), on cases where an
+    unbiased input estimate has an invariant zero on or outside the unit
+    circle, inputs switch faster than one agent can see, or sensors are
+    poor."""
+    case, = [c for c in heldout.cases() if c.label == label]
+    scn = case.scenario.with_overrides(steps=100)
+    tr = simulate(scn, [0, 1])
+    for params in (scn.params, replace(scn.params, robust=RobustOptions(unbiased=True))):
+        for name in NAMES:
+            if params is not scn.params and name != "diskf-r":
+                continue
+            est = engine.run(tr, name, params)
+            assert np.isfinite(est.x).all() and np.isfinite(est.P).all(), name
+            np.linalg.cholesky(est.P)  # raises where not positive definite
+
+
+def _cv_raw(**robust):
+    cv = heldout.constant_velocity("none")
+    agent = {"H": [[1.0, 0.0, 0.0, 0.0]], "R": [[1.0]], "sense": "always"}
+    return {"model": {"dynamics": "matrix", "A": cv.A.tolist(), "G": cv.G.tolist(), "Q": cv.Q.tolist(),
+                      "x0": cv.x0.tolist(), "P0": cv.P0.tolist(), "position_dims": [0, 2]},
+            "agents": [agent], "estimator": {"robust": robust}}
+
+
+def test_unbiased_refused_where_it_can_never_run():
+    """A position sensor of a 2-D acceleration input: rank(H G) = 1 < m = 2
+    for every neighbourhood, so unbiased = true cannot work: refused when
+    the scenario is read, naming the setting."""
+    with pytest.raises(InputError) as e:
+        parse_scenario(_cv_raw(unbiased=True))
+    assert e.value.field == "estimator.robust.unbiased"
+    with pytest.raises(InputError) as e:
+        parse_scenario(_cv_raw(unbiased=True, input_model="none"))
+    assert e.value.field == "estimator.robust.unbiased"
+    parse_scenario(_cv_raw(unbiased=False))  # the same scenario without it loads
+
+
+def test_engine_refuses_before_the_run():
+    scn = parse_scenario(_cv_raw())
+    tr = simulate(scn, [0], 5)
+    with pytest.raises(InputError) as e:
+        engine.run(tr, "diskf-r", replace(scn.params, robust=RobustOptions(unbiased=True)))
+    assert e.value.field == "estimator.robust.unbiased"
