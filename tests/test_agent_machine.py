@@ -10,7 +10,8 @@ from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.agent_machine import ASK_S, AgentMachine, AgentTiming
-from diskf_mesh.mesh.estimator import lockstep, neighbours
+from diskf_mesh.mesh.estimator import AgentEstimator, lockstep, neighbours
+from diskf_mesh.mesh.rejoin import start_from
 from diskf_mesh.mesh.events import (Ask, AskTokens, DeclareToken, DropToken, Finish, Publish, Reply, Sample,
                                     SetTimer, Subscribe, Timer, Token, Tokens, WatchTokens, Woke)
 from diskf_mesh.mesh.keys import Keys
@@ -202,36 +203,40 @@ def test_a_rejoining_agent_asks_the_world_and_starts_from_its_answer(run):
     out = m.handle(Reply(ask.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 10.1)
     assert Publish(m.keys.rejoin(me), wire.encode_rejoin(RUN, me, J, 7)) in out
     assert m.rejoins == [(J, 7)]
-    msg = [e for e in of(out, Publish) if m.keys.parse(e.key)[0] == "msg"]
-    assert len(msg) == 1                                # then its one message of tick J, from the answer
+    msg, = [e for e in of(out, Publish) if m.keys.parse(e.key)[0] == "msg"]   # then its one message of tick J
+    est = AgentEstimator(scn, me, "diskf", K, SEED)     # ... from the answered estimate, bit for bit
+    start_from(est, x, P)
+    j = w.ids.index(me)
+    own = est.local(J, bool(trace.has[0, J - 1, j]), trace.y[0, J - 1, j, :est.p])
+    assert msg.payload == wire.encode(RUN, me, J, own)
     assert m.est is not None and m.k == J and m.collecting
 
 
-def test_an_answer_that_fails_the_guard_leaves_the_prior(run):
+def asking(run, J=4, now=10.0):
+    """A restarted agent at tick J of the world, its id confirmed, waiting
+    for the world's answer: (machine, the start query, the effects of
+    tick J)."""
     scn, trace, _ = run
     w = World(scn, trace)
     me = w.ids[4]
     m, _ = started(scn, me, ticking=True)
-    m.handle(w.tick(3, live=[i for i in w.ids if i != me]), 0.0)
-    m.handle(w.meas(4, me), 10.0)
-    out = m.handle(w.tick(4), 10.0)
-    ask, = of(out, Ask)
-    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), 10.0)
-    bad = wire.encode_start(RUN, me, 4, 2, np.array([1.0, 0.0]), np.diag([1e-6, 1e6]), np.zeros(1), False)
+    m.handle(w.tick(J - 1, live=[i for i in w.ids if i != me]), 0.0)
+    m.handle(w.meas(J, me), now)
+    out = m.handle(w.tick(J), now)
+    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), now)
+    return m, of(out, Ask)[0], out
+
+
+def test_an_answer_that_fails_the_guard_leaves_the_prior(run):
+    m, ask, _ = asking(run)
+    bad = wire.encode_start(RUN, m.id, 4, 2, np.array([1.0, 0.0]), np.diag([1e-6, 1e6]), np.zeros(1), False)
     m.handle(Reply(ask.qid, bad), 10.1)
     assert m.rejoins == [(4, None)] and m.counters.rejected == {"ill-conditioned": 1}
 
 
 def test_no_answer_in_time_starts_from_the_prior(run):
-    scn, trace, _ = run
-    w = World(scn, trace)
-    me = w.ids[4]
-    m, _ = started(scn, me, ticking=True)
-    m.handle(w.tick(3, live=[i for i in w.ids if i != me]), 0.0)
-    m.handle(w.meas(4, me), 10.0)
-    out = m.handle(w.tick(4), 10.0)
+    m, _, out = asking(run)
     assert SetTimer("ask", 10.0 + ASK_S) in out
-    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), 10.0)
     out = m.handle(Timer("ask"), 10.0 + ASK_S)
     assert m.rejoins == [(4, None)] and len([e for e in of(out, Publish) if "/msg/" in e.key]) == 1
 
