@@ -89,7 +89,7 @@ def _unnamed(folder: Path) -> int | None:
 
 def _name(fd: int, path: Path) -> None:
     """Give the unnamed file ``fd`` the name ``path`` (which must not exist),
-    or where the system cannot (some sandboxes: EXDEV), a copy of it made in
+    or where the kernel refuses to (EXDEV on some systems), a copy of it made in
     the kernel: the named file exists only for the copy."""
     try:
         os.link(f"/proc/self/fd/{fd}", path, follow_symlinks=True)
