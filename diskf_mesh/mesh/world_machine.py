@@ -57,6 +57,7 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -230,7 +231,8 @@ class WorldMachine:
         elif isinstance(event, Token):
             self._on_token_key(event.key, event.up, now)
         elif isinstance(event, Timer):
-            if self._timers.pop(event.name, None) is not None:
+            if now >= self._timers.get(event.name, math.inf):  # set, not cancelled or moved later
+                del self._timers[event.name]
                 self._on_timer(event.name, now)
         elif isinstance(event, Query):
             self._on_query(event, now)
