@@ -2,9 +2,9 @@
 
     # hosts.toml
     credentials = "/shared/creds"          # optional: made by `diskf-mesh credentials`, at this
-                                           # path on every host (default: fresh ones in a
-                                           # private temporary directory: hosts that share
-                                           # this file system, e.g. network namespaces)
+                                           # path on every host (default: fresh ones in memory,
+                                           # each process handed its own on standard input,
+                                           # which the prefix must pass on: ssh does)
     [world]
     listen = "tls/10.0.0.1:7447"           # the world's endpoint (it runs as a zenoh router)
     bind = "tls/0.0.0.0:7447"              # optional: where it listens, if not on that address
