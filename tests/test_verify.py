@@ -62,7 +62,11 @@ def claims_of(scn, trace, links=None, restarts=(), live=None):
                     fd[(k, j, s)] = wire.message_digest(RUN, ids[s], k, heard[ids[s]], exchanged)
             out = agents[i].fuse(k, msgs[i], heard)
             x[k - 1, j], P[k - 1, j], d[k - 1, j], dv[k - 1, j] = out.x[0, 0], out.P[0, 0], out.d[0, 0], out.d_valid[0, 0]
-    return V.RunClaims(x, P, d, dv, np.ones((K, N), bool), links, live, tuple(restarts), fd)
+    per = {}
+    for (k, j, s), g in sorted(fd.items()):
+        per.setdefault((k, j), []).append((s, g))
+    digests = {kj: (np.array([s for s, _ in v]), V.digest_values([g for _, g in v])) for kj, v in per.items()}
+    return V.RunClaims(x, P, d, dv, np.ones((K, N), bool), links, live, tuple(restarts), digests)
 
 
 def check(trace, scn, claims, **kw):
@@ -123,12 +127,13 @@ def test_tampered_estimate_is_diverged_naming_agent_and_tick(run):
 def test_tampered_message_digest_is_diverged_naming_the_sender(run):
     scn, trace = run
     claims = claims_of(scn, trace)
-    key = sorted(k for k in claims.digests if k[0] == 30)[0]
-    claims.digests[key] = bytes(8)
+    k, r = sorted(kr for kr in claims.digests if kr[0] == 30)[0]
+    senders, digests = claims.digests[(k, r)]
+    digests[0] ^= np.uint64(1)
+    s = int(senders[0])
     st = check(trace, scn, claims)
     assert st.status == "diverged", st.reason
     dv = st.evidence["diverged"]
-    k, r, s = key
     assert (dv["tick"], dv["agent"], dv["senders"]) == (k, trace.agent_labels[r], [trace.agent_labels[s]])
 
 

@@ -81,7 +81,7 @@ class RunClaims:
     fused: np.ndarray           # (K, N, N) bool [tick - 1, receiver, sender]; the diagonal is ignored
     live: np.ndarray | None = None   # (K, N) bool the agents counted live at each tick (None: all)
     restarts: tuple = ()        # Restart, ...
-    digests: dict = field(default_factory=dict)   # (tick, receiver, sender) -> digest of the message fused
+    digests: dict = field(default_factory=dict)   # (tick, receiver) -> (senders, digests): (J,) int, (J,) uint64
     verdicts: dict = field(default_factory=dict)  # (tick, receiver) -> ((sender, why not fused), ...)
     why: np.ndarray | None = None  # (K, N) why an agent-tick is missing, as the run says
 
@@ -153,6 +153,16 @@ def planned_links(nominal: np.ndarray, ids, faults: FaultConfig | None, seed: in
 # --------------------------------------------------------------------------
 # the replay
 # --------------------------------------------------------------------------
+def digest_value(digest: bytes) -> int:
+    """An 8-byte message digest as the unsigned integer claims hold."""
+    return int.from_bytes(bytes(digest)[:8], "little")
+
+
+def digest_values(digests) -> np.ndarray:
+    """Several 8-byte digests as a (J,) uint64 array."""
+    return np.frombuffer(b"".join(bytes(g)[:8] for g in digests), dtype="<u8").astype(np.uint64)
+
+
 def restarted(est, state, agent: int, x=None, P=None):
     """``state`` with ``agent``'s slot as a fresh agent's (``est.init``),
     its fused estimate set to (x, P) and its observation window reset when
@@ -178,7 +188,8 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
     ``claims`` (an agent-tick without a report: ``planned``'s row), each
     ``Restart`` applied at its tick. Returns (Estimates, digests): with
     ``message_digest(k, sender index, Message) -> bytes``, the digest of
-    every engine message (k, sender) in ``wanted`` (a set; None: none)."""
+    every engine message (k, sender) in ``wanted`` (a set; None: none),
+    as ``digest_value``s."""
     K, N = claims.reported.shape
     tr = first_ticks(trace, K)
     planned = nominal_links(tr, K, claims.live) if planned is None else planned
@@ -207,7 +218,7 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
     def listen(k, msg):
         if message_digest is not None:
             for s in need.get(k, ()):
-                digests[(k, s)] = message_digest(k, s, msg.take((0, s)))
+                digests[(k, s)] = digest_value(message_digest(k, s, msg.take((0, s))))
 
     est = batch.run_batch(tr.with_links(links[None]), algorithm, params, restart=restart if by_tick else None,
                           listen=listen if need else None)
@@ -246,45 +257,50 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
     name = lambda j: names[j]  # noqa: E731
     nominal = nominal_links(trace, K, claims.live)
     planned = nominal if planned is None else np.asarray(planned, dtype=bool)
-    wanted = {(k, s) for k, _, s in claims.digests} if message_digest is not None else None
+    wanted = None
+    if message_digest is not None:
+        wanted = {(k, int(s)) for (k, _), (senders, _) in claims.digests.items() for s in senders}
     est, engine_digests = replay(trace, algorithm, params, claims, planned, message_digest, wanted)
     bad, gap = differing(claims, est)
-    digest_bad = {(k, r, s) for (k, r, s), dg in claims.digests.items()
-                  if (k, s) in engine_digests and engine_digests[(k, s)] != dg}
-    restarts = {(int(r.tick), int(r.agent)) for r in claims.restarts}
+    by_tick = {}
+    for (k, r), (senders, digests) in claims.digests.items():
+        by_tick.setdefault(k, []).append((r, senders, digests))
+    restarts = {}
+    for r in claims.restarts:
+        restarts.setdefault(int(r.tick), []).append(int(r.agent))
+    off = ~np.eye(N, dtype=bool)
 
     unknown = np.zeros(N, dtype=bool)  # the agent's state after the previous tick is not known
     first, unverified, diverged = None, 0, []
     for k in range(1, K + 1):
-        for j in range(N):
-            if (k, j) in restarts:
-                unknown[j] = False
-        sent_unknown = unknown.copy()
-        after = unknown.copy()
-        for j in range(N):
-            if not claims.reported[k - 1, j]:
-                after[j] = True
-                continue
-            senders = [s for s in np.flatnonzero(claims.fused[k - 1, j]).tolist() if s != j]
-            forged = [s for s in senders if (k, j, s) in digest_bad and not sent_unknown[s]]
-            tainted = unknown[j] or any(sent_unknown[s] and ((k, j, s) not in claims.digests
-                                                              or (k, j, s) in digest_bad) for s in senders)
-            if forged or (bad[k - 1, j] and not tainted):
-                diverged.append((k, j, forged))
-                if first is None:
-                    first = (k, j, forged)
-                after[j] = bool(bad[k - 1, j])
-            elif bad[k - 1, j]:
-                unverified += 1
-                after[j] = True
-            else:
-                after[j] = False
-        unknown = after
+        unknown[restarts.get(k, [])] = False
+        has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)  # [receiver, sender]
+        if engine_digests:
+            engine = np.array([engine_digests.get((k, s), 0) for s in range(N)], dtype=np.uint64)
+            for r, senders, digests in by_tick.get(k, ()):
+                has[r, senders] = True
+                wrong[r, senders] = engine[senders] != digests
+        reported, b = claims.reported[k - 1], bad[k - 1]
+        if unknown.any() or wrong.any():
+            fused = claims.fused[k - 1] & off
+            forged = fused & wrong & ~unknown[None, :]   # a known sender's message the engine does not reproduce
+            tainted = unknown | (fused & unknown[None, :] & (~has | wrong)).any(-1)
+            div = reported & (forged.any(-1) | (b & ~tainted))
+        else:  # every state and message known: any difference is a divergence
+            forged, div = wrong, reported & b
+        unver = reported & ~div & b
+        unverified += int(unver.sum())
+        for j in np.flatnonzero(div).tolist():
+            diverged.append((k, j, np.flatnonzero(forged[j]).tolist()))
+        if first is None and diverged:
+            first = diverged[0]
+        unknown = ~reported | (div & b) | unver
 
     complete = bool(claims.reported.all())
     ev = {"agent_ticks": K * N, "reported": int(claims.reported.sum()), "ticks": K,
           "differing": int(bad.sum()), "max_abs_difference": float(gap.max()) if gap.size else 0.0,
-          "unverified": unverified, "digests_checked": len(claims.digests) if message_digest else 0,
+          "unverified": unverified,
+          "digests_checked": sum(len(v[0]) for v in claims.digests.values()) if message_digest else 0,
           "restarts": len(claims.restarts)}
     missing = ~claims.reported
     ev["missing_agent_ticks"] = int(missing.sum())
@@ -324,7 +340,7 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
         return RunStatus(DEGRADED_STATUS, f"{shortfall['unplanned']['agent_ticks']} agent-ticks fused a sender not "
                          f"planned (not live, in range and delivered); first: agent {first_one['agent']} at tick "
                          f"{first_one['tick']}; every estimate equals the engine's replay", ev)
-    if not np.array_equal(planned, nominal):
+    if shortfall["planned_out"]:
         return RunStatus(AS_PLANNED_STATUS, f"every agent-tick fused what the fault plan delivered "
                          f"({shortfall['planned_out']} of {shortfall['nominal_links']} links dropped by the injected "
                          "faults); every estimate equals the engine's replay", ev)
@@ -334,29 +350,38 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
 
 def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name) -> dict:
     """The reported agent-ticks whose fused set is not the planned one:
-    fewer (``degraded``, with the agents' reasons) or others (``unplanned``)."""
+    fewer (``degraded``, with the agents' reasons) or others (``unplanned``).
+    One tick at a time (a large run's (K, N, N) temporaries would not fit)."""
     K, N = claims.reported.shape
-    off = ~np.eye(N, dtype=bool)
-    fused = claims.fused & off
-    plan = planned & off
-    r = claims.reported[:, :, None]
-    less = r & plan & ~fused
-    more = r & fused & ~plan
-    short = less.any(-1)
+    diagonal = np.arange(N)
     why = Counter()
-    listed = []
-    for k0, j in zip(*np.nonzero(short)):
-        k = int(k0) + 1
-        said = dict(claims.verdicts.get((k, int(j)), ()))
-        missing = np.flatnonzero(less[k0, j]).tolist()
-        reasons = [said.get(s, "not said") for s in missing]
-        why.update(reasons)
-        if len(listed) < LISTED:
-            listed.append({"tick": k, "agent": name(int(j)),
-                           "not_fused": {str(name(s)): w for s, w in zip(missing, reasons)}})
-    extra = [{"tick": int(k0) + 1, "agent": name(int(j)), "senders": [name(s) for s in np.flatnonzero(more[k0, j])]}
-             for k0, j in zip(*np.nonzero(more.any(-1)))][:LISTED]
-    return {"degraded": {"agent_ticks": int(short.sum()), "messages": int(less.sum()), "why": dict(sorted(why.items())),
+    listed, extra = [], []
+    short_n = messages = more_n = 0
+    for k0 in range(K):
+        plan = planned[k0]
+        differ = claims.fused[k0] ^ plan
+        differ[diagonal, diagonal] = False
+        differ &= claims.reported[k0][:, None]
+        if not differ.any():
+            continue
+        less, more = differ & plan, differ & ~plan
+        messages += int(less.sum())
+        for j in np.flatnonzero(less.any(-1)).tolist():
+            short_n += 1
+            said = dict(claims.verdicts.get((k0 + 1, j), ()))
+            missing = np.flatnonzero(less[j]).tolist()
+            reasons = [said.get(s, "not said") for s in missing]
+            why.update(reasons)
+            if len(listed) < LISTED:
+                listed.append({"tick": k0 + 1, "agent": name(j),
+                               "not_fused": {str(name(s)): w for s, w in zip(missing, reasons)}})
+        for j in np.flatnonzero(more.any(-1)).tolist():
+            more_n += 1
+            if len(extra) < LISTED:
+                extra.append({"tick": k0 + 1, "agent": name(j), "senders": [name(s) for s in np.flatnonzero(more[j])]})
+    links = int(nominal.sum()) - int(nominal[:, diagonal, diagonal].sum())
+    planned_out = 0 if planned is nominal else links - (int(planned.sum()) - int(planned[:, diagonal, diagonal].sum()))
+    return {"degraded": {"agent_ticks": short_n, "messages": messages, "why": dict(sorted(why.items())),
                          "listed": listed},
-            "unplanned": {"agent_ticks": int(more.any(-1).sum()), "listed": extra},
-            "nominal_links": int((nominal & off).sum()), "planned_out": int((nominal & off & ~plan).sum())}
+            "unplanned": {"agent_ticks": more_n, "listed": extra},
+            "nominal_links": links, "planned_out": planned_out}

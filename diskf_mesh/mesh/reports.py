@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from diskf_mesh.engine.batch import Estimates
+from diskf_mesh.engine.verify import digest_values
 
 
 @dataclass
@@ -24,7 +25,7 @@ class RunReports:
     d_valid: np.ndarray         # (K, N) bool
     reported: np.ndarray        # (K, N) bool: the report of tick k came
     fused: np.ndarray           # (K, N, N) bool [tick - 1, receiver, sender]: what the receiver fused
-    digests: dict = field(default_factory=dict)   # (tick, receiver, sender) -> digest of the message fused
+    digests: dict = field(default_factory=dict)   # (tick, receiver) -> (senders, their digests) as verify holds them
     verdicts: dict = field(default_factory=dict)  # (tick, receiver) -> ((sender, why not fused), ...)
 
     @staticmethod
@@ -40,12 +41,12 @@ class RunReports:
         skipped), why the others were not, and the digests of what it fused
         (one per sender of ``fused``, or none)."""
         row = self.fused[tick - 1, i]
-        for n, s in enumerate(fused):
-            j = index.get(s)
-            if j is not None:
-                row[j] = True
-                if digests:
-                    self.digests[(tick, i, j)] = bytes(digests[n])
+        at = [(n, index[s]) for n, s in enumerate(fused) if s in index]
+        for _, j in at:
+            row[j] = True
+        if digests and at:
+            self.digests[(tick, i)] = (np.array([j for _, j in at], dtype=np.intp),
+                                       digest_values([digests[n] for n, _ in at]))
         said = tuple((index[s], str(v)) for s, v in not_fused if s in index)
         if said:
             self.verdicts[(tick, i)] = said
