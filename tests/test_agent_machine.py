@@ -313,3 +313,19 @@ def test_the_world_going_without_a_freeze_is_waited_for(run):
     assert m.handle(Token(m.keys.world("w0"), False), 20.5) == [] and m.est is not None
     fin, = m.handle(Timer("world"), 5.0 + 60.0)
     assert fin.code == 1 and "the world is gone" in fin.reason
+
+
+def test_a_timer_fired_before_its_time_changes_nothing(run):
+    """A shell (or the simulated network) may fire a timer the machine has
+    since set again for later: the machine looks at the time itself."""
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, _ = started(scn, me)
+    m.handle(w.meas(1, me), 1.0)
+    m.handle(w.tick(1), 1.0)
+    for name in ("collect", "world", "delay", "peers", "ask", "nothing"):
+        out = m.handle(Timer(name), 2.0)
+        assert all(isinstance(e, SetTimer) and e.at > 2.0 for e in out) and m.collecting   # at most set again
+    m2, _, _ = asking(run)
+    assert m2.handle(Timer("ask"), 11.0) == [] and m2.est is None

@@ -169,7 +169,7 @@ class AgentMachine:
         self._peers_until = math.inf
         self.join_after = None    # join at the first tick after this that counts this agent live
         self.rejoining = False    # joining a run in progress: starts from the world's answer
-        self._asked = None        # (qid, tick) of the query for the starting estimate
+        self._asked = None        # (qid, tick, until when) of the query for the starting estimate
         self._start = None        # (tick, wire.Start or None) the world's answer (None: the prior)
         self._confirm_qid = None  # a late joiner's second liveliness query for its id, just before it joins
         self._confirmed = False   # ... answered: no other process holds the id
@@ -508,9 +508,9 @@ class AgentMachine:
             self._check_world(now)
         elif name == "leave":
             self._finish("duplicate", DUPLICATE, self._leaving)
-        elif name == "ask" and self._asked is not None and self._start is None:
+        elif name == "ask" and self._asked is not None and self._start is None and now >= self._asked[2]:
             self._on_reply(self._asked[0], None)
-        # "collect", "peers": ``_step`` looks at the time
+        # "collect", "peers": ``_step`` looks at the time (a timer is a wake-up, never a deadline by itself)
 
     def _world_timer(self) -> None:
         self._out.append(SetTimer("world", self.last_heard + self.timing.world_timeout))
@@ -691,9 +691,9 @@ class AgentMachine:
         if restart and (self._start is None or self._start[0] != k or confirm):
             if self._asked is None or self._asked[1] != k:
                 qid = next(self._qids)
-                self._asked, self._start = (qid, k), None
+                self._asked, self._start = (qid, k, now + ASK_S), None
                 self._out += [Ask(qid, self.keys.start(self.id), wire.encode_join(self.keys.run_id, self.id, k),
-                                  ASK_S), SetTimer("ask", now + ASK_S)]
+                                  ASK_S), SetTimer("ask", self._asked[2])]
             if confirm and self._confirm_qid is None:
                 self._confirm_qid = next(self._qids)
                 self._out.append(AskTokens(self._confirm_qid, self.keys.alive(self.id), CLAIM_S))
