@@ -34,7 +34,9 @@ from diskf_mesh.mesh.simrun import WORLD, SimPlan, agent_pid, simulate_run
 from diskf_mesh.mesh.world_machine import WorldTiming
 from diskf_mesh.recording.replay import compare_reported
 
-ALGORITHMS = ("diskf", "diskf", "diskf", "kcf", "diffkf", "diskf-r")
+# diskf-r and diskf-auto are out until their agents compute the engine's default input scales
+# (test_simnet_regressions)
+ALGORITHMS = ("diskf", "diskf", "diskf", "kcf", "diffkf", "ldrkf")
 MSGS = "diskf/sim/agent/*/msg/**"
 STATUSES = ("exact", "as planned", "degraded", "diverged", "incomplete")
 

@@ -13,6 +13,9 @@ FOUND = [
     # (P 1e4 against 2e4) with no fault at all: "diverged"
     pytest.param(Case(agents=3, ticks=20, algorithm="diskf-r", seed=0), id="diskf-r-own-sensor-scales",
                  marks=pytest.mark.xfail(reason="diskf-r's default input scales differ per agent", strict=False)),
+    # the same in diskf-auto (its input models' scales from Q, G and the sensors it is given): sweep seed 30
+    pytest.param(Case(agents=3, ticks=20, algorithm="diskf-auto", seed=0), id="diskf-auto-own-sensor-scales",
+                 marks=pytest.mark.xfail(reason="diskf-auto's input model scales differ per agent", strict=False)),
 ]
 
 
