@@ -29,13 +29,20 @@ live to come back (an agent that comes back while it pauses is live again at
 once), then sends that tick again (agents that had reported it send their
 report again). If none comes back the run ends early.
 
-Exit status: 0 only if every agent reported every tick (``complete``), or
-the share of missing agent-ticks is within ``--allow-missing``; else 3 with
-one line: how many agent-ticks are missing, of which agents, and why (never
-joined, left, rejoining, no report, rejected, not run). The result JSON
-holds what was measured either way, with ``complete``, the missing counts,
-the rejoins (tick and re-initialisation source), duplicate processes and
-pauses. 2: another world already runs this run id (``mesh.keys`` nonces).
+At the end the world checks the run (``checked_status``,
+``diskf_mesh.engine.verify``): the engine replays it from what each agent
+said it fused, restarts re-initialised agents from the states handed to
+them, recomputes every fused message's digest and compares every reported
+estimate bit for bit. Exit status (``diskf_mesh.core.exits``): 0 when the run
+is ``exact`` or ``as planned``; 3 ``incomplete`` (one line: how many
+agent-ticks are missing, of which agents, and why: never joined, left,
+rejoining, no report, rejected, not run; 0 within ``--allow-missing``); 5
+``degraded`` (0 with ``--allow-degraded``, or in real time within
+``--max-miss-rate``); 6 ``diverged``; 4 a real-time run beyond
+``--max-miss-rate``; 2 another world already runs this run id (``mesh.keys``
+nonces). The result JSON holds what was measured either way, with the
+status, its reason and evidence, ``complete``, the missing counts, the
+rejoins (tick and re-initialisation source), duplicate processes and pauses.
 
 The protocol is ``diskf_mesh.mesh.world_machine.WorldMachine`` (no I/O);
 ``World`` runs it in a ``mesh.shell.Shell`` over zenoh and the wall clock:
@@ -271,13 +278,24 @@ def fused_lists(rec: WorldRecord) -> list:
     return [[[ids[s] for s in np.flatnonzero(row).tolist()] for row in tick] for tick in rec.fused]
 
 
+def fused_digest_lists(rec: WorldRecord) -> list:
+    """K x N, aligned with ``fused_lists``: the hex digest of each message
+    agent i fused at tick k, as it reported them."""
+    K, N = rec.reported.shape
+    out = [[[] for _ in range(N)] for _ in range(K)]
+    for (k, i), (senders, digests) in rec.digests.items():
+        order = np.argsort(senders, kind="stable")
+        out[k - 1][i] = [int(g).to_bytes(8, "little").hex() for g in digests[order].tolist()]
+    return out
+
+
 def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, run_id: str, row: dict) -> dict:
     doc = estimates_to_json(rec.estimates(), algorithm, metrics=row)
     doc.update(format=MESH_ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(scn.labels),
                reported=rec.reported.tolist(),
                agent_counters={str(rec.label(k)): v for k, v in rec.agent_counters.items()},
                world_counters=dict(rec.counters), startup_s=rec.startup_s, ticks_s=rec.ticks_s,
-               fused=fused_lists(rec), estimator=asdict(scn.params))
+               fused=fused_lists(rec), fused_digests=fused_digest_lists(rec), estimator=asdict(scn.params))
     return doc
 
 

@@ -313,10 +313,15 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
                           "max_abs_difference": float(gap[k - 1, j]), "agent_ticks": len(diverged),
                           "first": [{"tick": kk, "agent": name(jj), "senders": [name(s) for s in ff]}
                                     for kk, jj, ff in diverged[:LISTED]]}
-        who = (f"the message of agent {', '.join(map(str, senders))} it fused is not the engine's" if senders
-               else "every message it fused was the engine's: its own estimate is not")
-        return RunStatus(DIVERGED_STATUS, f"agent {name(j)}'s estimate of tick {k} differs from the engine's "
-                         f"replay: {who} ({len(diverged)} agent-ticks diverged)", ev)
+        ev["diverged"]["estimate_differs"] = bool(bad[k - 1, j])
+        if senders:
+            what = (f"agent {name(j)} fused at tick {k} a message of agent {', '.join(map(str, senders))} that the "
+                    "engine does not reproduce" + (" and its estimate differs from the engine's replay"
+                                                   if bad[k - 1, j] else ""))
+        else:
+            what = (f"agent {name(j)}'s estimate of tick {k} differs from the engine's replay, though every "
+                    "message it fused was the engine's")
+        return RunStatus(DIVERGED_STATUS, f"{what} ({len(diverged)} agent-ticks diverged)", ev)
 
     shortfall = _shortfall(claims, planned, nominal, name)
     ev.update(shortfall)

@@ -12,7 +12,7 @@ the plain comparison.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -104,13 +104,14 @@ class FusedRecord:
     seed: int = 0
     faults: FaultConfig = FaultConfig()
     miss_rate: float | None = None  # a real-time run's share of deadline misses (None: lockstep)
+    digests: dict = field(default_factory=dict)  # the fused messages' digests (``RunReports.digests``)
 
 
 def fused_status(run: FusedRecord, trace: Trace, params) -> RunStatus:
     """A run's estimates document checked by the engine on ``trace``."""
     K, N = run.reported.shape
     e = run.estimates
-    reports = RunReports(e.x[0], e.P[0], e.d[0], e.d_valid[0], run.reported, run.fused)
+    reports = RunReports(e.x[0], e.P[0], e.d[0], e.d_valid[0], run.reported, run.fused, dict(run.digests))
     return run_status(reports, verify.first_ticks(trace, K), run.algorithm, params, run_id=run.run_id,
                       seed=run.seed, faults=run.faults, labels=list(trace.agent_labels), restarts=run.restarts)
 
@@ -133,6 +134,8 @@ def fused_record_from_json(doc: dict, labels) -> FusedRecord:
     index = {i: j for j, i in enumerate(ids)}
     fused = np.zeros((K, N, N), dtype=bool)
     fused[:, np.arange(N), np.arange(N)] = True
+    reports = RunReports(**RunReports.empty(K, N, 1, 1))
+    said = doc.get("fused_digests")
     for k, tick in enumerate(doc["fused"]):
         if len(tick) != N:
             raise InputError(f"fused[{k}]", f"must list {N} agents' senders, got {len(tick)}")
@@ -141,6 +144,13 @@ def fused_record_from_json(doc: dict, labels) -> FusedRecord:
                 if str(s) not in index:
                     raise InputError(f"fused[{k}][{r}]", f"names {s!r}, not an agent of the run")
                 fused[k, r, index[str(s)]] = True
+            hexes = said[k][r] if said is not None else []
+            if hexes:
+                try:
+                    reports.note_fused(k + 1, r, [str(s) for s in senders], (), [bytes.fromhex(h) for h in hexes], index)
+                except (ValueError, TypeError, IndexError):
+                    raise InputError(f"fused_digests[{k}][{r}]", "must hold one 16-digit hex digest per fused "
+                                                                 "sender") from None
     d = doc["d"]
     d_valid = np.array([[row is not None for row in tick] for tick in d], dtype=bool).reshape(K, N)
     m = next((len(row) for tick in d for row in tick if row is not None), 1)
@@ -151,4 +161,4 @@ def fused_record_from_json(doc: dict, labels) -> FusedRecord:
     return FusedRecord(doc["algorithm"], params, Estimates(x[None], P[None], d_arr.reshape(1, K, N, m), d_valid[None]),
                        reported, fused, restarts, str(doc.get("run_id", "")), int(doc.get("seed", 0)),
                        FaultConfig.from_mapping(doc.get("faults") or {}),
-                       (doc.get("deadline_misses") or {}).get("miss_rate"))
+                       (doc.get("deadline_misses") or {}).get("miss_rate"), reports.digests)
