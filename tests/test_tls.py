@@ -18,6 +18,7 @@ Whole mesh runs under attack: tests/test_attack_access.py.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import stat
@@ -256,8 +257,10 @@ def test_a_process_started_by_hand_listens_on_loopback_unless_told(creds, how):
 # --------------------------------------------------------------------------
 # who may say what (zenoh's access control)
 # --------------------------------------------------------------------------
-@pytest.mark.parametrize("acl", ["on", "off (control)"])
-def test_an_identity_speaks_for_itself_only(creds, acl):
+@contextlib.contextmanager
+def four_sessions(creds, acl):
+    """Sessions of the world (listening), agents 1 and 2 and the observer;
+    ``acl`` "on", or off (the control)."""
     off = ["access_control/enabled:false"] if acl != "on" else []
     port = free_port()
     ep = dict(connect=[f"tls/127.0.0.1:{port}"], listen=["tls/127.0.0.1:0"], cfg=off)
@@ -265,6 +268,12 @@ def test_an_identity_speaks_for_itself_only(creds, acl):
             ZenohTransport(session(creds, "agent-1", **ep)) as a1, \
             ZenohTransport(session(creds, "agent-2", **ep)) as a2, \
             ZenohTransport(session(creds, "observer", **ep)) as obs:
+        yield w, a1, a2, obs
+
+
+@pytest.mark.parametrize("acl", ["on", "off (control)"])
+def test_an_identity_speaks_for_itself_only(creds, acl):
+    with four_sessions(creds, acl) as (w, a1, a2, obs):
         at_world = Sink(w, f"{KEYS.root}/agent/*/report")
         tokens = Sink(w, f"{KEYS.root}/*/agent/**")
         at_a1 = Sink(a1, KEYS.stop)
@@ -310,13 +319,7 @@ def test_reports_and_starting_estimates_reach_only_whom_they_are_for(creds, acl)
     """An agent subscribed to every report hears none (the world and the
     observer do); an agent asks the world for its own starting estimate
     only, and only the world answers it (not the observer pretending to)."""
-    off = ["access_control/enabled:false"] if acl != "on" else []
-    port = free_port()
-    ep = dict(connect=[f"tls/127.0.0.1:{port}"], listen=["tls/127.0.0.1:0"], cfg=off)
-    with ZenohTransport(session(creds, "world", listen=[f"tls/127.0.0.1:{port}"], cfg=off)) as w, \
-            ZenohTransport(session(creds, "agent-1", **ep)) as a1, \
-            ZenohTransport(session(creds, "agent-2", **ep)) as a2, \
-            ZenohTransport(session(creds, "observer", **ep)) as obs:
+    with four_sessions(creds, acl) as (w, a1, a2, obs):
         at_world, at_observer = Sink(w, KEYS.report("*")), Sink(obs, KEYS.report("*"))
         eavesdropper = Sink(a2, KEYS.report("*"))
         w.declare_queryable(start_key("*"), lambda key, payload, reply: reply(b"the world's answer for " +
