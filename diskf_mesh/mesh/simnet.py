@@ -278,6 +278,8 @@ class SimNet:
         self._next_query = 0
         self._timer_serial = 0
         self._finishes = {}
+        self._running = 0         # incarnations neither dead nor done
+        self._coming = 0          # boots and timed faults still in the queue
         self.refused = {}
         self.lost = 0
         self._events = 0
@@ -289,11 +291,13 @@ class SimNet:
         if pid in self._factories:
             raise ValueError(f"process {pid!r} is already in the run")
         self._factories[pid] = (pid if identity is None else identity, factory)
+        self._coming += 1
         self.sched.at(at, ("boot", pid))
 
     def plan(self, faults) -> None:
         for f in faults:
             if f.at is not None:
+                self._coming += 1
                 self.sched.at(f.at, ("fault", f))
             else:
                 self._by_event.setdefault(int(f.after_event), []).append(f)
@@ -320,8 +324,7 @@ class SimNet:
                        dict(self.refused), self.lost)
 
     def _all_over(self) -> bool:
-        return bool(self._procs) and all(p.state in ("dead", "done") for p in self._procs.values()) \
-            and not any(item[0] in ("boot", "fault") for _, _, item in self.sched._heap)
+        return bool(self._procs) and not self._running and not self._coming
 
     def _do(self, item) -> None:
         what = item[0]
@@ -333,8 +336,10 @@ class SimNet:
             if proc.timers.get(name) == serial:
                 self._deliver(proc, ev.Timer(name), True, serial)
         elif what == "boot":
+            self._coming -= 1
             self._boot(item[1])
         elif what == "fault":
+            self._coming -= 1
             self._fault(item[1])
         elif what == "resume":
             self._resume(item[1], item[2])
@@ -401,6 +406,7 @@ class SimNet:
         inc = 0 if old is None else old.inc + 1
         now = self.sched.now
         proc = _Proc(pid, identity, inc, factory, len(self._all))
+        self._running += 1
         self._procs[pid] = proc
         self._all.append(proc)
         r = self._boot_rng.integers(0, 2 ** 32, size=3)
@@ -440,6 +446,7 @@ class SimNet:
     def _end(self, proc: _Proc, state: str, lingering: bool = False) -> None:
         """The process is gone (crashed, or finished): nothing reaches it any more."""
         was_attached = proc.attached
+        self._running -= 1
         proc.state = state
         proc.timers.clear()
         proc.backlog.clear()
