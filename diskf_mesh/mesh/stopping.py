@@ -5,12 +5,18 @@ A process of a run installs its handlers first thing in its ``run(args)``:
     world    SIGTERM/SIGINT end the run at the next look (at most ``POLL_S``
              later); its results are written, marked interrupted, and it
              exits 3 (incomplete)
-    agent, host, up
-             SIGTERM raises ``SystemExit(143)`` (``terminated``): the
+    agent    SIGTERM raises ``SystemExit(143)`` (``terminated``): the
              process leaves through its ``finally`` blocks (its zenoh
-             session closed, a host's or up's children stopped) and exits
-             143, the status a shell shows for a process SIGTERM ended;
-             Ctrl-C (SIGINT) likewise exits 130
+             session closed) and exits 143, the status a shell shows for a
+             process SIGTERM ended; Ctrl-C (SIGINT) likewise exits 130. A
+             Python handler runs only between two bytecodes of the main
+             thread, not while it waits inside zenoh (a session that cannot
+             reach its router, a close): ``exit_on_sigterm``'s watchdog
+             thread, woken by the signal itself (``signal.set_wakeup_fd``),
+             ends the process with 143 if it is still there ``GRACE_S``
+             later
+    host, up SIGTERM raises ``SystemExit(143)``: their children are
+             stopped (SIGTERM) on the way out
     router   SIGTERM/SIGINT: exits 0 (serving until stopped is its job)
 
 Before its handler is installed (while the interpreter imports), a process
@@ -21,7 +27,11 @@ image with an init (``init: true`` in the compose files, ``docker run
 """
 from __future__ import annotations
 
+import os
 import signal
+import threading
+
+GRACE_S = 1.5  # SIGTERM -> exit at the latest this much later (a container's stop waits 10 s, up's 3 s)
 
 
 def terminated(signum, frame):
@@ -29,7 +39,24 @@ def terminated(signum, frame):
     raise SystemExit(128 + signum)
 
 
-def exit_on_sigterm():
-    """SIGTERM raises ``SystemExit(143)`` from here on; returns the handler
-    it replaces."""
-    return signal.signal(signal.SIGTERM, terminated)
+def exit_on_sigterm(grace_s: float = GRACE_S) -> None:
+    """From here on SIGTERM raises ``SystemExit(143)`` in the main thread,
+    and the process ends with 143 ``grace_s`` later if it has not by then.
+    Main thread only; the watchdog is left out if something else already
+    owns the signal wake-up fd."""
+    signal.signal(signal.SIGTERM, terminated)
+    read, write = os.pipe()
+    os.set_blocking(write, False)
+    if (other := signal.set_wakeup_fd(write, warn_on_full_buffer=False)) != -1:  # someone else's: give it back
+        signal.set_wakeup_fd(other)
+        os.close(read)
+        os.close(write)
+        return
+    threading.Thread(target=_watchdog, args=(read, grace_s), name="sigterm-watchdog", daemon=True).start()
+
+
+def _watchdog(read: int, grace_s: float) -> None:
+    while signal.SIGTERM not in os.read(read, 64):
+        pass
+    threading.Event().wait(grace_s)
+    os._exit(128 + signal.SIGTERM)
