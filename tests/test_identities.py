@@ -189,6 +189,8 @@ def _identity_name(argv) -> str:
 
 
 @pytest.mark.mesh
+@pytest.mark.skipif(os.geteuid() != 0, reason="reads the memory and files of up's processes, closed to their user "
+                                                "(keep_private): needs root")
 def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path):
     proc = _up(tmp_path, "--ticks", "100000")
     try:
