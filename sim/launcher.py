@@ -613,7 +613,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         print(f"warning: up: --insecure: plain zenoh; any process that reaches it can read and write run "
               f"{spec.run_id}", file=sys.stderr)
     world_extra = ["--progress", "lines", "--json", str(out), "--startup-timeout", str(args.startup_timeout),
-                   "--tick-timeout", str(args.tick_timeout)]
+                   "--tick-timeout", str(args.tick_timeout), "--collect-timeout", str(args.collect_timeout)]
     if args.estimates:
         world_extra += ["--estimates", args.estimates]
     if args.record:

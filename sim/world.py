@@ -72,6 +72,7 @@ from diskf_mesh.core import exits
 from diskf_mesh.data.outputs import json_safe
 from diskf_mesh.engine.verify import RunStatus
 from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.mesh.agent_machine import AgentTiming
 from diskf_mesh.mesh.run_status import accept, add_tolerances, run_status
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
@@ -240,12 +241,14 @@ def deadline_summary(rec: WorldRecord, clock: realtime.Clock) -> dict:
 
 
 def checked_status(rec: WorldRecord, trace: Trace, scn: Scenario, spec, seed: int, faults: FaultConfig,
-                   clock: realtime.Clock | None) -> RunStatus:
+                   clock: realtime.Clock | None, collect_s: float = math.inf) -> RunStatus:
     """The run checked by the engine (``mesh.run_status``): ``exact``, ``as
     planned``, ``degraded``, ``diverged`` or ``incomplete``, with its reason
-    and evidence."""
+    and evidence. The plan: a copy the link faults delay past the agents'
+    deadline (real time's, else their ``collect_s``) is not planned to be
+    fused."""
     return run_status(rec, trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=seed, faults=faults,
-                      deadline_s=math.inf if clock is None else clock.deadline_s, labels=scn.labels)
+                      deadline_s=collect_s if clock is None else clock.deadline_s, labels=scn.labels)
 
 
 def status_fields(status: RunStatus) -> dict:
@@ -334,6 +337,9 @@ def register(subparsers) -> None:
                    help="seconds to wait for every agent (default %(default)s)")
     p.add_argument("--tick-timeout", type=float, default=WorldTiming.tick_timeout, metavar="S",
                    help="seconds to wait for the reports of one tick (default %(default)s)")
+    p.add_argument("--collect-timeout", type=float, default=AgentTiming.collect_timeout, metavar="S",
+                   help="the agents' --collect-timeout (default %(default)s): with link latency injected, a message "
+                        "due later is not planned to be fused (the run's status)")
     add_allow_missing(p)
     realtime.add_arguments(p)
     p.add_argument("--progress", choices=PROGRESS, default="bar",
@@ -412,7 +418,7 @@ def run(args: argparse.Namespace) -> int:
     summary = run_summary(rec, faults)
     if clock is not None:
         summary.update(deadline_summary(rec, clock))
-    status = checked_status(rec, trace, scn, spec, args.seed, faults, clock)
+    status = checked_status(rec, trace, scn, spec, args.seed, faults, clock, args.collect_timeout)
     summary.update(status_fields(status))
     recording = recorder.finish("done" if world.done else "stopped", row, status.to_json())
     if recording:  # the run is measured, the file is not whole: the results say so, and the exit status
