@@ -192,7 +192,7 @@ class WorldMachine:
         self._waiting = set()          # live agents whose report of the open tick has not come yet
         self._rejected = set()         # ids whose report of the open tick was rejected
         self._live_at_open = ()        # the live set of the open tick
-        self._sent = []                # [(key, payload)] that opened it (sent again after a pause)
+        self._sent = []                # [Publish] that opened it (sent again after a pause)
         self._t0 = self._t1 = 0.0      # start; tick 1 opened
         self._ticking = False          # the "ticking" token is declared
         # real time
@@ -385,7 +385,7 @@ class WorldMachine:
             self._owed[k] = set(live)
             self.record.deadlines.reports_due.update(live)
         for j, i in enumerate(self.ids):
-            if i in live:
+            if i in self._waiting:
                 self._why[i] = None
                 self.record.live[k - 1, j] = True
             else:
@@ -393,21 +393,18 @@ class WorldMachine:
         if self.recorder is not None:
             self.recorder.on_open(k, live)
         prof.begin()
-        out = [(self.keys.meas(i), wire.encode_measurement(run, k, i, bool(tr.has[0, k - 1, j]),
-                                                           tr.y[0, k - 1, j, : self.p[j]]))
-               for i, j in ((i, self._index[i]) for i in live)]
-        out.append((self.keys.tick, wire.encode_tick(wire.Tick(
+        has, y, index = tr.has[0, k - 1], tr.y[0, k - 1], self._index
+        out = [Publish(self.keys.meas(i), wire.encode_measurement(run, k, i, bool(has[j]), y[j, : self.p[j]]),
+                       express=False) for i, j in ((i, index[i]) for i in live)]
+        out.append(Publish(self.keys.tick, wire.encode_tick(wire.Tick(
             run, k, self.K, self.seed, self.algorithm, self.scn.topology, self.scn.comm_range,
             tr.positions[k - 1], tuple(live)))))
         prof.end("encode")
         self._sent = out
-        self._publish(out)
+        self._out += out
         prof.waiting = "wait-reports"
         if self.clock is None:
             self._set_timer("tick", now + self.timing.tick_timeout)
-
-    def _publish(self, out: list) -> None:
-        self._emit(*(Publish(key, payload, express=False) for key, payload in out[:-1]), Publish(*out[-1]))
 
     def _on_sample(self, key: str, payload: bytes, now: float) -> None:
         """A report, a rejoin or a duplicate's notice of an agent."""
@@ -485,8 +482,7 @@ class WorldMachine:
             self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
         if self.recorder is not None:
             self.recorder.on_close(k, self._waiting)
-        self._open, self._waiting, self._closed = 0, set(), k
-        self._cancel_timer("tick")
+        self._open, self._waiting, self._closed = 0, set(), k  # its "tick" timer: moved by the next, or cancelled
         self.prof.tick()
         if self.progress is not None:
             self.progress(k)
@@ -681,7 +677,7 @@ class WorldMachine:
         k = self.k
         self._waiting = {i for i in self._live_at_open
                          if i in self.ready and not self.record.reported[k - 1, self._index[i]]}
-        self._publish(self._sent)
+        self._out += self._sent
         self._set_timer("tick", now + self.timing.tick_timeout)
 
     # ======================================================================
