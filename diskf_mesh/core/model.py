@@ -170,13 +170,14 @@ class AutoOptions:
     none:      a model without input
     walk:      random walks at three scales (persistent inputs)
     zero_mean: zero-mean inputs at two scales (noise-like, switching inputs)
-    switch:    the models' Markov chain: 1 - switch to stay
+    switch:    the models' Markov chain: 1 - switch to stay (0.001: a change of
+               input model expected about once in 1,000 ticks)
     """
 
     none: bool = True
     walk: bool = True
     zero_mean: bool = True
-    switch: float = 0.01
+    switch: float = 0.001
 
     def __post_init__(self):
         if not (self.none or self.walk or self.zero_mean):
