@@ -77,7 +77,7 @@ def test_start_listens_and_claims(run):
     assert any(isinstance(e, WatchTokens) for e in out)
     assert out[-1] == AskTokens(CLAIM, keys.alive_world, 1.0)
     out = w.handle(Tokens(CLAIM, (keys.world(NONCE),)), 0.5)  # its own token only
-    assert out == [DeclareToken(keys.world(NONCE)), SetTimer("startup", 30.0)]
+    assert out == [DeclareToken(keys.world(NONCE)), SetTimer("startup", 30.5)]  # from the claim
 
 
 def test_another_world_holds_the_run_id(run):

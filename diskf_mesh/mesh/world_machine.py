@@ -312,7 +312,7 @@ class WorldMachine:
                                 "give each run its own --run-id")
         self._emit(DeclareToken(self.keys.world(self.nonce)))
         self.phase = "startup"
-        self._set_timer("startup", self._t0 + self.timing.startup_timeout)
+        self._set_timer("startup", now + self.timing.startup_timeout)
 
     def _startup_over(self, now: float) -> None:
         """``startup_timeout`` passed with agents not ready: fail naming
