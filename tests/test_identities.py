@@ -192,7 +192,7 @@ def _identity_name(argv) -> str:
 @pytest.mark.skipif(os.geteuid() != 0, reason="reads the memory and files of up's processes, closed to their user "
                                                 "(keep_private): needs root")
 def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path):
-    proc = _up(tmp_path, "--ticks", "100000")
+    proc = _up(tmp_path, "--ticks", "3000")  # running when stopped, short enough for the end-of-run check
     try:
         kids = _wait_children(proc, 5)
         assert len(kids) == 5, kids  # the world and four agents
@@ -220,7 +220,7 @@ def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path
 
 @pytest.mark.mesh
 def test_kill_9_of_up_leaves_no_key_and_no_process(tmp_path):
-    proc = _up(tmp_path, "--ticks", "100000")
+    proc = _up(tmp_path, "--ticks", "3000")  # running when stopped, short enough for the end-of-run check
     try:
         kids = _wait_children(proc, 5)
         assert len(kids) == 5, kids
