@@ -171,3 +171,25 @@ def test_a_missing_report_then_agreement_is_known_again(run):
     claims.x[30, 4, 1] *= 1.5
     st = check(trace, scn, claims)
     assert st.status == "diverged" and st.evidence["diverged"]["tick"] == 31
+
+
+def test_accept_is_the_one_place_a_status_meets_the_users_tolerances():
+    from diskf_mesh.mesh.run_status import accept
+
+    degraded = V.RunStatus("degraded", "3 agent-ticks fused fewer messages than planned", {})
+    incomplete = V.RunStatus("incomplete", "2 of 100 agent-ticks not reported", {"missing_fraction": 0.02})
+    diverged = V.RunStatus("diverged", "agent 3 ...", {})
+    assert accept(V.RunStatus("exact", "", {}))[:2] == (exits.OK, "")
+    assert accept(V.RunStatus("as planned", "", {}))[:2] == (exits.OK, "")
+    assert accept(degraded)[:2] == (exits.DEGRADED, "error")
+    assert accept(degraded, allow_degraded=True)[:2] == (exits.OK, "warning")
+    # real time: misses within --max-miss-rate are accepted degradation, beyond it exit TOO_MANY_MISSES
+    assert accept(degraded, miss_rate=0.01, max_miss_rate=0.05)[:2] == (exits.OK, "warning")
+    assert accept(degraded, miss_rate=0.10, max_miss_rate=0.05)[0] == exits.TOO_MANY_MISSES
+    assert accept(incomplete)[:2] == (exits.INCOMPLETE, "error")
+    assert accept(incomplete, allow_missing=0.02)[:2] == (exits.OK, "warning")
+    assert accept(incomplete, allow_missing=0.01)[0] == exits.INCOMPLETE
+    for kw in ({}, {"allow_degraded": True, "allow_missing": 1.0}, {"miss_rate": 0.0, "max_miss_rate": 1.0}):
+        assert accept(diverged, **kw)[:2] == (exits.DIVERGED, "error")
+    assert len({exits.OK, exits.FAILED, exits.BAD_INPUT, exits.INCOMPLETE, exits.TOO_MANY_MISSES, exits.DEGRADED,
+                exits.DIVERGED}) == 7

@@ -55,12 +55,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diskf_mesh.core import exits
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.argtypes import fraction, positive
 
 DEADLINE_FRACTION = 0.5  # default agent deadline: this share of the period after tick k reached it
 LEAD_TICKS = 64          # how far ahead of its tick an agent takes the world's ticks and neighbours' messages
-TOO_MANY_MISSES = 4      # exit status of a real-time run whose miss rate exceeds --max-miss-rate
+TOO_MANY_MISSES = exits.TOO_MANY_MISSES  # exit status of a real-time run whose miss rate exceeds --max-miss-rate
 MAX_MISS_RATE = 0.05     # ... by default: a run that missed more than this share did not keep up
 
 
