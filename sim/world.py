@@ -317,7 +317,6 @@ def open_recorder(path, trace, scn, spec, seed, faults, prov=None):
 # command line
 # --------------------------------------------------------------------------
 PROGRESS = ("bar", "lines", "none")
-INCOMPLETE = exits.INCOMPLETE  # exit status of a run with missing agent-ticks beyond --allow-missing
 
 
 def add_allow_missing(p) -> None:
