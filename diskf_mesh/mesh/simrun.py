@@ -60,7 +60,7 @@ class SimPlan:
 @dataclass
 class SimRun:
     outcome: Outcome
-    world: WorldMachine              # the world of the run (its last incarnation)
+    world: WorldMachine              # the world that ran the run (its last incarnation)
     status: object                   # engine.verify.RunStatus, or None if the world never finished
     log: str                         # every process's lines
 
@@ -114,9 +114,12 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
         add(pid, factory, identity, float(at))
     net.plan(plan.faults)
     out = net.run()
-    w = out.machines[WORLD]
+    # the world that ran the run (of two holding the run id, one leaves: it heard no report)
+    worlds = [pid for pid in out.machines if pid == WORLD or pid.startswith(WORLD + "~")]
+    pid = max(worlds, key=lambda p: (int(out.machines[p].record.reported.sum()), p == WORLD))
+    w = out.machines[pid]
     status = None
-    if verify and WORLD in out.finishes and w.record.reported.any():
+    if verify and pid in out.finishes and w.record.reported.any():
         status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
                             labels=scn.labels)
     return SimRun(out, w, status, stream.getvalue() if stream is not None else "")
