@@ -168,8 +168,9 @@ class AutoOptions:
     that the input changes model (the IMM chain's ``switch``, 0 < switch < 1).
 
     none:      a model without input
-    walk:      random walks at three scales (persistent inputs)
-    zero_mean: zero-mean inputs at two scales (noise-like, switching inputs)
+    walk:      random walks at three scales (persistent inputs: steps, ramps)
+    zero_mean: zero-mean inputs at two scales and mean-reverting ones
+               (rho = exp(-1/10)) at two (noise-like, switching, fast inputs)
     switch:    the models' Markov chain: 1 - switch to stay (0.001: a change of
                input model expected about once in 1,000 ticks)
     """

@@ -41,6 +41,7 @@ from diskf_mesh.data import metrics
 from diskf_mesh.data.inputs import parse_input
 from diskf_mesh.data.scenario import Scenario, load_scenario, parse_scenario, simulate
 from diskf_mesh.engine import batch as engine
+from diskf_mesh.studies.suite import observed, rotation
 
 FAMILY_PREFIX = "diskf"
 AUTO = "diskf-auto"
@@ -89,11 +90,6 @@ def _topo(scn: Scenario, topology: str, comm_range) -> Scenario:
 
 def _topo_label(topology: str, comm_range) -> str:
     return f"range {comm_range:g}" if topology == "range" else topology
-
-
-def rotation(omega: float) -> np.ndarray:
-    c, s = math.cos(omega), math.sin(omega)
-    return np.array([[c, -s], [s, c]])
 
 
 def constant_velocity(topology: str) -> Scenario:
@@ -184,13 +180,6 @@ def _erfinv(y: float) -> float:  # pragma: no cover - only for p other than 0.95
         mid = (lo + hi) / 2
         lo, hi = (mid, hi) if math.erf(mid) < y else (lo, mid)
     return lo
-
-
-def observed(trace) -> np.ndarray:
-    """(B, K, N): the agent's neighbourhood (itself included) measured."""
-    B, K, N = trace.has.shape
-    L = np.broadcast_to(trace.links, (B, K, N, N)).astype(float)
-    return np.einsum("bkij,bkj->bki", L, trace.has.astype(float)) > 0
 
 
 def run_case(case: Case, seeds, steps: int | None = None, names=None) -> dict:

@@ -1,0 +1,39 @@
+"""The held-out suite's machinery: its chi-square band, one case end to end,
+and its targets' arithmetic (the full suite is a script:
+``python -m diskf_mesh.studies.heldout``)."""
+from __future__ import annotations
+
+import pytest
+import scipy.stats
+
+from diskf_mesh.estimators import NAMES
+from diskf_mesh.studies import heldout
+
+
+@pytest.mark.parametrize("n,seeds", [(2, 20), (4, 20), (3, 10)])
+def test_chi2_band_matches_scipy(n, seeds):
+    lo, hi = heldout.chi2_band(n, seeds)
+    assert lo == pytest.approx(scipy.stats.chi2.ppf(0.025, n * seeds) / seeds, rel=2e-3)
+    assert hi == pytest.approx(scipy.stats.chi2.ppf(0.975, n * seeds) / seeds, rel=2e-3)
+
+
+def test_every_case_builds_and_one_runs():
+    cases = heldout.cases()
+    labels = [c.label for c in cases]
+    assert len(labels) == len(set(labels)) == 148
+    assert {c.group for c in cases} == {"inputs", "constant velocity", "3-D state", "p_i = 2", "mixed sensors",
+                                        "omega", "R scale", "random geometric"}
+    doc = heldout.run(seeds=2, steps=20, select="S1 ring, white", progress=False)
+    (res,) = doc["results"]
+    assert set(res["rows"]) == set(NAMES)
+    assert not any(r["diverged"] for r in res["rows"].values())
+    assert "S1 ring, white" in heldout.markdown(doc)
+
+
+def test_targets_arithmetic():
+    row = lambda v: dict(mae_state=v, mae_input=0.0, nees=2.0, nees_band_share=1.0, diverged=False)  # noqa: E731
+    results = [dict(case="a", n=2, rows={"diskf": row(1.0), "diskf-auto": row(1.05), "kcf": row(1.0)}),
+               dict(case="b", n=2, rows={"diskf": row(2.0), "diskf-auto": row(1.2), "kcf": row(1.0)})]
+    t = heldout.targets(results, 20)
+    assert (t["family_within_1pct"], t["auto_within_10pct"], t["auto_nees_in_band"]) == (1, 1, 2)
+    assert t["misses"]["family"] == ["b"] and t["misses"]["auto"] == ["b"]
