@@ -431,7 +431,7 @@ class WorldMachine:
                           " found this id held and leaves: duplicate id")
 
     def _on_report(self, sender, payload, now: float) -> None:
-        if sender not in self.ids:
+        if sender not in self._every:
             raise wire.Rejected("sender", f"unknown agent {sender}")
         self.prof.begin()
         try:
