@@ -42,9 +42,11 @@ import sys
 import threading
 import time
 
+from diskf_mesh.mesh import credentials
+
 SPAWN_ENV = "DISKF_MESH_SPAWN"  # "exec": no zygote
 FORKED = {"sim.world": "world", "agents.agent": "agent", "sim.router": "router", "sim.host": "host"}
-# not cryptography: only the launcher makes credentials; a child hands its PEM files to zenoh (~70 ms
+# not cryptography: only the launcher makes credentials; a child hands its PEMs to zenoh (~70 ms
 # less before the first fork)
 PRELOAD = ("sim.world", "agents.agent", "sim.router", "sim.host", "zenoh", "tqdm", "diskf_mesh.studies.experiment",
            "diskf_mesh.cli.main")
@@ -371,6 +373,9 @@ def serve(fd: int):
     child has ended; in a forked child, returns (argv, cwd, fds)."""
     sock = socket.socket(fileno=fd)
     set_title([sys.executable, "-m", "sim.zygote", f"(fork server of process {os.getppid()})"])
+    # the files it passes on (a child's identity on its standard input) and every child it forks are closed to
+    # the user's other processes from the start (a child is so before it has read its identity)
+    credentials.keep_private()
     why = _preload()
     try:
         sock.send(json.dumps({"ready": not why, "why": why}).encode())
