@@ -276,3 +276,35 @@ def test_a_second_world_leaves_and_the_first_counts_it(run):
     assert w.record.duplicates["world"] == 1
     out = w.handle(Token(keys.world("0000000000000001cccccccc"), True), 1.1)  # an earlier one: this one leaves
     assert out[-1].code == DUPLICATE and not published(out)
+
+
+def test_the_machine_reads_no_clock_and_touches_no_network():
+    """Pure by construction: the module imports no clock, thread, socket,
+    randomness or transport (the shell and the simulated network bring
+    them)."""
+    import ast
+    from pathlib import Path
+
+    import diskf_mesh.mesh.world_machine as wm
+
+    tree = ast.parse(Path(wm.__file__).read_text())
+    imported = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    imported |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    forbidden = {"time", "threading", "socket", "random", "secrets", "os", "zenoh", "asyncio",
+                 "diskf_mesh.mesh.transport", "diskf_mesh.mesh.shell"}
+    assert not imported & forbidden
+    names = {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+    assert not names & {"new_nonce", "monotonic", "perf_counter", "time_ns"}
+
+
+def test_same_events_same_effects(run):
+    """Two machines fed the same events at the same times say the same."""
+    def script(w):
+        out = w.start(0.0) + w.handle(Tokens(CLAIM, ()), 0.0) + ready(w, w.ids, 0.1)
+        for k in (1, 2):
+            for i in w.ids[k - 1:]:
+                out += report(w, i, k, 0.1 * k + 0.01 * i)
+            out += w.handle(Timer("tick"), 10.0 * k + 0.2)
+        return out + w.handle(Woke(3.0), 25.0) + w.handle(Timer("pause"), 26.0)
+
+    assert script(machine(run)) == script(machine(run))
