@@ -154,8 +154,8 @@ class SimError(RuntimeError):
 class _Proc:
     """One incarnation of a process."""
 
-    __slots__ = ("pid", "identity", "inc", "factory", "machine", "state", "connected", "backlog", "subs",
-                 "watches", "queryables", "tokens", "timers", "counts", "paused_at", "pause_serial", "order")
+    __slots__ = ("pid", "identity", "inc", "factory", "machine", "state", "connected", "backlog", "watches",
+                 "tokens", "timers", "counts", "paused_at", "pause_serial", "order")
 
     def __init__(self, pid, identity, inc, factory, order):
         self.pid, self.identity, self.inc, self.factory, self.order = pid, identity, inc, factory, order
@@ -163,7 +163,7 @@ class _Proc:
         self.state = "up"         # up, paused, dead, done
         self.connected = True
         self.backlog = []         # events that came while paused
-        self.subs, self.watches, self.queryables = [], [], []
+        self.watches = []         # (key expression, matcher) of its token watches
         self.tokens = []          # keys of its declared tokens
         self.timers = {}          # name -> serial of the timer set last
         self.counts = {}          # token key -> declarations visible to it (keys its watches match)
@@ -524,29 +524,21 @@ class SimNet:
                 proc.timers.pop(e.name, None)
             elif isinstance(e, ev.Subscribe):
                 if self._may(proc, "declare_subscriber", e.key):
-                    proc.subs.append(e.key)
                     self._subs.add(e.key, proc)
             elif isinstance(e, ev.WatchTokens):
                 if self._may(proc, "declare_liveliness_subscriber", e.key):
                     self._watch(proc, e.key)
             elif isinstance(e, ev.DeclareQueryable):
                 if self._may(proc, "declare_queryable", e.key):
-                    proc.queryables.append(e.key)
                     self._queryables.add(e.key, proc)
             elif isinstance(e, ev.DeclareToken):
                 if self._may(proc, "liveliness_token", e.key):
                     proc.tokens.append(e.key)
-                    if proc.connected:
-                        self._token_to_all(proc, e.key, +1)
-                    else:
-                        self._token_to(proc, proc, e.key, +1)
+                    self._own_token(proc, e.key, +1)
             elif isinstance(e, ev.DropToken):
                 if e.key in proc.tokens:
                     proc.tokens.remove(e.key)
-                    if proc.connected:
-                        self._token_to_all(proc, e.key, -1)
-                    else:
-                        self._token_to(proc, proc, e.key, -1)
+                    self._own_token(proc, e.key, -1)
             elif isinstance(e, ev.AskTokens):
                 self._ask_tokens(proc, e)
             elif isinstance(e, ev.Ask):
@@ -560,6 +552,14 @@ class SimNet:
                 return
             else:
                 raise SimError(f"seed {self.seed}: {proc!r} returned {e!r}, not an effect")
+
+    def _own_token(self, proc: _Proc, key: str, delta: int) -> None:
+        """``proc`` declared (+1) or dropped (-1) a token: everyone sees it, or,
+        cut off from the network, itself alone."""
+        if proc.connected:
+            self._token_to_all(proc, key, delta)
+        else:
+            self._token_to(proc, proc, key, delta)
 
     def _may(self, proc: _Proc, message: str, key: str) -> bool:
         if self.access.allowed(proc.identity, message, key):
