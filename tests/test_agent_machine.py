@@ -329,3 +329,30 @@ def test_a_timer_fired_before_its_time_changes_nothing(run):
         assert all(isinstance(e, SetTimer) and e.at > 2.0 for e in out) and m.collecting   # at most set again
     m2, _, _ = asking(run)
     assert m2.handle(Timer("ask"), 11.0) == [] and m2.est is None
+
+
+def test_real_time_closes_at_the_deadline_from_when_the_tick_came(run):
+    """With a clock (``mesh.clock``) the collection of tick k ends
+    ``deadline_s`` after tick k reached the agent; a copy after that is late,
+    never fused. An agent that gets to a tick after its deadline (it fell
+    behind) closes it at once."""
+    from diskf_mesh.mesh.clock import Clock
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, _ = started(scn, me, timing=AgentTiming(clock=Clock(10.0, 0.05)))
+    msgs = {k: mm for k, mm, _ in lockstep(scn, "diskf", trace, SEED)}
+    linked = sorted(set(neighbours(scn, me, trace.positions[0])) - {me})
+    m.handle(w.meas(1, me), 1.0)
+    out = m.handle(w.tick(1), 1.0)
+    assert SetTimer("collect", 1.05) in out
+    m.handle(Sample(m.keys.msg(linked[0], to=[me]), wire.encode(RUN, linked[0], 1, msgs[1][linked[0]])), 1.02)
+    rep, = of(m.handle(Timer("collect"), 1.05), Publish)
+    r = wire.decode_report(rep.payload, run_id=RUN, sender=me)
+    assert r.fused == (linked[0],) and dict(r.not_fused) == {j: "late" for j in linked[1:]}
+    m.handle(Sample(m.keys.msg(linked[1], to=[me]), wire.encode(RUN, linked[1], 1, msgs[1][linked[1]])), 1.06)
+    assert m.counters.late == 1 and m.counters.fused == 1
+    m.handle(w.tick(2), 1.1)                            # tick 2 came at 1.1, its measurement only at 1.3:
+    out = m.handle(w.meas(2, me), 1.3)                  # past its deadline (1.15), opened and closed at once
+    assert [m.keys.parse(e.key)[0] for e in of(out, Publish)] == ["msg", "report"]
+    assert not of(out, SetTimer) and m.k == 3
