@@ -119,7 +119,7 @@ class WorldRecord(RunReports):
     startup_s: float = 0.0                     # start to tick 1
     ticks_s: float = 0.0                       # tick 1 to the last report
     why: np.ndarray | None = None              # (K, N) why an agent-tick is missing ("" if reported or not run)
-    live: np.ndarray | None = None             # (K, N) bool: the live set tick k carried (False: not run)
+    live: np.ndarray | None = None             # (K, N) bool: the live set tick k carried (``engine.verify.nominal_links``)
     rejoins: dict = field(default_factory=dict)        # id -> [{"tick", "source"}]
     starts: list = field(default_factory=list)         # [wire.Start] every starting state the world answered
     duplicates: Counter = field(default_factory=Counter)  # id (or "world") -> extra processes seen
@@ -131,16 +131,6 @@ class WorldRecord(RunReports):
     def label(self, i):
         """Agent ``i``'s id as the scenario gave it (``i`` itself if unknown)."""
         return self.labels[self.ids.index(i)] if self.labels and i in self.ids else i
-
-    def nominal_links(self, links: np.ndarray) -> np.ndarray:
-        """(K, N, N) bool [tick - 1, receiver, sender]: the links of the run
-        as planned, ``links`` (the trace's (K, N, N) range links) between
-        agents both live at that tick, without the diagonal."""
-        live = self.live if self.live is not None else np.ones(self.reported.shape, dtype=bool)
-        out = links.astype(bool) & live[:, :, None] & live[:, None, :]
-        idx = np.arange(out.shape[-1])
-        out[:, idx, idx] = False
-        return out
 
 
 class WorldMachine:
