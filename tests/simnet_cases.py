@@ -38,6 +38,10 @@ from diskf_mesh.recording.replay import compare_reported
 # (test_simnet_regressions)
 ALGORITHMS = ("diskf", "diskf", "diskf", "kcf", "diffkf", "ldrkf")
 MSGS = "diskf/sim/agent/*/msg/**"
+# random-geometric with 3 to 9 agents (sparse, links come and go), quadrants (4, every pair linked),
+# dynamic (9, in range of each other as they move)
+SCENARIOS = ("random-geometric", "random-geometric", "quadrants", "dynamic")
+SIZES = {"quadrants": 4, "dynamic": 9}
 STATUSES = ("exact", "as planned", "degraded", "diverged", "incomplete")
 
 
@@ -71,7 +75,8 @@ class Case:
 
 def build(draw) -> Case:
     """One case from ``draw``: ``draw.int(lo, hi)`` and ``draw.pick(seq)``."""
-    N, K = draw.int(3, 9), draw.int(20, 60)
+    scenario = draw.pick(SCENARIOS)
+    N, K = (draw.int(3, 9) if scenario == "random-geometric" else SIZES[scenario]), draw.int(20, 60)
     algorithm = draw.pick(ALGORITHMS)
     seed = draw.int(0, 2 ** 16)
     wt, at, lease = WorldTiming(), AgentTiming(), Lease()
@@ -114,7 +119,7 @@ def build(draw) -> Case:
     late = ()
     if draw.int(0, 7) == 0:
         late = ((draw.int(1, N), draw.pick((0.001, delay * K / 2, around()))),)
-    return Case(N, K, algorithm, seed, link, tuple(faults), twins, late, injected, lease, wt, at)
+    return Case(N, K, algorithm, seed, link, tuple(faults), twins, late, injected, lease, wt, at, scenario)
 
 
 class _Hypothesis:
