@@ -20,8 +20,8 @@ child failed; 2 on bad input.
 Every run is authenticated: ``up`` makes a fresh certificate authority and
 one certificate and key per process (``diskf_mesh.mesh.credentials``) in
 memory, never on disk, and hands each child its own identity alone, with
-the run's CA certificate, on its standard input (``--credentials -``: an
-in-memory file the child reads and closes at once). The router's identity
+the run's CA certificate, on its standard input (``--credentials -``: a
+socket the child reads to its end and closes at once). The router's identity
 is made only when a router runs, the observer's only for ``--live``. The
 launcher and every child that holds a key are closed to the user's other
 processes (``credentials.keep_private``), so a compromised child finds no
@@ -211,19 +211,23 @@ class Child:
         return lines[-1] if lines else ""
 
 
-def secret_file(data: bytes) -> int:
-    """A file descriptor of an in-memory file holding ``data``, at its
-    start (Linux: a memfd; elsewhere an unnamed temporary file): it has no
-    path, and it is gone once the last process holding it closes it or dies."""
-    try:
-        fd = os.memfd_create("diskf-identity", os.MFD_CLOEXEC)
-    except (AttributeError, OSError):
-        f = tempfile.TemporaryFile()
-        fd = os.dup(f.fileno())
-        f.close()
-    os.write(fd, data)
-    os.lseek(fd, 0, os.SEEK_SET)
-    return fd
+def hand_over(data: bytes) -> int:
+    """A file descriptor, for a child's standard input, from which it reads
+    ``data`` and then the end: one end of a socket pair whose other end a
+    thread of this process writes and closes. Unlike a file or a pipe, a
+    socket cannot be opened through ``/proc/PID/fd`` by another process, and
+    what it holds is in no file system."""
+    ours, theirs = socket.socketpair()
+
+    def feed():
+        with ours:
+            try:
+                ours.sendall(data)
+            except OSError:  # the child is gone before reading
+                pass
+
+    threading.Thread(target=feed, name="identity", daemon=True).start()
+    return theirs.detach()
 
 
 def _die_with_parent() -> None:
@@ -267,10 +271,10 @@ class Launcher:
         self._spawn_all([child], stdout)
 
     def _stdin(self, child: Child):
-        """A file descriptor of ``child``'s identities (``secret_file``), or None."""
+        """A file descriptor of ``child``'s identities (``hand_over``), or None."""
         if not child.identities or not self.keys:
             return None
-        return secret_file(credentials.bundle([self.keys[name] for name in child.identities]))
+        return hand_over(credentials.bundle([self.keys[name] for name in child.identities]))
 
     def _spawn_all(self, children, stdout) -> None:
         """Start ``children``: the ones a zygote can fork (``sim.zygote``) at

@@ -13,6 +13,7 @@ the run (docs/security.md):
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import signal
@@ -31,7 +32,7 @@ from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.zenoh_config import STDIN, ZenohOptions
 from memory_probe import certificates, pems, public_key, usable_keys
-from sim.launcher import Child, Launcher, one_host_children, run_identities
+from sim.launcher import Child, Launcher, hand_over, one_host_children, run_identities
 
 RUN = "ident-test"
 KEY_MARK = b"PRIVATE KEY"
@@ -108,6 +109,38 @@ def test_the_launcher_hands_each_child_its_own_identity_alone(tmp_path):
         assert list(held) == [n]
         assert held[n].key_pem == keys[n].key_pem and _key_matches_cert(held[n])
         assert got["got"].count("PRIVATE KEY-----") == 2  # one key: its BEGIN and END lines
+
+
+def _memfd(data: bytes) -> int:
+    fd = os.memfd_create("identity")
+    os.write(fd, data)
+    os.lseek(fd, 0, os.SEEK_SET)
+    return fd
+
+
+@pytest.mark.parametrize("how", ["hand_over", "memfd (control)"])
+def test_what_a_child_is_handed_cannot_be_opened_by_another_process(tmp_path, how):
+    """The child's end of the socket its identity comes through: no other
+    process (not even root) can open it through ``/proc/PID/fd/0``. An
+    in-memory file in its place can be (the control)."""
+    secret = b"-----BEGIN PRIVATE KEY----- not yet read"
+    fd = hand_over(secret) if how == "hand_over" else _memfd(secret)
+    try:
+        child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"], stdin=fd)
+    finally:
+        os.close(fd)
+    try:
+        time.sleep(0.2)
+        if how != "hand_over":
+            with open(f"/proc/{child.pid}/fd/0", "rb") as f:
+                assert f.read() == secret
+            return
+        with pytest.raises(OSError) as e:
+            open(f"/proc/{child.pid}/fd/0", "rb")
+        assert e.value.errno == errno.ENXIO
+    finally:
+        child.kill()
+        child.wait()
 
 
 # --------------------------------------------------------------------------

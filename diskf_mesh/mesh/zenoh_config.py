@@ -173,13 +173,14 @@ def from_args(args: argparse.Namespace, identity: str | None = None, run_id: str
 
 
 def read_stdin() -> dict:
-    """The identities on standard input (``credentials.bundle``), read once:
-    standard input then becomes /dev/null, so the only copy of the keys is
-    this process's memory, which ``credentials.keep_private`` closes to the
-    user's other processes."""
+    """The identities on standard input (``credentials.bundle``), read once,
+    into a memory ``credentials.keep_private`` has closed to the user's
+    other processes first; standard input then becomes /dev/null, so the
+    only copy of the keys is this process's memory."""
     if os.isatty(0):
         raise InputError("credentials", "--credentials -: the identities are read from standard input, which is a "
                                         "terminal (give a directory made by `diskf-mesh credentials`)")
+    creds.keep_private()
     chunks = []
     while True:
         chunk = os.read(0, 1 << 16)
@@ -189,5 +190,4 @@ def read_stdin() -> dict:
     null = os.open(os.devnull, os.O_RDONLY)
     os.dup2(null, 0)
     os.close(null)
-    creds.keep_private()
     return creds.unbundle(b"".join(chunks))
