@@ -295,7 +295,7 @@ def fused_digest_lists(rec: WorldRecord) -> list:
 def estimates_doc(rec: WorldRecord, algorithm: str, scn: Scenario, seed: int, run_id: str, row: dict) -> dict:
     doc = estimates_to_json(rec.estimates(), algorithm, metrics=row)
     doc.update(format=MESH_ESTIMATES_FORMAT, scenario=scn.name, seed=seed, run_id=run_id, ids=list(scn.labels),
-               reported=rec.reported.tolist(),
+               reported=rec.reported.tolist(), **({} if rec.live is None else {"live": rec.live.tolist()}),
                agent_counters={str(rec.label(k)): v for k, v in rec.agent_counters.items()},
                world_counters=dict(rec.counters), startup_s=rec.startup_s, ticks_s=rec.ticks_s,
                fused=fused_lists(rec), fused_digests=fused_digest_lists(rec), estimator=asdict(scn.params))

@@ -98,6 +98,8 @@ def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: 
     digest = wire.engine_digests(run_id, ids, estimators.get(algorithm).exchanged)
     st = verify.verify(trace, algorithm, params, claims, planned=planned, message_digest=digest, labels=names)
     st.evidence["restarts"] = restarts_to_json(claims.restarts, names)
+    if faults is not None and faults.active and math.isfinite(deadline_s):
+        st.evidence["plan_deadline_s"] = deadline_s  # a replay plans with the same deadline
     return st
 
 

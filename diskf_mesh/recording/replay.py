@@ -36,12 +36,15 @@ def recorded_restarts(rec: Recording) -> tuple:
 
 
 def recording_status(rec: Recording) -> RunStatus:
-    """The recorded run checked by the engine: its status, reason, evidence."""
+    """The recorded run checked by the engine: its status, reason, evidence
+    (planned with the deadline the run's own check used, if it said one)."""
     run = rec.run
     faults = FaultConfig.from_mapping(run.get("faults") or {})
+    deadline = ((rec.result or {}).get("verification") or {}).get("plan_deadline_s")
     return run_status(rec, verify.first_ticks(rec.trace, rec.ticks), rec.algorithm, rec.params,
-                      run_id=run["run_id"], seed=int(run["seed"]), faults=faults, deadline_s=math.inf,
-                      labels=list(rec.ids), restarts=recorded_restarts(rec))
+                      run_id=run["run_id"], seed=int(run["seed"]), faults=faults,
+                      deadline_s=math.inf if deadline is None else float(deadline), labels=list(rec.ids),
+                      restarts=recorded_restarts(rec))
 
 
 def replay(rec: Recording) -> Estimates:
@@ -105,6 +108,8 @@ class FusedRecord:
     faults: FaultConfig = FaultConfig()
     miss_rate: float | None = None  # a real-time run's share of deadline misses (None: lockstep)
     digests: dict = field(default_factory=dict)  # the fused messages' digests (``RunReports.digests``)
+    live: np.ndarray | None = None  # (K, N) the live set of each tick (None: the document predates it)
+    plan_deadline_s: float = math.inf  # the deadline the run's own check planned with
 
 
 def fused_status(run: FusedRecord, trace: Trace, params) -> RunStatus:
@@ -112,8 +117,10 @@ def fused_status(run: FusedRecord, trace: Trace, params) -> RunStatus:
     K, N = run.reported.shape
     e = run.estimates
     reports = RunReports(e.x[0], e.P[0], e.d[0], e.d_valid[0], run.reported, run.fused, dict(run.digests))
+    reports.live = run.live
     return run_status(reports, verify.first_ticks(trace, K), run.algorithm, params, run_id=run.run_id,
-                      seed=run.seed, faults=run.faults, labels=list(trace.agent_labels), restarts=run.restarts)
+                      seed=run.seed, faults=run.faults, deadline_s=run.plan_deadline_s,
+                      labels=list(trace.agent_labels), restarts=run.restarts)
 
 
 def fused_record_from_json(doc: dict, labels) -> FusedRecord:
@@ -161,4 +168,6 @@ def fused_record_from_json(doc: dict, labels) -> FusedRecord:
     return FusedRecord(doc["algorithm"], params, Estimates(x[None], P[None], d_arr.reshape(1, K, N, m), d_valid[None]),
                        reported, fused, restarts, str(doc.get("run_id", "")), int(doc.get("seed", 0)),
                        FaultConfig.from_mapping(doc.get("faults") or {}),
-                       (doc.get("deadline_misses") or {}).get("miss_rate"), reports.digests)
+                       (doc.get("deadline_misses") or {}).get("miss_rate"), reports.digests,
+                       np.asarray(doc["live"], dtype=bool).reshape(K, N) if "live" in doc else None,
+                       float((doc.get("evidence") or {}).get("plan_deadline_s") or math.inf))
