@@ -11,11 +11,10 @@ FOUND = [
     # diskf-r's input model took its default scales from the sensors it was given: the engine's are every
     # agent's, an agent process's its own, so a mesh agent's covariance differed from the engine's at tick 1
     # (P 1e4 against 2e4) with no fault at all: "diverged"
-    pytest.param(Case(agents=3, ticks=20, algorithm="diskf-r", seed=0), id="diskf-r-own-sensor-scales",
-                 marks=pytest.mark.xfail(reason="diskf-r's default input scales differ per agent", strict=False)),
+    # (fixed: ``Sensors.whole``, the run's sensors an agent's own is selected from, give every agent the scales)
+    pytest.param(Case(agents=3, ticks=20, algorithm="diskf-r", seed=0), id="diskf-r-own-sensor-scales"),
     # the same in diskf-auto (its input models' scales from Q, G and the sensors it is given): sweep seed 30
-    pytest.param(Case(agents=3, ticks=20, algorithm="diskf-auto", seed=0), id="diskf-auto-own-sensor-scales",
-                 marks=pytest.mark.xfail(reason="diskf-auto's input model scales differ per agent", strict=False)),
+    pytest.param(Case(agents=3, ticks=20, algorithm="diskf-auto", seed=0), id="diskf-auto-own-sensor-scales"),
 ]
 
 

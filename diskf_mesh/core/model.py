@@ -53,6 +53,14 @@ class Sensors:
     H: np.ndarray  # (N, p_max, n)
     R: np.ndarray  # (N, p_max, p_max)
     p: np.ndarray  # (N,)
+    # the run's sensors this is a selection of (``select``): an agent process holds its own sensor
+    # alone, and takes the run's scales (``input_models.input_scales``) from every sensor, as the engine
+    run: "Sensors | None" = field(default=None, compare=False, repr=False)
+
+    @property
+    def whole(self) -> "Sensors":
+        """Every sensor of the run (these, unless they are a ``select``ion)."""
+        return self if self.run is None else self.run
 
     @classmethod
     def from_list(cls, ids, Hs, Rs) -> "Sensors":
@@ -74,7 +82,7 @@ class Sensors:
 
     def select(self, idx) -> "Sensors":
         idx = np.atleast_1d(idx)
-        return Sensors(tuple(self.ids[i] for i in idx), self.H[idx], self.R[idx], self.p[idx])
+        return Sensors(tuple(self.ids[i] for i in idx), self.H[idx], self.R[idx], self.p[idx], run=self.whole)
 
     def pad(self, y_i, i: int) -> np.ndarray:
         """One agent's length-p^i measurement as a padded length-p_max vector."""

@@ -72,7 +72,8 @@ class DISKFAuto(Estimator):
     def __init__(self, model, sensors, params=None):
         super().__init__(model, sensors, params)
         o = self.params.auto
-        q_process, q_sensor = im.input_scales(model.Q, model.G, sensors.H, sensors.R, sensors.p)
+        run = sensors.whole  # an agent's own sensor takes the run's scales, as the engine does
+        q_process, q_sensor = im.input_scales(model.Q, model.G, run.H, run.R, run.p)
         self.bank, self.rho, self.q = im.default_bank(q_process, q_sensor, o.none, o.walk, o.zero_mean)
         self.Pi = im.transition_matrix(len(self.bank), o.switch)
         self.prior = 100.0 * float(self.q.max()) if self.q.max() > 0 else 1.0

@@ -124,8 +124,10 @@ def input_model_of(o: RobustOptions, model, sensors):
     and these sensors: the model's rho (``input_models.model_rho``), its
     scale per tick (``input_walk``; 0 for ``none``) and the input's prior
     variance (``input_prior``), each from the scenario's scales where not
-    given (``input_models.default_scales``)."""
-    walk, prior = im.default_scales(*im.input_scales(model.Q, model.G, sensors.H, sensors.R, sensors.p))
+    given (``input_models.default_scales``, over every sensor of the run:
+    ``Sensors.whole``)."""
+    run = sensors.whole  # an agent's own sensor takes the run's scales, as the engine does
+    walk, prior = im.default_scales(*im.input_scales(model.Q, model.G, run.H, run.R, run.p))
     q = 0.0 if o.input_model == "none" else (walk if o.input_walk is None else o.input_walk)
     return im.model_rho(o.input_model, o.input_rho), q, (prior if o.input_prior is None else o.input_prior)
 
