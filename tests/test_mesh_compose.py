@@ -1,7 +1,7 @@
 """docker-compose.yml: the world and every agent of Scenario 2, one service
 each, running exactly the command lines the launcher builds, authenticated by
-the credentials a one-shot service writes (there is no Docker engine here, so
-the file is checked, not run; the credentials command itself is run)."""
+the credentials a one-shot service writes (the files as text and the
+credentials command; tests/test_compose_run.py runs them in an engine)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -42,8 +42,9 @@ def test_explicit_tls_endpoints_credentials_and_one_image():
     world = services["world"]["command"]
     assert world[world.index("--listen") + 1] == f"tls/0.0.0.0:{compose.PORT}"
     assert services["world"]["depends_on"] == {"credentials": {"condition": "service_completed_successfully"}}
-    assert "./results:/results" in services["world"]["volumes"]
+    assert f"{compose.RESULTS}:/results" in services["world"]["volumes"]
     for name, s in services.items():
+        assert s["init"] is True, name  # SIGTERM reaches the process: no stop waits for the kill
         cmd = s["command"]
         assert cmd[cmd.index("--run-id") + 1] == "compose"
         assert s["user"] == "${DISKF_UID:-10001}:${DISKF_GID:-10001}"  # not root; the host user's ids if given
@@ -156,7 +157,7 @@ def test_the_hosts_file_runs_the_command_lines_of_up_hosts(tmp_path):
                                                   "router-a": {"condition": "service_healthy"}}
     for name, s in services.items():
         cmd = s["command"]
-        assert "--insecure" not in cmd
+        assert "--insecure" not in cmd and s["init"] is True
         if name != "credentials":
             assert cmd[cmd.index("--credentials") + 1] == compose.HOSTS_CREDENTIALS
             assert "credentials:/credentials:ro" in s["volumes"]
