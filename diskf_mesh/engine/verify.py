@@ -187,9 +187,9 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
     """The engine on ticks 1..K of ``trace`` with exactly the fused sets of
     ``claims`` (an agent-tick without a report: ``planned``'s row), each
     ``Restart`` applied at its tick. Returns (Estimates, digests): with
-    ``message_digest(k, sender index, Message) -> bytes``, the digest of
-    every engine message (k, sender) in ``wanted`` (a set; None: none),
-    as ``digest_value``s."""
+    ``message_digest(k, sender indices, the tick's Message batch) -> [bytes]``,
+    the digest of every engine message (k, sender) in ``wanted`` (a set;
+    None: none), as ``digest_value``s."""
     K, N = claims.reported.shape
     tr = first_ticks(trace, K)
     planned = nominal_links(tr, K, claims.live) if planned is None else planned
@@ -216,9 +216,10 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
         need.setdefault(k, set()).add(s)
 
     def listen(k, msg):
-        if message_digest is not None:
-            for s in need.get(k, ()):
-                digests[(k, s)] = digest_value(message_digest(k, s, msg.take((0, s))))
+        if message_digest is not None and need.get(k):
+            senders = sorted(need[k])
+            for s, g in zip(senders, message_digest(k, senders, msg)):
+                digests[(k, s)] = digest_value(g)
 
     est = batch.run_batch(tr.with_links(links[None]), algorithm, params, restart=restart if by_tick else None,
                           listen=listen if need else None)
@@ -248,9 +249,9 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
            message_digest=None, labels=None) -> RunStatus:
     """The run's status (module docstring). ``planned``: the fault plan's
     delivered sets (``planned_links``; None: no faults injected, the
-    nominal links); ``message_digest(k, sender index, Message) -> bytes``:
-    the digest an agent reports of a message it fused (None: digests are not
-    checked); ``labels``: the agents' names in the evidence (default: the
+    nominal links); ``message_digest(k, sender indices, the tick's Message
+    batch) -> [bytes]``: the digests an agent reports of the messages it
+    fused (``mesh.wire.engine_digests``; None: digests are not checked); ``labels``: the agents' names in the evidence (default: the
     trace's)."""
     K, N = claims.reported.shape
     names = list(labels if labels is not None else trace.agent_labels)

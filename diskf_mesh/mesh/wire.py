@@ -348,8 +348,13 @@ def encode(run_id: str, sender: int, tick: int, msg: Message, exchanged: tuple =
     blob = _f8(*(getattr(msg, f.name) for f in exchanged))
     if len(blob) != 8 * _codec(exchanged, n, m)[1].count:
         raise ValueError("encode: a message must hold one agent's arrays")
+    return _message(run_id, sender, tick, n, m, bool(np.asarray(msg.d_valid).reshape(-1)[0]), blob)
+
+
+def _message(run_id: str, sender: int, tick: int, n: int, m: int, d_valid: bool, blob: bytes) -> bytes:
+    """A "msg" payload from its fields (``encode``, ``engine_digests``)."""
     return _pack({"v": SCHEMA, "k": "msg", "run": run_id, "s": int(sender), "t": int(tick), "n": n, "m": m,
-                  "dt": DTYPE, "dv": bool(np.asarray(msg.d_valid).reshape(-1)[0]), "a": blob})
+                  "dt": DTYPE, "dv": bool(d_valid), "a": blob})
 
 
 def digest(payload: bytes) -> bytes:
@@ -366,10 +371,22 @@ def message_digest(run_id: str, sender: int, tick: int, msg: Message, exchanged:
 
 
 def engine_digests(run_id: str, ids, exchanged: tuple = EXCHANGED):
-    """``engine.verify``'s ``message_digest`` for a run: (tick, sender's index
-    in ``ids``, the engine's Message) -> the digest of its encoding."""
+    """``engine.verify``'s ``message_digests`` for a run: (tick, senders'
+    indices in ``ids``, the engine's Message of the tick, batch (1, N, ...))
+    -> the ``message_digest`` of each sender's message, every sender's
+    floats laid out at once as ``encode`` lays out one's."""
     ids = list(ids)
-    return lambda k, s, msg: message_digest(run_id, ids[s], k, msg, exchanged)
+    _, _, ((fn, an), (fm, am)) = _codec(exchanged, None, None)
+
+    def digests(k: int, senders, msg: Message) -> list:
+        senders = np.asarray(senders, dtype=np.intp)
+        n, m = int(np.shape(getattr(msg, fn))[an]), int(np.shape(getattr(msg, fm))[am])
+        rows = np.concatenate([np.asarray(getattr(msg, f.name), dtype=DTYPE)[0, senders].reshape(len(senders), -1)
+                               for f in exchanged], axis=1)
+        dv = np.asarray(msg.d_valid)[0, senders].tolist()
+        return [digest(_message(run_id, ids[s], k, n, m, v, row.tobytes()))
+                for s, v, row in zip(senders.tolist(), dv, rows)]
+    return digests
 
 
 def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None, fused=(),
