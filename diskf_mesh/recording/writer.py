@@ -231,9 +231,23 @@ class Recorder(NoRecorder):
         except (ValueError, IndexError, UnicodeDecodeError):
             end = {"written": None, "error": None}
         if self._proc.returncode != 0 or end.get("error"):
-            self.failed = {"path": self.path, "written": end.get("written"), "ticks": self._ticks,
+            written = end.get("written")
+            if written is None:  # the writer died without a word: what the file holds, read back
+                written = _ticks_in(self.path)
+            self.failed = {"path": self.path, "written": written, "ticks": self._ticks,
                            "error": end.get("error") or f"the writer ended with status {self._proc.returncode}"}
         return self.failed
+
+
+def _ticks_in(path: str) -> int:
+    """The complete ticks a recording holds (0 if none can be read)."""
+    from diskf_mesh.core.errors import InputError
+    from diskf_mesh.recording.reader import read
+
+    try:
+        return read(path).ticks
+    except (InputError, OSError, ValueError):
+        return 0
 
 
 class _Report:
