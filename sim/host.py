@@ -41,7 +41,8 @@ from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.log import Log
-from sim.launcher import Child, Launcher, agent_flags, terminated
+from diskf_mesh.mesh.stopping import terminated
+from sim.launcher import Child, Launcher, agent_flags
 
 STARTUP_TIMEOUT_S = 30.0
 

@@ -74,6 +74,7 @@ from diskf_mesh.mesh import credentials
 from diskf_mesh.mesh import runspec
 from diskf_mesh.mesh import zenoh_config
 from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.stopping import terminated
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from diskf_mesh.recording.writer import failure_line
 from sim import simulated
@@ -546,10 +547,6 @@ def run(args: argparse.Namespace) -> int:
         for z in zygote:
             z.close()
         signal.signal(signal.SIGTERM, previous)
-
-
-def terminated(signum, frame):
-    raise SystemExit(128 + signum)
 
 
 def run_identities(run_id: str, ids, children, observer: bool, world_routes: bool = False) -> dict:
