@@ -42,7 +42,9 @@ means this one leaves, exit 2); declare the alive token; once the world and
 every agent are seen (or the world is already ticking: a restart), declare
 a ready token; join at the first tick the world counts this agent live
 (``_join``). A (re)joining agent asks the world for its starting estimate
-(``Ask`` on ``Keys.start``, ``mesh.rejoin``) and starts from the answer.
+(``Ask`` on ``Keys.start``, ``mesh.rejoin``) and starts from the answer;
+one that found the run in progress first asks once more whether another
+process holds its id (``_on_confirm``).
 An agent that finds itself out of the run (the world counts it out, a tick
 never came, or it was frozen past zenoh's lease: ``Woke`` then the world's
 token going) drops its estimator and rejoins the same way (``_resync``).
@@ -460,7 +462,9 @@ class AgentMachine:
         counters = self.receiver.snapshot(cap=wire.count_bound(self.constants[0]))
         fused_ids, not_fused = self.verdicts.of_tick(k, self.linked[k], heard, rejected, fused, failed)
         prof.begin()
-        digests = [wire.message_digest(self.keys.run_id, s, k, fused[s], self.exchanged) for s in fused_ids]
+        received = self.receiver.digests(k)
+        digests = [received.get(s) or wire.message_digest(self.keys.run_id, s, k, fused[s], self.exchanged)
+                   for s in fused_ids]
         report = wire.encode_report(self.keys.run_id, self.id, k, out.x[0, 0], out.P[0, 0], out.d[0, 0],
                                     out.d_valid[0, 0], counters, fused_ids, not_fused, self.own_digest, digests)
         prof.end("encode")
