@@ -64,6 +64,7 @@ class Receiver:
         self._events = itertools.count()
         self._lost: dict = {}          # tick -> senders whose message of that tick the link dropped
         self._refused: dict = {}       # tick -> {sender: reason} whose message of that tick was rejected
+        self._digests: dict = {}       # tick -> {sender: digest of the copy held for fusion}
         self.tick = 0                  # the agent's current tick, for the guard's window (``advance``)
 
     def advance(self, tick: int) -> None:
@@ -155,7 +156,8 @@ class Receiver:
         if not self._copies_left[event]:
             del self._copies_left[event]
             self._heard.discard(event)
-        self.inbox.offer(wm.sender, wm.tick, wm.message, now)
+        if self.inbox.offer(wm.sender, wm.tick, wm.message, now) == "held":
+            self._digests.setdefault(wm.tick, {})[wm.sender] = wm.digest
 
     @property
     def in_flight(self) -> int:
@@ -188,6 +190,15 @@ class Receiver:
             for t in [t for t in book if t <= tick]:
                 del book[t]
         return self.inbox.take(tick, linked)
+
+    def digests(self, tick: int) -> dict:
+        """{sender: ``wire.WireMessage.digest``} of the copies of ``tick`` held
+        for fusion (after ``take``: what was fused); forgets ``tick`` and
+        every earlier one."""
+        out = self._digests.pop(tick, {})
+        for t in [t for t in self._digests if t < tick]:
+            del self._digests[t]
+        return out
 
     def use_faults(self, faults: FaultModel | None) -> None:
         """Set the link faults once the run's seed is known (before any

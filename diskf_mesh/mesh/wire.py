@@ -41,7 +41,7 @@ kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
         message itself never travels to the world: a report carries no
         message another agent could not hear otherwise),
     "fd" for each sender in "f", in order, the ``digest`` of its message as
-        fused (``message_digest``: 8 bytes; optional): the end-of-run check
+        received and fused (8 bytes; optional): the end-of-run check
         (``engine.verify``) names a sender whose message the engine does not
         reproduce
 
@@ -149,7 +149,8 @@ class WireMessage:
     """A decoded "msg": ``message`` holds unbatched arrays, x_pred (n,) ...
     (None for a field its estimator does not exchange); ``values`` the same
     floats as the decoder read them (a tuple of Python floats for a small
-    message, else a float64 array), laid out as ``layout`` says."""
+    message, else a float64 array), laid out as ``layout`` says; ``digest``
+    that of the payload as received (what a report says it fused)."""
 
     run_id: str
     sender: int
@@ -157,6 +158,7 @@ class WireMessage:
     message: Message
     values: tuple | np.ndarray = field(default=(), repr=False, compare=False)
     layout: "Layout | None" = field(default=None, repr=False, compare=False)
+    digest: bytes = field(default=b"", repr=False, compare=False)  # ``digest`` of the payload as received
 
 
 @dataclass(frozen=True)
@@ -364,9 +366,10 @@ def digest(payload: bytes) -> bytes:
 
 
 def message_digest(run_id: str, sender: int, tick: int, msg: Message, exchanged: tuple = EXCHANGED) -> bytes:
-    """The digest of ``sender``'s message of ``tick`` as fused: of its
-    encoding (``encode``, deterministic, so an honest message's digest is
-    that of the payload its sender published, and the engine recomputes it)."""
+    """The digest of ``sender``'s message of ``tick``: of its encoding
+    (``encode`` is deterministic, so an honest message's is the digest of
+    the payload its sender published, which a receiver reports of the copy
+    it fused: ``WireMessage.digest``)."""
     return digest(encode(run_id, sender, tick, msg, exchanged))
 
 
@@ -703,7 +706,7 @@ def decode(data, *, run_id: str | None = None, sender: int | None = None,
     except Rejected as e:
         e.tick = doc["t"]
         raise
-    return WireMessage(doc["run"], s, doc["t"], lay.message(a, dv), values, lay)
+    return WireMessage(doc["run"], s, doc["t"], lay.message(a, dv), values, lay, digest(bytes(data)))
 
 
 def count_bound(ticks: int | None) -> int:
