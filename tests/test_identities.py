@@ -224,11 +224,14 @@ def _identity_name(argv) -> str:
 @pytest.mark.mesh
 @pytest.mark.skipif(os.geteuid() != 0, reason="reads the memory and files of up's processes, closed to their user "
                                                 "(keep_private): needs root")
-def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path):
-    proc = _up(tmp_path, "--ticks", "3000")  # running when stopped, short enough for the end-of-run check
+@pytest.mark.parametrize("network", ["peers", "router"])
+def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path, network):
+    proc = _up(tmp_path, "--ticks", "3000", "--network", network)  # running when stopped, short enough to check
     try:
-        kids = _wait_children(proc, 5)
-        assert len(kids) == 5, kids  # the world and four agents
+        n = 5 if network == "peers" else 6  # the world, four agents (and the router)
+        kids = _wait_children(proc, n)
+        assert len(kids) == n, kids
+        assert any("sim.router" in argv for argv in kids.values()) is (network == "router")
         for pid, argv in kids.items():
             assert argv[argv.index("--credentials") + 1] == "-"  # handed over in memory, not a path
             for where, data in _readable(pid):
