@@ -705,6 +705,8 @@ def verdict(row: dict, args) -> int:
         print(f"warning: real time: {miss_line(row)}", file=sys.stderr)
     if level:
         print(f"{level}: {line}", file=sys.stderr)
+    else:
+        print(f"status: {status.status}: {status.reason}")
     if row.get("recording_failed"):
         print(f"error: {failure_line(row['recording_failed'])}", file=sys.stderr)
         return code or exits.RECORDING_FAILED

@@ -438,6 +438,7 @@ def run(args: argparse.Namespace) -> int:
             log.info(f"agent {i}'s message counters do not add up: {'; '.join(c['imbalance'])}")
     if args.progress != "lines":
         print(format_table(results))
+        print(f"status: {status.status}: {status.reason}")
     code, level, line = exit_status(status, summary, args, clock)
     if level == "error":
         log.error(line)

@@ -173,8 +173,10 @@ def test_a_restarted_agent_replays_exactly_from_its_recording(tmp_path):
     assert cli.main(["replay", str(record), "--allow-missing", "1"]) == 0
     from diskf_mesh.recording.reader import read
     from diskf_mesh.recording.replay import compare, recording_status, replay
+    from diskf_mesh.recording.summary import summary
 
     rec = read(record)
+    assert summary(rec)["run_status"]["status"] == "incomplete"  # inspect: the world's own check, recorded
     assert compare(rec, replay(rec)).equal
     st = recording_status(rec)
     assert st.status == "incomplete" and st.evidence["differing"] == 0 and st.evidence["digests_checked"] > 0
