@@ -224,13 +224,12 @@ class DISKFRobust(Estimator):
             else:
                 d_N, S_N, valid_N = eq.input_fusion(nb.adj, senders.d, senders.S, senders.d_valid)
             feed = eq.strongly_detectable(A, G, U, valid_N) if o.gate else valid_N
-            if o.gate and o.latch:
-                feed = feed | (valid_N & state.fed)
-            x_g, P_g = rkf_update(x_c, Yc, U, u, G, feed)
-            # the guard: only where the unbiased update is at least as certain as the model's own (trace), so
-            # its covariance never grows past that of a filter that is bounded (an invariant zero on the unit
-            # circle, e.g. a position sensor of an acceleration input, leaves the unbiased error unbounded)
-            feed = feed & (np.trace(P_g, axis1=-2, axis2=-1) <= np.trace(P_bar, axis1=-2, axis2=-1))
+            latched = valid_N & state.fed & ~feed if o.gate and o.latch else np.zeros_like(feed)
+            x_g, P_g = rkf_update(x_c, Yc, U, u, G, feed | latched)
+            # the guard of the latch: where the heard sensors are not strongly detectable the unbiased error
+            # need not decay (an invariant zero on or outside the unit circle), so a latched tick takes the
+            # unbiased update only where it is at least as certain as the model's own (trace)
+            feed = feed | (latched & (np.trace(P_g, axis1=-2, axis2=-1) <= np.trace(P_bar, axis1=-2, axis2=-1)))
             f2, f3 = feed[..., None], feed[..., None, None]
             x_bar, P_bar = np.where(f2, x_g, x_bar), np.where(f3, P_g, P_bar)
             d_bar, S_bar = np.where(f2, d_N, d_bar), np.where(f3, S_N, S_bar)
