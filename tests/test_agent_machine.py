@@ -79,6 +79,18 @@ def started(scn, i, now=0.0, ticking=False, timing=AgentTiming(), faults=None):
     return m, out
 
 
+def collecting_tick_1(run, now=0.0, **kw):
+    """Agent 5 (Scenario 2's fifth) started and collecting tick 1, opened at
+    ``now``: (machine, world, its id, its ready token's key)."""
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, out = started(scn, me, **kw)
+    m.handle(w.meas(1, me), now)
+    m.handle(w.tick(1), now)
+    return m, w, me, of(out, DeclareToken)[-1].key
+
+
 def test_one_tick_publishes_one_message_then_one_report_equal_to_the_engine(run):
     scn, trace, ref = run
     w = World(scn, trace)
@@ -297,13 +309,7 @@ def test_a_silent_world_ends_the_agent_at_its_timeout(run):
 def test_frozen_past_the_lease_it_rejoins(run):
     """Woke (the shell found it had been paused), then the world's token
     goes: this agent was dropped, it withdraws its ready token and rejoins."""
-    scn, trace, _ = run
-    w = World(scn, trace)
-    me = w.ids[4]
-    m, out = started(scn, me)
-    ready = of(out, DeclareToken)[-1].key
-    m.handle(w.meas(1, me), 0.0)
-    m.handle(w.tick(1), 0.0)
+    m, w, me, ready = collecting_tick_1(run)
     m.handle(Timer("collect"), 5.0)
     assert m.est is not None and m.k == 2
     m.handle(Woke(8.0), 20.0)
@@ -313,12 +319,7 @@ def test_frozen_past_the_lease_it_rejoins(run):
 
 
 def test_the_world_going_without_a_freeze_is_waited_for(run):
-    scn, trace, _ = run
-    w = World(scn, trace)
-    me = w.ids[4]
-    m, out = started(scn, me)
-    m.handle(w.meas(1, me), 0.0)
-    m.handle(w.tick(1), 0.0)
+    m, *_ = collecting_tick_1(run)
     m.handle(Timer("collect"), 5.0)
     assert m.handle(Token(m.keys.world("w0"), False), 20.5) == [] and m.est is not None
     fin, = m.handle(Timer("world"), 5.0 + 60.0)
@@ -328,12 +329,7 @@ def test_the_world_going_without_a_freeze_is_waited_for(run):
 def test_a_timer_fired_before_its_time_changes_nothing(run):
     """A shell (or the simulated network) may fire a timer the machine has
     since set again for later: the machine looks at the time itself."""
-    scn, trace, _ = run
-    w = World(scn, trace)
-    me = w.ids[4]
-    m, _ = started(scn, me)
-    m.handle(w.meas(1, me), 1.0)
-    m.handle(w.tick(1), 1.0)
+    m, *_ = collecting_tick_1(run, 1.0)
     for name in ("collect", "world", "delay", "peers", "ask", "nothing"):
         out = m.handle(Timer(name), 2.0)
         assert all(isinstance(e, SetTimer) and e.at > 2.0 for e in out) and m.collecting   # at most set again
