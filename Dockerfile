@@ -8,7 +8,9 @@ WORKDIR /app
 COPY requirements.lock /app/
 RUN pip install --no-cache-dir -r requirements.lock
 COPY . /app
+# the processes run from /app (python -m sim.world): its bytecode compiled here, not by each process at start
 RUN pip install --no-cache-dir --no-deps . \
+ && python -m compileall -q /app \
  && useradd --uid 10001 --no-create-home --shell /usr/sbin/nologin diskf \
  && mkdir -p /credentials /results \
  && chmod 1777 /credentials /results

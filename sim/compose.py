@@ -53,7 +53,9 @@ CREDENTIALS = "/credentials/compose"  # in the credentials volume
 WORLD_ZENOH = ZenohOptions(listen=(f"tls/0.0.0.0:{PORT}",), no_multicast_scouting=True, credentials=CREDENTIALS)
 AGENT_ZENOH = ZenohOptions(connect=(f"tls/world:{PORT}",), listen=(f"tls/0.0.0.0:{PORT}",),
                            no_multicast_scouting=True, credentials=CREDENTIALS)
-WORLD_EXTRA = ("--json", "/results/compose.json", "--estimates", "/results/compose-estimates.json")
+# containers start one python each (no zygote), all at once: a loaded machine needs more than the 30 s default
+STARTUP = ("--startup-timeout", "120")
+WORLD_EXTRA = ("--json", "/results/compose.json", "--estimates", "/results/compose-estimates.json", *STARTUP)
 USER = "${DISKF_UID:-10001}:${DISKF_GID:-10001}"
 RESULTS = "${DISKF_RESULTS:-./results}"  # where the world's results land on the host
 # a mesh process is up once its zenoh port accepts connections
@@ -81,7 +83,8 @@ HOSTS_PLAN = hosts.HostsPlan(
                           hosts.Shard("b", tuple(range(6, 10)), f"tls/router-b:{PORT}", python=PYTHON,
                                       router_bind=f"tls/0.0.0.0:{PORT}")),
     world_python=PYTHON, credentials=HOSTS_CREDENTIALS, world_bind=f"tls/0.0.0.0:{PORT}")
-HOSTS_WORLD_EXTRA = ("--json", "/results/compose-hosts.json", "--estimates", "/results/compose-hosts-estimates.json")
+HOSTS_WORLD_EXTRA = ("--json", "/results/compose-hosts.json", "--estimates", "/results/compose-hosts-estimates.json",
+                     *STARTUP)
 
 
 def hosts_services(spec: RunSpec = HOSTS_SPEC) -> dict:
