@@ -15,6 +15,11 @@
     shell          runs a machine over a Transport on the wall clock (one lock, timers, Woke)
     rejoin         where a (re)joining agent starts: a neighbour's fused estimate, or the prior
     verdicts       what an agent reports about each tick's messages (fused, lost, late, rejected)
+    run_status     a run's status at its end (exact, as planned, degraded, diverged, incomplete), by the engine
+    simnet, schedule, access   the simulated network: links, pauses, crashes, leases on a seeded
+                   virtual clock; its event queue; the credentials' access rules it enforces
+    simrun         a whole run (the world and every agent's machine) on the simulated network
+    stopping       how a mesh process stops on a signal
     estimator      an agent's estimator: the engine's functions on a batch of one
     reports        what a run's reports said (the world's record and a recording extend it)
     runspec        one run's settings as command lines (launcher, compose)
