@@ -71,6 +71,9 @@ def test_realtime_run_keeps_its_rate_and_replays_bit_for_bit(tmp_path):
     assert dm["reports_due"] == ticks * 9 and dm["messages_due"] > 0
     assert dm["total"] == dm["messages"] + dm["reports"] == sum(a["total"] for a in dm["per_agent"].values())
     assert row["complete"]
+    # the run checked itself: messages fused late are accepted degradation (within --max-miss-rate), counted
+    assert row["status"] in ("exact", "degraded") and row["evidence"]["differing"] == 0, row["reason"]
+    assert row["evidence"]["degraded"]["messages"] == (dm["messages"] if row["status"] == "degraded" else 0)
     # the estimates document's fused sets reproduce every estimate bit for bit ...
     assert_bitwise(doc, replayed(doc, ticks))
     # ... and so does the recording's (diskf-mesh replay RUN.mcap)
