@@ -166,6 +166,8 @@ def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: b
         for i in doc.get("live", ()):
             if i in where:
                 live[doc["tick"] - 1, where[i]] = True
+    if not any("live" in doc for doc in in_run("/world/agents")):
+        live = None  # not recorded: every agent counts as live
     for doc in in_run("/world/links"):
         edges[doc["tick"] - 1] = doc["edges"]
     counters = {(doc["tick"], c["agent"]): c["counters"] for doc in in_run("/agents/counters") for c in doc["counters"]}
