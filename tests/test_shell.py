@@ -96,3 +96,14 @@ def test_a_callbacks_failure_is_raised_by_run():
     threading.Timer(0.05, bus.transport().put, args=("s", b"x")).start()
     with pytest.raises(ValueError, match="broken"):
         shell.run()
+
+
+def test_unanswered_queries_held_are_bounded(monkeypatch):
+    import diskf_mesh.mesh.shell as shell_module
+
+    monkeypatch.setattr(shell_module, "QUERIES_HELD", 3)
+    m = Scripted(lambda now: [], lambda e, now: [])
+    shell = Shell(m, LocalBus().transport())
+    for n in range(10):
+        shell._on_query("q/1", b"", lambda p: None)
+    assert list(shell._queries) == [8, 9, 10]

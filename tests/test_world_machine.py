@@ -308,3 +308,16 @@ def test_same_events_same_effects(run):
         return out + w.handle(Woke(3.0), 25.0) + w.handle(Timer("pause"), 26.0)
 
     assert script(machine(run)) == script(machine(run))
+
+
+def test_a_flood_of_start_queries_keeps_one_owed_and_one_start_per_answer(run):
+    w, _ = started(run)
+    a, keys = w.ids[0], Keys(RUN)
+    for qid in range(1, 1001):  # all for tick 3: tick 2 is not over yet
+        assert w.handle(Query(qid, keys.start(a), wire.encode_join(RUN, a, 3)), 0.2) == []
+    for k in (1, 2):
+        out = sum((report(w, i, k, 0.3 + k) for i in w.ids), [])
+    assert [e.qid for e in out if isinstance(e, Answer)] == [1000]  # the latest only
+    for qid in range(1001, 1101):  # answered at once, kept once
+        w.handle(Query(qid, keys.start(a), wire.encode_join(RUN, a, 3)), 3.0)
+    assert len(w.record.starts) == 1 and w.record.starts[0].tick == 3

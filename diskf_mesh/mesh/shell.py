@@ -44,6 +44,7 @@ from diskf_mesh.mesh.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.transport import Transport
 
 POLL_S = 0.5  # the main thread looks at its timers at least this often
+QUERIES_HELD = 1024  # unanswered queries kept for the machine to answer later
 
 
 class Shell:
@@ -98,6 +99,8 @@ class Shell:
         with self._cv:
             qid = next(self._qids)
             self._queries[qid] = reply
+            if len(self._queries) > QUERIES_HELD:  # a flood: the oldest unanswered goes (its asker times out)
+                del self._queries[next(iter(self._queries))]
         self._feed(Query(qid, key, payload))
 
     # -- effects out of the machine (lock held) ----------------------------------

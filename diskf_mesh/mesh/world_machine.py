@@ -196,6 +196,7 @@ class WorldMachine:
         self._pending = 0              # the tick to open after a pause (0: the open tick goes on)
         # rejoin queries waiting for their tick: [(qid, agent, tick)]
         self._starts_owed = []
+        self._answered = set()         # (agent, tick, source) of the starts in the record
 
     # ======================================================================
     # the interface
@@ -686,7 +687,8 @@ class WorldMachine:
         except wire.Rejected as e:
             self.record.counters[f"rejected:{e.reason}"] += 1
             return
-        self._starts_owed.append((q.qid, who, join.tick))
+        # one query owed per agent (its latest): a flood of queries holds no more
+        self._starts_owed = [o for o in self._starts_owed if o[1] != who] + [(q.qid, who, join.tick)]
 
     def _answer_starts(self, final: bool = False) -> None:
         """Answer every rejoin query whose tick J - 1's reports are final, or
@@ -696,7 +698,9 @@ class WorldMachine:
             if final or self._reports_final(who, tick - 1):
                 s = self.start_state(who, tick)
                 self._emit(Answer(qid, wire.encode_start(s.run_id, who, tick, s.source, s.x, s.P, s.d, s.d_valid)))
-                self.record.starts.append(s)  # a rejoin once the agent says it started from it
+                if (who, tick, s.source) not in self._answered:  # the same answer again is kept once
+                    self._answered.add((who, tick, s.source))
+                    self.record.starts.append(s)  # a rejoin once the agent says it started from it
             else:
                 keep.append((qid, who, tick))
         self._starts_owed = keep
