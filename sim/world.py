@@ -20,7 +20,10 @@ zenoh's lease) drops out of the live set from the next tick on; the world
 goes on with the others. An agent that comes back (same id: a restart, or a
 frozen process that woke) is live again from the tick after next once it is
 ready with a new token; an old ready token that reappears (a frozen
-process's, re-announced by zenoh when it reconnects) does not count.
+process's, re-announced by zenoh when it reconnects) does not count. It
+starts from the estimate the world answers to its query on ``Keys.start``
+once the tick before is over: the most certain fused estimate of that tick
+an agent in range reported, or the prior (``WorldMachine.start_state``).
 
 The world does not run on alone. If it was frozen itself (its main thread
 wakes long after it should), or every agent is gone, it pauses: it keeps the
