@@ -50,8 +50,10 @@ def claims_of(scn, trace, links=None, restarts=(), live=None):
         for r in restarts:
             if r.tick == k:
                 a = agents[ids[r.agent]] = AgentEstimator(scn, ids[r.agent], ALG, K, SEED)
-                a.state = replace(a.state, x=x[k - 2, r.source].reshape(a.state.x.shape),
-                                  P=P[k - 2, r.source].reshape(a.state.P.shape), since=np.zeros_like(a.state.since))
+                if r.source is not None:  # else from the prior, as a fresh agent
+                    a.state = replace(a.state, x=x[k - 2, r.source].reshape(a.state.x.shape),
+                                      P=P[k - 2, r.source].reshape(a.state.P.shape),
+                                      since=np.zeros_like(a.state.since))
         msgs = {i: agents[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :agents[i].p])
                 for j, i in enumerate(ids)}
         for j, i in enumerate(ids):
@@ -157,6 +159,29 @@ def test_a_rejoin_replays_exactly(run):
     # without the restart the replay does not reproduce agent 2 (its prior is not agent 0's estimate)
     st = check(trace, scn, with_(claims, restarts=()))
     assert st.evidence["differing"] > 0 and st.status != "exact"
+
+
+def test_a_restart_from_the_prior_and_a_handed_state(run):
+    """A restart from the prior (no neighbour in range) replays as a fresh
+    agent; one handed a state replays from exactly that state, and a handed
+    state the agent did not start from is caught."""
+    scn, trace = run
+    K, N = TICKS, trace.has.shape[2]
+    live = np.ones((K, N), bool)
+    live[20:22, 6] = False
+    claims = claims_of(scn, trace, live=live, restarts=[V.Restart(23, 6, None)])
+    claims = with_(claims, reported=live.copy())
+    st = check(trace, scn, claims)
+    assert st.status == "incomplete" and st.evidence["differing"] == 0 and st.evidence["unverified"] == 0
+    handed = V.Restart(23, 6, 0, claims.x[21, 0].copy(), claims.P[21, 0].copy())
+    claims = with_(claims_of(scn, trace, live=live, restarts=[V.Restart(23, 6, 0)]), reported=live.copy())
+    assert check(trace, scn, with_(claims, restarts=(handed,))).evidence["differing"] == 0
+    wrong = V.Restart(23, 6, 0, claims.x[21, 0] + 1.0, claims.P[21, 0].copy())
+    st = check(trace, scn, with_(claims, restarts=(wrong,)))
+    dv, six = st.evidence["diverged"], trace.agent_labels[6]
+    assert st.status == "diverged" and dv["tick"] == 23
+    # named as the agent whose estimate differs, or as the sender of a message its neighbours fused
+    assert dv["agent"] == six or six in dv["senders"], dv
 
 
 def test_a_missing_report_then_agreement_is_known_again(run):
