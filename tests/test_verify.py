@@ -218,3 +218,16 @@ def test_accept_is_the_one_place_a_status_meets_the_users_tolerances():
         assert accept(diverged, **kw)[:2] == (exits.DIVERGED, "error")
     assert len({exits.OK, exits.FAILED, exits.BAD_INPUT, exits.INCOMPLETE, exits.TOO_MANY_MISSES, exits.DEGRADED,
                 exits.DIVERGED}) == 7
+
+
+def test_a_run_stopped_early_is_replayed_to_its_last_report_only(run):
+    """A world stopped at tick 25 of 40: the replay ends at tick 25 (a run
+    planned for 100,000 ticks and stopped at 100 does not replay the rest)."""
+    scn, trace = run
+    claims = claims_of(scn, trace)
+    claims.reported[25:] = False
+    st = check(trace, scn, claims)
+    assert st.status == "incomplete" and st.evidence["ticks_replayed"] == 25 and st.evidence["differing"] == 0
+    assert st.evidence["missing_agent_ticks"] == 15 * trace.has.shape[2]
+    claims.reported[:] = False
+    assert check(trace, scn, claims).evidence["ticks_replayed"] == 0

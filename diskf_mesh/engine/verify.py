@@ -129,6 +129,15 @@ def first_ticks(trace: Trace, K: int) -> Trace:
                    positions=None if trace.positions is None else trace.positions[:K])
 
 
+def first_claims(claims: RunClaims, K: int) -> RunClaims:
+    """``claims`` of ticks 1..K only."""
+    cut = lambda a: None if a is None else a[:K]  # noqa: E731
+    return RunClaims(claims.x[:K], claims.P[:K], claims.d[:K], claims.d_valid[:K], claims.reported[:K],
+                     claims.fused[:K], cut(claims.live), tuple(r for r in claims.restarts if r.tick <= K),
+                     {key: v for key, v in claims.digests.items() if key[0] <= K},
+                     {key: v for key, v in claims.verdicts.items() if key[0] <= K}, cut(claims.why))
+
+
 def nominal_links(trace: Trace, K: int, live: np.ndarray | None = None) -> np.ndarray:
     """(K, N, N): the range links of ticks 1..K between agents live at the
     tick (``live`` (K, N); None: all), the diagonal True."""
@@ -253,9 +262,20 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
     batch) -> [bytes]``: the digests an agent reports of the messages it
     fused (``mesh.wire.engine_digests``; None: digests are not checked); ``labels``: the agents' names in the evidence (default: the
     trace's)."""
-    K, N = claims.reported.shape
+    whole = claims
+    K_all, N = claims.reported.shape
     names = list(labels if labels is not None else trace.agent_labels)
     name = lambda j: names[j]  # noqa: E731
+    # the replay ends at the last tick anyone reported: a run stopped early is not replayed to its planned end
+    K = int(np.flatnonzero(claims.reported.any(-1))[-1]) + 1 if claims.reported.any() else 0
+    if K < K_all:
+        claims = first_claims(claims, K)
+        planned = None if planned is None else planned[:K]
+    missing = ~whole.reported
+    if K == 0:
+        return RunStatus(INCOMPLETE_STATUS, f"no report came: {K_all * N} agent-ticks missing",
+                         {"agent_ticks": K_all * N, "reported": 0, "ticks": K_all, "ticks_replayed": 0,
+                          "missing_agent_ticks": K_all * N, "missing_fraction": 1.0 if K_all * N else 0.0})
     nominal = nominal_links(trace, K, claims.live)
     planned = nominal if planned is None else np.asarray(planned, dtype=bool)
     wanted = None
@@ -297,15 +317,14 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
             first = diverged[0]
         unknown = ~reported | (div & b) | unver
 
-    complete = bool(claims.reported.all())
-    ev = {"agent_ticks": K * N, "reported": int(claims.reported.sum()), "ticks": K,
+    complete = bool(whole.reported.all())
+    ev = {"agent_ticks": K_all * N, "reported": int(claims.reported.sum()), "ticks": K_all, "ticks_replayed": K,
           "differing": int(bad.sum()), "max_abs_difference": float(gap.max()) if gap.size else 0.0,
           "unverified": unverified,
           "digests_checked": sum(len(v[0]) for v in claims.digests.values()) if message_digest else 0,
           "restarts": len(claims.restarts)}
-    missing = ~claims.reported
     ev["missing_agent_ticks"] = int(missing.sum())
-    ev["missing_fraction"] = float(missing.sum()) / (K * N) if K * N else 0.0
+    ev["missing_fraction"] = float(missing.sum()) / (K_all * N) if K_all * N else 0.0
 
     if first is not None:
         k, j, forged = first
@@ -328,10 +347,10 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
     ev.update(shortfall)
     if not complete:
         why = Counter()
-        if claims.why is not None:
-            why.update(str(w) or "not run" for w in claims.why[missing])
+        if whole.why is not None:
+            why.update(str(w) or "not run" for w in whole.why[missing])
         ev["missing_why"] = dict(sorted(why.items()))
-        return RunStatus(INCOMPLETE_STATUS, f"{ev['missing_agent_ticks']} of {K * N} agent-ticks not reported "
+        return RunStatus(INCOMPLETE_STATUS, f"{ev['missing_agent_ticks']} of {K_all * N} agent-ticks not reported "
                          f"({100 * ev['missing_fraction']:.1f} %)"
                          + (f": {', '.join(f'{w} {n}' for w, n in ev['missing_why'].items())}" if why else ""), ev)
     if shortfall["degraded"]["agent_ticks"]:
