@@ -30,7 +30,7 @@ truth, lockstep) and ``sim/launcher.py`` (``diskf-mesh up``).
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+TYPE_CHECKING = False  # typing's constant, without importing typing: the processes of a run import this first
 
 __version__ = "0.1.0"
 
@@ -44,7 +44,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see; at run time __getattr__ lo
     from diskf_mesh.core.errors import InputError
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     if name == "InputError":
         from diskf_mesh.core.errors import InputError
 

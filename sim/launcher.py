@@ -52,6 +52,7 @@ import json
 import os
 import queue
 import secrets
+import shutil
 import signal
 import socket
 import subprocess
@@ -504,7 +505,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", metavar="OUT", help="results file (default: results/up-<run-id>.json)")
     p.add_argument("--estimates", metavar="OUT", help="also write every agent's fused estimates")
     p.add_argument("--record", metavar="FILE.mcap", help="the world records the run as MCAP (diskf_mesh.recording)")
-    p.add_argument("--logs", metavar="DIR", help="children's stderr logs (default: a temporary directory)")
+    p.add_argument("--logs", metavar="DIR", help="keep the children's stderr logs in DIR (default: a temporary folder, "
+                                                 "removed when the run ends with 0, kept and named otherwise)")
     p.add_argument("--startup-timeout", type=float, default=30.0, metavar="S",
                    help="seconds for every agent to come up (default %(default)s)")
     p.add_argument("--tick-timeout", type=float, default=10.0, metavar="S",
@@ -668,7 +670,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     except KeyboardInterrupt:
         bar.close()
         launcher.stop_all()
-        print(f"interrupted: stopped {len(launcher.children)} processes", file=sys.stderr)
+        print(f"interrupted: stopped {len(launcher.children)} processes; logs: {logs}", file=sys.stderr)
         return 130
     bar.close()
     t_end = time.monotonic()
@@ -682,10 +684,14 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
           f"{ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
     print(format_table(results))
     row = next(iter(next(iter(results.values())).values()))
+    status = verdict(row, args)
+    keep = bool(args.logs) or status != 0 or bool(bad)  # a run that went well leaves no temporary folder
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
           + (f", recording: {args.record}" if args.record and not row.get("recording_failed") else "")
-          + f", logs: {logs}")
-    return verdict(row, args)
+          + (f", logs: {logs}" if keep else ""))
+    if not keep:
+        shutil.rmtree(logs, ignore_errors=True)
+    return status
 
 
 # the world's exit statuses that carry a run's results (``core.exits``); any other is a failure

@@ -19,7 +19,7 @@ from diskf_mesh.data import metrics as _metrics
 from diskf_mesh.data import provenance as _provenance
 from diskf_mesh.data import scenario as _scenario
 from diskf_mesh.data.outputs import save_json
-from diskf_mesh.data.trace import Trace, estimator_from_json, read_json, trace_from_json, trace_to_json
+from diskf_mesh.data.trace import Trace, estimator_from_json, read_trace_file, trace_from_json, trace_to_json
 from diskf_mesh.engine import batch as _engine
 from diskf_mesh.estimators import Params
 
@@ -104,8 +104,11 @@ def estimate(trace: TraceLike, estimator: str = "diskf", *, settings: Params | M
     started = _provenance.now()
     doc = None
     if not isinstance(trace, Trace):
-        doc = dict(read_json(trace)) if isinstance(trace, (str, PathLike)) else dict(trace)
-        trace = trace_from_json(doc)
+        if isinstance(trace, (str, PathLike)):
+            doc, trace = read_trace_file(trace)
+        else:
+            doc = dict(trace)
+            trace = trace_from_json(doc)
     base = scenario.params if scenario is not None else (estimator_from_json(doc) if doc is not None else Params())
     params = _params(base, settings)
     est = _engine.run(trace, _estimator(estimator), params)
@@ -195,7 +198,7 @@ def _replay_recording(path: Path) -> Run:
 
 def read_trace(path: str | PathLike[str]) -> Trace:
     """A diskf-trace/1 file, checked against its schema (docs/formats.md)."""
-    return trace_from_json(read_json(path))
+    return read_trace_file(path)[1]
 
 
 def write_trace(trace: Trace, path: str | PathLike[str], *, seed_index: int = 0, scenario: str | None = None,

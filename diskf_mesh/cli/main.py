@@ -14,13 +14,17 @@ and the commands that draw nothing never load a plotting library.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import os
+import signal
 import sys
+import threading
 import warnings
 
 from diskf_mesh import __version__
 from diskf_mesh.core.errors import InputError
+from diskf_mesh.mesh import stopping
 
 COMMAND_MODULES = (
     "diskf_mesh.cli.experiment",
@@ -46,11 +50,61 @@ MESH_COMMANDS = {"up": "sim.launcher", "host": "sim.host", "router": "sim.router
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse's own usage errors: one line, status 2
+        if message.startswith("unrecognized arguments: "):
+            message = _unknown(self, message.removeprefix("unrecognized arguments: ").split())
         self.exit(2, f"error: {message}\n")
+
+    def format_help(self) -> str:
+        """Plain text: the description without markup or internal names, and
+        every exit status (``help_text``)."""
+        from diskf_mesh.cli import help_text
+
+        description, epilog = self.description, self.epilog
+        helps = [(a, a.help) for a in self._actions]
+        groups = [(g, g.title, g.description) for g in self._action_groups]
+        for g, title, text in groups:
+            g.title, g.description = help_text.plain_line(title), help_text.plain_line(text)
+        self.description, self.epilog = help_text.plain(description), help_text.exit_statuses()
+        for a, text in helps:
+            a.help = help_text.plain_line(text)
+        try:
+            return super().format_help()
+        finally:
+            self.description, self.epilog = description, epilog
+            for a, text in helps:
+                a.help = text
+            for g, title, text in groups:
+                g.title, g.description = title, text
+
+
+def _unknown(parser: argparse.ArgumentParser, words: list) -> str:
+    """'unknown option --versoin (did you mean --version?)' for the first
+    word that is an option, else argparse's own words."""
+    for word in words:
+        if word.startswith("-"):
+            flag = word.split("=", 1)[0]
+            close = difflib.get_close_matches(flag, sorted(_long_options(parser)), n=1, cutoff=0.6)
+            return f"unknown option {flag}" + (f" (did you mean {close[0]}?)" if close else "")
+    return "unrecognized arguments: " + " ".join(words)
+
+
+def _long_options(parser: argparse.ArgumentParser) -> set:
+    """Every --option of ``parser`` and of its subcommands (argparse reports
+    a subcommand's unknown option from the top parser)."""
+    out = {o for o in parser._option_string_actions if o.startswith("--")}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                out |= _long_options(sub)
+    return out
+
+
 
 
 def build_parser(modules=COMMAND_MODULES) -> argparse.ArgumentParser:
-    parser = _Parser(prog="diskf-mesh", description="Decentralized input and state estimation (DISKF) on a Zenoh mesh")
+    parser = _Parser(prog="diskf-mesh", description="Decentralized input and state estimation (DISKF) on a Zenoh mesh. "
+                     "'diskf-mesh COMMAND --help' describes a command.",
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"diskf-mesh {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for mod in modules:
@@ -75,17 +129,33 @@ def main(argv=None, modules=COMMAND_MODULES) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if modules is COMMAND_MODULES and argv[:1] and argv[0] in MESH_COMMANDS:
         modules = (MESH_COMMANDS[argv[0]],)
-    if argv[:1] == ["up"]:
-        zygote = importlib.import_module("sim.zygote")  # the apps are reached by name, as COMMAND_MODULES are
-        zygote.prestart(argv)
-        try:
-            return _main(argv, modules)
-        finally:
-            zygote.close_prestarted()
-    return _main(argv, modules)
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        # SIGTERM as SystemExit(143) where the main thread is, so that finally blocks run (partial files
+        # removed, children stopped); a command that handles SIGTERM itself replaces this
+        signal.signal(signal.SIGTERM, stopping.terminated)
+    # Ctrl-C or SIGTERM at any moment, start-up included: one line, no traceback
+    try:
+        if argv[:1] == ["up"]:
+            zygote = importlib.import_module("sim.zygote")  # the apps are reached by name, as COMMAND_MODULES are
+            zygote.prestart(argv)
+            try:
+                return _main(argv, modules)
+            finally:
+                zygote.close_prestarted()
+        return _main(argv, modules)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except SystemExit as e:
+        if e.code == 143:  # SIGTERM (here, or a command's own handler)
+            print("terminated", file=sys.stderr)
+            return 143
+        raise
 
 
 def _main(argv, modules) -> int:
+    if argv[:1] and argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version"):
+        build_parser(()).error(f"unrecognized arguments: {argv[0]}")  # before 'required: command'
     args = build_parser(modules).parse_args(argv)
     args.argv = list(argv)  # the command line, for the provenance of what it writes
     try:
@@ -100,9 +170,6 @@ def _main(argv, modules) -> int:
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
 
 
 def run_one(command: str, module: str, argv=None) -> int:

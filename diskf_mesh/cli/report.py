@@ -2,21 +2,36 @@
 
 Writes DIR/reproduction.md (tables beside the paper's numbers, figures,
 the differences and where DISKF is not the best), DIR/figures/*.png and
-DIR/results.json (every number). ``--out docs`` regenerates the committed
-docs/reproduction.md.
+DIR/results.json (every number, with its provenance). ``--out docs``
+regenerates the committed docs/reproduction.md. The studies run in one
+process per core (--jobs); one line per study on standard error says how
+far it is (none with --quiet).
 """
 from __future__ import annotations
 
-from diskf_mesh.cli.study_options import add_study_command
+import sys
+from functools import partial
+
+from diskf_mesh.cli.options import positive_int
+from diskf_mesh.cli.study_options import add_study_command, run_study
 
 
-def report(cfg, out) -> str:
+def progress_line(i: int, n: int, title: str, seconds: float) -> None:
+    print(f"report: [{i}/{n}] {title}: {seconds:.1f} s", file=sys.stderr, flush=True)
+
+
+def report(cfg, out, lines: bool = True, jobs: int | None = None) -> str:
     from diskf_mesh.studies.report import write_report  # matplotlib: only when drawing
+    from diskf_mesh.studies.suite import workers
 
-    md, js, *figs = write_report(cfg, out)
+    md, js, *figs = write_report(cfg, out, progress_line if lines else None, jobs=jobs or workers())
     return f"report -> {md} ({len(figs)} figures, numbers in {js})"
 
 
 def register(subparsers) -> None:
     add_study_command(subparsers, "report", "run every experiment, write the markdown report", __doc__,
                       "folder for reproduction.md, figures/ and results.json (created)", report)
+    p = subparsers.choices["report"]
+    p.add_argument("--jobs", type=positive_int, metavar="N",
+                   help="processes for the studies (default: one per core this process may use)")
+    p.set_defaults(func=lambda args: run_study(args, partial(report, lines=not args.quiet, jobs=args.jobs)))

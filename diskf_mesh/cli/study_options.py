@@ -20,10 +20,10 @@ def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: s
     p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
     p.add_argument("--steps", type=positive_int, metavar="K", help="horizon in ticks (default: the scenarios')")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.set_defaults(func=lambda args: _run(args, action))
+    p.set_defaults(func=lambda args: run_study(args, action))
 
 
-def _run(args: argparse.Namespace, action) -> int:
+def run_study(args: argparse.Namespace, action) -> int:
     from diskf_mesh.studies.suite import StudyConfig  # here, not at the top: --help loads every command module
 
     cfg = StudyConfig(seeds=args.seeds, steps=args.steps, quiet=args.quiet or not sys.stderr.isatty())

@@ -50,6 +50,10 @@ def compute(trace, est) -> dict:
 
 def per_seed(trace, est) -> dict:
     """{metric: array over seeds}, for spreads."""
-    e_state, e_in, nees = errors(trace, est)
+    return per_seed_errors(*errors(trace, est))
+
+
+def per_seed_errors(e_state, e_in, nees) -> dict:
+    """``per_seed`` from the errors (``errors``)."""
     rows = [summarize(e_state[b], e_in[b], nees[b]) for b in range(e_state.shape[0])]
     return {k: np.array([r[k] for r in rows]) for k in METRIC_KEYS}

@@ -190,8 +190,18 @@ def estimator_from_json(doc: dict) -> Params:
         raise InputError(f"estimator.{field}", msg) from None
 
 
+def read_trace_file(path) -> tuple[dict, Trace]:
+    """(the document, its ``Trace``) of a diskf-trace/1 file; an error
+    names the field, then the file (``error: G: is missing (in t.json)``)."""
+    doc = read_json(path)
+    try:
+        return doc, trace_from_json(doc)
+    except InputError as e:
+        raise InputError(e.field, f"{e.message} (in {path})") from None
+
+
 def load_trace(path) -> Trace:
-    return trace_from_json(read_json(path))
+    return read_trace_file(path)[1]
 
 
 # --------------------------------------------------------------------------

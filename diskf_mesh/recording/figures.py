@@ -40,7 +40,7 @@ def _agent_colors(N: int):
 
 
 def plot_trajectories(rec: Recording, path: Path) -> Path:
-    from diskf_mesh.studies.figures import _figure, _save
+    from diskf_mesh.studies.figures import TRUTH_COLOR, _figure, _save
 
     trace = take_ticks(rec.trace, rec.ticks)
     dims = list(trace.position_dims)[:2]
@@ -51,13 +51,13 @@ def plot_trajectories(rec: Recording, path: Path) -> Path:
     for j, i in enumerate(rec.ids):
         est = np.where(rec.reported[:, j, None], rec.x[:, j][:, dims], np.nan)
         ax_est.plot(*est.T, color=colors[j], lw=0.8, alpha=0.8, label=f"agent {i}")
-    ax_est.plot(*truth.T, color="k", lw=1.4, label="truth", zorder=5)
-    ax_est.plot(*truth[0], "ko", ms=5, zorder=5)
+    ax_est.plot(*truth.T, color=TRUTH_COLOR, lw=1.4, label="truth", zorder=5)
+    ax_est.plot(*truth[0], "o", color=TRUTH_COLOR, ms=5, zorder=5)
     span = np.ptp(truth, axis=0).max() or 1.0
     lo, hi = truth.min(axis=0) - 0.4 * span, truth.max(axis=0) + 0.4 * span
     ax_est.set_xlim(lo[0], hi[0])
     ax_est.set_ylim(lo[1], hi[1])
-    ax_est.set_title("target: truth (black, o = tick 1) and each agent's estimate", fontsize=10)
+    ax_est.set_title("target: truth (olive, o = tick 1) and each agent's estimate", fontsize=10)
     ax_est.legend(fontsize=7, ncol=2, loc="upper right", framealpha=0.6)
     pos = rec.positions
     for j, i in enumerate(rec.ids):
@@ -71,7 +71,7 @@ def plot_trajectories(rec: Recording, path: Path) -> Path:
     where = {i: j for j, i in enumerate(rec.ids)}
     for a, b in last:
         ax_pos.plot(*pos[-1, [where[a], where[b]]].T, color="tab:blue", lw=0.8, alpha=0.7)
-    ax_pos.plot(*truth.T, "k--", lw=0.8, label="target (truth)")
+    ax_pos.plot(*truth.T, "--", color=TRUTH_COLOR, lw=0.8, label="target (truth)")
     ax_pos.legend(fontsize=7, loc="upper right", framealpha=0.6)
     ax_pos.set_title(f"agents: paths, positions and links at tick {rec.ticks} (square = static)", fontsize=10)
     for ax, adjust in ((ax_est, "box"), (ax_pos, "datalim")):
@@ -149,9 +149,11 @@ def plot_error(rec: Recording, path: Path) -> Path:
     return _save(fig, path)
 
 
-def make_recording_figures(rec: Recording, out_dir) -> list:
-    out = Path(out_dir)
+def make_recording_figures(rec: Recording, out_dir, fmt: str = "png") -> list:
+    from diskf_mesh.studies.figures import _Folder
+
+    out = _Folder(out_dir, fmt)
     if not rec.ticks:
         return []
-    return [plot_trajectories(rec, out / "run-trajectories.png"), plot_links(rec, out / "run-links.png"),
-            plot_error(rec, out / "run-error.png")]
+    return [plot_trajectories(rec, out / "run-trajectories"), plot_links(rec, out / "run-links"),
+            plot_error(rec, out / "run-error")]

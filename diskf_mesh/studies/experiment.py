@@ -67,8 +67,13 @@ def settings_for(topologies, comm_range: float | None = None) -> list[Setting]:
 
 def summarize(trace, est) -> dict:
     """{metric: pooled value, metric_std: spread over seeds} of one run."""
-    row = metrics.compute(trace, est)
-    spread = metrics.per_seed(trace, est)
+    return summarize_errors(*metrics.errors(trace, est))
+
+
+def summarize_errors(e_state, e_in, nees) -> dict:
+    """``summarize`` from the errors of a run (``metrics.errors``), computed once."""
+    row = metrics.summarize(e_state, e_in, nees)
+    spread = metrics.per_seed_errors(e_state, e_in, nees)
     row.update({f"{k}_std": float(np.nanstd(v)) if np.isfinite(v).any() else float("nan")
                 for k, v in spread.items()})
     return row

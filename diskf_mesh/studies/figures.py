@@ -37,6 +37,8 @@ LENGTH = "length units"             # of positions, ranges and position errors
 INPUT = "length units per tick"     # of the input d and its errors
 TICK = "tick"
 STATIC_COLOR, MOBILE_COLOR = "tab:red", "tab:green"
+TRUTH_COLOR = "tab:olive"  # the truth: far from every estimator's colour (tests/test_figures.py checks it)
+FORMATS = ("png", "pdf", "svg")
 
 
 def label(alg: str) -> str:
@@ -59,10 +61,15 @@ def _margins(fig: Figure, **params) -> Figure:
 
 
 def _save(fig: Figure, path: Path) -> Path:
-    """PNG at ``DPI``, reduced to a 256-colour palette (line plots lose
-    nothing visible, the files shrink about threefold: they live in git)."""
+    """The figure in the format of ``path``'s suffix (``FORMATS``); a PNG at
+    ``DPI``, reduced to a 256-colour palette (line plots lose nothing
+    visible, the files shrink about threefold: they live in git)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() != ".png":
+        with atomic_open(path, "wb") as f:
+            fig.savefig(f, format=path.suffix[1:].lower(), dpi=DPI)
+        return path
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI)
     buf.seek(0)
@@ -186,7 +193,7 @@ def plot_scenario(scn: Scenario, trace, path: Path, ticks=(1, 30, 60)) -> Path:
         for i, j in zip(*np.nonzero(np.triu(L[k - 1], 1))):
             ax.plot(*pos[k - 1, [i, j]].T, color="tab:blue", lw=1.2)
         _agents(ax, scn, pos[k - 1], scn.comm_range)
-        ax.plot(*trace.truth_x[0, k - 1], "k*", ms=10)
+        ax.plot(*trace.truth_x[0, k - 1], "*", color=TRUTH_COLOR, ms=10)
         ax.set_title(f"tick {k}: {int(np.triu(L[k - 1], 1).sum())} links, target *")
     return _save(fig, path)
 
@@ -199,7 +206,7 @@ def plot_trajectories(run: Run, path: Path, node: int = 0, seed: int = 0) -> Pat
     fig, axes = _grid(len(run.ests), 3, size=(3.6, 3.4), sharex=False, head=0.9)
     truth = run.trace.truth_x[seed]
     for ax, (alg, est) in zip(axes, run.ests.items()):
-        ax.plot(*truth.T, color="k", lw=1.5, label="truth")
+        ax.plot(*truth.T, color=TRUTH_COLOR, lw=1.5, label="truth")
         ax.plot(*est.x[seed, :, node].T, color=COLORS.get(alg), lw=1, label=label(alg))
         _limits(ax, truth)
         ax.set_aspect("equal")
@@ -226,7 +233,7 @@ def plot_inputs(run: Run, path: Path, seed: int = 0, ylim=(-20.0, 40.0)) -> Path
         for i in range(N):
             ax = axes[i, c]
             ax.axhline(0, color="0.85", lw=0.6)
-            ax.plot(t, run.trace.truth_d[seed, :, 0], "k--", lw=0.8, label="true input")
+            ax.plot(t, run.trace.truth_d[seed, :, 0], "--", color=TRUTH_COLOR, lw=0.8, label="true input")
             ax.plot(t, np.where(est.d_valid[seed, :, i], est.d[seed, :, i, 0], np.nan), color=COLORS.get(alg),
                     lw=0.9, label="estimate (gaps: none)")
             ax.tick_params(labelsize=7)
@@ -253,7 +260,7 @@ def plot_states(run: Run, path: Path, nodes=None, seed: int = 0) -> Path:
     for c, node in enumerate(nodes):
         for r, comp in enumerate("xy"):
             ax = axes[r, c]
-            ax.plot(t, truth[:, r], "k", lw=1.5, label="truth")
+            ax.plot(t, truth[:, r], color=TRUTH_COLOR, lw=1.5, label="truth")
             for alg, est in run.ests.items():
                 ax.plot(t, est.x[seed, :, node, r], color=COLORS.get(alg), lw=0.9, label=label(alg))
             span = truth[:, r].max() - truth[:, r].min()
@@ -329,7 +336,7 @@ def plot_window(run: Run, path: Path, node: int = 0, seed: int = 0) -> Path:
     ax_d, ax_x = fig.subplots(1, 2)
     tr = run.trace
     t = np.arange(1, tr.shape[1] + 1)
-    ax_d.plot(t, tr.truth_d[seed, :, 0], "k--", lw=1.2, label="truth")
+    ax_d.plot(t, tr.truth_d[seed, :, 0], "--", color=TRUTH_COLOR, lw=1.2, label="truth")
     # wide grey first, so a variant that coincides with "no window" stays visible on top of it
     styles = (("tab:gray", 3.0), ("tab:orange", 1.2), ("tab:blue", 1.0), ("tab:green", 1.0))
     for (name, est), (c, lw) in zip(run.ests.items(), styles):
@@ -368,9 +375,23 @@ def plot_sensor_split(run: Run, path: Path, zeros: dict) -> Path:
 # --------------------------------------------------------------------------
 # all of them
 # --------------------------------------------------------------------------
-def make_figures(cfg: studies.StudyConfig, out_dir, results: studies.Results | None = None) -> list[Path]:
-    """Every figure into ``out_dir``; studies not given in ``results`` are run."""
-    out = Path(out_dir)
+class _Folder:
+    """``folder / "name"`` is ``folder/name.<fmt>``: where each figure goes."""
+
+    def __init__(self, folder, fmt: str = "png"):
+        if fmt not in FORMATS:
+            raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+        self.folder, self.fmt = Path(folder), fmt
+
+    def __truediv__(self, name: str) -> Path:
+        return self.folder / f"{name}.{self.fmt}"
+
+
+def make_figures(cfg: studies.StudyConfig, out_dir, results: studies.Results | None = None,
+                 fmt: str = "png") -> list[Path]:
+    """Every figure into ``out_dir`` as ``fmt`` (``FORMATS``); studies not
+    given in ``results`` are run."""
+    out = _Folder(out_dir, fmt)
     sweep = results.sweep if results and results.sweep else studies.range_sweep(cfg)
     dyn = results.dynamic if results and results.dynamic else studies.dynamic_table(cfg)
     r120 = studies.range_setting(studies.PAPER_RANGE)
@@ -378,20 +399,20 @@ def make_figures(cfg: studies.StudyConfig, out_dir, results: studies.Results | N
     dynamic = Run.of(cfg, studies.DYNAMIC, r120, f"Scenario 2, range {studies.PAPER_RANGE:g}")
     isolated = Run.of(cfg, studies.DYNAMIC, studies.NONE, "Scenario 2, isolated", algs=("diskf", "cdrkf", "kcf"))
     paths = [
-        plot_scenario(dynamic.scn, dynamic.trace, out / "scenario_dynamic.png"),
-        plot_scenario(ring.scn, ring.trace, out / "scenario_stationary.png", ticks=()),
-        plot_trajectories(ring, out / "trajectories_stationary_ring.png"),
-        plot_trajectories(dynamic, out / "trajectories_dynamic_120.png"),
-        plot_inputs(ring, out / "inputs_stationary_ring.png"),
-        plot_inputs(dynamic, out / "inputs_dynamic_120.png"),
-        plot_states(ring, out / "states_stationary_ring.png"),
-        plot_states(dynamic, out / "states_dynamic_120.png", nodes=(0, 4, 8)),
-        plot_error_vs_range(sweep, out / "error_vs_range.png"),
-        plot_bars(dyn, out / "dynamic_bars.png", "Scenario 2: errors at range 120 and all-to-all (bars: std over seeds)"),
-        plot_sensor_split(isolated, out / "isolated_by_sensor.png", studies.sensor_zeros(isolated.scn)),
+        plot_scenario(dynamic.scn, dynamic.trace, out / "scenario_dynamic"),
+        plot_scenario(ring.scn, ring.trace, out / "scenario_stationary", ticks=()),
+        plot_trajectories(ring, out / "trajectories_stationary_ring"),
+        plot_trajectories(dynamic, out / "trajectories_dynamic_120"),
+        plot_inputs(ring, out / "inputs_stationary_ring"),
+        plot_inputs(dynamic, out / "inputs_dynamic_120"),
+        plot_states(ring, out / "states_stationary_ring"),
+        plot_states(dynamic, out / "states_dynamic_120", nodes=(0, 4, 8)),
+        plot_error_vs_range(sweep, out / "error_vs_range"),
+        plot_bars(dyn, out / "dynamic_bars", "Scenario 2: errors at range 120 and all-to-all (bars: std over seeds)"),
+        plot_sensor_split(isolated, out / "isolated_by_sensor", studies.sensor_zeros(isolated.scn)),
     ]
     for name, st, title, slug in ((studies.STATIONARY, studies.RING, "Scenario 1, 1-hop", "stationary_ring"),
                                   (studies.DYNAMIC, r120, dynamic.title, "dynamic_120")):
         run = Run.variants(cfg, name, st, title, studies.window_variants)
-        paths.append(plot_window(run, out / f"window_{slug}.png"))
+        paths.append(plot_window(run, out / f"window_{slug}"))
     return paths

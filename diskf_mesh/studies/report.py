@@ -8,6 +8,7 @@ own tables. ``write_report`` runs everything and writes
 from __future__ import annotations
 
 import math
+import time
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -639,12 +640,30 @@ def render(res: studies.Results, figdir: str = "figures") -> str:
     return "\n".join(parts)
 
 
-def write_report(cfg: studies.StudyConfig, out_dir) -> list[Path]:
-    """Run every study, write the figures, the markdown and the JSON."""
+def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1) -> list[Path]:
+    """Run every study (in ``jobs`` processes), write the figures, the
+    markdown and the JSON; ``progress(i, n, title, seconds)`` after each
+    step, if given. The figures are drawn here while the last studies run
+    in the other processes, as soon as the studies they use are done."""
     out = Path(out_dir)
     started = provenance.now()
-    res = studies.run_all(cfg)
-    paths = figures.make_figures(cfg, out / "figures", res)
+    n = len(studies.STUDIES) + 1
+    steps = [0]
+    paths: list[Path] = []
+
+    def line(title: str, seconds: float) -> None:
+        steps[0] += 1
+        if progress is not None:
+            progress(steps[0], n, title, seconds)
+
+    def draw(done: dict) -> None:
+        if not paths and "sweep" in done and "dynamic" in done:
+            t0 = time.monotonic()
+            paths.extend(figures.make_figures(cfg, out / "figures", studies.Results(
+                config={}, sweep=done["sweep"], dynamic=done["dynamic"])))
+            line("figures", time.monotonic() - t0)
+
+    res = studies.run_all(cfg, lambda i, _, title, s: line(title, s), jobs=jobs, done_hook=draw)
     md = out / "reproduction.md"
     with atomic_open(md, "w") as f:
         f.write(render(res, "figures"))

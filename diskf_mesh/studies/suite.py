@@ -16,7 +16,9 @@ Rows are ``{metric: pooled value, metric_std: spread over seeds}`` as in
 """
 from __future__ import annotations
 
+import os
 import sys
+import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -78,13 +80,13 @@ class Variant:
     params: Params
 
 
-def metric_row(trace, est) -> dict:
+def metric_row(trace, est, heard: np.ndarray | None = None) -> dict:
     """Pooled metrics and their spread (std over seeds), and ``nees_observed``:
     the mean NEES over the agent-ticks whose neighbourhood holds a
-    measurement (``observed``)."""
-    row = experiment.summarize(trace, est)
-    nees = metrics.errors(trace, est)[2]
-    heard = observed(trace)
+    measurement (``observed``; give ``heard`` when several runs share a trace)."""
+    e_state, e_in, nees = metrics.errors(trace, est)
+    row = experiment.summarize_errors(e_state, e_in, nees)
+    heard = observed(trace) if heard is None else heard
     row["nees_observed"] = float(nees[heard].mean()) if heard.any() else float("nan")
     return row
 
@@ -101,11 +103,12 @@ def run_variants(scn: Scenario, variants, cfg: StudyConfig, bar=None, trace=None
     """Every variant on one trace (simulated unless given):
     ({label: row}, {label: Estimates})."""
     trace = simulate(scn, cfg.seed_range) if trace is None else trace
+    heard = observed(trace)
     rows, ests = {}, {}
     for v in variants:
         try:
             ests[v.label] = est = engine.run(trace, v.algorithm, v.params)
-            rows[v.label] = metric_row(trace, est)
+            rows[v.label] = metric_row(trace, est, heard)
         except np.linalg.LinAlgError:  # a variant whose covariance diverged (an ablation row): say so
             rows[v.label] = {"diverged": True, **{k: float("nan") for k in metrics.METRIC_KEYS + ("nees_observed",)}}
         if bar is not None:
@@ -197,10 +200,10 @@ def _ablation(cfg: StudyConfig, make_variants, desc: str, cells=None, identical_
     ``identical_to`` bit for bit (x, P, d and d_valid)."""
     cells = cells or _ablation_settings()
     out: dict = {}
-    with cfg.bar(len(cells) * len(make_variants(Params())), desc) as bar:
-        for env, comm, name, st in cells:
-            scn = cfg.scenario(name, st)
-            rows, ests = run_variants(scn, make_variants(scn.params), cfg, bar)
+    scns = [cfg.scenario(name, st) for _, _, name, st in cells]
+    with cfg.bar(sum(len(make_variants(scale_params(scn))) for scn in scns), desc) as bar:
+        for (env, comm, name, st), scn in zip(cells, scns):
+            rows, ests = run_variants(scn, make_variants(scale_params(scn)), cfg, bar)
             same = None
             if identical_to is not None:
                 ref = ests[identical_to]
@@ -268,12 +271,13 @@ def every_setting(cfg: StudyConfig) -> list:
 COMM = {"all": "all-to-all", "ring": "1-hop (ring)", "none": "none"}
 
 
-def bound_rows(tr, scn: Scenario) -> dict:
+def bound_rows(tr, scn: Scenario, heard: np.ndarray | None = None) -> dict:
     """The two centralized references on ``tr``: Gillijns-De Moor (assumes
     nothing about the input) and the filter with diskf-r's persistent-input
     model (the bound of that model)."""
-    return {centralized.NAME: metric_row(tr, centralized.run_centralized(tr)),
-            centralized.PERSIST_NAME: metric_row(tr, centralized.run_centralized_persist(tr, scn.params.robust))}
+    return {centralized.NAME: metric_row(tr, centralized.run_centralized(tr), heard),
+            centralized.PERSIST_NAME: metric_row(tr, centralized.run_centralized_persist(tr, scn.params.robust),
+                                                 heard)}
 
 
 def overview(cfg: StudyConfig) -> dict:
@@ -284,11 +288,27 @@ def overview(cfg: StudyConfig) -> dict:
     with cfg.bar(len(settings), "overview") as bar:
         for group, label, scn in settings:
             tr = simulate(scn, cfg.seed_range)
-            rows = {a: metric_row(tr, engine.run(tr, a, scn.params)) for a in cfg.algorithms}
-            rows.update(bound_rows(tr, scn))
+            heard = observed(tr)
+            rows = {a: metric_row(tr, engine.run(tr, a, scn.params), heard) for a in cfg.algorithms}
+            rows.update(bound_rows(tr, scn, heard))
             out[f"{group} / {label}"] = rows
             bar.update(1)
     return out
+
+
+def scale_params(scn: Scenario) -> Params:
+    """The scenario's settings with diskf-r's input scales as the estimator
+    takes them when not given (``input_model_of``: from the scenario's
+    noise), so that an ablation can scale them."""
+    r = scn.params.robust
+    if r.input_walk is not None and r.input_prior is not None:
+        return scn.params
+    from diskf_mesh.estimators.diskf_robust import input_model_of
+
+    sensors = scn.sensors()
+    _, walk, prior = input_model_of(replace(r, input_model="walk"), scn.model(1), sensors)
+    return replace(scn.params, robust=replace(r, input_walk=walk if r.input_walk is None else r.input_walk,
+                                              input_prior=prior if r.input_prior is None else r.input_prior))
 
 
 def robust_variants(base: Params) -> list[Variant]:
@@ -364,8 +384,9 @@ def robustness(cfg: StudyConfig, algs=("diskf", "diskf-r", "kcf", "diffkf")) -> 
         for name, scn_name, st in cells:
             for lab, scn in perturbations(cfg.scenario(scn_name, st)):
                 tr = simulate(scn, robust_seeds(cfg))
-                rows = {a: metric_row(tr, engine.run(tr, a, scn.params)) for a in algs}
-                rows.update(bound_rows(tr, scn))
+                heard = observed(tr)
+                rows = {a: metric_row(tr, engine.run(tr, a, scn.params), heard) for a in algs}
+                rows.update(bound_rows(tr, scn, heard))
                 out[f"{name} / {lab}"] = rows
                 bar.update(1)
     return out
@@ -479,11 +500,62 @@ class Results:
         return dict(vars(self))
 
 
-def run_all(cfg: StudyConfig) -> Results:
-    return Results(
-        config={"seeds": cfg.seeds, "steps": cfg.steps, "algorithms": list(cfg.algorithms)},
-        table_ii=table_ii(cfg), dynamic=dynamic_table(cfg), sweep=range_sweep(cfg),
-        topology=topology_stats(cfg), compensation=compensation_ablation(cfg),
-        window=window_ablation(cfg), hold=hold_ablation(cfg), diagnostics=diagnostics(cfg),
-        overview=overview(cfg), robust_ablation=robust_ablation(cfg), robustness=robustness(cfg),
-    )
+# (the Results field, what a progress line calls it, the study)
+STUDIES = (
+    ("table_ii", "Table II", table_ii), ("dynamic", "Fig. 5: Scenario 2", dynamic_table),
+    ("sweep", "Fig. 6: error against range", range_sweep), ("topology", "topology statistics", topology_stats),
+    ("compensation", "Table I: compensation", compensation_ablation), ("window", "Fig. 3: window", window_ablation),
+    ("hold", "holding the input", hold_ablation), ("diagnostics", "diagnostics", diagnostics),
+    ("overview", "every setting", overview), ("robust_ablation", "DISKF-R ablation", robust_ablation),
+    ("robustness", "robustness", robustness),
+)
+
+
+def run_study(key: str, cfg: StudyConfig) -> tuple:
+    """(the study ``key``'s result, its seconds): one job of ``run_all``."""
+    t0 = time.monotonic()
+    return dict((k, f) for k, _, f in STUDIES)[key](cfg), time.monotonic() - t0
+
+
+def workers() -> int:
+    """Processes for the studies: the cores this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def run_all(cfg: StudyConfig, progress=None, jobs: int = 1, done_hook=None) -> Results:
+    """Every study, in ``jobs`` processes (each study seeded, so the numbers do
+    not depend on which process runs it); ``progress(i, n, title, seconds)``
+    after each, and ``done_hook(results so far)`` after each, if given (the
+    report draws its figures while the last studies run)."""
+    titles = {k: t for k, t, _ in STUDIES}
+    done = {}
+
+    def finished(key, result, seconds):
+        done[key] = result
+        if progress is not None:
+            progress(len(done), len(STUDIES), titles[key], seconds)
+        if done_hook is not None:
+            done_hook(done)
+
+    if jobs <= 1:
+        for key, _, _ in STUDIES:
+            finished(key, *run_study(key, cfg))
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        quiet = replace(cfg, quiet=True)  # no bars from the workers: the lines say how far it is
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(run_study, key, quiet): key for key in STUDY_ORDER}
+            for f in as_completed(futures):
+                finished(futures[f], *f.result())
+    return Results(config={"seeds": cfg.seeds, "steps": cfg.steps, "algorithms": list(cfg.algorithms)},
+                   **{k: done[k] for k, _, _ in STUDIES})
+
+
+# the studies, longest first: a pool then ends with the short ones
+STUDY_ORDER = ("overview", "sweep", "robustness", "robust_ablation", "table_ii", "hold", "compensation",
+               "dynamic", "window", "diagnostics", "topology")
