@@ -50,7 +50,7 @@ from urllib.parse import urlparse
 work = sys.argv[1]
 listed = subprocess.run([sys.executable, "-m", "pip", "config", "list"], capture_output=True, text=True).stdout
 conf = configparser.ConfigParser(interpolation=None)
-files = []
+files, left_out = [], set()
 for line in listed.splitlines():
     name, _, value = line.partition("=")
     section, _, key = name.rpartition(".")
@@ -61,8 +61,10 @@ for line in listed.splitlines():
         if os.path.isfile(path) and os.path.isabs(path) and not token.startswith("file:"):
             files.append(path)  # a cert or constraints file: copied to the same path
         elif os.path.exists(path) or token.startswith("file:"):
-            print(f"note: pip's {key} {token} is a local directory or index: not carried into the image",
-                  file=sys.stderr)
+            if (key, token) not in left_out:
+                print(f"note: pip's {key} {token} is a local directory or index: not carried into the image",
+                      file=sys.stderr)
+            left_out.add((key, token))
             continue
         kept.append(token)
     if kept:

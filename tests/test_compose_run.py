@@ -198,9 +198,8 @@ def test_the_documented_demo_completes_with_the_engines_estimates(image, file, t
 
 
 def _on_the_clock(file: str, tmp_path: Path) -> Path:
-    """An override: the same run on the wall clock (``--rate``, 200 ticks
-    take 20 s), the world saying which tick it is on, so that every stop
-    lands mid-run."""
+    """An override: the same run on the wall clock (``--rate``), the world
+    saying which tick it is on, so that every stop lands mid-run."""
     services = yaml.safe_load((ROOT / file).read_text())["services"]
     clocked = {name: {"command": [*s["command"], "--rate", str(RATE_HZ),
                                   *(["--progress", "lines"] if name == "world" else [])]}
@@ -223,8 +222,9 @@ def _wait_for_tick(stack: Stack, k: int, timeout: float = 120) -> None:
 
 
 def _stops(project: str, since: float) -> dict:
-    """{service: (seconds from SIGTERM to exit, exit status, signals sent)}
-    of the project's containers, from the engine's events."""
+    """{service: (seconds from SIGTERM to exit or None, exit status, the
+    signals sent)} of the project's containers that ended after ``since``,
+    from the engine's events."""
     until = time.time() + 1
     out = _run(["docker", "events", "--since", f"{since:.3f}", "--until", f"{until:.3f}", "--format", "{{json .}}",
                 "--filter", f"label=com.docker.compose.project={project}", "--filter", "type=container"], 60).stdout
@@ -232,47 +232,55 @@ def _stops(project: str, since: float) -> dict:
     for line in out.splitlines():
         e = json.loads(line)
         attrs = e["Actor"]["Attributes"]
+        if e["Action"] not in ("kill", "die"):
+            continue
         c = seen.setdefault(attrs["com.docker.compose.service"], {"signals": [], "term": None})
         if e["Action"] == "kill":
             c["signals"].append(int(attrs["signal"]))
             if int(attrs["signal"]) == signal.SIGTERM and c["term"] is None:
                 c["term"] = e["timeNano"] / 1e9
-        elif e["Action"] == "die" and c["term"] is not None:
-            c["took"], c["status"] = e["timeNano"] / 1e9 - c["term"], int(attrs["exitCode"])
-    return {s: (c.get("took"), c.get("status"), c["signals"]) for s, c in seen.items() if c["signals"]}
+        elif e["Action"] == "die":
+            c["took"] = e["timeNano"] / 1e9 - c["term"] if c["term"] is not None else None
+            c["status"] = int(attrs["exitCode"])
+    return {s: (c.get("took"), c.get("status"), c["signals"]) for s, c in seen.items()}
 
 
-RATE_HZ = 10
-# stopped one by one mid-run (docker stop: SIGTERM, SIGKILL after 10 s), in this order; then `down` stops the rest
-MID_RUN = {"docker-compose.yml": ("agent-1",), "docker-compose.hosts.yml": ("host-a", "router-b")}
-# exit status on SIGTERM (diskf_mesh.mesh.stopping): the world writes its results, marked interrupted,
-# and exits 3 (incomplete)
-STOPPED = {"world": 3, "router": 0, "agent": 128 + signal.SIGTERM, "host": 128 + signal.SIGTERM}
+RATE_HZ = 5  # 200 ticks take 40 s: every stop below lands mid-run
+# stopped one at a time mid-run (docker stop: SIGTERM, SIGKILL after 10 s), in this order; `down` then stops the
+# rest together (agents or hosts first, then what they depend on)
+ONE_BY_ONE = {"docker-compose.yml": ("agent-1", "agent-2", "agent-3", "agent-4"),
+              "docker-compose.hosts.yml": ("host-a", "router-b")}
+# exit status on SIGTERM (diskf_mesh.mesh.stopping): the world writes its results, marked interrupted, and exits
+# 3 (incomplete), or 4 where real time had missed too many deadlines before (these runs are on the clock)
+STOPPED = {"world": (3, 4), "router": (0,), "agent": (128 + signal.SIGTERM,), "host": (128 + signal.SIGTERM,)}
+DOWN_WITHIN_S = 5.0  # several containers at once: the engine's own work shares the 2 cores; far from the 10 s grace
 
 
 @pytest.mark.parametrize("file", sorted(FILES))
 def test_every_service_stops_on_sigterm_mid_run_without_sigkill(image, file, tmp_path):
-    """Mid-run, SIGTERM to services one at a time, then ``down`` of the rest:
-    every process exits within 2 s of its SIGTERM (the engine's own event
-    times) with its documented status; none needed SIGKILL."""
+    """Mid-run, SIGTERM to services one at a time, then ``down``: every
+    process stopped alone exits within 2 s of its SIGTERM (the engine's own
+    event times), those of ``down`` well before the grace ends, each with its
+    documented status; none is sent SIGKILL."""
     compose_cmd, _ = image
     results = tmp_path / "results"
     results.mkdir()
     project = _project("stop")
     with Stack(compose_cmd, file, results, project, _on_the_clock(file, tmp_path)) as stack:
         stack("up", "--detach")
-        _wait_for_tick(stack, 20)
+        _wait_for_tick(stack, 10)
         since = time.time()
-        for service in MID_RUN[file]:
+        for service in ONE_BY_ONE[file]:
             _run(["docker", "stop", "-t", str(STOP_GRACE_S), stack.container(service)], STOP_GRACE_S + 30)
         assert _state(stack.container("world"))["Running"]  # still mid-run
         stack("down", "--volumes", "--timeout", str(STOP_GRACE_S))
     stops = _stops(project, since)
-    print(f"\n{file}: SIGTERM to exit " + ", ".join(f"{s} {t:.2f} s (exit {rc})" for s, (t, rc, _) in stops.items()))
+    print(f"\n{file}: SIGTERM to exit " + ", ".join(f"{s} {t if t is None else round(t, 2)} s (exit {rc})"
+                                                    for s, (t, rc, _) in sorted(stops.items())))
     services = set(yaml.safe_load((ROOT / file).read_text())["services"]) - {"credentials"}
-    assert set(stops) == services
+    assert set(stops) == services, stops
     for s, (took, status, signals) in stops.items():
-        assert signals == [signal.SIGTERM] and status == STOPPED[s.split("-")[0]], (s, status, signals)
-        assert took < STOP_WITHIN_S, (s, took)
+        assert signals == [signal.SIGTERM] and status in STOPPED[s.split("-")[0]], (s, status, signals)
+        assert took < (STOP_WITHIN_S if s in ONE_BY_ONE[file] else DOWN_WITHIN_S), (s, took)
     interrupted = json.loads(next(results.glob("*-estimates.json")).read_text())
     assert not interrupted["complete"] and "SIGTERM" in interrupted["ended_early"]
