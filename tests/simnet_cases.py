@@ -34,9 +34,7 @@ from diskf_mesh.mesh.simrun import WORLD, SimPlan, agent_pid, simulate_run
 from diskf_mesh.mesh.world_machine import WorldTiming
 from diskf_mesh.recording.replay import compare_reported
 
-# diskf-r and diskf-auto are out until their agents compute the engine's default input scales
-# (test_simnet_regressions)
-ALGORITHMS = ("diskf", "diskf", "diskf", "kcf", "diffkf", "ldrkf")
+ALGORITHMS = ("diskf", "diskf", "diskf", "diskf-r", "diskf-auto", "kcf", "diffkf", "ldrkf")
 MSGS = "diskf/sim/agent/*/msg/**"
 # random-geometric with 3 to 9 agents (sparse, links come and go), quadrants (4, every pair linked),
 # dynamic (9, in range of each other as they move)
