@@ -199,3 +199,31 @@ def test_up_without_logs_leaves_no_folder_when_it_succeeds(tmp_path):
                          timeout=240)
     kept = list(tmp_path.glob("diskf-up-*"))
     assert bad.returncode != 0 and len(kept) == 1 and str(kept[0]) in bad.stdout + bad.stderr, bad.stderr
+
+
+@pytest.mark.mesh
+def test_an_interrupted_recording_attaches_only_the_ticks_it_ran(tmp_path):
+    import json
+
+    from mcap.records import Attachment
+
+    from diskf_mesh.recording import reader, writer
+
+    path = tmp_path / "run.mcap"
+    proc = started(["up", "--ticks", "3000", "--record", str(path), "--json", "r.json", "--quiet"], tmp_path)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 180:
+        time.sleep(0.5)
+        try:
+            if reader.read(path).ticks >= 5:
+                break
+        except Exception:  # not even the first tick yet
+            continue
+    proc.send_signal(signal.SIGINT)
+    proc.communicate(timeout=120)
+    rec = reader.read(path)
+    attached = sum(len(json.loads(r.data)["y"]) for r in reader.records(path.read_bytes())
+                   if isinstance(r, Attachment))
+    assert 5 <= rec.ticks < 3000 and rec.planned_ticks == 3000
+    assert rec.ticks <= attached < rec.ticks + writer.SEGMENT_TICKS
+    assert reader.read(path).trace.shape[1] == attached

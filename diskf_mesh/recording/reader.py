@@ -22,7 +22,7 @@ from diskf_mesh.estimators import Params
 from diskf_mesh.data.trace import Trace, estimator_from_json, trace_from_json
 from diskf_mesh.engine.verify import first_ticks
 from diskf_mesh.mesh.reports import RunReports
-from diskf_mesh.recording.writer import FORMAT, TRACE_ATTACHMENT
+from diskf_mesh.recording.writer import FORMAT, SEGMENT_PREFIX, TRACE_ATTACHMENT, join_trace
 
 MAGIC = b"\x89MCAP0\r\n"
 _FOOTER = 0x02
@@ -106,22 +106,25 @@ def read(path) -> Recording:
         _, finished = whole_records(data)
     except ValueError as e:
         raise InputError("recording", f"{path}: {e}") from None
-    channels, by_topic, trace_doc = {}, {}, None
+    channels, by_topic, trace_doc, segments = {}, {}, None, []
     for rec in records(data):
         if isinstance(rec, Channel):
-            channels[rec.id] = rec.topic
+            channels[rec.id] = (rec.topic, rec.message_encoding == "json")
         elif isinstance(rec, Message) and rec.channel_id in channels:
-            try:
-                by_topic.setdefault(channels[rec.channel_id], []).append(json.loads(rec.data))
+            topic, is_json = channels[rec.channel_id]
+            try:  # a channel in another encoding (``/scene``: protobuf) keeps its bytes
+                by_topic.setdefault(topic, []).append(json.loads(rec.data) if is_json else bytes(rec.data))
             except ValueError:
                 continue
         elif isinstance(rec, Attachment) and rec.name == TRACE_ATTACHMENT:
             trace_doc = json.loads(rec.data)
+        elif isinstance(rec, Attachment) and rec.name.startswith(SEGMENT_PREFIX):
+            segments.append(json.loads(rec.data))
     runs = by_topic.get("/run", [])
     if not runs or runs[0].get("format") != FORMAT or trace_doc is None:
         raise InputError("recording", f"{path} is not a diskf-mesh recording ({FORMAT}) or was cut before "
                                       "its first tick")
-    return _assemble(str(path), runs[0], trace_doc, by_topic, finished)
+    return _assemble(str(path), runs[0], join_trace(trace_doc, segments), by_topic, finished)
 
 
 def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: bool) -> Recording:
@@ -131,7 +134,7 @@ def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: b
     N, n, m = len(ids), int(run["n"]), int(run["m"])
     closed = {doc["tick"] for doc in by_topic.get("/world/tick", [])}
     K = 0
-    while K + 1 in closed:
+    while K + 1 in closed and K < trace.shape[1]:
         K += 1
     where = {i: j for j, i in enumerate(ids)}
     reports = RunReports(**RunReports.empty(K, N, n, m))

@@ -68,7 +68,9 @@ from diskf_mesh.recording.schemas import CHANNELS, SCHEMA_PREFIX, schema_bytes
 
 FORMAT = "diskf-recording/1"
 TICK_PERIOD_S = 0.1
-TRACE_ATTACHMENT = "trace.json"
+TRACE_ATTACHMENT = "trace.json"  # the trace's fixed part and its first SEGMENT_TICKS ticks
+SEGMENT_PREFIX = "trace-ticks-"   # then "trace-ticks-<a>-<b>.json": ticks a+1..b, each attached before tick a+1
+SEGMENT_TICKS = 100               # a run stopped at tick k attaches the trace of fewer than k + SEGMENT_TICKS ticks
 CHUNK_BYTES = 1 << 20  # a chunk is also closed at every flush
 FLUSH_S = 0.05         # the writer hands the file to the OS at most, and at least, this often
 PIPE_BYTES = 1 << 20   # the pipe to the writer holds this much (Linux; a second of ticks of 100 agents)
@@ -86,6 +88,43 @@ def versions() -> dict:
         except metadata.PackageNotFoundError:
             out[dist] = None
     return out
+
+
+def trace_ticks(doc: dict, a: int, b: int) -> dict:
+    """The per-tick fields of a diskf-trace/1 document for ticks a+1..b."""
+    out = {"y": doc["y"][a:b]}
+    if doc["links"] and isinstance(doc["links"][0][0], list):  # one matrix per tick
+        out["links"] = doc["links"][a:b]
+    if "A_seq" in doc:
+        out["A_seq"] = doc["A_seq"][a:b]
+    if "truth" in doc:
+        out["truth"] = {"x": doc["truth"]["x"][a:b], "d": doc["truth"]["d"][a:b]}
+    return out
+
+
+def join_trace(first: dict, segments: list) -> dict:
+    """``first`` (the trace.json attachment) with the later segments'
+    ticks, in order, as long as they follow on: one diskf-trace/1 document."""
+    doc = {**first, "y": list(first["y"])}
+    per_tick_links = bool(doc["links"]) and isinstance(doc["links"][0][0], list)
+    if per_tick_links:
+        doc["links"] = list(doc["links"])
+    if "A_seq" in doc:
+        doc["A_seq"] = list(doc["A_seq"])
+    if "truth" in doc:
+        doc["truth"] = {"x": list(doc["truth"]["x"]), "d": list(doc["truth"]["d"])}
+    for seg in sorted(segments, key=lambda s: s["from"]):
+        if seg["from"] != len(doc["y"]):
+            break  # a gap: the ticks after it cannot be read
+        doc["y"] += seg["y"]
+        if per_tick_links:
+            doc["links"] += seg["links"]
+        if "A_seq" in doc:
+            doc["A_seq"] += seg["A_seq"]
+        if "truth" in doc:
+            doc["truth"]["x"] += seg["truth"]["x"]
+            doc["truth"]["d"] += seg["truth"]["d"]
+    return doc
 
 
 def _dumps(doc: dict) -> bytes:
@@ -141,12 +180,7 @@ class Recorder(NoRecorder):
     def __init__(self, path, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
                  faults: FaultConfig, provenance: dict | None = None):
         self.path = str(path)
-        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
-        with open(self.path, "wb") as f:
-            # its standard output says, at its end, the last tick in the file and what failed (``serve``)
-            self._proc = subprocess.Popen([sys.executable, "-m", "diskf_mesh.recording.writer", str(f.fileno()),
-                                           self.path], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                          pass_fds=(f.fileno(),))
+        self._proc = self._spawn()
         self._ticks = int(trace.has.shape[1])
         self._pipe = self._proc.stdin.fileno()
         try:
@@ -165,6 +199,15 @@ class Recorder(NoRecorder):
         self._send(("start", {"trace": trace, "scn": scn, "scenario": scenario, "algorithm": algorithm,
                               "seed": int(seed), "run_id": run_id, "faults": faults, "provenance": provenance}),
                    wait=True)
+
+    def _spawn(self) -> subprocess.Popen:
+        """The writer process, on the file opened here."""
+        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "wb") as f:
+            # its standard output says, at its end, the last tick in the file and what failed (``serve``)
+            return subprocess.Popen([sys.executable, "-m", "diskf_mesh.recording.writer", str(f.fileno()),
+                                     self.path], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                    pass_fds=(f.fileno(),))
 
     def _send(self, item, wait: bool = False) -> None:
         """One frame to the writer: what the pipe takes now, the rest at the
@@ -268,23 +311,28 @@ class TickWriter:
     """The writer process's side: the MCAP file, one tick at a time."""
 
     def __init__(self, file, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
-                 faults: FaultConfig, provenance: dict | None = None):
+                 faults: FaultConfig, provenance: dict | None = None, mcap=None, scene_each_tick: bool = False):
+        """``mcap``: where the messages go instead of an MCAP file on ``file``
+        (an object with ``mcap.writer.Writer``'s methods: the live server's
+        ``live.server.Sink``); ``scene_each_tick``: write ``/scene`` with
+        every tick, not at the end."""
         from mcap.writer import CompressionType, Writer
 
         self.trace, self.scn, self.seed = trace, scn, int(seed)
+        self.scene_each_tick = scene_each_tick
         self.ids = tuple(trace.sensors.ids)
         self.names = dict(zip(self.ids, trace.agent_labels))  # run id -> the user's id
         self.faults = FaultModel(faults, seed) if faults.active else None
         self._file = file
-        self._mcap = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self._mcap = mcap or Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         self._mcap.start(profile="", library=f"diskf-mesh/{__version__}")
         self._channel = {}
         for topic in CHANNELS:
             sid = self._mcap.register_schema(SCHEMA_PREFIX + topic.strip("/").replace("/", "."), "jsonschema",
                                              schema_bytes(topic))
             self._channel[topic] = self._mcap.register_channel(topic, "json", sid)
-        sid = self._mcap.register_schema(scene.NAME, "jsonschema", json.dumps(scene.SCHEMA).encode())
-        self._channel[scene.TOPIC] = self._mcap.register_channel(scene.TOPIC, "json", sid)
+        sid = self._mcap.register_schema(*scene.schema())
+        self._channel[scene.TOPIC] = self._mcap.register_channel(scene.TOPIC, scene.ENCODING, sid)
         self._mobile = [bool(a.mobile) for a in scn.agents]
         self._colors = {self.names[i]: scene.agent_color(j) for j, i in enumerate(self.ids)}
         extent = max(np.ptp(trace.positions.reshape(-1, 2), axis=0).max(), 1.0)
@@ -304,14 +352,31 @@ class TickWriter:
                "versions": versions(), "provenance": provenance}
         self._put("/run", 0, run)
         self._mcap.flush()  # the channels and /run first
-        doc = trace_to_json(trace)
-        doc["params"] = asdict(scn.params)
-        self._mcap.add_attachment(self._t0, self._t0, TRACE_ATTACHMENT, "application/json", _dumps(doc))
+        self._trace_doc = trace_to_json(trace)
+        self._trace_doc["params"] = asdict(scn.params)
+        self._covered = 0               # the trace's ticks attached so far
+        self._attach_through(1)
         self._mcap.add_metadata("run", {k: v if isinstance(v, str) else json.dumps(v) for k, v in run.items()})
         self._file.flush()
 
     def _time(self, k: int) -> int:
         return self._t0 + k * self._period
+
+    def _attach_through(self, k: int) -> None:
+        """Attach the trace's ticks up to at least ``k`` (in segments of
+        ``SEGMENT_TICKS``), before any message of tick ``k``: a file cut
+        anywhere holds the trace of every tick it closed, and a run stopped
+        early carries little of the ticks it never ran."""
+        K = len(self._trace_doc["y"])
+        while self._covered < min(k, K):
+            a, b = self._covered, min(K, self._covered + SEGMENT_TICKS)
+            part = trace_ticks(self._trace_doc, a, b)
+            if a == 0:
+                name, doc = TRACE_ATTACHMENT, {**self._trace_doc, **part}
+            else:
+                name, doc = f"{SEGMENT_PREFIX}{a}-{b}.json", {"from": a, **part}
+            self._mcap.add_attachment(self._t0, self._t0, name, "application/json", _dumps(doc))
+            self._covered = b
 
     def _put(self, topic: str, k: int, doc: dict, now: int | None = None) -> None:
         self._mcap.add_message(self._channel[topic], self._time(k), _dumps(doc), now or time.time_ns())
@@ -325,6 +390,7 @@ class TickWriter:
     def write_tick(self, k, live, reports, missing, wall_s, now) -> None:
         """Every channel of closed tick ``k``, ``/world/tick`` last.
         ``reports``: ``Recorder.on_close``'s tuples."""
+        self._attach_through(k)
         tr, ids, name = self.trace, self.ids, self.names
         reports = {r[0]: _Report(self.n, self.m, *r) for r in reports}
         alive = set(live)
@@ -385,6 +451,8 @@ class TickWriter:
         put("/agents/counters", {"tick": k, "counters": counters})
         self._scenes.append((k, {name[i] for i in alive if i in name}, edges,
                              [(e["agent"], e["x"], e["P"]) for e in estimates]))
+        if self.scene_each_tick:
+            self._write_scenes()
         put("/world/tick", {"tick": k, "reported": names(sorted(reports, key=order)), "missing": names(missing),
                             "wall_s": wall_s})
         self._last_closed = k
@@ -395,11 +463,12 @@ class TickWriter:
         killed before its end has every channel but this one."""
         tr, dims = self.trace, list(self.trace.position_dims)[:2]
         for k, alive, edges, estimates in self._scenes:
-            self._put(scene.TOPIC, k, scene.scene_update(
+            update = scene.scene_update(
                 k, self._time(k), tr.agent_labels, tr.positions[k - 1], self._mobile, alive, edges,
                 tr.truth_x[0, max(k - scene.TRAIL, 0):k][:, dims],
                 [(i, [x[a] for a in dims], [[P[a][b] for b in dims] for a in dims]) for i, x, P in estimates],
-                self._colors, self._radius))
+                self._colors, self._radius)
+            self._mcap.add_message(self._channel[scene.TOPIC], self._time(k), update.encode(), time.time_ns())
         self._scenes = []
 
     def finish(self, status, metrics, verification=None) -> None:
