@@ -37,3 +37,13 @@ def test_targets_arithmetic():
     t = heldout.targets(results, 20)
     assert (t["family_within_1pct"], t["auto_within_10pct"], t["auto_nees_in_band"]) == (1, 1, 2)
     assert t["misses"]["family"] == ["b"] and t["misses"]["auto"] == ["b"]
+
+
+def test_model_choice_is_a_distribution_that_finds_no_input():
+    from diskf_mesh.data.scenario import load_scenario
+    scn = load_scenario("quadrants").with_overrides(topology="all", steps=40)
+    t, fam, d = heldout.model_choice(heldout._with_input(scn, heldout.SHIPPED_INPUTS["zero"]))
+    total = sum(fam.values())
+    assert t.shape == d.shape == (40,)
+    assert abs(total - 1).max() < 1e-12
+    assert fam["no input"][-1] > 0.9  # no input: the model without one carries the weight

@@ -306,6 +306,49 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines)
 
 
+FAMILIES = (("no input", ("none",)), ("random walk", ("walk",)), ("zero-mean / mean-reverting", ("zero-mean", "reverting")))
+
+
+def model_choice(scn: Scenario, seed: int = 0, agent: int = 0):
+    """diskf-auto's model probabilities over time for one agent of one seed,
+    summed by family (``FAMILIES``): (ticks (K,), {family: (K,)}, input (K,)),
+    the engine's own tick loop (dense links) with the state read out."""
+    tr = simulate(scn, [seed])
+    est = algorithms.get(AUTO)(tr.model, tr.sensors, scn.params)
+    K, N = tr.has.shape[1:]
+    state = est.init((1, N))
+    mu = np.empty((K, len(est.bank)))
+    for k in range(1, K + 1):
+        state, msg = est.local(state, k, tr.y[:, k - 1], tr.has[:, k - 1])
+        state, _ = engine.DenseLinks(tr.links[:, k - 1], 1).fuse(est, state, msg, None)
+        mu[k - 1] = state.mu[0, agent]
+    fam = {name: mu[:, [i for i, b in enumerate(est.bank) if b.split()[0] in keys]].sum(axis=1)
+           for name, keys in FAMILIES}
+    return np.arange(1, K + 1), fam, tr.truth_d[0, :, 0]
+
+
+def choice_figure(path, seed: int = 0) -> None:
+    """One figure: diskf-auto's model probabilities (agent 1, by family) over
+    time on Scenario 1 in a ring, for three inputs: the shipped step, no
+    input, and a sine of period 10."""
+    from matplotlib.figure import Figure
+    q = load_scenario("quadrants").with_overrides(topology="ring")
+    fig = Figure(figsize=(10, 6.5), constrained_layout=True)
+    axes = fig.subplots(3, 1, sharex=True)
+    for ax, name in zip(axes, ("step", "zero", "sine fast")):
+        t, fam, d = model_choice(_with_input(q, SHIPPED_INPUTS[name]), seed)
+        ax.stackplot(t, *fam.values(), labels=list(fam), alpha=0.8)
+        ax.set_ylabel("probability")
+        ax.set_ylim(0, 1)
+        tw = ax.twinx()
+        tw.plot(t, d, color="k", lw=1, label="true input")
+        tw.set_ylabel("input d")
+        ax.set_title(f"Scenario 1, ring, input: {name}; agent 1, seed {seed}")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("tick")
+    fig.savefig(path, dpi=110)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m diskf_mesh.studies.heldout", description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=20)
@@ -313,10 +356,13 @@ def main(argv=None) -> int:
     ap.add_argument("--select", default=None, help="only the cases whose label contains this (or a group name)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
+    ap.add_argument("--figure", default=None, help="also draw diskf-auto's model choice over time (a PNG)")
     a = ap.parse_args(argv)
     if a.seeds < 1 or (a.steps is not None and a.steps < 1):
         print("error: --seeds and --steps must be at least 1", file=sys.stderr)
         return 2
+    if a.figure:
+        choice_figure(a.figure)
     doc = run(a.seeds, a.steps, select=a.select)
     if a.json:
         with open(a.json, "w") as f:
