@@ -112,6 +112,10 @@ def _helps():
 
 
 def test_help_is_plain_text_and_lists_every_exit_status():
+    from diskf_mesh.core import exits
+
+    codes = {v for k, v in vars(exits).items() if k.isupper() and isinstance(v, int) and not isinstance(v, bool)}
+    assert codes <= {code for code, _ in help_text.EXIT_STATUSES}
     helps = _helps()
     assert {"up", "world", "agent", "experiment", "replay", "report", "figures"} <= set(helps)
     internal = re.compile(r"``|\b(diskf_mesh|sim|agents)\.\w|\b[A-Z][A-Z0-9]*_[A-Z0-9_]+\b|\bpython -m\b")

@@ -33,6 +33,7 @@ EXIT_STATUSES = (
     (exits.TOO_MANY_MISSES, "a real-time run missed deadlines beyond --max-miss-rate"),
     (exits.DEGRADED, "a mesh run fused fewer messages than planned (--allow-degraded accepts it)"),
     (exits.DIVERGED, "a reported estimate that the engine does not reproduce"),
+    (exits.RECORDING_FAILED, "the run's recording could not be written whole (e.g. a full disk)"),
     (130, "interrupted (Ctrl-C): every process it started is stopped"),
     (141, "its output pipe was closed (e.g. '| head')"),
     (143, "terminated (SIGTERM): every process it started is stopped"),
