@@ -284,3 +284,22 @@ def test_every_service_stops_on_sigterm_mid_run_without_sigkill(image, file, tmp
         assert took < (STOP_WITHIN_S if s in ONE_BY_ONE[file] else DOWN_WITHIN_S), (s, took)
     interrupted = json.loads(next(results.glob("*-estimates.json")).read_text())
     assert not interrupted["complete"] and "SIGTERM" in interrupted["ended_early"]
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.5])
+def test_a_container_stopped_while_it_starts_exits_at_once(image, delay):
+    """SIGTERM while the process still imports (no handler yet): under the
+    init the compose files use (``docker run --init``) it ends at once with
+    143, where as PID 1 alone it would ignore the signal until SIGKILL."""
+    cid = _run(["docker", "run", "--detach", "--init", IMAGE, "python", "-m", "sim.world", "--scenario", "dynamic",
+                "--algorithm", "diskf", "--run-id", "start", "--insecure"], 60).stdout.strip()
+    try:
+        time.sleep(delay)
+        began = time.monotonic()
+        _run(["docker", "stop", "-t", str(STOP_GRACE_S), cid], STOP_GRACE_S + 30)
+        took = time.monotonic() - began
+        state = _state(cid)
+    finally:
+        _run(["docker", "rm", "--force", cid], 60, check=False)
+    assert state["ExitCode"] == 128 + signal.SIGTERM and not state["OOMKilled"], state
+    assert took < STOP_WITHIN_S, took
