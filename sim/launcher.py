@@ -22,7 +22,7 @@ one certificate and key per process (``diskf_mesh.mesh.credentials``) in
 memory, never on disk, and hands each child its own identity alone, with
 the run's CA certificate, on its standard input (``--credentials -``: a
 socket the child reads to its end and closes at once). The router's identity
-is made only when a router runs, the observer's only for ``--live``. The
+is made only when a router runs (``--live``: the world serves the run). The
 launcher and every child that holds a key are closed to the user's other
 processes (``credentials.keep_private``), so a compromised child finds no
 identity but its own, and a killed run leaves no key behind. ``--insecure``
@@ -554,8 +554,8 @@ def run(args: argparse.Namespace) -> int:
 def run_identities(run_id: str, ids, children, observer: bool, world_routes: bool = False) -> dict:
     """The identities of one ``up`` run, in memory (``credentials.issue``):
     the world and every agent, the router only if one of ``children`` is
-    handed it (a router runs), the observer only if one watches
-    (``--live``). This process then holds every key: it is closed to the
+    handed it (a router runs), the observer only if ``observer`` (a
+    listener on the mesh; ``--live`` needs none: the world feeds it). This process then holds every key: it is closed to the
     user's other processes (``credentials.keep_private``)."""
     routers = any(credentials.ROUTER in c.identities for c in children)
     credentials.keep_private()
@@ -573,6 +573,8 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     check_output(out, "json", stdout=False, make_parent=args.json is None)  # before any work
     check_output(args.estimates, "estimates", stdout=False)
     check_output(args.record, "record", stdout=False)
+    if args.live is not None:
+        live.check_port(args.live)
     if args.logs:
         check_output_dir(args.logs, "logs")
     scn = spec.load(args.ticks)
@@ -621,6 +623,8 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         world_extra += ["--estimates", args.estimates]
     if args.record:
         world_extra += ["--record", args.record]
+    if args.live is not None:
+        world_extra += ["--live", str(args.live)]
     if args.profile:
         world_extra += ["--profile", args.profile]
     if args.allow_missing:
@@ -644,7 +648,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
                                                              agent_extra)
 
     if zopts.credentials == zenoh_config.STDIN:
-        keys = run_identities(spec.run_id, ids, [world, *services, *agents], args.live is not None, world_routes)
+        keys = run_identities(spec.run_id, ids, [world, *services, *agents], False, world_routes)
     quiet = args.quiet or not sys.stderr.isatty()
     where = f" on {len(plan.shards)} hosts" if plan is not None else (" through a router" if services else "")
     bar = tqdm(total=ticks, desc=f"{spec.algorithm} x {len(ids)} agents{where}", unit="tick", file=sys.stderr,
@@ -658,7 +662,10 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()),
                         tolerate_agents=args.allow_missing > 0, services=services,
                         zygote=zygotes[0] if zygotes else None, keys=keys)
-    live.attach(args, launcher, spec, ticks, agent_z, logs)  # --live: the viewer, one more child
+    if args.live is not None:
+        from diskf_mesh.live.server import url
+
+        print(f"live: {url(args.live)} (open it in Foxglove or Lichtblick)", file=sys.stderr, flush=True)
     try:
         launcher.start()
         world_rc = launcher.wait(args.startup_timeout + ticks * args.tick_timeout + 30.0)

@@ -91,6 +91,7 @@ from diskf_mesh.mesh.shell import Shell
 from diskf_mesh.mesh.world_machine import DUPLICATE, WorldMachine, WorldRecord, WorldTiming
 from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder, failure_line
+from diskf_mesh import live as live_server
 from diskf_mesh.data.scenario import Scenario, simulate
 from diskf_mesh.data.trace import MESH_ESTIMATES_FORMAT, Trace, estimates_to_json
 
@@ -343,6 +344,7 @@ def register(subparsers) -> None:
                    help="the agents' --collect-timeout (default %(default)s): with link latency injected, a message "
                         "due later is not planned to be fused (the run's status)")
     add_allow_missing(p)
+    live_server.add_arguments(p)
     realtime.add_arguments(p)
     p.add_argument("--progress", choices=PROGRESS, default="bar",
                    help="progress bar on stderr, 'tick k K' lines on stdout (ticks 1 and K, and at most "
@@ -363,6 +365,8 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.json, "json", stdout=False)  # before any work: a bad path must not cost the run
     check_output(args.estimates, "estimates", stdout=False)
     check_output(args.record, "record", stdout=False)
+    if args.live is not None:
+        live_server.check_port(args.live)
     signalled = [""]  # the signal's name, then the World, which ends the run at its next look (POLL_S)
 
     def interrupt(signum, frame):
@@ -402,6 +406,9 @@ def run(args: argparse.Namespace) -> int:
     prov = provenance.record(scenario=scn, seeds=[args.seed], ticks=K, estimator=spec.algorithm, settings=scn.params,
                              faults=faults, started=started, argv=getattr(args, "argv", None))
     recorder = open_recorder(args.record, trace, scn, spec, args.seed, faults, prov) if args.record else NO_RECORDER
+    if args.live is not None:  # the live server: fed as the recorder is
+        recorder = live_server.feed(recorder, args.live, trace, scn, scenario=spec.scenario, algorithm=spec.algorithm,
+                                    seed=args.seed, run_id=spec.run_id, faults=faults, provenance=prov)
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
             world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,

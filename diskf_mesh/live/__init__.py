@@ -1,14 +1,14 @@
-"""The live view of a mesh run in a browser: ``diskf-mesh up --live [PORT]``.
+"""Live runs in Foxglove or Lichtblick: ``diskf-mesh up --live [PORT]``.
 
-A viewer process (``diskf_mesh.live.viewer``) serves one page on 127.0.0.1
-(plain JS drawing SVG, fed by Server-Sent Events; nothing comes from the
-internet). It listens to the run on zenoh and recomputes the truth from the
-scenario and the seed. The world and the agents do not change, and while no
-page is open the viewer has no zenoh session at all. What it shows:
-``diskf_mesh.live.view``.
+The world starts a foxglove-sdk WebSocket server (``live.server``) on
+127.0.0.1 and feeds it every closed tick, as it feeds the recorder; the
+server publishes the channels of a recording (``recording.schemas``,
+``/scene``), so a viewer opens a running mesh as it opens a recording.
+Open ``ws://127.0.0.1:PORT`` in Foxglove or Lichtblick (Open connection,
+Foxglove WebSocket); from another machine through ``ssh -L`` (docs/live.md).
 
-``add_arguments`` and ``attach`` are the launcher's hook: ``up --live``
-starts the viewer as one more child of the run (stopped with the others).
+``add_arguments`` is the flag of ``up`` and ``world``; ``check_port`` and
+``feed`` are their hooks.
 
 May import: every layer but cli.
 """
@@ -16,22 +16,21 @@ from __future__ import annotations
 
 import argparse
 import socket
-import sys
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import credentials
+from diskf_mesh.recording.writer import NoRecorder
 
-DEFAULT_PORT = 9090
-MODULE = "diskf_mesh.live.viewer"
+DEFAULT_PORT = 8765  # Foxglove's default for a WebSocket connection
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--live", type=int, nargs="?", const=DEFAULT_PORT, default=None, metavar="PORT",
-                        help="serve a live view of the run at http://127.0.0.1:PORT/ for a browser on this "
-                             f"machine (default port {DEFAULT_PORT})")
+                        help="serve the run live to Foxglove or Lichtblick at ws://127.0.0.1:PORT "
+                             f"(default port {DEFAULT_PORT}; docs/live.md)")
 
 
-def _check_port(port: int) -> None:
+def check_port(port: int) -> None:
+    """An ``InputError`` unless ``port`` is free on 127.0.0.1."""
     if not 1 <= port <= 65535:
         raise InputError("live", f"port must be 1 to 65535, got {port}")
     with socket.socket() as s:
@@ -41,23 +40,33 @@ def _check_port(port: int) -> None:
             raise InputError("live", f"port {port} is not free on 127.0.0.1: {e.strerror or e}") from None
 
 
-def viewer_command(spec, ticks: int, seed: int, port: int, zenoh, status=None) -> list:
-    """argv of the viewer process (``zenoh``: its ``ZenohOptions``)."""
-    return [sys.executable, "-m", MODULE, *spec.to_argv(), "--ticks", str(ticks), "--seed", str(seed),
-            "--port", str(port), *zenoh.to_argv(), *(["--status", str(status)] if status else [])]
+class Both(NoRecorder):
+    """The world's hooks to the recorder and to the live server."""
+
+    def __init__(self, recorder: NoRecorder, live: NoRecorder):
+        self.recorder, self.live = recorder, live
+
+    def on_open(self, k, live):
+        self.recorder.on_open(k, live)
+        self.live.on_open(k, live)
+
+    def on_report(self, report):
+        self.recorder.on_report(report)
+        self.live.on_report(report)
+
+    def on_close(self, k, missing):
+        self.recorder.on_close(k, missing)
+        self.live.on_close(k, missing)
+
+    def finish(self, status, metrics=None, verification=None):
+        """The recorder's failure, if any (the live server's is on its stderr)."""
+        self.live.finish(status, metrics, verification)
+        return self.recorder.finish(status, metrics, verification)
 
 
-def attach(args, launcher, spec, ticks: int, zenoh, logs):
-    """With ``--live``: start the viewer as a child of ``launcher`` (it is
-    stopped with the others) and print the address to open; ``zenoh`` are the
-    viewer's session options. Returns the child, or None without ``--live``."""
-    if args.live is None:
-        return None
-    from diskf_mesh.live.viewer import page_url
+def feed(recorder: NoRecorder, port: int, trace, scn, **run) -> NoRecorder:
+    """``recorder`` and the live server on ``port`` (``run``: ``Recorder``'s
+    keywords), fed by the same hooks."""
+    from diskf_mesh.live.server import LiveFeed
 
-    _check_port(args.live)
-    child = launcher.add_child("live view", viewer_command(spec, ticks, args.seed, args.live, zenoh,
-                                                            logs / "live-status.json"), logs / "live.log",
-                               identities=(credentials.OBSERVER,))
-    print(f"live view: {page_url(args.live)}", file=sys.stderr, flush=True)
-    return child
+    return Both(recorder, LiveFeed(port, trace, scn, **run))

@@ -180,12 +180,7 @@ class Recorder(NoRecorder):
     def __init__(self, path, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
                  faults: FaultConfig, provenance: dict | None = None):
         self.path = str(path)
-        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
-        with open(self.path, "wb") as f:
-            # its standard output says, at its end, the last tick in the file and what failed (``serve``)
-            self._proc = subprocess.Popen([sys.executable, "-m", "diskf_mesh.recording.writer", str(f.fileno()),
-                                           self.path], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                          pass_fds=(f.fileno(),))
+        self._proc = self._spawn()
         self._ticks = int(trace.has.shape[1])
         self._pipe = self._proc.stdin.fileno()
         try:
@@ -204,6 +199,15 @@ class Recorder(NoRecorder):
         self._send(("start", {"trace": trace, "scn": scn, "scenario": scenario, "algorithm": algorithm,
                               "seed": int(seed), "run_id": run_id, "faults": faults, "provenance": provenance}),
                    wait=True)
+
+    def _spawn(self) -> subprocess.Popen:
+        """The writer process, on the file opened here."""
+        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "wb") as f:
+            # its standard output says, at its end, the last tick in the file and what failed (``serve``)
+            return subprocess.Popen([sys.executable, "-m", "diskf_mesh.recording.writer", str(f.fileno()),
+                                     self.path], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                    pass_fds=(f.fileno(),))
 
     def _send(self, item, wait: bool = False) -> None:
         """One frame to the writer: what the pipe takes now, the rest at the
@@ -307,23 +311,28 @@ class TickWriter:
     """The writer process's side: the MCAP file, one tick at a time."""
 
     def __init__(self, file, trace, scn, *, scenario: str, algorithm: str, seed: int, run_id: str,
-                 faults: FaultConfig, provenance: dict | None = None):
+                 faults: FaultConfig, provenance: dict | None = None, mcap=None, scene_each_tick: bool = False):
+        """``mcap``: where the messages go instead of an MCAP file on ``file``
+        (an object with ``mcap.writer.Writer``'s methods: the live server's
+        ``live.server.Sink``); ``scene_each_tick``: write ``/scene`` with
+        every tick, not at the end."""
         from mcap.writer import CompressionType, Writer
 
         self.trace, self.scn, self.seed = trace, scn, int(seed)
+        self.scene_each_tick = scene_each_tick
         self.ids = tuple(trace.sensors.ids)
         self.names = dict(zip(self.ids, trace.agent_labels))  # run id -> the user's id
         self.faults = FaultModel(faults, seed) if faults.active else None
         self._file = file
-        self._mcap = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self._mcap = mcap or Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         self._mcap.start(profile="", library=f"diskf-mesh/{__version__}")
         self._channel = {}
         for topic in CHANNELS:
             sid = self._mcap.register_schema(SCHEMA_PREFIX + topic.strip("/").replace("/", "."), "jsonschema",
                                              schema_bytes(topic))
             self._channel[topic] = self._mcap.register_channel(topic, "json", sid)
-        sid = self._mcap.register_schema(scene.NAME, "jsonschema", json.dumps(scene.SCHEMA).encode())
-        self._channel[scene.TOPIC] = self._mcap.register_channel(scene.TOPIC, "json", sid)
+        sid = self._mcap.register_schema(*scene.schema())
+        self._channel[scene.TOPIC] = self._mcap.register_channel(scene.TOPIC, scene.ENCODING, sid)
         self._mobile = [bool(a.mobile) for a in scn.agents]
         self._colors = {self.names[i]: scene.agent_color(j) for j, i in enumerate(self.ids)}
         extent = max(np.ptp(trace.positions.reshape(-1, 2), axis=0).max(), 1.0)
@@ -442,6 +451,8 @@ class TickWriter:
         put("/agents/counters", {"tick": k, "counters": counters})
         self._scenes.append((k, {name[i] for i in alive if i in name}, edges,
                              [(e["agent"], e["x"], e["P"]) for e in estimates]))
+        if self.scene_each_tick:
+            self._write_scenes()
         put("/world/tick", {"tick": k, "reported": names(sorted(reports, key=order)), "missing": names(missing),
                             "wall_s": wall_s})
         self._last_closed = k
@@ -452,11 +463,12 @@ class TickWriter:
         killed before its end has every channel but this one."""
         tr, dims = self.trace, list(self.trace.position_dims)[:2]
         for k, alive, edges, estimates in self._scenes:
-            self._put(scene.TOPIC, k, scene.scene_update(
+            update = scene.scene_update(
                 k, self._time(k), tr.agent_labels, tr.positions[k - 1], self._mobile, alive, edges,
                 tr.truth_x[0, max(k - scene.TRAIL, 0):k][:, dims],
                 [(i, [x[a] for a in dims], [[P[a][b] for b in dims] for a in dims]) for i, x, P in estimates],
-                self._colors, self._radius))
+                self._colors, self._radius)
+            self._mcap.add_message(self._channel[scene.TOPIC], self._time(k), update.encode(), time.time_ns())
         self._scenes = []
 
     def finish(self, status, metrics, verification=None) -> None:

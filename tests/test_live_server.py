@@ -1,0 +1,118 @@
+"""``up --live``: the run on a foxglove-sdk WebSocket server, read by a
+client speaking the Foxglove WebSocket protocol (``foxglove.sdk.v1``):
+serverInfo and advertise, subscribe to every channel, binary messageData
+frames, each payload decoded with the schema the server advertised (JSON
+Schema for the recording's JSON channels, protobuf for ``/scene``)."""
+from __future__ import annotations
+
+import base64
+import json
+import struct
+import subprocess
+import sys
+import time
+
+import pytest
+
+from foxglove_helpers import protobuf_decoder
+
+from diskf_mesh.recording import scene
+from diskf_mesh.recording.schemas import CHANNELS
+from sim.launcher import free_port
+
+websockets = pytest.importorskip("websockets.sync.client")
+from websockets.exceptions import ConnectionClosed, WebSocketException  # noqa: E402
+jsonschema = pytest.importorskip("jsonschema")
+pytestmark = pytest.mark.mesh
+
+SUBPROTOCOL = "foxglove.sdk.v1"  # foxglove-sdk 0.30; older servers: "foxglove.websocket.v1"
+MESSAGE_DATA = 0x01
+LIVE_TOPICS = set(CHANNELS) - {"/run/result"} | {scene.TOPIC}  # the result comes after the ticks
+
+
+def decoder(ch: dict):
+    if ch["encoding"] == "json":
+        assert ch["schemaEncoding"] == "jsonschema"
+        check = jsonschema.Draft202012Validator(json.loads(ch["schema"]))
+
+        def decode(data: bytes):
+            doc = json.loads(data)
+            check.validate(doc)
+            return doc
+        return decode
+    assert (ch["encoding"], ch["schemaEncoding"], ch["schemaName"]) == ("protobuf", "protobuf", "foxglove.SceneUpdate")
+    return protobuf_decoder(ch["schemaName"], base64.b64decode(ch["schema"]))
+
+
+def watch(port: int, proc, want: set, timeout: float = 120.0) -> tuple:
+    """(advertised channels by topic, decoded messages by topic) until every
+    topic in ``want`` sent a message and three ticks closed."""
+    deadline = time.monotonic() + timeout
+    while True:  # the world starts the server once the agents are up
+        try:
+            ws = websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], open_timeout=5)
+            break
+        except (OSError, WebSocketException):  # not listening yet, or not ready
+            assert proc.poll() is None and time.monotonic() < deadline, "the live server never listened"
+            time.sleep(0.2)
+    got, channels, subs, decode = {}, {}, {}, {}
+    with ws:
+        assert ws.subprotocol == SUBPROTOCOL
+        info = json.loads(ws.recv(timeout=10))
+        assert info["op"] == "serverInfo" and info["name"] == "diskf-mesh"
+        while not (want <= set(got) and len(got.get("/world/tick", ())) >= 3):
+            assert time.monotonic() < deadline, f"no messages on {want - set(got)}"
+            try:
+                frame = ws.recv(timeout=30)
+            except ConnectionClosed:
+                raise AssertionError(f"the run ended; no message on {want - set(got)}") from None
+            if isinstance(frame, str):
+                msg = json.loads(frame)
+                if msg["op"] == "advertise":
+                    new = [ch for ch in msg["channels"] if ch["topic"] not in channels]
+                    for ch in new:
+                        channels[ch["topic"]] = ch
+                        subs[len(subs) + 1] = ch["topic"]
+                        decode[ch["topic"]] = decoder(ch)
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                        {"id": sid, "channelId": channels[t]["id"]} for sid, t in subs.items()
+                        if t in {c["topic"] for c in new}]}))
+                continue
+            assert frame[0] == MESSAGE_DATA
+            sid, _log_time = struct.unpack_from("<IQ", frame, 1)
+            topic = subs[sid]
+            got.setdefault(topic, []).append(decode[topic](frame[13:]))
+    return channels, got
+
+
+def test_every_channel_streams_to_a_foxglove_client(tmp_path):
+    port = free_port()
+    cmd = [sys.executable, "-m", "sim.launcher", "--scenario", "dynamic", "--ticks", "400", "--rate", "20",
+           "--seed", "3", "--live", str(port), "--json", str(tmp_path / "r.json"), "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        channels, got = watch(port, proc, LIVE_TOPICS)
+    finally:
+        proc.terminate()
+        out, err = proc.communicate(timeout=60)
+    assert f"ws://127.0.0.1:{port}" in err
+    # the recording's channels and schemas, byte for byte
+    assert set(channels) == set(CHANNELS) | {scene.TOPIC}
+    for topic, schema in CHANNELS.items():
+        assert json.loads(channels[topic]["schema"]) == schema
+    assert base64.b64decode(channels[scene.TOPIC]["schema"]) == scene.schema()[2]
+    run = got["/run"][0]  # sent again every second for a client that came late
+    ids = run["ids"]
+    for topic in ("/world/truth", "/world/agents", "/agents/estimates", "/agents/counters", "/world/tick"):
+        ticks = [m["tick"] for m in got[topic]]
+        assert ticks == sorted(ticks) and len(set(ticks)) == len(ticks), topic
+    for m in got["/agents/estimates"]:
+        for e in m["estimates"]:
+            assert e["agent"] in ids and len(e["P"]) == run["n"] and e["position_error"] >= 0
+    for m in got["/agents/counters"]:
+        assert {c["agent"] for c in m["counters"]} <= set(ids)
+    for update in got[scene.TOPIC]:
+        ents = {e.id: e for e in update.entities}
+        assert set(ents) == {"agents", "links", "truth", "estimates"}
+        assert sorted(t.text for t in ents["agents"].texts) == sorted(str(i) for i in ids)
+        assert len(ents["agents"].spheres) == len(ids)
