@@ -8,7 +8,7 @@ The engine: the one running, or a dockerd started here with neither iptables
 rules nor ip_forward (the builds use the host's network, the containers only
 their own bridge), stopped at the end with every change it made undone.
 Containers, networks and volumes are removed on every path; the images stay,
-as the build cache of the next run. Where no engine can be had the tests are
+as the build cache of the next run (the one a build replaces is removed). Where no engine can be had the tests are
 skipped with one line saying why. Select them with ``-m docker``.
 """
 from __future__ import annotations
@@ -135,8 +135,11 @@ def image(engine):
             pulled = False
         if not pulled:
             _run([str(ROOT / "docker" / "build-base-image.sh")], BUILD_TIMEOUT_S)
+    before = _run(["docker", "image", "inspect", "-f", "{{.Id}}", IMAGE], 30, check=False).stdout.strip()
     # the host's network for the build: the lock's wheels come from the package index
     _run(["docker", "build", "--network", "host", "-t", IMAGE, str(ROOT)], BUILD_TIMEOUT_S)
+    if before and before != _run(["docker", "image", "inspect", "-f", "{{.Id}}", IMAGE], 30).stdout.strip():
+        _run(["docker", "image", "rm", before], 60, check=False)  # the image this build replaced (untagged now)
     size = int(_run(["docker", "image", "inspect", "-f", "{{.Size}}", IMAGE], 30).stdout)
     print(f"\nimage {IMAGE}: {size / 1e6:.0f} MB")
     return engine, size
