@@ -11,6 +11,7 @@ import struct
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -23,7 +24,7 @@ from sim.launcher import free_port
 websockets = pytest.importorskip("websockets.sync.client")
 from websockets.exceptions import ConnectionClosed, WebSocketException  # noqa: E402
 jsonschema = pytest.importorskip("jsonschema")
-pytestmark = pytest.mark.mesh
+ROOT = Path(__file__).resolve().parents[1]
 
 SUBPROTOCOL = "foxglove.sdk.v1"  # foxglove-sdk 0.30; older servers: "foxglove.websocket.v1"
 MESSAGE_DATA = 0x01
@@ -85,6 +86,7 @@ def watch(port: int, proc, want: set, timeout: float = 120.0) -> tuple:
     return channels, got
 
 
+@pytest.mark.mesh
 def test_every_channel_streams_to_a_foxglove_client(tmp_path):
     port = free_port()
     cmd = [sys.executable, "-m", "sim.launcher", "--scenario", "dynamic", "--ticks", "400", "--rate", "20",
@@ -116,3 +118,26 @@ def test_every_channel_streams_to_a_foxglove_client(tmp_path):
         assert set(ents) == {"agents", "links", "truth", "estimates"}
         assert sorted(t.text for t in ents["agents"].texts) == sorted(str(i) for i in ids)
         assert len(ents["agents"].spheres) == len(ids)
+
+
+def test_the_layout_reads_channels_the_server_and_a_recording_have():
+    """docs/foxglove-layout.json: every panel's topic is a channel of both,
+    and every field a message path names is in that channel's schema."""
+    doc = json.loads((ROOT / "docs" / "foxglove-layout.json").read_text())
+    config = doc["configById"]
+    assert config["3D!scene"]["topics"] == {scene.TOPIC: {"visible": True}}
+    paths = [p["value"] for p in config["Plot!error"]["paths"]]
+    paths += [c["topicPath"] for k, c in config.items() if "topicPath" in c]
+    assert len(paths) >= 12
+    for path in paths:
+        topic, _, rest = path.partition(".")
+        schema = CHANNELS[topic]
+        for field in filter(None, rest.replace("[:]", "").split(".")):
+            name, _, flt = field.partition("{")
+            schema = schema["properties"][name]
+            schema = schema.get("items", schema)
+            if flt:
+                assert flt.split("==")[0] in schema["properties"], path
+    # the panels the layout places are the ones it configures
+    placed = json.dumps(doc["layout"])
+    assert all(f'"{k}"' in placed for k in config)

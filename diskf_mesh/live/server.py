@@ -11,7 +11,10 @@ channel of a recording, with the same topics, schemas and messages
 (``recording.schemas``; ``/scene`` as foxglove-sdk's ``SceneUpdate``, here
 with every tick), so Foxglove or Lichtblick opens a running mesh as it
 opens a recording. ``/run`` (once, first, in a recording) goes again every
-``RUN_EVERY_S`` for the clients that came later. It listens on 127.0.0.1 only and ends when the world closes the pipe.
+``RUN_EVERY_S`` for the clients that came later. While no client subscribes
+to any channel, the server skips the ticks (it reads them off the pipe and
+nothing more), so a live run nobody watches costs a pipe write a tick. It
+listens on 127.0.0.1 only and ends when the world closes the pipe.
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ import time
 
 import foxglove
 
-from diskf_mesh.recording.writer import PIPE_BYTES, Recorder, TickWriter, _frames
+from diskf_mesh.recording.writer import NICE, PIPE_BYTES, Recorder, TickWriter, _frames
 
 HOST = "127.0.0.1"
 NAME = "diskf-mesh"
@@ -64,6 +67,10 @@ class Sink:
             self._run[0].log(self._run[1], log_time=self._run[2])
         channel.log(data, log_time=log_time)
 
+    def watched(self) -> bool:
+        """Whether a client subscribed to any channel."""
+        return any(channel.has_sinks() for channel in self._channels)
+
     def start(self, *args, **kwargs) -> None:
         pass
 
@@ -89,6 +96,10 @@ def serve(port: int, pipe: int = 0) -> int:
     null}`` on standard output (``Recorder.finish`` reads it)."""
     for sig in (signal.SIGINT, signal.SIGTERM):  # the world's to handle: its end closes the pipe
         signal.signal(sig, signal.SIG_IGN)
+    try:
+        os.nice(NICE)  # the lockstep's processes first, as the recorder's writer
+    except OSError:
+        pass
     context = foxglove.Context()
     sink = Sink(context)
     server = foxglove.start_server(name=NAME, host=HOST, port=port, context=context)
@@ -100,7 +111,8 @@ def serve(port: int, pipe: int = 0) -> int:
                 if item[0] == "start":
                     writer = TickWriter(sink, **item[1], mcap=sink, scene_each_tick=True)
                 elif item[0] == "tick":
-                    writer.write_tick(*item[1:])
+                    if sink.watched():
+                        writer.write_tick(*item[1:])
                     written = item[1]
                 elif item[0] == "finish":
                     writer.finish(*item[1:])
