@@ -141,3 +141,20 @@ def test_the_layout_reads_channels_the_server_and_a_recording_have():
     # the panels the layout places are the ones it configures
     placed = json.dumps(doc["layout"])
     assert all(f'"{k}"' in placed for k in config)
+
+
+@pytest.mark.parametrize("port", ["0", "70000", "taken"])
+def test_a_bad_port_is_one_line(tmp_path, port):
+    import socket
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        if port == "taken":
+            port = str(held.getsockname()[1])
+        done = subprocess.run([sys.executable, "-m", "sim.launcher", "--scenario", "dynamic", "--ticks", "5",
+                               "--live", port, "--json", str(tmp_path / "r.json")],
+                              capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.startswith("error: live: port") and done.stderr.count("\n") == 1, done.stderr
+    assert not (tmp_path / "r.json").exists()

@@ -102,7 +102,11 @@ def serve(port: int, pipe: int = 0) -> int:
         pass
     context = foxglove.Context()
     sink = Sink(context)
-    server = foxglove.start_server(name=NAME, host=HOST, port=port, context=context)
+    try:
+        server = foxglove.start_server(name=NAME, host=HOST, port=port, context=context)
+    except RuntimeError as e:  # the port was taken after the world checked it: the run goes on unwatched
+        print(f"error: live: cannot serve on {url(port)}: {e}", file=sys.stderr, flush=True)
+        return 1
     writer, buf, written = None, bytearray(), 0
     try:
         while chunk := os.read(pipe, PIPE_BYTES):
