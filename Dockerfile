@@ -14,6 +14,8 @@ RUN pip install --no-cache-dir --no-deps . \
  && useradd --uid 10001 --no-create-home --shell /usr/sbin/nologin diskf \
  && mkdir -p /credentials /results \
  && chmod 1777 /credentials /results
+# every process runs this checkout's code (/app: python -m sim.world, diskf-mesh), from any working directory
+ENV PYTHONPATH=/app
 # not root: every service runs as this user, or as the DISKF_UID:DISKF_GID compose gives it;
 # /credentials (a volume) takes any user's 0700 run directory, like /tmp
 USER 10001
