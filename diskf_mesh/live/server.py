@@ -60,7 +60,7 @@ class Sink:
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
         channel = self._channels[channel_id - 1]
-        if channel.topic == "/run":
+        if channel.topic() == "/run":
             self._run = (channel, data, log_time)
         elif self._run is not None and time.monotonic() >= self._run_due:
             self._run_due = time.monotonic() + RUN_EVERY_S
