@@ -14,17 +14,19 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import tempfile
 import threading
 import time
 from dataclasses import replace
 from pathlib import Path
 
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.transport import ZenohTransport
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
-from sim.launcher import free_port
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout's sim, as the other benchmarks do
+from diskf_mesh.mesh import credentials  # noqa: E402
+from diskf_mesh.mesh.keys import Keys  # noqa: E402
+from diskf_mesh.mesh.transport import ZenohTransport  # noqa: E402
+from diskf_mesh.mesh.zenoh_config import ZenohOptions  # noqa: E402
+from sim.launcher import free_port  # noqa: E402
 
 RUN = "tls-bench"
 

@@ -3,7 +3,13 @@
 ``main`` builds the parser from every command module (``register``), and
 turns an InputError into one ``error:`` line with exit status 2. The mesh's
 commands (``up``, ``world``, ``agent``) live with their processes in
-``sim/`` and ``agents/``.
+``sim/`` and ``agents/`` of the repository.
+
+Installed, those two folders are inside the package, in ``diskf_mesh/_apps``
+(the only top-level package ``pip install`` adds is ``diskf_mesh``); this
+module puts that folder first on the command line's import path, and on its
+children's (``PYTHONPATH``), so a process of a run imports ``sim`` and
+``agents`` as in the repository, and no other package of those names.
 
 Ctrl-C while the command line itself is still being imported (before
 ``main`` runs, which then says ``interrupted`` and exits 130) prints the
@@ -15,6 +21,8 @@ May import: every layer of diskf_mesh.
 import os
 import sys
 
+APPS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "_apps")
+
 
 def interrupted_quietly(kind, value, tb) -> None:
     """``sys.excepthook``: an uncaught KeyboardInterrupt is one line."""
@@ -24,5 +32,18 @@ def interrupted_quietly(kind, value, tb) -> None:
     sys.__excepthook__(kind, value, tb)
 
 
+def find_apps() -> None:
+    """``diskf_mesh/_apps`` (the processes' ``sim`` and ``agents``) first on
+    this process's import path and its children's."""
+    if not os.path.isdir(os.path.join(APPS, "sim")):
+        return
+    if APPS not in sys.path:
+        sys.path.insert(0, APPS)
+    paths = os.environ.get("PYTHONPATH", "").split(os.pathsep) if os.environ.get("PYTHONPATH") else []
+    if APPS not in paths:
+        os.environ["PYTHONPATH"] = os.pathsep.join([APPS, *paths])
+
+
 if sys.excepthook is sys.__excepthook__:
     sys.excepthook = interrupted_quietly
+find_apps()
