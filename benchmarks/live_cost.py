@@ -1,5 +1,5 @@
 """What ``up --live`` costs when nobody watches: ticks/s of ``up`` and of
-``up --live`` with no browser, run in turns in one invocation.
+``up --live`` with no viewer connected, run in turns in one invocation.
 
     python benchmarks/live_cost.py [--ticks 300] [--repeat 5] [--scenario dynamic]
 
@@ -49,7 +49,7 @@ def main() -> None:
                 rates[name].append(rate)
                 print(f"run {r + 1}: {name:10s} {rate:7.1f} ticks/s", flush=True)
     a, b = statistics.median(rates["up"]), statistics.median(rates["up --live"])
-    print(f"median of {args.repeat}: up {a:.1f} ticks/s, up --live (no browser) {b:.1f} ticks/s, ratio {b / a:.3f}")
+    print(f"median of {args.repeat}: up {a:.1f} ticks/s, up --live (no viewer) {b:.1f} ticks/s, ratio {b / a:.3f}")
 
 
 if __name__ == "__main__":
