@@ -32,7 +32,13 @@ down() { "${compose[@]}" down --volumes --timeout 10 >/dev/null 2>&1 || true; }
 trap down EXIT
 trap 'exit 130' INT
 trap 'exit 143' TERM
-"${compose[@]}" up --detach
+if ! "${compose[@]}" up --detach; then  # the world failed before the agents started: say why, with its status
+    world=$("${compose[@]}" ps -q world)
+    [ -n "$world" ] || exit 1
+    docker logs "$world" >&2
+    status=$(docker inspect -f '{{.State.ExitCode}}' "$world")
+    exit "$(( status == 0 ? 1 : status ))"
+fi
 world=$("${compose[@]}" ps -q world)
 status=$(docker wait "$world")
 docker logs "$world"
