@@ -158,3 +158,53 @@ def test_a_bad_port_is_one_line(tmp_path, port):
     assert done.returncode == 2
     assert done.stderr.startswith("error: live: port") and done.stderr.count("\n") == 1, done.stderr
     assert not (tmp_path / "r.json").exists()
+
+
+def test_the_world_side_feeds_the_server_without_a_mesh():
+    """``LiveFeed`` (the world's hooks) and the server process, with the
+    reports of a run made up here: every channel reaches a protocol client
+    while the ticks come, and the estimates are the reports'."""
+    import threading
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from diskf_mesh.data.faults import FaultConfig
+    from diskf_mesh.data.scenario import load_scenario, simulate
+    from diskf_mesh.live.server import LiveFeed
+
+    scn = load_scenario("quadrants").with_overrides(steps=1000)
+    trace = simulate(scn, [0])
+    n, m = trace.model.n, trace.model.m
+    ids = [a.id for a in scn.agents]
+    port = free_port()
+    feed = LiveFeed(port, trace, scn, scenario="quadrants", algorithm="diskf", seed=0, run_id="feedtest",
+                    faults=FaultConfig())
+    stop = threading.Event()
+
+    def ticks():
+        for k in range(1, 1001):
+            if stop.is_set():
+                break
+            feed.on_open(k, ids)
+            for j, i in enumerate(ids):
+                feed.on_report(SimpleNamespace(
+                    tick=k, sender=i, x=np.full(n, float(j)), P=np.eye(n) * (j + 1), d=np.zeros(m), d_valid=True,
+                    counters={"published": k}, fused=(), not_fused=(), sent_digest=bytes(16), digests=()))
+            feed.on_close(k, [])
+            time.sleep(0.01)
+
+    feeder = threading.Thread(target=ticks)
+    feeder.start()
+    try:
+        channels, got = watch(port, feed._proc, LIVE_TOPICS, timeout=60)
+    finally:
+        stop.set()
+        feeder.join()
+        assert feed.finish("stopped") is None
+    assert set(channels) == set(CHANNELS) | {scene.TOPIC}
+    for msg in got["/agents/estimates"]:
+        for e in msg["estimates"]:
+            j = ids.index(e["agent"])
+            assert e["x"] == [float(j)] * n and e["P"] == (np.eye(n) * (j + 1)).tolist()
+    assert got["/run"][0]["run_id"] == "feedtest"
