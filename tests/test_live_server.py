@@ -173,7 +173,7 @@ def test_the_world_side_feeds_the_server_without_a_mesh():
     from diskf_mesh.data.scenario import load_scenario, simulate
     from diskf_mesh.live.server import LiveFeed
 
-    scn = load_scenario("quadrants").with_overrides(steps=1000)
+    scn = load_scenario("quadrants").with_overrides(steps=2000)
     trace = simulate(scn, [0])
     n, m = trace.model.n, trace.model.m
     ids = [a.id for a in scn.agents]
@@ -183,7 +183,7 @@ def test_the_world_side_feeds_the_server_without_a_mesh():
     stop = threading.Event()
 
     def ticks():
-        for k in range(1, 1001):
+        for k in range(1, 2001):
             if stop.is_set():
                 break
             feed.on_open(k, ids)
