@@ -641,9 +641,8 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
                                                  agent_extra)
         for h in agents:  # each shard's agents' logs next to the run's
             h.argv += ["--logs", str(logs / h.name.replace(" ", "-"))]
-        agent_z = replace(zopts, mode="client", connect=(plan.world_listen,), no_multicast_scouting=True)
     else:
-        world, services, agents, agent_z = one_host_children(spec, ticks, args.seed, ids, logs, zopts,
+        world, services, agents, _ = one_host_children(spec, ticks, args.seed, ids, logs, zopts,
                                                              args.network, args.startup_timeout, world_extra,
                                                              agent_extra)
 
