@@ -67,3 +67,12 @@ def test_links_point_to_files():
             if not (doc.parent / target).exists():
                 bad.append(f"{doc.relative_to(ROOT)}: {target}")
     assert not bad, "\n".join(bad)
+
+
+def test_table_ii_is_the_reports():
+    import json
+
+    from diskf_mesh.studies.report import front_page_table
+
+    table = front_page_table(json.loads((ROOT / "docs" / "results.json").read_text())["table_ii"])
+    assert table in README  # regenerate: diskf-mesh report --out docs, then this table into the README

@@ -640,6 +640,38 @@ def render(res: studies.Results, figdir: str = "figures") -> str:
     return "\n".join(parts)
 
 
+FRONT_COLUMNS = ("diskf", "diskf-r", "diskf-auto", "cdrkf", "ldrkf", "kcf", "diffkf", "gdkf")
+
+
+def front_page_table(table_ii: dict) -> str:
+    """The README's Table II from ``results.json``'s ``table_ii``: ours (the
+    paper's) per cell, the lowest one-round estimator of each row in bold,
+    the centralized bound last."""
+    cols = [c for c in FRONT_COLUMNS if c in table_ii]
+    mets = (("mae_state", "MAE(state)"), ("rmse_state", "RMSE(state)"), ("mae_input", "MAE(input)"),
+            ("rmse_input", "RMSE(input)"))
+    label = {**LABELS, "diskf-r": f"{LABELS.get('diskf-r', 'DISKF-R')} (ours)",
+             "diskf-auto": f"{LABELS.get('diskf-auto', 'DISKF-auto')} (ours)"}
+    lines = ["| Comm. | Metric | " + " | ".join(label.get(c, c) for c in cols) + " | Centralized (bound) |",
+             "|---|---|" + "---|" * (len(cols) + 1)]
+    for st, comm in (("all", "all-to-all"), ("ring", "1-hop (ring)"), ("none", "none")):
+        for i, (key, name) in enumerate(mets):
+            vals = {c: table_ii[c][st][key] for c in cols}
+            best = min(round(v, 2) for v in vals.values() if v is not None and math.isfinite(v))
+            cells = []
+            for c in cols:
+                v = vals[c]
+                text = "-" if v is None or not math.isfinite(v) else f"{v:.2f}"
+                if text != "-" and round(v, 2) == best:
+                    text = f"**{text}**"
+                if c in paper_values.COLUMNS:
+                    text += f" ({paper_values.TABLE_II[st][key][c]:.2f})"
+                cells.append(text)
+            bound = table_ii[BOUND][st][key]
+            lines.append(f"| {comm if i == 0 else ''} | {name} | " + " | ".join(cells) + f" | {bound:.2f} |")
+    return "\n".join(lines)
+
+
 def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1) -> list[Path]:
     """Run every study (in ``jobs`` processes), write the figures, the
     markdown and the JSON; ``progress(i, n, title, seconds)`` after each
