@@ -16,8 +16,10 @@ import argparse
 import importlib.metadata as md
 import os
 import platform
+import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -60,6 +62,10 @@ SECTIONS = [
      ["benchmarks/realtime_bench.py", "--ticks", "50", "--algorithms", "all", "--sizes", "dynamic,25"],
      ["benchmarks/realtime_bench.py", "--ticks", "30", "--algorithms", "diskf", "--sizes", "dynamic",
       "--rates", "10,50"]),
+    ("report", "`diskf-mesh report`: every study of the paper, 20 seeds",
+     "wall-clock and CPU seconds (all its processes) of one run, its studies in one process per core",
+     ["-m", "diskf_mesh.cli.main", "report", "--out", "{tmp}", "--quiet"],
+     ["-m", "diskf_mesh.cli.main", "report", "--out", "{tmp}", "--quiet", "--seeds", "2", "--steps", "40"]),
     ("scale", "Several hosts: routers and shards on loopback",
      "`up --hosts` with 25 agents per host (a zenoh router and a shard each), lockstep",
      ["benchmarks/scale_bench.py", "--agents", "25,50,100", "--ticks", "50"],
@@ -94,12 +100,22 @@ def hardware() -> str:
 
 
 def run_section(args: list[str]) -> str:
-    """The benchmark's standard output (its Markdown), or its error."""
-    done = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True)
+    """The benchmark's standard output (its Markdown), or its error; then
+    the wall-clock and CPU seconds of it and its children."""
+    with tempfile.TemporaryDirectory(prefix="diskf-perf-") as tmp:
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.monotonic()
+        done = subprocess.run([sys.executable, *(a.replace("{tmp}", tmp) for a in args)], cwd=ROOT,
+                              capture_output=True, text=True)
+        wall = time.monotonic() - t0
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        out = done.stdout.replace(tmp, "DIR").strip()
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if done.returncode != 0:
         tail = (done.stderr.strip().splitlines() or ["(no output)"])[-1]
         return f"The benchmark failed (exit {done.returncode}): `{tail}`\n"
-    return done.stdout.strip() + "\n"
+    return (out + "\n\n" if out else "") + \
+        f"This section took {wall:.0f} s of wall-clock time and {cpu:.0f} s of CPU.\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -122,8 +138,9 @@ def main(argv: list[str] | None = None) -> int:
         if key not in only:
             continue
         args = quick if a.quick else full
-        print(f"{key}: python {' '.join(args)}", file=sys.stderr, flush=True)
-        parts.append(f"## {title}\n\n`python {' '.join(args)}`: {what}.\n\n{run_section(args)}")
+        shown = " ".join(a.replace("{tmp}", "DIR") for a in args)
+        print(f"{key}: python {shown}", file=sys.stderr, flush=True)
+        parts.append(f"## {title}\n\n`python {shown}`: {what}.\n\n{run_section(args)}")
     text = "\n".join(parts)
     tmp = Path(a.out + ".tmp")
     tmp.write_text(text)
