@@ -54,7 +54,9 @@ def watch(port: int, proc, want: set, timeout: float = 120.0) -> tuple:
             ws = websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], open_timeout=5)
             break
         except (OSError, WebSocketException):  # not listening yet, or not ready
-            assert proc.poll() is None and time.monotonic() < deadline, "the live server never listened"
+            if proc.poll() is not None or time.monotonic() >= deadline:
+                said = proc.stderr.read() if proc.poll() is not None and proc.stderr else ""
+                raise AssertionError(f"the live server never listened (status {proc.poll()}): {said}")
             time.sleep(0.2)
     got, channels, subs, decode = {}, {}, {}, {}
     with ws:
