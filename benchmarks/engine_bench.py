@@ -1,7 +1,7 @@
 """Engine speed: the batched engine beside the plain DISKF oracle, the full
 Table II, and a 1,000-agent random geometric network.
 
-    python benchmarks/engine_bench.py              # the README table
+    python benchmarks/engine_bench.py              # the table of docs/performance.md
     python benchmarks/engine_bench.py --quick      # smaller, for a smoke run
 
 Prints markdown tables. Rates are agent-steps (one agent, one tick) per

@@ -350,7 +350,7 @@ def strongly_detectable(A, G, U, valid, rtol: float = 1e-8):
     must have rank [Phi - lambda I; U] = n (ker U = ker H). Only then does
     the error of an unbiased input-and-state estimate decay, whatever the
     input; otherwise it grows like |lambda|^k while these sensors are all
-    that is heard (README: an x-sensor alone, zero cos w + sin w > 1).
+    that is heard (docs/reproduction.md §8.1: an x-sensor alone, zero cos w + sin w > 1).
     The rank is judged by the smallest singular value against
     ``rtol`` x (||Phi|| + ||U|| + 1).
     Returns (...) bool; False where not ``valid``.
