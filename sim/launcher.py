@@ -64,7 +64,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from diskf_mesh import live
-from diskf_mesh.data.argtypes import positive_int, seed_value
+from diskf_mesh.data.argtypes import positive, positive_int, seed_value
 from diskf_mesh.data.outputs import check_output, check_output_dir
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
@@ -507,11 +507,11 @@ def register(subparsers) -> None:
     p.add_argument("--record", metavar="FILE.mcap", help="the world records the run as MCAP (diskf_mesh.recording)")
     p.add_argument("--logs", metavar="DIR", help="keep the children's stderr logs in DIR (default: a temporary folder, "
                                                  "removed when the run ends with 0, kept and named otherwise)")
-    p.add_argument("--startup-timeout", type=float, default=30.0, metavar="S",
+    p.add_argument("--startup-timeout", type=positive, default=30.0, metavar="S",
                    help="seconds for every agent to come up (default %(default)s)")
-    p.add_argument("--tick-timeout", type=float, default=10.0, metavar="S",
+    p.add_argument("--tick-timeout", type=positive, default=10.0, metavar="S",
                    help="world: seconds to wait for the reports of a tick (default %(default)s)")
-    p.add_argument("--collect-timeout", type=float, default=5.0, metavar="S",
+    p.add_argument("--collect-timeout", type=positive, default=5.0, metavar="S",
                    help="agents: seconds to wait for neighbours' messages (default %(default)s)")
     add_allow_missing(p)
     realtime.add_arguments(p)

@@ -68,7 +68,7 @@ import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh import estimators
-from diskf_mesh.data.argtypes import positive_int, seed_value
+from diskf_mesh.data.argtypes import positive, positive_int, seed_value
 from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.core import exits
@@ -336,11 +336,11 @@ def register(subparsers) -> None:
     p.add_argument("--json", metavar="OUT", help="write the results {algorithm: {setting: metrics}}")
     p.add_argument("--estimates", metavar="OUT", help="write every agent's fused estimates and counters")
     p.add_argument("--record", metavar="FILE.mcap", help="record the run as MCAP (diskf_mesh.recording)")
-    p.add_argument("--startup-timeout", type=float, default=WorldTiming.startup_timeout, metavar="S",
+    p.add_argument("--startup-timeout", type=positive, default=WorldTiming.startup_timeout, metavar="S",
                    help="seconds to wait for every agent (default %(default)s)")
-    p.add_argument("--tick-timeout", type=float, default=WorldTiming.tick_timeout, metavar="S",
+    p.add_argument("--tick-timeout", type=positive, default=WorldTiming.tick_timeout, metavar="S",
                    help="seconds to wait for the reports of one tick (default %(default)s)")
-    p.add_argument("--collect-timeout", type=float, default=AgentTiming.collect_timeout, metavar="S",
+    p.add_argument("--collect-timeout", type=positive, default=AgentTiming.collect_timeout, metavar="S",
                    help="the agents' --collect-timeout (default %(default)s): with link latency injected, a message "
                         "due later is not planned to be fused (the run's status)")
     add_allow_missing(p)

@@ -90,6 +90,14 @@ def test_a_typo_gets_one_line_with_a_suggestion(argv, words, capsys):
     assert err.startswith("error: ") and all(w in err for w in words), err
 
 
+@pytest.mark.parametrize("argv", [["world", "--startup-timeout", "-5"], ["up", "--collect-timeout", "0"],
+                                  ["agent", "--world-timeout", "nan"], ["host", "--startup-timeout", "inf"]])
+def test_a_timeout_must_be_a_positive_number(argv, capsys):
+    code, out, err = run_cli(argv, capsys)
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1, err
+    assert err.startswith(f"error: argument {argv[1]}: must be a positive number"), err
+
+
 def test_a_folder_given_as_a_scenario_says_so(tmp_path, capsys):
     code, _, err = run_cli(["experiment", "--scenario", tmp_path], capsys)
     assert code == 2 and f"{tmp_path} is a folder" in err and len(err.strip().splitlines()) == 1
