@@ -38,8 +38,13 @@ STEPS = 3  # ticks of the short run
 # a small TOML writer for the documents above (tables, arrays of tables,
 # inline values)
 # --------------------------------------------------------------------------
+def _string(v: str) -> str:
+    """A TOML basic string (JSON's escapes, and DEL, which TOML refuses raw and JSON leaves as it is)."""
+    return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
+
+
 def _key(k) -> str:
-    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k, ensure_ascii=False)
+    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else _string(k)
 
 
 def _value(v) -> str:
@@ -50,7 +55,7 @@ def _value(v) -> str:
     if isinstance(v, float):
         return "nan" if math.isnan(v) else ("inf" if v == math.inf else "-inf" if v == -math.inf else repr(v))
     if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=False)
+        return _string(v)
     if isinstance(v, list):
         return "[" + ", ".join(_value(x) for x in v) + "]"
     if isinstance(v, dict):
