@@ -223,15 +223,20 @@ def test_a_rejoining_agent_asks_the_world_and_starts_from_its_answer(run):
     assert of(m.handle(Tokens(confirm.qid, (m.keys.alive(me, "n5"),)), 10.05), Publish) == []
     x, P = np.array([3.0, -1.0]), np.diag([0.5, 0.25])
     out = m.handle(Reply(ask.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 10.1)
-    assert Publish(m.keys.rejoin(me), wire.encode_rejoin(RUN, me, J, 7)) in out
     assert m.rejoins == [(J, 7)]
-    msg, = [e for e in of(out, Publish) if m.keys.parse(e.key)[0] == "msg"]   # then its one message of tick J
+    msg, = of(out, Publish)                             # then its one message of tick J, nothing else
     est = AgentEstimator(scn, me, "diskf", K, SEED)     # ... from the answered estimate, bit for bit
     start_from(est, x, P)
     j = w.ids.index(me)
     own = est.local(J, bool(trace.has[0, J - 1, j]), trace.y[0, J - 1, j, :est.p])
     assert msg.payload == wire.encode(RUN, me, J, own)
     assert m.est is not None and m.k == J and m.collecting
+    for k in (J, J + 1):  # every report from now on tells the world how this estimate started
+        now = 10.0 + 10 * (k - J + 1)
+        rep, = [e for e in of(m.handle(Timer("collect"), now), Publish) if m.keys.parse(e.key)[0] == "report"]
+        assert wire.decode_report(rep.payload, run_id=RUN, sender=me).restart == (J, 7)
+        m.handle(w.meas(k + 1, me), now)
+        m.handle(w.tick(k + 1), now)
 
 
 def asking(run, J=4, now=10.0):
@@ -285,6 +290,28 @@ def test_a_late_joiner_that_finds_its_id_held_just_before_joining_leaves(run):
     assert fin.code == 2 and "n0" in fin.reason and m.est is None
 
 
+def test_a_late_joiner_whose_id_the_world_sees_held_leaves_before_publishing(run):
+    """A second process of an id that found the run in progress and whose
+    own session never heard the first (its id-confirming query found none):
+    the world's answer names the processes it sees holding the id; this one
+    is not alone among them: exit 2, nothing of it published, no estimate."""
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, out = started(scn, me, ticking=True)
+    m.handle(w.meas(6, me), 1.0)
+    out = m.handle(w.tick(6), 1.0)
+    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), 1.0)           # its own session sees no other
+    ask, = of(out, Ask)
+    start = wire.encode_start(RUN, me, 6, 2, np.zeros(2), np.eye(2), np.zeros(1), False, held=("n0", f"n{me}"))
+    fin, = m.handle(Reply(ask.qid, start), 1.1)
+    assert isinstance(fin, Finish) and fin.code == 2 and "n0" in fin.reason
+    assert m.est is None and m.rejoins == []
+    alone = wire.encode_start(RUN, me, 6, 2, np.zeros(2), np.eye(2), np.zeros(1), False, held=(f"n{me}",))
+    m2, ask2, _ = asking(run, J=6)
+    assert of(m2.handle(Reply(ask2.qid, alone), 10.1), Publish) and m2.rejoins == [(6, 2)]
+
+
 def test_another_process_with_this_id_makes_this_one_leave_with_2(run):
     scn, _, _ = run
     me = 1
@@ -316,6 +343,32 @@ def test_frozen_past_the_lease_it_rejoins(run):
     out = m.handle(Token(m.keys.world("w0"), False), 20.5)
     assert m.est is None and m.rejoining
     assert out == [DropToken(ready), DeclareToken(m.keys.ready(me, "n5.2"))]
+
+
+def test_a_restart_cut_off_from_the_world_asks_for_its_start_once_the_world_is_back(run):
+    """Woken past the lease, its session gone: the world's token went. Its
+    start is asked for only once the token is back (an answer the world
+    can give: a neighbour's estimate), and "no answer" while cut off is
+    asked again, never taken as the prior."""
+    J = 4
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[4]
+    m, _ = started(scn, me, ticking=True)
+    m.handle(w.tick(J - 1, live=[i for i in w.ids if i != me]), 0.0)
+    m.handle(Token(m.keys.world("w0"), False), 9.0)         # its session went down
+    m.handle(w.meas(J, me), 10.0)
+    out = m.handle(w.tick(J), 10.0)
+    assert of(out, Ask) == [] and m.est is None               # no question while cut off
+    out = m.handle(Token(m.keys.world("w0"), True), 10.2)     # back
+    ask, = of(out, Ask)
+    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), 10.2)
+    m.handle(Token(m.keys.world("w0"), False), 10.3)          # cut off again before the answer
+    assert m.handle(Reply(ask.qid, None), 10.4) == [] and m.est is None and m.rejoins == []
+    again, = of(m.handle(Token(m.keys.world("w0"), True), 11.0), Ask)
+    x, P = np.array([3.0, -1.0]), np.diag([0.5, 0.25])
+    m.handle(Reply(again.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 11.1)
+    assert m.rejoins == [(J, 7)] and m.est is not None
 
 
 def test_the_world_going_without_a_freeze_is_waited_for(run):

@@ -76,9 +76,6 @@ def assert_only_missing(est: dict, row: dict, victims) -> None:
 # --------------------------------------------------------------------------
 # duplicate ids
 # --------------------------------------------------------------------------
-@pytest.mark.xfail(reason="open: a duplicate started mid-run can pass its second id check (its liveliness query "
-                   "does not yet see the other process's token), join and publish one message before it leaves; "
-                   "the world's check then says diverged naming agent 5 (exit 6), never exact", strict=False)
 def test_duplicate_id_mid_run_leaves_and_the_run_is_untouched(tmp_path):
     """A second process for agent 5 while the run goes: it exits 2 with one
     line naming the id; the world counts it; the run is complete and equals
@@ -124,9 +121,6 @@ def test_two_processes_with_one_id_at_once(tmp_path):
     assert_same(est, reference(spec, ticks, seed)[1])
 
 
-@pytest.mark.xfail(reason="open: a twin whose token comes while the run ticks can make the world's check say "
-                   "diverged (agent 3, 2 agent-ticks) instead of the late twin leaving unheard; the run fails loudly "
-                   "(exit 6), never passes as exact", strict=False)
 def test_a_twin_that_declares_after_the_run_started_leaves(tmp_path):
     """Two processes for agent 3, the first started (the smaller nonce)
     descheduled between its claim's query and its token (as on a loaded

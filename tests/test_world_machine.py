@@ -53,11 +53,11 @@ def gone(w: WorldMachine, i, now: float, nonce: str = "n1") -> list:
     return w.handle(Token(keys.ready(i, nonce), False), now) + w.handle(Token(keys.alive(i, nonce), False), now)
 
 
-def report(w: WorldMachine, i, k: int, now: float, x=None, P=None, fused=()) -> list:
+def report(w: WorldMachine, i, k: int, now: float, x=None, P=None, fused=(), restart=None) -> list:
     n, m = w.trace.model.n, w.trace.model.m
     x = np.full(n, float(i)) if x is None else x
     P = np.eye(n) if P is None else P
-    payload = wire.encode_report(RUN, i, k, x, P, np.zeros(m), False, fused=fused)
+    payload = wire.encode_report(RUN, i, k, x, P, np.zeros(m), False, fused=fused, restart=restart)
     return w.handle(Sample(Keys(RUN).report(i), payload), now)
 
 
@@ -190,8 +190,12 @@ def test_rejoin_query_is_answered_with_a_neighbours_reported_estimate(run):
     s = wire.decode_start(out[0].payload, run_id=RUN, agent=a, tick=2)
     assert s.source == best and np.array_equal(s.x, np.full(n, float(best)))
     assert np.array_equal(s.P, np.eye(n) * 0.5)
+    assert s.held == ("n1",)                  # the processes it sees holding a's id: a late twin learns it is one
+    w.handle(Token(keys.alive(a, "n2"), True), 0.5)
+    out = w.handle(Query(9, keys.start(a), wire.encode_join(RUN, a, 2)), 0.5)
+    assert wire.decode_start(out[0].payload, run_id=RUN, agent=a, tick=2).held == ("n1", "n2")
     assert w.record.starts[-1].source == best and a not in w.record.rejoins  # answered, not started yet
-    w.handle(Sample(keys.rejoin(a), wire.encode_rejoin(RUN, a, 2, best)), 0.6)
+    report(w, a, 3, 0.6, restart=(2, best))   # a report says how its agent's estimate started
     assert w.record.rejoins[a] == [{"tick": 2, "source": best}]
 
 

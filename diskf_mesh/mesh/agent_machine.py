@@ -466,7 +466,8 @@ class AgentMachine:
         digests = [received.get(s) or wire.message_digest(self.keys.run_id, s, k, fused[s], self.exchanged)
                    for s in fused_ids]
         report = wire.encode_report(self.keys.run_id, self.id, k, out.x[0, 0], out.P[0, 0], out.d[0, 0],
-                                    out.d_valid[0, 0], counters, fused_ids, not_fused, self.own_digest, digests)
+                                    out.d_valid[0, 0], counters, fused_ids, not_fused, self.own_digest, digests,
+                                    self.rejoins[-1] if self.rejoins else None)
         prof.end("encode")
         self._out.append(Publish(self.keys.report(self.id), report))
         self.last_report = (k, report)
@@ -693,6 +694,8 @@ class AgentMachine:
         k, restart = self.k, self.rejoining and self.k > 1  # at tick 1 all start alike
         confirm = restart and self._late() and not self._confirmed
         if restart and (self._start is None or self._start[0] != k or confirm):
+            if self.world_gone:  # cut off (woken past the lease): ask once the world's token is back
+                return
             if self._asked is None or self._asked[1] != k:
                 qid = next(self._qids)
                 self._asked, self._start = (qid, k, now + ASK_S), None
@@ -721,8 +724,13 @@ class AgentMachine:
 
     def _on_reply(self, qid: int, payload) -> None:
         """The world's answer to the query for the starting estimate (None:
-        none came, or it failed the guard's checks: the prior)."""
+        none came, or it failed the guard's checks: the prior; none while
+        the world's token is gone, i.e. asked on a session cut off: asked
+        again once the token is back)."""
         if self._asked is None or qid != self._asked[0] or self._start is not None:
+            return
+        if payload is None and self.world_gone:  # asked while cut off: ask again once the world is back
+            self._asked = None
             return
         k, start = self._asked[1], None
         if payload is not None:
@@ -732,18 +740,21 @@ class AgentMachine:
                                           m=self.m, max_abs=g.max_abs, max_cond=g.max_cond)
             except wire.Rejected as e:
                 self._refuse("start", e.reason, e.detail)
+        others = set(start.held) - {self.nonce} if start is not None else ()
+        if others and self._late():  # the world sees another process holding this id: it keeps it
+            return self._duplicate(min(others), "the world sees it holding this id in the run this one joined late")
         self._start = (k, start)
 
     def _restart_from(self, k: int) -> None:
         """A (re)joining agent's estimate of tick k - 1: the world's answer
-        (``mesh.rejoin``); the world is told the source."""
+        (``mesh.rejoin``); every report from now on tells the world the tick
+        and the source (``wire.encode_report``'s "rj")."""
         start = self._start[1]
         src = None
         if start is not None:
             rejoin.start_from(self.est, start.x, start.P)
             src = start.source
         self.rejoins.append((k, src))
-        self._out.append(Publish(self.keys.rejoin(self.id), wire.encode_rejoin(self.keys.run_id, self.id, k, src)))
         self.log.info(f"joined at tick {k}, re-initialised from "
                       + (f"agent {src}'s fused estimate of tick {k - 1}" if src is not None else "the prior"))
 

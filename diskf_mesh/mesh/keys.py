@@ -16,7 +16,6 @@ letters, digits, ``-`` and ``_``):
     diskf/<run>/agent/<id>/msg         no address: no agent subscribes to it (a watcher of
                                                          ``msgs`` sees it; "msg")
     diskf/<run>/agent/<id>/report      agent -> world    its fused estimate of tick k ("report")
-    diskf/<run>/agent/<id>/rejoin      agent -> world    it re-initialised, from which source ("rejoin")
     diskf/<run>/agent/<id>/duplicate   agent -> world    a second process of this id, leaving; the
                                                          payload is its nonce ("duplicate")
     diskf/<run>/start/<id>             query, agent -> world: agent id (re)joins at tick J; the
@@ -120,8 +119,6 @@ class Keys:
     def report(self, agent) -> str:
         return f"{self.root}/agent/{agent}/report"
 
-    def rejoin(self, agent) -> str:
-        return f"{self.root}/agent/{agent}/rejoin"
 
     def duplicate(self, agent) -> str:
         return f"{self.root}/agent/{agent}/duplicate"
@@ -152,7 +149,7 @@ class Keys:
 
     def parse(self, key: str) -> tuple:
         """(kind, agent id or None) of a key of this run; kind is one of tick,
-        meas, stop, msg, report, rejoin, duplicate, alive-world, alive, ready, or None
+        meas, stop, msg, report, duplicate, alive-world, alive, ready, or None
         (foreign). A token's nonce is ``nonce(key)``.
         An id that is not an integer gives (kind, None). Remembered: a run
         uses few distinct keys, and every message's key is parsed (keys
@@ -201,7 +198,6 @@ _SHAPES = {
     ("world", "stop"): "stop",
     ("agent", "#", "msg"): "msg",
     ("agent", "#", "report"): "report",
-    ("agent", "#", "rejoin"): "rejoin",
     ("agent", "#", "duplicate"): "duplicate",
     ("start", "#"): "start",
     ("alive", "world", "*"): "alive-world",

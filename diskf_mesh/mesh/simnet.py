@@ -500,13 +500,16 @@ class SimNet:
 
     def _session(self, proc: _Proc, delta: int) -> None:
         """``proc``'s links to every other process went down (-1) or came up (+1):
-        the tokens across them go or come, both ways."""
+        the tokens across them go or come, both ways. A session that went
+        down tells its own process (as zenoh's session does when it finds
+        its transports closed): a paused process hears it when it wakes,
+        after what had reached it before."""
         for key in proc.tokens:
             self._token_to_all(proc, key, delta, others_only=True)
         for owner in self._all:
             if owner is not proc and owner.tokens and self._visible(owner, proc, assume_attached=True):
                 for key in owner.tokens:
-                    self._token_to(owner, proc, key, delta)
+                    self._token_to(owner, proc, key, delta, local=delta < 0)
 
     # -- effects ---------------------------------------------------------------
     def _apply(self, proc: _Proc, effects) -> None:
@@ -660,8 +663,10 @@ class SimNet:
             elif q.attached:
                 self._token_to(owner, q, key, delta, n)
 
-    def _token_to(self, owner: _Proc, q: _Proc, key: str, delta: int, watches: int | None = None) -> None:
-        """One declaration of ``key`` became visible (+1) or invisible (-1) to ``q``."""
+    def _token_to(self, owner: _Proc, q: _Proc, key: str, delta: int, watches: int | None = None,
+                  local: bool = False) -> None:
+        """One declaration of ``key`` became visible (+1) or invisible (-1) to
+        ``q``; ``local``: ``q``'s own session says so (no link to cross)."""
         if watches is None:
             watches = sum(1 for _, m in q.watches if m(key))
         if not watches:
@@ -671,7 +676,10 @@ class SimNet:
         q.counts[key] = after
         if (before == 0) != (after == 0):
             for _ in range(watches):
-                self._send(owner, q, ev.Token(key, after > 0))
+                if local:
+                    self.sched.at(self.sched.now, ("deliver", q, ev.Token(key, after > 0), True))
+                else:
+                    self._send(owner, q, ev.Token(key, after > 0))
 
     # -- queries -------------------------------------------------------------------
     def _ask(self, proc: _Proc, e: ev.Ask) -> None:

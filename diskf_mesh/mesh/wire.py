@@ -43,7 +43,12 @@ kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
     "fd" for each sender in "f", in order, the ``digest`` of its message as
         received and fused (8 bytes; optional): the end-of-run check
         (``engine.verify``) names a sender whose message the engine does not
-        reproduce
+        reproduce,
+    "rj" the agent's latest (re)initialisation, [tick J, source]: the agent
+        whose fused estimate of tick J - 1 it started from, -1 for its prior
+        (optional; absent when it has worked since tick 1). Every report
+        carries it, so whichever of an agent's reports reach the world tell
+        it how the estimate started: the end-of-run check replays from it
 
 kind "tick" (world -> everyone, opens tick k; ``Tick``)::
 
@@ -57,17 +62,16 @@ kind "meas" (world -> one agent on its own key; ``Measurement``)::
 
 kind "stop" (world -> everyone): "why" a short text ("done" after the last tick).
 
-kind "rejoin" (agent -> world, once per (re)join; ``Rejoin``): "t" the tick it
-joined at, "s" sender, "src" the agent whose fused estimate of tick "t" - 1 it
-re-initialised from, or -1 for its prior.
-
 kind "join" (agent -> world, the payload of its query on ``Keys.start``;
 ``Join``): "t" the tick J it (re)joins at, "s" sender.
 
 kind "start" (world -> agent, the answer to its "join"; ``Start``): "t" the
 tick J it joins at, "s" the agent it is for, "src" the agent whose fused
 estimate of tick J - 1 it starts from, or -1 for the prior; "n", "m", "dt",
-"dv", "a" x (n), P (n x n), d (m) of that estimate. ``decode_start`` checks
+"dv", "a" x (n), P (n x n), d (m) of that estimate, "h" the nonces of the
+processes the world sees holding the agent's id (its alive tokens; at most
+``MAX_HELD``, optional): a process that found the run in progress and is
+not among them leaves (another process works under its id). ``decode_start`` checks
 it as the guard checks a message: finite, P positive definite, no value
 beyond ``max_abs``, P's condition number at most ``max_cond``.
 
@@ -107,6 +111,7 @@ MAX_DIM = 64  # largest n, m (or p) a decoder accepts
 MAX_BYTES = 1 << 20  # largest payload a decoder looks at, whatever the kind
 HEADER_BYTES = 256   # the fixed fields of a payload, generously (run id <= 32 characters, ints <= 9 bytes)
 MAX_STR = 64         # longest string field or map key (run ids, algorithm and counter names)
+MAX_HELD = 4         # nonces a "start" names of the processes holding the agent's id
 MAX_WHY = 1024       # longest "why" of a stop
 MAX_COUNTERS = 64    # most counters a report may carry (there are about 30)
 PER_TICK = 1 << 20   # most payloads one agent counts per tick of the run (``count_bound``)
@@ -269,6 +274,7 @@ class Report:
     not_fused: tuple = ()  # ((sender, verdict), ...) the other linked senders
     sent_digest: bytes = b""  # ``digest`` of this agent's own message of the tick, as published
     digests: tuple = ()    # per sender of ``fused``, in order: ``message_digest`` of what was fused
+    restart: tuple | None = None  # (tick J, source or None for the prior) of the latest (re)initialisation
 
 
 @dataclass(frozen=True)
@@ -301,14 +307,6 @@ class Stop:
 
 
 @dataclass(frozen=True)
-class Rejoin:
-    run_id: str
-    sender: int
-    tick: int
-    source: int | None  # None: the prior
-
-
-@dataclass(frozen=True)
 class Join:
     run_id: str
     sender: int
@@ -325,6 +323,7 @@ class Start:
     P: np.ndarray       # (n, n)
     d: np.ndarray       # (m,)
     d_valid: bool
+    held: tuple = ()    # nonces of the processes the world sees holding the agent's id (alive tokens)
 
 
 # --------------------------------------------------------------------------
@@ -393,7 +392,7 @@ def engine_digests(run_id: str, ids, exchanged: tuple = EXCHANGED):
 
 
 def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None, fused=(),
-                  not_fused=(), sent_digest: bytes = b"", digests=()) -> bytes:
+                  not_fused=(), sent_digest: bytes = b"", digests=(), restart=None) -> bytes:
     n, m = _dims(x, d)
     blob = _f8(x, P, d)
     if len(blob) != 8 * (n + n * n + m):
@@ -402,7 +401,8 @@ def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counter
                   "dt": DTYPE, "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
                   "c": {str(k): int(v) for k, v in (counters or {}).items()},
                   "f": [int(s) for s in fused], "nf": [[int(s), str(v)] for s, v in not_fused], "od": bytes(sent_digest),
-                  "fd": [bytes(g) for g in digests]})
+                  "fd": [bytes(g) for g in digests],
+                  **({} if restart is None else {"rj": [int(restart[0]), -1 if restart[1] is None else int(restart[1])]})})
 
 
 def encode_tick(t: Tick) -> bytes:
@@ -420,23 +420,19 @@ def encode_stop(run_id: str, tick: int, why: str) -> bytes:
     return _pack({"v": SCHEMA, "k": "stop", "run": run_id, "t": int(tick), "why": str(why)})
 
 
-def encode_rejoin(run_id: str, sender: int, tick: int, source: int | None) -> bytes:
-    return _pack({"v": SCHEMA, "k": "rejoin", "run": run_id, "t": int(tick), "s": int(sender),
-                  "src": -1 if source is None else int(source)})
-
-
 def encode_join(run_id: str, sender: int, tick: int) -> bytes:
     return _pack({"v": SCHEMA, "k": "join", "run": run_id, "t": int(tick), "s": int(sender)})
 
 
-def encode_start(run_id: str, agent: int, tick: int, source: int | None, x, P, d, d_valid) -> bytes:
+def encode_start(run_id: str, agent: int, tick: int, source: int | None, x, P, d, d_valid, held=()) -> bytes:
     n, m = _dims(x, d)
     blob = _f8(x, P, d)
     if len(blob) != 8 * (n + n * n + m):
         raise ValueError("encode_start: a starting estimate must hold one agent's arrays")
     return _pack({"v": SCHEMA, "k": "start", "run": run_id, "t": int(tick), "s": int(agent),
                   "src": -1 if source is None else int(source), "n": n, "m": m, "dt": DTYPE,
-                  "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob})
+                  "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
+                  "h": [str(h)[:MAX_STR] for h in list(held)[:MAX_HELD]]})
 
 
 # --------------------------------------------------------------------------
@@ -473,7 +469,7 @@ class Limits:
 
 # fields of each kind (the map's length), and room for a few more (a signature, a binding) that a
 # decoder ignores: each is still bounded by the string, bin and byte limits
-_FIELDS = {"msg": 10, "report": 12, "tick": 12, "meas": 8, "stop": 5, "rejoin": 6, "join": 5, "start": 11}
+_FIELDS = {"msg": 10, "report": 13, "tick": 12, "meas": 8, "stop": 5, "join": 5, "start": 12}
 EXTRA_FIELDS = 2
 
 
@@ -505,10 +501,11 @@ def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | 
     if kind == "meas":
         p = a or MAX_DIM
         return Limits(HEADER_BYTES + 8 * p, MAX_STR, 8 * p, p, fields)
-    if kind == "start":
+    if kind == "start":  # the estimate's floats and "h": MAX_HELD nonces
         floats = n + n * n + m
-        return Limits(HEADER_BYTES + 8 * floats, MAX_STR, 8 * floats, floats, fields)
-    if kind in ("rejoin", "join"):  # ints only
+        return Limits(HEADER_BYTES + 8 * floats + MAX_HELD * (2 + MAX_STR), MAX_STR, 8 * floats,
+                      max(floats, MAX_HELD), fields)
+    if kind == "join":  # ints only
         return Limits(HEADER_BYTES, MAX_STR, 0, 0, fields)
     return Limits(HEADER_BYTES + MAX_WHY, MAX_WHY, 0, 0, fields)
 
@@ -760,7 +757,13 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
     if not isinstance(fd, list) or len(fd) not in (0, len(f)) or not all(
             isinstance(g, bytes) and len(g) == DIGEST_BYTES for g in fd):
         raise Rejected("schema", f"field 'fd' is not one {DIGEST_BYTES}-byte digest per sender of 'f'")
-    return Report(doc["run"], s, doc["t"], x, P, d, dv, c, tuple(f), tuple((i, v) for i, v in nf), sent, tuple(fd))
+    rj = doc.get("rj")
+    if rj is not None and not (isinstance(rj, list) and len(rj) == 2 and all(_is_int(v) for v in rj)
+                               and 1 <= rj[0] <= doc["t"] and rj[1] >= -1):
+        raise Rejected("schema", "field 'rj' is not [tick <= the report's tick, source id or -1]")
+    restart = None if rj is None else (rj[0], None if rj[1] < 0 else rj[1])
+    return Report(doc["run"], s, doc["t"], x, P, d, dv, c, tuple(f), tuple((i, v) for i, v in nf), sent, tuple(fd),
+                  restart)
 
 
 def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -> Tick:
@@ -804,12 +807,6 @@ def decode_stop(data, *, run_id: str | None = None) -> Stop:
     return Stop(doc["run"], doc["t"], str(doc.get("why", "")))
 
 
-def decode_rejoin(data, *, run_id: str | None = None, sender: int | None = None) -> Rejoin:
-    doc = _open(data, "rejoin", run_id, limits("rejoin"))
-    s, src = _check_sender(doc, sender), _field(doc, "src", int)
-    return Rejoin(doc["run"], s, doc["t"], None if src < 0 else src)
-
-
 def decode_join(data, *, run_id: str | None = None, sender: int | None = None) -> Join:
     doc = _open(data, "join", run_id, limits("join"))
     return Join(doc["run"], _check_sender(doc, sender), doc["t"])
@@ -833,4 +830,7 @@ def decode_start(data, *, run_id: str | None = None, agent: int | None = None, t
     problem = estimate_problem(a, P, max_abs, max_cond)
     if problem is not None:
         raise Rejected(*problem)
-    return Start(doc["run"], s, doc["t"], None if src < 0 else src, x, P, d, dv)
+    held = doc.get("h", [])
+    if not isinstance(held, list) or len(held) > MAX_HELD or not all(isinstance(h, str) for h in held):
+        raise Rejected("schema", f"field 'h' is not a list of at most {MAX_HELD} nonces")
+    return Start(doc["run"], s, doc["t"], None if src < 0 else src, x, P, d, dv, tuple(held))

@@ -14,7 +14,7 @@ the effects it returns, in order::
 
 A run, in the order of this module:
 
- 1. start-up   subscribe to the agents' reports, rejoins and duplicates,
+ 1. start-up   subscribe to the agents' reports and duplicates,
                watch every agent's tokens and every world's, answer the
                rejoin query; claim the run id (``AskTokens``: another world
                holding it ends this one, code 2); declare the world's token;
@@ -43,9 +43,10 @@ A run, in the order of this module:
                once tick J - 1 is over the world answers with the most
                certain fused estimate that an agent in range reported for
                J - 1, or the prior (``start_state``); each answer is kept
-               (``WorldRecord.starts``), and the agent's word that it
-               started from it (``rejoin``) is a rejoin
-               (``WorldRecord.rejoins``): the run can be replayed.
+               (``WorldRecord.starts``); each report says the tick and
+               source of its agent's latest (re)initialisation ("rj"): a
+               rejoin (``WorldRecord.rejoins``), so the run can be replayed
+               whichever of that agent's reports came.
  7. the end    after tick K (or an interrupt, or no agent left): publish
                stop, wait up to ``leave_timeout`` for the agents to leave,
                then ``Finish``.
@@ -207,7 +208,7 @@ class WorldMachine:
         root = self.keys.root
         self._t0 = now
         self.phase = "claim"
-        return [Subscribe(self.keys.report("*")), Subscribe(self.keys.rejoin("*")),
+        return [Subscribe(self.keys.report("*")),
                 Subscribe(self.keys.duplicate("*")),
                 WatchTokens(f"{root}/*/agent/*/*"), WatchTokens(self.keys.alive_world),
                 DeclareQueryable(self.keys.start("*")),
@@ -409,13 +410,6 @@ class WorldMachine:
                     self._rejected.add(who)
                 self.log.once(("report", who if who in self.ids else None, e.reason),
                               f"rejected a report from {key[:200]}: {e}")
-        elif kind == "rejoin" and who in self.ids:
-            try:
-                r = wire.decode_rejoin(payload, run_id=self.keys.run_id, sender=who)
-            except wire.Rejected as e:
-                self.record.counters[f"rejected:{e.reason}"] += 1
-                return
-            self._rejoined(who, r.tick, r.source)
         elif kind == "duplicate" and who in self.ids:
             self.record.duplicates[who] += 1
             self.log.info(f"agent id {who}: a second process (nonce {bytes(payload[:32]).decode(errors='replace')})"
@@ -449,6 +443,8 @@ class WorldMachine:
         rec.reported[t, i] = True
         rec.agent_counters[r.sender] = r.counters
         rec.note_fused(r.tick, i, r.fused, r.not_fused, r.digests, self._index)
+        if r.restart is not None:
+            self._rejoined(r.sender, *r.restart)
         if self.recorder is not None:
             self.recorder.on_report(r)
 
@@ -697,7 +693,9 @@ class WorldMachine:
         for qid, who, tick in self._starts_owed:
             if final or self._reports_final(who, tick - 1):
                 s = self.start_state(who, tick)
-                self._emit(Answer(qid, wire.encode_start(s.run_id, who, tick, s.source, s.x, s.P, s.d, s.d_valid)))
+                held = sorted(self._tokens["alive"].get(who, ()))  # a late twin among them learns it is one
+                self._emit(Answer(qid, wire.encode_start(s.run_id, who, tick, s.source, s.x, s.P, s.d, s.d_valid,
+                                                         held)))
                 if (who, tick, s.source) not in self._answered:  # the same answer again is kept once
                     self._answered.add((who, tick, s.source))
                     self.record.starts.append(s)  # a rejoin once the agent says it started from it
@@ -735,15 +733,13 @@ class WorldMachine:
                           np.array(model.P0, dtype=float).reshape(model.n, model.n), np.zeros(model.m), False)
 
     def _rejoined(self, agent: int, tick: int, source) -> None:
-        """Agent ``agent`` says it started at ``tick`` from ``source`` (an
-        answer of ``start_state``, or the prior): a rejoin. An answer no
-        agent started from (a duplicate process that left) is none."""
+        """Agent ``agent``'s report says it started at ``tick`` from
+        ``source`` (an answer of ``start_state``, or the prior): a rejoin,
+        kept once, in tick order (reports may come out of order). An answer
+        no agent started from (a duplicate process that left) is none."""
         runs = self.record.rejoins.setdefault(agent, [])
         entry = {"tick": int(tick), "source": source}
-        if runs and runs[-1]["tick"] == entry["tick"]:
-            runs[-1] = entry
-        else:
-            runs.append(entry)
+        runs[:] = sorted([r for r in runs if r["tick"] != entry["tick"]] + [entry], key=lambda r: r["tick"])
 
     # ======================================================================
     # 7. the end
