@@ -58,6 +58,7 @@ class Case:
     world_timing: WorldTiming = WorldTiming()
     agent_timing: AgentTiming = AgentTiming()
     scenario: str = "random-geometric"
+    links: tuple = ()           # ((sender pid, receiver pid), Link): a pair's link other than ``link``
     notes: tuple = field(default=(), compare=False)
 
     @property
@@ -117,7 +118,11 @@ def build(draw) -> Case:
     late = ()
     if draw.int(0, 7) == 0:
         late = ((draw.int(1, N), draw.pick((0.001, delay * K / 2, around()))),)
-    return Case(N, K, algorithm, seed, link, tuple(faults), twins, late, injected, lease, wt, at, scenario)
+    links = ()
+    if twins and twins[0][0] != WORLD and draw.int(0, 1):  # the two processes' sessions do not hear each other
+        a, b = agent_pid(twins[0][0]), agent_pid(twins[0][0], 1)
+        links = (((a, b), Link(delay=30.0)), ((b, a), Link(delay=30.0)))
+    return Case(N, K, algorithm, seed, link, tuple(faults), twins, late, injected, lease, wt, at, scenario, links)
 
 
 class _Hypothesis:
@@ -160,7 +165,9 @@ def world(scenario: str, N: int, K: int, seed: int):
 
 def run(case: Case, keep_lines: bool = False):
     scn, trace = world(case.scenario, case.agents, case.ticks, case.seed)
-    plan = SimPlan(case.link, faults=case.faults, twins=case.twins, late=dict(case.late), lease=case.lease,
+    pairs = dict(case.links)
+    plan = SimPlan(case.link, links=(lambda a, b: pairs.get((a, b))) if pairs else None,
+                   faults=case.faults, twins=case.twins, late=dict(case.late), lease=case.lease,
                    world_timing=case.world_timing, agent_timing=case.agent_timing, max_time=case.bound)
     return simulate_run(scn, trace, case.algorithm, case.seed, plan=plan, faults=case.injected,
                         keep_lines=keep_lines)

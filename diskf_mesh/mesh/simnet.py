@@ -702,16 +702,19 @@ class SimNet:
 
     def _ask_tokens(self, proc: _Proc, e: ev.AskTokens) -> None:
         """A liveliness query: the tokens held when it reaches the others
-        (one link delay), back one delay later; none if the asker is cut off."""
+        (one link delay), back one delay later; none if the asker is cut off,
+        and none of a holder whose round trip (``links``) exceeds the
+        query's timeout."""
         self.trace.add(self.sched.now, repr(proc), f"ask-tokens {e.qid}", e.key)
         if not (proc.connected and self._may(proc, "liveliness_query", e.key)):
             self.sched.at(self.sched.now + e.timeout, ("deliver", proc, ev.Tokens(e.qid, ()), True))
             return
-        self.sched.at(self.sched.now + self.link.delay, ("tokens-now", proc, e.qid, e.key))
+        self.sched.at(self.sched.now + self.link.delay, ("tokens-now", proc, e.qid, e.key, e.timeout))
 
-    def _tokens_now(self, proc: _Proc, qid: int, expr: str) -> None:
+    def _tokens_now(self, proc: _Proc, qid: int, expr: str, timeout: float) -> None:
         m = _matcher(expr)
         keys = sorted({key for owner in self._all if owner.tokens and self._visible(owner, proc)
+                       and (owner is proc or self._link(proc, owner).delay + self._link(owner, proc).delay <= timeout)
                        for key in owner.tokens if m(key)})
         self.sched.at(self.sched.now + self.link.delay, ("deliver", proc, ev.Tokens(qid, tuple(keys)), True))
 
