@@ -228,6 +228,16 @@ def test_real_time_opens_ticks_on_the_clock(run):
     assert w.record.reported[0, 0] and w.record.deadlines.late_reports[w.ids[0]] == 1
 
 
+def test_real_time_an_agent_that_leaves_mid_tick_is_missing_as_left(run):
+    """In real time, as in lockstep, an agent live at tick k whose token
+    goes before its report is missing because it left (not "not run")."""
+    w, _ = started(run, clock=Clock(10.0, 0.05))
+    gone(w, w.ids[2], 0.15)
+    w.handle(Timer("clock"), 0.2)  # tick 1 ends
+    assert w.record.why[0, 2] == "left" and w.record.why[0, 0] == "no report"
+    assert w.record.deadlines.report_misses[w.ids[2]] == 0
+
+
 def test_real_time_start_waits_for_a_late_report_in_range(run):
     """Real time: tick 1 has ended but a neighbour in range still owes its
     report of it; the rejoin answer waits for that report (not the prior)."""

@@ -2,7 +2,8 @@
 
 A protocol machine (the world's, an agent's) holds the state of one mesh
 process and nothing else: no thread, no socket, no clock read. Its shell
-(zenoh and the wall clock in ``sim.world`` / ``agents.agent``, or the seeded
+(zenoh and the wall clock in ``mesh.shell``, run by ``sim.world`` and
+``agents.agent``, or the seeded
 simulated network) reads the clock, hands it one event at a time with the
 time ``now`` (seconds; monotonic or virtual), and carries out the effects
 it returns, in order::

@@ -36,7 +36,10 @@ time in nanoseconds, 16 hex digits, then 8 random hex digits), so two
 processes holding one id (or two worlds of one run id) hold two distinct
 tokens and everyone sees both: a process that finds a token of its id before
 declaring its own is the second and leaves (exit 2); two that declared at
-the same moment compare nonces, and the larger (the later start) leaves.
+the same moment compare nonces, and the larger (the later start) leaves,
+unless the run was already ticking: then the one that found the run in
+progress leaves whatever the nonces (the other has worked since tick 1;
+the world's answer to its start query names the processes holding the id).
 A ready token's nonce has a join count after a dot (``<nonce>.<n>``): an
 agent that fell out of the run (frozen past zenoh's lease) withdraws it and
 declares the next to rejoin.
@@ -149,8 +152,8 @@ class Keys:
 
     def parse(self, key: str) -> tuple:
         """(kind, agent id or None) of a key of this run; kind is one of tick,
-        meas, stop, msg, report, duplicate, alive-world, alive, ready, or None
-        (foreign). A token's nonce is ``nonce(key)``.
+        meas, stop, msg, report, duplicate, start, alive-world, ticking,
+        alive, ready, or None (foreign). A token's nonce is ``nonce(key)``.
         An id that is not an integer gives (kind, None). Remembered: a run
         uses few distinct keys, and every message's key is parsed (keys
         longer than ``CACHED_KEY`` are not, so what an intruder's keys can

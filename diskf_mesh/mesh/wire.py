@@ -3,7 +3,7 @@
 Every payload is one msgpack map with short keys. Common to all kinds:
 
     "v"   schema version (``SCHEMA``)
-    "k"   kind: "msg" | "report" | "tick" | "meas" | "stop"
+    "k"   kind: "msg" | "report" | "tick" | "meas" | "stop" | "join" | "start"
     "run" run id (the key prefix diskf/<run-id>/ carries it too)
     "t"   tick k >= 1 ("stop": the last tick)
 

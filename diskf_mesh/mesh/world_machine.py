@@ -399,7 +399,7 @@ class WorldMachine:
             self._set_timer("tick", now + self.timing.tick_timeout)
 
     def _on_sample(self, key: str, payload: bytes, now: float) -> None:
-        """A report, a rejoin or a duplicate's notice of an agent."""
+        """An agent's report, or a duplicate's notice."""
         kind, who = self.keys.parse(key)
         if kind == "report":
             try:
@@ -460,10 +460,7 @@ class WorldMachine:
         what did not come is missing; open tick k+1 (or pause, if every agent
         is gone), or end."""
         k = self.k
-        for j, i in enumerate(self.ids):
-            if i in self._live_at_open and not self.record.reported[k - 1, j]:
-                self.record.why[k - 1, j] = ("rejected" if i in self._rejected else
-                                             "left" if i not in self.ready else "no report")
+        self._mark_missing(k)
         for i in sorted(self._waiting):
             self.record.counters["missing-report"] += 1
             self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
@@ -481,6 +478,15 @@ class WorldMachine:
             self._pause("every agent is gone", self._live_at_open, now)
         else:
             self._open_tick(k + 1, now)
+
+    def _mark_missing(self, k: int) -> None:
+        """Why each agent live at tick k has no report of it: its report
+        failed the decoder, it left (its ready token went), or none came."""
+        rec = self.record
+        for j, i in enumerate(self.ids):
+            if rec.live[k - 1, j] and not rec.reported[k - 1, j]:
+                rec.why[k - 1, j] = ("rejected" if i in self._rejected else
+                                     "left" if i not in self.ready else "no report")
 
     # ======================================================================
     # 3. real time (``mesh.clock``)
@@ -506,9 +512,8 @@ class WorldMachine:
         deadline (its report may still come: ``late_reports``)."""
         dl = self.record.deadlines
         for i in sorted(self._owed.get(k, ())):
-            j = self._index[i]
-            self.record.why[k - 1, j] = "rejected" if i in self._rejected else "no report"
             dl.report_misses[i] += 1
+        self._mark_missing(k)
         self._open, self._ended, self._closed = 0, k, k
         self.prof.tick()
         if self.progress is not None:
