@@ -5,8 +5,9 @@ few neighbours' messages, one message in the guard) numpy's per-call
 overhead is most of the time; these kernels do the same IEEE operations on
 Python floats, so every result equals the numpy path of ``linalg`` bit for
 bit (``tests/test_linalg_fast.py``). ``linalg`` chooses between them;
-``mesh.guard`` checks single messages with ``inverse`` and
-``extreme_eigenvalues``.
+the checks of single messages, reports and starting estimates
+(``mesh.guard``, ``mesh.wire``) use ``eigen_range``, ``information_gain``
+and ``cholesky_ok``, which take nested lists (size 1 or 2) or arrays.
 """
 from __future__ import annotations
 
@@ -124,3 +125,49 @@ def extreme_eigenvalues(M: list) -> tuple:
     (p, _), (q, r) = M
     hi = 0.5 * (p + r) + math.hypot(0.5 * (p - r), q)
     return ((p * r - q * q) / hi if hi > 0 else hi), hi
+
+
+def eigen_range(M) -> tuple:
+    """(smallest, largest) eigenvalue of a symmetric matrix (lower triangle,
+    as ``eigvalsh``): nested lists of size 1 or 2, or an array."""
+    if isinstance(M, list):
+        return extreme_eigenvalues(M)
+    if M.shape[-1] <= 2:
+        return extreme_eigenvalues(M.tolist())
+    ev = np.linalg.eigvalsh(M)
+    return float(ev[0]), float(ev[-1])
+
+
+def information_gain(P_pred, P_upd) -> tuple:
+    """(smallest eigenvalue of sym(inv(P_upd) - inv(P_pred)), max |inv(P_upd)|):
+    what an update added to the information matrix (never negative for a
+    Kalman update); nested lists of size 1 or 2, or arrays."""
+    if not isinstance(P_upd, list) and P_upd.shape[-1] <= 2:
+        P_pred, P_upd = P_pred.tolist(), P_upd.tolist()
+    if isinstance(P_upd, list):
+        k = len(P_upd)
+        Yu, Yp = inverse(P_upd), inverse(P_pred)
+        scale = max(abs(v) for row in Yu for v in row)
+        if k == 1:
+            return Yu[0][0] - Yp[0][0], scale
+        a, c = Yu[0][0] - Yp[0][0], Yu[1][1] - Yp[1][1]
+        b = 0.5 * ((Yu[0][1] - Yp[0][1]) + (Yu[1][0] - Yp[1][0]))
+        return 0.5 * (a + c) - math.hypot(0.5 * (a - c), b), scale
+    Yu = np.linalg.inv(P_upd)
+    dY = Yu - np.linalg.inv(P_pred)
+    return float(np.linalg.eigvalsh(0.5 * (dY + dY.T))[0]), float(np.abs(Yu).max())
+
+
+def cholesky_ok(a: list) -> bool:
+    """Whether the Cholesky factorisation of a small symmetric matrix (nested
+    lists, lower triangle read) has a positive pivot at every step."""
+    k = len(a)
+    L = [[0.0] * k for _ in range(k)]
+    for j in range(k):
+        pivot = a[j][j] - sum(L[j][i] * L[j][i] for i in range(j))
+        if not pivot > 0.0:
+            return False
+        L[j][j] = pivot ** 0.5
+        for r in range(j + 1, k):
+            L[r][j] = (a[r][j] - sum(L[r][i] * L[j][i] for i in range(j))) / L[j][j]
+    return True

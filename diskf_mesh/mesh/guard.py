@@ -65,7 +65,6 @@ its own estimate for that tick instead of stopping.
 from __future__ import annotations
 
 import logging
-import math
 from collections import Counter
 from dataclasses import dataclass
 
@@ -208,13 +207,13 @@ def message_problem(wm: wire.WireMessage, c: GuardConfig):
     if big > c.max_abs:
         return "magnitude", f"a value of {big:.3g} (limit {c.max_abs:.3g})"
     for s in lay.covariances:
-        ev = _extreme_eigenvalues(_rows(values, s) if small_values else getattr(msg, s.name))
+        ev = small.eigen_range(_rows(values, s) if small_values else getattr(msg, s.name))
         if not ev[0] > 0 or ev[-1] > c.max_cond * ev[0]:
             return "ill-conditioned", f"{s.name} eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}"
     if c.information_check:
         for s, of in lay.updates:
-            low, scale = (_information_gain(_rows(values, of), _rows(values, s)) if small_values else
-                          _information_gain(getattr(msg, of.name), getattr(msg, s.name)))
+            low, scale = (small.information_gain(_rows(values, of), _rows(values, s)) if small_values else
+                          small.information_gain(getattr(msg, of.name), getattr(msg, s.name)))
             if low < -c.information_rtol * scale:
                 return "information", f"{s.name} adds negative information ({low:.3g})"
     return None
@@ -230,33 +229,3 @@ def _rows(values: tuple, s: wire.Slot):
     if k == 2:
         return [[v[0], v[1]], [v[2], v[3]]]
     return np.array(v, dtype=float).reshape(k, k)
-
-
-def _extreme_eigenvalues(M) -> tuple:
-    """(smallest, largest) eigenvalue of a symmetric matrix (lower triangle,
-    as ``eigvalsh``): nested lists of size 1 or 2, or an array."""
-    if isinstance(M, list):
-        return small.extreme_eigenvalues(M)
-    if M.shape[-1] <= 2:
-        return small.extreme_eigenvalues(M.tolist())
-    ev = np.linalg.eigvalsh(M)
-    return float(ev[0]), float(ev[-1])
-
-
-def _information_gain(P_pred, P_upd) -> tuple:
-    """(smallest eigenvalue of sym(inv(P_upd) - inv(P_pred)), max |inv(P_upd)|);
-    nested lists of size 1 or 2, or arrays."""
-    if not isinstance(P_upd, list) and P_upd.shape[-1] <= 2:
-        P_pred, P_upd = P_pred.tolist(), P_upd.tolist()
-    if isinstance(P_upd, list):
-        k = len(P_upd)
-        Yu, Yp = small.inverse(P_upd), small.inverse(P_pred)
-        scale = max(abs(v) for row in Yu for v in row)
-        if k == 1:
-            return Yu[0][0] - Yp[0][0], scale
-        a, c = Yu[0][0] - Yp[0][0], Yu[1][1] - Yp[1][1]
-        b = 0.5 * ((Yu[0][1] - Yp[0][1]) + (Yu[1][0] - Yp[1][0]))
-        return 0.5 * (a + c) - math.hypot(0.5 * (a - c), b), scale
-    Yu = np.linalg.inv(P_upd)
-    dY = Yu - np.linalg.inv(P_pred)
-    return float(np.linalg.eigvalsh(0.5 * (dY + dY.T))[0]), float(np.abs(Yu).max())

@@ -100,7 +100,7 @@ from dataclasses import dataclass, field
 import msgpack
 import numpy as np
 
-from diskf_mesh.core.small import extreme_eigenvalues
+from diskf_mesh.core.small import cholesky_ok, eigen_range
 from diskf_mesh.core.messages import Message
 from diskf_mesh.estimators.base import EXCHANGED
 from diskf_mesh.mesh.counters import SCALARS
@@ -615,7 +615,7 @@ def _spd(values, a: np.ndarray, spans, rtol: float = 1e-9) -> None:
             if not v[0] > 0.0:
                 raise Rejected("not-spd", "a variance is not positive")
             continue
-        if k == 2:  # the same arithmetic as _cholesky_ok, unrolled
+        if k == 2:  # the same arithmetic as cholesky_ok, unrolled
             p, q, s, r = v
             if abs(q - s) > rtol * max(abs(p), abs(q), abs(s), abs(r)):
                 raise Rejected("not-spd", "a covariance is not symmetric")
@@ -629,23 +629,8 @@ def _spd(values, a: np.ndarray, spans, rtol: float = 1e-9) -> None:
         scale = max(abs(x) for x in v)
         if any(abs(rows[i][j] - rows[j][i]) > rtol * scale for i in range(k) for j in range(i)):
             raise Rejected("not-spd", "a covariance is not symmetric")
-        if not _cholesky_ok(rows):
+        if not cholesky_ok(rows):
             raise Rejected("not-spd", "a covariance is not positive definite")
-
-
-def _cholesky_ok(a: list) -> bool:
-    """Whether the Cholesky factorisation of a small symmetric matrix (lists,
-    lower triangle read) has a positive pivot at every step."""
-    k = len(a)
-    L = [[0.0] * k for _ in range(k)]
-    for j in range(k):
-        pivot = a[j][j] - sum(L[j][i] * L[j][i] for i in range(j))
-        if not pivot > 0.0:
-            return False
-        L[j][j] = pivot ** 0.5
-        for r in range(j + 1, k):
-            L[r][j] = (a[r][j] - sum(L[r][i] * L[j][i] for i in range(j))) / L[j][j]
-    return True
 
 
 def estimate_problem(a: np.ndarray, P: np.ndarray, max_abs: float = MAX_ABS, max_cond: float = MAX_COND):
@@ -657,7 +642,7 @@ def estimate_problem(a: np.ndarray, P: np.ndarray, max_abs: float = MAX_ABS, max
     big = float(np.abs(a).max()) if a.size else 0.0
     if big > max_abs:
         return "magnitude", f"a value of {big:.3g} (limit {max_abs:.3g})"
-    ev = extreme_eigenvalues(P.tolist()) if P.shape[-1] <= 2 else np.linalg.eigvalsh(P)[[0, -1]]
+    ev = eigen_range(P)
     if not ev[0] > 0 or ev[-1] > max_cond * ev[0]:
         return "ill-conditioned", f"P eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}"
     return None
