@@ -15,7 +15,7 @@ from diskf_mesh.mesh.rejoin import start_from
 from diskf_mesh.mesh.events import (Ask, AskTokens, DeclareToken, DropToken, Finish, Publish, Reply, Sample,
                                     SetTimer, Subscribe, Timer, Token, Tokens, WatchTokens, Woke)
 from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.transport import key_matches
+from diskf_mesh.mesh.keys import key_matches
 
 RUN = "m"
 K = 12

@@ -211,3 +211,36 @@ _SHAPES = {
 # (first segment, segment count) -> index of the id segment
 _ID_POS = {("world", 3): 2, ("agent", 3): 1, ("alive", 4): 2, ("ready", 4): 2, ("start", 2): 1}
 _NONCE_POS = {("alive", 3): 2, ("alive", 4): 3, ("ready", 4): 3}  # "*" in _SHAPES: any nonce
+
+
+def _pattern(expr: str) -> str:
+    """The regular expression of a key expression: ``**`` any chunks (none
+    too), ``*`` one chunk, ``$*`` any characters within a chunk."""
+    chunks = []
+    for c in expr.split("/"):
+        if not (c == "**" and chunks and chunks[-1] == "**"):  # "**/**" is "**"
+            chunks.append(c)
+    if chunks == ["**"]:
+        return ".*"
+    out, lead = "", True  # lead: the next chunk needs no '/' before it
+    for i, c in enumerate(chunks):
+        if c == "**":
+            out += "(?:[^/]+/)*" if i == 0 else "(?:/[^/]+)*"
+            lead = i == 0
+            continue
+        piece = "[^/]*" if c == "*" else "[^/]*".join(map(re.escape, c.split("$*")))
+        out += piece if lead else "/" + piece
+        lead = False
+    return out
+
+
+@functools.lru_cache(maxsize=1024)
+def matcher(expr: str):
+    """``fullmatch`` of a key expression's compiled pattern: ``matcher(e)(key)``
+    is truthy where zenoh's ``KeyExpr(e).includes(key)`` is (for keys and
+    for expressions matched chunk for chunk)."""
+    return re.compile(_pattern(expr)).fullmatch
+
+
+def key_matches(expr: str, key: str) -> bool:
+    return matcher(expr)(key) is not None

@@ -4,7 +4,7 @@ process, on a virtual clock, with the real protocol machines.
 The processes are sans-I/O machines (``mesh.events``: ``start(now)``,
 ``handle(event, now)`` -> effects). ``SimNet`` carries out their effects on
 a virtual clock (``mesh.schedule``): what one publishes reaches every
-process subscribed to a matching key expression (``transport.key_matches``)
+process subscribed to a matching key expression (``keys.matcher``)
 over a link with a delay, jitter, loss, duplication and reordering
 (``Link``), under the access rules of the run's credentials
 (``mesh.access``); liveliness tokens appear and go as zenoh's do (``Lease``);
@@ -44,7 +44,6 @@ May import: core, estimators, data, engine (the mesh layer).
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -52,6 +51,7 @@ import numpy as np
 
 from diskf_mesh.mesh import events as ev
 from diskf_mesh.mesh.access import Access
+from diskf_mesh.mesh.keys import matcher
 from diskf_mesh.mesh.schedule import Schedule, Trace
 
 NO_LOSS = "**"
@@ -178,31 +178,6 @@ class _Proc:
         return f"{self.pid}#{self.inc}"
 
 
-def _pattern(expr: str) -> str:
-    """The regular expression of a key expression (``**`` any chunks, ``*``
-    one chunk, ``$*`` any characters within a chunk), as ``key_matches``."""
-    chunks = []
-    for c in expr.split("/"):
-        if not (c == "**" and chunks and chunks[-1] == "**"):  # "**/**" is "**"
-            chunks.append(c)
-    if chunks == ["**"]:
-        return ".*"
-    out, lead = "", True  # lead: the next chunk needs no '/' before it
-    for i, c in enumerate(chunks):
-        if c == "**":
-            out += "(?:[^/]+/)*" if i == 0 else "(?:/[^/]+)*"
-            lead = i == 0
-            continue
-        piece = "[^/]*" if c == "*" else "[^/]*".join(map(re.escape, c.split("$*")))
-        out += piece if lead else "/" + piece
-        lead = False
-    return out
-
-
-def _matcher(expr: str):
-    return re.compile(_pattern(expr)).fullmatch
-
-
 class _Routes:
     """Which subscriptions (queryables, watches) match a key: exact
     expressions in a dict, wildcard ones as compiled matchers, answers kept
@@ -216,7 +191,7 @@ class _Routes:
     def add(self, expr: str, proc) -> None:
         self.memo.clear()
         if "*" in expr:
-            self.wild.setdefault(expr, (_matcher(expr), []))[1].append(proc)
+            self.wild.setdefault(expr, (matcher(expr), []))[1].append(proc)
         else:
             self.exact.setdefault(expr, []).append(proc)
 
@@ -628,7 +603,7 @@ class SimNet:
     # -- liveliness ----------------------------------------------------------------
     def _watch(self, proc: _Proc, expr: str) -> None:
         """A new watch: the tokens visible now come first (zenoh's history)."""
-        m = _matcher(expr)
+        m = matcher(expr)
         older = [mm for _, mm in proc.watches]
         proc.watches.append((expr, m))
         self._watches.add(expr, proc)
@@ -712,7 +687,7 @@ class SimNet:
         self.sched.at(self.sched.now + self.link.delay, ("tokens-now", proc, e.qid, e.key, e.timeout))
 
     def _tokens_now(self, proc: _Proc, qid: int, expr: str, timeout: float) -> None:
-        m = _matcher(expr)
+        m = matcher(expr)
         keys = sorted({key for owner in self._all if owner.tokens and self._visible(owner, proc)
                        and (owner is proc or self._link(proc, owner).delay + self._link(owner, proc).delay <= timeout)
                        for key in owner.tokens if m(key)})
@@ -734,7 +709,7 @@ class SimNet:
 
 
 def _faulty(link: Link, key: str) -> bool:
-    return link.faulty == NO_LOSS or bool(_matcher(link.faulty)(key))
+    return link.faulty == NO_LOSS or bool(matcher(link.faulty)(key))
 
 
 def _describe(event) -> str:

@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import collections
 import os
-import re
 import threading
 import time
 from typing import Callable
+
+from diskf_mesh.mesh.keys import key_matches
 
 OnSample = Callable[[str, bytes], None]
 OnToken = Callable[[str, bool], None]
@@ -234,27 +235,6 @@ class _Once:
 # --------------------------------------------------------------------------
 # in-process
 # --------------------------------------------------------------------------
-def _chunk_matches(e: str, k: str) -> bool:
-    if e == "*" or e == k:
-        return True
-    if "$*" not in e:
-        return False
-    return re.fullmatch(".*".join(map(re.escape, e.split("$*"))), k) is not None
-
-
-def key_matches(expr: str, key: str) -> bool:
-    """Key expression matching for ``*`` (one chunk), ``**`` (any chunks) and
-    ``$*`` (any characters within a chunk)."""
-    def match(e, k):
-        if not e:
-            return not k
-        if e[0] == "**":
-            return any(match(e[1:], k[i:]) for i in range(len(k) + 1))
-        return bool(k) and _chunk_matches(e[0], k[0]) and match(e[1:], k[1:])
-
-    return match(expr.split("/"), key.split("/"))
-
-
 class LocalBus:
     """A zenoh stand-in inside one process: ``bus.transport()`` per node.
 
