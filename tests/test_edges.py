@@ -193,9 +193,9 @@ def test_report_shows_a_line_per_study_when_not_a_terminal(tmp_path):
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     lines = [line for line in done.stderr.splitlines() if line.startswith("report: [")]
-    from diskf_mesh.studies import suite
+    from diskf_mesh.studies import report
 
-    assert len(lines) == len(suite.STUDIES) + 1 and lines[-1].startswith(f"report: [{len(lines)}/{len(lines)}]")
+    assert len(lines) == len(report.JOBS) + 1 and lines[-1].startswith(f"report: [{len(lines)}/{len(lines)}]")
     assert any("figures" in line for line in lines)
 
 

@@ -22,7 +22,7 @@ def progress_line(i: int, n: int, title: str, seconds: float) -> None:
 
 def report(cfg, out, lines: bool = True, jobs: int | None = None) -> str:
     from diskf_mesh.studies.report import write_report  # matplotlib: only when drawing
-    from diskf_mesh.studies.suite import workers
+    from diskf_mesh.studies.report import workers
 
     md, js, *figs = write_report(cfg, out, progress_line if lines else None, jobs=jobs or workers())
     return f"report -> {md} ({len(figs)} figures, numbers in {js})"

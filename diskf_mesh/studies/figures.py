@@ -387,6 +387,44 @@ class _Folder:
         return self.folder / f"{name}.{self.fmt}"
 
 
+def stationary_figures(ring: Run, out: _Folder) -> list[Path]:
+    """Scenario 1 in a ring: the layout, and every estimator's trajectory,
+    input and states (the paper's Figs. 7-10)."""
+    return [plot_scenario(ring.scn, ring.trace, out / "scenario_stationary", ticks=()),
+            plot_trajectories(ring, out / "trajectories_stationary_ring"),
+            plot_inputs(ring, out / "inputs_stationary_ring"),
+            plot_states(ring, out / "states_stationary_ring")]
+
+
+def dynamic_figures(dynamic: Run, sweep: dict, dyn: dict, out: _Folder) -> list[Path]:
+    """Scenario 2: the layout and links, every estimator at the paper's range
+    (``dynamic``), error against range (``sweep``) and the bars of Fig. 5
+    (``dyn``)."""
+    return [plot_scenario(dynamic.scn, dynamic.trace, out / "scenario_dynamic"),
+            plot_trajectories(dynamic, out / "trajectories_dynamic_120"),
+            plot_inputs(dynamic, out / "inputs_dynamic_120"),
+            plot_states(dynamic, out / "states_dynamic_120", nodes=(0, 4, 8)),
+            plot_error_vs_range(sweep, out / "error_vs_range"),
+            plot_bars(dyn, out / "dynamic_bars",
+                      "Scenario 2: errors at range 120 and all-to-all (bars: std over seeds)")]
+
+
+def isolated_figure(isolated: Run, out: _Folder) -> list[Path]:
+    return [plot_sensor_split(isolated, out / "isolated_by_sensor", studies.sensor_zeros(isolated.scn))]
+
+
+def window_figures(ring: Run, dynamic: Run, out: _Folder) -> list[Path]:
+    """The window variants' input estimates, Scenario 1 ring and Scenario 2
+    at the paper's range."""
+    return [plot_window(ring, out / "window_stationary_ring"), plot_window(dynamic, out / "window_dynamic_120")]
+
+
+RING_TITLE = "Scenario 1, 1-hop (ring)"
+DYNAMIC_TITLE = f"Scenario 2, range {studies.PAPER_RANGE:g}"
+ISOLATED_TITLE = "Scenario 2, isolated"
+WINDOW_RING_TITLE = "Scenario 1, 1-hop"
+
+
 def make_figures(cfg: studies.StudyConfig, out_dir, results: studies.Results | None = None,
                  fmt: str = "png") -> list[Path]:
     """Every figure into ``out_dir`` as ``fmt`` (``FORMATS``); studies not
@@ -395,24 +433,11 @@ def make_figures(cfg: studies.StudyConfig, out_dir, results: studies.Results | N
     sweep = results.sweep if results and results.sweep else studies.range_sweep(cfg)
     dyn = results.dynamic if results and results.dynamic else studies.dynamic_table(cfg)
     r120 = studies.range_setting(studies.PAPER_RANGE)
-    ring = Run.of(cfg, studies.STATIONARY, studies.RING, "Scenario 1, 1-hop (ring)")
-    dynamic = Run.of(cfg, studies.DYNAMIC, r120, f"Scenario 2, range {studies.PAPER_RANGE:g}")
-    isolated = Run.of(cfg, studies.DYNAMIC, studies.NONE, "Scenario 2, isolated", algs=("diskf", "cdrkf", "kcf"))
-    paths = [
-        plot_scenario(dynamic.scn, dynamic.trace, out / "scenario_dynamic"),
-        plot_scenario(ring.scn, ring.trace, out / "scenario_stationary", ticks=()),
-        plot_trajectories(ring, out / "trajectories_stationary_ring"),
-        plot_trajectories(dynamic, out / "trajectories_dynamic_120"),
-        plot_inputs(ring, out / "inputs_stationary_ring"),
-        plot_inputs(dynamic, out / "inputs_dynamic_120"),
-        plot_states(ring, out / "states_stationary_ring"),
-        plot_states(dynamic, out / "states_dynamic_120", nodes=(0, 4, 8)),
-        plot_error_vs_range(sweep, out / "error_vs_range"),
-        plot_bars(dyn, out / "dynamic_bars", "Scenario 2: errors at range 120 and all-to-all (bars: std over seeds)"),
-        plot_sensor_split(isolated, out / "isolated_by_sensor", studies.sensor_zeros(isolated.scn)),
-    ]
-    for name, st, title, slug in ((studies.STATIONARY, studies.RING, "Scenario 1, 1-hop", "stationary_ring"),
-                                  (studies.DYNAMIC, r120, dynamic.title, "dynamic_120")):
-        run = Run.variants(cfg, name, st, title, studies.window_variants)
-        paths.append(plot_window(run, out / f"window_{slug}"))
-    return paths
+    ring = Run.of(cfg, studies.STATIONARY, studies.RING, RING_TITLE)
+    dynamic = Run.of(cfg, studies.DYNAMIC, r120, DYNAMIC_TITLE)
+    isolated = Run.of(cfg, studies.DYNAMIC, studies.NONE, ISOLATED_TITLE, algs=("diskf", "cdrkf", "kcf"))
+    windows = [Run.variants(cfg, name, st, title, studies.window_variants)
+               for name, st, title in ((studies.STATIONARY, studies.RING, WINDOW_RING_TITLE),
+                                       (studies.DYNAMIC, r120, DYNAMIC_TITLE))]
+    return (dynamic_figures(dynamic, sweep, dyn, out) + stationary_figures(ring, out) + isolated_figure(isolated, out)
+            + window_figures(*windows, out))

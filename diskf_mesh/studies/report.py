@@ -8,9 +8,10 @@ own tables. ``write_report`` runs everything and writes
 from __future__ import annotations
 
 import math
-import time
+import os
 import subprocess
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -672,30 +673,128 @@ def front_page_table(table_ii: dict) -> str:
     return "\n".join(lines)
 
 
+# --------------------------------------------------------------------------
+# running: the studies as jobs, each engine run once
+# --------------------------------------------------------------------------
+def _scenario1(cfg: studies.StudyConfig, out) -> tuple:
+    runs = studies.setting_runs(cfg, studies.STATIONARY, studies.PAPER_SETTINGS_1, keep=("ring",))
+    paths = figures.stationary_figures(figures.Run(figures.RING_TITLE, *runs.runs["ring"]), out)
+    return {"table_ii": studies.paper_rows(runs), "overview 1": studies.SettingRuns(runs.rows, {})}, paths
+
+
+def _scenario2(cfg: studies.StudyConfig, out) -> tuple:
+    r = f"{studies.PAPER_RANGE:g}"
+    runs = studies.setting_runs(cfg, studies.DYNAMIC, studies.sweep_settings(), keep=(r,))
+    sweep, dyn = studies.paper_rows(runs), studies.paper_rows(runs, [r, "all"])
+    paths = figures.dynamic_figures(figures.Run(figures.DYNAMIC_TITLE, *runs.runs[r]), sweep, dyn, out)
+    return {"sweep": sweep, "dynamic": dyn, "overview 2": studies.SettingRuns(runs.rows, {})}, paths
+
+
+def _random_geometric(cfg: studies.StudyConfig, out) -> tuple:
+    runs = studies.setting_runs(cfg, studies.RANDOM_GEOMETRIC, [studies.RANDOM_GEOMETRIC_SETTING])
+    return {"overview 3": runs}, []
+
+
+def _window(cfg: studies.StudyConfig, out) -> tuple:
+    runs: dict = {}
+    done = studies.window_ablation(cfg, runs=runs)
+    ring, dyn = (figures.Run(title, *runs[cell]) for title, cell in
+                 ((figures.WINDOW_RING_TITLE, ("stationary", "1-hop")), (figures.DYNAMIC_TITLE, ("dynamic", "1-hop"))))
+    return {"window": done}, figures.window_figures(ring, dyn, out)
+
+
+def _diagnostics(cfg: studies.StudyConfig, out) -> tuple:
+    runs: list = []
+    done = studies.diagnostics(cfg, runs=runs)
+    return {"diagnostics": done}, figures.isolated_figure(figures.Run(figures.ISOLATED_TITLE, *runs[0]), out)
+
+
+def _study(field: str, fn):
+    return lambda cfg, out: ({field: fn(cfg)}, [])
+
+
+# (key, what its progress line calls it, the job); longest first, so that a pool ends with the short ones.
+# Every estimator runs once per setting: the paper's tables, the overview (10.2) and the figures read the
+# same runs.
+JOBS = (
+    ("scenario 2", "Scenario 2 at every range: Figs. 5 and 6, 10.2, and its figures", _scenario2),
+    ("random-geometric", "random-geometric network (10.2)", _random_geometric),
+    ("robustness", "robustness (10.5)", _study("robustness", studies.robustness)),
+    ("robust ablation", "DISKF-R ablation (10.4)", _study("robust_ablation", studies.robust_ablation)),
+    ("scenario 1", "Scenario 1: Table II, 10.2, and its figures", _scenario1),
+    ("hold", "holding the input (8.5)", _study("hold", studies.hold_ablation)),
+    ("compensation", "Table I: compensation", _study("compensation", studies.compensation_ablation)),
+    ("window", "Fig. 3: window, and its figures", _window),
+    ("diagnostics", "diagnostics (8), and the isolated agents' figure", _diagnostics),
+    ("topology", "topology statistics", _study("topology", studies.topology_stats)),
+)
+
+
+def run_job(key: str, cfg: studies.StudyConfig, figdir) -> tuple:
+    """(results, figure paths, seconds) of the job ``key``: one task of ``run_jobs``."""
+    t0 = time.monotonic()
+    fn = dict((k, f) for k, _, f in JOBS)[key]
+    parts, paths = fn(cfg, figures._Folder(figdir))
+    return parts, paths, time.monotonic() - t0
+
+
+def workers() -> int:
+    """Processes for the jobs: the cores this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1) -> tuple:
+    """Every job, in ``jobs`` processes (each seeded, so the numbers do not
+    depend on which process runs it): (studies.Results, figure paths);
+    ``progress(title, seconds)`` after each."""
+    titles = {k: t for k, t, _ in JOBS}
+    parts: dict = {}
+    paths: dict = {}
+
+    def finished(key, part, figs, seconds):
+        parts.update(part)
+        paths[key] = figs
+        if progress is not None:
+            progress(titles[key], seconds)
+
+    if jobs <= 1:
+        for key, _, _ in JOBS:
+            finished(key, *run_job(key, cfg, figdir))
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        quiet = replace(cfg, quiet=True)  # no bars from the workers: the lines say how far it is
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(run_job, key, quiet, figdir): key for key, _, _ in JOBS}
+            for f in as_completed(futures):
+                finished(futures[f], *f.result())
+    overview = studies.overview_rows(parts.pop("overview 1"), parts.pop("overview 2"), parts.pop("overview 3"))
+    res = studies.Results(config={"seeds": cfg.seeds, "steps": cfg.steps, "algorithms": list(cfg.algorithms)},
+                          overview=overview, **parts)
+    return res, [p for key, _, _ in JOBS for p in paths[key]]
+
+
 def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1) -> list[Path]:
-    """Run every study (in ``jobs`` processes), write the figures, the
-    markdown and the JSON; ``progress(i, n, title, seconds)`` after each
-    step, if given. The figures are drawn here while the last studies run
-    in the other processes, as soon as the studies they use are done."""
+    """Run every job (in ``jobs`` processes), which draw the figures from
+    their own runs, then write the markdown and the JSON;
+    ``progress(i, n, title, seconds)`` after each job and after the writing,
+    if given."""
     out = Path(out_dir)
     started = provenance.now()
-    n = len(studies.STUDIES) + 1
+    n = len(JOBS) + 1
     steps = [0]
-    paths: list[Path] = []
 
     def line(title: str, seconds: float) -> None:
         steps[0] += 1
         if progress is not None:
             progress(steps[0], n, title, seconds)
 
-    def draw(done: dict) -> None:
-        if not paths and "sweep" in done and "dynamic" in done:
-            t0 = time.monotonic()
-            paths.extend(figures.make_figures(cfg, out / "figures", studies.Results(
-                config={}, sweep=done["sweep"], dynamic=done["dynamic"])))
-            line("figures", time.monotonic() - t0)
-
-    res = studies.run_all(cfg, lambda i, _, title, s: line(title, s), jobs=jobs, done_hook=draw)
+    res, paths = run_jobs(cfg, out / "figures", line, jobs)
+    t0 = time.monotonic()
     md = out / "reproduction.md"
     with atomic_open(md, "w") as f:
         f.write(render(res, "figures"))
@@ -704,4 +803,5 @@ def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1
                              estimator=cfg.algorithms, settings={s.name: s.params for s in scns}, status="done",
                              started=started)
     save_json(out / "results.json", provenance.attach(res.to_json(), prov), "out")
+    line("reproduction.md and results.json", time.monotonic() - t0)
     return [md, out / "results.json", *paths]

@@ -16,9 +16,7 @@ Rows are ``{metric: pooled value, metric_std: spread over seeds}`` as in
 """
 from __future__ import annotations
 
-import os
 import sys
-import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -29,7 +27,7 @@ from diskf_mesh.engine import centralized
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics
 from diskf_mesh.studies import experiment
-from diskf_mesh.studies.experiment import Setting, run_experiment
+from diskf_mesh.studies.experiment import Setting
 from diskf_mesh.core.model import COMPENSATION_FORMS
 from diskf_mesh.estimators import Params
 from diskf_mesh.data.scenario import Scenario, load_scenario, simulate
@@ -99,55 +97,155 @@ def observed(trace) -> np.ndarray:
     return np.einsum("bkij,bkj->bki", L, trace.has.astype(float)) > 0
 
 
+DIVERGED = {"diverged": True, **{k: float("nan") for k in metrics.METRIC_KEYS + ("nees_observed",)}}
+
+
 def run_variants(scn: Scenario, variants, cfg: StudyConfig, bar=None, trace=None):
     """Every variant on one trace (simulated unless given):
     ({label: row}, {label: Estimates})."""
     trace = simulate(scn, cfg.seed_range) if trace is None else trace
-    heard = observed(trace)
-    rows, ests = {}, {}
-    for v in variants:
+    return run_cells([trace], [variants], bar, keep=True)[0]
+
+
+def run_cells(traces, variant_lists, bar=None, keep: bool = False) -> list:
+    """``variant_lists[i]`` on ``traces[i]``: [({label: row}, {label:
+    Estimates} if ``keep`` else {})] per trace. A variant (estimator and
+    parameters) that several traces share runs once on all of them
+    (``run_stacked``). A variant whose covariance diverges is a row saying so
+    (an ablation row), in the traces where it diverges alone."""
+    heard = [observed(t) for t in traces]
+    jobs: dict = {}
+    for i, variants in enumerate(variant_lists):
+        for v in variants:
+            jobs.setdefault((v.algorithm, v.params), {})[i] = None
+    done: dict = {}
+    for (alg, params), cells in jobs.items():
+        idx = list(cells)
         try:
-            ests[v.label] = est = engine.run(trace, v.algorithm, v.params)
-            rows[v.label] = metric_row(trace, est, heard)
-        except np.linalg.LinAlgError:  # a variant whose covariance diverged (an ablation row): say so
-            rows[v.label] = {"diverged": True, **{k: float("nan") for k in metrics.METRIC_KEYS + ("nees_observed",)}}
-        if bar is not None:
-            bar.update(1)
-    return rows, ests
-
-
-def _experiment(cfg: StudyConfig, name: str, settings, desc: str) -> dict:
-    """{alg: {setting: row}} for every algorithm, and the centralized bound
-    (``centralized.NAME``) as a reference row."""
-    scn = cfg.scenario(name)
-    with cfg.bar(len(settings) * len(cfg.algorithms), desc) as bar:
-        out = run_experiment(scn, settings, cfg.algorithms, cfg.seed_range, cfg.steps, progress=bar.update)
-    out[centralized.NAME] = {st.label: bound_row(cfg.scenario(name, st), cfg.seed_range) for st in settings}
+            ests = run_stacked([traces[i] for i in idx], alg, params)
+        except np.linalg.LinAlgError:  # one of them diverged: each alone, to say which
+            ests = [_run_or_none(traces[i], alg, params) for i in idx]
+        for i, est in zip(idx, ests):
+            done[alg, params, i] = (DIVERGED if est is None else metric_row(traces[i], est, heard[i]), est)
+            if bar is not None:
+                bar.update(sum(1 for v in variant_lists[i] if (v.algorithm, v.params) == (alg, params)))
+    out = []
+    for i, variants in enumerate(variant_lists):
+        rows = {v.label: dict(done[v.algorithm, v.params, i][0]) for v in variants}
+        ests = {v.label: done[v.algorithm, v.params, i][1] for v in variants
+                if keep and done[v.algorithm, v.params, i][1] is not None}
+        out.append((rows, ests))
     return out
 
 
-def bound_row(scn: Scenario, seeds) -> dict:
-    """The centralized Gillijns-De Moor filter's row on ``scn``."""
-    tr = simulate(scn, seeds)
-    return metric_row(tr, centralized.run_centralized(tr))
+def _run_or_none(trace, alg: str, params: Params):
+    try:
+        return engine.run(trace, alg, params)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def run_stacked(traces, name: str, params: Params) -> list:
+    """``engine.run`` of one estimator on each trace, the traces that stack
+    (``engine.stackable``: same model, sensors and horizon) in one batch
+    (``engine.run_many``): the per-tick overhead is paid once per batch, and
+    the estimates are those of separate runs, bit for bit."""
+    groups: list[list[int]] = []
+    for i, t in enumerate(traces):
+        for g in groups:
+            if engine.stackable([traces[j] for j in g] + [t]):
+                g.append(i)
+                break
+        else:
+            groups.append([i])
+    out = [None] * len(traces)
+    for g in groups:
+        for i, est in zip(g, engine.run_many([traces[i] for i in g], name, params)):
+            out[i] = est
+    return out
+
+
+@dataclass
+class SettingRuns:
+    """Every estimator and both centralized references on the settings of one
+    scenario: ``rows[label][alg]`` (``metric_row``, with ``nees_observed``),
+    and the scenario, trace and estimates of the settings kept for figures
+    (``runs[label] = (scenario, trace, {alg: Estimates})``)."""
+
+    rows: dict
+    runs: dict
+
+
+def setting_runs(cfg: StudyConfig, name: str, settings, keep=()) -> SettingRuns:
+    """Each estimator once on all ``settings`` of scenario ``name`` (stacked:
+    ``run_stacked``), and the two centralized references on each; the paper's
+    tables (``paper_rows``) and the overview (``overview``) both read these rows."""
+    scns = [cfg.scenario(name, st) for st in settings]
+    traces = [simulate(s, cfg.seed_range) for s in scns]
+    labels = [st.label for st in settings]
+    with cfg.bar(len(settings) * len(cfg.algorithms), name) as bar:
+        rows, ests = estimator_rows(scns, traces, cfg.algorithms, bar, keep=[lab in keep for lab in labels])
+    return SettingRuns(dict(zip(labels, rows)),
+                       {lab: (scns[i], traces[i], ests[i]) for i, lab in enumerate(labels) if lab in keep})
+
+
+def estimator_rows(scns, traces, algs, bar=None, keep=None) -> tuple:
+    """([{alg: row} per trace], [{alg: Estimates} per trace, for those whose
+    ``keep`` is true]): every estimator in ``algs`` with each scenario's own
+    parameters, stacked where the traces stack, then both centralized
+    references (``bound_rows``)."""
+    heard = [observed(t) for t in traces]
+    keep = keep or [False] * len(traces)
+    rows: list[dict] = [{} for _ in traces]
+    ests: list[dict] = [{} for _ in traces]
+    for a in algs:
+        for params in dict.fromkeys(s.params for s in scns):
+            idx = [i for i, s in enumerate(scns) if s.params == params]
+            for i, est in zip(idx, run_stacked([traces[i] for i in idx], a, params)):
+                rows[i][a] = metric_row(traces[i], est, heard[i])
+                if keep[i]:
+                    ests[i][a] = est
+                if bar is not None:
+                    bar.update(1)
+    for i, (scn, tr) in enumerate(zip(scns, traces)):
+        rows[i].update(bound_rows(tr, scn, heard[i]))
+    return rows, ests
+
+
+def paper_rows(runs: SettingRuns, labels=None) -> dict:
+    """{alg: {setting label: row}} as the paper's tables show them: every
+    estimator's row without ``nees_observed``, then the centralized bound
+    (``centralized.NAME``) as a reference row."""
+    labels = list(runs.rows) if labels is None else list(labels)
+    algs = [a for a in runs.rows[labels[0]] if a != centralized.PERSIST_NAME]
+    return {a: {lab: (runs.rows[lab][a] if a == centralized.NAME else
+                      {k: v for k, v in runs.rows[lab][a].items() if k != "nees_observed"}) for lab in labels}
+            for a in algs}
 
 
 # --------------------------------------------------------------------------
 # the paper's tables and figures
 # --------------------------------------------------------------------------
+PAPER_SETTINGS_1 = (ALL, RING, NONE)
+
+
+def sweep_settings(ranges=DEFAULT_RANGES) -> list:
+    return [range_setting(r) for r in ranges] + [ALL]
+
+
 def table_ii(cfg: StudyConfig) -> dict:
     """Scenario 1: {alg: {all|ring|none: row}} (the paper's Table II)."""
-    return _experiment(cfg, STATIONARY, [ALL, RING, NONE], "Table II")
+    return paper_rows(setting_runs(cfg, STATIONARY, PAPER_SETTINGS_1))
 
 
 def dynamic_table(cfg: StudyConfig, comm_range: float = PAPER_RANGE) -> dict:
     """Scenario 2: {alg: {"120"|"all": row}} (the paper's Fig. 5)."""
-    return _experiment(cfg, DYNAMIC, [range_setting(comm_range), ALL], "Fig. 5")
+    return paper_rows(setting_runs(cfg, DYNAMIC, [range_setting(comm_range), ALL]))
 
 
 def range_sweep(cfg: StudyConfig, ranges=DEFAULT_RANGES) -> dict:
     """Scenario 2: {alg: {range label: row}}, isolated (0) to all-to-all."""
-    return _experiment(cfg, DYNAMIC, [range_setting(r) for r in ranges] + [ALL], "range sweep")
+    return paper_rows(setting_runs(cfg, DYNAMIC, sweep_settings(ranges)))
 
 
 def topology_stats(cfg: StudyConfig, ranges=DEFAULT_RANGES) -> dict:
@@ -193,23 +291,29 @@ def _ablation_settings():
             ("dynamic", "all-to-all", DYNAMIC, ALL), ("dynamic", "1-hop", DYNAMIC, range_setting(PAPER_RANGE)))
 
 
-def _ablation(cfg: StudyConfig, make_variants, desc: str, cells=None, identical_to=None) -> dict:
+def _ablation(cfg: StudyConfig, make_variants, desc: str, cells=None, identical_to=None, runs=None) -> dict:
     """{env: {comm: {"rows": {label: row}, "bit_identical": bool|None}}}.
 
     ``bit_identical``: every variant's estimates equal those of the variant
-    ``identical_to`` bit for bit (x, P, d and d_valid)."""
+    ``identical_to`` bit for bit (x, P, d and d_valid). ``runs``, if given,
+    receives {(env, comm): (scenario, trace, {label: Estimates})}."""
     cells = cells or _ablation_settings()
-    out: dict = {}
     scns = [cfg.scenario(name, st) for _, _, name, st in cells]
-    with cfg.bar(sum(len(make_variants(scale_params(scn))) for scn in scns), desc) as bar:
-        for (env, comm, name, st), scn in zip(cells, scns):
-            rows, ests = run_variants(scn, make_variants(scale_params(scn)), cfg, bar)
-            same = None
-            if identical_to is not None:
-                ref = ests[identical_to]
-                same = all(all(np.array_equal(getattr(e, f), getattr(ref, f)) for f in ("x", "P", "d", "d_valid"))
-                           for e in ests.values())
-            out.setdefault(env, {})[comm] = {"rows": rows, "bit_identical": same}
+    traces = [simulate(s, cfg.seed_range) for s in scns]
+    variant_lists = [make_variants(scale_params(scn)) for scn in scns]
+    keep = identical_to is not None or runs is not None
+    with cfg.bar(sum(len(v) for v in variant_lists), desc) as bar:
+        done = run_cells(traces, variant_lists, bar, keep=keep)
+    out: dict = {}
+    for (env, comm, _, _), scn, tr, (rows, ests) in zip(cells, scns, traces, done):
+        same = None
+        if identical_to is not None:
+            ref = ests[identical_to]
+            same = all(all(np.array_equal(getattr(e, f), getattr(ref, f)) for f in ("x", "P", "d", "d_valid"))
+                       for e in ests.values())
+        out.setdefault(env, {})[comm] = {"rows": rows, "bit_identical": same}
+        if runs is not None:
+            runs[env, comm] = (scn, tr, ests)
     return out
 
 
@@ -231,11 +335,12 @@ def window_variants(base: Params) -> list[Variant]:
             Variant(f"window {w}, reset", "diskf", replace(base, window=w, reset=True))]
 
 
-def window_ablation(cfg: StudyConfig) -> dict:
-    """Fig. 3 as numbers: the three window variants, 1-hop and isolated."""
+def window_ablation(cfg: StudyConfig, runs=None) -> dict:
+    """Fig. 3 as numbers: the three window variants, 1-hop and isolated
+    (``runs``: as in ``_ablation``, for the figures)."""
     cells = (("stationary", "1-hop", STATIONARY, RING), ("stationary", "none", STATIONARY, NONE),
              ("dynamic", "1-hop", DYNAMIC, range_setting(PAPER_RANGE)), ("dynamic", "none", DYNAMIC, NONE))
-    return _ablation(cfg, window_variants, "Fig. 3", cells=cells)
+    return _ablation(cfg, window_variants, "Fig. 3", cells=cells, runs=runs)
 
 
 def hold_variants(base: Params) -> list[Variant]:
@@ -258,16 +363,6 @@ def hold_ablation(cfg: StudyConfig) -> dict:
 RANDOM_GEOMETRIC = "random-geometric"
 
 
-def every_setting(cfg: StudyConfig) -> list:
-    """(group, label, scenario) of every setting the report shows: Scenario 1
-    all/ring/none, Scenario 2 at every range and all-to-all, random-geometric."""
-    out = [("Scenario 1", COMM[st.label], cfg.scenario(STATIONARY, st)) for st in (ALL, RING, NONE)]
-    out += [("Scenario 2", f"range {st.label}" if st.label != "all" else "all-to-all", cfg.scenario(DYNAMIC, st))
-            for st in [range_setting(r) for r in DEFAULT_RANGES] + [ALL]]
-    out.append(("random-geometric", "range", cfg.scenario(RANDOM_GEOMETRIC)))
-    return out
-
-
 COMM = {"all": "all-to-all", "ring": "1-hop (ring)", "none": "none"}
 
 
@@ -280,19 +375,24 @@ def bound_rows(tr, scn: Scenario, heard: np.ndarray | None = None) -> dict:
                                                  heard)}
 
 
+RANDOM_GEOMETRIC_SETTING = Setting("range")  # the scenario as shipped
+
+
 def overview(cfg: StudyConfig) -> dict:
     """{"group / setting": {alg: row}} for every algorithm and the centralized
-    bound in every setting (NEES of every estimator included)."""
-    out = {}
-    settings = every_setting(cfg)
-    with cfg.bar(len(settings), "overview") as bar:
-        for group, label, scn in settings:
-            tr = simulate(scn, cfg.seed_range)
-            heard = observed(tr)
-            rows = {a: metric_row(tr, engine.run(tr, a, scn.params), heard) for a in cfg.algorithms}
-            rows.update(bound_rows(tr, scn, heard))
-            out[f"{group} / {label}"] = rows
-            bar.update(1)
+    bound in every setting the report shows (NEES of every estimator
+    included): Scenario 1 all/ring/none, Scenario 2 at every range and
+    all-to-all, random-geometric."""
+    return overview_rows(setting_runs(cfg, STATIONARY, PAPER_SETTINGS_1), setting_runs(cfg, DYNAMIC, sweep_settings()),
+                         setting_runs(cfg, RANDOM_GEOMETRIC, [RANDOM_GEOMETRIC_SETTING]))
+
+
+def overview_rows(stationary: SettingRuns, dynamic: SettingRuns, random_geometric: SettingRuns) -> dict:
+    """``overview`` from the runs of its three scenarios."""
+    out = {f"Scenario 1 / {COMM[lab]}": rows for lab, rows in stationary.rows.items()}
+    out.update({f"Scenario 2 / {'all-to-all' if lab == 'all' else f'range {lab}'}": rows
+                for lab, rows in dynamic.rows.items()})
+    out.update({f"random-geometric / {lab}": rows for lab, rows in random_geometric.rows.items()})
     return out
 
 
@@ -379,17 +479,12 @@ def robustness(cfg: StudyConfig, algs=("diskf", "diskf-r", "kcf", "diffkf")) -> 
     """{"setting / perturbation": {alg: row}} on ``robust_seeds`` (unseen)."""
     cells = (("Scenario 1 ring", STATIONARY, RING), ("Scenario 1 none", STATIONARY, NONE),
              (f"Scenario 2 range {PAPER_RANGE:g}", DYNAMIC, range_setting(PAPER_RANGE)), ("Scenario 2 all", DYNAMIC, ALL))
-    out = {}
-    with cfg.bar(len(cells) * 8, "robustness") as bar:
-        for name, scn_name, st in cells:
-            for lab, scn in perturbations(cfg.scenario(scn_name, st)):
-                tr = simulate(scn, robust_seeds(cfg))
-                heard = observed(tr)
-                rows = {a: metric_row(tr, engine.run(tr, a, scn.params), heard) for a in algs}
-                rows.update(bound_rows(tr, scn, heard))
-                out[f"{name} / {lab}"] = rows
-                bar.update(1)
-    return out
+    cases = [(f"{name} / {lab}", scn) for name, scn_name, st in cells
+             for lab, scn in perturbations(cfg.scenario(scn_name, st))]
+    traces = [simulate(scn, robust_seeds(cfg)) for _, scn in cases]
+    with cfg.bar(len(cases) * len(algs), "robustness") as bar:
+        rows, _ = estimator_rows([scn for _, scn in cases], traces, algs, bar)
+    return {key: r for (key, _), r in zip(cases, rows)}
 
 
 # --------------------------------------------------------------------------
@@ -428,17 +523,22 @@ def sensor_zeros(scn: Scenario) -> dict:
             for g, mask in sensor_groups(scn).items()}
 
 
-def sensor_split(cfg: StudyConfig, name: str, setting: Setting, algs=("diskf", "cdrkf", "kcf")) -> dict:
+def sensor_split(cfg: StudyConfig, name: str, setting: Setting, algs=("diskf", "cdrkf", "kcf"), runs=None) -> dict:
     """{"zero": {type: zero}, alg: {sensor type: metrics}}: errors of the
-    agents of each sensor type, and the invariant zero of that type."""
+    agents of each sensor type, and the invariant zero of that type.
+    ``runs``, if given, receives (scenario, trace, {alg: Estimates})."""
     scn = cfg.scenario(name, setting)
     tr = simulate(scn, cfg.seed_range)
     groups = sensor_groups(scn)
     out: dict = {"zero": sensor_zeros(scn)}
+    ests = {}
     for alg in algs:
-        e_state, e_in, nees = metrics.errors(tr, engine.run(tr, alg, scn.params))
+        ests[alg] = est = engine.run(tr, alg, scn.params)
+        e_state, e_in, nees = metrics.errors(tr, est)
         out[alg] = {g: metrics.summarize(e_state, e_in, nees, np.broadcast_to(mask, e_state.shape))
                     for g, mask in groups.items()}
+    if runs is not None:
+        runs.append((scn, tr, ests))
     return out
 
 
@@ -468,9 +568,12 @@ def dynamic_variants(cfg: StudyConfig, comm_range: float = PAPER_RANGE) -> dict:
     return rows
 
 
-def diagnostics(cfg: StudyConfig) -> dict:
+def diagnostics(cfg: StudyConfig, runs=None) -> dict:
+    """Isolated agents by sensor type in both scenarios, and DISKF's variants
+    at the paper's range; ``runs``, if given, receives the isolated Scenario 2
+    run (for its figure)."""
     return {
-        "isolated_dynamic": sensor_split(cfg, DYNAMIC, NONE),
+        "isolated_dynamic": sensor_split(cfg, DYNAMIC, NONE, runs=runs),
         "isolated_stationary": sensor_split(cfg, STATIONARY, NONE),
         "range_variants": dynamic_variants(cfg),
     }
@@ -498,64 +601,3 @@ class Results:
 
     def to_json(self) -> dict:
         return dict(vars(self))
-
-
-# (the Results field, what a progress line calls it, the study)
-STUDIES = (
-    ("table_ii", "Table II", table_ii), ("dynamic", "Fig. 5: Scenario 2", dynamic_table),
-    ("sweep", "Fig. 6: error against range", range_sweep), ("topology", "topology statistics", topology_stats),
-    ("compensation", "Table I: compensation", compensation_ablation), ("window", "Fig. 3: window", window_ablation),
-    ("hold", "holding the input", hold_ablation), ("diagnostics", "diagnostics", diagnostics),
-    ("overview", "every setting", overview), ("robust_ablation", "DISKF-R ablation", robust_ablation),
-    ("robustness", "robustness", robustness),
-)
-
-
-def run_study(key: str, cfg: StudyConfig) -> tuple:
-    """(the study ``key``'s result, its seconds): one job of ``run_all``."""
-    t0 = time.monotonic()
-    return dict((k, f) for k, _, f in STUDIES)[key](cfg), time.monotonic() - t0
-
-
-def workers() -> int:
-    """Processes for the studies: the cores this process may use."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
-def run_all(cfg: StudyConfig, progress=None, jobs: int = 1, done_hook=None) -> Results:
-    """Every study, in ``jobs`` processes (each study seeded, so the numbers do
-    not depend on which process runs it); ``progress(i, n, title, seconds)``
-    after each, and ``done_hook(results so far)`` after each, if given (the
-    report draws its figures while the last studies run)."""
-    titles = {k: t for k, t, _ in STUDIES}
-    done = {}
-
-    def finished(key, result, seconds):
-        done[key] = result
-        if progress is not None:
-            progress(len(done), len(STUDIES), titles[key], seconds)
-        if done_hook is not None:
-            done_hook(done)
-
-    if jobs <= 1:
-        for key, _, _ in STUDIES:
-            finished(key, *run_study(key, cfg))
-    else:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-
-        quiet = replace(cfg, quiet=True)  # no bars from the workers: the lines say how far it is
-        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = {pool.submit(run_study, key, quiet): key for key in STUDY_ORDER}
-            for f in as_completed(futures):
-                finished(futures[f], *f.result())
-    return Results(config={"seeds": cfg.seeds, "steps": cfg.steps, "algorithms": list(cfg.algorithms)},
-                   **{k: done[k] for k, _, _ in STUDIES})
-
-
-# the studies, longest first: a pool then ends with the short ones
-STUDY_ORDER = ("overview", "sweep", "robustness", "robust_ablation", "table_ii", "hold", "compensation",
-               "dynamic", "window", "diagnostics", "topology")
