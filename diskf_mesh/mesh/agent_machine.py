@@ -629,7 +629,7 @@ class AgentMachine:
         declares its alive token."""
         if qid != self._claim_qid or self.phase != "claim":
             return
-        others = ({nonce_of(k) for k in keys} | self.alive_tokens.get(self.id, set())) - {self.nonce}
+        others = self._others({nonce_of(k) for k in keys})
         if others:
             self.phase = "leaving"
             self._leaving = self._duplicate_reason(min(others), "found before this one declared its own")
@@ -646,10 +646,15 @@ class AgentMachine:
         world counts an id live whichever process holds it, and a session
         that started a moment ago may not have heard every token at its
         claim. Another one: this one leaves (exit 2)."""
-        others = ({nonce_of(k) for k in keys} | self.alive_tokens.get(self.id, set())) - {self.nonce}
+        others = self._others({nonce_of(k) for k in keys})
         if others:
             return self._duplicate(min(others), "it holds this id in the run this one joined late")
         self._confirmed = True
+
+    def _others(self, nonces=()) -> set:
+        """The nonces of other processes holding this agent's id: ``nonces``
+        (an answer's) and the alive tokens of its id this one has seen."""
+        return (set(nonces) | self.alive_tokens.get(self.id, set())) - {self.nonce}
 
     def _peers_seen(self) -> bool:
         """The agents the world counts live at its newest tick are seen (so
@@ -679,7 +684,7 @@ class AgentMachine:
         at a tick J after ``join_after`` and J's measurement is in, make the
         estimator; a rejoining agent first asks the world for its starting
         estimate of tick J - 1 and starts from the answer."""
-        twins = self.alive_tokens.get(self.id, set()) - {self.nonce}
+        twins = self._others()
         if self._late() and twins:  # seen before this one found the run in progress
             return self._duplicate(min(twins), "it holds this id in the run this one joined late")
         mine = [t for t, tk in self.ticks.items() if t > self.join_after and self.id in tk.live]
@@ -740,7 +745,7 @@ class AgentMachine:
                                           m=self.m, max_abs=g.max_abs, max_cond=g.max_cond)
             except wire.Rejected as e:
                 self._refuse("start", e.reason, e.detail)
-        others = set(start.held) - {self.nonce} if start is not None else ()
+        others = self._others(start.held) if start is not None else ()
         if others and self._late():  # the world sees another process holding this id: it keeps it
             return self._duplicate(min(others), "the world sees it holding this id in the run this one joined late")
         self._start = (k, start)
