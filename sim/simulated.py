@@ -106,7 +106,7 @@ def run(args: argparse.Namespace, spec, scn, out) -> dict:
     summary = run_summary(rec, faults)
     if clock is not None:
         summary.update(deadline_summary(rec, clock))
-    status = checked_status(rec, trace, scn, spec, args.seed, faults, clock)
+    status = checked_status(rec, trace, scn, spec, args.seed, faults, clock, args.collect_timeout)
     summary.update(status_fields(status))
     summary["network"] = {"kind": "simulated", "delay_ms": args.net_delay_ms, "jitter_ms": args.net_jitter_ms,
                           "loss": args.net_loss, "seed": net_seed, "virtual_s": r.outcome.end,

@@ -54,3 +54,30 @@ def test_net_options_need_the_simulated_network(tmp_path):
                         "--agents", "3", "--net-loss", "0.1", "--insecure"], capture_output=True, text=True,
                        cwd=tmp_path, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error:")
+
+
+def test_link_latency_past_the_collect_timeout_is_planned_as_the_world_plans_it(tmp_path):
+    # every copy is 3 s late, the agents wait 1 s: none is planned to be fused, so nothing fused less than planned
+    r = up("--ticks", "6", "--latency-ms", "3000", "--collect-timeout", "1", "--json", str(tmp_path / "r.json"),
+           "--quiet", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    row = next(iter(json.loads((tmp_path / "r.json").read_text())["diskf"].values()))
+    assert row["status"] == "as planned" and row["evidence"]["plan_deadline_s"] == 1.0
+
+
+def test_simulate_run_plans_with_the_agents_deadline():
+    from diskf_mesh.data.faults import FaultConfig
+    from diskf_mesh.mesh import clock as realtime
+    from diskf_mesh.mesh.agent_machine import AgentTiming
+    from diskf_mesh.mesh.simrun import SimPlan, simulate_run
+    from diskf_mesh.mesh.world_machine import WorldTiming
+
+    scn = load_scenario("quadrants").with_overrides(steps=4)
+    trace = simulate(scn, [0])
+    faults = FaultConfig(latency_ms=3000.0)
+    lockstep = SimPlan(agent_timing=AgentTiming(collect_timeout=1.0))
+    assert simulate_run(scn, trace, "diskf", 0, plan=lockstep, faults=faults).status.status == "as planned"
+    clock = realtime.Clock(rate_hz=0.2, deadline_s=1.0)
+    timed = SimPlan(world_timing=WorldTiming(clock=clock), agent_timing=AgentTiming(clock=clock))
+    st = simulate_run(scn, trace, "diskf", 0, plan=timed, faults=faults).status
+    assert st.status == "as planned" and st.evidence["plan_deadline_s"] == 1.0

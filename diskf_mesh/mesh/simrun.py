@@ -120,7 +120,9 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     w = out.machines[pid]
     status = None
     if verify and pid in out.finishes and w.record.reported.any():
+        at = plan.agent_timing  # a copy due after the agents' deadline is not planned to be fused
         status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
+                            deadline_s=at.collect_timeout if at.clock is None else at.clock.deadline_s,
                             labels=scn.labels)
     return SimRun(out, w, status, stream.getvalue() if stream is not None else "")
 
