@@ -597,7 +597,10 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     if args.network != "auto" and (plan is not None or not zopts.is_default):
         raise InputError("network", "chooses the shape of a run on one host: not with --hosts or zenoh flags")
     if args.network == "simulated":  # every process in this one (sim.simulated)
-        return verdict(simulated.run(args, spec, scn, out), args)
+        code, row = simulated.run(args, spec, scn, out)
+        if row is not None:
+            verdict(row, args)  # its lines
+        return code
     if simulated.given(args):
         raise InputError("network", "the --net-* options need --network simulated")
     realtime.from_args(args)

@@ -49,31 +49,27 @@ def given(args: argparse.Namespace) -> bool:
     return (args.net_delay_ms, args.net_jitter_ms, args.net_loss, args.net_seed) != (0.2, 0.0, 0.0, None)
 
 
-def run(args: argparse.Namespace, spec, scn, out) -> dict:
-    """The run; prints what ``up`` prints and returns the results row (for ``up``'s verdict)."""
+def run(args: argparse.Namespace, spec, scn, out) -> tuple:
+    """The run; prints what ``up`` prints but its verdict, ends it as the
+    world process does (``sim.world.finish_run``) and returns the world's
+    exit status and the results row (None if the world failed)."""
     from tqdm import tqdm
 
     from diskf_mesh.data import provenance
-    from diskf_mesh.data.faults import from_args as faults_from_args
-    from diskf_mesh.data.outputs import save_json
-    from diskf_mesh.data.scenario import simulate
-    from diskf_mesh.mesh import clock as realtime
-    from diskf_mesh.mesh import runspec
     from diskf_mesh.mesh.agent_machine import AgentTiming
     from diskf_mesh.mesh.keys import Keys
+    from diskf_mesh.mesh.log import Log
     from diskf_mesh.mesh.simnet import Link
     from diskf_mesh.mesh.simrun import SimPlan, simulate_run
     from diskf_mesh.mesh.world_machine import WorldTiming
     from diskf_mesh.studies.experiment import format_table
-    from sim.world import (checked_status, deadline_summary, estimates_doc, open_recorder, result_metrics,
-                           run_summary, status_fields)
+    from sim.world import failure, finish_run, run_failed, setup_run
 
     for flag, value in (("live", getattr(args, "live", None)), ("profile", args.profile), ("logs", args.logs)):
         if value:
             raise InputError(flag, "is for process meshes, not --network simulated")
-    clock = realtime.from_args(args)
-    faults = faults_from_args(args, scn.faults)
-    trace = simulate(scn, [args.seed])
+    run = setup_run(args, spec, scn, provenance.now())
+    clock, trace = run.clock, run.trace
     K, N = trace.has.shape[1], len(scn.agents)
     net_seed = args.seed if args.net_seed is None else args.net_seed
     keys = Keys(spec.run_id)
@@ -84,50 +80,31 @@ def run(args: argparse.Namespace, spec, scn, out) -> dict:
     bound = args.startup_timeout + K * (args.tick_timeout + args.collect_timeout) + 60.0
     plan = SimPlan(link, secure=not args.insecure, world_timing=world_timing, agent_timing=agent_timing,
                    max_time=bound)
-    prov = provenance.record(scenario=scn, seeds=[args.seed], ticks=K, estimator=spec.algorithm,
-                             settings=scn.params, faults=faults, started=provenance.now(),
-                             argv=getattr(args, "argv", None))
-    recorder = open_recorder(args.record, trace, scn, spec, args.seed, faults, prov) if args.record else None
     bar = tqdm(total=K, desc=f"{spec.algorithm} x {N} agents, simulated network", unit="tick", file=sys.stderr,
                disable=args.quiet or not sys.stderr.isatty())
     t0 = time.monotonic()
     try:
-        r = simulate_run(scn, trace, spec.algorithm, args.seed, net_seed=net_seed, plan=plan, faults=faults,
-                         run_id=spec.run_id, verify=False, progress=lambda k: bar.update(1), recorder=recorder)
+        r = simulate_run(scn, trace, spec.algorithm, args.seed, net_seed=net_seed, plan=plan, faults=run.faults,
+                         run_id=spec.run_id, verify=False, progress=lambda k: bar.update(1), recorder=run.recorder)
     finally:
         bar.close()
     wall = time.monotonic() - t0
-    rec, end = r.record, r.outcome.finishes.get("world")
-    if end is not None and end.code and not rec.reported.any():
-        if recorder is not None:
-            recorder.finish(f"failed: {end.reason}")
-        raise SystemExit(f"error: world: {end.reason}")
-    row = result_metrics(trace, rec)
-    summary = run_summary(rec, faults)
-    if clock is not None:
-        summary.update(deadline_summary(rec, clock))
-    status = checked_status(rec, trace, scn, spec, args.seed, faults, clock, args.collect_timeout)
-    summary.update(status_fields(status))
-    summary["network"] = {"kind": "simulated", "delay_ms": args.net_delay_ms, "jitter_ms": args.net_jitter_ms,
-                          "loss": args.net_loss, "seed": net_seed, "virtual_s": r.outcome.end,
-                          "events": r.outcome.events, "wall_s": wall, "digest": r.outcome.digest}
-    if recorder is not None:
-        recorder.finish("done" if r.world.done else "stopped", row, status.to_json())
-    results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
-    prov["status"] = status.status
-    save_json(out, provenance.attach(results, prov), "json")
-    if args.estimates:
-        doc = estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row)
-        doc.update(faults=summary["faults"], missing_ticks=summary["missing_ticks"], **status_fields(status))
-        save_json(args.estimates, provenance.attach(doc, prov), "estimates")
     if r.log:
         sys.stderr.write(r.log)
+    end = r.outcome.finishes.get("world")
+    if end is not None and (error := failure(end)) is not None:
+        return run_failed(error, run, Log("world")), None
+    network = {"kind": "simulated", "delay_ms": args.net_delay_ms, "jitter_ms": args.net_jitter_ms,
+               "loss": args.net_loss, "seed": net_seed, "virtual_s": r.outcome.end, "events": r.outcome.events,
+               "wall_s": wall, "digest": r.outcome.digest}
+    code, results = finish_run(args, run, r.record, r.world.done, out, extra={"network": network})
     rate = K / wall if wall > 0 else math.inf
     print(f"{scn.name}: {N} agents + world on a simulated network (delay {args.net_delay_ms:g} ms, jitter "
           f"{args.net_jitter_ms:g} ms, loss {args.net_loss:g}, network seed {net_seed}), {K} ticks, seed {args.seed}, "
           f"run {spec.run_id}; {r.outcome.end:.3f} s of network time in {wall:.2f} s, {rate:.1f} ticks/s, "
           f"{r.outcome.events} events")
     print(format_table(results))
+    row = next(iter(next(iter(results.values())).values()))
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
-          + (f", recording: {args.record}" if args.record else ""))
-    return results[spec.algorithm][runspec.setting_label(scn)]
+          + (f", recording: {args.record}" if args.record and not row.get("recording_failed") else ""))
+    return code, row

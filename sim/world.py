@@ -62,7 +62,7 @@ import signal
 import sys
 import time
 from collections import Counter
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -138,12 +138,19 @@ class World:
         """The whole run; ``allow_missing``: start without the agents not
         ready after ``--startup-timeout`` (they never joined)."""
         self.machine.allow_missing = allow_missing
-        end = self.shell.run()
-        if end.code == DUPLICATE:
-            raise DuplicateProcess(end.reason)
-        if end.code:
-            raise MeshError(end.reason)
+        error = failure(self.shell.run())
+        if error is not None:
+            raise error
         return self.machine.record
+
+
+def failure(end) -> MeshError | None:
+    """The error of a world that could not go on (its ``Finish``'s code:
+    ``DuplicateProcess`` when another world holds the run id), None when
+    the run ended."""
+    if end.code == DUPLICATE:
+        return DuplicateProcess(end.reason)
+    return MeshError(end.reason) if end.code else None
 
 
 # --------------------------------------------------------------------------
@@ -317,6 +324,81 @@ def open_recorder(path, trace, scn, spec, seed, faults, prov=None):
         raise InputError("record", f"cannot write {path}: {e.strerror or e}") from None
 
 
+@dataclass(frozen=True)
+class RunSetup:
+    """A run as it starts: its spec, scenario, trace, link faults, clock
+    (None: lockstep), provenance and recorder."""
+
+    spec: object
+    scn: Scenario
+    trace: Trace
+    faults: FaultConfig
+    clock: realtime.Clock | None
+    prov: dict
+    recorder: NoRecorder = NO_RECORDER
+
+
+def setup_run(args, spec, scn: Scenario, started: str) -> RunSetup:
+    """The run of ``spec`` on ``scn`` with ``args``' seed, link faults, clock
+    and ``--record``."""
+    clock = realtime.from_args(args)
+    faults = faults_from_args(args, scn.faults)  # the agents apply them; the world records them
+    trace = simulate(scn, [args.seed])
+    prov = provenance.record(scenario=scn, seeds=[args.seed], ticks=trace.has.shape[1], estimator=spec.algorithm,
+                             settings=scn.params, faults=faults, started=started, argv=getattr(args, "argv", None))
+    recorder = open_recorder(args.record, trace, scn, spec, args.seed, faults, prov) if args.record else NO_RECORDER
+    return RunSetup(spec, scn, trace, faults, clock, prov, recorder)
+
+
+def run_failed(error: MeshError, run: RunSetup, log: Log) -> int:
+    """A run that could not go on: one line, the recording says why; its
+    exit status."""
+    log.error(str(error))
+    run.recorder.finish(f"failed: {error}")
+    return error.status
+
+
+def finish_run(args, run: RunSetup, rec: WorldRecord, done: bool, json_path=None, extra=None,
+               log: Log | None = None) -> tuple:
+    """The end of a run, the world process's and ``up --network simulated``'s:
+    the metrics, ``run_summary`` (and ``deadline_summary`` in real time,
+    and ``extra``), the run checked (``checked_status`` with the agents'
+    ``--collect-timeout``), the recording finished (one not written whole:
+    ``recording_failed``), the results written to ``json_path`` and the
+    estimates to ``--estimates``. ``log``: says the counters that do not add
+    up and the exit status's line (None: the caller says them). Returns
+    (exit status, results): ``exit_status``'s, or ``RECORDING_FAILED`` for
+    an accepted run whose recording failed."""
+    spec, scn, trace, clock = run.spec, run.scn, run.trace, run.clock
+    row = result_metrics(trace, rec)
+    summary = run_summary(rec, run.faults)
+    if clock is not None:
+        summary.update(deadline_summary(rec, clock))
+    status = checked_status(rec, trace, scn, spec, args.seed, run.faults, clock, args.collect_timeout)
+    summary.update(status_fields(status), **(extra or {}))
+    recording = run.recorder.finish("done" if done else "stopped", row, status.to_json())
+    if recording:  # the run is measured, the file is not whole: the results say so, and the exit status
+        summary["recording_failed"] = recording
+    results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
+    prov = {**run.prov, "status": status.status}
+    if json_path:
+        save_json(json_path, provenance.attach(results, prov), "json")
+    if args.estimates:
+        doc = estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row)
+        doc.update({k: v for k, v in summary.items() if k != "counters"})  # agent_counters has them
+        save_json(args.estimates, provenance.attach(doc, prov), "estimates")
+    code, level, line = exit_status(status, summary, args, clock)
+    if log is not None:
+        for i, c in summary["counters"].items():
+            if "imbalance" in c:
+                log.info(f"agent {i}'s message counters do not add up: {'; '.join(c['imbalance'])}")
+        if level:
+            (log.error if level == "error" else log.info)(line)
+        if recording:
+            log.error(failure_line(recording))
+    return (code or exits.RECORDING_FAILED) if recording else code, results
+
+
 # --------------------------------------------------------------------------
 # command line
 # --------------------------------------------------------------------------
@@ -380,13 +462,15 @@ def run(args: argparse.Namespace) -> int:
     started = provenance.now()
     spec = runspec.from_args(args)
     scn = spec.load(args.ticks)
-    clock = realtime.from_args(args)
     zenoh = zenoh_config.from_args(args, credentials.WORLD, spec.run_id)
-    faults = faults_from_args(args, scn.faults)  # the agents apply them; the world records them
-    trace = simulate(scn, [args.seed])
-    K = trace.has.shape[1]
+    run = setup_run(args, spec, scn, started)
+    if args.live is not None:  # the live server: fed as the recorder is
+        run = replace(run, recorder=live_server.feed(run.recorder, args.live, run.trace, scn, scenario=spec.scenario,
+                                                     algorithm=spec.algorithm, seed=args.seed, run_id=spec.run_id,
+                                                     faults=run.faults, provenance=run.prov))
+    K = run.trace.has.shape[1]
     log = Log("world")
-    if problem := estimators.get(spec.algorithm).warning(scn.params, trace.links):
+    if problem := estimators.get(spec.algorithm).warning(scn.params, run.trace.links):
         log.info(problem)
     bar = tqdm(total=K, desc=f"world {spec.algorithm}", unit="tick", file=sys.stderr,
                disable=args.progress != "bar" or not sys.stderr.isatty())
@@ -403,60 +487,24 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
 
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
-    prov = provenance.record(scenario=scn, seeds=[args.seed], ticks=K, estimator=spec.algorithm, settings=scn.params,
-                             faults=faults, started=started, argv=getattr(args, "argv", None))
-    recorder = open_recorder(args.record, trace, scn, spec, args.seed, faults, prov) if args.record else NO_RECORDER
-    if args.live is not None:  # the live server: fed as the recorder is
-        recorder = live_server.feed(recorder, args.live, trace, scn, scenario=spec.scenario, algorithm=spec.algorithm,
-                                    seed=args.seed, run_id=spec.run_id, faults=faults, provenance=prov)
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
-            world = World(scn, trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
-                          WorldTiming(args.startup_timeout, args.tick_timeout, clock=clock), progress, log, prof, recorder)
+            world = World(scn, run.trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
+                          WorldTiming(args.startup_timeout, args.tick_timeout, clock=run.clock), progress, log, prof,
+                          run.recorder)
             world.interrupted, signalled[0] = signalled[0], world
             rec = world.run(allow_missing=args.allow_missing > 0)
     except MeshError as e:
-        log.error(str(e))
-        recorder.finish(f"failed: {e}")
-        return e.status
+        return run_failed(e, run, log)
     finally:
         bar.close()
         if prof:
             prof.write(args.profile, "world")
-    row = result_metrics(trace, rec)
-    summary = run_summary(rec, faults)
-    if clock is not None:
-        summary.update(deadline_summary(rec, clock))
-    status = checked_status(rec, trace, scn, spec, args.seed, faults, clock, args.collect_timeout)
-    summary.update(status_fields(status))
-    recording = recorder.finish("done" if world.done else "stopped", row, status.to_json())
-    if recording:  # the run is measured, the file is not whole: the results say so, and the exit status
-        summary["recording_failed"] = recording
-    results = {spec.algorithm: {runspec.setting_label(scn): {**row, **summary}}}
-    prov["status"] = status.status
-    if args.json:
-        save_json(args.json, provenance.attach(results, prov), "json")
-    if args.estimates:
-        doc = estimates_doc(rec, spec.algorithm, scn, args.seed, spec.run_id, row)
-        doc.update(faults=summary["faults"], missing_ticks=summary["missing_ticks"], **completeness(rec),
-                   **status_fields(status))
-        if clock is not None:
-            doc.update(deadline_summary(rec, clock))
-        save_json(args.estimates, provenance.attach(doc, prov), "estimates")
-    for i, c in summary["counters"].items():
-        if "imbalance" in c:
-            log.info(f"agent {i}'s message counters do not add up: {'; '.join(c['imbalance'])}")
+    code, results = finish_run(args, run, rec, world.done, args.json, log=log)
     if args.progress != "lines":
+        row = next(iter(next(iter(results.values())).values()))
         print(format_table(results))
-        print(f"status: {status.status}: {status.reason}")
-    code, level, line = exit_status(status, summary, args, clock)
-    if level == "error":
-        log.error(line)
-    elif level:
-        log.info(line)
-    if recording:
-        log.error(failure_line(recording))
-        return code or exits.RECORDING_FAILED
+        print(f"status: {row['status']}: {row['reason']}")
     return code
 
 

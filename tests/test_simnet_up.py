@@ -81,3 +81,29 @@ def test_simulate_run_plans_with_the_agents_deadline():
     timed = SimPlan(world_timing=WorldTiming(clock=clock), agent_timing=AgentTiming(clock=clock))
     st = simulate_run(scn, trace, "diskf", 0, plan=timed, faults=faults).status
     assert st.status == "as planned" and st.evidence["plan_deadline_s"] == 1.0
+
+
+def test_a_recording_not_written_whole_fails_a_simulated_run(tmp_path, monkeypatch, capsys):
+    from cli_helpers import run_cli
+    from diskf_mesh.core import exits
+    from diskf_mesh.recording import writer
+
+    failed = {"path": str(tmp_path / "r.mcap"), "error": "No space left on device", "written": 3, "ticks": 6}
+    finish = writer.Recorder.finish
+    monkeypatch.setattr(writer.Recorder, "finish", lambda self, *a: (finish(self, *a), failed)[1])
+    code, out, err = run_cli(["up", "--network", "simulated", "--ticks", "6", "--record", tmp_path / "r.mcap",
+                              "--json", tmp_path / "r.json", "--quiet"], capsys)
+    assert code == exits.RECORDING_FAILED, err
+    row = next(iter(json.loads((tmp_path / "r.json").read_text())["diskf"].values()))
+    assert row["recording_failed"] == failed and row["status"] == "exact"
+
+
+def test_a_simulated_real_time_run_writes_the_estimates_a_world_writes(tmp_path):
+    from diskf_mesh.recording.replay import fused_record_from_json
+
+    r = up("--ticks", "6", "--rate", "20", "--estimates", str(tmp_path / "e.json"), "--json",
+           str(tmp_path / "r.json"), "--quiet", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "e.json").read_text())
+    assert doc["complete"] and doc["missing_agent_ticks"] == 0 and doc["rate_hz"] == 20.0
+    assert fused_record_from_json(doc, doc["ids"]).miss_rate == doc["deadline_misses"]["miss_rate"] == 0.0
