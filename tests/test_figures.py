@@ -37,7 +37,7 @@ def test_report_command_writes_markdown_figures_and_json(tmp_path, capsys):
     for heading in ("Table II", "Fig. 5", "Fig. 6", "Table I", "Fig. 3", "not the best", "Differences"):
         assert heading in md, heading
     links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
-    assert {Path(l).name for l in links} == FIGURES
+    assert {Path(l).name for l in links} == FIGURES | {"auto_choice.png"}
     assert all((tmp_path / l).is_file() for l in links)
     doc = json.loads((tmp_path / "results.json").read_text())
     assert set(doc) >= {"table_ii", "dynamic", "sweep", "compensation", "window", "diagnostics"}

@@ -7,6 +7,7 @@ own tables. ``write_report`` runs everything and writes
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from diskf_mesh import estimators
-from diskf_mesh.studies import figures
+from diskf_mesh.studies import figures, heldout
 from diskf_mesh.data import paper_values
 from diskf_mesh.studies import suite as studies
 from diskf_mesh.data import provenance
@@ -57,6 +58,15 @@ def table(header, rows) -> str:
 
 
 BOUND = "centralized"  # a reference row, never "the best"
+PBOUND = "centralized-persist"  # the bound of diskf-r's own input model, a reference row too
+REFERENCES = (BOUND, PBOUND)
+BOUND_LABELS = {PBOUND: "Centralized, persistent input (bound of DISKF-R's model)"}
+
+
+def _label(a: str) -> str:
+    return BOUND_LABELS.get(a) or LABELS.get(a, a)
+
+
 PAPER_ALGS = paper_values.COLUMNS
 # Who the narrative is about, from the declarations: the paper's method (the first column of its
 # tables), the registered estimators that extend it (``Estimator.extends``: diskf-r), and that family
@@ -68,8 +78,8 @@ FAMILY = (OURS,) + EXTENSIONS
 
 def best_alg(results: dict, setting: str, key: str, among=None) -> str:
     """The algorithm with the lowest value (ties: the first listed), among
-    ``among`` (default: all but the centralized bound)."""
-    vals = {a: results[a][setting][key] for a in results if a != BOUND and (among is None or a in among)}
+    ``among`` (default: all but the centralized references)."""
+    vals = {a: results[a][setting][key] for a in results if a not in REFERENCES and (among is None or a in among)}
     finite = {a: v for a, v in vals.items() if math.isfinite(v)}
     return min(finite, key=finite.get) if finite else ""
 
@@ -92,7 +102,7 @@ def comparison_table(results: dict, settings, paper: dict | None = None, spread:
                     ours += f" ({num(paper[st][key].get(a))})"
                 cells.append(ours)
             rows.append([comm_name(st) if i == 0 else "", METRIC_NAMES[key]] + cells)
-    return table(["Comm.", "Metric"] + [LABELS.get(a, a) for a in algs], rows)
+    return table(["Comm.", "Metric"] + [_label(a) for a in algs], rows)
 
 
 def sweep_table(sweep: dict, key: str, topo: dict) -> str:
@@ -127,17 +137,19 @@ def fig(path: str, caption: str) -> str:
 
 
 def _git_state() -> str:
-    def git(*a):
-        try:
-            return subprocess.run(["git", *a], capture_output=True, text=True, timeout=10).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-    head = git("rev-parse", "--short", "HEAD")
-    if not head:
+    """The commit of the checkout holding this package (wherever the command
+    runs), and its package files with uncommitted changes."""
+    commit = provenance.git_commit()
+    if not commit:
         return "outside a git checkout"
-    dirty = [l[3:] for l in git("status", "--porcelain", "--untracked-files=no").splitlines()
-             if l[3:].startswith("diskf_mesh/")]
-    return f"commit {head}" + (f", with uncommitted changes to {', '.join(dirty)}" if dirty else "")
+    root = Path(__file__).resolve().parents[2]
+    try:
+        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True, timeout=10).stdout
+    except (OSError, subprocess.SubprocessError):
+        status = ""
+    dirty = [l[3:] for l in status.splitlines() if l[3:].startswith("diskf_mesh/")]
+    return f"commit {commit[:7]}" + (f", with uncommitted changes to {', '.join(dirty)}" if dirty else "")
 
 
 # --------------------------------------------------------------------------
@@ -200,12 +212,34 @@ def section_scenario2(ctx: Context) -> str:
 def section_table_ii(ctx: Context) -> str:
     return (
         "## 3. Scenario 1 (the paper's Table II)\n\n"
-        "Ours, with the paper's value in parentheses; bold is our lowest of the row.\n\n"
+        "Ours, with the paper's value in parentheses; bold is our lowest one-round estimator of the row.\n\n"
         + comparison_table(ctx.res.table_ii, ["all", "ring", "none"], paper_values.TABLE_II) + "\n\n"
+        + references_note(ctx.res.table_ii) + "\n\n"
         + fig(ctx.f("scenario_stationary.png"), "Scenario 1: four static quadrant agents")
         + fig(ctx.f("inputs_stationary_ring.png"), "Scenario 1, 1-hop: input estimates per node (the paper's Fig. 7)")
         + fig(ctx.f("states_stationary_ring.png"), "Scenario 1, 1-hop: x and y against time per node (the paper's Figs. 8, 9)")
         + fig(ctx.f("trajectories_stationary_ring.png"), "Scenario 1, 1-hop: 2-D trajectories at node 1 (the paper's Fig. 10)")
+    )
+
+
+def references_note(t2: dict) -> str:
+    """What Table II's two centralized columns are, with their numbers."""
+    below = [LABELS[a] for a in FAMILY if a in t2 and t2[a]["all"]["mae_state"] < t2[BOUND]["all"]["mae_state"]]
+    pr = t2.get(EXTENSION, {}).get("all", {}).get("mae_state")
+    return (
+        "The last two columns are references, not one-round estimators: one centre that receives every agent's "
+        "measurement at every tick. They ignore the links, so each is the same in every block.\n\n"
+        f"- **{_label(BOUND)}** (`engine/centralized.py`, `run_centralized`): the Gillijns–De Moor filter, an "
+        "input estimate unbiased for every input sequence, then the state update. It is the optimum among "
+        "input-unbiased estimators when the input is strongly detectable from the stacked sensors; it assumes "
+        "nothing about the input, so it bounds only estimators that assume nothing either. An estimator with "
+        "an input model can be below it"
+        + (f" ({', '.join(below)} in all-to-all, MAE(state) {num(t2[BOUND]['all']['mae_state'])})." if below else ".")
+        + f"\n- **{_label(PBOUND)}** (`run_centralized_persist`): the joint Kalman filter of the state and the "
+        f"input with {LABELS[EXTENSION]}'s input model (a random walk at the scenario's scale): the optimum under "
+        f"that model, and so the bound of {LABELS[EXTENSION]}"
+        + (f" (all-to-all: {LABELS[EXTENSION]} {num(pr)}, this filter {num(t2[PBOUND]['all']['mae_state'])})."
+           if pr is not None and PBOUND in t2 else ".")
     )
 
 
@@ -428,14 +462,6 @@ def family_check(rows: dict, key: str) -> tuple:
     return fam, (b, others[b]), fam <= 1.01 * others[b]
 
 
-PBOUND = "centralized-persist"  # the bound of diskf-r's own input model, a reference row too
-BOUND_LABELS = {PBOUND: "Centralized, persistent input (bound of DISKF-R's model)"}
-
-
-def _label(a: str) -> str:
-    return BOUND_LABELS.get(a) or LABELS.get(a, a)
-
-
 def overview_table(ov: dict, key: str) -> str:
     rows = []
     for st, r in ov.items():
@@ -625,36 +651,140 @@ def section_differences(ctx: Context) -> str:
     )
 
 
-def render(res: studies.Results, figdir: str = "figures") -> str:
+# --------------------------------------------------------------------------
+# the held-out suite
+# --------------------------------------------------------------------------
+HELDOUT_COMMAND = "diskf-mesh report --heldout --out docs"
+
+
+def _input_of(label: str) -> str:
+    """The input of a held-out case, from its label ("S1 ring, zero": "zero")."""
+    return label.rsplit(", ", 1)[-1]
+
+
+def _count(items) -> str:
+    """"a (3), b (2)": the items by how often they occur, most first."""
+    counts: dict = {}
+    for x in items:
+        counts[x] = counts.get(x, 0) + 1
+    return ", ".join(f"{k} ({v})" for k, v in sorted(counts.items(), key=lambda kv: -kv[1]))
+
+
+def where_right(doc: dict) -> list[str]:
+    """One plain statement per estimator, from the held-out results: in how
+    many cases it has the lowest state MAE and with which inputs and case
+    groups, within 10 % of the lowest, more than twice it, diverged."""
+    res = doc["results"]
+    names = list(res[0]["rows"]) if res else []
+    n = len(res)
+    out = []
+    for a in names:
+        best, near, far, div = [], 0, [], 0
+        for r in res:
+            rows = r["rows"]
+            if rows[a]["diverged"]:
+                div += 1
+                continue
+            lo = min(v["mae_state"] for v in rows.values() if not v["diverged"])
+            v = rows[a]["mae_state"]
+            if v == lo:
+                best.append(r)
+            if v <= 1.10 * lo:
+                near += 1
+            elif v > 2 * lo:
+                far.append(r["case"])
+        text = (f"- **{estimators.label(a)}**: the lowest state MAE in {len(best)} of {n} cases"
+                + (f" (inputs: {_count(_input_of(r['case']) for r in best)}; groups: {_count(r['group'] for r in best)})"
+                   if best else "")
+                + f"; within 10 % of the lowest in {near}; more than twice the lowest in {len(far)}"
+                + (f" ({'; '.join(far[:6])}{'; …' if len(far) > 6 else ''})" if far else "")
+                + (f"; its covariance diverged in {div}" if div else "") + ".")
+        out.append(text)
+    return out
+
+
+def _nan_rows(doc: dict) -> dict:
+    """A held-out document read back from JSON: its missing numbers (null) as NaN."""
+    for r in doc.get("results", []):
+        for row in r["rows"].values():
+            for k, v in row.items():
+                if v is None:
+                    row[k] = float("nan")
+    return doc
+
+
+def section_heldout(ctx: Context, doc: dict | None) -> str:
+    head = (
+        "## 11. Beyond the shipped cases: the held-out suite and DISKF-auto's choice\n\n"
+        "`diskf-auto` runs a bank of input models (no input, random walks, zero-mean inputs) and mixes them by "
+        "their evidence; the figure shows its model probabilities over time for agent 1 of Scenario 1 in a ring, "
+        "with three inputs (drawn by this run; `diskf_mesh.studies.heldout.choice_figure`).\n\n"
+        + fig(ctx.f("auto_choice.png"), "DISKF-auto: probability of each input-model family over time (agent 1, "
+              "Scenario 1 ring, seed 0), over the true input")
+        + "\nThe held-out suite (`diskf_mesh/studies/heldout.py`, cases listed there) runs every estimator on "
+        "inputs, models and networks no default was chosen on: every `[input]` kind on both shipped scenarios "
+        "in every topology above, a constant-velocity model (n = 4) with a small 2-D acceleration input, a "
+        "3-D state, p_i = 2 and mixed sensors, other turn rates, R × 0.01 and × 100, random geometric networks "
+        "of 25 and 50 agents.\n\n"
+    )
+    if doc is None:
+        return head + (f"Not run by this report: `{HELDOUT_COMMAND}` runs it; this section then holds every "
+                       "case × every estimator and says when and from which commit it was made.\n")
+    prov = doc.get(provenance.KEY) or {}
+    commit = (prov.get("git_commit") or "no git checkout")[:7]
+    made = (f"Made by `{' '.join(prov.get('command') or [HELDOUT_COMMAND])}`, started {prov.get('started', '?')} "
+            f"from commit {commit}: {doc['seeds']} seeds, {doc.get('seconds', 0):.0f} s of wall-clock time "
+            f"for the whole command on {doc.get('processes', 1)} processes. A `diskf-mesh report` without "
+            "`--heldout` keeps this section as it was and says so here: the tables above may be newer.")
+    body = heldout.markdown(doc)
+    body = body[len(heldout.HEADER):].lstrip("\n") if body.startswith(heldout.HEADER) else body
+    return (head + "### 11.1 Where each estimator is the right one\n\n" + made + "\n\n"
+            + "\n".join(where_right(doc)) + "\n\n### 11.2 Every case × every estimator\n\n"
+            "Bold: the lowest state MAE of the case. NEES: the mean over the (tick, agent) cells whose "
+            "neighbourhood measures / the share of the cells, where every seed's neighbourhood measures, whose "
+            "NEES averaged over the seeds lies in the χ² 95 % band of that average.\n\n"
+            + body.replace("### ", "#### ") + "\n")
+
+
+def render(res: studies.Results, figdir: str = "figures", heldout_doc: dict | None = None,
+           started: str | None = None) -> str:
+    """The markdown report; ``heldout_doc``: the held-out suite's results with
+    their provenance (section 11), ``started``: when the run began."""
     ctx = Context(res, figdir)
     cfg = res.config
     steps = cfg["steps"] or f"{load_scenario(studies.STATIONARY).steps} (the scenarios' default)"
     head = (
         "# Reproduction of the DISKF paper's experiments\n\n"
-        f"Generated by `diskf-mesh report` ({cfg['seeds']} seeds, {steps} ticks) from {_git_state()}. "
-        "Regenerate with `diskf-mesh report --out docs`; the figures alone with "
-        "`diskf-mesh figures --out DIR`. The raw numbers are in `results.json` beside this file.\n"
+        f"Sections 1–10 and every figure: generated by `diskf-mesh report` ({cfg['seeds']} seeds, {steps} ticks) "
+        f"from {_git_state()}" + (f", started {started}" if started else "") + ". "
+        "Regenerate with `diskf-mesh report --out docs` (about half a minute on two cores, "
+        "[performance](performance.md)), section 11's held-out suite too with "
+        f"`{HELDOUT_COMMAND}`; the figures alone with `diskf-mesh figures --out DIR`. The raw numbers are in "
+        "`results.json` beside this file.\n"
     )
     parts = [head, section_setup(ctx), section_scenario2(ctx), section_table_ii(ctx), section_dynamic(ctx),
              section_sweep(ctx), section_table_i(ctx), section_window(ctx), section_diagnosis(ctx),
-             section_differences(ctx), section_robust(ctx)]
+             section_differences(ctx), section_robust(ctx), section_heldout(ctx, heldout_doc)]
     return "\n".join(parts)
 
 
 FRONT_COLUMNS = ("diskf", "diskf-r", "diskf-auto", "cdrkf", "ldrkf", "kcf", "diffkf", "gdkf")
+FRONT_REFERENCES = {BOUND: "Centralized (bound)", PBOUND: "Centralized, persistent input"}
 
 
 def front_page_table(table_ii: dict) -> str:
     """The README's Table II from ``results.json``'s ``table_ii``: ours (the
     paper's) per cell, the lowest one-round estimator of each row in bold,
-    the centralized bound last."""
+    the centralized references last."""
     cols = [c for c in FRONT_COLUMNS if c in table_ii]
     mets = (("mae_state", "MAE(state)"), ("rmse_state", "RMSE(state)"), ("mae_input", "MAE(input)"),
             ("rmse_input", "RMSE(input)"))
     label = {**LABELS, "diskf-r": f"{LABELS.get('diskf-r', 'DISKF-R')} (ours)",
              "diskf-auto": f"{LABELS.get('diskf-auto', 'DISKF-auto')} (ours)"}
-    lines = ["| Comm. | Metric | " + " | ".join(label.get(c, c) for c in cols) + " | Centralized (bound) |",
-             "|---|---|" + "---|" * (len(cols) + 1)]
+    refs = [r for r in REFERENCES if r in table_ii]
+    lines = ["| Comm. | Metric | " + " | ".join(label.get(c, c) for c in cols) + " | "
+             + " | ".join(FRONT_REFERENCES[r] for r in refs) + " |",
+             "|---|---|" + "---|" * (len(cols) + len(refs))]
     for st, comm in (("all", "all-to-all"), ("ring", "1-hop (ring)"), ("none", "none")):
         for i, (key, name) in enumerate(mets):
             vals = {c: table_ii[c][st][key] for c in cols}
@@ -668,8 +798,8 @@ def front_page_table(table_ii: dict) -> str:
                 if c in paper_values.COLUMNS:
                     text += f" ({paper_values.TABLE_II[st][key][c]:.2f})"
                 cells.append(text)
-            bound = table_ii[BOUND][st][key]
-            lines.append(f"| {comm if i == 0 else ''} | {name} | " + " | ".join(cells) + f" | {bound:.2f} |")
+            bounds = " | ".join(f"{table_ii[r][st][key]:.2f}" for r in refs)
+            lines.append(f"| {comm if i == 0 else ''} | {name} | " + " | ".join(cells) + f" | {bounds} |")
     return "\n".join(lines)
 
 
@@ -679,7 +809,8 @@ def front_page_table(table_ii: dict) -> str:
 def _scenario1(cfg: studies.StudyConfig, out) -> tuple:
     runs = studies.setting_runs(cfg, studies.STATIONARY, studies.PAPER_SETTINGS_1, keep=("ring",))
     paths = figures.stationary_figures(figures.Run(figures.RING_TITLE, *runs.runs["ring"]), out)
-    return {"table_ii": studies.paper_rows(runs), "overview 1": studies.SettingRuns(runs.rows, {})}, paths
+    return ({"table_ii": studies.paper_rows(runs, references=studies.TABLE_II_REFERENCES),
+             "overview 1": studies.SettingRuns(runs.rows, {})}, paths)
 
 
 def _scenario2(cfg: studies.StudyConfig, out) -> tuple:
@@ -709,6 +840,12 @@ def _diagnostics(cfg: studies.StudyConfig, out) -> tuple:
     return {"diagnostics": done}, figures.isolated_figure(figures.Run(figures.ISOLATED_TITLE, *runs[0]), out)
 
 
+def _auto_choice(cfg: studies.StudyConfig, out) -> tuple:
+    path = out / "auto_choice"
+    heldout.choice_figure(path)
+    return {}, [path]
+
+
 def _study(field: str, fn):
     return lambda cfg, out: ({field: fn(cfg)}, [])
 
@@ -727,6 +864,7 @@ JOBS = (
     ("window", "Fig. 3: window, and its figures", _window),
     ("diagnostics", "diagnostics (8), and the isolated agents' figure", _diagnostics),
     ("topology", "topology statistics", _study("topology", studies.topology_stats)),
+    ("auto choice", "DISKF-auto's choice over time (figure, 11)", _auto_choice),
 )
 
 
@@ -746,13 +884,25 @@ def workers() -> int:
         return os.cpu_count() or 1
 
 
-def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1) -> tuple:
-    """Every job, in ``jobs`` processes (each seeded, so the numbers do not
-    depend on which process runs it): (studies.Results, figure paths);
-    ``progress(title, seconds)`` after each."""
+def run_heldout_case(case, seeds: int, steps: int | None) -> tuple:
+    """(the held-out suite's record of ``case``, seconds): one task of ``run_jobs``."""
+    t0 = time.monotonic()
+    rows = heldout.run_case(case, range(seeds), steps)
+    return dict(case=case.label, group=case.group, n=case.scenario.G.shape[0], rows=rows), time.monotonic() - t0
+
+
+def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cases=()) -> tuple:
+    """Every job, and the held-out ``cases`` if given, in ``jobs`` processes
+    (each seeded, so the numbers do not depend on which process runs it):
+    (studies.Results, figure paths, [held-out record per case]);
+    ``progress(title, seconds)`` after each job and after the last case of
+    each group of cases (their seconds summed)."""
     titles = {k: t for k, t, _ in JOBS}
     parts: dict = {}
     paths: dict = {}
+    records: dict = {}
+    left = {g: sum(c.group == g for c in cases) for g in dict.fromkeys(c.group for c in cases)}
+    spent = dict.fromkeys(left, 0.0)
 
     def finished(key, part, figs, seconds):
         parts.update(part)
@@ -760,9 +910,21 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1) -> 
         if progress is not None:
             progress(titles[key], seconds)
 
+    def case_done(i, record, seconds):
+        records[i] = record
+        g = cases[i].group
+        left[g] -= 1
+        spent[g] += seconds
+        if progress is not None and left[g] == 0:
+            progress(f"held-out suite: {g} ({sum(c.group == g for c in cases)} cases)", spent[g])
+
+    # the largest held-out cases first, after the report's own jobs
+    order = sorted(range(len(cases)), key=lambda i: -cases[i].scenario.N)
     if jobs <= 1:
         for key, _, _ in JOBS:
             finished(key, *run_job(key, cfg, figdir))
+        for i in order:
+            case_done(i, *run_heldout_case(cases[i], cfg.seeds, cfg.steps))
     else:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -770,22 +932,46 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1) -> 
         quiet = replace(cfg, quiet=True)  # no bars from the workers: the lines say how far it is
         with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
             futures = {pool.submit(run_job, key, quiet, figdir): key for key, _, _ in JOBS}
+            futures.update({pool.submit(run_heldout_case, cases[i], cfg.seeds, cfg.steps): i for i in order})
             for f in as_completed(futures):
-                finished(futures[f], *f.result())
+                key = futures[f]
+                if isinstance(key, int):
+                    case_done(key, *f.result())
+                else:
+                    finished(key, *f.result())
     overview = studies.overview_rows(parts.pop("overview 1"), parts.pop("overview 2"), parts.pop("overview 3"))
     res = studies.Results(config={"seeds": cfg.seeds, "steps": cfg.steps, "algorithms": list(cfg.algorithms)},
                           overview=overview, **parts)
-    return res, [p for key, _, _ in JOBS for p in paths[key]]
+    return res, [p for key, _, _ in JOBS for p in paths[key]], [records[i] for i in range(len(cases))]
 
 
-def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1) -> list[Path]:
+def previous_heldout(path: Path) -> dict | None:
+    """The held-out suite's results kept in an earlier ``results.json``
+    (``HELDOUT_KEY``, with their own provenance), or None."""
+    try:
+        doc = json.loads(path.read_text()).get(HELDOUT_KEY)
+    except (OSError, ValueError, AttributeError):
+        return None
+    return _nan_rows(doc) if isinstance(doc, dict) and doc.get("results") else None
+
+
+HELDOUT_KEY = "heldout"
+
+
+def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1,
+                 with_heldout: bool = False) -> list[Path]:
     """Run every job (in ``jobs`` processes), which draw the figures from
     their own runs, then write the markdown and the JSON;
-    ``progress(i, n, title, seconds)`` after each job and after the writing,
-    if given."""
+    ``progress(i, n, title, seconds)`` after each job, each group of
+    held-out cases and the writing, if given. ``with_heldout`` also runs the
+    held-out suite (section 11); without it, the suite's results of an
+    earlier run in ``out_dir/results.json`` are kept, with their own
+    provenance, and section 11 says when and how they were made."""
     out = Path(out_dir)
     started = provenance.now()
-    n = len(JOBS) + 1
+    t_start = time.monotonic()
+    cases = heldout.cases() if with_heldout else []
+    n = len(JOBS) + len({c.group for c in cases}) + 1
     steps = [0]
 
     def line(title: str, seconds: float) -> None:
@@ -793,15 +979,26 @@ def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1
         if progress is not None:
             progress(steps[0], n, title, seconds)
 
-    res, paths = run_jobs(cfg, out / "figures", line, jobs)
+    kept = None if with_heldout else previous_heldout(out / "results.json")
+    res, paths, records = run_jobs(cfg, out / "figures", line, jobs, cases)
     t0 = time.monotonic()
+    scns = [load_scenario(studies.STATIONARY), load_scenario(studies.DYNAMIC)]
+    doc = res.to_json()
+    if with_heldout:
+        kept = dict(seeds=cfg.seeds, steps=cfg.steps, results=records, targets=heldout.targets(records, cfg.seeds),
+                    seconds=time.monotonic() - t_start, processes=jobs)
+        kept[provenance.KEY] = provenance.record(
+            scenario=[{"name": c.label, "sha256": provenance.content_hash(c.scenario)} for c in cases],
+            seeds=cfg.seed_range, ticks=cfg.steps or max(c.scenario.steps for c in cases), estimator=cfg.algorithms,
+            status="done", started=started)
+    if kept is not None:
+        doc[HELDOUT_KEY] = kept
     md = out / "reproduction.md"
     with atomic_open(md, "w") as f:
-        f.write(render(res, "figures"))
-    scns = [load_scenario(studies.STATIONARY), load_scenario(studies.DYNAMIC)]
+        f.write(render(res, "figures", kept, started))
     prov = provenance.record(scenario=scns, seeds=cfg.seed_range, ticks=cfg.steps or scns[0].steps,
                              estimator=cfg.algorithms, settings={s.name: s.params for s in scns}, status="done",
                              started=started)
-    save_json(out / "results.json", provenance.attach(res.to_json(), prov), "out")
+    save_json(out / "results.json", provenance.attach(doc, prov), "out")
     line("reproduction.md and results.json", time.monotonic() - t0)
     return [md, out / "results.json", *paths]
