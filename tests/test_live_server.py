@@ -210,3 +210,32 @@ def test_the_world_side_feeds_the_server_without_a_mesh():
             j = ids.index(e["agent"])
             assert e["x"] == [float(j)] * n and e["P"] == (np.eye(n) * (j + 1)).tolist()
     assert got["/run"][0]["run_id"] == "feedtest"
+
+
+def test_the_server_offers_only_the_sdk_subprotocol():
+    """foxglove-sdk's server has no option for the older ``foxglove.websocket.v1``
+    (docs/live.md): a client asking only for it is refused with HTTP 400;
+    one asking for both gets ``foxglove.sdk.v1``."""
+    from websockets.exceptions import InvalidStatus
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "diskf_mesh.live.server", str(port)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1", SUBPROTOCOL],
+                                        open_timeout=5) as ws:
+                    assert ws.subprotocol == SUBPROTOCOL
+                    assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
+                break
+            except OSError:
+                assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+                time.sleep(0.2)
+        with pytest.raises(InvalidStatus) as refused:
+            websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"], open_timeout=5)
+        assert refused.value.response.status_code == 400
+    finally:
+        proc.stdin.close()
+        assert proc.wait(timeout=30) == 0
