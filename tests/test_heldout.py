@@ -47,3 +47,31 @@ def test_model_choice_is_a_distribution_that_finds_no_input():
     assert t.shape == d.shape == (40,)
     assert abs(total - 1).max() < 1e-12
     assert fam["no input"][-1] > 0.9  # no input: the model without one carries the weight
+
+
+def test_bank_members_are_diskf_auto_models_alone():
+    """Each member is diskf-r with one of diskf-auto's bank models: the bank's
+    rho and q, and diskf-auto's input prior."""
+    from diskf_mesh.estimators import get
+    (case,) = [c for c in heldout.cases() if c.label == "R×100 ring, zero"]
+    scn = case.scenario
+    auto = get("diskf-auto")(scn.model(), scn.sensors(), scn.params)
+    members = heldout.bank_members(scn)
+    assert [name for name, _ in members] == list(auto.bank)
+    for (_, params), rho, q in zip(members, auto.rho, auto.q):
+        alone = get("diskf-r")(scn.model(), scn.sensors(), params)
+        assert (alone.rho, alone.walk) == (rho, q)
+        assert alone.prior == pytest.approx(auto.prior, rel=1e-12)
+
+
+def test_bank_run_and_summary():
+    doc = heldout.run(seeds=1, steps=20, select="S1 none, white", progress=False, bank=True)
+    (res,) = doc["results"]
+    assert len(res["bank"]) == 8 and all(v > 0 for v in res["bank"].values())
+    row = lambda v: dict(mae_state=v, mae_input=0.0, nees=2.0, nees_band_share=1.0, diverged=False)  # noqa: E731
+    results = [dict(case="a", n=2, rows={"diskf-auto": row(1.05), "kcf": row(1.0)}, bank={"none": 1.0}),
+               dict(case="b", n=2, rows={"diskf-auto": row(2.0), "kcf": row(1.0)}, bank={"none": 1.05, "walk": 3.0}),
+               dict(case="c", n=2, rows={"diskf-auto": row(3.0), "kcf": row(1.0)}, bank={"none": 2.0})]
+    b = heldout.bank_summary(results)
+    assert (b["auto_misses"], b["within"]) == (2, 1)
+    assert [(x["case"], x["member"], x["ratio"]) for x in b["rows"]] == [("b", "none", 1.05), ("c", "none", 2.0)]

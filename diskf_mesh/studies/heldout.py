@@ -23,6 +23,12 @@ best (every estimator whose name starts with ``diskf``) within 1 % of the
 best baseline, ``diskf-auto`` within 10 % of each case's best, and its mean
 NEES inside the band for the mean over every observed cell.
 
+``bank_members`` and ``run_bank`` (``--bank``) run each model of
+``diskf-auto``'s bank alone (``diskf-r`` with that input model);
+``bank_summary`` names, for each case ``diskf-auto`` misses by more than
+10 %, the best of them: whether the bank holds a model that fits, or the
+choice between its models is what fails.
+
     python -m diskf_mesh.studies.heldout --seeds 20 --json heldout.json --markdown heldout.md
 """
 from __future__ import annotations
@@ -211,6 +217,55 @@ def run_case(case: Case, seeds, steps: int | None = None, names=None) -> dict:
     return rows
 
 
+def bank_members(scn: Scenario) -> list:
+    """diskf-auto's bank on this scenario, each model alone: [(model name,
+    Params)], ``diskf-r`` with that input model (``input_models.default_bank``;
+    ``diskf-r`` with one input model is ``diskf-auto`` with that model alone in
+    its bank, the same input prior 10^4 max(q_process, q_sensor)). The best of
+    them on a case is what a choice of model that knew the case in advance
+    reaches with these models."""
+    est = algorithms.get(AUTO)(scn.model(), scn.sensors(), scn.params)
+    out = []
+    for name, rho, q in zip(est.bank, est.rho, est.q):
+        kind = "none" if q == 0 else "walk" if rho == 1 else "mean-reverting"
+        robust = replace(scn.params.robust, input_model=kind, input_walk=float(q) if q > 0 else None,
+                         input_rho=float(rho) if kind == "mean-reverting" else scn.params.robust.input_rho)
+        out.append((name, replace(scn.params, robust=robust)))
+    return out
+
+
+def run_bank(case: Case, seeds, steps: int | None = None) -> dict:
+    """{bank model: state MAE} on one case (``bank_members``), as ``run_case``
+    measures it; NaN where the run diverged."""
+    scn = case.scenario.with_overrides(steps=steps)
+    tr = simulate(scn, seeds)
+    out = {}
+    for name, params in bank_members(scn):
+        with np.errstate(all="ignore"):
+            est = engine.run(tr, "diskf-r", params)
+        ok = bool(np.isfinite(est.P).all() and np.isfinite(est.x).all())
+        out[name] = metrics.summarize(*metrics.errors(tr, est))["mae_state"] if ok else float("nan")
+    return out
+
+
+def bank_summary(results: list[dict]) -> dict:
+    """Over the results that hold a ``bank`` ({model: state MAE}, ``run(...,
+    bank=True)``): per case where ``diskf-auto`` is not within 10 % of the
+    case's best, the bank's best model alone and its ratio to that best;
+    ``within`` counts those cases where it is within 10 %."""
+    rows = []
+    for r in results:
+        mae = {k: v["mae_state"] for k, v in r["rows"].items() if not v["diverged"]}
+        if AUTO not in mae or "bank" not in r:
+            continue
+        best = min(mae.values())
+        if mae[AUTO] <= 1.10 * best:
+            continue
+        member = min((k for k, v in r["bank"].items() if math.isfinite(v)), key=r["bank"].get)
+        rows.append(dict(case=r["case"], auto=mae[AUTO] / best, member=member, ratio=r["bank"][member] / best))
+    return dict(auto_misses=len(rows), within=sum(x["ratio"] <= 1.10 for x in rows), rows=rows)
+
+
 def targets(results: list[dict], seeds: int) -> dict:
     """The three targets over the suite's results [{case, n, rows}]."""
     fam_ok = auto_ok = nees_ok = nees_cases = diverged = 0
@@ -243,15 +298,20 @@ def targets(results: list[dict], seeds: int) -> dict:
                 auto_nees_cases=nees_cases, diverged_runs=diverged, misses=misses)
 
 
-def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True) -> dict:
-    """The whole suite (or the cases whose label contains ``select``)."""
-    all_cases = [c for c in cases() if select is None or select in c.label or select == c.group]
+def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True, bank=False) -> dict:
+    """The whole suite (or the cases whose label contains ``select``, or
+    any of a list of them); ``bank``: each result also holds ``run_bank``'s
+    ``bank``."""
+    sel = None if select is None else [select] if isinstance(select, str) else list(select)
+    all_cases = [c for c in cases() if sel is None or any(s in c.label or s == c.group for s in sel)]
     results = []
     t0 = time.monotonic()
     for i, c in enumerate(all_cases, 1):
         rows = run_case(c, range(seeds), steps, names)
         tr_n = c.scenario.G.shape[0]
         results.append(dict(case=c.label, group=c.group, n=tr_n, rows=rows))
+        if bank:
+            results[-1]["bank"] = run_bank(c, range(seeds), steps)
         if progress:
             best = min((v["mae_state"] for v in rows.values() if not v["diverged"]), default=math.nan)
             auto = rows.get(AUTO, {}).get("mae_state", math.nan)
@@ -353,17 +413,21 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m diskf_mesh.studies.heldout", description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--steps", type=int, default=None)
-    ap.add_argument("--select", default=None, help="only the cases whose label contains this (or a group name)")
+    ap.add_argument("--select", default=None, action="append",
+                    help="only the cases whose label contains this (or a group name); may be repeated")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     ap.add_argument("--figure", default=None, help="also draw diskf-auto's model choice over time (a PNG)")
+    ap.add_argument("--bank", action="store_true",
+                    help="also run each model of diskf-auto's bank alone; print, per case diskf-auto misses by more "
+                         "than 10 %%, the best of them")
     a = ap.parse_args(argv)
     if a.seeds < 1 or (a.steps is not None and a.steps < 1):
         print("error: --seeds and --steps must be at least 1", file=sys.stderr)
         return 2
     if a.figure:
         choice_figure(a.figure)
-    doc = run(a.seeds, a.steps, select=a.select)
+    doc = run(a.seeds, a.steps, select=a.select, bank=a.bank)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(doc, f, indent=1, default=float)
@@ -375,6 +439,12 @@ def main(argv=None) -> int:
     print(json.dumps({k: v for k, v in t.items() if k != "misses"}))
     for k, v in t["misses"].items():
         print(f"misses ({k}): {'; '.join(v)}")
+    if a.bank:
+        b = bank_summary(doc["results"])
+        print(f"bank: one model alone within 10 % of the case's best in {b['within']} of the {b['auto_misses']} "
+              f"cases {AUTO} misses")
+        for x in b["rows"]:
+            print(f"  {x['case']}: {AUTO} {x['auto']:.2f} x the best, {x['member']} alone {x['ratio']:.2f} x")
     return 0
 
 
