@@ -41,10 +41,13 @@ class World:
         self.scn, self.trace, self.keys = scn, trace, Keys(RUN)
         self.ids = [a.id for a in scn.agents]
 
-    def tick(self, k, live=None):
+    def tick(self, k, live=None, holders=None):
+        """Tick k; ``holders``: {id: nonce} of the processes it counts (others: "n<id>")."""
+        live = tuple(self.ids if live is None else live)
+        tags = b"" if holders is None else b"".join(wire.holder_tag(holders.get(i, f"n{i}")) for i in live)
         return Sample(self.keys.tick, wire.encode_tick(wire.Tick(
             RUN, k, K, SEED, "diskf", self.scn.topology, self.scn.comm_range, self.trace.positions[k - 1],
-            tuple(self.ids if live is None else live))))
+            live, tags)))
 
     def meas(self, k, i):
         j = self.ids.index(i)
@@ -290,26 +293,26 @@ def test_a_late_joiner_that_finds_its_id_held_just_before_joining_leaves(run):
     assert fin.code == 2 and "n0" in fin.reason and m.est is None
 
 
-def test_a_late_joiner_whose_id_the_world_sees_held_leaves_before_publishing(run):
-    """A second process of an id that found the run in progress and whose
-    own session never heard the first (its id-confirming query found none):
-    the world's answer names the processes it sees holding the id; this one
-    is not alone among them: exit 2, nothing of it published, no estimate."""
+def test_a_process_the_world_does_not_count_as_its_id_leaves_before_working(run):
+    """Every tick names the process the world counts as each live id. A
+    second process of an id whose own session never heard the first (its
+    id-confirming queries found none) leaves (exit 2) at the first tick that
+    names the other, before its message, its start query or any estimate;
+    the process the tick names works."""
     scn, trace, _ = run
     w = World(scn, trace)
     me = w.ids[4]
-    m, out = started(scn, me, ticking=True)
-    m.handle(w.meas(6, me), 1.0)
-    out = m.handle(w.tick(6), 1.0)
-    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), 1.0)           # its own session sees no other
-    ask, = of(out, Ask)
-    start = wire.encode_start(RUN, me, 6, 2, np.zeros(2), np.eye(2), np.zeros(1), False, held=("n0", f"n{me}"))
-    fin, = m.handle(Reply(ask.qid, start), 1.1)
-    assert isinstance(fin, Finish) and fin.code == 2 and "n0" in fin.reason
-    assert m.est is None and m.rejoins == []
-    alone = wire.encode_start(RUN, me, 6, 2, np.zeros(2), np.eye(2), np.zeros(1), False, held=(f"n{me}",))
-    m2, ask2, _ = asking(run, J=6)
-    assert of(m2.handle(Reply(ask2.qid, alone), 10.1), Publish) and m2.rejoins == [(6, 2)]
+    for ticking in (False, True):  # at tick 1 (both started at once) and joining a run in progress
+        m, out = started(scn, me, ticking=ticking)
+        k = 6 if ticking else 1
+        m.handle(w.meas(k, me), 1.0)
+        fin, = m.handle(w.tick(k, holders={me: "n0"}), 1.0)
+        assert isinstance(fin, Finish) and fin.code == 2 and wire.holder_tag("n0").hex() in fin.reason
+        assert m.est is None and m.rejoins == []
+    m, _ = started(scn, me)
+    m.handle(w.meas(1, me), 1.0)
+    out = m.handle(w.tick(1, holders={}), 1.0)  # it is the one counted
+    assert [e for e in of(out, Publish) if "/msg/" in e.key] and m.est is not None
 
 
 def test_another_process_with_this_id_makes_this_one_leave_with_2(run):

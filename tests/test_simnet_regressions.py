@@ -7,7 +7,13 @@ import pytest
 import simnet_cases as cases
 from simnet_cases import Case
 
+from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.mesh.simnet import Fault, Link
+
+def _apart(pid: str) -> tuple:
+    """Links of 30 s both ways between ``pid`` and its twin: neither session hears the other."""
+    return tuple(((a, b), Link(delay=30.0)) for a, b in ((pid, pid + "~1"), (pid + "~1", pid)))
+
 
 FOUND = [
     # diskf-r's input model took its default scales from the sensors it was given: the engine's are every
@@ -37,10 +43,25 @@ FOUND = [
     # neighbour fused the twin's as agent 3's: "diverged"
     # (fixed: the world's start answer names the processes it sees holding the id; the twin leaves at once)
     pytest.param(Case(agents=9, ticks=60, algorithm="diskf", seed=1, scenario="dynamic", twins=((3, 0.02),),
-                      links=tuple(((a, b), Link(delay=30.0)) for a, b in (("agent-3", "agent-3~1"),
-                                                                         ("agent-3~1", "agent-3")))
-                      + tuple((("agent-3", f"agent-{i}"), Link(delay=0.001)) for i in (1, 2, 4, 5, 6, 7, 8, 9))),
+                      links=_apart("agent-3") + tuple((("agent-3", f"agent-{i}"), Link(delay=0.001)) for i in (1, 2, 4, 5, 6, 7, 8, 9))),
                  id="late-twin-unseen-by-its-session"),
+    # sweep seeds 196 and 5084: two processes of one id whose sessions never hear each other (a 30 s link
+    # between them), one started a moment after the other (196: while the run ticks; 5084: at once): each
+    # took itself for the only one, both published and reported as the agent; the neighbours and the world
+    # took whichever copy came first: "diverged" (agent 1 fused at tick 2 a message of agent 3 the engine
+    # does not reproduce; agent 4's estimate of tick 25 differs from the replay)
+    # (fixed: every tick names the process the world counts as each live id; any other leaves before working)
+    pytest.param(Case(agents=4, ticks=29, algorithm="diskf-auto", seed=63630, scenario="quadrants",
+                      link=Link(delay=0.0002, jitter=0.002),
+                      faults=(Fault("crash", "agent-1", after_event=928), Fault("restart", "agent-1", after_event=1416),
+                              Fault("pause", "agent-4", after_event=863, duration=4.7)),
+                      twins=((3, 0.0058),), injected=FaultConfig(latency_ms=1.0, reorder=0.1),
+                      links=_apart("agent-3")), id="sweep-196-twins-unheard-by-each-other"),
+    pytest.param(Case(agents=9, ticks=29, algorithm="diskf", seed=15951, scenario="dynamic",
+                      link=Link(delay=0.02, jitter=0.2, duplicate=0.1, reorder=0.5, hold=0.04,
+                                faulty="diskf/sim/agent/*/msg/**"),
+                      faults=(Fault("pause", "agent-4", after_event=436, duration=10.3),),
+                      twins=((4, 0.0001),), links=_apart("agent-4")), id="sweep-5084-twins-at-once-unheard"),
 ]
 
 

@@ -190,13 +190,35 @@ def test_rejoin_query_is_answered_with_a_neighbours_reported_estimate(run):
     s = wire.decode_start(out[0].payload, run_id=RUN, agent=a, tick=2)
     assert s.source == best and np.array_equal(s.x, np.full(n, float(best)))
     assert np.array_equal(s.P, np.eye(n) * 0.5)
-    assert s.held == ("n1",)                  # the processes it sees holding a's id: a late twin learns it is one
-    w.handle(Token(keys.alive(a, "n2"), True), 0.5)
-    out = w.handle(Query(9, keys.start(a), wire.encode_join(RUN, a, 2)), 0.5)
-    assert wire.decode_start(out[0].payload, run_id=RUN, agent=a, tick=2).held == ("n1", "n2")
     assert w.record.starts[-1].source == best and a not in w.record.rejoins  # answered, not started yet
     report(w, a, 3, 0.6, restart=(2, best))   # a report says how its agent's estimate started
     assert w.record.rejoins[a] == [{"tick": 2, "source": best}]
+
+
+def tick_of(effects) -> wire.Tick:
+    tick, = [wire.decode_tick(e.payload) for e in published(effects, Keys(RUN).tick)]
+    return tick
+
+
+def test_every_tick_names_the_process_it_counts_as_each_agent(run):
+    """Tick 1 counts the earliest started of two processes of one id (the
+    agents' own rule); later the one it counted keeps the id while its token
+    lasts, even against a process with a smaller nonce that appears late;
+    once its token goes, the one left is counted."""
+    w = machine(run)
+    w.start(0.0)
+    w.handle(Tokens(CLAIM, ()), 0.0)
+    keys, a = Keys(RUN), w.ids[0]
+    w.handle(Token(keys.alive(a, "n5"), True), 0.05)               # a second process of a, started later
+    t = tick_of(ready(w, w.ids, 0.1))
+    assert t.holder(a) == wire.holder_tag("n1") and t.holder(w.ids[1]) == wire.holder_tag("n1")
+    assert len(t.holders) == wire.HOLDER_BYTES * len(t.live)
+    w.handle(Token(keys.alive(a, "n0"), True), 0.2)                # a late one, with the smallest nonce
+    t = tick_of(sum((report(w, i, 1, 0.3) for i in w.ids), []))
+    assert t.tick == 2 and t.holder(a) == wire.holder_tag("n1")
+    w.handle(Token(keys.alive(a, "n1"), False), 0.4)               # the counted one's token goes
+    t = tick_of(sum((report(w, i, 2, 0.5) for i in w.ids), []))
+    assert t.tick == 3 and t.holder(a) == wire.holder_tag("n0")
 
 
 def test_rejoin_with_no_neighbour_reported_starts_from_the_prior(run):

@@ -59,6 +59,7 @@ May import: core, estimators, data, engine (the mesh layer).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 from dataclasses import dataclass
@@ -325,6 +326,10 @@ class AgentMachine:
         problem = self._tick_problem(t)
         if problem is not None:
             return self._refuse("tick", *problem)
+        holder = t.holder(self.id)
+        if holder is not None and holder != self._tag:  # the world counts another process as this id
+            self._duplicate(f"tag {holder.hex()}", f"the world's tick {t.tick} counts that one as agent {self.id}")
+            return True
         self.last_heard = now
         if self.constants is None:
             self.constants = consts
@@ -593,7 +598,7 @@ class AgentMachine:
 
     def _duplicate_reason(self, other: str, how: str) -> str:
         return (f"agent id {self.id} is already held by another process in run {self.keys.run_id!r} "
-                f"(token nonce {other}, {how}): this one leaves")
+                f"(process {other}, {how}): this one leaves")
 
     # ======================================================================
     # start-up, joining, rejoining
@@ -650,6 +655,10 @@ class AgentMachine:
         if others:
             return self._duplicate(min(others), "it holds this id in the run this one joined late")
         self._confirmed = True
+
+    @functools.cached_property
+    def _tag(self) -> bytes:
+        return wire.holder_tag(self.nonce)
 
     def _others(self, nonces=()) -> set:
         """The nonces of other processes holding this agent's id: ``nonces``
@@ -745,9 +754,6 @@ class AgentMachine:
                                           m=self.m, max_abs=g.max_abs, max_cond=g.max_cond)
             except wire.Rejected as e:
                 self._refuse("start", e.reason, e.detail)
-        others = self._others(start.held) if start is not None else ()
-        if others and self._late():  # the world sees another process holding this id: it keeps it
-            return self._duplicate(min(others), "the world sees it holding this id in the run this one joined late")
         self._start = (k, start)
 
     def _restart_from(self, k: int) -> None:

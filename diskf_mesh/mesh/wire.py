@@ -54,7 +54,12 @@ kind "tick" (world -> everyone, opens tick k; ``Tick``)::
 
     "K" ticks in the run, "seed", "alg", "topo", "range" (float, may be inf),
     "pos" positions of every agent at tick k, (N x 2) float64 in scenario order,
-    "live" ids of the agents the world counts as alive
+    "live" ids of the agents the world counts as alive,
+    "ho" for each id of "live", in order, the ``holder_tag`` (4 bytes) of the
+        one process the world counts as that agent (optional): a process of
+        that id with another tag leaves before it works on the tick, so two
+        processes of one id never both publish, whatever each one's session
+        has heard of the other
 
 kind "meas" (world -> one agent on its own key; ``Measurement``)::
 
@@ -68,10 +73,7 @@ kind "join" (agent -> world, the payload of its query on ``Keys.start``;
 kind "start" (world -> agent, the answer to its "join"; ``Start``): "t" the
 tick J it joins at, "s" the agent it is for, "src" the agent whose fused
 estimate of tick J - 1 it starts from, or -1 for the prior; "n", "m", "dt",
-"dv", "a" x (n), P (n x n), d (m) of that estimate, "h" the nonces of the
-processes the world sees holding the agent's id (its alive tokens; at most
-``MAX_HELD``, optional): a process that found the run in progress and is
-not among them leaves (another process works under its id). ``decode_start`` checks
+"dv", "a" x (n), P (n x n), d (m) of that estimate. ``decode_start`` checks
 it as the guard checks a message: finite, P positive definite, no value
 beyond ``max_abs``, P's condition number at most ``max_cond``.
 
@@ -111,7 +113,7 @@ MAX_DIM = 64  # largest n, m (or p) a decoder accepts
 MAX_BYTES = 1 << 20  # largest payload a decoder looks at, whatever the kind
 HEADER_BYTES = 256   # the fixed fields of a payload, generously (run id <= 32 characters, ints <= 9 bytes)
 MAX_STR = 64         # longest string field or map key (run ids, algorithm and counter names)
-MAX_HELD = 4         # nonces a "start" names of the processes holding the agent's id
+HOLDER_BYTES = 4     # a tick's tag of the process it counts as an agent (``holder_tag``)
 MAX_WHY = 1024       # longest "why" of a stop
 MAX_COUNTERS = 64    # most counters a report may carry (there are about 30)
 PER_TICK = 1 << 20   # most payloads one agent counts per tick of the run (``count_bound``)
@@ -288,6 +290,15 @@ class Tick:
     comm_range: float
     positions: np.ndarray  # (N, 2)
     live: tuple
+    holders: bytes = b""   # ``holder_tag`` of the process counted as each id of ``live``, in order (or empty)
+
+    def holder(self, agent) -> bytes | None:
+        """The tag of the process the world counts as ``agent`` (None: not
+        live, or no tags sent)."""
+        if not self.holders or agent not in self.live:
+            return None
+        j = self.live.index(agent)
+        return self.holders[HOLDER_BYTES * j: HOLDER_BYTES * (j + 1)]
 
 
 @dataclass(frozen=True)
@@ -323,7 +334,6 @@ class Start:
     P: np.ndarray       # (n, n)
     d: np.ndarray       # (m,)
     d_valid: bool
-    held: tuple = ()    # nonces of the processes the world sees holding the agent's id (alive tokens)
 
 
 # --------------------------------------------------------------------------
@@ -408,7 +418,13 @@ def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counter
 def encode_tick(t: Tick) -> bytes:
     return _pack({"v": SCHEMA, "k": "tick", "run": t.run_id, "t": int(t.tick), "K": int(t.ticks),
                   "seed": int(t.seed), "alg": t.algorithm, "topo": t.topology, "range": float(t.comm_range),
-                  "dt": DTYPE, "pos": _f8(t.positions), "live": [int(i) for i in t.live]})
+                  "dt": DTYPE, "pos": _f8(t.positions), "live": [int(i) for i in t.live],
+                  **({"ho": bytes(t.holders)} if t.holders else {})})
+
+
+def holder_tag(nonce: str) -> bytes:
+    """The 4-byte tag of a process (its liveliness nonce) in a tick's "ho"."""
+    return hashlib.blake2b(nonce.encode(), digest_size=HOLDER_BYTES).digest()
 
 
 def encode_measurement(run_id: str, tick: int, agent: int, has: bool, y) -> bytes:
@@ -424,15 +440,14 @@ def encode_join(run_id: str, sender: int, tick: int) -> bytes:
     return _pack({"v": SCHEMA, "k": "join", "run": run_id, "t": int(tick), "s": int(sender)})
 
 
-def encode_start(run_id: str, agent: int, tick: int, source: int | None, x, P, d, d_valid, held=()) -> bytes:
+def encode_start(run_id: str, agent: int, tick: int, source: int | None, x, P, d, d_valid) -> bytes:
     n, m = _dims(x, d)
     blob = _f8(x, P, d)
     if len(blob) != 8 * (n + n * n + m):
         raise ValueError("encode_start: a starting estimate must hold one agent's arrays")
     return _pack({"v": SCHEMA, "k": "start", "run": run_id, "t": int(tick), "s": int(agent),
                   "src": -1 if source is None else int(source), "n": n, "m": m, "dt": DTYPE,
-                  "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob,
-                  "h": [str(h)[:MAX_STR] for h in list(held)[:MAX_HELD]]})
+                  "dv": bool(np.asarray(d_valid).reshape(-1)[0]), "a": blob})
 
 
 # --------------------------------------------------------------------------
@@ -469,7 +484,7 @@ class Limits:
 
 # fields of each kind (the map's length), and room for a few more (a signature, a binding) that a
 # decoder ignores: each is still bounded by the string, bin and byte limits
-_FIELDS = {"msg": 10, "report": 13, "tick": 12, "meas": 8, "stop": 5, "join": 5, "start": 12}
+_FIELDS = {"msg": 10, "report": 13, "tick": 13, "meas": 8, "stop": 5, "join": 5, "start": 11}
 EXTRA_FIELDS = 2
 
 
@@ -495,16 +510,15 @@ def limits(kind: str, a: int | None = None, b: int | None = None, agents: int | 
             size += MAX_COUNTERS * (2 + MAX_STR + 9) + links * (9 + 12 + MAX_VERDICT + 2 + DIGEST_BYTES) + own
             fields, arrays, bins = MAX_COUNTERS, max(floats, links), max(bins, own)
         return Limits(size, MAX_STR, bins, arrays, fields)
-    if kind == "tick":  # alg, topo; N positions (2 float64) and N live ids (<= 9 bytes each)
-        N = a or (MAX_BYTES - HEADER_BYTES - 2 * MAX_STR) // 25
-        return Limits(HEADER_BYTES + 2 * MAX_STR + 25 * N, MAX_STR, 16 * N, N, fields)
+    if kind == "tick":  # alg, topo; N positions (2 float64), N live ids (<= 9 bytes each), N holder tags
+        N = a or (MAX_BYTES - HEADER_BYTES - 2 * MAX_STR) // (25 + HOLDER_BYTES)
+        return Limits(HEADER_BYTES + 2 * MAX_STR + (25 + HOLDER_BYTES) * N, MAX_STR, 16 * N, N, fields)
     if kind == "meas":
         p = a or MAX_DIM
         return Limits(HEADER_BYTES + 8 * p, MAX_STR, 8 * p, p, fields)
-    if kind == "start":  # the estimate's floats and "h": MAX_HELD nonces
+    if kind == "start":
         floats = n + n * n + m
-        return Limits(HEADER_BYTES + 8 * floats + MAX_HELD * (2 + MAX_STR), MAX_STR, 8 * floats,
-                      max(floats, MAX_HELD), fields)
+        return Limits(HEADER_BYTES + 8 * floats, MAX_STR, 8 * floats, floats, fields)
     if kind == "join":  # ints only
         return Limits(HEADER_BYTES, MAX_STR, 0, 0, fields)
     return Limits(HEADER_BYTES + MAX_WHY, MAX_WHY, 0, 0, fields)
@@ -768,7 +782,10 @@ def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -
     if agents is not None and N != agents:
         raise Rejected("shape", f"{N} positions, expected {agents}")
     pos = _floats(doc, "pos", 2 * N).reshape(N, 2)
-    return Tick(doc["run"], doc["t"], K, seed, alg, topo, float(rng), pos, tuple(live))
+    ho = doc.get("ho", b"")
+    if not isinstance(ho, bytes) or len(ho) not in (0, HOLDER_BYTES * len(live)):
+        raise Rejected("shape", f"field 'ho' is not {HOLDER_BYTES} bytes per live id")
+    return Tick(doc["run"], doc["t"], K, seed, alg, topo, float(rng), pos, tuple(live), ho)
 
 
 def decode_measurement(data, *, run_id: str | None = None, agent: int | None = None,
@@ -815,7 +832,4 @@ def decode_start(data, *, run_id: str | None = None, agent: int | None = None, t
     problem = estimate_problem(a, P, max_abs, max_cond)
     if problem is not None:
         raise Rejected(*problem)
-    held = doc.get("h", [])
-    if not isinstance(held, list) or len(held) > MAX_HELD or not all(isinstance(h, str) for h in held):
-        raise Rejected("schema", f"field 'h' is not a list of at most {MAX_HELD} nonces")
-    return Start(doc["run"], s, doc["t"], None if src < 0 else src, x, P, d, dv, tuple(held))
+    return Start(doc["run"], s, doc["t"], None if src < 0 else src, x, P, d, dv)

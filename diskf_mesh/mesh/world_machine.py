@@ -172,6 +172,7 @@ class WorldMachine:
         # who is there
         self.alive, self.ready = set(), set()
         self._tokens = {"alive": {}, "ready": {}}  # kind -> id -> nonces held
+        self._holders = {}             # id -> nonce of the process the ticks count as it (``_holder``)
         self._gone_ready = {}          # id -> ready nonces that went (they do not count again)
         self._joins_at = {}            # id -> first tick a (re)joining agent is live at
         self._why = dict.fromkeys(self.ids, "never joined")  # id -> why it is not live (None: live)
@@ -363,6 +364,19 @@ class WorldMachine:
     def _live(self, k: int) -> list:
         return [i for i in self.ids if i in self.ready and self._joins_at.get(i, 0) <= k]
 
+    def _holder(self, agent: int, k: int) -> str:
+        """The process (its nonce) counted as ``agent`` at tick k: at tick 1
+        the earliest started of those holding the id (as the agents' own
+        rule); later the one counted before while its token lasts, else the
+        earliest started of those holding it now (a restart). Every tick
+        names it (``wire.Tick.holders``): any other process of the id leaves
+        before it works."""
+        held = self._tokens["alive"].get(agent, set())
+        h = self._holders.get(agent)
+        if k == 1 or h not in held:
+            h = self._holders[agent] = min(held)
+        return h
+
     def _open_tick(self, k: int, now: float) -> None:
         """Send each live agent its measurement of tick k, then the tick. The
         measurements are not express: each waits in its agent's link for the
@@ -388,9 +402,10 @@ class WorldMachine:
         has, y, index = tr.has[0, k - 1], tr.y[0, k - 1], self._index
         out = [Publish(self.keys.meas(i), wire.encode_measurement(run, k, i, bool(has[j]), y[j, : self.p[j]]),
                        express=False) for i, j in ((i, index[i]) for i in live)]
+        holders = b"".join(wire.holder_tag(self._holder(i, k)) for i in live)
         out.append(Publish(self.keys.tick, wire.encode_tick(wire.Tick(
             run, k, self.K, self.seed, self.algorithm, self.scn.topology, self.scn.comm_range,
-            tr.positions[k - 1], tuple(live)))))
+            tr.positions[k - 1], tuple(live), holders))))
         prof.end("encode")
         self._sent = out
         self._out += out
@@ -698,9 +713,7 @@ class WorldMachine:
         for qid, who, tick in self._starts_owed:
             if final or self._reports_final(who, tick - 1):
                 s = self.start_state(who, tick)
-                held = sorted(self._tokens["alive"].get(who, ()))  # a late twin among them learns it is one
-                self._emit(Answer(qid, wire.encode_start(s.run_id, who, tick, s.source, s.x, s.P, s.d, s.d_valid,
-                                                         held)))
+                self._emit(Answer(qid, wire.encode_start(s.run_id, who, tick, s.source, s.x, s.P, s.d, s.d_valid)))
                 if (who, tick, s.source) not in self._answered:  # the same answer again is kept once
                     self._answered.add((who, tick, s.source))
                     self.record.starts.append(s)  # a rejoin once the agent says it started from it
