@@ -422,6 +422,7 @@ def encode_tick(t: Tick) -> bytes:
                   **({"ho": bytes(t.holders)} if t.holders else {})})
 
 
+@functools.lru_cache(maxsize=4096)
 def holder_tag(nonce: str) -> bytes:
     """The 4-byte tag of a process (its liveliness nonce) in a tick's "ho"."""
     return hashlib.blake2b(nonce.encode(), digest_size=HOLDER_BYTES).digest()
