@@ -14,7 +14,7 @@ from agents.agent import Agent
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.keys import key_matches
-from diskf_mesh.mesh.transport import LocalBus
+from local_bus import LocalBus
 from sim.launcher import Child, ChildFailed, Launcher
 from sim.world import World, WorldTiming
 

@@ -9,7 +9,7 @@ import pytest
 from diskf_mesh.mesh.events import (Answer, Ask, AskTokens, DeclareQueryable, DeclareToken, Finish, Interrupt,
                                     Publish, Query, Reply, Sample, SetTimer, Subscribe, Timer, Tokens, Woke)
 from diskf_mesh.mesh.shell import Shell
-from diskf_mesh.mesh.transport import LocalBus
+from local_bus import LocalBus
 
 
 class Scripted:

@@ -1,7 +1,7 @@
 """mesh: what the agent and world processes are made of.
 
     keys, wire     the key space and the msgpack messages (one parse per key, one decode per message)
-    transport      Transport: zenoh sessions, and an in-process bus for tests
+    transport      Transport: zenoh sessions (the tests have an in-process bus of their own)
     zenoh_config   session settings (TLS, access control, endpoints)
     credentials    the per-run CA and certificates
     guard          the fusion guard (a message's values before it may be fused)
