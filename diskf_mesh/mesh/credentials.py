@@ -16,7 +16,7 @@ processes started by hand) writes them to disk:
         key.pem                   its private key, 0600
         run.json                  run id, agent ids, the identity's name
       agent-<id>/ ...             one per agent of the scenario
-      observer/ ...               may only listen (a live viewer, a recorder)
+      observer/ ...               may only listen (a program the user runs beside the mesh)
       router/ ...                 a zenoh router of the run (``diskf-mesh router``,
                                   docs/hosts.md): it forwards everything of the run
 
