@@ -10,7 +10,7 @@ import pytest
 from cli_helpers import run_cli
 from diskf_mesh import estimators as algorithms
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.data import metrics
+from diskf_mesh.data import metrics, provenance
 from diskf_mesh.estimators import Params
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.data.trace import load_trace, trace_from_json, trace_to_json
@@ -96,3 +96,19 @@ def test_replay_general_trace(name, tmp_path, capsys):
     want = engine.run(trace_from_json(doc), name, Params())
     np.testing.assert_allclose(got["x"], want.x[0], rtol=0, atol=1e-9)
     assert [d is not None for d in got["d"][-1]] == want.d_valid[0, -1].tolist()
+
+
+def test_a_real_time_run_is_judged_on_replay_as_the_run_judged_it(tmp_path, capsys):
+    """A real-time run degraded by deadline misses within --max-miss-rate
+    exits 0; so do ``replay RUN.mcap`` and ``replay TRACE --fused EST``."""
+    rec, est, res, trace = (tmp_path / n for n in ("r.mcap", "e.json", "r.json", "t.json"))
+    code, _, err = run_cli(["up", "--network", "simulated", "--ticks", 10, "--rate", 10, "--net-delay-ms", 20,
+                            "--net-jitter-ms", 40, "--max-miss-rate", 1, "--record", rec, "--estimates", est,
+                            "--json", res, "--quiet"], capsys)
+    row = next(iter(json.loads(res.read_text())["diskf"].values()))
+    assert code == 0 and row["status"] == "degraded" and row["deadline_misses"]["miss_rate"] > 0, err
+    assert run_cli(["simulate", "--scenario", "dynamic", "--steps", 10, "--out", trace], capsys)[0] == 0
+    assert run_cli(["replay", trace, "--fused", est], capsys)[0] == 0
+    code, _, err = run_cli(["replay", rec, "--out", tmp_path / "again.json"], capsys)
+    assert code == 0, err
+    assert provenance.split(json.loads((tmp_path / "again.json").read_text()))[0]["status"] == "degraded"

@@ -16,13 +16,13 @@ was handed, with the run's estimator and settings, and compares every
 reported estimate with the run's (``engine.verify``): the run's status and its
 exit status (``diskf_mesh.core.exits``: 0 exact or as planned, 3 incomplete,
 5 degraded, 6 diverged, e.g. the wrong trace; ``--allow-missing`` and
-``--allow-degraded`` accept as a run does). ``replay RUN.mcap`` checks a
-recording the same way.
+``--allow-degraded`` accept as a run does; a real-time run's deadline
+misses were judged by the run, against its ``--max-miss-rate``, and are
+accepted). ``replay RUN.mcap`` checks a recording the same way.
 """
 from __future__ import annotations
 
 import argparse
-import sys
 
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics, provenance
@@ -30,7 +30,6 @@ from diskf_mesh.core import exits
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh.run_status import add_tolerances
 from diskf_mesh.data.trace import estimates_to_json, estimator_from_json, read_json, read_trace_file
-from diskf_mesh.recording.reader import take_ticks
 from diskf_mesh.cli.options import (
     add_command,
     add_estimator_choice,
@@ -95,9 +94,9 @@ def trace_provenance(args, doc: dict, trace, params, status: str, started: str, 
 
 def replay_run(args: argparse.Namespace) -> int:
     """``replay TRACE.json --fused EST.json``: the run checked by the engine
-    (``engine.verify``) and its exit status (``core.exits``; ``--allow-missing``,
-    ``--allow-degraded``)."""
-    from diskf_mesh.mesh.run_status import accept
+    (``engine.verify``) and its exit status (``recording.command.report_replay``;
+    ``--allow-missing``, ``--allow-degraded``)."""
+    from diskf_mesh.recording.command import report_replay
     from diskf_mesh.recording.replay import fused_record_from_json, fused_status, replay_fused
 
     check_output(args.out, "out")
@@ -112,23 +111,8 @@ def replay_run(args: argparse.Namespace) -> int:
         raise InputError("fused", f"the run has {K} ticks, the trace only {trace.shape[1]}")
     params = run.params if run.params is not None else estimator_params(estimator_from_json(doc), args)
     status = fused_status(run, trace, params)
-    if args.out:
-        est = replay_fused(trace, run.fused, run.reported, run.algorithm, params, run.restarts, run.estimates)
-        scores = metrics.compute(take_ticks(trace, K), est) if trace.truth_x is not None else None
-        prov = trace_provenance(args, doc, trace, params, status.status, started, run.algorithm)
-        save_json(args.out, provenance.attach(estimates_to_json(est, run.algorithm, 0, scores, ids=trace.agent_labels),
-                                              prov))
-    text = human_stream(args.out)
-    ev = status.evidence
-    print(f"{run.algorithm}: {K} ticks, {len(trace.agent_labels)} agents replayed on what each agent fused"
-          + (f" -> {args.out}" if args.out else ""), file=text)
-    print(f"  {status.status}: {status.reason}", file=text)
-    print(f"  reproduced bit for bit: x, P, d of {ev['reported'] - ev['differing']} of {ev['reported']} reported "
-          f"agent-ticks", file=text)
-    # a real-time run's deadline misses were judged by the run (--max-miss-rate): here they are accepted
-    code, level, line = accept(status, allow_missing=args.allow_missing, allow_degraded=args.allow_degraded,
-                               miss_rate=run.miss_rate, max_miss_rate=None if run.miss_rate is None else 1.0)
-    if level:
-        hint = " (not this run's trace, scenario, seed or settings?)" if ev["differing"] == ev["reported"] else ""
-        print(f"{level}: replay: {line}{hint}", file=sys.stderr)
-    return code
+    est = replay_fused(trace, run.fused, run.reported, run.algorithm, params, run.restarts, run.estimates)
+    prov = trace_provenance(args, doc, trace, params, status.status, started, run.algorithm)
+    return report_replay(status, est, trace, run.algorithm, trace.agent_labels, prov, args.out,
+                         miss_rate=run.miss_rate, allow_missing=args.allow_missing,
+                         allow_degraded=args.allow_degraded, hint="not this run's trace, scenario, seed or settings?")

@@ -35,6 +35,12 @@ def recorded_restarts(rec: Recording) -> tuple:
     return restarts_from_json(docs, list(rec.ids))
 
 
+def recorded_miss_rate(rec: Recording) -> float | None:
+    """A real-time run's share of deadline misses, as its result says (None:
+    lockstep, or a run that did not end)."""
+    return (((rec.result or {}).get("metrics") or {}).get("deadline_misses") or {}).get("miss_rate")
+
+
 def recording_status(rec: Recording) -> RunStatus:
     """The recorded run checked by the engine: its status, reason, evidence
     (planned with the deadline the run's own check used, if it said one)."""

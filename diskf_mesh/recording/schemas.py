@@ -83,7 +83,8 @@ CHANNELS = {
     "/run/result": _obj("Result", "the run's end: status, ticks closed, metrics, the run checked by the "
                                   "engine (last)",
                         required=("status", "ticks"), status={"type": "string"}, ticks=_INT,
-                        metrics={"type": "object"},
+                        metrics={"type": "object", "description": "the run's metrics; a real-time run's "
+                                 "rate_hz, deadline_s, deadline_misses and tick_period with them"},
                         verification={"type": "object", "description": "the end-of-run replay on the engine "
                                       "(diskf_mesh.engine.verify): status (exact, as planned, degraded, diverged, "
                                       "incomplete), reason, its evidence, and the restarts it replayed (tick, "
