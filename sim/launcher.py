@@ -599,7 +599,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     if args.network == "simulated":  # every process in this one (sim.simulated)
         code, row = simulated.run(args, spec, scn, out)
         if row is not None:
-            verdict(row, args)  # its lines
+            verdict(row, args)
         return code
     if simulated.given(args):
         raise InputError("network", "the --net-* options need --network simulated")
@@ -693,14 +693,14 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
           f"{ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
     print(format_table(results))
     row = next(iter(next(iter(results.values())).values()))
-    status = verdict(row, args)
-    keep = bool(args.logs) or status != 0 or bool(bad)  # a run that went well leaves no temporary folder
+    verdict(row, args)
+    keep = bool(args.logs) or world_rc != 0 or bool(bad)  # a run that went well leaves no temporary folder
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
           + (f", recording: {args.record}" if args.record and not row.get("recording_failed") else "")
           + (f", logs: {logs}" if keep else ""))
     if not keep:
         shutil.rmtree(logs, ignore_errors=True)
-    return status
+    return world_rc  # up's exit status is the world's
 
 
 # the world's exit statuses that carry a run's results (``core.exits``); any other is a failure
@@ -708,12 +708,12 @@ WORLD_VERDICTS = (exits.OK, exits.INCOMPLETE, exits.TOO_MANY_MISSES, exits.DEGRA
                   exits.RECORDING_FAILED)
 
 
-def verdict(row: dict, args) -> int:
-    """``up``'s exit status: the world's (``sim.world.exit_status``, from the
-    status the world checked and wrote in its results, under the same
-    flags), with one line on stderr when the run is not exact or as
-    planned, a real-time run missed deadlines, or the recording could not
-    be written whole."""
+def verdict(row: dict, args) -> None:
+    """The lines of ``up``'s verdict on the run the world checked (its
+    results ``row``, ``sim.world.exit_status`` under the same flags): the
+    status, or one line on stderr when the run is not exact or as planned,
+    a real-time run missed deadlines, or the recording could not be
+    written whole. The exit status is the world's."""
     status = RunStatus(row["status"], row["reason"], row.get("evidence", {}))
     code, level, line = exit_status(status, row, args, realtime.from_args(args))
     if (row.get("deadline_misses") or {}).get("total") and code != exits.TOO_MANY_MISSES:
@@ -724,8 +724,6 @@ def verdict(row: dict, args) -> int:
         print(f"status: {status.status}: {status.reason}")
     if row.get("recording_failed"):
         print(f"error: {failure_line(row['recording_failed'])}", file=sys.stderr)
-        return code or exits.RECORDING_FAILED
-    return code
 
 
 if __name__ == "__main__":
