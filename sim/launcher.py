@@ -64,7 +64,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from diskf_mesh import live
-from diskf_mesh.data.argtypes import positive, positive_int, seed_value
+from diskf_mesh.data.argtypes import positive_int, seed_value
 from diskf_mesh.data.outputs import check_output, check_output_dir
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
@@ -82,7 +82,8 @@ from sim import simulated
 from sim import zygote as forks
 from diskf_mesh.core import exits
 from diskf_mesh.engine.verify import RunStatus
-from sim.world import add_allow_missing, exit_status, miss_line
+from sim.world import (add_allow_missing, add_timing_arguments, agent_world_timeout, exit_status, miss_line,
+                       timing_argv)
 
 STOP_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this
 WORLD_STOP_GRACE_S = 20.0  # the world, stopped, writes its results first
@@ -507,12 +508,7 @@ def register(subparsers) -> None:
     p.add_argument("--record", metavar="FILE.mcap", help="the world records the run as MCAP (diskf_mesh.recording)")
     p.add_argument("--logs", metavar="DIR", help="keep the children's stderr logs in DIR (default: a temporary folder, "
                                                  "removed when the run ends with 0, kept and named otherwise)")
-    p.add_argument("--startup-timeout", type=positive, default=30.0, metavar="S",
-                   help="seconds for every agent to come up (default %(default)s)")
-    p.add_argument("--tick-timeout", type=positive, default=10.0, metavar="S",
-                   help="world: seconds to wait for the reports of a tick (default %(default)s)")
-    p.add_argument("--collect-timeout", type=positive, default=5.0, metavar="S",
-                   help="agents: seconds to wait for neighbours' messages (default %(default)s)")
+    add_timing_arguments(p)
     add_allow_missing(p)
     realtime.add_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -620,8 +616,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     else:
         print(f"warning: up: --insecure: plain zenoh; any process that reaches it can read and write run "
               f"{spec.run_id}", file=sys.stderr)
-    world_extra = ["--progress", "lines", "--json", str(out), "--startup-timeout", str(args.startup_timeout),
-                   "--tick-timeout", str(args.tick_timeout), "--collect-timeout", str(args.collect_timeout)]
+    world_extra = ["--progress", "lines", "--json", str(out), *timing_argv(args)]
     if args.estimates:
         world_extra += ["--estimates", args.estimates]
     if args.record:
@@ -634,7 +629,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         world_extra += ["--allow-missing", repr(args.allow_missing)]
     if args.allow_degraded:
         world_extra += ["--allow-degraded"]
-    agent_extra = agent_flags(args, scn, args.collect_timeout, args.startup_timeout + 2 * args.tick_timeout)
+    agent_extra = agent_flags(args, scn, args.collect_timeout, agent_world_timeout(args))
     world_extra, agent_extra = [a + b for a, b in zip((world_extra, agent_extra), realtime.argv(args))]
     faults = faults_from_args(args, scn.faults)
     if faults != FaultConfig.from_mapping(scn.faults):  # flags given: the world records them

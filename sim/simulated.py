@@ -32,21 +32,24 @@ from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.argtypes import fraction, milliseconds, seed_value
 
 
+NET_DEFAULTS = {"net_delay_ms": 0.2, "net_jitter_ms": 0.0, "net_loss": 0.0, "net_seed": None}
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("simulated network (--network simulated)")
-    g.add_argument("--net-delay-ms", type=milliseconds, default=0.2, metavar="MS",
+    g.add_argument("--net-delay-ms", type=milliseconds, default=NET_DEFAULTS["net_delay_ms"], metavar="MS",
                    help="one-way delay of every link (default %(default)s)")
-    g.add_argument("--net-jitter-ms", type=milliseconds, default=0.0, metavar="MS",
+    g.add_argument("--net-jitter-ms", type=milliseconds, default=NET_DEFAULTS["net_jitter_ms"], metavar="MS",
                    help="a uniform extra delay in [0, MS) per copy (default %(default)s)")
-    g.add_argument("--net-loss", type=fraction, default=0.0, metavar="P",
+    g.add_argument("--net-loss", type=fraction, default=NET_DEFAULTS["net_loss"], metavar="P",
                    help="probability that the network loses an agent's message (default %(default)s)")
-    g.add_argument("--net-seed", type=seed_value, default=None, metavar="S",
+    g.add_argument("--net-seed", type=seed_value, default=NET_DEFAULTS["net_seed"], metavar="S",
                    help="the simulated network's seed (default: --seed)")
 
 
 def given(args: argparse.Namespace) -> bool:
     """Whether a --net-* option was given (they need --network simulated)."""
-    return (args.net_delay_ms, args.net_jitter_ms, args.net_loss, args.net_seed) != (0.2, 0.0, 0.0, None)
+    return any(getattr(args, k) != v for k, v in NET_DEFAULTS.items())
 
 
 def run(args: argparse.Namespace, spec, scn, out) -> tuple:
@@ -56,14 +59,12 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     from tqdm import tqdm
 
     from diskf_mesh.data import provenance
-    from diskf_mesh.mesh.agent_machine import AgentTiming
     from diskf_mesh.mesh.keys import Keys
     from diskf_mesh.mesh.log import Log
     from diskf_mesh.mesh.simnet import Link
     from diskf_mesh.mesh.simrun import SimPlan, simulate_run
-    from diskf_mesh.mesh.world_machine import WorldTiming
     from diskf_mesh.studies.experiment import format_table
-    from sim.world import failure, finish_run, run_failed, setup_run
+    from sim.world import failure, finish_run, run_failed, run_timings, setup_run
 
     for flag, value in (("live", getattr(args, "live", None)), ("profile", args.profile), ("logs", args.logs)):
         if value:
@@ -75,8 +76,7 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     keys = Keys(spec.run_id)
     link = Link(delay=args.net_delay_ms / 1000, jitter=args.net_jitter_ms / 1000, loss=args.net_loss,
                 faulty=keys.msgs)
-    world_timing = WorldTiming(args.startup_timeout, args.tick_timeout, clock=clock)
-    agent_timing = AgentTiming(args.collect_timeout, args.startup_timeout + 2 * args.tick_timeout, clock)
+    world_timing, agent_timing = run_timings(args, clock)
     bound = args.startup_timeout + K * (args.tick_timeout + args.collect_timeout) + 60.0
     plan = SimPlan(link, secure=not args.insecure, world_timing=world_timing, agent_timing=agent_timing,
                    max_time=bound)

@@ -409,6 +409,39 @@ def add_allow_missing(p) -> None:
     add_tolerances(p, "; with it, the run also starts without agents not ready after --startup-timeout")
 
 
+def add_timing_arguments(p) -> None:
+    """A run's ``--startup-timeout``, ``--tick-timeout`` and
+    ``--collect-timeout`` (``world``, ``up``): their defaults are
+    ``WorldTiming``'s and ``AgentTiming``'s."""
+    p.add_argument("--startup-timeout", type=positive, default=WorldTiming.startup_timeout, metavar="S",
+                   help="seconds to wait for every agent to be ready (default %(default)s)")
+    p.add_argument("--tick-timeout", type=positive, default=WorldTiming.tick_timeout, metavar="S",
+                   help="world: seconds to wait for the reports of one tick (default %(default)s)")
+    p.add_argument("--collect-timeout", type=positive, default=AgentTiming.collect_timeout, metavar="S",
+                   help="agents: seconds to wait for the neighbours' messages of a tick (default %(default)s); "
+                        "with link latency injected, a message due later is not planned to be fused (the run's "
+                        "status)")
+
+
+def timing_argv(args) -> list:
+    """``add_timing_arguments``' flags as given, for a world ``up`` starts."""
+    return ["--startup-timeout", repr(args.startup_timeout), "--tick-timeout", repr(args.tick_timeout),
+            "--collect-timeout", repr(args.collect_timeout)]
+
+
+def agent_world_timeout(args) -> float:
+    """The agents' ``--world-timeout`` in a run ``up`` starts: the world's
+    start-up and two ticks of silence."""
+    return args.startup_timeout + 2 * args.tick_timeout
+
+
+def run_timings(args, clock: realtime.Clock | None) -> tuple:
+    """(``WorldTiming``, ``AgentTiming``) of a run from
+    ``add_timing_arguments``' flags and its clock."""
+    return (WorldTiming(args.startup_timeout, args.tick_timeout, clock=clock),
+            AgentTiming(args.collect_timeout, agent_world_timeout(args), clock))
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("world", help="the world process of a mesh run (ground truth, lockstep)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -418,13 +451,7 @@ def register(subparsers) -> None:
     p.add_argument("--json", metavar="OUT", help="write the results {algorithm: {setting: metrics}}")
     p.add_argument("--estimates", metavar="OUT", help="write every agent's fused estimates and counters")
     p.add_argument("--record", metavar="FILE.mcap", help="record the run as MCAP (diskf_mesh.recording)")
-    p.add_argument("--startup-timeout", type=positive, default=WorldTiming.startup_timeout, metavar="S",
-                   help="seconds to wait for every agent (default %(default)s)")
-    p.add_argument("--tick-timeout", type=positive, default=WorldTiming.tick_timeout, metavar="S",
-                   help="seconds to wait for the reports of one tick (default %(default)s)")
-    p.add_argument("--collect-timeout", type=positive, default=AgentTiming.collect_timeout, metavar="S",
-                   help="the agents' --collect-timeout (default %(default)s): with link latency injected, a message "
-                        "due later is not planned to be fused (the run's status)")
+    add_timing_arguments(p)
     add_allow_missing(p)
     live_server.add_arguments(p)
     realtime.add_arguments(p)
@@ -490,8 +517,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
             world = World(scn, run.trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
-                          WorldTiming(args.startup_timeout, args.tick_timeout, clock=run.clock), progress, log, prof,
-                          run.recorder)
+                          run_timings(args, run.clock)[0], progress, log, prof, run.recorder)
             world.interrupted, signalled[0] = signalled[0], world
             rec = world.run(allow_missing=args.allow_missing > 0)
     except MeshError as e:
