@@ -68,7 +68,7 @@ def _row(mae: float, diverged: bool = False) -> dict:
 
 
 HELDOUT = {
-    "seeds": 20, "steps": None, "seconds": 93.4, "processes": 2,
+    "seeds": 20, "steps": None, "cpu_seconds": 181.4, "processes": 2,
     "results": [
         {"case": "S1 ring, zero", "group": "inputs", "n": 2, "rows": {"kcf": _row(1.0), "diskf-r": _row(2.5)}},
         {"case": "S1 ring, step", "group": "inputs", "n": 2, "rows": {"kcf": _row(1.05), "diskf-r": _row(1.0)}},
@@ -97,7 +97,7 @@ def test_heldout_results_are_kept_with_their_provenance(tmp_path):
     assert math.isnan(kept["results"][2]["rows"]["diskf-r"]["mae_state"])  # JSON's null read back as NaN
     text = report.section_heldout(report.Context(studies.Results(config={})), kept)
     assert "`diskf-mesh report --heldout --out docs`" in text and "2026-01-02T03:04:05+00:00" in text
-    assert "commit abcdef0" in text and "| S1 ring, zero |" in text
+    assert "commit abcdef0" in text and "| S1 ring, zero |" in text and "181 s of CPU" in text
     assert report.previous_heldout(tmp_path / "missing.json") is None
     none = report.section_heldout(report.Context(studies.Results(config={})), None)
     assert report.HELDOUT_COMMAND in none and "| case |" not in none

@@ -733,9 +733,9 @@ def section_heldout(ctx: Context, doc: dict | None) -> str:
     prov = doc.get(provenance.KEY) or {}
     commit = (prov.get("git_commit") or "no git checkout")[:7]
     made = (f"Made by `{' '.join(prov.get('command') or [HELDOUT_COMMAND])}`, started {prov.get('started', '?')} "
-            f"from commit {commit}: {doc['seeds']} seeds, {doc.get('seconds', 0):.0f} s of wall-clock time "
-            f"for the whole command on {doc.get('processes', 1)} processes. A `diskf-mesh report` without "
-            "`--heldout` keeps this section as it was and says so here: the tables above may be newer.")
+            f"from commit {commit}: {doc['seeds']} seeds; its {len(doc['results'])} cases took "
+            f"{doc.get('cpu_seconds', 0):.0f} s of CPU in {doc.get('processes', 1)} processes. A `diskf-mesh report` "
+            "without `--heldout` keeps this section as it was, so the sections above may be newer.")
     body = heldout.markdown(doc)
     body = body[len(heldout.HEADER):].lstrip("\n") if body.startswith(heldout.HEADER) else body
     return (head + "### 11.1 Where each estimator is the right one\n\n" + made + "\n\n"
@@ -885,16 +885,17 @@ def workers() -> int:
 
 
 def run_heldout_case(case, seeds: int, steps: int | None) -> tuple:
-    """(the held-out suite's record of ``case``, seconds): one task of ``run_jobs``."""
-    t0 = time.monotonic()
+    """(the held-out suite's record of ``case``, seconds, CPU seconds): one task of ``run_jobs``."""
+    t0, c0 = time.monotonic(), time.process_time()
     rows = heldout.run_case(case, range(seeds), steps)
-    return dict(case=case.label, group=case.group, n=case.scenario.G.shape[0], rows=rows), time.monotonic() - t0
+    return (dict(case=case.label, group=case.group, n=case.scenario.G.shape[0], rows=rows),
+            time.monotonic() - t0, time.process_time() - c0)
 
 
 def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cases=()) -> tuple:
     """Every job, and the held-out ``cases`` if given, in ``jobs`` processes
     (each seeded, so the numbers do not depend on which process runs it):
-    (studies.Results, figure paths, [held-out record per case]);
+    (studies.Results, figure paths, [held-out record per case], CPU seconds of the cases);
     ``progress(title, seconds)`` after each job and after the last case of
     each group of cases (their seconds summed)."""
     titles = {k: t for k, t, _ in JOBS}
@@ -903,6 +904,7 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cas
     records: dict = {}
     left = {g: sum(c.group == g for c in cases) for g in dict.fromkeys(c.group for c in cases)}
     spent = dict.fromkeys(left, 0.0)
+    spent_cpu = [0.0]
 
     def finished(key, part, figs, seconds):
         parts.update(part)
@@ -910,8 +912,9 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cas
         if progress is not None:
             progress(titles[key], seconds)
 
-    def case_done(i, record, seconds):
+    def case_done(i, record, seconds, cpu):
         records[i] = record
+        spent_cpu[0] += cpu
         g = cases[i].group
         left[g] -= 1
         spent[g] += seconds
@@ -942,7 +945,8 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cas
     overview = studies.overview_rows(parts.pop("overview 1"), parts.pop("overview 2"), parts.pop("overview 3"))
     res = studies.Results(config={"seeds": cfg.seeds, "steps": cfg.steps, "algorithms": list(cfg.algorithms)},
                           overview=overview, **parts)
-    return res, [p for key, _, _ in JOBS for p in paths[key]], [records[i] for i in range(len(cases))]
+    return (res, [p for key, _, _ in JOBS for p in paths[key]], [records[i] for i in range(len(cases))],
+            spent_cpu[0])
 
 
 def previous_heldout(path: Path) -> dict | None:
@@ -969,7 +973,6 @@ def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1
     provenance, and section 11 says when and how they were made."""
     out = Path(out_dir)
     started = provenance.now()
-    t_start = time.monotonic()
     cases = heldout.cases() if with_heldout else []
     n = len(JOBS) + len({c.group for c in cases}) + 1
     steps = [0]
@@ -980,13 +983,13 @@ def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1
             progress(steps[0], n, title, seconds)
 
     kept = None if with_heldout else previous_heldout(out / "results.json")
-    res, paths, records = run_jobs(cfg, out / "figures", line, jobs, cases)
+    res, paths, records, cpu = run_jobs(cfg, out / "figures", line, jobs, cases)
     t0 = time.monotonic()
     scns = [load_scenario(studies.STATIONARY), load_scenario(studies.DYNAMIC)]
     doc = res.to_json()
     if with_heldout:
         kept = dict(seeds=cfg.seeds, steps=cfg.steps, results=records, targets=heldout.targets(records, cfg.seeds),
-                    seconds=time.monotonic() - t_start, processes=jobs)
+                    cpu_seconds=cpu, processes=jobs)
         kept[provenance.KEY] = provenance.record(
             scenario=[{"name": c.label, "sha256": provenance.content_hash(c.scenario)} for c in cases],
             seeds=cfg.seed_range, ticks=cfg.steps or max(c.scenario.steps for c in cases), estimator=cfg.algorithms,
