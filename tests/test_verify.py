@@ -161,6 +161,19 @@ def test_a_rejoin_replays_exactly(run):
     assert st.evidence["differing"] > 0 and st.status != "exact"
 
 
+def test_a_complete_run_with_a_restart_is_degraded_never_exact(run):
+    """Every agent-tick reported and every fused set nominal, but agent 2
+    (index 2) re-initialised from agent 0's estimate at tick 17 (frozen past the lease
+    while the world was frozen too: no tick missed): its estimates are the
+    replay's, not the algorithm's own, so the run is degraded, not exact."""
+    scn, trace = run
+    claims = claims_of(scn, trace, restarts=[V.Restart(17, 2, 0)])
+    st = check(trace, scn, claims)
+    assert st.status == "degraded" and "agent 3 at tick 17 from agent 1" in st.reason, st.reason  # ids from 1
+    assert st.evidence["differing"] == 0 and st.evidence["restarts"] == 1
+    assert not st.accepted() and st.accepted(allow_degraded=True)
+
+
 def test_a_restart_from_the_prior_and_a_handed_state(run):
     """A restart from the prior (no neighbour in range) replays as a fresh
     agent; one handed a state replays from exactly that state, and a handed

@@ -26,7 +26,9 @@ Statuses (exit statuses: ``diskf_mesh.core.exits``), first that applies:
     incomplete   some agent-tick was not reported
     degraded     every agent-tick reported and reproduced, but some fused
                  fewer messages than planned: how many, which, and the
-                 agents' reasons (lost, late, rejected:<reason>)
+                 agents' reasons (lost, late, rejected:<reason>); or some
+                 agent was re-initialised (a rejoin: its estimate restarted
+                 from a neighbour's or its prior, not the algorithm's own)
     as planned   every fused set is the fault plan's delivered set (link
                  faults injected, seeded by the run's seed)
     exact        every fused set is the nominal links (live and in range)
@@ -365,6 +367,12 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
         return RunStatus(DEGRADED_STATUS, f"{shortfall['unplanned']['agent_ticks']} agent-ticks fused a sender not "
                          f"planned (not live, in range and delivered); first: agent {first_one['agent']} at tick "
                          f"{first_one['tick']}; every estimate equals the engine's replay", ev)
+    if claims.restarts:
+        r = claims.restarts[0]
+        return RunStatus(DEGRADED_STATUS, f"{len(claims.restarts)} re-initialisation(s), first: agent {name(r.agent)} "
+                         f"at tick {r.tick} from " + (f"agent {name(r.source)}'s estimate" if r.source is not None
+                                                        else "its prior")
+                         + "; every estimate equals the engine's replay", ev)
     if shortfall["planned_out"]:
         return RunStatus(AS_PLANNED_STATUS, f"every agent-tick fused what the fault plan delivered "
                          f"({shortfall['planned_out']} of {shortfall['nominal_links']} links dropped by the injected "
