@@ -648,13 +648,18 @@ def _spd(values, a: np.ndarray, spans, rtol: float = 1e-9) -> None:
             raise Rejected("not-spd", "a covariance is not positive definite")
 
 
-def estimate_problem(a: np.ndarray, P: np.ndarray, max_abs: float = MAX_ABS, max_cond: float = MAX_COND):
+def estimate_problem(a: np.ndarray, P: np.ndarray, max_abs: float = MAX_ABS, max_cond: float = MAX_COND,
+                     values=None):
     """The guard's checks of an estimate beyond finiteness and positive
     definiteness (``guard.message_problem`` for messages): None, or
     ("magnitude" | "ill-conditioned", detail) when a value of ``a`` (every
     float of it) is beyond ``max_abs`` or the condition number of ``P``
-    exceeds ``max_cond``."""
-    big = float(np.abs(a).max()) if a.size else 0.0
+    exceeds ``max_cond``. ``values``: the same floats as a tuple (as
+    ``_values`` reads small ones), checked on Python floats."""
+    if type(values) is tuple and values:
+        big = max(max(values), -min(values))
+    else:
+        big = float(np.abs(a).max()) if a.size else 0.0
     if big > max_abs:
         return "magnitude", f"a value of {big:.3g} (limit {max_abs:.3g})"
     ev = eigen_range(P)
@@ -729,7 +734,7 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
     a = np.array(values, dtype=float) if type(values) is tuple else values
     _spd(values, a, ((n, n),))
     x, P, d = _split(a, [(n,), (n, n), (m,)])
-    problem = estimate_problem(a, P, max_abs, max_cond)
+    problem = estimate_problem(a, P, max_abs, max_cond, values)
     if problem is not None:
         raise Rejected(*problem)
     c = doc.get("c", {})
