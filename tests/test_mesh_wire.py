@@ -224,10 +224,15 @@ def test_no_measurement_h_or_r_on_the_wire(tmp_path):
     spec = RunSpec(_distinctive_scenario(tmp_path), "diskf", run_id="sniffed", topology="all")
     ticks, seed = 100, 4
     captured = queue.SimpleQueue()
-    mesh = start_mesh(spec, ticks, seed, tmp_path)
+    # 50 ticks a second: the run lasts 2 s, not the 0.2 s of lockstep, so the sniffer's session, which
+    # joins the mesh by gossip, hears most of it
+    mesh = start_mesh(spec, ticks, seed, tmp_path, world_extra=["--rate", "50"])
     try:
         sniffer = ZenohTransport(mesh.observer())  # the run's observer identity: it may listen
         sniffer.subscribe(Keys(spec.run_id).msgs, lambda k, p: captured.put((k, p)))
+        stop = time.monotonic() + 30
+        while not sniffer.tokens(Keys(spec.run_id).alive_world, 1.0) and time.monotonic() < stop:
+            pass  # connected to the mesh (it sees the world) before any agent starts
         mesh.start_agents()
         mesh.wait(60)
     finally:
