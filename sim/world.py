@@ -259,7 +259,7 @@ def checked_status(rec: WorldRecord, trace: Trace, scn: Scenario, spec, seed: in
     deadline (real time's, else their ``collect_s``) is not planned to be
     fused."""
     return run_status(rec, trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=seed, faults=faults,
-                      deadline_s=collect_s if clock is None else clock.deadline_s, labels=scn.labels)
+                      deadline_s=realtime.agents_deadline(clock, collect_s), labels=scn.labels)
 
 
 def status_fields(status: RunStatus) -> dict:

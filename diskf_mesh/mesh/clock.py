@@ -142,3 +142,10 @@ def period_stats(opened_at, clock: Clock) -> dict:
         out.update(mean_s=float(periods.mean()), p99_jitter_s=float(np.percentile(jitter, 99)),
                    max_jitter_s=float(jitter.max()))
     return out
+
+
+def agents_deadline(clock: Clock | None, collect_s: float) -> float:
+    """How long after a tick reaches an agent a neighbour's copy may still
+    be fused: real time's deadline, else the lockstep collect timeout (a
+    copy the link faults delay past it is not planned to be fused)."""
+    return collect_s if clock is None else clock.deadline_s

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.data.trace import Trace
-from diskf_mesh.mesh import credentials
+from diskf_mesh.mesh import clock as realtime, credentials
 from diskf_mesh.mesh.agent_machine import AgentMachine, AgentTiming
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.log import Log
@@ -120,9 +120,9 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     w = out.machines[pid]
     status = None
     if verify and pid in out.finishes and w.record.reported.any():
-        at = plan.agent_timing  # a copy due after the agents' deadline is not planned to be fused
+        at = plan.agent_timing
         status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
-                            deadline_s=at.collect_timeout if at.clock is None else at.clock.deadline_s,
+                            deadline_s=realtime.agents_deadline(at.clock, at.collect_timeout),
                             labels=scn.labels)
     return SimRun(out, w, status, stream.getvalue() if stream is not None else "")
 
