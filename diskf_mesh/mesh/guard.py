@@ -200,10 +200,7 @@ def message_problem(wm: wire.WireMessage, c: GuardConfig):
     matrices; larger ones with ``numpy.linalg``."""
     values, lay, msg = wm.values, wm.layout, wm.message
     small_values = type(values) is tuple
-    if small_values:
-        big = max(max(values), -min(values))  # the largest |v|, in C loops
-    else:
-        big = float(np.abs(values).max())
+    big = wire.largest_abs(values)
     if big > c.max_abs:
         return "magnitude", f"a value of {big:.3g} (limit {c.max_abs:.3g})"
     for s in lay.covariances:

@@ -648,6 +648,14 @@ def _spd(values, a: np.ndarray, spans, rtol: float = 1e-9) -> None:
             raise Rejected("not-spd", "a covariance is not positive definite")
 
 
+def largest_abs(values) -> float:
+    """The largest |v| of the floats as read: a tuple (small arrays, as
+    ``_values`` reads them, in C loops over Python floats) or an array."""
+    if type(values) is tuple:
+        return max(max(values), -min(values)) if values else 0.0
+    return float(np.abs(values).max()) if values.size else 0.0
+
+
 def estimate_problem(a: np.ndarray, P: np.ndarray, max_abs: float = MAX_ABS, max_cond: float = MAX_COND,
                      values=None):
     """The guard's checks of an estimate beyond finiteness and positive
@@ -656,10 +664,7 @@ def estimate_problem(a: np.ndarray, P: np.ndarray, max_abs: float = MAX_ABS, max
     float of it) is beyond ``max_abs`` or the condition number of ``P``
     exceeds ``max_cond``. ``values``: the same floats as a tuple (as
     ``_values`` reads small ones), checked on Python floats."""
-    if type(values) is tuple and values:
-        big = max(max(values), -min(values))
-    else:
-        big = float(np.abs(a).max()) if a.size else 0.0
+    big = largest_abs(values if type(values) is tuple else a)
     if big > max_abs:
         return "magnitude", f"a value of {big:.3g} (limit {max_abs:.3g})"
     ev = eigen_range(P)
