@@ -111,8 +111,8 @@ class World:
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
                  timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None,
-                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER, faults: FaultConfig | None = None):
-        self.machine = WorldMachine(scn, trace, algorithm, seed, keys, new_nonce(), timing, faults=faults,
+                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER):
+        self.machine = WorldMachine(scn, trace, algorithm, seed, keys, new_nonce(), timing,
                                     log=log, progress=progress, profile=profile, recorder=recorder)
         self.shell = Shell(self.machine, transport, profile)
 

@@ -87,7 +87,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
 
     def world(boot):
         first = boot.pid == WORLD and boot.incarnation == 0  # the observers watch the run's own world
-        return WorldMachine(scn, trace, algorithm, seed, keys, boot.nonce, plan.world_timing, faults=faults,
+        return WorldMachine(scn, trace, algorithm, seed, keys, boot.nonce, plan.world_timing,
                             log=Log(f"world {boot.pid}#{boot.incarnation}" if boot.incarnation else boot.pid, stream),
                             progress=progress if first else None, recorder=recorder if first else None)
 

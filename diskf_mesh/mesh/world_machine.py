@@ -64,7 +64,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.mesh import clock as realtime
@@ -141,18 +140,16 @@ class WorldMachine:
     run's key space; ``nonce``: this world's token suffix
     (``mesh.keys.new_nonce``; given, so that a replay is the same run);
     ``timing``; ``allow_missing``: start without the agents not ready after
-    ``startup_timeout``; ``faults``: the link faults the agents apply (kept
-    for the run's verification). Observers: ``log``, ``progress(k)`` after
+    ``startup_timeout``. Observers: ``log``, ``progress(k)`` after
     each tick, ``profile``, ``recorder`` (``diskf_mesh.recording.writer``'s
     hooks ``on_open``, ``on_report``, ``on_close``; None: not recorded)."""
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, nonce: str,
-                 timing: WorldTiming = WorldTiming(), allow_missing: bool = False,
-                 faults: FaultConfig | None = None, log: Log | None = None, progress=None,
+                 timing: WorldTiming = WorldTiming(), allow_missing: bool = False, log: Log | None = None, progress=None,
                  profile: Phases = NO_PHASES, recorder=None):
         self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
         self.keys, self.nonce, self.timing = keys, nonce, timing
-        self.allow_missing, self.faults = allow_missing, faults
+        self.allow_missing = allow_missing
         self.log, self.progress, self.prof, self.recorder = log or Log("world"), progress, profile, recorder
         self.clock = timing.clock
         self.ids = tuple(a.id for a in scn.agents)
