@@ -145,8 +145,8 @@ class WorldMachine:
     hooks ``on_open``, ``on_report``, ``on_close``; None: not recorded)."""
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, nonce: str,
-                 timing: WorldTiming = WorldTiming(), allow_missing: bool = False, log: Log | None = None, progress=None,
-                 profile: Phases = NO_PHASES, recorder=None):
+                 timing: WorldTiming = WorldTiming(), allow_missing: bool = False, log: Log | None = None,
+                 progress=None, profile: Phases = NO_PHASES, recorder=None):
         self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
         self.keys, self.nonce, self.timing = keys, nonce, timing
         self.allow_missing = allow_missing
