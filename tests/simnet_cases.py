@@ -72,6 +72,11 @@ class Case:
             + a.world_timeout * 2 + w.leave_timeout + self.lease.lease * (1 + len(self.faults))
 
 
+def apart(pid: str) -> tuple:
+    """Links of 30 s both ways between ``pid`` and its first twin: neither session hears the other."""
+    return tuple(((a, b), Link(delay=30.0)) for a, b in ((pid, pid + "~1"), (pid + "~1", pid)))
+
+
 def build(draw) -> Case:
     """One case from ``draw``: ``draw.int(lo, hi)`` and ``draw.pick(seq)``."""
     scenario = draw.pick(SCENARIOS)
@@ -120,8 +125,7 @@ def build(draw) -> Case:
         late = ((draw.int(1, N), draw.pick((0.001, delay * K / 2, around()))),)
     links = ()
     if twins and twins[0][0] != WORLD and draw.int(0, 1):  # the two processes' sessions do not hear each other
-        a, b = agent_pid(twins[0][0]), agent_pid(twins[0][0], 1)
-        links = (((a, b), Link(delay=30.0)), ((b, a), Link(delay=30.0)))
+        links = apart(agent_pid(twins[0][0]))
     return Case(N, K, algorithm, seed, link, tuple(faults), twins, late, injected, lease, wt, at, scenario, links)
 
 

@@ -10,11 +10,6 @@ from simnet_cases import Case
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.mesh.simnet import Fault, Link
 
-def _apart(pid: str) -> tuple:
-    """Links of 30 s both ways between ``pid`` and its twin: neither session hears the other."""
-    return tuple(((a, b), Link(delay=30.0)) for a, b in ((pid, pid + "~1"), (pid + "~1", pid)))
-
-
 FOUND = [
     # diskf-r's input model took its default scales from the sensors it was given: the engine's are every
     # agent's, an agent process's its own, so a mesh agent's covariance differed from the engine's at tick 1
@@ -43,7 +38,7 @@ FOUND = [
     # neighbour fused the twin's as agent 3's: "diverged"
     # (fixed: the world's start answer names the processes it sees holding the id; the twin leaves at once)
     pytest.param(Case(agents=9, ticks=60, algorithm="diskf", seed=1, scenario="dynamic", twins=((3, 0.02),),
-                      links=_apart("agent-3") + tuple((("agent-3", f"agent-{i}"), Link(delay=0.001)) for i in (1, 2, 4, 5, 6, 7, 8, 9))),
+                      links=cases.apart("agent-3") + tuple((("agent-3", f"agent-{i}"), Link(delay=0.001)) for i in (1, 2, 4, 5, 6, 7, 8, 9))),
                  id="late-twin-unseen-by-its-session"),
     # sweep seeds 196 and 5084: two processes of one id whose sessions never hear each other (a 30 s link
     # between them), one started a moment after the other (196: while the run ticks; 5084: at once): each
@@ -56,12 +51,12 @@ FOUND = [
                       faults=(Fault("crash", "agent-1", after_event=928), Fault("restart", "agent-1", after_event=1416),
                               Fault("pause", "agent-4", after_event=863, duration=4.7)),
                       twins=((3, 0.0058),), injected=FaultConfig(latency_ms=1.0, reorder=0.1),
-                      links=_apart("agent-3")), id="sweep-196-twins-unheard-by-each-other"),
+                      links=cases.apart("agent-3")), id="sweep-196-twins-unheard-by-each-other"),
     pytest.param(Case(agents=9, ticks=29, algorithm="diskf", seed=15951, scenario="dynamic",
                       link=Link(delay=0.02, jitter=0.2, duplicate=0.1, reorder=0.5, hold=0.04,
                                 faulty="diskf/sim/agent/*/msg/**"),
                       faults=(Fault("pause", "agent-4", after_event=436, duration=10.3),),
-                      twins=((4, 0.0001),), links=_apart("agent-4")), id="sweep-5084-twins-at-once-unheard"),
+                      twins=((4, 0.0001),), links=cases.apart("agent-4")), id="sweep-5084-twins-at-once-unheard"),
     # sweep seeds 1906, 4079, 7045: an agent and the world both paused past the lease; the agent rejoined
     # (from its prior, or a neighbour's estimate) without missing a tick, since the world waited for it:
     # every agent-tick reported, every fused set nominal, every estimate the replay's, and the run said
