@@ -307,9 +307,8 @@ def run(seeds: int = 20, steps: int | None = None, names=None, select=None, prog
     results = []
     t0 = time.monotonic()
     for i, c in enumerate(all_cases, 1):
-        rows = run_case(c, range(seeds), steps, names)
-        tr_n = c.scenario.G.shape[0]
-        results.append(dict(case=c.label, group=c.group, n=tr_n, rows=rows))
+        results.append(case_record(c, seeds, steps, names))
+        rows = results[-1]["rows"]
         if bank:
             results[-1]["bank"] = run_bank(c, range(seeds), steps)
         if progress:
@@ -317,6 +316,18 @@ def run(seeds: int = 20, steps: int | None = None, names=None, select=None, prog
             auto = rows.get(AUTO, {}).get("mae_state", math.nan)
             print(f"[{i}/{len(all_cases)} {time.monotonic() - t0:6.0f} s] {c.label}: best {best:.3g}, "
                   f"{AUTO} {auto:.3g}", file=sys.stderr, flush=True)
+    return document(results, seeds, steps)
+
+
+def case_record(case: Case, seeds: int, steps: int | None = None, names=None) -> dict:
+    """One case's result in the suite's document: {case, group, n, rows}
+    (``run_case`` on seeds 0..seeds-1)."""
+    return dict(case=case.label, group=case.group, n=case.scenario.G.shape[0],
+                rows=run_case(case, range(seeds), steps, names))
+
+
+def document(results: list[dict], seeds: int, steps: int | None = None) -> dict:
+    """The suite's document from its cases' records: {seeds, steps, results, targets}."""
     return dict(seeds=seeds, steps=steps, results=results, targets=targets(results, seeds))
 
 

@@ -886,9 +886,8 @@ def workers() -> int:
 def run_heldout_case(case, seeds: int, steps: int | None) -> tuple:
     """(the held-out suite's record of ``case``, seconds, CPU seconds): one task of ``run_jobs``."""
     t0, c0 = time.monotonic(), time.process_time()
-    rows = heldout.run_case(case, range(seeds), steps)
-    return (dict(case=case.label, group=case.group, n=case.scenario.G.shape[0], rows=rows),
-            time.monotonic() - t0, time.process_time() - c0)
+    record = heldout.case_record(case, seeds, steps)
+    return record, time.monotonic() - t0, time.process_time() - c0
 
 
 def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cases=()) -> tuple:
@@ -987,8 +986,7 @@ def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1
     scns = [load_scenario(studies.STATIONARY), load_scenario(studies.DYNAMIC)]
     doc = res.to_json()
     if with_heldout:
-        kept = dict(seeds=cfg.seeds, steps=cfg.steps, results=records, targets=heldout.targets(records, cfg.seeds),
-                    cpu_seconds=cpu, processes=jobs)
+        kept = dict(heldout.document(records, cfg.seeds, cfg.steps), cpu_seconds=cpu, processes=jobs)
         kept[provenance.KEY] = provenance.record(
             scenario=[{"name": c.label, "sha256": provenance.content_hash(c.scenario)} for c in cases],
             seeds=cfg.seed_range, ticks=cfg.steps or max(c.scenario.steps for c in cases), estimator=cfg.algorithms,
