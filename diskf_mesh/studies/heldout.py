@@ -341,14 +341,16 @@ HEADER = (
     "and set to 0.001; its other constants and every other default follow the scenario's scales.")
 
 
-def markdown(doc: dict) -> str:
-    """The suite as tables: the targets, then every case x estimator."""
+def markdown(doc: dict, header: bool = True) -> str:
+    """The suite as tables: the targets, then every case x estimator; the
+    page's ``HEADER`` first unless ``header`` is false (a section of another
+    page)."""
     res = doc["results"]
     names = list(res[0]["rows"]) if res else []
     t = doc["targets"]
     n = t["cases"]
     pct = lambda a, b: f"{a} of {b} ({100 * a / max(b, 1):.0f} %)"  # noqa: E731
-    lines = [HEADER, "", f"Seeds 0..{doc['seeds'] - 1}, {doc['steps'] or 'the scenario’s'} ticks, {n} cases.", "",
+    lines = [f"Seeds 0..{doc['seeds'] - 1}, {doc['steps'] or 'the scenario’s'} ticks, {n} cases.", "",
              "| target | reached |", "|---|---|",
              f"| DISKF family’s best within 1 % of the best baseline (≥ 95 %) | {pct(t['family_within_1pct'], n)} |",
              f"| `{AUTO}` within 10 % of the case’s best (≥ 90 %) | {pct(t['auto_within_10pct'], n)} |",
@@ -374,7 +376,7 @@ def markdown(doc: dict) -> str:
                     cells.append(f"**{s}**" if key == "mae_state" and v[key] == best else s)
             lines.append(f"| {r['case']} | " + " | ".join(cells) + " |")
         lines.append("")
-    return "\n".join(lines)
+    return "\n".join(([HEADER, ""] if header else []) + lines)
 
 
 FAMILIES = (("no input", ("none",)), ("random walk", ("walk",)), ("zero-mean / mean-reverting", ("zero-mean", "reverting")))

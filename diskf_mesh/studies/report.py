@@ -736,8 +736,7 @@ def section_heldout(ctx: Context, doc: dict | None) -> str:
             f"from commit {commit}: {doc['seeds']} seeds; its {len(doc['results'])} cases took "
             f"{doc.get('cpu_seconds', 0):.0f} s of CPU in {doc.get('processes', 1)} processes. A `diskf-mesh report` "
             "without `--heldout` keeps this section as it was, so the sections above may be newer.")
-    body = heldout.markdown(doc)
-    body = body[len(heldout.HEADER):].lstrip("\n") if body.startswith(heldout.HEADER) else body
+    body = heldout.markdown(doc, header=False)
     return (head + "### 11.1 Where each estimator is the right one\n\n" + made + "\n\n"
             + "\n".join(where_right(doc)) + "\n\n### 11.2 Every case × every estimator\n\n"
             "Bold: the lowest state MAE of the case. NEES: the mean over the (tick, agent) cells whose "
