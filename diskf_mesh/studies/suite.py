@@ -107,13 +107,14 @@ def run_variants(scn: Scenario, variants, cfg: StudyConfig, bar=None, trace=None
     return run_cells([trace], [variants], bar, keep=True)[0]
 
 
-def run_cells(traces, variant_lists, bar=None, keep: bool = False) -> list:
+def run_cells(traces, variant_lists, bar=None, keep=False) -> list:
     """``variant_lists[i]`` on ``traces[i]``: [({label: row}, {label:
-    Estimates} if ``keep`` else {})] per trace. A variant (estimator and
-    parameters) that several traces share runs once on all of them
+    Estimates} if ``keep`` (a bool, or one per trace) else {})] per trace.
+    A variant (estimator and parameters) that several traces share runs once on all of them
     (``run_stacked``). A variant whose covariance diverges is a row saying so
     (an ablation row), in the traces where it diverges alone."""
     heard = [observed(t) for t in traces]
+    keep = [keep] * len(traces) if isinstance(keep, bool) else list(keep)
     jobs: dict = {}
     for i, variants in enumerate(variant_lists):
         for v in variants:
@@ -133,7 +134,7 @@ def run_cells(traces, variant_lists, bar=None, keep: bool = False) -> list:
     for i, variants in enumerate(variant_lists):
         rows = {v.label: dict(done[v.algorithm, v.params, i][0]) for v in variants}
         ests = {v.label: done[v.algorithm, v.params, i][1] for v in variants
-                if keep and done[v.algorithm, v.params, i][1] is not None}
+                if keep[i] and done[v.algorithm, v.params, i][1] is not None}
         out.append((rows, ests))
     return out
 
@@ -189,27 +190,15 @@ def setting_runs(cfg: StudyConfig, name: str, settings, keep=()) -> SettingRuns:
                        {lab: (scns[i], traces[i], ests[i]) for i, lab in enumerate(labels) if lab in keep})
 
 
-def estimator_rows(scns, traces, algs, bar=None, keep=None) -> tuple:
+def estimator_rows(scns, traces, algs, bar=None, keep=False) -> tuple:
     """([{alg: row} per trace], [{alg: Estimates} per trace, for those whose
     ``keep`` is true]): every estimator in ``algs`` with each scenario's own
-    parameters, stacked where the traces stack, then both centralized
-    references (``bound_rows``)."""
-    heard = [observed(t) for t in traces]
-    keep = keep or [False] * len(traces)
-    rows: list[dict] = [{} for _ in traces]
-    ests: list[dict] = [{} for _ in traces]
-    for a in algs:
-        for params in dict.fromkeys(s.params for s in scns):
-            idx = [i for i, s in enumerate(scns) if s.params == params]
-            for i, est in zip(idx, run_stacked([traces[i] for i in idx], a, params)):
-                rows[i][a] = metric_row(traces[i], est, heard[i])
-                if keep[i]:
-                    ests[i][a] = est
-                if bar is not None:
-                    bar.update(1)
-    for i, (scn, tr) in enumerate(zip(scns, traces)):
-        rows[i].update(bound_rows(tr, scn, heard[i]))
-    return rows, ests
+    parameters (``run_cells``: stacked where the traces stack), then both
+    centralized references (``bound_rows``)."""
+    done = run_cells(traces, [[Variant(a, a, scn.params) for a in algs] for scn in scns], bar, keep=keep)
+    for (rows, _), scn, tr in zip(done, scns, traces):
+        rows.update(bound_rows(tr, scn, observed(tr)))
+    return [rows for rows, _ in done], [ests for _, ests in done]
 
 
 def paper_rows(runs: SettingRuns, labels=None, references=(centralized.NAME,)) -> dict:
