@@ -12,6 +12,7 @@ import math
 import os
 import subprocess
 import time
+from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -664,10 +665,7 @@ def _input_of(label: str) -> str:
 
 def _count(items) -> str:
     """"a (3), b (2)": the items by how often they occur, most first."""
-    counts: dict = {}
-    for x in items:
-        counts[x] = counts.get(x, 0) + 1
-    return ", ".join(f"{k} ({v})" for k, v in sorted(counts.items(), key=lambda kv: -kv[1]))
+    return ", ".join(f"{k} ({v})" for k, v in Counter(items).most_common())
 
 
 def where_right(doc: dict) -> list[str]:
