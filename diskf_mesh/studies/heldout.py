@@ -47,6 +47,7 @@ from diskf_mesh.data import metrics
 from diskf_mesh.data.inputs import parse_input
 from diskf_mesh.data.scenario import Scenario, load_scenario, parse_scenario, simulate
 from diskf_mesh.engine import batch as engine
+from diskf_mesh.estimators import Params
 from diskf_mesh.studies.suite import observed, rotation
 
 FAMILY_PREFIX = "diskf"
@@ -194,27 +195,30 @@ def run_case(case: Case, seeds, steps: int | None = None, names=None) -> dict:
     scn = case.scenario.with_overrides(steps=steps)
     tr = simulate(scn, seeds)
     seen = observed(tr)
+    return {name: case_row(tr, name, scn.params, seen) for name in names or algorithms.NAMES}
+
+
+def case_row(tr, name: str, params: Params, seen: np.ndarray | None = None) -> dict:
+    """One estimator's row on the trace ``tr`` (``run_case``); ``seen``:
+    ``observed(tr)``, given when several rows share the trace."""
+    seen = observed(tr) if seen is None else seen
+    try:
+        with np.errstate(all="ignore"):
+            est = engine.run(tr, name, params)
+            ok = bool(np.isfinite(est.P).all() and np.isfinite(est.x).all())
+        if not ok:
+            raise np.linalg.LinAlgError("not finite")
+        e_state, e_in, nees = metrics.errors(tr, est)
+    except (np.linalg.LinAlgError, FloatingPointError):
+        return dict(mae_state=float("nan"), mae_input=float("nan"), nees=float("nan"),
+                    nees_band_share=float("nan"), diverged=True)
     band = chi2_band(tr.model.n, len(tr.seeds))
-    rows = {}
-    for name in names or algorithms.NAMES:
-        try:
-            with np.errstate(all="ignore"):
-                est = engine.run(tr, name, scn.params)
-                ok = bool(np.isfinite(est.P).all() and np.isfinite(est.x).all())
-            if not ok:
-                raise np.linalg.LinAlgError("not finite")
-            e_state, e_in, nees = metrics.errors(tr, est)
-        except (np.linalg.LinAlgError, FloatingPointError):
-            rows[name] = dict(mae_state=float("nan"), mae_input=float("nan"), nees=float("nan"),
-                              nees_band_share=float("nan"), diverged=True)
-            continue
-        s = metrics.summarize(e_state, e_in, nees)
-        cell = nees.mean(axis=0)[seen.all(axis=0)]  # every seed's neighbourhood measured there
-        rows[name] = dict(mae_state=s["mae_state"], mae_input=s["mae_input"],
-                          nees=float(nees[seen].mean()) if seen.any() else float("nan"),
-                          nees_band_share=float(((cell >= band[0]) & (cell <= band[1])).mean()) if cell.size else float("nan"),
-                          diverged=False)
-    return rows
+    s = metrics.summarize(e_state, e_in, nees)
+    cell = nees.mean(axis=0)[seen.all(axis=0)]  # every seed's neighbourhood measured there
+    return dict(mae_state=s["mae_state"], mae_input=s["mae_input"],
+                nees=float(nees[seen].mean()) if seen.any() else float("nan"),
+                nees_band_share=float(((cell >= band[0]) & (cell <= band[1])).mean()) if cell.size else float("nan"),
+                diverged=False)
 
 
 def bank_members(scn: Scenario) -> list:
@@ -239,13 +243,8 @@ def run_bank(case: Case, seeds, steps: int | None = None) -> dict:
     measures it; NaN where the run diverged."""
     scn = case.scenario.with_overrides(steps=steps)
     tr = simulate(scn, seeds)
-    out = {}
-    for name, params in bank_members(scn):
-        with np.errstate(all="ignore"):
-            est = engine.run(tr, "diskf-r", params)
-        ok = bool(np.isfinite(est.P).all() and np.isfinite(est.x).all())
-        out[name] = metrics.summarize(*metrics.errors(tr, est))["mae_state"] if ok else float("nan")
-    return out
+    seen = observed(tr)
+    return {name: case_row(tr, "diskf-r", params, seen)["mae_state"] for name, params in bank_members(scn)}
 
 
 def bank_summary(results: list[dict]) -> dict:
