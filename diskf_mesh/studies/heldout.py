@@ -221,6 +221,12 @@ def case_row(tr, name: str, params: Params, seen: np.ndarray | None = None) -> d
                 diverged=False)
 
 
+def lowest(rows: dict) -> float:
+    """The lowest state MAE of a case's rows ({estimator: row}) that did not
+    diverge; NaN if every one did."""
+    return min((v["mae_state"] for v in rows.values() if not v["diverged"]), default=math.nan)
+
+
 def bank_members(scn: Scenario) -> list:
     """diskf-auto's bank on this scenario, each model alone: [(model name,
     Params)], ``diskf-r`` with that input model (``input_models.default_bank``;
@@ -311,7 +317,7 @@ def run(seeds: int = 20, steps: int | None = None, names=None, select=None, prog
         if bank:
             results[-1]["bank"] = run_bank(c, range(seeds), steps)
         if progress:
-            best = min((v["mae_state"] for v in rows.values() if not v["diverged"]), default=math.nan)
+            best = lowest(rows)
             auto = rows.get(AUTO, {}).get("mae_state", math.nan)
             print(f"[{i}/{len(all_cases)} {time.monotonic() - t0:6.0f} s] {c.label}: best {best:.3g}, "
                   f"{AUTO} {auto:.3g}", file=sys.stderr, flush=True)
@@ -361,7 +367,7 @@ def markdown(doc: dict, header: bool = True) -> str:
                   "|---|" + "---|" * len(names)]
         for r in res:
             rows = r["rows"]
-            best = min((v["mae_state"] for v in rows.values() if not v["diverged"]), default=math.nan)
+            best = lowest(rows)
             cells = []
             for k in names:
                 v = rows[k]

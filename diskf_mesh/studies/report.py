@@ -683,7 +683,7 @@ def where_right(doc: dict) -> list[str]:
             if rows[a]["diverged"]:
                 div += 1
                 continue
-            lo = min(v["mae_state"] for v in rows.values() if not v["diverged"])
+            lo = heldout.lowest(rows)
             v = rows[a]["mae_state"]
             if v == lo:
                 best.append(r)
