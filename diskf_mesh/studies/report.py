@@ -806,7 +806,7 @@ def _scenario1(cfg: studies.StudyConfig, out) -> tuple:
     runs = studies.setting_runs(cfg, studies.STATIONARY, studies.PAPER_SETTINGS_1, keep=("ring",))
     paths = figures.stationary_figures(figures.Run(figures.RING_TITLE, *runs.runs["ring"]), out)
     return ({"table_ii": studies.paper_rows(runs, references=studies.TABLE_II_REFERENCES),
-             "overview 1": studies.SettingRuns(runs.rows, {})}, paths)
+             "overview 1": runs.rows}, paths)
 
 
 def _scenario2(cfg: studies.StudyConfig, out) -> tuple:
@@ -814,12 +814,12 @@ def _scenario2(cfg: studies.StudyConfig, out) -> tuple:
     runs = studies.setting_runs(cfg, studies.DYNAMIC, studies.sweep_settings(), keep=(r,))
     sweep, dyn = studies.paper_rows(runs), studies.paper_rows(runs, [r, "all"])
     paths = figures.dynamic_figures(figures.Run(figures.DYNAMIC_TITLE, *runs.runs[r]), sweep, dyn, out)
-    return {"sweep": sweep, "dynamic": dyn, "overview 2": studies.SettingRuns(runs.rows, {})}, paths
+    return {"sweep": sweep, "dynamic": dyn, "overview 2": runs.rows}, paths
 
 
 def _random_geometric(cfg: studies.StudyConfig, out) -> tuple:
     runs = studies.setting_runs(cfg, studies.RANDOM_GEOMETRIC, [studies.RANDOM_GEOMETRIC_SETTING])
-    return {"overview 3": runs}, []
+    return {"overview 3": runs.rows}, []
 
 
 def _window(cfg: studies.StudyConfig, out) -> tuple:

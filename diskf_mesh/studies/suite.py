@@ -377,16 +377,17 @@ def overview(cfg: StudyConfig) -> dict:
     bound in every setting the report shows (NEES of every estimator
     included): Scenario 1 all/ring/none, Scenario 2 at every range and
     all-to-all, random-geometric."""
-    return overview_rows(setting_runs(cfg, STATIONARY, PAPER_SETTINGS_1), setting_runs(cfg, DYNAMIC, sweep_settings()),
-                         setting_runs(cfg, RANDOM_GEOMETRIC, [RANDOM_GEOMETRIC_SETTING]))
+    return overview_rows(setting_runs(cfg, STATIONARY, PAPER_SETTINGS_1).rows,
+                         setting_runs(cfg, DYNAMIC, sweep_settings()).rows,
+                         setting_runs(cfg, RANDOM_GEOMETRIC, [RANDOM_GEOMETRIC_SETTING]).rows)
 
 
-def overview_rows(stationary: SettingRuns, dynamic: SettingRuns, random_geometric: SettingRuns) -> dict:
-    """``overview`` from the runs of its three scenarios."""
-    out = {f"Scenario 1 / {COMM[lab]}": rows for lab, rows in stationary.rows.items()}
+def overview_rows(stationary: dict, dynamic: dict, random_geometric: dict) -> dict:
+    """``overview`` from the rows of its three scenarios (``SettingRuns.rows``)."""
+    out = {f"Scenario 1 / {COMM[lab]}": rows for lab, rows in stationary.items()}
     out.update({f"Scenario 2 / {'all-to-all' if lab == 'all' else f'range {lab}'}": rows
-                for lab, rows in dynamic.rows.items()})
-    out.update({f"random-geometric / {lab}": rows for lab, rows in random_geometric.rows.items()})
+                for lab, rows in dynamic.items()})
+    out.update({f"random-geometric / {lab}": rows for lab, rows in random_geometric.items()})
     return out
 
 
