@@ -201,14 +201,16 @@ def estimator_rows(scns, traces, algs, bar=None, keep=False) -> tuple:
     return [rows for rows, _ in done], [ests for _, ests in done]
 
 
+REFERENCES = (centralized.NAME, centralized.PERSIST_NAME)  # bound_rows's rows
+
+
 def paper_rows(runs: SettingRuns, labels=None, references=(centralized.NAME,)) -> dict:
     """{alg: {setting label: row}} as the paper's tables show them: every
     estimator's row without ``nees_observed``, then the centralized
     ``references`` (rows as they are)."""
     labels = list(runs.rows) if labels is None else list(labels)
-    refs = (centralized.NAME, centralized.PERSIST_NAME)
-    algs = [a for a in runs.rows[labels[0]] if a not in refs] + list(references)
-    return {a: {lab: (runs.rows[lab][a] if a in refs else
+    algs = [a for a in runs.rows[labels[0]] if a not in REFERENCES] + list(references)
+    return {a: {lab: (runs.rows[lab][a] if a in REFERENCES else
                       {k: v for k, v in runs.rows[lab][a].items() if k != "nees_observed"}) for lab in labels}
             for a in algs}
 
@@ -223,7 +225,7 @@ def sweep_settings(ranges=DEFAULT_RANGES) -> list:
     return [range_setting(r) for r in ranges] + [ALL]
 
 
-TABLE_II_REFERENCES = (centralized.NAME, centralized.PERSIST_NAME)
+TABLE_II_REFERENCES = REFERENCES  # both, where the paper shows one
 
 
 def table_ii(cfg: StudyConfig) -> dict:
