@@ -897,9 +897,10 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cas
     parts: dict = {}
     paths: dict = {}
     records: dict = {}
-    left = {g: sum(c.group == g for c in cases) for g in dict.fromkeys(c.group for c in cases)}
-    spent = dict.fromkeys(left, 0.0)
-    spent_cpu = [0.0]
+    size = Counter(c.group for c in cases)
+    left = dict(size)
+    spent = dict.fromkeys(size, 0.0)
+    cpu_seconds = 0.0
 
     def finished(key, part, figs, seconds):
         parts.update(part)
@@ -908,13 +909,14 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cas
             progress(titles[key], seconds)
 
     def case_done(i, record, seconds, cpu):
+        nonlocal cpu_seconds
         records[i] = record
-        spent_cpu[0] += cpu
+        cpu_seconds += cpu
         g = cases[i].group
         left[g] -= 1
         spent[g] += seconds
         if progress is not None and left[g] == 0:
-            progress(f"held-out suite: {g} ({sum(c.group == g for c in cases)} cases)", spent[g])
+            progress(f"held-out suite: {g} ({size[g]} cases)", spent[g])
 
     # the largest held-out cases first, after the report's own jobs
     order = sorted(range(len(cases)), key=lambda i: -cases[i].scenario.N)
@@ -941,7 +943,7 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cas
     res = studies.Results(config={"seeds": cfg.seeds, "steps": cfg.steps, "algorithms": list(cfg.algorithms)},
                           overview=overview, **parts)
     return (res, [p for key, _, _ in JOBS for p in paths[key]], [records[i] for i in range(len(cases))],
-            spent_cpu[0])
+            cpu_seconds)
 
 
 def previous_heldout(path: Path) -> dict | None:
