@@ -224,7 +224,7 @@ def test_another_run_cannot_feed_this_one(tmp_path):
     messages and garbage on run A's agent keys. Run A's agents, through their
     real subscriptions, never fuse any of it: run A equals the engine, and
     what reached its keys was rejected by reason."""
-    ticks = 40
+    ticks = 300  # about 1.5 s of lockstep: the rogue's session is on the mesh for most of it
     a_spec, b_spec = RunSpec(SCENARIO, "diskf", run_id="run-a"), RunSpec("quadrants", "diskf", run_id="run-b")
     pa, pb = free_port(), free_port()
     a_dir, b_dir = tmp_path / "a", tmp_path / "b"
@@ -239,12 +239,14 @@ def test_another_run_cannot_feed_this_one(tmp_path):
     b = start_mesh(b_spec, ticks, 12, b_dir, z(b_ep, a_ep), z("tcp/127.0.0.1:0", b_ep, a_ep))
     joined = z("tcp/127.0.0.1:0", a_ep)
     try:
-        time.sleep(1.0)
-        a.start_agents()
-        b.start_agents()
         view = tick_view("diskf", tick=5)  # real, well-formed messages, but of run B
         keys_a = Keys(a_spec.run_id)
         with ZenohTransport(joined) as rogue:
+            stop = time.monotonic() + 30
+            while not rogue.tokens(keys_a.alive_world, 1.0) and time.monotonic() < stop:
+                pass  # on the mesh (it sees run A's world) before any agent starts
+            a.start_agents()
+            b.start_agents()
             t_end, it = time.monotonic() + 60, 0
             while a.world.proc.poll() is None and time.monotonic() < t_end:
                 k = it % ticks + 1
