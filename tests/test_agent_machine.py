@@ -9,7 +9,7 @@ from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.agent_machine import ASK_S, AgentMachine, AgentTiming
+from diskf_mesh.mesh.agent_machine import ASK_S, DUPLICATE_SAY_S, AgentMachine, AgentTiming
 from diskf_mesh.mesh.estimator import AgentEstimator, lockstep, neighbours
 from diskf_mesh.mesh.rejoin import start_from
 from diskf_mesh.mesh.events import (Ask, AskTokens, DeclareToken, DropToken, Finish, Publish, Reply, Sample,
@@ -275,8 +275,8 @@ def test_a_late_joiner_that_finds_its_id_held_just_before_joining_leaves(run):
     """A second process of an id, started while the run goes, whose claim
     did not see the first (its session had not heard every token yet): the
     world counts the id live (the first process), so this one would join;
-    its second query before the first tick finds the first: exit 2, and
-    nothing of it is published."""
+    its second query before the first tick finds the first: it tells the
+    world (the duplicate notice, nothing else) and leaves with exit 2."""
     scn, trace, _ = run
     w = World(scn, trace)
     me = w.ids[4]
@@ -289,7 +289,9 @@ def test_a_late_joiner_that_finds_its_id_held_just_before_joining_leaves(run):
                    1.1)
     assert of(out, Publish) == []
     out = m.handle(Tokens(confirm.qid, (m.keys.alive(me, "n0"), m.keys.alive(me, "n5"))), 2.0)
-    fin, = out
+    assert out == [Publish(m.keys.duplicate(me), b"n5"), SetTimer("leave", 2.0 + DUPLICATE_SAY_S)]
+    assert m.handle(w.tick(7), 2.1) == []  # leaving: it works on nothing
+    fin, = m.handle(Timer("leave"), 2.0 + DUPLICATE_SAY_S)
     assert fin.code == 2 and "n0" in fin.reason and m.est is None
 
 
@@ -306,13 +308,33 @@ def test_a_process_the_world_does_not_count_as_its_id_leaves_before_working(run)
         m, out = started(scn, me, ticking=ticking)
         k = 6 if ticking else 1
         m.handle(w.meas(k, me), 1.0)
-        fin, = m.handle(w.tick(k, holders={me: "n0"}), 1.0)
+        out = m.handle(w.tick(k, holders={me: "n0"}), 1.0)
+        assert out == [Publish(m.keys.duplicate(me), b"n5"), SetTimer("leave", 1.0 + DUPLICATE_SAY_S)]
+        fin, = m.handle(Timer("leave"), 1.0 + DUPLICATE_SAY_S)
         assert isinstance(fin, Finish) and fin.code == 2 and wire.holder_tag("n0").hex() in fin.reason
         assert m.est is None and m.rejoins == []
     m, _ = started(scn, me)
     m.handle(w.meas(1, me), 1.0)
     out = m.handle(w.tick(1, holders={}), 1.0)  # it is the one counted
     assert [e for e in of(out, Publish) if "/msg/" in e.key] and m.est is not None
+
+
+def test_a_process_that_sees_its_id_held_before_its_claim_is_answered_tells_the_world(run):
+    """A second process of an id started while the run goes: the world's
+    tick, naming the first process, comes before its claim's answer. It
+    declares nothing, publishes the duplicate notice (the world counts it:
+    it never saw a token of this one) and leaves with exit 2."""
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me = w.ids[2]
+    m = AgentMachine(scn, me, "diskf", Keys(RUN), "n9")
+    m.start(0.0)
+    claim, = of(m.handle(Token(m.keys.world("w0"), True), 0.0), AskTokens)
+    out = m.handle(w.tick(6, holders={}), 0.1)  # it names process "n3" as agent 3
+    assert out == [Publish(m.keys.duplicate(me), b"n9"), SetTimer("leave", 0.1 + DUPLICATE_SAY_S)]
+    assert m.handle(Tokens(claim.qid, ()), 0.2) == []  # leaving: no token declared
+    fin, = m.handle(Timer("leave"), 0.1 + DUPLICATE_SAY_S)
+    assert fin.code == 2 and m.est is None
 
 
 def test_another_process_with_this_id_makes_this_one_leave_with_2(run):

@@ -225,7 +225,7 @@ class AgentMachine:
             self._on_reply(event.qid, event.payload)
         elif kind is Tokens:
             if event.qid == self._confirm_qid:
-                self._on_confirm(event.keys)
+                self._on_confirm(event.keys, now)
             else:
                 self._on_claim(event.qid, event.keys, now)
         elif kind is Woke:
@@ -245,7 +245,7 @@ class AgentMachine:
         tick k once the world's tick and this agent's measurement are in,
         close it once the neighbours' messages are (or the collection ends
         otherwise); the end once the world said stop."""
-        if self.finish is not None:
+        if self.finish is not None or self.phase == "leaving":
             return
         if self.est is None:
             self._start_up(now)
@@ -269,7 +269,7 @@ class AgentMachine:
                     or now >= self.deadline or any(j > k for j in self.ticks)):
                 break
             self._close(k)
-        if self.stopped is not None and not self.collecting and self.finish is None and self.phase != "leaving":
+        if self.stopped is not None and not self.collecting and self.finish is None:
             self._end()
 
     def _on_sample(self, key: str, payload, now: float) -> bool:
@@ -328,7 +328,8 @@ class AgentMachine:
             return self._refuse("tick", *problem)
         holder = t.holder(self.id)
         if holder is not None and holder != self._tag:  # the world counts another process as this id
-            self._duplicate(f"tag {holder.hex()}", f"the world's tick {t.tick} counts that one as agent {self.id}")
+            self._duplicate(f"tag {holder.hex()}", f"the world's tick {t.tick} counts that one as agent {self.id}",
+                            now)
             return True
         self.last_heard = now
         if self.constants is None:
@@ -549,7 +550,7 @@ class AgentMachine:
         elif kind == "ticking":
             self.world_ticking = up
         elif kind == "alive" and who in self.ids:
-            self._on_agent_token(who, nonce_of(key), up)
+            self._on_agent_token(who, nonce_of(key), up, now)
 
     def _on_world_token(self, nonce_: str, up: bool, now: float) -> None:
         """The world's token came or went. Gone while this process was frozen
@@ -568,7 +569,7 @@ class AgentMachine:
             self.world_gone_at = math.inf
             self.log.info(f"the world is back (at tick {self.newest})")
 
-    def _on_agent_token(self, who: int, nonce_: str, up: bool) -> None:
+    def _on_agent_token(self, who: int, nonce_: str, up: bool, now: float) -> None:
         """An agent's token came or went. One of this agent's id that appears
         after this one declared its own: two processes started at once. This
         one leaves if it joined the run late (``_late``), or if the other's
@@ -581,9 +582,9 @@ class AgentMachine:
         if not (up and who == self.id and self.claimed and nonce_ != self.nonce):
             return
         if self._late():
-            self._duplicate(nonce_, "it holds this id in the run this one joined late")
+            self._duplicate(nonce_, "it holds this id in the run this one joined late", now)
         elif nonce_ < self.nonce and not self._worked:
-            self._duplicate(nonce_, "started earlier")
+            self._duplicate(nonce_, "started earlier", now)
 
     def _late(self) -> bool:
         """This process found the run in progress before it ever worked, or
@@ -593,12 +594,17 @@ class AgentMachine:
         estimate is the engine's; this one's never is)."""
         return self._started_late or (self.rejoining and not self._worked)
 
-    def _duplicate(self, other: str, how: str) -> None:
-        self._finish("duplicate", DUPLICATE, self._duplicate_reason(other, how))
-
-    def _duplicate_reason(self, other: str, how: str) -> str:
-        return (f"agent id {self.id} is already held by another process in run {self.keys.run_id!r} "
-                f"(process {other}, {how}): this one leaves")
+    def _duplicate(self, other: str, how: str, now: float) -> None:
+        """Another process holds this agent's id: this one stops working,
+        tells the world (which counts it: ``duplicate_ids``) and leaves once
+        its word is on the wire (exit 2)."""
+        if self.phase == "leaving":
+            return
+        self.phase = "leaving"
+        self._leaving = (f"agent id {self.id} is already held by another process in run {self.keys.run_id!r} "
+                         f"(process {other}, {how}): this one leaves")
+        self._out += [Publish(self.keys.duplicate(self.id), self.nonce.encode()),
+                      SetTimer("leave", now + DUPLICATE_SAY_S)]
 
     # ======================================================================
     # start-up, joining, rejoining
@@ -636,16 +642,12 @@ class AgentMachine:
             return
         others = self._others({nonce_of(k) for k in keys})
         if others:
-            self.phase = "leaving"
-            self._leaving = self._duplicate_reason(min(others), "found before this one declared its own")
-            self._out += [Publish(self.keys.duplicate(self.id), self.nonce.encode()),
-                          SetTimer("leave", now + DUPLICATE_SAY_S)]
-            return
+            return self._duplicate(min(others), "found before this one declared its own", now)
         self.claimed = True
         self.phase = "gather"
         self._out.append(DeclareToken(self.keys.alive(self.id, self.nonce)))
 
-    def _on_confirm(self, keys) -> None:
+    def _on_confirm(self, keys, now: float) -> None:
         """A process that found the run in progress asks once more, just
         before its first tick, whether another process holds its id: the
         world counts an id live whichever process holds it, and a session
@@ -653,7 +655,7 @@ class AgentMachine:
         claim. Another one: this one leaves (exit 2)."""
         others = self._others({nonce_of(k) for k in keys})
         if others:
-            return self._duplicate(min(others), "it holds this id in the run this one joined late")
+            return self._duplicate(min(others), "it holds this id in the run this one joined late", now)
         self._confirmed = True
 
     @functools.cached_property
@@ -695,7 +697,7 @@ class AgentMachine:
         estimate of tick J - 1 and starts from the answer."""
         twins = self._others()
         if self._late() and twins:  # seen before this one found the run in progress
-            return self._duplicate(min(twins), "it holds this id in the run this one joined late")
+            return self._duplicate(min(twins), "it holds this id in the run this one joined late", now)
         mine = [t for t, tk in self.ticks.items() if t > self.join_after and self.id in tk.live]
         if not mine:
             return

@@ -171,6 +171,7 @@ class WorldMachine:
         self._tokens = {"alive": {}, "ready": {}}  # kind -> id -> nonces held
         self._holders = {}             # id -> nonce of the process the ticks count as it (``_holder``)
         self._gone_ready = {}          # id -> ready nonces that went (they do not count again)
+        self._twins = {}               # id -> (nonces that said they leave, nonces of tokens that came second)
         self._joins_at = {}            # id -> first tick a (re)joining agent is live at
         self._why = dict.fromkeys(self.ids, "never joined")  # id -> why it is not live (None: live)
         # the ticks
@@ -423,9 +424,24 @@ class WorldMachine:
                 self.log.once(("report", who if who in self.ids else None, e.reason),
                               f"rejected a report from {key[:200]}: {e}")
         elif kind == "duplicate" and who in self.ids:
-            self.record.duplicates[who] += 1
-            self.log.info(f"agent id {who}: a second process (nonce {bytes(payload[:32]).decode(errors='replace')})"
-                          " found this id held and leaves: duplicate id")
+            nonce_ = bytes(payload[:32]).decode(errors="replace")
+            if self._duplicate(who, nonce_, said=True):
+                self.log.info(f"agent id {who}: a second process (nonce {nonce_}) found this id held and leaves: "
+                              "duplicate id")
+
+    def _duplicate(self, who, nonce_: str, said: bool) -> bool:
+        """A second process of agent ``who``: one that said it leaves
+        (``said``, its notice) or an alive token that came while another
+        process held the id. ``duplicates`` counts the larger of the two
+        kinds of evidence, so a process that shows both ways counts once
+        (zenoh's order of two tokens need not be the order the processes
+        started in, so the token may name the one that stays). True if new."""
+        seen = self._twins.setdefault(who, (set(), set()))[0 if said else 1]
+        if nonce_ in seen:
+            return False
+        seen.add(nonce_)
+        self.record.duplicates[who] = max(len(s) for s in self._twins[who])
+        return True
 
     def _on_report(self, sender, payload, now: float) -> None:
         if sender not in self._every:
@@ -599,8 +615,7 @@ class WorldMachine:
         if up:
             if kind == "ready" and nonce_ in gone and not self._paused:
                 return
-            if kind == "alive" and held and nonce_ not in held:
-                self.record.duplicates[who] += 1
+            if kind == "alive" and held and nonce_ not in held and self._duplicate(who, nonce_, said=False):
                 self.log.info(f"agent id {who}: a second process (token {nonce_}) besides {min(held)}: duplicate id")
             held.add(nonce_)
         else:
