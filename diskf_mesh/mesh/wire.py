@@ -190,17 +190,17 @@ class Layout:
     spans: tuple      # (start, k) of every k x k covariance, in declared order
     covariances: tuple  # the covariances' slots, in declared order
     updates: tuple    # (slot, slot of the covariance it updates), for ``Exchanged.update_of``
-    absent: tuple     # (index, zeros) of every ``Message`` array not exchanged (read-only)
+    absent: tuple     # ``Message``'s fields with the zeros (read-only) of every array not exchanged, else None
+    views: tuple      # (index, start, stop, shape or None for a vector) of every slot
 
     def message(self, a: np.ndarray, d_valid: bool) -> Message:
         """The ``Message`` of the float64 array ``a`` (views into it); an
         array not exchanged is zeros of its usual shape (finite, never
         read by its estimator's ``fuse``)."""
-        parts = [None] * len(_MESSAGE_FIELDS)
-        for i, zeros in self.absent:
-            parts[i] = zeros
-        for s in self.slots:
-            parts[s.index] = a[s.start:s.stop].reshape(s.shape)
+        parts = list(self.absent)
+        for i, start, stop, shape in self.views:
+            v = a[start:stop]
+            parts[i] = v if shape is None else v.reshape(shape)
         parts[-1] = np.array(d_valid)
         return Message(*parts)
 
@@ -222,14 +222,15 @@ def layout(exchanged: tuple, n: int, m: int) -> Layout:
         i += size
     by_name = {s.name: s for s in slots}
     covs = tuple(s for s in slots if s.covariance)
-    absent = []
+    absent = [None] * len(_MESSAGE_FIELDS)
     for f in EXCHANGED:
         if f.name not in by_name:
             zeros = np.zeros(f.dims(n, m))
             zeros.flags.writeable = False
-            absent.append((Message.ARRAY_FIELDS.index(f.name), zeros))
+            absent[Message.ARRAY_FIELDS.index(f.name)] = zeros
     return Layout(tuple(slots), i, tuple((s.start, s.shape[-1]) for s in covs), covs,
-                  tuple((s, by_name[s.update_of]) for s in slots if s.update_of is not None), tuple(absent))
+                  tuple((s, by_name[s.update_of]) for s in slots if s.update_of is not None), tuple(absent),
+                  tuple((s.index, s.start, s.stop, None if len(s.shape) == 1 else s.shape) for s in slots))
 
 
 _CODECS: dict = {}  # (id(exchanged), n, m) -> (exchanged, limits, layout): a lookup without hashing the fields
@@ -459,8 +460,19 @@ def _is_int(v) -> bool:
     return type(v) is int
 
 
+def _ints(xs) -> bool:
+    """Whether every item of ``xs`` is an int and not a bool (``_is_int``),
+    in one C loop over the items."""
+    return set(map(type, xs)) <= _INT
+
+
+_INT = frozenset((int,))
+
+
 def _field(doc: dict, key: str, kind):
     v = doc.get(key)
+    if type(v) is kind:  # what msgpack gives (never a subclass but bool, which is not int's type)
+        return v
     ok = _is_int(v) if kind is int else isinstance(v, kind)
     if not ok:
         raise Rejected("schema", f"field {key!r} missing or not {getattr(kind, '__name__', kind)}")
@@ -541,10 +553,11 @@ def _open(data, kind: str, run_id: str | None, lim: Limits) -> dict:
         raise Rejected("not-msgpack", type(e).__name__) from None
     if not isinstance(doc, dict):
         raise Rejected("schema", "not a map")
-    if doc.get("v") != SCHEMA or isinstance(doc.get("v"), bool):
-        raise Rejected("schema", f"version {doc.get('v')!r}, expected {SCHEMA}")
-    if doc.get("k") != kind:
-        raise Rejected("schema", f"kind {doc.get('k')!r}, expected {kind!r}")
+    v, k = doc.get("v"), doc.get("k")
+    if v != SCHEMA or isinstance(v, bool):
+        raise Rejected("schema", f"version {v!r}, expected {SCHEMA}")
+    if k != kind:
+        raise Rejected("schema", f"kind {k!r}, expected {kind!r}")
     run = _field(doc, "run", str)
     if run_id is not None and run != run_id:
         raise Rejected("run", f"run {run!r}, expected {run_id!r}")
@@ -576,7 +589,8 @@ def _values(doc: dict, key: str, count: int):
             raise Rejected("non-finite", f"field {key!r}")
         return values
     a = np.frombuffer(blob, dtype=DTYPE).astype(float)
-    if not np.isfinite(a).all():
+    # likewise: NaN and infinity make a . a non-finite (so may huge finite values: then look at each)
+    if not math.isfinite(a.dot(a)) and not np.isfinite(a).all():
         raise Rejected("non-finite", f"field {key!r}")
     return a
 
@@ -673,13 +687,18 @@ def estimate_problem(a: np.ndarray, P: np.ndarray, max_abs: float = MAX_ABS, max
     return None
 
 
-def _split(a: np.ndarray, shapes) -> list:
-    out, i = [], 0
-    for shp in shapes:
-        size = math.prod(shp)
-        out.append(a[i:i + size].reshape(shp))
-        i += size
-    return out
+def _estimate(doc: dict, n: int, m: int, max_abs: float, max_cond: float) -> tuple:
+    """(x (n,), P (n, n), d (m,)) of the floats "a" of a report or a starting
+    estimate (views into one array), checked as the guard checks a message:
+    finite, P positive definite (``_spd``), then ``estimate_problem``."""
+    values = _values(doc, "a", n + n * n + m)
+    a = np.array(values, dtype=float) if type(values) is tuple else values
+    _spd(values, a, ((n, n),))
+    P = a[n:n + n * n].reshape(n, n)
+    problem = estimate_problem(a, P, max_abs, max_cond, values)
+    if problem is not None:
+        raise Rejected(*problem)
+    return a[:n], P, a[n + n * n:]
 
 
 def _estimate_head(doc: dict, sender, n, m) -> tuple:
@@ -735,13 +754,7 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
     estimate passes the checks of a message (``estimate_problem``)."""
     doc = _open(data, "report", run_id, limits("report", n, m, agents))
     s, n, m, dv = _estimate_head(doc, sender, n, m)
-    values = _values(doc, "a", n + n * n + m)
-    a = np.array(values, dtype=float) if type(values) is tuple else values
-    _spd(values, a, ((n, n),))
-    x, P, d = _split(a, [(n,), (n, n), (m,)])
-    problem = estimate_problem(a, P, max_abs, max_cond, values)
-    if problem is not None:
-        raise Rejected(*problem)
+    x, P, d = _estimate(doc, n, m, max_abs, max_cond)
     c = doc.get("c", {})
     if not isinstance(c, dict) or len(c) > MAX_COUNTERS:
         raise Rejected("schema", "field 'c' is not a map of counters")
@@ -756,7 +769,7 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
                 raise Rejected("size", f"field 'c': counter {k!r} = {v}, expected 0 .. {bound}")
     links = agents if agents is not None else MAX_LINKS
     f, nf = doc.get("f", []), doc.get("nf", [])
-    if not isinstance(f, list) or len(f) > links or not all(_is_int(i) for i in f):
+    if not isinstance(f, list) or len(f) > links or not _ints(f):
         raise Rejected("schema", f"field 'f' is not a list of at most {links} ids")
     if not isinstance(nf, list) or len(nf) > links or not all(
             isinstance(e, list) and len(e) == 2 and _is_int(e[0]) and isinstance(e[1], str)
@@ -770,7 +783,7 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
             isinstance(g, bytes) and len(g) == DIGEST_BYTES for g in fd):
         raise Rejected("schema", f"field 'fd' is not one {DIGEST_BYTES}-byte digest per sender of 'f'")
     rj = doc.get("rj")
-    if rj is not None and not (isinstance(rj, list) and len(rj) == 2 and all(_is_int(v) for v in rj)
+    if rj is not None and not (isinstance(rj, list) and len(rj) == 2 and _ints(rj)
                                and 1 <= rj[0] <= doc["t"] and rj[1] >= -1):
         raise Rejected("schema", "field 'rj' is not [tick <= the report's tick, source id or -1]")
     restart = None if rj is None else (rj[0], None if rj[1] < 0 else rj[1])
@@ -786,7 +799,7 @@ def decode_tick(data, *, run_id: str | None = None, agents: int | None = None) -
     if not isinstance(rng, (float, int)) or isinstance(rng, bool) or math.isnan(rng):
         raise Rejected("schema", "field 'range' missing or not a number")
     live = _field(doc, "live", list)
-    if not all(_is_int(i) for i in live):
+    if not _ints(live):
         raise Rejected("schema", "field 'live' is not a list of ids")
     blob = doc.get("pos")
     if not isinstance(blob, bytes) or len(blob) % 16:
@@ -838,11 +851,5 @@ def decode_start(data, *, run_id: str | None = None, agent: int | None = None, t
     if tick is not None and doc["t"] != tick:
         raise Rejected("schema", f"tick {doc['t']}, expected {tick}")
     src = _field(doc, "src", int)
-    values = _values(doc, "a", n + n * n + m)
-    a = np.array(values, dtype=float)
-    _spd(values, a, ((n, n),))
-    x, P, d = _split(a, [(n,), (n, n), (m,)])
-    problem = estimate_problem(a, P, max_abs, max_cond)
-    if problem is not None:
-        raise Rejected(*problem)
+    x, P, d = _estimate(doc, n, m, max_abs, max_cond)
     return Start(doc["run"], s, doc["t"], None if src < 0 else src, x, P, d, dv)
