@@ -297,7 +297,7 @@ def fused_digest_lists(rec: WorldRecord) -> list:
     agent i fused at tick k, as it reported them."""
     K, N = rec.reported.shape
     out = [[[] for _ in range(N)] for _ in range(K)]
-    for (k, i), (senders, digests) in rec.digests.items():
+    for (k, i), (senders, digests) in rec.claimed_digests().items():
         order = np.argsort(senders, kind="stable")
         out[k - 1][i] = [int(g).to_bytes(8, "little").hex() for g in digests[order].tolist()]
     return out

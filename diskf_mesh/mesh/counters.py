@@ -36,6 +36,7 @@ The books balance at any report (``Counters.imbalance`` is empty):
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
+from operator import attrgetter
 
 SCALARS = ("published", "sent", "lost", "received", "arrived", "duplicate", "fused", "late", "unlinked",
            "out_of_range", "in_flight", "pending")
@@ -83,8 +84,9 @@ class Counters:
         """Flat {name: int}, rejections as ``rejected.<reason>`` (the report's
         "c" map); with ``cap``, no count above it (``wire.count_bound``: a
         receiver refuses a report with a larger one)."""
-        out = {name: int(getattr(self, name)) for name in SCALARS}
-        out.update({REJECTED_PREFIX + r: int(n) for r, n in sorted(self.rejected.items())})
+        out = dict(zip(SCALARS, map(int, _scalars(self))))
+        if self.rejected:
+            out.update({REJECTED_PREFIX + r: int(n) for r, n in sorted(self.rejected.items())})
         if cap is not None and max(out.values()) > cap:
             out = {k: min(v, cap) for k, v in out.items()}
         return out
@@ -97,9 +99,12 @@ class Counters:
 
     def to_json(self) -> dict:
         """Nested form for result files: the scalars and ``rejected: {reason: n}``."""
-        out = {name: int(getattr(self, name)) for name in SCALARS}
+        out = dict(zip(SCALARS, map(int, _scalars(self))))
         out["rejected"] = dict(sorted(self.rejected.items()))
         return out
+
+
+_scalars = attrgetter(*SCALARS)  # a ``Counters``'s scalars, in ``SCALARS`` order
 
 
 def total(counters) -> Counters:

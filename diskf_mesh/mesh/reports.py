@@ -25,7 +25,8 @@ class RunReports:
     d_valid: np.ndarray         # (K, N) bool
     reported: np.ndarray        # (K, N) bool: the report of tick k came
     fused: np.ndarray           # (K, N, N) bool [tick - 1, receiver, sender]: what the receiver fused
-    digests: dict = field(default_factory=dict)   # (tick, receiver) -> (senders, their digests) as verify holds them
+    digests: dict = field(default_factory=dict)   # (tick, receiver) -> (senders, their 8-byte digests), as reported
+    # (tuples of indices and bytes; ``claimed_digests`` turns them into the arrays verify holds)
     verdicts: dict = field(default_factory=dict)  # (tick, receiver) -> ((sender, why not fused), ...)
 
     @staticmethod
@@ -45,11 +46,16 @@ class RunReports:
         for _, j in at:
             row[j] = True
         if digests and at:
-            self.digests[(tick, i)] = (np.array([j for _, j in at], dtype=np.intp),
-                                       digest_values([digests[n] for n, _ in at]))
+            self.digests[(tick, i)] = (tuple(j for _, j in at), tuple(digests[n] for n, _ in at))
         said = tuple((index[s], str(v)) for s, v in not_fused if s in index)
         if said:
             self.verdicts[(tick, i)] = said
+
+    def claimed_digests(self) -> dict:
+        """``digests`` as the engine's claims hold them (``verify.RunClaims``):
+        (tick, receiver) -> (sender indices (J,) intp, digests (J,) uint64)."""
+        return {key: (np.array(senders, dtype=np.intp), digest_values(gs))
+                for key, (senders, gs) in self.digests.items()}
 
     def estimates(self, fill: bool = False) -> Estimates:
         """The reports as an engine ``Estimates`` batch of one; with ``fill``

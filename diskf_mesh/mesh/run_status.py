@@ -76,7 +76,7 @@ def claims_of(rec, ids, restarts=None) -> RunClaims:
     if restarts is None:
         restarts = restarts_of(getattr(rec, "rejoins", {}), getattr(rec, "starts", ()), index)
     return RunClaims(rec.x, rec.P, rec.d, rec.d_valid, rec.reported, rec.fused, getattr(rec, "live", None),
-                     tuple(restarts), dict(rec.digests), dict(rec.verdicts), getattr(rec, "why", None))
+                     tuple(restarts), rec.claimed_digests(), dict(rec.verdicts), getattr(rec, "why", None))
 
 
 def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: int,
