@@ -75,3 +75,29 @@ def test_bank_run_and_summary():
     b = heldout.bank_summary(results)
     assert (b["auto_misses"], b["within"]) == (2, 1)
     assert [(x["case"], x["member"], x["ratio"]) for x in b["rows"]] == [("b", "none", 1.05), ("c", "none", 2.0)]
+
+
+def test_by_silence_splits_the_mae_by_ticks_since_measured():
+    """Over the agent-ticks of each silence the split's MAE is that of the
+    errors there; an all-to-all case whose every agent measures every tick
+    (R×0.01 all, zero, made dense) has only silence 0, equal to the run's
+    MAE."""
+    import numpy as np
+    from dataclasses import replace
+    (case,) = [c for c in heldout.cases() if c.label == "S1 none, white"]
+    out = heldout.by_silence(case, range(1), steps=60)
+    assert list(out) == ["diskf-auto"] + [m for m, _ in heldout.bank_members(case.scenario)]
+    assert all(len(v) == len(heldout.SILENCES) and all(np.isfinite(v)) for v in out.values())
+    # every bin holds agent-ticks here (measured stretches and 30-tick silences): the split agrees with a direct one
+    row = heldout.run_case(replace(case, scenario=case.scenario.with_overrides(steps=60)), range(1),
+                           names=["diskf-auto"])["diskf-auto"]
+    tr = heldout.simulate(case.scenario.with_overrides(steps=60), range(1))
+    weights = []
+    since = np.zeros(tr.has.shape, dtype=int)
+    for k in range(tr.has.shape[1]):
+        since[:, k] = np.where(tr.has[:, k], 0, (since[:, k - 1] if k else 0) + 1)
+    for lo, hi in heldout.SILENCES:
+        weights.append(((since >= lo) & (since <= (hi if hi is not None else since.max()))).sum())
+    assert sum(weights) == since.size
+    mixed = sum(w * v for w, v in zip(weights, out["diskf-auto"])) / since.size
+    assert mixed == pytest.approx(row["mae_state"], rel=1e-9)

@@ -23,6 +23,11 @@ best (every estimator whose name starts with ``diskf``) within 1 % of the
 best baseline, ``diskf-auto`` within 10 % of each case's best, and its mean
 NEES inside the band for the mean over every observed cell.
 
+``by_silence`` (``--by-silence CASE``) splits one case's state MAE by the
+ticks since each agent's own last measurement, for ``diskf-auto`` and each
+model of its bank alone: whether a model loses while measured or only
+across the ticks no one measures.
+
 ``bank_members`` and ``run_bank`` (``--bank``) run each model of
 ``diskf-auto``'s bank alone (``diskf-r`` with that input model);
 ``bank_summary`` names, for each case ``diskf-auto`` misses by more than
@@ -253,6 +258,27 @@ def run_bank(case: Case, seeds, steps: int | None = None) -> dict:
     return {name: case_row(tr, "diskf-r", params, seen)["mae_state"] for name, params in bank_members(scn)}
 
 
+SILENCES = ((0, 0), (1, 5), (6, 15), (16, None))  # ticks since the agent's own last measurement
+
+
+def by_silence(case: Case, seeds, steps: int | None = None) -> dict:
+    """{estimator or bank model: [state MAE over the agent-ticks whose own
+    last measurement is 0, 1-5, 6-15, 16 or more ticks back]} on one case
+    (``SILENCES``): ``diskf-auto`` and each model of its bank alone."""
+    scn = case.scenario.with_overrides(steps=steps)
+    tr = simulate(scn, seeds)
+    since = np.where(tr.has, 0, 1)                # (S, K, N)
+    for k in range(1, since.shape[1]):
+        since[:, k] = np.where(tr.has[:, k], 0, since[:, k - 1] + 1)
+    out = {}
+    for name, (alg, params) in [(AUTO, (AUTO, scn.params))] + [(m, ("diskf-r", p)) for m, p in bank_members(scn)]:
+        with np.errstate(all="ignore"):
+            e_state, _, _ = metrics.errors(tr, engine.run(tr, alg, params))
+        out[name] = [float(e_state[(since >= lo) & (since <= (hi if hi is not None else since.max()))].mean())
+                     for lo, hi in SILENCES]
+    return out
+
+
 def bank_summary(results: list[dict]) -> dict:
     """Over the results that hold a ``bank`` ({model: state MAE}, ``run(...,
     bank=True)``): per case where ``diskf-auto`` is not within 10 % of the
@@ -439,10 +465,25 @@ def main(argv=None) -> int:
     ap.add_argument("--bank", action="store_true",
                     help="also run each model of diskf-auto's bank alone; print, per case diskf-auto misses by more "
                          "than 10 %%, the best of them")
+    ap.add_argument("--by-silence", metavar="CASE", default=None,
+                    help="only this case (its label): the state MAE of diskf-auto and of each bank model alone, by "
+                         "ticks since the agent's own last measurement")
     a = ap.parse_args(argv)
     if a.seeds < 1 or (a.steps is not None and a.steps < 1):
         print("error: --seeds and --steps must be at least 1", file=sys.stderr)
         return 2
+    if a.by_silence is not None:
+        found = [c for c in cases() if c.label == a.by_silence]
+        if not found:
+            print(f"error: --by-silence: no case {a.by_silence!r} (the labels are in docs/heldout.md)", file=sys.stderr)
+            return 2
+        heads = [f"{lo}" if lo == hi else f"{lo}-{hi}" if hi is not None else f"{lo}+" for lo, hi in SILENCES]
+        print(f"{a.by_silence}, seeds 0..{a.seeds - 1}: state MAE by ticks since the agent's own last measurement")
+        print("| estimator | " + " | ".join(heads) + " |")
+        print("|---|" + "---:|" * len(heads))
+        for name, v in by_silence(found[0], range(a.seeds), a.steps).items():
+            print(f"| {name} | " + " | ".join(f"{x:.1f}" for x in v) + " |")
+        return 0
     if a.figure:
         choice_figure(a.figure)
     doc = run(a.seeds, a.steps, select=a.select, bank=a.bank)
