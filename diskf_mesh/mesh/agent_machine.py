@@ -38,13 +38,16 @@ sample that completes a tick closes it (and may open the next) at once.
 
 Before its first tick (``_start_up``): wait for the world's token; claim the
 agent id (a liveliness query, ``AskTokens``: another process holding it
-means this one leaves, exit 2); declare the alive token; once the world and
+means this one leaves); declare the alive token; once the world and
 every agent are seen (or the world is already ticking: a restart), declare
 a ready token; join at the first tick the world counts this agent live
 (``_join``). A (re)joining agent asks the world for its starting estimate
 (``Ask`` on ``Keys.start``, ``mesh.rejoin``) and starts from the answer;
 one that found the run in progress first asks once more whether another
-process holds its id (``_on_confirm``).
+process holds its id (``_on_confirm``). Whichever way a process finds its
+id held (the claim, another token, the confirm, a tick naming another
+holder), it tells the world (``Keys.duplicate``) and leaves with exit 2
+(``_duplicate``).
 An agent that finds itself out of the run (the world counts it out, a tick
 never came, or it was frozen past zenoh's lease: ``Woke`` then the world's
 token going) drops its estimator and rejoins the same way (``_resync``).
