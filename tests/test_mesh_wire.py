@@ -207,6 +207,25 @@ def test_report_counters_are_validated_against_the_run():
     assert Counters(sent=2 ** 70, fused=3).to_dict(cap=bound)["sent"] == bound
 
 
+def test_id_lists_hold_ints_only():
+    """A tick's live ids and a report's fused ids and re-initialisation are
+    ints: a bool, a float or a string among them is refused ("schema")."""
+    pos = np.arange(8.0).reshape(4, 2)
+    for bad in (True, 2.0, "2"):
+        doc = msgpack.unpackb(wire.encode_tick(wire.Tick(RUN, 5, 30, 7, "diskf", "range", 100.0, pos, (1, 2, 4))))
+        doc["live"] = [1, bad, 4]
+        with pytest.raises(wire.Rejected) as e:
+            wire.decode_tick(msgpack.packb(doc), run_id=RUN, agents=4)
+        assert e.value.reason == "schema", bad
+        rep = msgpack.unpackb(wire.encode_report(RUN, 2, 5, [1.0, 2.0], np.eye(2), [0.5], True, {}, [1, 3], [],
+                                                 restart=(4, 1)))
+        for field, value in (("f", [1, bad]), ("rj", [4, bad])):
+            doc = dict(rep, **{field: value})
+            with pytest.raises(wire.Rejected) as e:
+                wire.decode_report(msgpack.packb(doc), run_id=RUN, sender=2, n=2, m=1)
+            assert e.value.reason == "schema", (field, bad)
+
+
 def _distinctive_scenario(tmp_path):
     """Scenario 1 with H and R values that cannot appear by chance."""
     text = scenario_path("quadrants").read_text()
