@@ -77,6 +77,12 @@ def test_bank_run_and_summary():
     assert [(x["case"], x["member"], x["ratio"]) for x in b["rows"]] == [("b", "none", 1.05), ("c", "none", 2.0)]
 
 
+def test_ticks_since_measured_by_hand():
+    import numpy as np
+    has = np.array([[[False, True], [True, False], [False, False], [False, True]]])  # (S=1, K=4, N=2)
+    assert heldout.ticks_since_measured(has)[0].T.tolist() == [[1, 0, 1, 2], [0, 1, 2, 0]]
+
+
 def test_by_silence_splits_the_mae_by_ticks_since_measured():
     """Over the agent-ticks of each silence the split's MAE is that of the
     errors there; an all-to-all case whose every agent measures every tick
@@ -92,12 +98,8 @@ def test_by_silence_splits_the_mae_by_ticks_since_measured():
     row = heldout.run_case(replace(case, scenario=case.scenario.with_overrides(steps=60)), range(1),
                            names=["diskf-auto"])["diskf-auto"]
     tr = heldout.simulate(case.scenario.with_overrides(steps=60), range(1))
-    weights = []
-    since = np.zeros(tr.has.shape, dtype=int)
-    for k in range(tr.has.shape[1]):
-        since[:, k] = np.where(tr.has[:, k], 0, (since[:, k - 1] if k else 0) + 1)
-    for lo, hi in heldout.SILENCES:
-        weights.append(((since >= lo) & (since <= (hi if hi is not None else since.max()))).sum())
+    since = heldout.ticks_since_measured(tr.has)
+    weights = [((since >= lo) & (since <= hi)).sum() for lo, hi in heldout.SILENCES]
     assert sum(weights) == since.size
     mixed = sum(w * v for w, v in zip(weights, out["diskf-auto"])) / since.size
     assert mixed == pytest.approx(row["mae_state"], rel=1e-9)

@@ -258,7 +258,17 @@ def run_bank(case: Case, seeds, steps: int | None = None) -> dict:
     return {name: case_row(tr, "diskf-r", params, seen)["mae_state"] for name, params in bank_members(scn)}
 
 
-SILENCES = ((0, 0), (1, 5), (6, 15), (16, None))  # ticks since the agent's own last measurement
+SILENCES = ((0, 0), (1, 5), (6, 15), (16, math.inf))  # ticks since the agent's own last measurement
+
+
+def ticks_since_measured(has: np.ndarray) -> np.ndarray:
+    """(S, K, N) int: at each agent-tick, the ticks since the agent's own
+    last measurement (0 where it measures; before its first, counted from
+    tick 0)."""
+    since = np.where(has, 0, 1)
+    for k in range(1, since.shape[1]):
+        since[:, k] = np.where(has[:, k], 0, since[:, k - 1] + 1)
+    return since
 
 
 def by_silence(case: Case, seeds, steps: int | None = None) -> dict:
@@ -267,15 +277,12 @@ def by_silence(case: Case, seeds, steps: int | None = None) -> dict:
     (``SILENCES``): ``diskf-auto`` and each model of its bank alone."""
     scn = case.scenario.with_overrides(steps=steps)
     tr = simulate(scn, seeds)
-    since = np.where(tr.has, 0, 1)                # (S, K, N)
-    for k in range(1, since.shape[1]):
-        since[:, k] = np.where(tr.has[:, k], 0, since[:, k - 1] + 1)
+    since = ticks_since_measured(tr.has)
     out = {}
     for name, (alg, params) in [(AUTO, (AUTO, scn.params))] + [(m, ("diskf-r", p)) for m, p in bank_members(scn)]:
         with np.errstate(all="ignore"):
             e_state, _, _ = metrics.errors(tr, engine.run(tr, alg, params))
-        out[name] = [float(e_state[(since >= lo) & (since <= (hi if hi is not None else since.max()))].mean())
-                     for lo, hi in SILENCES]
+        out[name] = [float(e_state[(since >= lo) & (since <= hi)].mean()) for lo, hi in SILENCES]
     return out
 
 
@@ -477,7 +484,7 @@ def main(argv=None) -> int:
         if not found:
             print(f"error: --by-silence: no case {a.by_silence!r} (the labels are in docs/heldout.md)", file=sys.stderr)
             return 2
-        heads = [f"{lo}" if lo == hi else f"{lo}-{hi}" if hi is not None else f"{lo}+" for lo, hi in SILENCES]
+        heads = [f"{lo}" if lo == hi else f"{lo}-{hi}" if hi < math.inf else f"{lo}+" for lo, hi in SILENCES]
         print(f"{a.by_silence}, seeds 0..{a.seeds - 1}: state MAE by ticks since the agent's own last measurement")
         print("| estimator | " + " | ".join(heads) + " |")
         print("|---|" + "---:|" * len(heads))
