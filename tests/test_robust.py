@@ -325,3 +325,20 @@ def test_robust_scales_from_a_scenario_and_a_trace():
         raw["estimator"]["robust"] = bad
         with pytest.raises(InputError):
             parse_scenario(raw)
+
+
+def test_diskf_none_is_diskf_r_without_input():
+    """``diskf-none`` is ``diskf-r`` with ``input_model = "none"``, bit for
+    bit, whatever ``[estimator.robust]`` says of the input (a walk, the
+    unbiased update: no refusal); it never claims an input estimate."""
+    scn = load_scenario("quadrants").with_overrides(topology="ring", steps=60)
+    tr = simulate(scn, [0, 1])
+    none = replace(scn.params, robust=replace(scn.params.robust, input_model="none"))
+    want = engine.run(tr, "diskf-r", none)
+    asked = replace(scn.params, robust=replace(scn.params.robust, input_model="walk", input_walk=3.0, unbiased=True))
+    for params in (scn.params, asked):
+        got = engine.run(tr, "diskf-none", params)
+        for f in ("x", "P"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(want, f))
+        assert not got.d_valid.any()
+    assert not np.array_equal(engine.run(tr, "diskf-r", scn.params).x, want.x)

@@ -25,11 +25,11 @@ from diskf_mesh.estimators.base import EXCHANGED, Estimator, Exchanged, Setting,
 from diskf_mesh.estimators.consensus_baselines import GDKF, KCF, DiffKF
 from diskf_mesh.estimators.diskf import DISKF
 from diskf_mesh.estimators.diskf_auto import DISKFAuto
-from diskf_mesh.estimators.diskf_robust import DISKFRobust
+from diskf_mesh.estimators.diskf_robust import DISKFNone, DISKFRobust
 from diskf_mesh.estimators.rkf_baselines import CDRKF, LDRKF
 
 ENTRY_POINTS = "diskf_mesh.estimators"
-BUILTINS = (DISKF, DISKFRobust, DISKFAuto, CDRKF, LDRKF, KCF, DiffKF, GDKF)
+BUILTINS = (DISKF, DISKFRobust, DISKFAuto, DISKFNone, CDRKF, LDRKF, KCF, DiffKF, GDKF)
 
 
 def register(cls, registry: dict, settings: dict) -> None:

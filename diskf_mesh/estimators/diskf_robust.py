@@ -102,7 +102,7 @@ Other switches (off by default, rows of the ablation table):
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -299,3 +299,31 @@ class DISKFRobust(Estimator):
         x_k, P_k = eq.local_update(x_s, P_s, *eq.information_pair(P_s, U), u)
         d_k = np.where(has_p[..., None], d_p, 0.0)
         return x_k, P_k, d_k, S_p, has_p
+
+
+class DISKFNone(DISKFRobust):
+    """``diskf-none``: DISKF's fusion (the CI prior, the neighbourhood's
+    measurement information, ``diskf-r``'s other switches) with the input
+    model ``none``: a target no unknown input pushes, or an input too fast
+    and too weakly seen to estimate (it is left to the filter's noise). It
+    is ``diskf-r`` with ``input_model = "none"`` whatever
+    ``[estimator.robust]`` says of the input (``unbiased`` off: with no
+    input there is nothing to keep unbiased); its message carries no input."""
+    name = "diskf-none"
+    label = "DISKF-none"
+    color = "slategray"
+
+    def __init__(self, model, sensors, params=None):
+        super().__init__(model, sensors, _no_input(params))
+
+    @classmethod
+    def refuse(cls, params, model, sensors):
+        return super().refuse(_no_input(params), model, sensors)
+
+
+def _no_input(params):
+    """``params`` with ``diskf-r``'s input model set to none."""
+    if params is None:
+        from diskf_mesh.estimators import Params  # the registry's, with every registered setting
+        params = Params()
+    return replace(params, robust=replace(params.robust, input_model="none", persist=True, unbiased=False))
