@@ -159,3 +159,31 @@ def test_kcf_warns_when_its_consensus_step_may_diverge(quadrants):
         engine.run(trace, "kcf", replace(quadrants.params, consensus_eps=0.4))
     assert consensus_step_problem(0.1, trace.links) is None
     assert consensus_step_problem(1.0, np.eye(4, dtype=bool)) is None  # no neighbours, no consensus step
+
+
+def test_a_diverging_estimator_is_a_row_that_says_so_not_a_traceback():
+    """Long runs of the shipped scenarios where the unbiased input estimate
+    is unstable (one scalar sensor of a rotation: not strongly detectable):
+    C-DRKF's and L-DRKF's covariance stops being positive definite (quadrants,
+    isolated, 700 ticks), DISKF's input estimate grows past what a message
+    may carry, and its state with it (random geometric, 25 agents, 700
+    ticks). The engine names the
+    estimator and the tick; ``experiment`` marks the row diverged and keeps
+    the others."""
+    from diskf_mesh.mesh import wire
+    from diskf_mesh.mesh.runspec import RunSpec
+    from diskf_mesh.studies import experiment
+
+    scn = load_scenario("quadrants").with_overrides(topology="none", steps=700)
+    with pytest.raises(np.linalg.LinAlgError, match=r"^cdrkf, tick \d+: .*diverged"):
+        engine.run(simulate(scn, [0]), "cdrkf", scn.params)
+    rows = experiment.run_experiment(scn, experiment.settings_for(["none"]), ["cdrkf", "ldrkf", "kcf"], [0])
+    assert rows["cdrkf"]["none"]["diverged"] and rows["ldrkf"]["none"]["diverged"]
+    assert not rows["kcf"]["none"].get("diverged") and np.isfinite(rows["kcf"]["none"]["mae_state"])
+    assert "diverged" in experiment.format_table(rows).splitlines()[2]
+
+    rg = RunSpec("random-geometric", "diskf", agents=25).load(700)
+    est = engine.run(simulate(rg, [0]), "diskf", rg.params)
+    assert np.isfinite(est.x).all() and np.abs(est.x).max() > wire.MAX_ABS  # finite, but no message carries it
+    assert experiment.diverged(est) and experiment.run_or_none(simulate(rg, [0]), "diskf", rg.params) is None
+    assert not experiment.diverged(engine.run(simulate(rg, [0]), "kcf", rg.params))

@@ -182,12 +182,15 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
     for k in range(1, K + 1):
         if restart is not None:
             state = restart(k, est, state)
-        state, msg = est.local(state, k, y[k - 1], has[k - 1])
-        if listen is not None:
-            listen(k, msg)
-        if changed[k - 1]:
-            view = choose_links(trace.links[:, k - 1], B, neighbours)
-        state, out = view.fuse(est, state, msg, None if draws is None else draws[:, k - 1])
+        try:
+            state, msg = est.local(state, k, y[k - 1], has[k - 1])
+            if listen is not None:
+                listen(k, msg)
+            if changed[k - 1]:
+                view = choose_links(trace.links[:, k - 1], B, neighbours)
+            state, out = view.fuse(est, state, msg, None if draws is None else draws[:, k - 1])
+        except np.linalg.LinAlgError as e:  # the same type, saying whose and when
+            raise np.linalg.LinAlgError(f"{estimator}, tick {k}: {e} (its covariance diverged)") from None
         xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)

@@ -16,6 +16,7 @@ from diskf_mesh.data import metrics, provenance
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, simulate
 from diskf_mesh.estimators import Params
+from diskf_mesh.mesh import wire
 
 # the label of every series a table or figure shows: each estimator's own
 # (``Estimator.label``), and the centralized bound's
@@ -63,6 +64,32 @@ def settings_for(topologies, comm_range: float | None = None) -> list[Setting]:
         else:
             out.append(Setting(t, t))
     return out
+
+
+DIVERGED = {"diverged": True, **{k: float("nan") for k in metrics.METRIC_KEYS + ("nees_observed",)}}
+
+
+def diverged(est) -> bool:
+    """Whether a run's estimates (``Estimates``) diverged: a value not
+    finite, or a state or input estimate beyond ``wire.MAX_ABS`` (no message
+    could carry it, and no target is there). A large but finite covariance
+    alone is not divergence: an agent that never measures grows honestly
+    uncertain."""
+    with np.errstate(invalid="ignore"):
+        return not (np.isfinite(est.P).all()
+                    and all(bool((np.abs(a) <= wire.MAX_ABS).all()) for a in (est.x, est.d)))
+
+
+def run_or_none(trace, name: str, params: Params | None):
+    """``engine.run``, or None where the estimator diverged: its covariance
+    lost positive definiteness (``numpy.linalg.LinAlgError``) or its
+    estimates left the bounds of ``diverged``."""
+    try:
+        with np.errstate(all="ignore"):
+            est = engine.run(trace, name, params)
+    except (np.linalg.LinAlgError, FloatingPointError):
+        return None
+    return None if diverged(est) else est
 
 
 def summarize(trace, est) -> dict:
@@ -118,8 +145,13 @@ def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Pa
     for p, idx in batches(scns, seeds, params):
         traces = [simulate(scns[i], seeds) for i in idx]
         for name in names:
-            for i, trace, est in zip(idx, traces, engine.run_many(traces, name, p)):
-                rows[name, i] = summarize(trace, est)
+            try:
+                ests = engine.run_many(traces, name, p)
+            except np.linalg.LinAlgError:  # diverged in one of them at least: each alone, to say which
+                ests = [run_or_none(t, name, p) for t in traces]
+            ests = [None if e is None or diverged(e) else e for e in ests]
+            for i, trace, est in zip(idx, traces, ests):
+                rows[name, i] = dict(DIVERGED) if est is None else summarize(trace, est)
                 if progress is not None:
                     progress(1)
     return {a: {st.label: rows[a, i] for i, st in enumerate(settings)} for a in names}
@@ -143,7 +175,8 @@ def format_table(results: dict, metric_keys=TABLE_METRICS) -> str:
     error, highest input coverage), as printed (two decimals, so ties are all
     marked), carries a ``*``; ``-`` means no value (e.g. no agent ever had an
     input estimate, or a run that measured nothing: None, NaN or an absent
-    key or setting all print ``-``). Input coverage, not in the paper's table,
+    key or setting all print ``-``); ``diverged``: the estimator's
+    covariance diverged in that setting (``DIVERGED``). Input coverage, not in the paper's table,
     is the share of agent-ticks over which MAE/RMSE(input) are taken."""
     algs = [a for a in results if a != provenance.KEY]  # a results document's own provenance is no estimator
     settings = list(dict.fromkeys(st for a in algs for st in (results[a] or {})))
@@ -156,7 +189,8 @@ def format_table(results: dict, metric_keys=TABLE_METRICS) -> str:
             finite = [v for v in vals if np.isfinite(v)]
             pick = max if key in HIGHER_IS_BETTER else min
             best = pick(finite) if finite else None
-            cells = "".join(f"{_cell(v, v == best):>{width}}" for v in vals)
+            gone = [bool(((results[a] or {}).get(st) or {}).get("diverged")) for a in algs]
+            cells = "".join(f"{'diverged ' if g else _cell(v, v == best):>{width}}" for v, g in zip(vals, gone))
             comm = TOPOLOGY_LABELS.get(st, str(st)) if i == 0 else ""
             lines.append(f"{comm:<12}{METRIC_LABELS.get(key, key):<13}{cells}")
         lines.append("-" * len(head))

@@ -16,7 +16,8 @@ averaged over the S seeds, lies in the chi-square 95 % band of that average
 NEES target uses the same band (the band of S runs: the cells of one run
 are correlated in time, so the far narrower band of every cell taken as
 independent would not be honest). A run whose covariance stops being positive
-definite or finite counts as diverged.
+definite, or whose state or input estimate leaves what a message may carry, counts as
+diverged (``experiment.run_or_none``).
 
 ``targets`` checks the suite against the three targets: the DISKF family's
 best (every estimator whose name starts with ``diskf``) within 1 % of the
@@ -53,6 +54,7 @@ from diskf_mesh.data.inputs import parse_input
 from diskf_mesh.data.scenario import Scenario, load_scenario, parse_scenario, simulate
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.estimators import Params
+from diskf_mesh.studies import experiment
 from diskf_mesh.studies.suite import observed, rotation
 
 FAMILY_PREFIX = "diskf"
@@ -207,16 +209,11 @@ def case_row(tr, name: str, params: Params, seen: np.ndarray | None = None) -> d
     """One estimator's row on the trace ``tr`` (``run_case``); ``seen``:
     ``observed(tr)``, given when several rows share the trace."""
     seen = observed(tr) if seen is None else seen
-    try:
-        with np.errstate(all="ignore"):
-            est = engine.run(tr, name, params)
-            ok = bool(np.isfinite(est.P).all() and np.isfinite(est.x).all())
-        if not ok:
-            raise np.linalg.LinAlgError("not finite")
-        e_state, e_in, nees = metrics.errors(tr, est)
-    except (np.linalg.LinAlgError, FloatingPointError):
+    est = experiment.run_or_none(tr, name, params)
+    if est is None:
         return dict(mae_state=float("nan"), mae_input=float("nan"), nees=float("nan"),
                     nees_band_share=float("nan"), diverged=True)
+    e_state, e_in, nees = metrics.errors(tr, est)
     band = chi2_band(tr.model.n, len(tr.seeds))
     s = metrics.summarize(e_state, e_in, nees)
     cell = nees.mean(axis=0)[seen.all(axis=0)]  # every seed's neighbourhood measured there

@@ -97,7 +97,6 @@ def observed(trace) -> np.ndarray:
     return np.einsum("bkij,bkj->bki", L, trace.has.astype(float)) > 0
 
 
-DIVERGED = {"diverged": True, **{k: float("nan") for k in metrics.METRIC_KEYS + ("nees_observed",)}}
 
 
 def run_variants(scn: Scenario, variants, cfg: StudyConfig, bar=None, trace=None):
@@ -125,9 +124,9 @@ def run_cells(traces, variant_lists, bar=None, keep=False) -> list:
         try:
             ests = run_stacked([traces[i] for i in idx], alg, params)
         except np.linalg.LinAlgError:  # one of them diverged: each alone, to say which
-            ests = [_run_or_none(traces[i], alg, params) for i in idx]
+            ests = [experiment.run_or_none(traces[i], alg, params) for i in idx]
         for i, est in zip(idx, ests):
-            done[alg, params, i] = (DIVERGED if est is None else metric_row(traces[i], est, heard[i]), est)
+            done[alg, params, i] = (experiment.DIVERGED if est is None else metric_row(traces[i], est, heard[i]), est)
             if bar is not None:
                 bar.update(sum(1 for v in variant_lists[i] if (v.algorithm, v.params) == (alg, params)))
     out = []
@@ -137,13 +136,6 @@ def run_cells(traces, variant_lists, bar=None, keep=False) -> list:
                 if keep[i] and done[v.algorithm, v.params, i][1] is not None}
         out.append((rows, ests))
     return out
-
-
-def _run_or_none(trace, alg: str, params: Params):
-    try:
-        return engine.run(trace, alg, params)
-    except np.linalg.LinAlgError:
-        return None
 
 
 def run_stacked(traces, name: str, params: Params) -> list:
