@@ -189,7 +189,9 @@ def main(argv=None) -> int:
               f"| {r['message_bytes']} | {r['fused_per_tick']:.1f} | {r['heard_per_tick']:.1f} "
               f"| {'yes' if r['complete'] else 'no'} |")
     if args.baseline:
-        print(f"\nSide by side with {args.baseline} (run right after each run of this tree)\n")
+        print(f"\nSide by side with {args.baseline} (run right after each run of this tree"
+              + ("; only this tree runs with --profile, so its rate pays the profiler's cost and the ratio "
+                 "is low: compare rates without --profile" if args.profile else "") + ")\n")
         print("| agents | baseline ticks/s | ticks/s | ratio of medians | ratio per pair: median (range) "
               "| baseline CPU ms/tick | CPU ms/tick |")
         print("|---:|---:|---:|---:|---:|---:|---:|")
