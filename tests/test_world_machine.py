@@ -357,22 +357,3 @@ def test_a_flood_of_start_queries_keeps_one_owed_and_one_start_per_answer(run):
     for qid in range(1001, 1101):  # answered at once, kept once
         w.handle(Query(qid, keys.start(a), wire.encode_join(RUN, a, 3)), 3.0)
     assert len(w.record.starts) == 1 and w.record.starts[0].tick == 3
-
-
-def test_a_refused_report_of_the_open_tick_closes_it_without_the_timer(run):
-    """A live agent's report of the open tick that the world refuses (here a
-    state beyond ``wire.MAX_ABS``, as a diverging estimator's) accounts for
-    that agent: the tick closes when the others are in, the agent-tick is
-    missing as "rejected"; a refused report of another tick does not."""
-    w, _ = started(run)
-    n = w.trace.model.n
-    first, rest = w.ids[0], w.ids[1:]
-    assert ticks_opened(report(w, first, 2, 0.15, x=np.full(n, 1e13))) == []  # not the open tick: still owed
-    assert first in w._waiting
-    assert ticks_opened(report(w, first, 1, 0.2, x=np.full(n, 1e13))) == []
-    out = []
-    for i in rest:
-        out += report(w, i, 1, 0.3)
-    assert ticks_opened(out) == [2]  # at 0.3 s, not at the tick timer (10.1 s)
-    assert not w.record.reported[0, 0] and w.record.why[0, 0] == "rejected"
-    assert w.record.counters["rejected:magnitude"] == 2

@@ -753,15 +753,6 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
     ``agents``: the run's agent count, which bounds "f" and "nf". The
     estimate passes the checks of a message (``estimate_problem``)."""
     doc = _open(data, "report", run_id, limits("report", n, m, agents))
-    try:
-        return _report(doc, sender, n, m, ticks, agents, max_abs, max_cond)
-    except Rejected as e:  # a rejection after the tick was read carries it (as ``decode``'s)
-        e.tick = doc["t"]
-        raise
-
-
-def _report(doc: dict, sender, n, m, ticks, agents, max_abs: float, max_cond: float) -> Report:
-    """``decode_report`` of an open document."""
     s, n, m, dv = _estimate_head(doc, sender, n, m)
     x, P, d = _estimate(doc, n, m, max_abs, max_cond)
     c = doc.get("c", {})

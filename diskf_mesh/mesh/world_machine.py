@@ -421,10 +421,6 @@ class WorldMachine:
                 self.record.counters[f"rejected:{e.reason}"] += 1
                 if who in self.ids:
                     self._rejected.add(who)
-                    if self.clock is None and e.tick == self._open:
-                        # its report of the open tick came and was refused (no other process may
-                        # put on its key): accounted for, missing as "rejected", no wait for the timer
-                        self._waiting.discard(who)
                 self.log.once(("report", who if who in self.ids else None, e.reason),
                               f"rejected a report from {key[:200]}: {e}")
         elif kind == "duplicate" and who in self.ids:
