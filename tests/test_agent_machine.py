@@ -259,7 +259,7 @@ def asking(run, J=4, now=10.0):
 
 def test_an_answer_that_fails_the_guard_leaves_the_prior(run):
     m, ask, _ = asking(run)
-    bad = wire.encode_start(RUN, m.id, 4, 2, np.array([1.0, 0.0]), np.diag([1e-6, 1e6]), np.zeros(1), False)
+    bad = wire.encode_start(RUN, m.id, 4, 2, np.array([1.0, 0.0]), np.diag([1e-8, 1e8]), np.zeros(1), False)
     m.handle(Reply(ask.qid, bad), 10.1)
     assert m.rejoins == [(4, None)] and m.counters.rejected == {"ill-conditioned": 1}
 

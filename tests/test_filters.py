@@ -166,7 +166,7 @@ def test_a_diverging_estimator_is_a_row_that_says_so_not_a_traceback():
     is unstable (one scalar sensor of a rotation: not strongly detectable):
     C-DRKF's and L-DRKF's covariance stops being positive definite (quadrants,
     isolated, 700 ticks), DISKF's input estimate grows past what a message
-    may carry, and its state with it (random geometric, 25 agents, 700
+    may carry, and its state with it (random geometric, 25 agents, 900
     ticks). The engine names the
     estimator and the tick; ``experiment`` marks the row diverged and keeps
     the others."""
@@ -182,7 +182,7 @@ def test_a_diverging_estimator_is_a_row_that_says_so_not_a_traceback():
     assert not rows["kcf"]["none"].get("diverged") and np.isfinite(rows["kcf"]["none"]["mae_state"])
     assert "diverged" in experiment.format_table(rows).splitlines()[2]
 
-    rg = RunSpec("random-geometric", "diskf", agents=25).load(700)
+    rg = RunSpec("random-geometric", "diskf", agents=25).load(900)
     est = engine.run(simulate(rg, [0]), "diskf", rg.params)
     assert np.isfinite(est.x).all() and np.abs(est.x).max() > wire.MAX_ABS  # finite, but no message carries it
     assert experiment.diverged(est) and experiment.run_or_none(simulate(rg, [0]), "diskf", rg.params) is None

@@ -88,7 +88,7 @@ def bad_payloads(view):
         ("tick-future", j, view.payload(j, tick=view.tick + 5)),
         ("tick-future", j, view.payload(j, tick=10 ** 12)),
         ("magnitude", j, with_arrays(view, j, x_upd=np.array([1e200, 0.0]))),
-        ("ill-conditioned", j, with_arrays(view, j, P_pred=np.diag([1.0, 1e-12]), P_upd=np.diag([0.5, 1e-12]))),
+        ("ill-conditioned", j, with_arrays(view, j, P_pred=np.diag([1.0, 1e-15]), P_upd=np.diag([0.5, 1e-15]))),
         ("information", j, with_arrays(view, j, P_upd=10.0 * P)),
     ]
     return cases
