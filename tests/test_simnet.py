@@ -291,3 +291,28 @@ def test_key_matching_is_zenohs(expr, key):
     except Exception:  # not a key expression zenoh accepts
         return
     assert key_matches(e, k) == ke.includes(zenoh.KeyExpr(k))
+
+
+def test_an_honest_agent_that_never_measures_is_carried_by_the_mesh():
+    """The held-out case with the largest honest estimates: isolated agents
+    tracking a constant-velocity target, ``diskf-r`` (covariance up to 8e12,
+    condition 4.5e13 by tick 200). Every message and report is within what a
+    message may carry (``wire.MAX_ABS``, ``wire.MAX_COND``): the run is
+    exact. With the bounds at 1e12 and 1e10, 704 of its 1,200 agent-ticks
+    were refused."""
+    import numpy as np
+
+    from diskf_mesh.data.scenario import simulate
+    from diskf_mesh.engine import batch as engine
+    from diskf_mesh.mesh import wire
+    from diskf_mesh.mesh.simrun import simulate_run
+    from diskf_mesh.studies import heldout
+
+    case, = [c for c in heldout.cases() if c.label == "CV none, zero"]
+    trace = simulate(case.scenario, [0])
+    est = engine.run(trace, "diskf-r", case.scenario.params)
+    w = np.linalg.eigvalsh(est.P)
+    assert np.abs(est.P).max() > 1e12 and (w[..., -1] / w[..., 0]).max() > 1e10  # beyond the former bounds
+    assert np.abs(est.P).max() <= wire.MAX_ABS
+    run = simulate_run(case.scenario, trace, "diskf-r", 0)
+    assert run.status.status == "exact", run.status
