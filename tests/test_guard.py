@@ -397,7 +397,7 @@ def test_an_agent_takes_measurements_only_for_k_and_k1_of_its_length_within_max_
     for t in range(7, 507):
         sample(fed.meas(t))
     sample(fed.meas(5, y=[1e300]))
-    sample(fed.meas(5, y=[-2e12]))
+    sample(fed.meas(5, y=[-2e15]))
     sample(fed.meas(5, y=[1.0, 2.0]))         # two values for a sensor of one
     sample(fed.meas(5, y=[np.nan]))
     assert a.meas == {}
