@@ -146,10 +146,9 @@ def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Pa
         traces = [simulate(scns[i], seeds) for i in idx]
         for name in names:
             try:
-                ests = engine.run_many(traces, name, p)
+                ests = [None if diverged(e) else e for e in engine.run_many(traces, name, p)]
             except np.linalg.LinAlgError:  # diverged in one of them at least: each alone, to say which
                 ests = [run_or_none(t, name, p) for t in traces]
-            ests = [None if e is None or diverged(e) else e for e in ests]
             for i, trace, est in zip(idx, traces, ests):
                 rows[name, i] = dict(DIVERGED) if est is None else summarize(trace, est)
                 if progress is not None:
@@ -184,12 +183,12 @@ def format_table(results: dict, metric_keys=TABLE_METRICS) -> str:
     head = f"{'Comm.':<12}{'Metric':<13}" + "".join(f"{LABELS.get(a, str(a)):>{width}}" for a in algs)
     lines = [head, "-" * len(head)]
     for st in settings:
+        gone = [bool(((results[a] or {}).get(st) or {}).get("diverged")) for a in algs]
         for i, key in enumerate(metric_keys):
             vals = [round(_number(((results[a] or {}).get(st) or {}).get(key)), 2) for a in algs]
             finite = [v for v in vals if np.isfinite(v)]
             pick = max if key in HIGHER_IS_BETTER else min
             best = pick(finite) if finite else None
-            gone = [bool(((results[a] or {}).get(st) or {}).get("diverged")) for a in algs]
             cells = "".join(f"{'diverged ' if g else _cell(v, v == best):>{width}}" for v, g in zip(vals, gone))
             comm = TOPOLOGY_LABELS.get(st, str(st)) if i == 0 else ""
             lines.append(f"{comm:<12}{METRIC_LABELS.get(key, key):<13}{cells}")
