@@ -211,6 +211,42 @@ def test_a_missing_report_then_agreement_is_known_again(run):
     assert st.status == "diverged" and st.evidence["diverged"]["tick"] == 31
 
 
+def test_allow_missing_accepts_only_what_the_missing_reports_explain(run):
+    """Agent 4 sent nothing and reported nothing at tick 10: its neighbours
+    fused less that tick, which the missing agent-tick explains, so
+    ``--allow-missing`` alone accepts the run. A link dropped elsewhere
+    between two agents that both reported is degradation the missing
+    agent-tick does not explain: the run stays incomplete, and only
+    ``--allow-missing`` with ``--allow-degraded`` accepts it."""
+    from diskf_mesh.mesh.run_status import accept
+
+    scn, trace = run
+    K, N = trace.has.shape[1:]
+    links = V.nominal_links(trace, TICKS)
+    j = 4
+    assert links[9, :, j].sum() > 1  # agent 4 had neighbours at tick 10
+    links[9, np.arange(N) != j, j] = False
+    claims = claims_of(scn, trace, links)
+    claims.reported[9, j] = False
+    st = check(trace, scn, claims)
+    assert st.status == "incomplete" and st.evidence["differing"] == 0, st.reason
+    assert st.evidence["degraded"]["agent_ticks"] > 0 and st.degraded_beyond_missing == 0
+    assert st.accepted(allow_missing=1 / (K * N))
+    assert accept(st, allow_missing=1 / (K * N))[:2] == (exits.OK, "warning")
+
+    k, r, s = next((k, r, s) for k, r, s in zip(*np.nonzero(links)) if r != s and k >= 20)
+    links[k, r, s] = False
+    claims = claims_of(scn, trace, links)
+    claims.reported[9, j] = False
+    st = check(trace, scn, claims)
+    assert st.status == "incomplete" and st.degraded_beyond_missing == 1, st.reason
+    assert not st.accepted(allow_missing=1.0)
+    code, level, line = accept(st, allow_missing=1.0)
+    assert (code, level) == (exits.INCOMPLETE, "error") and "--allow-degraded" in line
+    assert st.accepted(allow_missing=1 / (K * N), allow_degraded=True)
+    assert accept(st, allow_missing=1.0, allow_degraded=True)[:2] == (exits.OK, "warning")
+
+
 def test_accept_is_the_one_place_a_status_meets_the_users_tolerances():
     from diskf_mesh.mesh.run_status import accept
 

@@ -112,8 +112,18 @@ class RunStatus:
         if self.status in (EXACT_STATUS, AS_PLANNED_STATUS):
             return True
         if self.status == INCOMPLETE_STATUS:
-            return self.evidence.get("missing_fraction", 1.0) <= allow_missing
+            return (self.evidence.get("missing_fraction", 1.0) <= allow_missing
+                    and (allow_degraded or not self.degraded_beyond_missing))
         return self.status == DEGRADED_STATUS and allow_degraded
+
+    @property
+    def degraded_beyond_missing(self) -> int:
+        """Agent-ticks of an incomplete run that fused less than planned
+        though every sender they lack did report that tick, or fused a
+        sender not planned: degradation the missing agent-ticks do not
+        explain, which ``--allow-missing`` alone does not accept."""
+        ev = self.evidence
+        return int(ev.get("degraded", {}).get("beyond_missing", 0)) + int(ev.get("unplanned", {}).get("agent_ticks", 0))
 
     def to_json(self) -> dict:
         return {"status": self.status, "reason": self.reason, **self.evidence}
@@ -383,13 +393,14 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
 
 def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name) -> dict:
     """The reported agent-ticks whose fused set is not the planned one:
-    fewer (``degraded``, with the agents' reasons) or others (``unplanned``).
+    fewer (``degraded``, with the agents' reasons; ``beyond_missing``: those
+    lacking a sender that reported the tick) or others (``unplanned``).
     One tick at a time (a large run's (K, N, N) temporaries would not fit)."""
     K, N = claims.reported.shape
     diagonal = np.arange(N)
     why = Counter()
     listed, extra = [], []
-    short_n = messages = more_n = 0
+    short_n = messages = more_n = beyond = 0
     for k0 in range(K):
         plan = planned[k0]
         differ = claims.fused[k0] ^ plan
@@ -403,6 +414,7 @@ def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name
             short_n += 1
             said = dict(claims.verdicts.get((k0 + 1, j), ()))
             missing = np.flatnonzero(less[j]).tolist()
+            beyond += bool(claims.reported[k0, missing].any())  # a sender it lacks did report the tick
             reasons = [said.get(s, "not said") for s in missing]
             why.update(reasons)
             if len(listed) < LISTED:
@@ -415,6 +427,6 @@ def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name
     links = int(nominal.sum()) - int(nominal[:, diagonal, diagonal].sum())
     planned_out = 0 if planned is nominal else links - (int(planned.sum()) - int(planned[:, diagonal, diagonal].sum()))
     return {"degraded": {"agent_ticks": short_n, "messages": messages, "why": dict(sorted(why.items())),
-                         "listed": listed},
+                         "beyond_missing": beyond, "listed": listed},
             "unplanned": {"agent_ticks": more_n, "listed": extra},
             "nominal_links": links, "planned_out": planned_out}

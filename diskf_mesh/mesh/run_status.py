@@ -131,10 +131,17 @@ def accept(status: RunStatus, *, allow_missing: float = 0.0, allow_degraded: boo
         return exits.TOO_MANY_MISSES, "error", ""
     if s in (exits.EXACT_STATUS, exits.AS_PLANNED_STATUS):
         return exits.OK, "", ""
-    realtime_ok = s == exits.DEGRADED_STATUS and miss_rate is not None
+    realtime_ok = s in (exits.DEGRADED_STATUS, exits.INCOMPLETE_STATUS) and miss_rate is not None
     if status.accepted(allow_missing=allow_missing, allow_degraded=allow_degraded or realtime_ok):
-        how = (f"--allow-missing {allow_missing:g}" if s == exits.INCOMPLETE_STATUS else
+        how = (f"--allow-missing {allow_missing:g}" + (" --allow-degraded" if status.degraded_beyond_missing else "")
+               if s == exits.INCOMPLETE_STATUS else
                "--allow-degraded" if allow_degraded or miss_rate is None else f"--max-miss-rate {max_miss_rate:g}")
         return exits.OK, "warning", f"{s} run accepted ({how}): {status.reason}"
-    hint = "--allow-missing" if s == exits.INCOMPLETE_STATUS else "--allow-degraded"
-    return status.exit_code, "error", f"{s} run: {status.reason} ({hint} accepts it)"
+    if s != exits.INCOMPLETE_STATUS:
+        hint = "--allow-degraded accepts it"
+    elif status.degraded_beyond_missing:
+        hint = (f"and {status.degraded_beyond_missing} agent-ticks degraded beyond the missing ones; "
+                "--allow-missing with --allow-degraded accepts it")
+    else:
+        hint = "--allow-missing accepts it"
+    return status.exit_code, "error", f"{s} run: {status.reason} ({hint})"
