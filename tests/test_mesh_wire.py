@@ -275,3 +275,30 @@ def test_no_measurement_h_or_r_on_the_wire(tmp_path):
         assert set(doc) == {"v", "k", "run", "s", "t", "n", "m", "dt", "dv", "a"}
         for s in secrets:
             assert s not in data
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+def test_report_problem_refuses_exactly_what_the_world_refuses(n):
+    """``report_problem`` (what an agent asks before reporting) and
+    ``decode_report`` (what the world takes) agree on every estimate, with
+    the same reason: fine, too large, ill-conditioned, not positive
+    definite, not finite."""
+    rng = np.random.default_rng(n)
+    L = rng.normal(size=(n, n))
+    P = L @ L.T + n * np.eye(n)
+    x, d = rng.normal(size=n), rng.normal(size=1)
+    bad_cond = np.diag([1e14] + [1e-2] * (n - 1)) if n > 1 else np.zeros((1, 1))  # n = 1: not positive
+    cases = [(x, P, d), (x * 1e16, P, d), (x, bad_cond, d), (x, -P, d), (x, P, d * np.nan)]
+    reasons = []
+    for cx, cP, cd in cases:
+        problem = wire.report_problem(cx, cP, cd)
+        payload = wire.encode_report("r", 1, 3, cx, cP, cd, True)
+        try:
+            wire.decode_report(payload, run_id="r", sender=1, n=n, m=1)
+            said = None
+        except wire.Rejected as e:
+            said = e.reason
+        assert (problem[0] if problem else None) == said
+        reasons.append(said)
+    assert reasons[0] is None and reasons[1] == "magnitude" and reasons[3] == "not-spd"
+    assert reasons[2] == ("ill-conditioned" if n > 1 else "not-spd") and reasons[4] == "non-finite"

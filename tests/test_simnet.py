@@ -316,3 +316,34 @@ def test_an_honest_agent_that_never_measures_is_carried_by_the_mesh():
     assert np.abs(est.P).max() <= wire.MAX_ABS
     run = simulate_run(case.scenario, trace, "diskf-r", 0)
     assert run.status.status == "exact", run.status
+
+
+def test_an_agent_whose_estimator_diverges_leaves_at_once_with_its_reason():
+    """C-DRKF on Scenario 1 with isolated agents diverges (the input is not
+    strongly detectable from an x sensor): agent 1's covariance passes the
+    condition number a report may carry at tick 530, agent 3's at tick 671,
+    and the engine's own batch fails at tick 633. Each agent ends there
+    with exit 1 and the reason, instead of reporting what the world refuses
+    and holding every later tick for ``tick_timeout`` (10 virtual seconds
+    a tick) or raising; the world's check replays the ticks before the
+    engine's failure and says the rest is not verified."""
+    from diskf_mesh.data.scenario import load_scenario, simulate
+    from diskf_mesh.mesh.simrun import simulate_run
+
+    scn = load_scenario("quadrants").with_overrides(topology="none", steps=700)
+    trace = simulate(scn, [0])
+    run = simulate_run(scn, trace, "cdrkf", 0)
+    fin = run.outcome.finishes
+    assert {p: (f.code, f.status) for p, f in fin.items()} == {
+        "world": (0, "done"), "agent-1": (1, "diverged"), "agent-2": (0, "done"), "agent-3": (1, "diverged"),
+        "agent-4": (0, "done")}
+    assert "diverged at tick 530" in fin["agent-1"].reason and "ill-conditioned" in fin["agent-1"].reason
+    assert "diverged at tick 671" in fin["agent-3"].reason
+    rec = run.record
+    assert rec.reported[:529].all() and not rec.reported[529:, 0].any() and not rec.reported[670:, 2].any()
+    assert rec.reported[:, [1, 3]].all()
+    assert run.outcome.end < 10.0  # no tick waited for a report that would be refused
+    st = run.status
+    assert st.status == "incomplete" and st.evidence["differing"] == 0, st.reason
+    ended = st.evidence["replay_ended"]
+    assert ended["tick"] == 633 and ended["reported_after"] == int(rec.reported[632:].sum()) > 0

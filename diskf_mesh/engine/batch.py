@@ -190,11 +190,20 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
                 view = choose_links(trace.links[:, k - 1], B, neighbours)
             state, out = view.fuse(est, state, msg, None if draws is None else draws[:, k - 1])
         except np.linalg.LinAlgError as e:  # the same type, saying whose and when
-            raise np.linalg.LinAlgError(f"{estimator}, tick {k}: {e} (its covariance diverged)") from None
+            raise Diverged(f"{estimator}, tick {k}: {e} (its covariance diverged)", k) from None
         xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)
     return Estimates(*(np.moveaxis(a, 0, 1) for a in (xs, Ps, ds, dv)))
+
+
+class Diverged(np.linalg.LinAlgError):
+    """An estimator's covariance stopped being positive definite at ``tick``
+    (a ``LinAlgError`` that says whose and when)."""
+
+    def __init__(self, message: str, tick: int):
+        super().__init__(message)
+        self.tick = tick
 
 
 TICK_BYTES_MAX = 1 << 28  # working set one tick of a batch may take (256 MiB)

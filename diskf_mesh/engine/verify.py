@@ -293,7 +293,21 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
     wanted = None
     if message_digest is not None:
         wanted = {(k, int(s)) for (k, _), (senders, _) in claims.digests.items() for s in senders}
-    est, engine_digests = replay(trace, algorithm, params, claims, planned, message_digest, wanted)
+    try:
+        est, engine_digests = replay(trace, algorithm, params, claims, planned, message_digest, wanted)
+        ended = None
+    except batch.Diverged as e:  # the algorithm itself diverges on what was delivered: replay the ticks before
+        ended = {"tick": e.tick, "reason": str(e),
+                 "reported_after": int(claims.reported[e.tick - 1:].sum())}
+        K = e.tick - 1
+        if K == 0:
+            return RunStatus(INCOMPLETE_STATUS, f"the engine's replay diverged at tick 1 ({e}): nothing verified",
+                             {"agent_ticks": K_all * N, "reported": int(whole.reported.sum()), "ticks": K_all,
+                              "ticks_replayed": 0, "missing_agent_ticks": int(missing.sum()),
+                              "missing_fraction": float(missing.sum()) / (K_all * N), "replay_ended": ended})
+        claims, planned, nominal = first_claims(claims, K), planned[:K], nominal[:K]
+        wanted = None if wanted is None else {(k, s) for k, s in wanted if k <= K}
+        est, engine_digests = replay(trace, algorithm, params, claims, planned, message_digest, wanted)
     bad, gap = differing(claims, est)
     by_tick = {}
     for (k, r), (senders, digests) in claims.digests.items():
@@ -337,6 +351,9 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
           "restarts": len(claims.restarts)}
     ev["missing_agent_ticks"] = int(missing.sum())
     ev["missing_fraction"] = float(missing.sum()) / (K_all * N) if K_all * N else 0.0
+    if ended is not None:
+        ev["replay_ended"] = ended
+        ev["unverified"] += ended["reported_after"]
 
     if first is not None:
         k, j, forged = first
@@ -357,14 +374,17 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
 
     shortfall = _shortfall(claims, planned, nominal, name)
     ev.update(shortfall)
-    if not complete:
+    after = (f"; the engine's replay itself diverged at tick {ended['tick']} ({ended['reason']}), so "
+             f"{ended['reported_after']} agent-ticks reported from it on are not verified" if ended else "")
+    if not complete or (ended and ended["reported_after"]):
         why = Counter()
         if whole.why is not None:
             why.update(str(w) or "not run" for w in whole.why[missing])
         ev["missing_why"] = dict(sorted(why.items()))
         return RunStatus(INCOMPLETE_STATUS, f"{ev['missing_agent_ticks']} of {K_all * N} agent-ticks not reported "
                          f"({100 * ev['missing_fraction']:.1f} %)"
-                         + (f": {', '.join(f'{w} {n}' for w, n in ev['missing_why'].items())}" if why else ""), ev)
+                         + (f": {', '.join(f'{w} {n}' for w, n in ev['missing_why'].items())}" if why else "")
+                         + after, ev)
     if shortfall["degraded"]["agent_ticks"]:
         dg = shortfall["degraded"]
         reasons = ", ".join(f"{w} {n}" for w, n in dg["why"].items())

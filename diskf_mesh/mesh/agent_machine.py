@@ -52,10 +52,17 @@ An agent that finds itself out of the run (the world counts it out, a tick
 never came, or it was frozen past zenoh's lease: ``Woke`` then the world's
 token going) drops its estimator and rejoins the same way (``_resync``).
 
+An estimator that diverges (its covariance no longer positive definite,
+or a fused estimate the world would refuse: ``wire.report_problem``) ends
+the agent at that tick with one line naming the tick and why: nothing it
+could send would be taken, and its token going lets the world close the
+tick at once instead of waiting out ``--tick-timeout`` every tick.
+
 Exit (``Finish``): 0 only when the world says stop with "done" at the run's
 last tick; 2 when another process holds this agent's id; 1 otherwise (the
 world stopped the run early, it has been gone or silent for
-``world_timeout`` seconds, a mismatch of the run's settings, an interrupt).
+``world_timeout`` seconds, a mismatch of the run's settings, an interrupt,
+the estimator diverged).
 
 May import: core, estimators, data, engine (the mesh layer).
 """
@@ -268,6 +275,8 @@ class AgentMachine:
                 if k not in self.ticks or k not in self.meas:
                     break
                 self._open(k, now)
+                if self.finish is not None:  # its estimator diverged
+                    break
             if not (self.linked[k] <= self.receiver.accounted(k) or self.stopped is not None
                     or now >= self.deadline or any(j > k for j in self.ticks)):
                 break
@@ -410,8 +419,12 @@ class AgentMachine:
         mm = self.meas.pop(k)
         self.receiver.advance(k)
         prof.begin()
-        self.own = self.est.local(k, mm.has, mm.y)
-        prof.end("local")
+        try:
+            self.own = self.est.local(k, mm.has, mm.y)
+        except np.linalg.LinAlgError as e:
+            return self._diverged(k, f"its local step failed ({e})")
+        finally:
+            prof.end("local")
         prof.begin()
         payload = wire.encode(self.keys.run_id, self.id, k, self.own, self.exchanged)
         self.own_digest = wire.digest(payload)  # the report says what was sent, not the message itself
@@ -464,10 +477,16 @@ class AgentMachine:
         except np.linalg.LinAlgError:  # well-formed messages that still break fusion: keep our own estimate
             self.counters.reject("fusion", len(fused))
             self.log.once("fusion", f"tick {k}: fusion failed; fused this agent's own message alone")
-            out = self.est.fuse(k, self.own, {})
+            try:
+                out = self.est.fuse(k, self.own, {})
+            except np.linalg.LinAlgError as e:
+                return self._diverged(k, f"its fusion failed even alone ({e})")
             failed = True
         finally:
             prof.end("fuse")
+        problem = wire.report_problem(out.x[0, 0], out.P[0, 0], out.d[0, 0])
+        if problem is not None:
+            return self._diverged(k, f"its fused estimate would be refused ({problem[0]}: {problem[1]})")
         counters = self.receiver.snapshot(cap=wire.count_bound(self.constants[0]))
         fused_ids, not_fused = self.verdicts.of_tick(k, self.linked[k], heard, rejected, fused, failed)
         prof.begin()
@@ -502,6 +521,10 @@ class AgentMachine:
         else:
             self._finish("stopped", FAILED, f"the world stopped the run at tick {st.tick}"
                          + (f" of {self.K}" if self.K else "") + f": {st.why}")
+
+    def _diverged(self, k: int, why: str) -> None:
+        """The estimator diverged at tick ``k``: the end, nothing published."""
+        self._finish("diverged", FAILED, f"the estimator ({self.algorithm}) diverged at tick {k}: {why}")
 
     def _finish(self, status: str, code: int, reason: str = "") -> None:
         self.finish = Finish(status, code, reason)

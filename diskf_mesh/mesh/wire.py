@@ -703,6 +703,24 @@ def _estimate(doc: dict, n: int, m: int, max_abs: float, max_cond: float) -> tup
     return a[:n], P, a[n + n * n:]
 
 
+def report_problem(x, P, d, max_abs: float = MAX_ABS, max_cond: float = MAX_COND):
+    """None if a report (or a starting estimate) of ``x``, ``P``, ``d``
+    passes ``_estimate``'s checks (finite, P positive definite,
+    ``estimate_problem``), else (reason, detail): what its receiver would
+    refuse it for. An agent asks before it reports; on Python floats, as the
+    decoder reads a small estimate."""
+    P = np.asarray(P)
+    n = P.shape[-1]
+    values = tuple(np.ravel(x).tolist() + P.ravel().tolist() + np.ravel(d).tolist())
+    if not math.isfinite(sum(values)) and not all(map(math.isfinite, values)):
+        return "non-finite", "the estimate holds NaN or infinity"
+    try:
+        _spd(values, np.array(values) if n > 4 else None, ((n, n),))
+    except Rejected as e:
+        return e.reason, e.detail
+    return estimate_problem(None, P, max_abs, max_cond, values)
+
+
 def _estimate_head(doc: dict, sender, n, m) -> tuple:
     """(sender, n, m, d_valid) of an open "msg" or "report", checked."""
     s = _check_sender(doc, sender)
