@@ -285,9 +285,7 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
         planned = None if planned is None else planned[:K]
     missing = ~whole.reported
     if K == 0:
-        return RunStatus(INCOMPLETE_STATUS, f"no report came: {K_all * N} agent-ticks missing",
-                         {"agent_ticks": K_all * N, "reported": 0, "ticks": K_all, "ticks_replayed": 0,
-                          "missing_agent_ticks": K_all * N, "missing_fraction": 1.0 if K_all * N else 0.0})
+        return _nothing_replayed(whole, f"no report came: {K_all * N} agent-ticks missing")
     nominal = nominal_links(trace, K, claims.live)
     planned = nominal if planned is None else np.asarray(planned, dtype=bool)
     wanted = None
@@ -301,10 +299,8 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
                  "reported_after": int(claims.reported[e.tick - 1:].sum())}
         K = e.tick - 1
         if K == 0:
-            return RunStatus(INCOMPLETE_STATUS, f"the engine's replay diverged at tick 1 ({e}): nothing verified",
-                             {"agent_ticks": K_all * N, "reported": int(whole.reported.sum()), "ticks": K_all,
-                              "ticks_replayed": 0, "missing_agent_ticks": int(missing.sum()),
-                              "missing_fraction": float(missing.sum()) / (K_all * N), "replay_ended": ended})
+            return _nothing_replayed(whole, f"the engine's replay diverged at tick 1 ({e}): nothing verified",
+                                     replay_ended=ended)
         claims, planned, nominal = first_claims(claims, K), planned[:K], nominal[:K]
         wanted = None if wanted is None else {(k, s) for k, s in wanted if k <= K}
         est, engine_digests = replay(trace, algorithm, params, claims, planned, message_digest, wanted)
@@ -409,6 +405,16 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
                          "faults); every estimate equals the engine's replay", ev)
     return RunStatus(EXACT_STATUS, f"all {K * N} agent-ticks reported, fused every nominal link, and equal the "
                      "engine's replay bit for bit", ev)
+
+
+def _nothing_replayed(claims: RunClaims, reason: str, **evidence) -> RunStatus:
+    """``incomplete``, with not one tick replayed."""
+    K, N = claims.reported.shape
+    missing = int((~claims.reported).sum())
+    return RunStatus(INCOMPLETE_STATUS, reason, {"agent_ticks": K * N, "reported": K * N - missing, "ticks": K,
+                                                 "ticks_replayed": 0, "missing_agent_ticks": missing,
+                                                 "missing_fraction": missing / (K * N) if K * N else 0.0,
+                                                 **evidence})
 
 
 def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name) -> dict:

@@ -586,18 +586,23 @@ def _values(doc: dict, key: str, count: int):
         raise Rejected("shape", f"field {key!r} holds {len(blob)} bytes, expected {8 * count}")
     if count <= _SMALL:  # the usual message: Python floats are faster than numpy calls on a few numbers
         values = _struct(count).unpack(blob)
-        # NaN and infinity make the sum non-finite (so may huge finite values: then look at each)
-        if not math.isfinite(sum(values)) and not all(map(math.isfinite, values)):
+        if not _finite(values):
             raise Rejected("non-finite", f"field {key!r}")
         return values
     a = np.frombuffer(blob, dtype=DTYPE).astype(float)
-    # likewise: NaN and infinity make a . a non-finite (so may huge finite values: then look at each)
+    # as ``_finite``: NaN and infinity make a . a non-finite (so may huge finite values: then look at each)
     if not math.isfinite(a.dot(a)) and not np.isfinite(a).all():
         raise Rejected("non-finite", f"field {key!r}")
     return a
 
 
 _SMALL = 64
+
+
+def _finite(values: tuple) -> bool:
+    """Every Python float of ``values`` is finite: NaN and infinity make the
+    sum non-finite (so may huge finite values: then look at each)."""
+    return math.isfinite(sum(values)) or all(map(math.isfinite, values))
 
 
 @functools.lru_cache(maxsize=None)
@@ -695,12 +700,20 @@ def _estimate(doc: dict, n: int, m: int, max_abs: float, max_cond: float) -> tup
     finite, P positive definite (``_spd``), then ``estimate_problem``."""
     values = _values(doc, "a", n + n * n + m)
     a = np.array(values, dtype=float) if type(values) is tuple else values
-    _spd(values, a, ((n, n),))
     P = a[n:n + n * n].reshape(n, n)
+    _check_estimate(values, a, P, max_abs, max_cond)
+    return a[:n], P, a[n + n * n:]
+
+
+def _check_estimate(values, a, P: np.ndarray, max_abs: float, max_cond: float) -> None:
+    """An estimate's checks past finiteness (``Rejected`` if one fails): P
+    positive definite (``_spd``), then ``estimate_problem``. ``values``: its
+    floats (x, P, d) as read, ``a`` the same as an array (None is enough
+    when ``values`` is a tuple and P at most 4 x 4)."""
+    _spd(values, a, ((P.shape[-1], P.shape[-1]),))
     problem = estimate_problem(a, P, max_abs, max_cond, values)
     if problem is not None:
         raise Rejected(*problem)
-    return a[:n], P, a[n + n * n:]
 
 
 def report_problem(x, P, d, max_abs: float = MAX_ABS, max_cond: float = MAX_COND):
@@ -710,15 +723,14 @@ def report_problem(x, P, d, max_abs: float = MAX_ABS, max_cond: float = MAX_COND
     refuse it for. An agent asks before it reports; on Python floats, as the
     decoder reads a small estimate."""
     P = np.asarray(P)
-    n = P.shape[-1]
     values = tuple(np.ravel(x).tolist() + P.ravel().tolist() + np.ravel(d).tolist())
-    if not math.isfinite(sum(values)) and not all(map(math.isfinite, values)):
+    if not _finite(values):
         return "non-finite", "the estimate holds NaN or infinity"
     try:
-        _spd(values, np.array(values) if n > 4 else None, ((n, n),))
+        _check_estimate(values, np.array(values) if P.shape[-1] > 4 else None, P, max_abs, max_cond)
     except Rejected as e:
         return e.reason, e.detail
-    return estimate_problem(None, P, max_abs, max_cond, values)
+    return None
 
 
 def _estimate_head(doc: dict, sender, n, m) -> tuple:
