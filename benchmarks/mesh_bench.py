@@ -34,7 +34,9 @@ With ``--profile`` every process measures where its ticks go
 run with the median rate: the machine is shared and noisy, so compare
 figures of one invocation, not across invocations. ``--baseline DIR`` runs
 the same from another checkout (e.g. ``git archive REV | tar -x -C DIR``)
-right after each run of this one and prints both rates and their ratio.
+back to back with each run of this one, the two taking turns at going
+first, and prints both rates, their ratio and the ratio by which went
+first.
 """
 from __future__ import annotations
 
@@ -165,16 +167,20 @@ def main(argv=None) -> int:
     runs = {n: [] for n in counts}
     base_runs = {n: [] for n in counts}
     with tempfile.TemporaryDirectory(prefix="mesh-bench-") as tmp:
-        for _ in range(max(args.repeat, 1)):
+        for rep in range(max(args.repeat, 1)):
             for n in counts:
-                row = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), args.profile)
-                row["message_bytes"] = size
-                runs[n].append(row)
-                print(json.dumps({k: v for k, v in row.items() if k != "profile"}), file=sys.stderr, flush=True)
-                if args.baseline:
-                    base = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), tree=args.baseline)
-                    base_runs[n].append(base)
-                    print("baseline " + json.dumps(base), file=sys.stderr, flush=True)
+                # the two trees take turns at going first (ABBA): neither always runs on the other's heels
+                for which in (("this", "baseline") if rep % 2 == 0 else ("baseline", "this")):
+                    if which == "this":
+                        row = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), args.profile)
+                        row["message_bytes"] = size
+                        runs[n].append(row)
+                        print(json.dumps({k: v for k, v in row.items() if k != "profile"}), file=sys.stderr,
+                              flush=True)
+                    elif args.baseline:
+                        base = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), tree=args.baseline)
+                        base_runs[n].append(base)
+                        print("baseline " + json.dumps(base), file=sys.stderr, flush=True)
     rows = [{**median_run(runs[n]), "n": n} for n in counts]
     print(f"\n{args.algorithm} on {args.scenario}, {args.ticks} ticks, one process per agent, zenoh on loopback"
           + (f", median of {args.repeat} runs" if args.repeat > 1 else "") + "\n")
@@ -189,23 +195,34 @@ def main(argv=None) -> int:
               f"| {r['message_bytes']} | {r['fused_per_tick']:.1f} | {r['heard_per_tick']:.1f} "
               f"| {'yes' if r['complete'] else 'no'} |")
     if args.baseline:
-        print(f"\nSide by side with {args.baseline} (run right after each run of this tree"
+        print(f"\nSide by side with {args.baseline} (each pair back to back, the trees taking turns at going first"
               + ("; only this tree runs with --profile, so its rate pays the profiler's cost and the ratio "
                  "is low: compare rates without --profile" if args.profile else "") + ")\n")
         print("| agents | baseline ticks/s | ticks/s | ratio of medians | ratio per pair: median (range) "
               "| baseline CPU ms/tick | CPU ms/tick |")
         print("|---:|---:|---:|---:|---:|---:|---:|")
+        order_notes = []
         for n, r in zip(counts, rows):
             b = median_run(base_runs[n])
             if "error" in r or "error" in b:
                 print(f"| {r['agents']} | {b.get('error', '')} | {r.get('error', '')} | | | | |")
                 continue
-            pairs = sorted(x["ticks_per_s"] / y["ticks_per_s"] for x, y in zip(runs[n], base_runs[n])
-                           if "error" not in x and "error" not in y)
+            ratios = [x["ticks_per_s"] / y["ticks_per_s"] if "error" not in x and "error" not in y else None
+                      for x, y in zip(runs[n], base_runs[n])]
+            pairs = sorted(r for r in ratios if r is not None)
+            for first, half in (("this tree", ratios[0::2]), ("the baseline", ratios[1::2])):
+                half = [r for r in half if r is not None]
+                if half:
+                    order_notes.append(f"{r['agents']} agents, {first} first: median ratio "
+                                       f"{statistics.median(half):.2f} over {len(half)} pairs")
             print(f"| {r['agents']} | {b['ticks_per_s']:.0f}{spread(base_runs[n])} | {r['ticks_per_s']:.0f}"
                   f"{spread(runs[n])} | {r['ticks_per_s'] / b['ticks_per_s']:.2f} "
                   f"| {statistics.median(pairs):.2f} ({pairs[0]:.2f}–{pairs[-1]:.2f}) "
                   f"| {b['cpu_ms_per_tick']:.1f} | {r['cpu_ms_per_tick']:.1f} |")
+        if order_notes:
+            print()
+            for note in order_notes:
+                print(f"- {note}")
     profiled = [r for r in rows if "profile" in r]
     if profiled:
         print("\nOnce ticking (start-up excluded): CPU per tick of all processes, and the rate two cores could "
