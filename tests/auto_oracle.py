@@ -52,17 +52,22 @@ def run_auto(trace, options):
             A = model.A_at(k)
             pred = [(A @ a["x"], A @ a["P"] @ A.T + Q) for a in agents]
             sent = [(a["d"].copy(), a["S"].copy(), a["held"]) for a in agents]
+            sent_mu = [a["mu"].copy() for a in agents]
             new = []
             for i in range(N):
                 a = agents[i]
                 nb = list(np.flatnonzero(links[k - 1, i]))
                 xc, Pc = fast_ci([pred[j][0] for j in nb], [pred[j][1] for j in nb])
                 Mt = np.linalg.cholesky(Pc) @ np.linalg.inv(np.linalg.cholesky(pred[i][1]))
-                c = np.array([sum(Pi[s, j] * a["mu"][s] for s in range(M)) for j in range(M)])
+                # the neighbourhood's model probabilities: normalised geometric mean of the senders' (own included)
+                logs = np.mean([np.log(np.maximum(sent_mu[s], FLOOR)) for s in nb], axis=0)
+                mu0 = np.exp(logs - logs.max())
+                mu0 = mu0 / mu0.sum()
+                c = np.array([sum(Pi[s, j] * mu0[s] for s in range(M)) for j in range(M)])
                 meas = [j for j in nb if trace.has[b, k - 1, j]]
                 zs, Zs, ll, relayed = [], [], np.zeros(M), False
                 for j, (rho, q) in enumerate(models):
-                    wts = [Pi[s, j] * a["mu"][s] / c[j] for s in range(M)]
+                    wts = [Pi[s, j] * mu0[s] / c[j] for s in range(M)]
                     zm = sum(w * a["z"][s] for w, s in zip(wts, range(M)))
                     Zm = sum(w * (a["Z"][s] + np.outer(a["z"][s] - zm, a["z"][s] - zm)) for w, s in zip(wts, range(M)))
                     Tv = scipy.linalg.block_diag(A, rho * np.eye(m))

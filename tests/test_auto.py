@@ -138,3 +138,25 @@ def test_engine_refuses_before_the_run():
     with pytest.raises(InputError) as e:
         engine.run(tr, "diskf-r", replace(scn.params, robust=RobustOptions(unbiased=True)))
     assert e.value.field == "estimator.robust.unbiased"
+
+
+def test_model_evidence_reaches_an_agent_whose_neighbourhood_never_measures():
+    """Scenario 1 in a ring of four, the step, only agent 1 measures: agent
+    3 (not linked to agent 1, nor is anyone it hears measuring) weighs the
+    input models as agent 1 does, through its neighbours' pooled
+    probabilities; without them its weights would stay where they began
+    (1/8 each: no measurement in its neighbourhood, no evidence)."""
+    from diskf_mesh import estimators as algorithms
+    scn = load_scenario("quadrants").with_overrides(topology="ring", steps=150)
+    tr = simulate(scn, [0])
+    assert not tr.links[0, :, 0, 2].any()  # agent 3 (index 2) never hears agent 1 (index 0)
+    tr.has[0, :, 1:] = False
+    est = algorithms.get("diskf-auto")(tr.model, tr.sensors, scn.params)
+    state = est.init((1, 4))
+    for k in range(1, 151):
+        state, msg = est.local(state, k, tr.y[:, k - 1], tr.has[:, k - 1])
+        state, _ = engine.DenseLinks(tr.links[:, k - 1], 1).fuse(est, state, msg, None)
+    mu = state.mu[0]
+    walks = [i for i, name in enumerate(est.bank) if name.startswith("walk")]
+    assert mu[0, walks].sum() > 0.95  # the step persists: the measuring agent's evidence
+    assert np.argmax(mu[2]) == np.argmax(mu[0]) and mu[2, walks].sum() > 0.95

@@ -119,3 +119,18 @@ def test_default_bank_follows_the_scales():
     assert set(rho[1:4]) == {1.0}
     names, _, _ = im.default_bank(0.1, 2.0, none=False, zero_mean=False)
     assert names == ("walk lo", "walk mid", "walk hi")
+
+
+def test_pool_probabilities_hand_worked():
+    # receiver 0 fuses senders 0 and 1, receiver 1 only itself. Sender 0 says (0.8, 0.2), sender 1 (0.2, 0.8):
+    # the geometric mean is (0.4, 0.4), normalised (0.5, 0.5); alone, receiver 1 keeps (0.2, 0.8)
+    adj = np.array([[1.0, 1.0], [0.0, 1.0]])
+    w = np.array([[0.8, 0.2], [0.2, 0.8]])
+    np.testing.assert_allclose(im.pool_probabilities(adj, w, 1e-6), [[0.5, 0.5], [0.2, 0.8]])
+    # (0.9, 0.1) with (0.5, 0.5): sqrt(0.45) : sqrt(0.05) = 3 : 1
+    np.testing.assert_allclose(im.pool_probabilities(np.ones((1, 2)), np.array([[0.9, 0.1], [0.5, 0.5]]), 1e-6),
+                               [[0.75, 0.25]])
+    # the floor bounds what one sender's zero takes from a model: log max(0, 0.01) = log 0.01
+    # against the other's log 0.5, mean weights 0.01^(1/2) 0.5^(1/2) : 1^(1/2) 0.5^(1/2) = 0.1 : 1
+    pooled = im.pool_probabilities(np.ones((1, 2)), np.array([[0.0, 1.0], [0.5, 0.5]]), 0.01)
+    np.testing.assert_allclose(pooled, [[0.1 / 1.1, 1.0 / 1.1]])

@@ -242,3 +242,31 @@ def default_bank(q_process: float, q_sensor: float, none: bool = True, walk: boo
         bank += [("reverting mid", REVERT, mid), ("reverting hi", REVERT, hi)]
     names, rho, q = zip(*bank)
     return names, np.array(rho), np.array(q)
+
+
+# every model ``default_bank`` may hold, in its order: the slots of diskf-auto's model probabilities on the wire
+BANK = ("none", "walk lo", "walk mid", "walk hi", "zero-mean lo", "zero-mean hi", "reverting mid", "reverting hi")
+
+
+def pool_probabilities(adj, w, floor: float):
+    """The neighbourhood's model probabilities: the normalised geometric
+    mean of the fused senders' (the receiver's own included),
+
+        mu_j  proportional to  exp( sum_s a_s log max(w_sj, floor) / sum_s a_s ),
+
+    logarithmic opinion pooling (Genest and Zidek 1986), so a receiver
+    whose own neighbourhood has not measured lately still weighs the input
+    models by its neighbours' evidence. ``floor`` bounds what one sender's
+    near-zero probability can take from a model. adj: (..., R, S) 0/1;
+    w: (..., S, M). Returns (..., R, M). Sums run over the senders in order
+    (the same bits for any batch shape)."""
+    logw = np.log(np.maximum(w, floor))
+    acc = adj[..., 0, None] * logw[..., None, 0, :]
+    for s in range(1, adj.shape[-1]):
+        acc = acc + adj[..., s, None] * logw[..., None, s, :]
+    deg = adj[..., 0]
+    for s in range(1, adj.shape[-1]):
+        deg = deg + adj[..., s]
+    lm = acc / deg[..., None]
+    mu = np.exp(lm - lm.max(axis=-1, keepdims=True))
+    return mu / _sum_last(mu)[..., None]

@@ -11,6 +11,8 @@ Fields (tick k):
     d, S            the sender's input estimate of d_{k-1} entering fusion and
                     its covariance (Algorithm 1 labels them d_bar, S_bar)
     d_valid         whether d, S are an estimate at all (window, rank)
+    w               the sender's probabilities of its input models (``diskf-auto``);
+                    (..., 0) for an estimator with one input model
 """
 from __future__ import annotations
 
@@ -29,8 +31,13 @@ class Message:
     d: np.ndarray
     S: np.ndarray
     d_valid: np.ndarray
+    w: np.ndarray | None = None  # None: no model probabilities, an empty (..., 0) array
 
-    ARRAY_FIELDS = ("x_pred", "P_pred", "x_upd", "P_upd", "d", "S")
+    ARRAY_FIELDS = ("x_pred", "P_pred", "x_upd", "P_upd", "d", "S", "w")
+
+    def __post_init__(self):
+        if self.w is None:
+            object.__setattr__(self, "w", np.zeros(np.shape(self.d_valid) + (0,)))
 
     def take(self, index) -> "Message":
         """Select along the leading axes, e.g. one agent out of a batch."""

@@ -97,7 +97,7 @@ class GatheredLinks:
 
     def gather(self, a: np.ndarray) -> np.ndarray:
         """(B, N, ...) per sender -> (B, N, D, ...) per receiver and slot."""
-        rows = a.reshape((-1,) + a.shape[2:])
+        rows = a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:])
         return np.take(rows, self.flat, axis=0).reshape(self.shape + a.shape[2:])
 
     def fuse(self, est, state, msg: Message, draws):

@@ -135,15 +135,18 @@ class Exchanged:
 
     name:      the ``Message`` field
     shape:     "n", "n n", "m" or "m m": in the state (n) and input (m)
-               dimensions
+               dimensions; or a count ("8"): a vector of that many values
     update_of: a covariance that is the sender's information update of the
                named one (P~ of P^): the guard checks it is at least as
                certain (``Estimator.information_check``)
+    weights:   a vector of probabilities: the guard checks every value is
+               in [0, 1] and that they sum to 1
     """
 
     name: str
     shape: str
     update_of: str | None = None
+    weights: bool = False
 
     @property
     def covariance(self) -> bool:
@@ -152,7 +155,7 @@ class Exchanged:
 
     def dims(self, n: int, m: int) -> tuple:
         """The array's shape for state dimension ``n`` and input dimension ``m``."""
-        return tuple({"n": n, "m": m}[d] for d in self.shape.split())
+        return tuple({"n": n, "m": m}[d] if d in ("n", "m") else int(d) for d in self.shape.split())
 
 
 # Algorithm 1, step 2: what every built-in estimator exchanges (``Message``'s arrays)
@@ -174,9 +177,12 @@ def check_exchanged(cls) -> None:
     bad = [n for n in names if n not in Message.ARRAY_FIELDS or names.count(n) > 1]
     if bad:
         raise ValueError(f"{cls.name}: exchanged {bad[0]!r}: each must be one of {', '.join(Message.ARRAY_FIELDS)}, once")
-    if any(f.shape not in ("n", "n n", "m", "m m") for f in ex):
-        raise ValueError(f"{cls.name}: an exchanged shape is one of 'n', 'n n', 'm', 'm m'")
-    axes = {d for f in ex for d in f.shape.split()}
+    if any(f.shape not in ("n", "n n", "m", "m m") and not (f.shape.isdigit() and 1 <= int(f.shape) <= 64)
+           for f in ex):
+        raise ValueError(f"{cls.name}: an exchanged shape is one of 'n', 'n n', 'm', 'm m' or a count 1 .. 64")
+    if any(f.weights and not f.shape.isdigit() for f in ex):
+        raise ValueError(f"{cls.name}: exchanged weights are a vector of a given count")
+    axes = {d for f in ex for d in f.shape.split() if not d.isdigit()}
     if axes != {"n", "m"}:
         raise ValueError(f"{cls.name}: the exchanged arrays must have an n axis and an m axis among them")
     covs = {f.name: f.shape for f in ex if f.covariance}

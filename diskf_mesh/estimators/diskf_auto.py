@@ -12,10 +12,15 @@ model filter does (Blom and Bar-Shalom 1988):
 
 1. local, as ``diskf-r``: the prediction x^ = A x_bar and the local
    update of the agent's *combined* estimate; the message is diskf-r's
-   (x^, P^, x~, P~, the combined fused input d, S). Nothing else travels:
-   no model weights, no H, R or y; one message per tick.
-2. fuse, mixing: each model's prior is the mixture of the last posteriors
-   under the models' Markov chain (``input_models.model_weights``, ``mix``).
+   (x^, P^, x~, P~, the combined fused input d, S) and the agent's model
+   probabilities w (eight floats, one per model of ``input_models.BANK``,
+   0 for a model not in the bank). No H, R or y; one message per tick.
+2. fuse, mixing: the models' prior probabilities are the fused senders'
+   (the agent's own included) pooled by their normalised geometric mean
+   (``input_models.pool_probabilities``), so an agent whose neighbourhood
+   has not measured lately weighs the models by its neighbours' evidence;
+   each model's prior is the mixture of the agent's last posteriors under
+   the models' Markov chain (``input_models.model_weights``, ``mix``).
 3. fuse, per model: the input model's prediction (``input_predict``); the
    neighbourhood's CI prior (as ``diskf-r``) reached by the affine map that
    takes the agent's published prediction to it (``affine_prior``: the
@@ -31,12 +36,13 @@ model filter does (Blom and Bar-Shalom 1988):
 
 With one model in the bank it is ``diskf-r`` with that input model.
 Evidence accumulates over ticks in the model probabilities (the chain's
-``switch`` probability keeps them from locking), so an agent that measures
-rarely still learns which model fits from its neighbourhood's measurements.
+``switch`` probability keeps them from locking) and spreads through the
+pooling, so an agent that measures rarely still learns which model fits
+from its neighbours' measurements and, through theirs, from further away.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -45,7 +51,7 @@ from diskf_mesh.core import input_models as im
 from diskf_mesh.core.linalg import T, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
-from diskf_mesh.estimators.base import Estimator, Setting, State
+from diskf_mesh.estimators.base import EXCHANGED, Estimator, Exchanged, Setting, State
 
 AUTO = Setting("auto", AutoOptions(), "the input models diskf-auto weighs and its chain (model.AutoOptions), "
                "the [estimator.auto] table")
@@ -68,6 +74,7 @@ class DISKFAuto(Estimator):
     color = "crimson"
     settings = (AUTO,)
     extends = "diskf"
+    exchanged = EXCHANGED + (Exchanged("w", str(len(im.BANK)), weights=True),)
 
     def __init__(self, model, sensors, params=None):
         super().__init__(model, sensors, params)
@@ -76,6 +83,7 @@ class DISKFAuto(Estimator):
         q_process, q_sensor = im.input_scales(model.Q, model.G, run.H, run.R, run.p)
         self.bank, self.rho, self.q = im.default_bank(q_process, q_sensor, o.none, o.walk, o.zero_mean)
         self.Pi = im.transition_matrix(len(self.bank), o.switch)
+        self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
         self.prior = 100.0 * float(self.q.max()) if self.q.max() > 0 else 1.0
 
     def init(self, batch: tuple) -> AutoState:
@@ -91,7 +99,9 @@ class DISKFAuto(Estimator):
         loc = self.local_kf(state, k, y, has)
         st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
                        Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, tick=k)
-        return st, self.message(loc, state.d_hold, state.S_hold, state.held)
+        w = np.zeros(state.mu.shape[:-1] + (len(im.BANK),))
+        w[..., self.slots] = state.mu
+        return st, replace(self.message(loc, state.d_hold, state.S_hold, state.held), w=w)
 
     def fuse(self, state: AutoState, own: Message, senders: Message, nb: Neighbourhood):
         n, G = self.model.n, self.model.G
@@ -102,7 +112,7 @@ class DISKFAuto(Estimator):
         ones = np.ones(senders.x_pred.shape[:-1], dtype=bool)
         x_c, P_c, _ = eq.input_fusion(nb.adj, senders.x_pred, senders.P_pred, ones)  # the CI prior
         # 2. mixing
-        c, w = im.model_weights(state.mu, self.Pi)
+        c, w = im.model_weights(im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR), self.Pi)
         z0, Z0 = im.mix(w, state.z, state.Z)
         x0, P0, d0, S0, C0 = im.split(z0, Z0, n)
         # 3. per model: predict, the CI prior, the relayed inputs, the input into the state

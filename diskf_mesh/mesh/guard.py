@@ -28,6 +28,9 @@ reason, when
     magnitude       a value beyond ``max_abs`` (finite, but products of it
                     overflow in fusion)
     ill-conditioned a covariance whose condition number exceeds ``max_cond``
+    weights         an array declared probabilities (``Exchanged.weights``:
+                    ``diskf-auto``'s input-model probabilities) holds a value
+                    outside [0, 1] or does not sum to 1 within ``WEIGHTS_ATOL``
     information     a covariance declared an update of another (P_upd of
                     P_pred) is not at least as certain: the update would
                     subtract information, and fusing it could leave the
@@ -77,9 +80,10 @@ from diskf_mesh.mesh.counters import Counters
 from diskf_mesh.mesh.profile import NO_PHASES, Phases
 
 REASONS = wire.REASONS + tuple(r for r in ("key", "unknown-sender", "tick-past", "tick-future", "magnitude",
-                                           "ill-conditioned", "information", "error", "fusion", "constants")
+                                           "ill-conditioned", "weights", "information", "error", "fusion", "constants")
                                 if r not in wire.REASONS)
 LOGGER = logging.getLogger("diskf_mesh.mesh.guard")
+WEIGHTS_ATOL = 1e-6  # how far from 1 the sum of a message's probabilities may be (its sender normalised them)
 
 
 @dataclass(frozen=True)
@@ -203,6 +207,10 @@ def message_problem(wm: wire.WireMessage, c: GuardConfig):
     big = wire.largest_abs(values)
     if big > c.max_abs:
         return "magnitude", f"a value of {big:.3g} (limit {c.max_abs:.3g})"
+    for s in lay.weights:
+        w = values[s.start:s.stop]
+        if not (min(w) >= 0.0 and max(w) <= 1.0 and abs(sum(w) - 1.0) <= WEIGHTS_ATOL):
+            return "weights", f"{s.name} are not probabilities (sum {sum(w):.6g}, range {min(w):.3g} .. {max(w):.3g})"
     for s in lay.covariances:
         ev = small.eigen_range(_rows(values, s) if small_values else getattr(msg, s.name))
         if not ev[0] > 0 or ev[-1] > c.max_cond * ev[0]:

@@ -97,7 +97,7 @@ import hashlib
 import math
 import re
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import msgpack
 import numpy as np
@@ -181,6 +181,7 @@ class Slot:
     shape: tuple
     covariance: bool
     update_of: str | None
+    weights: bool = False  # probabilities (``Exchanged.weights``)
 
 
 @dataclass(frozen=True)
@@ -192,6 +193,7 @@ class Layout:
     spans: tuple      # (start, k) of every k x k covariance, in declared order
     covariances: tuple  # the covariances' slots, in declared order
     updates: tuple    # (slot, slot of the covariance it updates), for ``Exchanged.update_of``
+    weights: tuple    # the slots of probabilities (``Exchanged.weights``)
     absent: tuple     # ``Message``'s fields with the zeros (read-only) of every array not exchanged, else None
     views: tuple      # (index, start, stop, shape or None for a vector) of every slot
 
@@ -203,11 +205,12 @@ class Layout:
         for i, start, stop, shape in self.views:
             v = a[start:stop]
             parts[i] = v if shape is None else v.reshape(shape)
-        parts[-1] = np.array(d_valid)
+        parts[_D_VALID] = np.array(d_valid)
         return Message(*parts)
 
 
-_MESSAGE_FIELDS = Message.ARRAY_FIELDS + ("d_valid",)
+_MESSAGE_FIELDS = tuple(f.name for f in fields(Message))  # in ``Message``'s order
+_D_VALID = _MESSAGE_FIELDS.index("d_valid")
 
 
 @functools.lru_cache(maxsize=64)
@@ -220,7 +223,8 @@ def layout(exchanged: tuple, n: int, m: int) -> Layout:
             raise ValueError(f"exchanged field {f.name!r} is not an array of Message")
         shape = f.dims(n, m)
         size = math.prod(shape)
-        slots.append(Slot(f.name, Message.ARRAY_FIELDS.index(f.name), i, i + size, shape, f.covariance, f.update_of))
+        slots.append(Slot(f.name, _MESSAGE_FIELDS.index(f.name), i, i + size, shape, f.covariance, f.update_of,
+                          f.weights))
         i += size
     by_name = {s.name: s for s in slots}
     covs = tuple(s for s in slots if s.covariance)
@@ -229,9 +233,10 @@ def layout(exchanged: tuple, n: int, m: int) -> Layout:
         if f.name not in by_name:
             zeros = np.zeros(f.dims(n, m))
             zeros.flags.writeable = False
-            absent[Message.ARRAY_FIELDS.index(f.name)] = zeros
+            absent[_MESSAGE_FIELDS.index(f.name)] = zeros
     return Layout(tuple(slots), i, tuple((s.start, s.shape[-1]) for s in covs), covs,
-                  tuple((s, by_name[s.update_of]) for s in slots if s.update_of is not None), tuple(absent),
+                  tuple((s, by_name[s.update_of]) for s in slots if s.update_of is not None),
+                  tuple(s for s in slots if s.weights), tuple(absent),
                   tuple((s.index, s.start, s.stop, None if len(s.shape) == 1 else s.shape) for s in slots))
 
 
