@@ -6,6 +6,7 @@ reports are the engine's replay of what was fused.
     a paused agent           longer than the collect timeout, shorter than the lease
     a compromised process    holding only its own identity, it forges another agent's messages
     an extreme message       an insider's own, well-formed, far out
+    skewed probabilities     an insider's diskf-auto message whose model probabilities are not its own
     a forged report          an agent's report with an absurd estimate
     a rejoin                 a crashed agent restarts and starts from a neighbour's estimate
 """
@@ -171,3 +172,32 @@ def test_a_restarted_agent_starts_from_a_neighbours_estimate(quadrants):
     st = r.status
     assert st.status == "incomplete" and st.evidence["differing"] == 0, st.reason
     assert r.record.reported[-1].all()  # back to the end of the run
+
+
+def test_an_insiders_model_probabilities_are_caught_as_diverged(quadrants):
+    """diskf-auto: agent 3 sends, from tick 20 on, a well-formed message
+    whose model probabilities put all but the floor on "no input" (its
+    estimates its own). Its neighbours pool them, so their estimates move;
+    the engine recomputes agent 3's honest message, so the run says
+    diverged and names agent 3 at tick 20, never exact."""
+    scn, trace = quadrants
+    auto = estimators.get("diskf-auto").exchanged
+
+    def edit(e):
+        if isinstance(e, ev.Publish) and KEYS.parse(e.key) == ("msg", 3):
+            m = wire.decode(e.payload, run_id=RUN, sender=3, exchanged=auto)
+            if m.tick >= 20:
+                w = np.r_[1.0 - 7e-6, np.full(7, 1e-6)]
+                return dataclasses.replace(e, payload=wire.encode(RUN, 3, m.tick, dataclasses.replace(
+                    m.message, w=w), auto))
+        return e
+
+    honest = simulate_run(scn, trace, "diskf-auto", 0, run_id=RUN, plan=SimPlan(Link(delay=0.002)))
+    assert honest.status.status == "exact", honest.status.reason
+    r = simulate_run(scn, trace, "diskf-auto", 0, run_id=RUN,
+                     plan=SimPlan(Link(delay=0.002), wrap={agent_pid(3): lambda m: Tamper(m, edit)}))
+    st = r.status
+    assert st.status == "diverged", st.reason
+    assert st.evidence["diverged"]["tick"] == 20 and st.evidence["diverged"]["senders"] == [3]
+    moved = np.abs(r.record.x[20:] - honest.record.x[20:]).max()
+    assert moved > 0  # the pooled probabilities did change the neighbours' estimates
