@@ -103,3 +103,16 @@ def test_by_silence_splits_the_mae_by_ticks_since_measured():
     assert sum(weights) == since.size
     mixed = sum(w * v for w, v in zip(weights, out["diskf-auto"])) / since.size
     assert mixed == pytest.approx(row["mae_state"], rel=1e-9)
+
+
+def test_first_seed_runs_the_seeds_it_names():
+    """--first-seed 100 --seeds 2: the rows are run_case's on seeds 100 and 101 exactly, and the page says so."""
+    case = next(c for c in heldout.cases() if c.label == "S1 ring, white")
+    doc = heldout.run(seeds=2, steps=20, select="S1 ring, white", progress=False, first=100)
+    want = heldout.run_case(case, [100, 101], 20)
+    assert doc["first_seed"] == 100
+    assert doc["results"][0]["rows"]["diskf-auto"]["mae_state"] == want["diskf-auto"]["mae_state"]
+    assert doc["results"][0]["rows"]["diskf-auto"]["mae_state"] != heldout.run_case(case, [0, 1], 20)["diskf-auto"][
+        "mae_state"]
+    assert "Seeds 100..101" in heldout.markdown(doc)
+    assert heldout.main(["--seeds", "1", "--first-seed", "-1"]) == 2

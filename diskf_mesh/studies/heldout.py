@@ -36,6 +36,9 @@ across the ticks no one measures.
 choice between its models is what fails.
 
     python -m diskf_mesh.studies.heldout --seeds 20 --json heldout.json --markdown heldout.md
+
+``--first-seed S`` runs seeds S .. S + seeds - 1 instead of 0 .. seeds - 1:
+the same targets on seeds no default was chosen on.
 """
 from __future__ import annotations
 
@@ -333,37 +336,38 @@ def targets(results: list[dict], seeds: int) -> dict:
                 auto_nees_cases=nees_cases, diverged_runs=diverged, misses=misses)
 
 
-def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True, bank=False) -> dict:
+def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True, bank=False,
+        first: int = 0) -> dict:
     """The whole suite (or the cases whose label contains ``select``, or
-    any of a list of them); ``bank``: each result also holds ``run_bank``'s
-    ``bank``."""
+    any of a list of them) on seeds ``first`` .. ``first + seeds - 1``;
+    ``bank``: each result also holds ``run_bank``'s ``bank``."""
     sel = None if select is None else [select] if isinstance(select, str) else list(select)
     all_cases = [c for c in cases() if sel is None or any(s in c.label or s == c.group for s in sel)]
     results = []
     t0 = time.monotonic()
     for i, c in enumerate(all_cases, 1):
-        results.append(case_record(c, seeds, steps, names))
+        results.append(case_record(c, seeds, steps, names, first))
         rows = results[-1]["rows"]
         if bank:
-            results[-1]["bank"] = run_bank(c, range(seeds), steps)
+            results[-1]["bank"] = run_bank(c, range(first, first + seeds), steps)
         if progress:
             best = lowest(rows)
             auto = rows.get(AUTO, {}).get("mae_state", math.nan)
             print(f"[{i}/{len(all_cases)} {time.monotonic() - t0:6.0f} s] {c.label}: best {best:.3g}, "
                   f"{AUTO} {auto:.3g}", file=sys.stderr, flush=True)
-    return document(results, seeds, steps)
+    return document(results, seeds, steps, first)
 
 
-def case_record(case: Case, seeds: int, steps: int | None = None, names=None) -> dict:
+def case_record(case: Case, seeds: int, steps: int | None = None, names=None, first: int = 0) -> dict:
     """One case's result in the suite's document: {case, group, n, rows}
-    (``run_case`` on seeds 0..seeds-1)."""
+    (``run_case`` on seeds first .. first + seeds - 1)."""
     return dict(case=case.label, group=case.group, n=case.scenario.G.shape[0],
-                rows=run_case(case, range(seeds), steps, names))
+                rows=run_case(case, range(first, first + seeds), steps, names))
 
 
-def document(results: list[dict], seeds: int, steps: int | None = None) -> dict:
-    """The suite's document from its cases' records: {seeds, steps, results, targets}."""
-    return dict(seeds=seeds, steps=steps, results=results, targets=targets(results, seeds))
+def document(results: list[dict], seeds: int, steps: int | None = None, first: int = 0) -> dict:
+    """The suite's document from its cases' records: {seeds, first_seed, steps, results, targets}."""
+    return dict(seeds=seeds, first_seed=first, steps=steps, results=results, targets=targets(results, seeds))
 
 
 HEADER = (
@@ -385,7 +389,8 @@ def markdown(doc: dict, header: bool = True) -> str:
     t = doc["targets"]
     n = t["cases"]
     pct = lambda a, b: f"{a} of {b} ({100 * a / max(b, 1):.0f} %)"  # noqa: E731
-    lines = [f"Seeds 0..{doc['seeds'] - 1}, {doc['steps'] or 'the scenario’s'} ticks, {n} cases.", "",
+    first = doc.get("first_seed", 0)
+    lines = [f"Seeds {first}..{first + doc['seeds'] - 1}, {doc['steps'] or 'the scenario’s'} ticks, {n} cases.", "",
              "| target | reached |", "|---|---|",
              f"| DISKF family’s best within 1 % of the best baseline (≥ 95 %) | {pct(t['family_within_1pct'], n)} |",
              f"| `{AUTO}` within 10 % of the case’s best (≥ 90 %) | {pct(t['auto_within_10pct'], n)} |",
@@ -460,6 +465,8 @@ def choice_figure(path, seed: int = 0) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m diskf_mesh.studies.heldout", description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="the first seed (default 0): a check on seeds no default was chosen on, e.g. 100")
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--select", default=None, action="append",
                     help="only the cases whose label contains this (or a group name); may be repeated")
@@ -476,21 +483,26 @@ def main(argv=None) -> int:
     if a.seeds < 1 or (a.steps is not None and a.steps < 1):
         print("error: --seeds and --steps must be at least 1", file=sys.stderr)
         return 2
+    if a.first_seed < 0:
+        print("error: --first-seed must be at least 0", file=sys.stderr)
+        return 2
+    seeds = range(a.first_seed, a.first_seed + a.seeds)
     if a.by_silence is not None:
         found = [c for c in cases() if c.label == a.by_silence]
         if not found:
             print(f"error: --by-silence: no case {a.by_silence!r} (the labels are in docs/heldout.md)", file=sys.stderr)
             return 2
         heads = [f"{lo}" if lo == hi else f"{lo}-{hi}" if hi < math.inf else f"{lo}+" for lo, hi in SILENCES]
-        print(f"{a.by_silence}, seeds 0..{a.seeds - 1}: state MAE by ticks since the agent's own last measurement")
+        print(f"{a.by_silence}, seeds {seeds[0]}..{seeds[-1]}: state MAE by ticks since the agent's own last "
+              "measurement")
         print("| estimator | " + " | ".join(heads) + " |")
         print("|---|" + "---:|" * len(heads))
-        for name, v in by_silence(found[0], range(a.seeds), a.steps).items():
+        for name, v in by_silence(found[0], seeds, a.steps).items():
             print(f"| {name} | " + " | ".join(f"{x:.1f}" for x in v) + " |")
         return 0
     if a.figure:
         choice_figure(a.figure)
-    doc = run(a.seeds, a.steps, select=a.select, bank=a.bank)
+    doc = run(a.seeds, a.steps, select=a.select, bank=a.bank, first=a.first_seed)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(doc, f, indent=1, default=float)
