@@ -259,7 +259,9 @@ def pool_probabilities(adj, w, floor: float):
     models by its neighbours' evidence. ``floor`` bounds what one sender's
     near-zero probability can take from a model. adj: (..., R, S) 0/1;
     w: (..., S, M). Returns (..., R, M). Sums run over the senders in order
-    (the same bits for any batch shape)."""
+    (the same bits for any batch shape). Not ``linalg.nbr_sum``: over these
+    eight values per sender its sums measured different bits for an agent
+    alone than for the engine's batch (``tests/test_linalg_fast.py``)."""
     logw = np.log(np.maximum(w, floor))
     acc = adj[..., 0, None] * logw[..., None, 0, :]
     for s in range(1, adj.shape[-1]):
