@@ -261,6 +261,23 @@ def test_neighbour_sums_go_sender_by_sender_whatever_the_zeros(core):
                 np.testing.assert_array_equal(pair_sum(ww[None, :], xx[None])[0], want)
 
 
+def test_neighbour_sums_do_not_depend_on_the_senders_memory_layout():
+    """A value per sender taken out of a wider array by fancy indexing (as
+    diskf-auto takes its models out of a message's eight probabilities) is
+    not C-contiguous; einsum's loop order, and so its rounding, would follow
+    that layout. The engine's N senders (zeros included) and an agent's J
+    then give the same bits only because ``nbr_sum`` sums a contiguous copy."""
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        N, J = 9, int(rng.integers(2, 6))
+        x = np.log(rng.random((1, N, 8)))[..., rng.permutation(8)]  # strides of a fancy index
+        assert not x.flags.c_contiguous
+        adj = np.zeros((1, N, N))
+        sel = np.sort(rng.choice(N, J, replace=False))
+        adj[0, 0, sel] = 1.0
+        np.testing.assert_array_equal(nbr_sum(adj, x, 1)[0, 0], nbr_sum(np.ones((1, 1, J)), x[:, sel], 1)[0, 0])
+
+
 @pytest.mark.parametrize("algorithm", algorithms.NAMES)
 def test_an_agent_alone_computes_the_engine_bits(algorithm):
     """Every agent as a batch of one (``AgentEstimator``, what an agent process

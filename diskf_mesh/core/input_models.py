@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from diskf_mesh.core.linalg import T, inv_spd, mv, solve, sym
+from diskf_mesh.core.linalg import T, inv_spd, mv, nbr_sum, row_sum, solve, sym
 
 INPUT_MODELS = ("walk", "mean-reverting", "none")
 
@@ -258,17 +258,8 @@ def pool_probabilities(adj, w, floor: float):
     whose own neighbourhood has not measured lately still weighs the input
     models by its neighbours' evidence. ``floor`` bounds what one sender's
     near-zero probability can take from a model. adj: (..., R, S) 0/1;
-    w: (..., S, M). Returns (..., R, M). Sums run over the senders in order
-    (the same bits for any batch shape). Not ``linalg.nbr_sum``: over these
-    eight values per sender its sums measured different bits for an agent
-    alone than for the engine's batch (``tests/test_linalg_fast.py``)."""
-    logw = np.log(np.maximum(w, floor))
-    acc = adj[..., 0, None] * logw[..., None, 0, :]
-    for s in range(1, adj.shape[-1]):
-        acc = acc + adj[..., s, None] * logw[..., None, s, :]
-    deg = adj[..., 0]
-    for s in range(1, adj.shape[-1]):
-        deg = deg + adj[..., s]
-    lm = acc / deg[..., None]
+    w: (..., S, M). Returns (..., R, M). The sums over senders are
+    ``linalg.nbr_sum``'s (the same bits for any batch shape)."""
+    lm = nbr_sum(adj, np.log(np.maximum(w, floor)), 1) / row_sum(adj)[..., None]
     mu = np.exp(lm - lm.max(axis=-1, keepdims=True))
     return mu / _sum_last(mu)[..., None]

@@ -280,6 +280,7 @@ def nbr_sum(adj: np.ndarray, x: np.ndarray, core_ndim: int) -> np.ndarray:
     """
     if math.prod(x.shape[x.ndim - core_ndim:]) == 1:
         return nbr_sum(adj, _second_entry(x), core_ndim)[..., :1]
+    x = np.ascontiguousarray(x)  # einsum's loop order, and so the bits, follow the layout
     core = "ijkl"[:core_ndim]
     return np.einsum(f"...rs,...s{core}->...r{core}", adj, x, optimize=False, order=sum_order(x, core_ndim))
 
