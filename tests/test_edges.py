@@ -90,6 +90,12 @@ def test_a_typo_gets_one_line_with_a_suggestion(argv, words, capsys):
     assert err.startswith("error: ") and all(w in err for w in words), err
 
 
+def test_an_option_of_another_command_is_not_suggested_as_itself(capsys):
+    """``experiment --ticks``: ``--ticks`` is ``up``'s; ``experiment`` has ``--steps``."""
+    code, out, err = run_cli(["experiment", "--ticks", "5"], capsys)
+    assert code == 2 and err.strip() == "error: unknown option --ticks", err
+
+
 @pytest.mark.parametrize("argv", [["world", "--startup-timeout", "-5"], ["up", "--collect-timeout", "0"],
                                   ["agent", "--world-timeout", "nan"], ["host", "--startup-timeout", "inf"]])
 def test_a_timeout_must_be_a_positive_number(argv, capsys):

@@ -51,7 +51,8 @@ MESH_COMMANDS = {"up": "sim.launcher", "host": "sim.host", "router": "sim.router
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse's own usage errors: one line, status 2
         if message.startswith("unrecognized arguments: "):
-            message = _unknown(self, message.removeprefix("unrecognized arguments: ").split())
+            message = _unknown(self, message.removeprefix("unrecognized arguments: ").split(),
+                               getattr(self, "argv", ()))
         self.exit(2, f"error: {message}\n")
 
     def format_help(self) -> str:
@@ -77,15 +78,27 @@ class _Parser(argparse.ArgumentParser):
                 g.title, g.description = title, text
 
 
-def _unknown(parser: argparse.ArgumentParser, words: list) -> str:
+def _unknown(parser: argparse.ArgumentParser, words: list, argv=()) -> str:
     """'unknown option --versoin (did you mean --version?)' for the first
-    word that is an option, else argparse's own words."""
+    word that is an option, else argparse's own words. The options offered
+    are those of the command named in ``argv`` (all of them without one)."""
     for word in words:
         if word.startswith("-"):
             flag = word.split("=", 1)[0]
-            close = difflib.get_close_matches(flag, sorted(_long_options(parser)), n=1, cutoff=0.6)
+            options = _long_options(_command_parser(parser, argv))
+            close = difflib.get_close_matches(flag, sorted(options - {flag}), n=1, cutoff=0.6)
             return f"unknown option {flag}" + (f" (did you mean {close[0]}?)" if close else "")
     return "unrecognized arguments: " + " ".join(words)
+
+
+def _command_parser(parser: argparse.ArgumentParser, argv) -> argparse.ArgumentParser:
+    """The subcommand's parser of the first word of ``argv`` that names one, else ``parser``."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for word in argv:
+                if word in action.choices:
+                    return action.choices[word]
+    return parser
 
 
 def _long_options(parser: argparse.ArgumentParser) -> set:
@@ -156,7 +169,9 @@ def main(argv=None, modules=COMMAND_MODULES) -> int:
 def _main(argv, modules) -> int:
     if argv[:1] and argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version"):
         build_parser(()).error(f"unrecognized arguments: {argv[0]}")  # before 'required: command'
-    args = build_parser(modules).parse_args(argv)
+    parser = build_parser(modules)
+    parser.argv = list(argv)  # an unknown option's suggestion comes from the command's own options
+    args = parser.parse_args(argv)
     args.argv = list(argv)  # the command line, for the provenance of what it writes
     try:
         with warnings.catch_warnings():
