@@ -69,7 +69,10 @@ def run_auto(trace, options):
                 for j, (rho, q) in enumerate(models):
                     wts = [Pi[s, j] * mu0[s] / c[j] for s in range(M)]
                     zm = sum(w * a["z"][s] for w, s in zip(wts, range(M)))
-                    Zm = sum(w * (a["Z"][s] + np.outer(a["z"][s] - zm, a["z"][s] - zm)) for w, s in zip(wts, range(M)))
+                    within = sum(w * a["Z"][s] for w, s in zip(wts, range(M)))
+                    spread = sum(w * np.outer(a["z"][s] - zm, a["z"][s] - zm) for w, s in zip(wts, range(M)))
+                    tw, ts = np.trace(within), np.trace(spread)
+                    Zm = within + (spread * (tw / ts) if ts > tw else spread)
                     Tv = scipy.linalg.block_diag(A, rho * np.eye(m))
                     w = Tv @ zm
                     W = Tv @ Zm @ Tv.T + scipy.linalg.block_diag(Q, q * np.eye(m))

@@ -87,6 +87,16 @@ def test_model_weights_and_mix_hand_worked():
     mean, cov = im.mix(np.array([[0.5], [0.5]]), z, Z)
     np.testing.assert_allclose(mean, [[1.0]])
     np.testing.assert_allclose(cov, [[[2.0]]])
+    # bounded: the spread (1) is at most the models' own variance (1): unchanged
+    np.testing.assert_allclose(im.mix(np.array([[0.5], [0.5]]), z, Z, bounded=True)[1], [[[2.0]]])
+    # N(0, 1) and N(6, 1): spread 9 > own 1, so it is scaled to 1: variance 1 + 1 = 2 (10 unbounded)
+    z6 = np.array([[0.0], [6.0]])
+    np.testing.assert_allclose(im.mix(np.array([[0.5], [0.5]]), z6, Z)[1], [[[10.0]]])
+    np.testing.assert_allclose(im.mix(np.array([[0.5], [0.5]]), z6, Z, bounded=True)[1], [[[2.0]]])
+    # in 2-D by traces: own covariances I (trace 2), means (0, 0) and (4, 0): spread diag(4, 0) (trace 4),
+    # halved to diag(2, 0)
+    z2, Z2 = np.array([[0.0, 0.0], [4.0, 0.0]]), np.array([np.eye(2), np.eye(2)])
+    np.testing.assert_allclose(im.mix(np.array([[0.5], [0.5]]), z2, Z2, bounded=True)[1], [np.diag([3.0, 1.0])])
 
 
 def test_update_probabilities_hand_worked():

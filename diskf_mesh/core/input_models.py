@@ -141,23 +141,49 @@ def model_weights(mu, Pi):
     return c, joint / c[..., None, :]
 
 
-def mix(w, z, Z):
+def mix(w, z, Z, bounded=False):
     """Gaussian mixture moments: for every column j of the weights w
     (..., M, J), the mean sum_i w_ij z_i and covariance
-    sum_i w_ij (Z_i + (z_i - mean)(z_i - mean)^T). z: (..., M, k);
+    sum_i w_ij Z_i + sum_i w_ij (z_i - mean)(z_i - mean)^T (the models' own
+    covariances, then the spread between their means). z: (..., M, k);
     Z: (..., M, k, k). Returns (..., J, k), (..., J, k, k). Sums run over i
-    in order (the same bits for any batch shape)."""
+    in order (the same bits for any batch shape).
+
+    ``bounded``: the spread counts at most as much as the models' own
+    covariances (it is scaled down until its trace is at most theirs). The
+    IMM mixing of ``diskf-auto`` uses it: where nothing measures a direction
+    the models' estimates drift apart unchecked, and a spread that enters
+    every model's prior in full makes the next update's gain in that
+    direction, and so the next spread, larger each tick (doubling about every
+    tick in ``tests/test_auto.py``'s velocity-only agent, until the
+    covariance is no longer positive definite). Where the models disagree by
+    less than their own uncertainty the mixture is the exact one."""
     M = z.shape[-2]
     wi = lambda i: w[..., i, :]  # noqa: E731  (..., J)
     mean = wi(0)[..., None] * z[..., 0:1, :]
     for i in range(1, M):
         mean = mean + wi(i)[..., None] * z[..., i:i + 1, :]
-    cov = None
+    within = spread = None
     for i in range(M):
         dz = z[..., i:i + 1, :] - mean                        # (..., J, k)
-        term = (Z[..., i:i + 1, :, :] + dz[..., :, None] * dz[..., None, :]) * wi(i)[..., None, None]
-        cov = term if cov is None else cov + term
-    return mean, sym(cov)
+        a = Z[..., i:i + 1, :, :] * wi(i)[..., None, None]
+        b = (dz[..., :, None] * dz[..., None, :]) * wi(i)[..., None, None]
+        within = a if within is None else within + a
+        spread = b if spread is None else spread + b
+    if bounded:
+        tw, ts = _trace(within), _trace(spread)
+        over = ts > tw
+        spread = spread * np.where(over, tw / np.where(over, ts, 1.0), 1.0)[..., None, None]
+    return mean, sym(within + spread)
+
+
+def _trace(M):
+    """The trace of every (k, k) matrix of M (..., k, k), summed in order
+    (the same bits for any batch shape)."""
+    t = M[..., 0, 0]
+    for i in range(1, M.shape[-1]):
+        t = t + M[..., i, i]
+    return t
 
 
 def update_probabilities(c, loglik, floor: float):

@@ -20,7 +20,9 @@ model filter does (Blom and Bar-Shalom 1988):
    (``input_models.pool_probabilities``), so an agent whose neighbourhood
    has not measured lately weighs the models by its neighbours' evidence;
    each model's prior is the mixture of the agent's last posteriors under
-   the models' Markov chain (``input_models.model_weights``, ``mix``).
+   the models' Markov chain (``input_models.model_weights``, ``mix``; the
+   spread between the posteriors' means counted at most as much as their
+   own covariances, ``mix(bounded=True)``).
 3. fuse, per model: the input model's prediction (``input_predict``); the
    neighbourhood's CI prior (as ``diskf-r``) reached by the affine map that
    takes the agent's published prediction to it (``affine_prior``: the
@@ -113,7 +115,7 @@ class DISKFAuto(Estimator):
         x_c, P_c, _ = eq.input_fusion(nb.adj, senders.x_pred, senders.P_pred, ones)  # the CI prior
         # 2. mixing
         c, w = im.model_weights(im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR), self.Pi)
-        z0, Z0 = im.mix(w, state.z, state.Z)
+        z0, Z0 = im.mix(w, state.z, state.Z, bounded=True)
         x0, P0, d0, S0, C0 = im.split(z0, Z0, n)
         # 3. per model: predict, the CI prior, the relayed inputs, the input into the state
         d1, B, S1 = im.input_predict(A, C0, d0, S0, self.rho, self.q)
