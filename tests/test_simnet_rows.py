@@ -201,3 +201,53 @@ def test_an_insiders_model_probabilities_are_caught_as_diverged(quadrants):
     assert st.evidence["diverged"]["tick"] == 20 and st.evidence["diverged"]["senders"] == [3]
     moved = np.abs(r.record.x[20:] - honest.record.x[20:]).max()
     assert moved > 0  # the pooled probabilities did change the neighbours' estimates
+
+
+# --------------------------------------------------------------------------
+# an agent whose estimator diverges says so
+# --------------------------------------------------------------------------
+TINY_HG = {  # agent 1 measures x, where H G = -0.056: C-DRKF's unbiased input estimate blows up within ticks
+    "name": "tiny-hg", "steps": K,
+    "model": {"dynamics": "matrix", "A": [[0.76, -0.32], [-0.19, -0.33]], "G": [[-0.056], [0.75]],
+              "Q": [[0.13, 0.0], [0.0, 0.13]], "x0": [-1.5, 0.0], "P0": [[1.0, 0.0], [0.0, 1.0]],
+              "position_dims": [0, 1]},
+    "topology": {"kind": "none"}, "input": {"kind": "constant", "value": [0.11]},
+    "agents": [{"id": 1, "H": [[1.0, 0.0]], "R": [[0.2]], "sense": "always", "position": [0.0, 0.0]},
+               {"id": 2, "H": [[0.0, 1.0]], "R": [[0.2]], "sense": "always", "position": [1.0, 0.0]}]}
+
+
+def _tiny_hg_run(**plan):
+    from diskf_mesh.data.scenario import parse_scenario
+
+    scn = parse_scenario(TINY_HG)
+    return simulate_run(scn, simulate(scn, [0]), "cdrkf", 0, run_id=RUN,
+                        plan=SimPlan(Link(delay=0.002), **plan))
+
+
+def test_an_agent_whose_estimator_diverges_says_so():
+    """Agent 1's C-DRKF diverges (its estimate would be refused as a report):
+    it reports nothing more and tells the world why before it goes, so each
+    of its missing ticks says "diverged", not "left", and the run is
+    incomplete with that reason; agent 2 reports every tick."""
+    r = _tiny_hg_run()
+    rec, st = r.record, r.status
+    assert st.status == "incomplete" and "diverged" in st.reason, st.reason
+    assert rec.reported[:, 1].all()
+    missing = ~rec.reported[:, 0]
+    stop = int(np.argmax(missing))  # the tick index agent 1 stopped at
+    assert 5 <= stop < K - 5 and missing[stop:].all() and not missing[:stop].any()
+    assert set(rec.why[missing, 0]) == {"diverged"}
+    assert st.evidence["missing_why"] == {"diverged": int(missing.sum())}
+
+
+def test_an_agents_stop_notice_names_only_what_it_may_say():
+    """A stop notice whose reason is not one an agent may give ("diverged",
+    "interrupted") changes nothing: the ticks say "left"."""
+    def lie(e):
+        if isinstance(e, ev.Publish) and e.key == KEYS.stopped(1):
+            return dataclasses.replace(e, payload=wire.encode_stop(RUN, 1, "forged: the world is wrong"))
+        return e
+
+    r = _tiny_hg_run(wrap={agent_pid(1): lambda m: Tamper(m, lie)})
+    missing = ~r.record.reported[:, 0]
+    assert missing.any() and set(r.record.why[missing, 0]) == {"left"}, set(r.record.why[missing, 0])

@@ -242,6 +242,7 @@ class AgentMachine:
             if event.late > FREEZE_S:
                 self._woke_at = now
         elif kind is Interrupt:
+            self._say_stopped("interrupted", f"stopped by {event.why}")
             self._finish("interrupted", FAILED, f"stopped by {event.why}")
             return out
         self._step(now)
@@ -523,8 +524,21 @@ class AgentMachine:
                          + (f" of {self.K}" if self.K else "") + f": {st.why}")
 
     def _diverged(self, k: int, why: str) -> None:
-        """The estimator diverged at tick ``k``: the end, nothing published."""
-        self._finish("diverged", FAILED, f"the estimator ({self.algorithm}) diverged at tick {k}: {why}")
+        """The estimator diverged at tick ``k``: the end, no report; the
+        world is told why (``_say_stopped``)."""
+        reason = f"the estimator ({self.algorithm}) diverged at tick {k}: {why}"
+        self._say_stopped("diverged", reason)
+        self._finish("diverged", FAILED, reason)
+
+    def _say_stopped(self, category: str, reason: str) -> None:
+        """Tell the world this agent stops before the run's end, and why
+        (``keys.stopped``): the run then says "diverged" or "interrupted"
+        for its missing ticks, not only that it left. Only once it works on
+        ticks (the world knows it) and while the run goes on."""
+        if self.est is None or self.stopped is not None:
+            return
+        why = f"{category}: {reason}"[:wire.MAX_WHY]
+        self._out.append(Publish(self.keys.stopped(self.id), wire.encode_stop(self.keys.run_id, self.k, why)))
 
     def _finish(self, status: str, code: int, reason: str = "") -> None:
         self.finish = Finish(status, code, reason)

@@ -38,7 +38,7 @@ peer, by the peer's certificate:
 
     world        put               diskf/<run>/world/**
                  liveliness token  diskf/<run>/alive/world/<nonce>, diskf/<run>/ticking/world
-                 subscribe         diskf/<run>/agent/*/{report,duplicate};
+                 subscribe         diskf/<run>/agent/*/{report,duplicate,stopped};
                                    tokens diskf/<run>/*/agent/*/*, diskf/<run>/alive/world/*
                  answer queries    diskf/<run>/start/* (an agent's starting estimate)
     agent-<i>    put               diskf/<run>/agent/<i>/**
@@ -318,7 +318,8 @@ def access_control(run_id: str, agents, observer: bool = True, router: bool = Fa
 
     rule("egress", [m for m in ALL_MESSAGES if m != "put"], [f"{r}/**"], flows=("egress",))
     routes = (rule("world-routes", ALL_MESSAGES, [f"{r}/**"]),) if world_routes else ()
-    grant(WORLD, [f"{r}/**"] if world_routes else [f"{r}/agent/*/report", f"{r}/agent/*/duplicate"],
+    grant(WORLD, [f"{r}/**"] if world_routes else [f"{r}/agent/*/report", f"{r}/agent/*/duplicate",
+                                                   f"{r}/agent/*/stopped"],
           rule("world-put", ("put",), [f"{r}/world/**"]),
           rule("world-tokens", ("liveliness_token",), [f"{r}/alive/world/*", f"{r}/ticking/world"]),
           rule("world-watch", WATCH, [f"{r}/*/agent/*/*", f"{r}/alive/world/*"]),

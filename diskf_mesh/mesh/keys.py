@@ -18,6 +18,9 @@ letters, digits, ``-`` and ``_``):
     diskf/<run>/agent/<id>/report      agent -> world    its fused estimate of tick k ("report")
     diskf/<run>/agent/<id>/duplicate   agent -> world    a second process of this id, leaving; the
                                                          payload is its nonce ("duplicate")
+    diskf/<run>/agent/<id>/stopped     agent -> world    it stops before the run's end, and why
+                                                         (its estimator diverged, it was
+                                                         interrupted): a "stop" payload ("stopped")
     diskf/<run>/start/<id>             query, agent -> world: agent id (re)joins at tick J; the
                                                          world answers with the estimate it
                                                          starts from ("start")
@@ -126,6 +129,9 @@ class Keys:
     def duplicate(self, agent) -> str:
         return f"{self.root}/agent/{agent}/duplicate"
 
+    def stopped(self, agent) -> str:
+        return f"{self.root}/agent/{agent}/stopped"
+
     def start(self, agent) -> str:
         """The key of agent ``agent``'s query for its starting estimate
         (``"*"``: the world's queryable of every agent's)."""
@@ -152,7 +158,7 @@ class Keys:
 
     def parse(self, key: str) -> tuple:
         """(kind, agent id or None) of a key of this run; kind is one of tick,
-        meas, stop, msg, report, duplicate, start, alive-world, ticking,
+        meas, stop, msg, report, duplicate, stopped, start, alive-world, ticking,
         alive, ready, or None (foreign). A token's nonce is ``nonce(key)``.
         An id that is not an integer gives (kind, None). Remembered: a run
         uses few distinct keys, and every message's key is parsed (keys
@@ -202,6 +208,7 @@ _SHAPES = {
     ("agent", "#", "msg"): "msg",
     ("agent", "#", "report"): "report",
     ("agent", "#", "duplicate"): "duplicate",
+    ("agent", "#", "stopped"): "stopped",
     ("start", "#"): "start",
     ("alive", "world", "*"): "alive-world",
     ("ticking", "world"): "ticking",

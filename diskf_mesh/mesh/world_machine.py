@@ -81,6 +81,7 @@ PAUSE_MIN_S = 1.0    # a pause lasts at least this long (the links that closed w
 LATE_READY_S = 5.0   # allow_missing: after the startup timeout, how long the agents up have to be ready
 CLAIM_S = 1.0        # the liveliness query for another world holding the run id
 CLAIM = 1            # qid of that query
+STOPPED_WHY = ("diverged", "interrupted")  # what an agent may say of why it stops (``_on_stopped``)
 
 # Finish codes (the world command's exit status for a run that could not go on)
 FAILED = 1           # the agents did not come (startup timeout)
@@ -174,6 +175,7 @@ class WorldMachine:
         self._twins = {}               # id -> (nonces that said they leave, nonces of tokens that came second)
         self._joins_at = {}            # id -> first tick a (re)joining agent is live at
         self._why = dict.fromkeys(self.ids, "never joined")  # id -> why it is not live (None: live)
+        self._stopped = {}             # id -> why the agent said it stops ("diverged", "interrupted")
         # the ticks
         self.k = 0                     # the last tick opened
         self.done = False              # tick K is closed
@@ -209,6 +211,7 @@ class WorldMachine:
         self.phase = "claim"
         return [Subscribe(self.keys.report("*")),
                 Subscribe(self.keys.duplicate("*")),
+                Subscribe(self.keys.stopped("*")),
                 WatchTokens(f"{root}/*/agent/*/*"), WatchTokens(self.keys.alive_world),
                 DeclareQueryable(self.keys.start("*")),
                 AskTokens(CLAIM, self.keys.alive_world, CLAIM_S)]
@@ -423,11 +426,39 @@ class WorldMachine:
                     self._rejected.add(who)
                 self.log.once(("report", who if who in self.ids else None, e.reason),
                               f"rejected a report from {key[:200]}: {e}")
+        elif kind == "stopped" and who in self.ids:
+            self._on_stopped(who, payload)
         elif kind == "duplicate" and who in self.ids:
             nonce_ = bytes(payload[:32]).decode(errors="replace")
             if self._duplicate(who, nonce_, said=True):
                 self.log.info(f"agent id {who}: a second process (nonce {nonce_}) found this id held and leaves: "
                               "duplicate id")
+
+    def _on_stopped(self, who: int, payload: bytes) -> None:
+        """Agent ``who`` says it stops before the run's end, and why (its
+        estimator diverged, it was interrupted): its missing ticks say so
+        instead of "left" (``_gone``), those already marked included. Its
+        own key (the access rules let only agent ``who`` put there): an
+        agent can say this of itself only."""
+        try:
+            st = wire.decode_stop(payload, run_id=self.keys.run_id)
+        except wire.Rejected as e:
+            self.record.counters[f"rejected:{e.reason}"] += 1
+            return
+        category = st.why.split(":", 1)[0]
+        if category not in STOPPED_WHY or who in self._stopped:
+            return
+        self._stopped[who] = category
+        self.log.info(f"tick {st.tick}: agent {who} stops: {st.why[:300]}")
+        if self._why.get(who) == "left":
+            self._why[who] = category
+        j = self._index[who]
+        why = self.record.why[:, j]
+        why[(why == "left") & (np.arange(1, len(why) + 1) >= st.tick)] = category
+
+    def _gone(self, who: int) -> str:
+        """Why agent ``who`` is not ready: what it said when it stopped, else "left"."""
+        return self._stopped.get(who, "left")
 
     def _duplicate(self, who, nonce_: str, said: bool) -> bool:
         """A second process of agent ``who``: one that said it leaves
@@ -514,7 +545,7 @@ class WorldMachine:
         for j, i in enumerate(self.ids):
             if rec.live[k - 1, j] and not rec.reported[k - 1, j]:
                 rec.why[k - 1, j] = ("rejected" if i in self._rejected else
-                                     "left" if i not in self.ready else "no report")
+                                     self._gone(i) if i not in self.ready else "no report")
 
     # ======================================================================
     # 3. real time (``mesh.clock``)
@@ -634,7 +665,7 @@ class WorldMachine:
             self._joins_at[who] = self.k + 2  # its first tick: the reports of the one before are final by then
             self._why[who] = "rejoining"
         if not ready and was_ready:
-            self._why[who] = "left"
+            self._why[who] = self._gone(who)
             if not self._paused:
                 self._waiting.discard(who)  # gone: the tick does not wait for it
             for owed in self._owed.values():
