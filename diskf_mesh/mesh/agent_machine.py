@@ -198,6 +198,7 @@ class AgentMachine:
         self.deadline = math.inf  # end of the collection of tick k
         self.last_report = None   # (k, payload) of the last report sent
         self._delay_at = math.inf  # when the delay timer is set for (inf: not set)
+        self._near_key, self._near_ids = None, frozenset()  # ``_near``: the last positions and their answer
         self.finish: Finish | None = None
 
     @property
@@ -360,8 +361,7 @@ class AgentMachine:
             for old in [j for j in self.tick_at if j not in self.ticks]:
                 del self.tick_at[old]
         # not live at a tick (joining later): linked to no one, nothing to fuse
-        self.linked[t.tick] = ((set(neighbours(self.scn, self.id, t.positions)) & set(t.live)) - {self.id}
-                               if self.id in t.live else set())
+        self.linked[t.tick] = (self._near(t.positions) & set(t.live)) - {self.id} if self.id in t.live else set()
         if self.id not in t.live and self.est is None:
             self._joining(t.tick)
         self.receiver.release(t.tick, self.linked[t.tick], now)
@@ -371,6 +371,15 @@ class AgentMachine:
             for old in [j for j in self.linked if j < self.k - LINKS_KEPT]:
                 del self.linked[old]
         return True
+
+    def _near(self, positions) -> frozenset:
+        """The ids in range of this agent (itself included) at ``positions``
+        (``mesh.estimator.neighbours``); the last answer again while the
+        positions are those of the tick before (static agents)."""
+        key = positions.tobytes()
+        if key != self._near_key:
+            self._near_key, self._near_ids = key, frozenset(neighbours(self.scn, self.id, positions))
+        return self._near_ids
 
     def _tick_problem(self, t: wire.Tick):
         """None if the world's tick ``t`` (not before k, not seen yet) may be
