@@ -9,6 +9,7 @@ reports are the engine's replay of what was fused.
     skewed probabilities     an insider's diskf-auto message whose model probabilities are not its own
     a forged report          an agent's report with an absurd estimate
     a rejoin                 a crashed agent restarts and starts from a neighbour's estimate
+    a diverging estimator    the agent stops and tells the world why: its missing ticks say "diverged"
 """
 from __future__ import annotations
 
