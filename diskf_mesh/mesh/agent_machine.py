@@ -546,8 +546,8 @@ class AgentMachine:
         ticks (the world knows it) and while the run goes on."""
         if self.est is None or self.stopped is not None:
             return
-        why = f"{category}: {reason}"[:wire.MAX_WHY]
-        self._out.append(Publish(self.keys.stopped(self.id), wire.encode_stop(self.keys.run_id, self.k, why)))
+        self._out.append(Publish(self.keys.stopped(self.id),
+                                 wire.encode_stopped(self.keys.run_id, self.k, category, reason)))
 
     def _finish(self, status: str, code: int, reason: str = "") -> None:
         self.finish = Finish(status, code, reason)

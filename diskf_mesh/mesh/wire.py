@@ -441,6 +441,25 @@ def encode_measurement(run_id: str, tick: int, agent: int, has: bool, y) -> byte
                   "dt": DTYPE, "y": _f8(y) if has else b""})
 
 
+STOPPED = ("diverged", "interrupted")  # why an agent may say it stops before the run's end (``encode_stopped``)
+
+
+def encode_stopped(run_id: str, tick: int, category: str, reason: str) -> bytes:
+    """An agent's notice that it stops at ``tick`` (``keys.stopped``): a
+    "stop" payload whose why is "<category>: <reason>", ``category`` one of
+    ``STOPPED`` (``stopped_category`` reads it back)."""
+    if category not in STOPPED:
+        raise ValueError(f"encode_stopped: {category!r} is not one of {STOPPED}")
+    return encode_stop(run_id, tick, f"{category}: {reason}"[:MAX_WHY])
+
+
+def stopped_category(st: Stop) -> str | None:
+    """The category of an agent's stop notice (``encode_stopped``), or None
+    where its why does not start with one of ``STOPPED``."""
+    category = st.why.split(":", 1)[0]
+    return category if category in STOPPED else None
+
+
 def encode_stop(run_id: str, tick: int, why: str) -> bytes:
     return _pack({"v": SCHEMA, "k": "stop", "run": run_id, "t": int(tick), "why": str(why)})
 

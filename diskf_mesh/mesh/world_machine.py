@@ -81,7 +81,6 @@ PAUSE_MIN_S = 1.0    # a pause lasts at least this long (the links that closed w
 LATE_READY_S = 5.0   # allow_missing: after the startup timeout, how long the agents up have to be ready
 CLAIM_S = 1.0        # the liveliness query for another world holding the run id
 CLAIM = 1            # qid of that query
-STOPPED_WHY = ("diverged", "interrupted")  # what an agent may say of why it stops (``_on_stopped``)
 
 # Finish codes (the world command's exit status for a run that could not go on)
 FAILED = 1           # the agents did not come (startup timeout)
@@ -175,7 +174,7 @@ class WorldMachine:
         self._twins = {}               # id -> (nonces that said they leave, nonces of tokens that came second)
         self._joins_at = {}            # id -> first tick a (re)joining agent is live at
         self._why = dict.fromkeys(self.ids, "never joined")  # id -> why it is not live (None: live)
-        self._stopped = {}             # id -> why the agent said it stops ("diverged", "interrupted")
+        self._stopped = {}             # id -> why the agent said it stops (one of ``wire.STOPPED``)
         # the ticks
         self.k = 0                     # the last tick opened
         self.done = False              # tick K is closed
@@ -445,8 +444,8 @@ class WorldMachine:
         except wire.Rejected as e:
             self.record.counters[f"rejected:{e.reason}"] += 1
             return
-        category = st.why.split(":", 1)[0]
-        if category not in STOPPED_WHY or who in self._stopped:
+        category = wire.stopped_category(st)
+        if category is None or who in self._stopped:
             return
         self._stopped[who] = category
         self.log.info(f"tick {st.tick}: agent {who} stops: {st.why[:300]}")
