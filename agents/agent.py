@@ -28,8 +28,10 @@ silence) and tells it when the process was not running (SIGSTOP).
 
 Exit status: 0 only when the world says stop with "done" at the run's last
 tick; 2 (one line) when another process already holds this agent's id in the
-run (``mesh.keys``: every token carries its process's nonce); 1 with one line
-on stderr otherwise: the world stopped the run early, or it has been gone
+run (``mesh.keys``: every token carries its process's nonce); 3 (one line)
+when its estimator diverged: it told the world why and left, and the run goes
+on without it (``up`` ends ``incomplete``); 1 with one line on stderr
+otherwise: the world stopped the run early, or it has been gone
 (its liveliness token) or silent for ``--world-timeout`` seconds. While the
 world is gone the agent waits for it (a frozen world comes back).
 

@@ -375,8 +375,10 @@ class Launcher:
                 return rc
             for a in (*self.services, *self.agents):
                 rc = a.proc.poll()
-                # an agent exits 0 only on the world's "done"; a service never ends by itself
-                if (rc or (rc is not None and a in self.services)) and a not in self.failed_agents:
+                # an agent exits 0 only on the world's "done" (or ``exits.STOPPED``: it told the world it left);
+                # a service never ends by itself
+                if (rc or (rc is not None and a in self.services)) and not self._stopped(a) \
+                        and a not in self.failed_agents:
                     if not self.tolerate_agents:
                         raise ChildFailed(a, rc)
                     self.failed_agents.append(a)
@@ -384,16 +386,30 @@ class Launcher:
                 raise ChildFailed(self.world, None, f"still running after {timeout:g} s")
             time.sleep(0.02)
 
+    def _stopped(self, child: Child) -> bool:
+        """An agent that ended with ``exits.STOPPED``: its estimator diverged and it
+        told the world, which counts its missing ticks as "diverged" and
+        whose status (``incomplete``) speaks for the run; not a failure of
+        a process."""
+        return child in self.agents and child.proc.poll() == exits.STOPPED
+
+    def stopped(self) -> list:
+        """The agents that ended with ``exits.STOPPED``."""
+        return [a for a in self.agents if self._stopped(a)]
+
+    def _ended_badly(self, child: Child) -> bool:
+        return child.proc.poll() not in (None, 0) and not self._stopped(child)
+
     def wait_agents(self) -> list:
         """Without a world (a shard): until every agent has ended; the ones
-        that did not exit 0, in the order they ended."""
+        that failed (not 0, not ``exits.STOPPED``), in the order they ended."""
         bad = []
         while any(a.proc.poll() is None for a in self.agents):
             for a in self.agents:
-                if a.proc.poll() not in (None, 0) and a not in bad:
+                if self._ended_badly(a) and a not in bad:
                     bad.append(a)
             time.sleep(0.2)
-        return bad + [a for a in self.agents if a.proc.returncode != 0 and a not in bad]
+        return bad + [a for a in self.agents if self._ended_badly(a) and a not in bad]
 
     def finish(self, timeout: float = 5.0) -> list:
         """After the world: agents leave on its stop. Returns the agents that
@@ -405,10 +421,10 @@ class Launcher:
             if a in bad:
                 continue
             try:
-                rc = a.proc.wait(max(deadline - time.monotonic(), 0.01))
+                a.proc.wait(max(deadline - time.monotonic(), 0.01))
             except subprocess.TimeoutExpired:
-                rc = None
-            if rc != 0:
+                pass
+            if a.proc.poll() is None or self._ended_badly(a):
                 bad.append(a)
         self.stop_all()
         return bad
@@ -681,6 +697,8 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     bad = launcher.finish(timeout=5.0 if plan is None else 15.0)  # a shard ends once its agents have
     for a in bad:
         print(f"warning: {a.name} did not leave cleanly after the run: {a.last_error_line()}", file=sys.stderr)
+    for a in launcher.stopped():
+        print(a.last_error_line(), file=sys.stderr)  # "error: agent I: the estimator (...) diverged at tick K: ..."
     results = json.loads(out.read_text())
     first = timing.get("first", t_end) - t0
     print(f"{scn.name}: {len(ids)} agent processes{where} + world, {ticks} ticks, seed {args.seed}, run {spec.run_id}; "

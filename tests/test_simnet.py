@@ -323,7 +323,7 @@ def test_an_agent_whose_estimator_diverges_leaves_at_once_with_its_reason():
     strongly detectable from an x sensor): agent 1's covariance passes the
     condition number a report may carry at tick 530, agent 3's at tick 671,
     and the engine's own batch fails at tick 633. Each agent ends there
-    with exit 1 and the reason, instead of reporting what the world refuses
+    with exit 3 (``exits.STOPPED``) and the reason, instead of reporting what the world refuses
     and holding every later tick for ``tick_timeout`` (10 virtual seconds
     a tick) or raising; the world's check replays the ticks before the
     engine's failure and says the rest is not verified."""
@@ -335,7 +335,7 @@ def test_an_agent_whose_estimator_diverges_leaves_at_once_with_its_reason():
     run = simulate_run(scn, trace, "cdrkf", 0)
     fin = run.outcome.finishes
     assert {p: (f.code, f.status) for p, f in fin.items()} == {
-        "world": (0, "done"), "agent-1": (1, "diverged"), "agent-2": (0, "done"), "agent-3": (1, "diverged"),
+        "world": (0, "done"), "agent-1": (3, "diverged"), "agent-2": (0, "done"), "agent-3": (3, "diverged"),
         "agent-4": (0, "done")}
     assert "diverged at tick 530" in fin["agent-1"].reason and "ill-conditioned" in fin["agent-1"].reason
     assert "diverged at tick 671" in fin["agent-3"].reason

@@ -8,7 +8,10 @@ with the code this table gives it; ``replay RUN.mcap`` and ``replay
     0  OK               exact, or as planned (only the injected faults)
     1  FAILED           a process failed (its one line says why)
     2  BAD_INPUT        bad input, or a duplicate process in the run
-    3  INCOMPLETE       agent-ticks missing beyond ``--allow-missing``
+    3  INCOMPLETE       agent-ticks missing beyond ``--allow-missing``; for
+                        an agent process (``STOPPED``): its estimator
+                        diverged, it told the world and left, and the run
+                        went on without it
     4  TOO_MANY_MISSES  real time: deadline misses beyond ``--max-miss-rate``
     5  DEGRADED         complete, but agent-ticks fused fewer messages than
                         planned (without ``--allow-degraded``)
@@ -28,6 +31,7 @@ TOO_MANY_MISSES = 4
 DEGRADED = 5
 DIVERGED = 6
 RECORDING_FAILED = 7
+STOPPED = INCOMPLETE  # an agent process that left because its estimator diverged (it told the world)
 
 EXACT_STATUS, AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, INCOMPLETE_STATUS = (
     "exact", "as planned", "degraded", "diverged", "incomplete")

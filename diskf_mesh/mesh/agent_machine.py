@@ -59,10 +59,11 @@ could send would be taken, and its token going lets the world close the
 tick at once instead of waiting out ``--tick-timeout`` every tick.
 
 Exit (``Finish``): 0 only when the world says stop with "done" at the run's
-last tick; 2 when another process holds this agent's id; 1 otherwise (the
+last tick; 2 when another process holds this agent's id; 3 when its
+estimator diverged (it told the world, whose run goes on without it and
+ends ``incomplete``, its missing ticks saying "diverged"); 1 otherwise (the
 world stopped the run early, it has been gone or silent for
-``world_timeout`` seconds, a mismatch of the run's settings, an interrupt,
-the estimator diverged).
+``world_timeout`` seconds, a mismatch of the run's settings, an interrupt).
 
 May import: core, estimators, data, engine (the mesh layer).
 """
@@ -77,6 +78,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from diskf_mesh import estimators
+from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.mesh import clock as realtime
@@ -537,7 +539,7 @@ class AgentMachine:
         world is told why (``_say_stopped``)."""
         reason = f"the estimator ({self.algorithm}) diverged at tick {k}: {why}"
         self._say_stopped("diverged", reason)
-        self._finish("diverged", FAILED, reason)
+        self._finish("diverged", exits.STOPPED, reason)
 
     def _say_stopped(self, category: str, reason: str) -> None:
         """Tell the world this agent stops before the run's end, and why
