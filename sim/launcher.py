@@ -7,7 +7,10 @@ fails, or on Ctrl-C, it stops every child it started and says which one
 failed and why (exit code, last line of its stderr; full logs in --logs);
 the world, stopped, still writes what it measured. With ``--allow-missing``
 an agent that fails does not end the run: the world accounts its missing
-ticks.
+ticks. An agent whose estimator diverges is not a failure of a process: it
+tells the world and leaves (exit 3, ``exits.STOPPED``), the others run to
+the end, ``up`` prints its line and the run ends ``incomplete``, its missing
+ticks counted as "diverged".
 
 Exit status: the world's, from the run's status (``diskf_mesh.engine.verify``:
 the world replays the run on the engine before it says ``exact``;
