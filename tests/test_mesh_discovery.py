@@ -53,14 +53,14 @@ def test_launcher_reports_the_failed_child_and_stops_the_rest(tmp_path):
     world = _child(tmp_path, "world", "import time; time.sleep(60)")
     ok = _child(tmp_path, "agent 1", "import time; time.sleep(60)")
     bad = _child(tmp_path, "agent 2", "import sys, time; time.sleep(0.3); "
-                                      "print('boom: no route to the world', file=sys.stderr); sys.exit(3)")
+                                      "print('boom: no route to the world', file=sys.stderr); sys.exit(1)")
     launcher = Launcher(world, [ok, bad])
     launcher.start()
     with pytest.raises(ChildFailed) as e:
         launcher.wait(30)
     launcher.stop_all()
     msg = str(e.value)
-    assert msg.startswith("agent 2 failed (exit code 3): boom: no route to the world")
+    assert msg.startswith("agent 2 failed (exit code 1): boom: no route to the world")
     assert world.proc.poll() is not None and ok.proc.poll() is not None  # nothing left running
 
 

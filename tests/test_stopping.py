@@ -50,3 +50,32 @@ def test_sigterm_while_zenoh_waits_for_an_unreachable_router_ends_the_process_in
         "print('ready', flush=True)\nzenoh.open(c)\nprint('opened', flush=True)\n")
     assert status == 128 + signal.SIGTERM
     assert GRACE_S - 0.1 < took < GRACE_S + 1.0
+
+
+IMPORTED_UNDER_A_SIGNAL = '''
+import os, signal, sys, time
+from dataclasses import dataclass
+os.kill(os.getpid(), signal.SIG)
+@dataclass(frozen=True)
+class Made:
+    a: int = 1
+    b: float = 2.0
+DONE = True
+'''
+
+
+@pytest.mark.parametrize("name, handler, caught", [
+    ("SIGINT", "interrupted", "KeyboardInterrupt"), ("SIGTERM", "terminated", "SystemExit")])
+def test_a_signal_during_an_import_is_raised_after_it(tmp_path, name, handler, caught):
+    """The signal comes while a module is being imported (its dataclass's
+    methods are made by exec); the import completes and the signal is
+    raised just after it, where the command's own except clause catches it:
+    raised inside, it can be dropped by a module lock's callback, become a
+    RuntimeError, or make CPython end the process by SIGINT (status -2)."""
+    (tmp_path / "under_signal.py").write_text(IMPORTED_UNDER_A_SIGNAL.replace("signal.SIG", f"signal.{name}"))
+    code = (f"import signal, sys, time\nfrom diskf_mesh.mesh import stopping\n"
+            f"signal.signal(signal.{name}, stopping.{handler})\nsys.path.insert(0, {str(tmp_path)!r})\n"
+            "try:\n    import under_signal\n    time.sleep(5)\n    sys.exit(1)\n"
+            f"except {caught}:\n    print(sys.modules['under_signal'].DONE, flush=True)\n    sys.exit(130)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    assert (done.returncode, done.stdout.strip(), done.stderr) == (130, "True", "")

@@ -146,6 +146,9 @@ def main(argv=None, modules=COMMAND_MODULES) -> int:
         # SIGTERM as SystemExit(143) where the main thread is, so that finally blocks run (partial files
         # removed, children stopped); a command that handles SIGTERM itself replaces this
         signal.signal(signal.SIGTERM, stopping.terminated)
+    if threading.current_thread() is threading.main_thread() \
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, stopping.interrupted)  # exit 130, never killed by SIGINT (-2)
     # Ctrl-C or SIGTERM at any moment, start-up included: one line, no traceback
     try:
         if argv[:1] == ["up"]:

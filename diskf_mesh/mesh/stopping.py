@@ -34,9 +34,44 @@ import threading
 GRACE_S = 1.5  # SIGTERM -> exit at the latest this much later (a container's stop waits 10 s, up's 3 s)
 
 
+RECHECK_S = 0.02  # a signal that came during an import is delivered again this much later
+
+
 def terminated(signum, frame):
-    """A signal handler: the signal as ``SystemExit(128 + signum)``."""
-    raise SystemExit(128 + signum)
+    """A signal handler: the signal as ``SystemExit(128 + signum)``, raised
+    where no import is under way (``later_if_importing``)."""
+    if not later_if_importing(signum, frame):
+        raise SystemExit(128 + signum)
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT as ``interrupted`` raises it: a ``KeyboardInterrupt`` to every
+    ``except`` clause, but not of the exact type, which CPython takes for an
+    unhandled Ctrl-C when it leaves code run by ``exec`` of a string (the
+    methods a dataclass generates) and then ends the process by SIGINT at
+    exit (status -2) even though the command caught it and returned 130."""
+
+
+def interrupted(signum, frame):
+    """A SIGINT handler: ``Interrupted``, raised where no import is under way."""
+    if not later_if_importing(signum, frame):
+        raise Interrupted
+
+
+def later_if_importing(signum: int, frame) -> bool:
+    """Whether ``frame`` (where the main thread was when the signal came) is
+    inside the import machinery; if so, the signal is delivered again
+    ``RECHECK_S`` later, and the handler should return without raising. An
+    exception raised inside an import is not always the one that leaves it:
+    a module lock's weakref callback prints and drops it (the command then
+    runs on as if no signal had come), and a class's ``__set_name__`` turns
+    it into a RuntimeError (exit 1, with a traceback)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            threading.Timer(RECHECK_S, signal.pthread_kill, args=(threading.main_thread().ident, signum)).start()
+            return True
+        frame = frame.f_back
+    return False
 
 
 def exit_on_sigterm(grace_s: float = GRACE_S) -> None:
