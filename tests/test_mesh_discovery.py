@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from agents.agent import Agent
+from diskf_mesh.core import exits
 from diskf_mesh.mesh.keys import Keys
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.keys import key_matches
@@ -62,6 +63,24 @@ def test_launcher_reports_the_failed_child_and_stops_the_rest(tmp_path):
     msg = str(e.value)
     assert msg.startswith("agent 2 failed (exit code 1): boom: no route to the world")
     assert world.proc.poll() is not None and ok.proc.poll() is not None  # nothing left running
+
+
+def test_launcher_lets_an_agent_that_stopped_go_and_runs_the_rest_to_the_end(tmp_path):
+    """An agent that exits ``exits.STOPPED`` has told the world it left (its
+    estimator diverged): not a failed child; the world's own status speaks
+    for the run. Exit 1 is a failure (the test above)."""
+    world = _child(tmp_path, "world", f"import sys, time; time.sleep(1.5); sys.exit({exits.INCOMPLETE})")
+    ok = _child(tmp_path, "agent 1", "import time; time.sleep(60)")
+    gone = _child(tmp_path, "agent 2", "import sys, time; time.sleep(0.2); "
+                                       "print('error: agent 2: diverged at tick 3', file=sys.stderr); "
+                                       f"sys.exit({exits.STOPPED})")
+    launcher = Launcher(world, [ok, gone])
+    launcher.start()
+    try:
+        assert launcher.wait(30) == exits.INCOMPLETE
+        assert launcher.stopped() == [gone] and ok.proc.poll() is None
+    finally:
+        launcher.stop_all()
 
 
 def test_up_rejects_bad_input_in_one_line(tmp_path):
