@@ -19,6 +19,12 @@ A process of a run installs its handlers first thing in its ``run(args)``:
              stopped (SIGTERM) on the way out
     router   SIGTERM/SIGINT: exits 0 (serving until stopped is its job)
 
+Every command of the command line (``cli.main``) raises SIGTERM as
+``SystemExit(143)`` and SIGINT as ``Interrupted`` (a ``KeyboardInterrupt``),
+each at the first bytecode outside the import machinery
+(``later_if_importing``): raised inside an import, the exception may be
+dropped, turned into another, or make CPython end the process by SIGINT.
+
 Before its handler is installed (while the interpreter imports), a process
 keeps the default action, which ends it at once; except as PID 1 of a
 container, where the kernel ignores a signal that has no handler: run the
@@ -32,8 +38,6 @@ import signal
 import threading
 
 GRACE_S = 1.5  # SIGTERM -> exit at the latest this much later (a container's stop waits 10 s, up's 3 s)
-
-
 RECHECK_S = 0.02  # a signal that came during an import is delivered again this much later
 
 
