@@ -264,11 +264,25 @@ def test_an_answer_that_fails_the_guard_leaves_the_prior(run):
     assert m.rejoins == [(4, None)] and m.counters.rejected == {"ill-conditioned": 1}
 
 
-def test_no_answer_in_time_starts_from_the_prior(run):
-    m, _, out = asking(run)
+def test_no_answer_is_asked_again_and_the_worlds_answer_decides_the_start(run):
+    """No answer (the query ended empty, then its time ran out: the world
+    frozen or out of reach) is not the prior: the agent asks again every
+    ASK_S and works on nothing meanwhile; the answer that comes starts it
+    (simulated-network sweep seed 15913: the world paused 10.3 s while agent
+    6 asked, and agent 6 started from the prior though four agents in range
+    had reported the tick before)."""
+    m, ask, out = asking(run)
     assert SetTimer("ask", 10.0 + ASK_S) in out
+    assert m.handle(Reply(ask.qid, None), 10.2) == []   # ended without an answer: wait for the timer
     out = m.handle(Timer("ask"), 10.0 + ASK_S)
-    assert m.rejoins == [(4, None)] and len([e for e in of(out, Publish) if "/msg/" in e.key]) == 1
+    again, = of(out, Ask)
+    assert again.qid != ask.qid and again.payload == ask.payload and SetTimer("ask", 10.0 + 2 * ASK_S) in out
+    assert of(out, Publish) == [] and m.rejoins == [] and m.est is None
+    x, P = np.array([3.0, -1.0]), np.diag([0.5, 0.25])
+    late = wire.encode_start(RUN, m.id, 4, 2, x, P, np.zeros(1), False)
+    assert of(m.handle(Reply(ask.qid, late), 15.1), Publish) == []  # an answer to the first query: too late
+    out = m.handle(Reply(again.qid, late), 15.2)
+    assert m.rejoins == [(4, 2)] and len([e for e in of(out, Publish) if "/msg/" in e.key]) == 1
 
 
 def test_a_late_joiner_that_finds_its_id_held_just_before_joining_leaves(run):

@@ -72,6 +72,18 @@ FOUND = [
     pytest.param(Case(agents=7, ticks=37, algorithm="diskf", seed=34369, link=Link(delay=0.002, jitter=0.002),
                       faults=(Fault("pause", "world", after_event=589, duration=9.7),
                               Fault("pause", "agent-3", after_event=541, duration=30.01))), id="sweep-7045-rejoin-said-exact"),
+    # sweep seed 15913: agent 6, frozen past the lease, rejoined and asked the world for its start while the
+    # world was paused 10.3 s; no answer within ASK_S, and it started from its prior though agents 2, 5, 7
+    # and 8, in range, had reported the tick before: invariant (e)
+    # (fixed: no answer is asked again; the prior only when the world answers it)
+    pytest.param(Case(agents=9, ticks=36, algorithm="diskf", seed=6405, link=Link(delay=0.002, jitter=0.02, hold=0.05),
+                      faults=(Fault("pause", "agent-6", after_event=741, duration=9.7),
+                              Fault("pause", "agent-4", after_event=1422, duration=29.7),
+                              Fault("pause", "world", after_event=1736, duration=10.3)),
+                      late=((1, 0.001),), injected=FaultConfig(loss=0.1, latency_ms=1.0, jitter_ms=1.0, duplicate=0.1,
+                                                               reorder=0.1, reorder_ms=50.0),
+                      scenario="dynamic"),
+                 id="sweep-15913-rejoin-asked-a-frozen-world"),
 ]
 
 

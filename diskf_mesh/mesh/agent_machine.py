@@ -99,7 +99,7 @@ WOKE_S = 3.0     # a world token that goes within this long of waking from a fre
 PEERS_WAIT_S = 5.0  # a (re)joining agent waits at most this long to see the live agents
 DUPLICATE_SAY_S = 0.2  # a duplicate's word to the world is on the wire before it leaves
 CLAIM_S = 1.0    # the liveliness query for another process holding this agent's id
-ASK_S = 5.0      # a (re)joining agent waits at most this long for the world's answer (then: its prior)
+ASK_S = 5.0      # a (re)joining agent waits this long for the world's answer, then asks again
 
 OK, FAILED, DUPLICATE = 0, 1, 2  # exit statuses (``Finish.code``)
 
@@ -571,7 +571,7 @@ class AgentMachine:
         elif name == "leave":
             self._finish("duplicate", DUPLICATE, self._leaving)
         elif name == "ask" and self._asked is not None and self._start is None and now >= self._asked[2]:
-            self._on_reply(self._asked[0], None)
+            self._asked = None  # no answer in time: ``_join`` asks again (the world decides the start)
         # "collect", "peers": ``_step`` looks at the time (a timer is a wake-up, never a deadline by itself)
 
     def _world_timer(self) -> None:
@@ -790,23 +790,27 @@ class AgentMachine:
             self._restart_from(k)
 
     def _on_reply(self, qid: int, payload) -> None:
-        """The world's answer to the query for the starting estimate (None:
-        none came, or it failed the guard's checks: the prior; none while
-        the world's token is gone, i.e. asked on a session cut off: asked
-        again once the token is back)."""
+        """The world's answer to the query for the starting estimate; one
+        that fails the guard's checks: the prior. None (the query ended
+        without an answer: the world frozen, slow, or out of reach) is no
+        answer: the agent asks again when the ask timer runs out, or, asked
+        while the world's token is gone (a session cut off), once the token
+        is back. The prior is the world's answer, never the agent's choice
+        for want of one: an agent that never gets an answer never joins, and
+        its ticks are missing."""
         if self._asked is None or qid != self._asked[0] or self._start is not None:
             return
-        if payload is None and self.world_gone:  # asked while cut off: ask again once the world is back
-            self._asked = None
+        if payload is None:
+            if self.world_gone:  # asked while cut off: ask again once the world is back
+                self._asked = None
             return
         k, start = self._asked[1], None
-        if payload is not None:
-            g = self.receiver.guard.config
-            try:
-                start = wire.decode_start(payload, run_id=self.keys.run_id, agent=self.id, tick=k, n=self.n,
-                                          m=self.m, max_abs=g.max_abs, max_cond=g.max_cond)
-            except wire.Rejected as e:
-                self._refuse("start", e.reason, e.detail)
+        g = self.receiver.guard.config
+        try:
+            start = wire.decode_start(payload, run_id=self.keys.run_id, agent=self.id, tick=k, n=self.n,
+                                      m=self.m, max_abs=g.max_abs, max_cond=g.max_cond)
+        except wire.Rejected as e:
+            self._refuse("start", e.reason, e.detail)
         self._start = (k, start)
 
     def _restart_from(self, k: int) -> None:

@@ -21,8 +21,10 @@ of tick J - 1 to start from, and the world answers (``wire.encode_start``):
   is large until measurements and neighbours pull it back.
 
 The answer passes the guard's checks before it is used (``decode_start``:
-finite, positive definite, magnitude, conditioning); one that fails, or no
-answer, leaves the agent at its prior. Only the world reads reports: the
+finite, positive definite, magnitude, conditioning); one that fails leaves
+the agent at its prior. No answer is asked again (``agent_machine.ASK_S``
+later): a world that is frozen answers once it runs again, and the prior
+stays the world's answer, never the agent's guess. Only the world reads reports: the
 agent never listens to its neighbours' reports.
 
 Why not always the prior: DISKF agents publish their prediction x^, which
