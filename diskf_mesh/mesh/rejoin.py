@@ -24,8 +24,8 @@ The answer passes the guard's checks before it is used (``decode_start``:
 finite, positive definite, magnitude, conditioning); one that fails leaves
 the agent at its prior. No answer is asked again (``agent_machine.ASK_S``
 later): a world that is frozen answers once it runs again, and the prior
-stays the world's answer, never the agent's guess. Only the world reads reports: the
-agent never listens to its neighbours' reports.
+stays the world's answer, never the agent's guess. Only the world reads
+reports: the agent never listens to its neighbours' reports.
 
 Why not always the prior: DISKF agents publish their prediction x^, which
 the state compensation and the baselines' consensus steps pull neighbours
