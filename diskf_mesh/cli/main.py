@@ -142,13 +142,14 @@ def main(argv=None, modules=COMMAND_MODULES) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if modules is COMMAND_MODULES and argv[:1] and argv[0] in MESH_COMMANDS:
         modules = (MESH_COMMANDS[argv[0]],)
-    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+    if threading.current_thread() is threading.main_thread():
         # SIGTERM as SystemExit(143) where the main thread is, so that finally blocks run (partial files
-        # removed, children stopped); a command that handles SIGTERM itself replaces this
-        signal.signal(signal.SIGTERM, stopping.terminated)
-    if threading.current_thread() is threading.main_thread() \
-            and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, stopping.interrupted)  # exit 130, never killed by SIGINT (-2)
+        # removed, children stopped), and SIGINT as stopping.Interrupted (exit 130, never killed by SIGINT),
+        # both outside imports; a command that handles a signal itself replaces this
+        for sig, default, handler in ((signal.SIGTERM, signal.SIG_DFL, stopping.terminated),
+                                      (signal.SIGINT, signal.default_int_handler, stopping.interrupted)):
+            if signal.getsignal(sig) is default:
+                signal.signal(sig, handler)
     # Ctrl-C or SIGTERM at any moment, start-up included: one line, no traceback
     try:
         if argv[:1] == ["up"]:
