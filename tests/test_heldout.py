@@ -3,6 +3,8 @@ and its targets' arithmetic (the full suite is a script:
 ``python -m diskf_mesh.studies.heldout``)."""
 from __future__ import annotations
 
+import json
+
 import pytest
 import scipy.stats
 
@@ -116,3 +118,52 @@ def test_first_seed_runs_the_seeds_it_names():
         "mae_state"]
     assert "Seeds 100..101" in heldout.markdown(doc)
     assert heldout.main(["--seeds", "1", "--first-seed", "-1"]) == 2
+
+
+def test_a_subset_of_estimators_merged_with_a_stored_run_is_that_run(tmp_path):
+    """``--estimators A --against FILE``: the estimators run replace theirs,
+    every other row is the stored one, the targets are those of the merged
+    rows; on the same seeds and ticks the merge of a subset equals the full
+    run, row for row."""
+    full = heldout.run(seeds=1, steps=20, select=["S1 none, white", "S1 ring, zero"], progress=False)
+    part = heldout.run(seeds=1, steps=20, names=["kcf", "diskf-auto"], select=["S1 none, white"], progress=False,
+                       jobs=2)
+    assert set(part["results"][0]["rows"]) == {"kcf", "diskf-auto"}
+    merged = heldout.merge(part, full)
+    same = lambda a, b: json.dumps(a, sort_keys=True, default=float) == json.dumps(b, sort_keys=True, default=float)  # noqa: E731 (NaN)
+    want = [r for r in full["results"] if r["case"] == "S1 none, white"]
+    assert same(merged["results"], want)
+    assert same(merged["targets"], heldout.targets(want, 1))
+    edited = json.loads(json.dumps(full, default=float))  # a stored run whose kcf and diskf rows say 999
+    for r in edited["results"]:
+        r["rows"]["kcf"]["mae_state"] = r["rows"]["diskf"]["mae_state"] = 999.0
+    rows = heldout.merge(part, edited)["results"][0]["rows"]
+    assert rows["kcf"]["mae_state"] == want[0]["rows"]["kcf"]["mae_state"] != 999.0  # run: the new row
+    assert rows["diskf"]["mae_state"] == 999.0                                       # not run: the stored row
+    path = tmp_path / "results.json"  # a report's results.json: the document under "heldout", NaN as null
+    path.write_text(json.dumps({"heldout": full}, default=float).replace("NaN", "null"))
+    back = heldout.stored(path)
+    assert back["results"][0]["rows"]["diskf-none"]["mae_input"] != back["results"][0]["rows"]["diskf-none"]["mae_input"]
+    assert heldout.merge(part, back)["results"][0]["rows"]["diskf"] == want[0]["rows"]["diskf"]
+
+
+def test_jobs_give_the_same_document():
+    one = heldout.run(seeds=1, steps=15, names=["diskf", "kcf"], select="S1 ring", progress=False)
+    two = heldout.run(seeds=1, steps=15, names=["diskf", "kcf"], select="S1 ring", progress=False, jobs=2)
+    assert json.dumps(one, default=float) == json.dumps(two, default=float)
+    assert len(one["results"]) == 11
+
+
+def test_against_a_document_of_other_seeds_is_refused_before_running(tmp_path, capsys):
+    doc = heldout.run(seeds=1, steps=20, names=["kcf"], select="S1 none, white", progress=False)
+    path = tmp_path / "h.json"
+    path.write_text(json.dumps(doc, default=float))
+    with pytest.raises(heldout.Mismatch, match="seeds = 1, this run 2"):
+        heldout.merge(dict(doc, seeds=2), doc)
+    argv = ["--estimators", "kcf", "--against", str(path), "--steps", "20", "--select", "S1 none, white"]
+    assert heldout.main(argv + ["--seeds", "2"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+    assert heldout.main(argv + ["--seeds", "1", "--select", "S1 all, white"]) == 2  # a case it does not hold
+    assert "no case 'S1 all, white'" in capsys.readouterr().err
+    assert heldout.main(["--estimators", "nope"]) == 2
+    assert heldout.main(["--against", str(tmp_path / "missing.json")]) == 2

@@ -39,6 +39,15 @@ choice between its models is what fails.
 
 ``--first-seed S`` runs seeds S .. S + seeds - 1 instead of 0 .. seeds - 1:
 the same targets on seeds no default was chosen on.
+
+``--estimators a,b --against FILE`` runs only those estimators and takes
+every other estimator's rows from a held-out document written before
+(``--json``, or a report's ``results.json``) on the same seeds and ticks
+(``merge``): a new estimator, or a new default of one, measured on the
+whole suite against every shipped one at a ninth of the cost.
+``--jobs J`` runs the cases in J processes (the rows are the same).
+
+    python -m diskf_mesh.studies.heldout --estimators diskf-auto --against docs/results.json --jobs 2
 """
 from __future__ import annotations
 
@@ -336,26 +345,106 @@ def targets(results: list[dict], seeds: int) -> dict:
                 auto_nees_cases=nees_cases, diverged_runs=diverged, misses=misses)
 
 
-def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True, bank=False,
-        first: int = 0) -> dict:
-    """The whole suite (or the cases whose label contains ``select``, or
-    any of a list of them) on seeds ``first`` .. ``first + seeds - 1``;
-    ``bank``: each result also holds ``run_bank``'s ``bank``."""
+def selected(select=None) -> list[Case]:
+    """The cases whose label contains ``select`` (or any of a list of
+    them), or whose group it names; every case for None."""
     sel = None if select is None else [select] if isinstance(select, str) else list(select)
-    all_cases = [c for c in cases() if sel is None or any(s in c.label or s == c.group for s in sel)]
-    results = []
+    return [c for c in cases() if sel is None or any(s in c.label or s == c.group for s in sel)]
+
+
+def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True, bank=False,
+        first: int = 0, jobs: int = 1) -> dict:
+    """The whole suite (or the cases ``selected(select)``) on seeds
+    ``first`` .. ``first + seeds - 1``; ``names``: only these estimators;
+    ``bank``: each result also holds ``run_bank``'s ``bank``; ``jobs``:
+    the cases in that many processes (the same rows, in the same order)."""
+    all_cases = selected(select)
     t0 = time.monotonic()
-    for i, c in enumerate(all_cases, 1):
-        results.append(case_record(c, seeds, steps, names, first))
-        rows = results[-1]["rows"]
-        if bank:
-            results[-1]["bank"] = run_bank(c, range(first, first + seeds), steps)
+    work = [(c, seeds, steps, names, first, bank) for c in all_cases]
+
+    def shown(i, record):
         if progress:
-            best = lowest(rows)
-            auto = rows.get(AUTO, {}).get("mae_state", math.nan)
-            print(f"[{i}/{len(all_cases)} {time.monotonic() - t0:6.0f} s] {c.label}: best {best:.3g}, "
-                  f"{AUTO} {auto:.3g}", file=sys.stderr, flush=True)
+            rows = record["rows"]
+            if len(rows) <= 3:  # a few estimators (--estimators): each one's
+                what = ", ".join(f"{k} {v['mae_state']:.3g}" for k, v in rows.items())
+            else:
+                what = f"best {lowest(rows):.3g}, {AUTO} {rows.get(AUTO, {}).get('mae_state', math.nan):.3g}"
+            print(f"[{i}/{len(all_cases)} {time.monotonic() - t0:6.0f} s] {record['case']}: {what}",
+                  file=sys.stderr, flush=True)
+        return record
+
+    if jobs <= 1 or len(work) <= 1:
+        results = [shown(i, _case_job(w)) for i, w in enumerate(work, 1)]
+    else:
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(min(jobs, len(work))) as pool:
+            results = [shown(i, r) for i, r in enumerate(pool.map(_case_job, work), 1)]
     return document(results, seeds, steps, first)
+
+
+def _case_job(job: tuple) -> dict:
+    """One case's record for ``run`` (a top-level function: a worker
+    process can run it)."""
+    c, seeds, steps, names, first, bank = job
+    record = case_record(c, seeds, steps, names, first)
+    if bank:
+        record["bank"] = run_bank(c, range(first, first + seeds), steps)
+    return record
+
+
+class Mismatch(ValueError):
+    """A stored held-out document that cannot stand beside a new run."""
+
+
+def stored(path) -> dict:
+    """The held-out document in ``path``: what ``--json`` writes, or the
+    ``heldout`` entry of a report's ``results.json``. ``Mismatch`` if it is
+    neither."""
+    try:
+        with open(path) as f:
+            doc = json.load(f)
+    except OSError as e:
+        raise Mismatch(f"--against {path}: {e.strerror or e}") from None
+    except ValueError as e:
+        raise Mismatch(f"--against {path}: not JSON ({e})") from None
+    if isinstance(doc, dict) and "results" not in doc and isinstance(doc.get("heldout"), dict):
+        doc = doc["heldout"]
+    if not (isinstance(doc, dict) and isinstance(doc.get("results"), list) and "seeds" in doc):
+        raise Mismatch(f"--against {path}: not a held-out document (no 'seeds' and 'results')")
+    for r in doc["results"]:  # a report's JSON writes NaN (an input MAE of no input) as null
+        for row in r.get("rows", {}).values():
+            for k, v in row.items():
+                if v is None:
+                    row[k] = math.nan
+    return doc
+
+
+def comparable(old: dict, labels, seeds: int, steps: int | None, first: int) -> None:
+    """``Mismatch`` (naming what differs) unless the stored document ``old``
+    is of these seeds, first seed and ticks and holds every case of
+    ``labels``."""
+    for key, default, value in (("seeds", None, seeds), ("first_seed", 0, first), ("steps", None, steps)):
+        if old.get(key, default) != value:
+            raise Mismatch(f"the stored document has {key} = {old.get(key, default)}, this run {value}: "
+                           "run with the same --seeds, --first-seed and --steps")
+    have = {r.get("case") for r in old["results"]}
+    missing = [label for label in labels if label not in have]
+    if missing:
+        raise Mismatch(f"the stored document has no case {missing[0]!r}")
+
+
+def merge(new: dict, old: dict) -> dict:
+    """``new``'s rows beside ``old``'s for every estimator ``new`` did not
+    run, case by case; the targets computed again over the merged rows.
+    ``old`` must be ``comparable`` with ``new``."""
+    comparable(old, [r["case"] for r in new["results"]], new["seeds"], new.get("steps"), new.get("first_seed", 0))
+    by_case = {r["case"]: r for r in old["results"]}
+    results = []
+    for r in new["results"]:
+        rows = {k: v for k, v in by_case[r["case"]]["rows"].items() if k not in r["rows"]}
+        rows.update(r["rows"])
+        results.append({**r, "rows": rows})
+    return document(results, new["seeds"], new.get("steps"), new.get("first_seed", 0))
 
 
 def case_record(case: Case, seeds: int, steps: int | None = None, names=None, first: int = 0) -> dict:
@@ -470,6 +559,12 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--select", default=None, action="append",
                     help="only the cases whose label contains this (or a group name); may be repeated")
+    ap.add_argument("--estimators", default=None, metavar="A,B",
+                    help="only these estimators (comma-separated; default: every one)")
+    ap.add_argument("--against", default=None, metavar="FILE",
+                    help="take the other estimators' rows from this held-out document (--json's, or a report's "
+                         "results.json) of the same seeds and ticks")
+    ap.add_argument("--jobs", type=int, default=1, help="run the cases in this many processes (default 1)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     ap.add_argument("--figure", default=None, help="also draw diskf-auto's model choice over time (a PNG)")
@@ -485,6 +580,18 @@ def main(argv=None) -> int:
         return 2
     if a.first_seed < 0:
         print("error: --first-seed must be at least 0", file=sys.stderr)
+        return 2
+    if a.jobs < 1:
+        print("error: --jobs must be at least 1", file=sys.stderr)
+        return 2
+    try:
+        names = None if a.estimators is None else algorithms.parse_list(a.estimators)
+        old = None if a.against is None else stored(a.against)
+    except ValueError as e:  # an unknown estimator, or a file that is not a held-out document
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if old is not None and not selected(a.select):
+        print("error: --select matches no case", file=sys.stderr)
         return 2
     seeds = range(a.first_seed, a.first_seed + a.seeds)
     if a.by_silence is not None:
@@ -502,7 +609,15 @@ def main(argv=None) -> int:
         return 0
     if a.figure:
         choice_figure(a.figure)
-    doc = run(a.seeds, a.steps, select=a.select, bank=a.bank, first=a.first_seed)
+    if old is not None:  # before the run: a mismatch of seeds, ticks or cases costs nothing
+        try:
+            comparable(old, [c.label for c in selected(a.select)], a.seeds, a.steps, a.first_seed)
+        except Mismatch as e:
+            print(f"error: --against {a.against}: {e}", file=sys.stderr)
+            return 2
+    doc = run(a.seeds, a.steps, names=names, select=a.select, bank=a.bank, first=a.first_seed, jobs=a.jobs)
+    if old is not None:
+        doc = merge(doc, old)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(doc, f, indent=1, default=float)
