@@ -130,6 +130,7 @@ def test_a_subset_of_estimators_merged_with_a_stored_run_is_that_run(tmp_path):
                        jobs=2)
     assert set(part["results"][0]["rows"]) == {"kcf", "diskf-auto"}
     merged = heldout.merge(part, full)
+    assert list(merged["results"][0]["rows"]) == list(NAMES)  # the table's columns in the stored order
     same = lambda a, b: json.dumps(a, sort_keys=True, default=float) == json.dumps(b, sort_keys=True, default=float)  # noqa: E731 (NaN)
     want = [r for r in full["results"] if r["case"] == "S1 none, white"]
     assert same(merged["results"], want)

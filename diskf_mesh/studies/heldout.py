@@ -441,7 +441,7 @@ def merge(new: dict, old: dict) -> dict:
     by_case = {r["case"]: r for r in old["results"]}
     results = []
     for r in new["results"]:
-        rows = {k: v for k, v in by_case[r["case"]]["rows"].items() if k not in r["rows"]}
+        rows = {k: r["rows"].get(k, v) for k, v in by_case[r["case"]]["rows"].items()}  # the stored columns' order
         rows.update(r["rows"])
         results.append({**r, "rows": rows})
     return document(results, new["seeds"], new.get("steps"), new.get("first_seed", 0))
@@ -626,6 +626,9 @@ def main(argv=None) -> int:
         with open(a.markdown, "w") as f:
             f.write(text + "\n")
     t = doc["targets"]
+    if names is not None and old is None:
+        print("note: --estimators without --against: the targets compare the estimators run, not every one",
+              file=sys.stderr)
     print(json.dumps({k: v for k, v in t.items() if k != "misses"}))
     for k, v in t["misses"].items():
         print(f"misses ({k}): {'; '.join(v)}")
