@@ -155,12 +155,18 @@ def test_jobs_give_the_same_document():
     assert len(one["results"]) == 11
 
 
-def test_against_a_document_of_other_seeds_is_refused_before_running(tmp_path, capsys):
+def test_against_a_document_of_other_seeds_is_refused_before_running(tmp_path, capsys, monkeypatch):
     doc = heldout.run(seeds=1, steps=20, names=["kcf"], select="S1 none, white", progress=False)
     path = tmp_path / "h.json"
     path.write_text(json.dumps(doc, default=float))
     with pytest.raises(heldout.Mismatch, match="seeds = 1, this run 2"):
         heldout.merge(dict(doc, seeds=2), doc)
+
+    def ran(*a, **k):
+        raise AssertionError("the suite ran before the stored document was checked")
+
+    monkeypatch.setattr(heldout, "run", ran)
+    monkeypatch.setattr(heldout, "choice_figure", ran)
     argv = ["--estimators", "kcf", "--against", str(path), "--steps", "20", "--select", "S1 none, white"]
     assert heldout.main(argv + ["--seeds", "2"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
@@ -168,3 +174,4 @@ def test_against_a_document_of_other_seeds_is_refused_before_running(tmp_path, c
     assert "no case 'S1 all, white'" in capsys.readouterr().err
     assert heldout.main(["--estimators", "nope"]) == 2
     assert heldout.main(["--against", str(tmp_path / "missing.json")]) == 2
+    assert heldout.main(argv + ["--seeds", "1", "--figure", str(tmp_path / "f.png"), "--first-seed", "3"]) == 2

@@ -396,23 +396,32 @@ class Mismatch(ValueError):
     """A stored held-out document that cannot stand beside a new run."""
 
 
+REPORT_KEY = "heldout"  # the held-out document's entry in a report's results.json
+
+
 def stored(path) -> dict:
     """The held-out document in ``path``: what ``--json`` writes, or the
-    ``heldout`` entry of a report's ``results.json``. ``Mismatch`` if it is
-    neither."""
+    ``REPORT_KEY`` entry of a report's ``results.json``; its missing
+    numbers read as NaN (``nan_rows``). ``Mismatch`` if it is neither."""
     try:
         with open(path) as f:
             doc = json.load(f)
     except OSError as e:
-        raise Mismatch(f"--against {path}: {e.strerror or e}") from None
+        raise Mismatch(e.strerror or str(e)) from None
     except ValueError as e:
-        raise Mismatch(f"--against {path}: not JSON ({e})") from None
-    if isinstance(doc, dict) and "results" not in doc and isinstance(doc.get("heldout"), dict):
-        doc = doc["heldout"]
+        raise Mismatch(f"not JSON ({e})") from None
+    if isinstance(doc, dict) and "results" not in doc and isinstance(doc.get(REPORT_KEY), dict):
+        doc = doc[REPORT_KEY]
     if not (isinstance(doc, dict) and isinstance(doc.get("results"), list) and "seeds" in doc):
-        raise Mismatch(f"--against {path}: not a held-out document (no 'seeds' and 'results')")
-    for r in doc["results"]:  # a report's JSON writes NaN (an input MAE of no input) as null
-        for row in r.get("rows", {}).values():
+        raise Mismatch("not a held-out document (no 'seeds' and 'results')")
+    return nan_rows(doc)
+
+
+def nan_rows(doc: dict) -> dict:
+    """A held-out document read back from JSON: its missing numbers (null,
+    as JSON writes NaN: the input MAE of an estimator of no input) as NaN."""
+    for r in doc.get("results", []):
+        for row in r["rows"].values():
             for k, v in row.items():
                 if v is None:
                     row[k] = math.nan
@@ -586,13 +595,20 @@ def main(argv=None) -> int:
         return 2
     try:
         names = None if a.estimators is None else algorithms.parse_list(a.estimators)
-        old = None if a.against is None else stored(a.against)
-    except ValueError as e:  # an unknown estimator, or a file that is not a held-out document
+    except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    if old is not None and not selected(a.select):
-        print("error: --select matches no case", file=sys.stderr)
-        return 2
+    old = None
+    if a.against is not None:  # before anything runs: a mismatch of seeds, ticks or cases costs nothing
+        labels = [c.label for c in selected(a.select)]
+        try:
+            if not labels:
+                raise Mismatch("--select matches no case")
+            old = stored(a.against)
+            comparable(old, labels, a.seeds, a.steps, a.first_seed)
+        except Mismatch as e:
+            print(f"error: --against {a.against}: {e}", file=sys.stderr)
+            return 2
     seeds = range(a.first_seed, a.first_seed + a.seeds)
     if a.by_silence is not None:
         found = [c for c in cases() if c.label == a.by_silence]
@@ -609,12 +625,6 @@ def main(argv=None) -> int:
         return 0
     if a.figure:
         choice_figure(a.figure)
-    if old is not None:  # before the run: a mismatch of seeds, ticks or cases costs nothing
-        try:
-            comparable(old, [c.label for c in selected(a.select)], a.seeds, a.steps, a.first_seed)
-        except Mismatch as e:
-            print(f"error: --against {a.against}: {e}", file=sys.stderr)
-            return 2
     doc = run(a.seeds, a.steps, names=names, select=a.select, bank=a.bank, first=a.first_seed, jobs=a.jobs)
     if old is not None:
         doc = merge(doc, old)

@@ -701,16 +701,6 @@ def where_right(doc: dict) -> list[str]:
     return out
 
 
-def _nan_rows(doc: dict) -> dict:
-    """A held-out document read back from JSON: its missing numbers (null) as NaN."""
-    for r in doc.get("results", []):
-        for row in r["rows"].values():
-            for k, v in row.items():
-                if v is None:
-                    row[k] = float("nan")
-    return doc
-
-
 def section_heldout(ctx: Context, doc: dict | None) -> str:
     head = (
         "## 11. Beyond the shipped cases: the held-out suite and DISKF-auto's choice\n\n"
@@ -953,10 +943,10 @@ def previous_heldout(path: Path) -> dict | None:
         doc = json.loads(path.read_text()).get(HELDOUT_KEY)
     except (OSError, ValueError, AttributeError):
         return None
-    return _nan_rows(doc) if isinstance(doc, dict) and doc.get("results") else None
+    return heldout.nan_rows(doc) if isinstance(doc, dict) and doc.get("results") else None
 
 
-HELDOUT_KEY = "heldout"
+HELDOUT_KEY = heldout.REPORT_KEY
 
 
 def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1,
