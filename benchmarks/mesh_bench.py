@@ -160,6 +160,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeat", type=int, default=1, help="runs per agent count, the median rate is kept")
     p.add_argument("--baseline", metavar="DIR", type=Path,
                    help="another checkout to run the same from, interleaved, for a side-by-side ratio")
+    p.add_argument("--insecure", action="store_true",
+                   help="both trees run up --insecure: no TLS, no access control")
     p.add_argument("--json", help="also write the rows as JSON")
     args = p.parse_args(argv)
     size = message_bytes()
@@ -172,13 +174,15 @@ def main(argv=None) -> int:
                 # the two trees take turns at going first (ABBA): neither always runs on the other's heels
                 for which in (("this", "baseline") if rep % 2 == 0 else ("baseline", "this")):
                     if which == "this":
-                        row = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), args.profile)
+                        row = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), args.profile,
+                                      insecure=args.insecure)
                         row["message_bytes"] = size
                         runs[n].append(row)
                         print(json.dumps({k: v for k, v in row.items() if k != "profile"}), file=sys.stderr,
                               flush=True)
                     elif args.baseline:
-                        base = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), tree=args.baseline)
+                        base = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), tree=args.baseline,
+                                       insecure=args.insecure)
                         base_runs[n].append(base)
                         print("baseline " + json.dumps(base), file=sys.stderr, flush=True)
     rows = [{**median_run(runs[n]), "n": n} for n in counts]
