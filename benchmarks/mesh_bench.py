@@ -36,7 +36,10 @@ figures of one invocation, not across invocations. ``--baseline DIR`` runs
 the same from another checkout (e.g. ``git archive REV | tar -x -C DIR``)
 back to back with each run of this one, the two taking turns at going
 first, and prints both rates, their ratio and the ratio by which went
-first.
+first. ``--baseline`` may be given more than once (e.g. the commits between
+two trees, to find which one changed the rate): every repeat runs this tree
+and each baseline in turn, in reverse order on every other repeat, and the
+side-by-side table has one row per baseline.
 """
 from __future__ import annotations
 
@@ -158,33 +161,34 @@ def main(argv=None) -> int:
     p.add_argument("--profile", action="store_true",
                    help="also measure where each tick's time goes, per phase, and what bounds the rate")
     p.add_argument("--repeat", type=int, default=1, help="runs per agent count, the median rate is kept")
-    p.add_argument("--baseline", metavar="DIR", type=Path,
-                   help="another checkout to run the same from, interleaved, for a side-by-side ratio")
+    p.add_argument("--baseline", metavar="DIR", type=Path, action="append", default=[],
+                   help="another checkout to run the same from, interleaved, for a side-by-side ratio (repeatable)")
     p.add_argument("--insecure", action="store_true",
-                   help="both trees run up --insecure: no TLS, no access control")
+                   help="every tree runs up --insecure: no TLS, no access control")
     p.add_argument("--json", help="also write the rows as JSON")
     args = p.parse_args(argv)
     size = message_bytes()
     counts = [None] if args.agents == "scenario" else [int(a) for a in args.agents.split(",")]
     runs = {n: [] for n in counts}
-    base_runs = {n: [] for n in counts}
+    base_runs = {b: {n: [] for n in counts} for b in args.baseline}
+    trees = [None] + args.baseline  # None: this tree
     with tempfile.TemporaryDirectory(prefix="mesh-bench-") as tmp:
         for rep in range(max(args.repeat, 1)):
             for n in counts:
-                # the two trees take turns at going first (ABBA): neither always runs on the other's heels
-                for which in (("this", "baseline") if rep % 2 == 0 else ("baseline", "this")):
-                    if which == "this":
+                # the trees take turns at going first (ABBA): none always runs on another's heels
+                for tree in (trees if rep % 2 == 0 else trees[::-1]):
+                    if tree is None:
                         row = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), args.profile,
                                       insecure=args.insecure)
                         row["message_bytes"] = size
                         runs[n].append(row)
                         print(json.dumps({k: v for k, v in row.items() if k != "profile"}), file=sys.stderr,
                               flush=True)
-                    elif args.baseline:
-                        base = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), tree=args.baseline,
+                    else:
+                        base = run_one(args.scenario, n, args.ticks, args.algorithm, Path(tmp), tree=tree,
                                        insecure=args.insecure)
-                        base_runs[n].append(base)
-                        print("baseline " + json.dumps(base), file=sys.stderr, flush=True)
+                        base_runs[tree][n].append(base)
+                        print(f"baseline {tree} " + json.dumps(base), file=sys.stderr, flush=True)
     rows = [{**median_run(runs[n]), "n": n} for n in counts]
     print(f"\n{args.algorithm} on {args.scenario}, {args.ticks} ticks, one process per agent, zenoh on loopback"
           + (f", median of {args.repeat} runs" if args.repeat > 1 else "") + "\n")
@@ -199,30 +203,33 @@ def main(argv=None) -> int:
               f"| {r['message_bytes']} | {r['fused_per_tick']:.1f} | {r['heard_per_tick']:.1f} "
               f"| {'yes' if r['complete'] else 'no'} |")
     if args.baseline:
-        print(f"\nSide by side with {args.baseline} (each pair back to back, the trees taking turns at going first"
+        print(f"\nSide by side with {', '.join(map(str, args.baseline))} (each repeat runs every tree back to back, "
+              "the trees taking turns at going first"
               + ("; only this tree runs with --profile, so its rate pays the profiler's cost and the ratio "
                  "is low: compare rates without --profile" if args.profile else "") + ")\n")
-        print("| agents | baseline ticks/s | ticks/s | ratio of medians | ratio per pair: median (range) "
+        print("| agents | baseline | baseline ticks/s | ticks/s | ratio of medians | ratio per pair: median (range) "
               "| baseline CPU ms/tick | CPU ms/tick |")
-        print("|---:|---:|---:|---:|---:|---:|---:|")
+        print("|---:|---|---:|---:|---:|---:|---:|---:|")
         order_notes = []
         for n, r in zip(counts, rows):
-            b = median_run(base_runs[n])
-            if "error" in r or "error" in b:
-                print(f"| {r['agents']} | {b.get('error', '')} | {r.get('error', '')} | | | | |")
-                continue
-            ratios = [x["ticks_per_s"] / y["ticks_per_s"] if "error" not in x and "error" not in y else None
-                      for x, y in zip(runs[n], base_runs[n])]
-            pairs = sorted(r for r in ratios if r is not None)
-            for first, half in (("this tree", ratios[0::2]), ("the baseline", ratios[1::2])):
-                half = [r for r in half if r is not None]
-                if half:
-                    order_notes.append(f"{r['agents']} agents, {first} first: median ratio "
-                                       f"{statistics.median(half):.2f} over {len(half)} pairs")
-            print(f"| {r['agents']} | {b['ticks_per_s']:.0f}{spread(base_runs[n])} | {r['ticks_per_s']:.0f}"
-                  f"{spread(runs[n])} | {r['ticks_per_s'] / b['ticks_per_s']:.2f} "
-                  f"| {statistics.median(pairs):.2f} ({pairs[0]:.2f}–{pairs[-1]:.2f}) "
-                  f"| {b['cpu_ms_per_tick']:.1f} | {r['cpu_ms_per_tick']:.1f} |")
+            for tree in args.baseline:
+                b = median_run(base_runs[tree][n])
+                if "error" in r or "error" in b:
+                    print(f"| {r['agents']} | {tree} | {b.get('error', '')} | {r.get('error', '')} | | | | |")
+                    continue
+                ratios = [x["ticks_per_s"] / y["ticks_per_s"] if "error" not in x and "error" not in y else None
+                          for x, y in zip(runs[n], base_runs[tree][n])]
+                pairs = sorted(q for q in ratios if q is not None)
+                if len(args.baseline) == 1:
+                    for first, half in (("this tree", ratios[0::2]), ("the baseline", ratios[1::2])):
+                        half = [q for q in half if q is not None]
+                        if half:
+                            order_notes.append(f"{r['agents']} agents, {first} first: median ratio "
+                                               f"{statistics.median(half):.2f} over {len(half)} pairs")
+                print(f"| {r['agents']} | {tree} | {b['ticks_per_s']:.0f}{spread(base_runs[tree][n])} "
+                      f"| {r['ticks_per_s']:.0f}{spread(runs[n])} | {r['ticks_per_s'] / b['ticks_per_s']:.2f} "
+                      f"| {statistics.median(pairs):.2f} ({pairs[0]:.2f}–{pairs[-1]:.2f}) "
+                      f"| {b['cpu_ms_per_tick']:.1f} | {r['cpu_ms_per_tick']:.1f} |")
         if order_notes:
             print()
             for note in order_notes:
