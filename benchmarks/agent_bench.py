@@ -8,9 +8,11 @@ one thread. Prints figures; not a test.
 The payloads of every tick are made first, from the scenario's trace and the
 other agents' messages (``mesh.estimator.lockstep``): the world's tick and
 this agent's measurement, then its in-range neighbours' messages on their
-addressed keys. Then the agent's machine (``mesh.agent_machine``) takes them
-as the events its shell hands it in a real run (``handle(Sample)``, the
-effects dropped): decode, guard, local step, encode, fusion, report. The table splits the time
+addressed keys. Then they reach the agent's machine (``mesh.agent_machine``)
+the way zenoh's callbacks hand them over in a real run: through its shell
+(``mesh.shell.Shell``: the lock, the event, ``handle``, the effects carried
+out) over a transport whose puts go nowhere: decode, guard, local step,
+encode, fusion, report. The table splits the time
 into the estimator's two calls (math) and the rest (protocol); the best of
 ``--repeat`` rounds is kept (the machine is shared). In a mesh run the same
 work costs about twice this, since ten processes share two cores and their
@@ -28,9 +30,10 @@ from diskf_mesh import estimators as algorithms
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.agent_machine import AgentMachine
 from diskf_mesh.mesh.estimator import AgentEstimator, lockstep, neighbours
-from diskf_mesh.mesh.events import AskTokens, Sample, Token, Tokens
-from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.events import AskTokens, Token, Tokens
+from diskf_mesh.mesh.keys import Keys, key_matches
 from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.shell import Shell
 from diskf_mesh.data.scenario import simulate
 
 RUN = "bench"
@@ -57,23 +60,48 @@ def recorded_ticks(spec: RunSpec, ticks: int, me: int) -> list:
     return out
 
 
+class Sink:
+    """A transport whose puts go nowhere; it keeps the shell's subscriptions
+    so that a recorded sample reaches the callback zenoh would call."""
+
+    def __init__(self):
+        self.subscriptions = []  # (key expression, callback)
+
+    def put(self, key, payload, express=True):
+        pass
+
+    def subscribe(self, key_expr, on_sample):
+        self.subscriptions.append((key_expr, on_sample))
+
+    def watch_tokens(self, key_expr, on_change):
+        pass
+
+    def callback(self, key: str):
+        """The callback of the one subscription matching ``key``."""
+        cb, = [cb for expr, cb in self.subscriptions if key_matches(expr, key)]
+        return cb
+
+
 def one_round(spec: RunSpec, me: int, feed: list) -> dict:
-    """Seconds in all of the machine's ``handle`` and in the estimator's two calls."""
+    """Seconds in all of the shell's sample callbacks and in the estimator's two calls."""
     scn = spec.load(len(feed))
     keys = Keys(RUN)
     agent = AgentMachine(scn, me, spec.algorithm, keys, "bench")
-    agent.start(0.0)
+    sink = Sink()
+    Shell(agent, sink, clock=lambda: 0.0).start()  # its subscriptions; the main loop is not needed
     ask, = [e for e in agent.handle(Token(keys.world("w"), True), 0.0) if isinstance(e, AskTokens)]
     agent.handle(Tokens(ask.qid, ()), 0.0)
     for i in (a.id for a in scn.agents):
         agent.handle(Token(keys.alive(i, "bench" if i == me else "w"), True), 0.0)
+    calls = {key: sink.callback(key) for samples in feed for key, _ in samples}
     math_s = [0.0]
     total = 0.0
     for samples in feed:
         for key, payload in samples:
             joined = agent.est is not None
+            cb = calls[key]
             t0 = time.perf_counter()
-            agent.handle(Sample(key, payload), 0.0)
+            cb(key, payload)
             total += time.perf_counter() - t0
             if not joined and agent.est is not None:
                 timed(agent.est, math_s)  # made on tick 1: its local step is not in the math

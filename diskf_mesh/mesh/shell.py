@@ -142,11 +142,15 @@ class Shell:
         """Hand the machine ``Interrupt(why)`` at the main thread's next look."""
         self._interrupt = why
 
+    def start(self) -> None:
+        """Start the machine: carry out its first effects (what it listens to)."""
+        with self._cv:
+            self._do(self.machine.start(self.clock()))
+
     def run(self) -> Finish:
         """Start the machine and run it until its ``Finish``; a callback's
         failure is raised here."""
-        with self._cv:
-            self._do(self.machine.start(self.clock()))
+        self.start()
         while True:
             with self._cv:
                 asks, self._asks = self._asks, []
