@@ -29,6 +29,7 @@ def test_every_case_builds_and_one_runs():
     (res,) = doc["results"]
     assert set(res["rows"]) == set(NAMES)
     assert not any(r["diverged"] for r in res["rows"].values())
+    assert all(0.0 < r["error_ratio"] < heldout.FAR for r in res["rows"].values())
     assert "S1 ring, white" in heldout.markdown(doc)
 
 
@@ -39,6 +40,20 @@ def test_targets_arithmetic():
     t = heldout.targets(results, 20)
     assert (t["family_within_1pct"], t["auto_within_10pct"], t["auto_nees_in_band"]) == (1, 1, 2)
     assert t["misses"]["family"] == ["b"] and t["misses"]["auto"] == ["b"]
+    assert (t["lost_runs"], t["misses"]["lost"]) == (0, [])
+
+
+def test_a_run_that_lost_the_target_is_counted_not_hidden():
+    """A run whose error passed FAR times the target's reach is named in the
+    targets and the table; one stored without error_ratio is not."""
+    row = lambda v, ratio=None: dict(mae_state=v, mae_input=0.0, nees=2.0, nees_band_share=1.0,  # noqa: E731
+                                     diverged=False, **({} if ratio is None else {"error_ratio": ratio}))
+    results = [dict(case="a", n=2, rows={"diskf": row(900.0, 150.0), "diskf-auto": row(1.0, 0.5),
+                                         "kcf": row(1.0)})]
+    t = heldout.targets(results, 20)
+    assert (t["lost_runs"], t["misses"]["lost"]) == (1, ["a: diskf"])
+    doc = dict(results=results, targets=t, seeds=20, steps=None)
+    assert "lost the target" in heldout.markdown(doc) and "| 1 |" in heldout.markdown(doc).split("lost the target")[1]
 
 
 def test_model_choice_is_a_distribution_that_finds_no_input():

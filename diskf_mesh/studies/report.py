@@ -677,12 +677,13 @@ def where_right(doc: dict) -> list[str]:
     n = len(res)
     out = []
     for a in names:
-        best, near, far, div = [], 0, [], 0
+        best, near, far, div, gone = [], 0, [], 0, 0
         for r in res:
             rows = r["rows"]
             if rows[a]["diverged"]:
                 div += 1
                 continue
+            gone += heldout.lost(rows[a])
             lo = heldout.lowest(rows)
             v = rows[a]["mae_state"]
             if v == lo:
@@ -696,7 +697,9 @@ def where_right(doc: dict) -> list[str]:
                    if best else "")
                 + f"; within 10 % of the lowest in {near}; more than twice the lowest in {len(far)}"
                 + (f" ({'; '.join(far[:6])}{'; …' if len(far) > 6 else ''})" if far else "")
-                + (f"; its covariance diverged in {div}" if div else "") + ".")
+                + (f"; its covariance diverged in {div}" if div else "")
+                + (f"; it lost the target in {gone} (its error beyond {heldout.FAR:g} × the target’s farthest "
+                   "distance from the origin)" if gone else "") + ".")
         out.append(text)
     return out
 
