@@ -19,10 +19,10 @@ independent would not be honest). A run whose covariance stops being positive
 definite, or whose state or input estimate leaves what a message may carry, counts as
 diverged (``experiment.run_or_none``). A run that did not diverge but whose
 state error at some (tick, agent) passed ``FAR`` times the target's farthest
-distance from the origin lost the target (``error_ratio``): its error grows
-without bound, as an unbiased input estimate's does where the sensors leave
-an invariant zero outside the unit circle, and it is counted beside the
-diverged ones, not hidden among the numbers.
+distance from the origin lost the target (``error_ratio``; an unbiased input
+estimate gets there where the sensors that measure leave an invariant zero
+outside the unit circle, its error multiplied each measured tick), and it is
+counted beside the diverged ones, not left as a number in the tables.
 
 ``targets`` checks the suite against the three targets: the DISKF family's
 best (every estimator whose name starts with ``diskf``) within 1 % of the
@@ -324,7 +324,8 @@ def bank_summary(results: list[dict]) -> dict:
 
 
 def targets(results: list[dict], seeds: int) -> dict:
-    """The three targets over the suite's results [{case, n, rows}]."""
+    """The three targets over the suite's results [{case, n, rows}], and
+    the runs that diverged or lost the target (``lost``)."""
     fam_ok = auto_ok = nees_ok = nees_cases = diverged = 0
     misses = {"family": [], "auto": [], "nees": [], "lost": []}
     for r in results:
