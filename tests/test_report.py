@@ -11,7 +11,7 @@ import numpy as np
 from diskf_mesh.data.scenario import simulate
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.engine import centralized
-from diskf_mesh.studies import report
+from diskf_mesh.studies import heldout, report
 from diskf_mesh.studies import suite as studies
 
 CFG = studies.StudyConfig(seeds=2, steps=20, algorithms=("diskf", "diskf-r", "kcf"), quiet=True)
@@ -91,7 +91,7 @@ def test_where_each_estimator_is_right_counts_from_the_cases():
 
 
 def test_heldout_results_are_kept_with_their_provenance(tmp_path):
-    (tmp_path / "results.json").write_text(json.dumps({"table_ii": {}, report.HELDOUT_KEY: HELDOUT}).replace("NaN", "null"))
+    (tmp_path / "results.json").write_text(json.dumps({"table_ii": {}, heldout.REPORT_KEY: HELDOUT}).replace("NaN", "null"))
     kept = report.previous_heldout(tmp_path / "results.json")
     assert kept["provenance"]["git_commit"] == "abcdef0123456789"
     assert math.isnan(kept["results"][2]["rows"]["diskf-r"]["mae_state"])  # JSON's null read back as NaN

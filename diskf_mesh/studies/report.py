@@ -7,7 +7,6 @@ own tables. ``write_report`` runs everything and writes
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import subprocess
@@ -941,15 +940,12 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cas
 
 def previous_heldout(path: Path) -> dict | None:
     """The held-out suite's results kept in an earlier ``results.json``
-    (``HELDOUT_KEY``, with their own provenance), or None."""
+    (``heldout.REPORT_KEY``, with their own provenance; ``heldout.stored``),
+    or None."""
     try:
-        doc = json.loads(path.read_text()).get(HELDOUT_KEY)
-    except (OSError, ValueError, AttributeError):
+        return heldout.stored(path)
+    except heldout.Mismatch:
         return None
-    return heldout.nan_rows(doc) if isinstance(doc, dict) and doc.get("results") else None
-
-
-HELDOUT_KEY = heldout.REPORT_KEY
 
 
 def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1,
@@ -984,7 +980,7 @@ def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1
             seeds=cfg.seed_range, ticks=cfg.steps or max(c.scenario.steps for c in cases), estimator=cfg.algorithms,
             status="done", started=started)
     if kept is not None:
-        doc[HELDOUT_KEY] = kept
+        doc[heldout.REPORT_KEY] = kept
     md = out / "reproduction.md"
     with atomic_open(md, "w") as f:
         f.write(render(res, "figures", kept, started))
