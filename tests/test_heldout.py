@@ -43,6 +43,31 @@ def test_targets_arithmetic():
     assert (t["lost_runs"], t["misses"]["lost"]) == (0, [])
 
 
+def test_error_ratio_is_the_largest_error_over_the_targets_reach(monkeypatch):
+    """An estimate equal to the truth but 300 off in one (tick, agent) cell:
+    error_ratio is 300 over the target's farthest distance from the origin,
+    and the run lost the target once that passes FAR."""
+    import numpy as np
+
+    from diskf_mesh.data.scenario import simulate
+    from diskf_mesh.engine.batch import Estimates
+    from diskf_mesh.studies import experiment
+
+    case = heldout.selected("S1 ring, zero")[0]
+    tr = simulate(case.scenario.with_overrides(steps=10), [0])
+    S, K, N = tr.has.shape
+    n = tr.truth_x.shape[-1]
+    x = np.repeat(tr.truth_x[:, :, None, :], N, axis=2).copy()
+    x[0, 4, 1, 0] += 300.0
+    est = Estimates(x, np.broadcast_to(np.eye(n), (S, K, N, n, n)).copy(), np.zeros((S, K, N, 1)),
+                    np.zeros((S, K, N), dtype=bool))
+    monkeypatch.setattr(experiment, "run_or_none", lambda *a: est)
+    reach = np.linalg.norm(tr.truth_x[..., list(tr.position_dims)], axis=-1).max()
+    row = heldout.case_row(tr, "kcf", case.scenario.params)
+    assert row["error_ratio"] == pytest.approx(300.0 / reach, rel=1e-12)
+    assert heldout.lost(row) == (300.0 / reach > heldout.FAR)
+
+
 def test_a_run_that_lost_the_target_is_counted_not_hidden():
     """A run whose error passed FAR times the target's reach is named in the
     targets and the table; one stored without error_ratio is not."""
