@@ -226,9 +226,11 @@ def main(argv=None) -> int:
                         if half:
                             order_notes.append(f"{r['agents']} agents, {first} first: median ratio "
                                                f"{statistics.median(half):.2f} over {len(half)} pairs")
+                per_pair = (f"{statistics.median(pairs):.2f} ({pairs[0]:.2f}–{pairs[-1]:.2f})" if pairs
+                            else "no pair where both completed")
                 print(f"| {r['agents']} | {tree} | {b['ticks_per_s']:.0f}{spread(base_runs[tree][n])} "
                       f"| {r['ticks_per_s']:.0f}{spread(runs[n])} | {r['ticks_per_s'] / b['ticks_per_s']:.2f} "
-                      f"| {statistics.median(pairs):.2f} ({pairs[0]:.2f}–{pairs[-1]:.2f}) "
+                      f"| {per_pair} "
                       f"| {b['cpu_ms_per_tick']:.1f} | {r['cpu_ms_per_tick']:.1f} |")
         if order_notes:
             print()
@@ -256,7 +258,12 @@ def main(argv=None) -> int:
             print(profile.format_table(r["profile"]["world"], f"{r['agents']} agents: the world"))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
-    return 0
+    failed = [f"{n} agents" for n, r in zip(counts, rows) if "error" in r]
+    failed += [f"{n} agents from {tree}" for tree in args.baseline for n in counts
+               if "error" in median_run(base_runs[tree][n])]
+    if failed:
+        print(f"mesh_bench: every run failed at {', '.join(failed)} (the tables say why)", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
