@@ -1,7 +1,9 @@
 """A plain per-agent reference of ``diskf-auto`` (the test oracle), in the
 spirit of ``robust_oracle``: explicit loops over seeds, ticks, agents,
-neighbours and models; each model's joint (x, d) mean and covariance as one
-(n + m)-vector and (n + m) x (n + m) matrix; the stacked H, R, y of the
+neighbours and models; each model's joint (x, d_{k-1}, d_{k-2}) mean and
+covariance as one (n + 2m)-vector and matrix, the input a second-order
+recursion d_{k-1} = a1 d_{k-2} + a2 d_{k-3} + eta written out from its
+period and radius; the stacked H, R, y of the
 neighbourhood's measurements in gain form (Joseph) and the likelihood as the
 textbook Gaussian density N(y; H x, H P H^T + R); numpy.linalg only, no
 code shared with ``equations``, ``input_models`` or ``linalg``.
@@ -16,12 +18,17 @@ from robust_oracle import _replace, fast_ci, scales
 FLOOR = 1e-6
 
 
-def bank(qp, qs, none=True, walk=True, zero_mean=True):
+def bank(qp, qs, none=True, walk=True, zero_mean=True, oscillating=True):
+    """[(a1, a2, q)]: d_{k-1} = a1 d_{k-2} + a2 d_{k-3} + eta, eta ~ N(0, q)."""
     lo, hi = min(qp, qs), 100.0 * max(qp, qs)
     mid, rev = np.sqrt(lo * hi), np.exp(-0.1)
-    out = [(0.0, 0.0)] if none else []
-    out += [(1.0, lo), (1.0, mid), (1.0, hi)] if walk else []
-    out += [(0.0, qs), (0.0, hi), (rev, mid), (rev, hi)] if zero_mean else []
+    out = [(0.0, 0.0, 0.0)] if none else []
+    out += [(1.0, 0.0, lo), (1.0, 0.0, mid), (1.0, 0.0, hi)] if walk else []
+    out += [(0.0, 0.0, qs), (0.0, 0.0, hi), (rev, 0.0, mid), (rev, 0.0, hi)] if zero_mean else []
+    r = 0.95
+    for k in range(13) if oscillating else ():
+        period = 4.0 * 2.0 ** (k / 4)  # poles r exp(+-2 pi i / period)
+        out.append((2 * r * np.cos(2 * np.pi / period), -r * r, mid))
     return out
 
 
@@ -30,22 +37,27 @@ def run_auto(trace, options):
     B, K, N = trace.has.shape
     n, m = model.n, model.m
     G, Q = model.G, model.Q
-    models = bank(*scales(model, sensors), options.none, options.walk, options.zero_mean)
+    models = bank(*scales(model, sensors), options.none, options.walk, options.zero_mean, options.oscillating)
     M = len(models)
-    Pi = np.full((M, M), options.switch / (M - 1)) if M > 1 else np.ones((1, 1))
-    np.fill_diagonal(Pi, 1.0 - options.switch if M > 1 else 1.0)
-    prior = 100.0 * max(q for _, q in models)
+    # before any evidence the oscillating models share one model's probability; a switch moves by those shares
+    share = np.array([1.0 / sum(a2 != 0 for _, a2, _ in models) if a2 != 0 else 1.0 for _, a2, _ in models])
+    mu_first = share / share.sum()
+    Pi = np.ones((1, 1)) if M == 1 else np.array(
+        [[1.0 - options.switch if i == j else options.switch * mu_first[j] / (1.0 - mu_first[i]) for j in range(M)]
+         for i in range(M)])
+    prior = 100.0 * max(q for _, _, q in models)
     iv, idd = np.arange(n), np.arange(n, n + m)
-    Tx = np.block([[np.eye(n), G], [np.zeros((m, n)), np.eye(m)]])
+    Tx = np.eye(n + 2 * m)
+    Tx[:n, n:n + m] = G
     out = dict(x=np.zeros((B, K, N, n)), P=np.zeros((B, K, N, n, n)), d=np.zeros((B, K, N, m)),
                v=np.zeros((B, K, N), dtype=bool))
     Hs = [sensors.H[i, : sensors.p[i]] for i in range(N)]
     Rs = [sensors.R[i, : sensors.p[i], : sensors.p[i]] for i in range(N)]
     for b in range(B):
-        z0 = np.concatenate([model.x0.astype(float), np.zeros(m)])
-        Z0 = scipy.linalg.block_diag(model.P0, prior * np.eye(m))
+        z0 = np.concatenate([model.x0.astype(float), np.zeros(2 * m)])
+        Z0 = scipy.linalg.block_diag(model.P0, prior * np.eye(2 * m))
         agents = [dict(x=z0[:n].copy(), P=Z0[:n, :n].copy(), d=np.zeros(m), S=prior * np.eye(m), held=False,
-                       mu=np.full(M, 1.0 / M), z=[z0.copy() for _ in range(M)], Z=[Z0.copy() for _ in range(M)])
+                       mu=mu_first.copy(), z=[z0.copy() for _ in range(M)], Z=[Z0.copy() for _ in range(M)])
                   for _ in range(N)]
         links = trace.links[min(b, trace.links.shape[0] - 1)]
         for k in range(1, K + 1):
@@ -66,34 +78,36 @@ def run_auto(trace, options):
                 c = np.array([sum(Pi[s, j] * mu0[s] for s in range(M)) for j in range(M)])
                 meas = [j for j in nb if trace.has[b, k - 1, j]]
                 zs, Zs, ll, relayed = [], [], np.zeros(M), False
-                for j, (rho, q) in enumerate(models):
+                for j, (a1, a2, q) in enumerate(models):
                     wts = [Pi[s, j] * mu0[s] / c[j] for s in range(M)]
                     zm = sum(w * a["z"][s] for w, s in zip(wts, range(M)))
                     within = sum(w * a["Z"][s] for w, s in zip(wts, range(M)))
                     spread = sum(w * np.outer(a["z"][s] - zm, a["z"][s] - zm) for w, s in zip(wts, range(M)))
                     tw, ts = np.trace(within), np.trace(spread)
                     Zm = within + (spread * (tw / ts) if ts > tw else spread)
-                    Tv = scipy.linalg.block_diag(A, rho * np.eye(m))
+                    F = np.block([[a1 * np.eye(m), a2 * np.eye(m)], [np.eye(m), np.zeros((m, m))]])
+                    Tv = scipy.linalg.block_diag(A, F)
                     w = Tv @ zm
-                    W = Tv @ Zm @ Tv.T + scipy.linalg.block_diag(Q, q * np.eye(m))
+                    W = Tv @ Zm @ Tv.T + scipy.linalg.block_diag(Q, q * np.eye(m), np.zeros((m, m)))
                     w, W = _replace(w, W, iv, xc + Mt @ (w[iv] - pred[i][0]), Mt @ W[np.ix_(iv, iv)] @ Mt.T)
                     others = [s for s in nb if s != i and sent[s][2]]
-                    if rho > 0 and others:
-                        dn, Sn = fast_ci([rho * sent[s][0] for s in others],
-                                         [rho * rho * sent[s][1] + q * np.eye(m) for s in others])
+                    if a2 == 0 and a1 > 0 and others:
+                        dn, Sn = fast_ci([a1 * sent[s][0] for s in others],
+                                         [a1 * a1 * sent[s][1] + q * np.eye(m) for s in others])
                         dr, Sr = fast_ci([w[idd], dn], [W[np.ix_(idd, idd)], Sn])
                         w, W = _replace(w, W, idd, dr, Sr)
                         relayed = True
                     za, Pa = Tx @ w, Tx @ W @ Tx.T
                     if meas:
-                        H = np.hstack([np.vstack([Hs[s] for s in meas]), np.zeros((sum(sensors.p[s] for s in meas), m))])
+                        H = np.hstack([np.vstack([Hs[s] for s in meas]),
+                                       np.zeros((sum(sensors.p[s] for s in meas), 2 * m))])
                         R = scipy.linalg.block_diag(*[Rs[s] for s in meas])
                         y = np.concatenate([trace.y[b, k - 1, s, : sensors.p[s]] for s in meas])
                         Sg = H @ Pa @ H.T + R
                         r = y - H @ za
                         ll[j] = -0.5 * (r @ np.linalg.solve(Sg, r) + np.linalg.slogdet(Sg)[1])
                         L = Pa @ H.T @ np.linalg.inv(Sg)
-                        IL = np.eye(n + m) - L @ H
+                        IL = np.eye(n + 2 * m) - L @ H
                         za, Pa = za + L @ r, IL @ Pa @ IL.T + L @ R @ L.T
                     zs.append(za)
                     Zs.append(Pa)
@@ -103,7 +117,8 @@ def run_auto(trace, options):
                 z = sum(mu[j] * zs[j] for j in range(M))
                 Z = sum(mu[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
                 held = a["held"] or bool(meas) or relayed
-                new.append(dict(x=z[:n], P=Z[:n, :n], d=z[n:], S=Z[n:, n:], held=held, mu=mu, z=zs, Z=Zs))
+                new.append(dict(x=z[:n], P=Z[:n, :n], d=z[n:n + m], S=Z[n:n + m, n:n + m], held=held, mu=mu, z=zs,
+                                Z=Zs))
             agents = new
             for i, a in enumerate(agents):
                 out["x"][b, k - 1, i], out["P"][b, k - 1, i] = a["x"], a["P"]

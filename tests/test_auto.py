@@ -70,7 +70,8 @@ def test_auto_settings_from_a_scenario():
            "agents": [{"H": [[1.0, 0.0]], "R": [[2.0]]}], "estimator": {"auto": {"switch": 0.02, "none": False}}}
     assert parse_scenario(raw).params.auto == AutoOptions(switch=0.02, none=False)
     for bad, field in (({"switch": 0.0}, "estimator.auto.switch"), ({"switch": 1}, "estimator.auto.switch"),
-                       ({"none": False, "walk": False, "zero_mean": False}, "estimator.auto"),
+                       ({"none": False, "walk": False, "zero_mean": False, "oscillating": False},
+                        "estimator.auto"),
                        ({"walk": 1}, "estimator.auto.walk")):
         raw["estimator"]["auto"] = bad
         with pytest.raises(InputError) as e:

@@ -99,8 +99,9 @@ def test_bank_members_are_diskf_auto_models_alone():
     scn = case.scenario
     auto = get("diskf-auto")(scn.model(), scn.sensors(), scn.params)
     members = heldout.bank_members(scn)
-    assert [name for name, _ in members] == list(auto.bank)
-    for (_, params), rho, q in zip(members, auto.rho, auto.q):
+    first = auto.a2 == 0  # diskf-r holds the first-order models
+    assert [name for name, _ in members] == [b for b, f in zip(auto.bank, first) if f]
+    for (_, params), rho, q in zip(members, auto.a1[first], auto.q[first]):
         alone = get("diskf-r")(scn.model(), scn.sensors(), params)
         assert (alone.rho, alone.walk) == (rho, q)
         assert alone.prior == pytest.approx(auto.prior, rel=1e-12)

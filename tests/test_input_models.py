@@ -122,13 +122,66 @@ def test_affine_prior_hand_worked():
 
 
 def test_default_bank_follows_the_scales():
-    names, rho, q = im.default_bank(0.1, 2.0)
+    names, a1, a2, q = im.default_bank(0.1, 2.0)
     lo, hi = 0.1, 200.0
-    assert names[0] == "none" and rho[0] == 0.0 and q[0] == 0.0
+    assert names[0] == "none" and a1[0] == 0.0 and q[0] == 0.0
     np.testing.assert_allclose(q[1:4], [lo, np.sqrt(lo * hi), hi])
-    assert set(rho[1:4]) == {1.0}
-    names, _, _ = im.default_bank(0.1, 2.0, none=False, zero_mean=False)
+    assert set(a1[1:4]) == {1.0} and not a2[:8].any()
+    # the oscillating models: every period of PERIODS at sqrt(lo hi), their names in the wire's order
+    assert names[8:] == im.OSCILLATING and names == im.BANK
+    np.testing.assert_allclose(q[8:], np.sqrt(lo * hi))
+    np.testing.assert_allclose(a2[8:], -0.95 ** 2)
+    names, _, _, _ = im.default_bank(0.1, 2.0, none=False, zero_mean=False, oscillating_inputs=False)
     assert names == ("walk lo", "walk mid", "walk hi")
+
+
+def test_oscillating_model_is_a_sinusoid():
+    """r = 1 and no noise: (IM2) reproduces any sinusoid of the period exactly;
+    period 4: a1 = 2 r cos(pi / 2) = 0, a2 = -r^2."""
+    a1, a2 = im.oscillating(10.0, 1.0)
+    d = 3.0 * np.sin(2 * np.pi * np.arange(30) / 10.0 + 0.7)
+    np.testing.assert_allclose(a1 * d[1:-1] + a2 * d[:-2], d[2:], atol=1e-12)
+    a1, a2 = im.oscillating(4.0, 0.5)
+    assert abs(a1) < 1e-15 and a2 == -0.25
+
+
+def test_companion_and_pair_predict_hand_worked():
+    F = im.companion(0.5, -0.25, 2)
+    np.testing.assert_array_equal(F, [[0.5, 0, -0.25, 0], [0, 0.5, 0, -0.25], [1, 0, 0, 0], [0, 1, 0, 0]])
+    # n = 2, m = 1: e = (d_{k-1}, d_{k-2}) = (2, 1); F e = (0.5 * 2 - 0.25 * 1, 2)
+    A = np.array([[1.0, 1.0], [0.0, 1.0]])
+    C = np.array([[1.0, 0.0], [0.0, 2.0]])
+    S = np.array([[1.0, 0.5], [0.5, 2.0]])
+    e, B, S1 = im.pair_predict(A, C, np.array([2.0, 1.0]), S, im.companion(0.5, -0.25, 1), 0.5)
+    np.testing.assert_allclose(e, [0.75, 2.0])
+    np.testing.assert_allclose(B, [[0.0, 1.0], [-0.5, 0.0]])         # (A C) F^T
+    np.testing.assert_allclose(S1, [[0.75, 0.375], [0.375, 1.0]])    # F S F^T + q on d_{k-1}
+    # a2 = 0: the first block is input_predict's
+    d, B1, S2 = im.input_predict(A, C[:, :1], np.array([2.0]), S[:1, :1], 0.5, 0.5)
+    e, B, S1 = im.pair_predict(A, C, np.array([2.0, 1.0]), S, im.companion(0.5, 0.0, 1), 0.5)
+    np.testing.assert_allclose(e[:1], d)
+    np.testing.assert_allclose(B[:, :1], B1)
+    np.testing.assert_allclose(S1[:1, :1], S2)
+
+
+def test_replace_part_hand_worked():
+    """The second component's marginal replaced by (1, 1) in N(0, [[2, 1], [1, 2]]):
+    K = 1/2, the first becomes 0.5 with variance 2 - 0.5 + 0.25, covariance 0.5."""
+    z, Z = im.replace_part(np.zeros(2), np.array([[2.0, 1.0], [1.0, 2.0]]), [1], np.array([1.0]), np.array([[1.0]]))
+    np.testing.assert_allclose(z, [0.5, 1.0])
+    np.testing.assert_allclose(Z, [[1.75, 0.5], [0.5, 1.0]])
+
+
+def test_initial_probabilities_and_chain_by_shares():
+    """Two first-order models and three oscillating ones: the oscillating share
+    one model's probability; a switch moves by those shares."""
+    mu = im.initial_probabilities([0.0, 0.0, -1.0, -1.0, -1.0])
+    np.testing.assert_allclose(mu, [1 / 3, 1 / 3, 1 / 9, 1 / 9, 1 / 9])
+    Pi = im.transition_matrix(5, 0.1, mu)
+    np.testing.assert_allclose(Pi.sum(axis=1), 1.0)
+    np.testing.assert_allclose(Pi[0], [0.9, 0.05, 0.1 / 6, 0.1 / 6, 0.1 / 6])      # 0.1 * (1/3, 1/9) / (2/3)
+    np.testing.assert_allclose(Pi[2], [0.1 * 3 / 8, 0.1 * 3 / 8, 0.9, 0.1 / 8, 0.1 / 8])  # 0.1 * (1/3, 1/9) / (8/9)
+    np.testing.assert_allclose(im.transition_matrix(3, 0.2), [[0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8]])
 
 
 def test_pool_probabilities_hand_worked():

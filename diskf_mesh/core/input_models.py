@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from diskf_mesh.core.equations import replace_marginal
 from diskf_mesh.core.linalg import T, inv_spd, mv, nbr_sum, row_sum, solve, sym
 
 INPUT_MODELS = ("walk", "mean-reverting", "none")
@@ -205,12 +206,16 @@ def _sum_last(a):
     return out
 
 
-def transition_matrix(M: int, switch: float) -> np.ndarray:
+def transition_matrix(M: int, switch: float, prior=None) -> np.ndarray:
     """The models' Markov chain: stay with probability 1 - ``switch``, move
-    to each other model with switch / (M - 1)."""
+    to another model j with switch prior_j / (1 - prior_i), the models'
+    initial probabilities (``initial_probabilities``) renormalised over the
+    others; a uniform prior (the default) moves to each with
+    switch / (M - 1)."""
     if M == 1:
         return np.ones((1, 1))
-    Pi = np.full((M, M), switch / (M - 1))
+    prior = np.full(M, 1.0 / M) if prior is None else np.asarray(prior, dtype=float)
+    Pi = switch * prior[None, :] / (1.0 - prior[:, None])
     np.fill_diagonal(Pi, 1.0 - switch)
     return Pi
 
@@ -226,6 +231,25 @@ def joint(x, P, d, S, C):
 def split(z, Z, n: int):
     """The inverse of ``joint``: (x, P, d, S, C)."""
     return z[..., :n], Z[..., :n, :n], z[..., n:], Z[..., n:, n:], Z[..., :n, n:]
+
+
+def replace_part(z, Z, part, a_new, Paa_new):
+    """The joint Gaussian (z, Z) with the marginal of its components
+    ``part`` (indices) replaced by (a_new, Paa_new), the conditional of the
+    other components given them kept: ``equations.replace_marginal`` on any
+    split of one vector. z: (..., k); Z: (..., k, k); a_new: (..., len(part))."""
+    part = np.asarray(part)
+    rest = np.setdiff1d(np.arange(z.shape[-1]), part)
+    b, Pab, Pbb = replace_marginal(z[..., part], Z[..., part[:, None], part], z[..., rest],
+                                   Z[..., part[:, None], rest], Z[..., rest[:, None], rest], a_new, Paa_new)
+    z_new = np.empty_like(z)
+    z_new[..., part], z_new[..., rest] = a_new, b
+    Z_new = np.empty_like(Z)
+    Z_new[..., part[:, None], part] = Paa_new
+    Z_new[..., part[:, None], rest] = Pab
+    Z_new[..., rest[:, None], part] = T(Pab)
+    Z_new[..., rest[:, None], rest] = Pbb
+    return z_new, Z_new
 
 
 def affine_prior(x_from, P_from, x_to, P_to, v, Pv, B):
@@ -246,32 +270,105 @@ def affine_prior(x_from, P_from, x_to, P_to, v, Pv, B):
 
 REVERT = float(np.exp(-0.1))  # rho of the bank's mean-reverting models: a memory of 10 ticks
 
+# (IM2): the oscillating models of ``diskf-auto``'s bank: periods in quarter octaves from 4 ticks (two samples
+# a half-period) to 32, and the radius of a memory of 20 ticks (1 / (1 - r))
+PERIODS = tuple(4.0 * 2.0 ** (k / 4) for k in range(13))
+RADIUS = 0.95
 
-def default_bank(q_process: float, q_sensor: float, none: bool = True, walk: bool = True, zero_mean: bool = True):
+
+def oscillating(period, radius=RADIUS):
+    """(a1, a2) of the second-order input model
+
+        d_{k-1} = a1 d_{k-2} + a2 d_{k-3} + eta,    eta ~ N(0, q I)      (IM2)
+
+    for an input that oscillates with ``period`` ticks: a1 = 2 r cos(2 pi / period),
+    a2 = -r^2, the poles r e^{+-2 pi i / period}. With eta = 0 and r = 1 the
+    recursion is exactly a sinusoid of that period (any amplitude and phase);
+    r < 1 and eta let its amplitude and phase drift, forgotten in about
+    1 / (1 - r) ticks. (IM) is (IM2) with a1 = rho, a2 = 0."""
+    period = np.asarray(period, dtype=float)
+    return 2.0 * radius * np.cos(2.0 * np.pi / period), np.full(period.shape, -radius * radius)
+
+
+def companion(a1, a2, m: int) -> np.ndarray:
+    """The transition of (IM2) on the input pair e_{k-1} = (d_{k-1}, d_{k-2}):
+    F = [[a1 I, a2 I], [I, 0]] (m x m blocks). a1, a2: (...,). Returns
+    (..., 2m, 2m)."""
+    a1, a2 = np.asarray(a1, dtype=float), np.asarray(a2, dtype=float)
+    I = np.eye(m)
+    F = np.zeros(a1.shape + (2 * m, 2 * m))
+    F[..., :m, :m] = a1[..., None, None] * I
+    F[..., :m, m:] = a2[..., None, None] * I
+    F[..., m:, :m] = I
+    return F
+
+
+def pair_predict(A, C, e, S, F, q):
+    """The joint prediction of (v_k, e_{k-1}), e = (d_{k-1}, d_{k-2}), under
+    (IM2): with the fused (x_bar, e_bar) of tick k-1, joint error covariance
+    [[P_bar, C], [C^T, S]], the errors of v = A x_bar and of F e_bar are
+    A e_x - w and F e_e - (eta, 0), so
+
+        e'        = F e
+        cov(v, e) = A C F^T
+        cov(e)    = F S F^T + [[q I, 0], [0, 0]]
+
+    (``input_predict`` on the pair; with a2 = 0 its first block is
+    ``input_predict``'s). A: (n, n); C: (..., n, 2m); e: (..., 2m);
+    S: (..., 2m, 2m); F: (..., 2m, 2m) (``companion``); q: broadcasting
+    against the batch. Returns (F e, A C F^T, F S F^T + q on the first block).
+    """
+    q = np.asarray(q, dtype=float)
+    m = e.shape[-1] // 2
+    noise = np.zeros(e.shape[-1:] * 2)
+    noise[:m, :m] = np.eye(m)
+    return mv(F, e), np.matmul(np.matmul(A, C), T(F)), sym(np.matmul(np.matmul(F, S), T(F))
+                                                           + q[..., None, None] * noise)
+
+
+def default_bank(q_process: float, q_sensor: float, none: bool = True, walk: bool = True, zero_mean: bool = True,
+                 oscillating_inputs: bool = True):
     """The input models ``diskf-auto`` weighs, from the scales of
-    ``input_scales``: (names, rho (M,), q (M,)).
+    ``input_scales``: (names, a1 (M,), a2 (M,), q (M,)) of (IM2).
 
     The scales run from lo = min(q_process, q_sensor) to
     hi = 100 max(q_process, q_sensor) (an input ten times the sensor's noise
     per tick): no input; random walks at lo, sqrt(lo hi) and hi (an input
     that stays, drifts, or jumps); a zero-mean input at q_sensor and at hi
-    (noise-like or switching inputs, small and large)."""
+    (noise-like or switching inputs, small and large); mean-reverting inputs
+    (rho = ``REVERT``) at sqrt(lo hi) and hi; oscillating inputs of every
+    period of ``PERIODS`` at sqrt(lo hi) (``oscillating``)."""
     lo, hi = min(q_process, q_sensor), 100.0 * max(q_process, q_sensor)
+    mid = float(np.sqrt(lo * hi))
     bank = []
     if none:
-        bank.append(("none", 0.0, 0.0))
+        bank.append(("none", 0.0, 0.0, 0.0))
     if walk:
-        bank += [("walk lo", 1.0, lo), ("walk mid", 1.0, float(np.sqrt(lo * hi))), ("walk hi", 1.0, hi)]
+        bank += [("walk lo", 1.0, 0.0, lo), ("walk mid", 1.0, 0.0, mid), ("walk hi", 1.0, 0.0, hi)]
     if zero_mean:
-        bank += [("zero-mean lo", 0.0, q_sensor), ("zero-mean hi", 0.0, hi)]
-        mid = float(np.sqrt(lo * hi))
-        bank += [("reverting mid", REVERT, mid), ("reverting hi", REVERT, hi)]
-    names, rho, q = zip(*bank)
-    return names, np.array(rho), np.array(q)
+        bank += [("zero-mean lo", 0.0, 0.0, q_sensor), ("zero-mean hi", 0.0, 0.0, hi)]
+        bank += [("reverting mid", REVERT, 0.0, mid), ("reverting hi", REVERT, 0.0, hi)]
+    if oscillating_inputs:
+        for name, period in zip(OSCILLATING, PERIODS):
+            a1, a2 = oscillating(period)
+            bank.append((name, float(a1), float(a2), mid))
+    names, a1, a2, q = zip(*bank)
+    return names, np.array(a1), np.array(a2), np.array(q)
 
 
+def initial_probabilities(a2) -> np.ndarray:
+    """The models' probabilities before any evidence: every first-order
+    model (a2 = 0) one share, the oscillating models one share together
+    (the period of an input that oscillates is one question, not thirteen)."""
+    osc = np.asarray(a2) != 0
+    w = np.where(osc, 1.0 / max(int(osc.sum()), 1), 1.0)
+    return w / w.sum()
+
+
+OSCILLATING = tuple(f"oscillating {p:.3g}" for p in PERIODS)
 # every model ``default_bank`` may hold, in its order: the slots of diskf-auto's model probabilities on the wire
-BANK = ("none", "walk lo", "walk mid", "walk hi", "zero-mean lo", "zero-mean hi", "reverting mid", "reverting hi")
+BANK = ("none", "walk lo", "walk mid", "walk hi", "zero-mean lo", "zero-mean hi", "reverting mid",
+        "reverting hi") + OSCILLATING
 
 
 def pool_probabilities(adj, w, floor: float):

@@ -179,6 +179,8 @@ class AutoOptions:
     walk:      random walks at three scales (persistent inputs: steps, ramps)
     zero_mean: zero-mean inputs at two scales and mean-reverting ones
                (rho = exp(-1/10)) at two (noise-like, switching, fast inputs)
+    oscillating: oscillating inputs, periods 4 to 32 ticks in quarter
+               octaves (``input_models.oscillating``: vibration, weaving)
     switch:    the models' Markov chain: 1 - switch to stay (0.001: a change of
                input model expected about once in 1,000 ticks)
     """
@@ -186,10 +188,11 @@ class AutoOptions:
     none: bool = True
     walk: bool = True
     zero_mean: bool = True
+    oscillating: bool = True
     switch: float = 0.001
 
     def __post_init__(self):
-        if not (self.none or self.walk or self.zero_mean):
-            raise ValueError("auto: at least one of none, walk, zero_mean must be true")
+        if not (self.none or self.walk or self.zero_mean or self.oscillating):
+            raise ValueError("auto: at least one of none, walk, zero_mean, oscillating must be true")
         if isinstance(self.switch, bool) or not np.isfinite(self.switch) or not 0 < self.switch < 1:
             raise ValueError(f"auto.switch: must be a number between 0 and 1 (exclusive), got {self.switch!r}")

@@ -4,17 +4,21 @@ extension of Algorithm 1, not the paper's).
 ``diskf-r`` assumes one input model (a random walk of a given scale). Which
 one fits depends on the input met: a persistent input wants the walk, an
 input that switches or has no input at all wants a zero-mean model or none,
-and a scale wrong by orders of magnitude costs either way. ``diskf-auto``
-runs a bank of the input models of ``core.input_models`` (``default_bank``:
-no input, random walks and zero-mean inputs at scales from the scenario's
-own Q, G and the sensors' R) and mixes them as the interacting multiple
-model filter does (Blom and Bar-Shalom 1988):
+an input that oscillates wants a model that predicts its swing, and a scale
+wrong by orders of magnitude costs either way. ``diskf-auto`` runs a bank of
+the input models of ``core.input_models`` (``default_bank``: no input,
+random walks, zero-mean and mean-reverting inputs, and oscillating inputs of
+periods 4 to 32 ticks, at scales from the scenario's own Q, G and the
+sensors' R) and mixes them as the interacting multiple model filter does
+(Blom and Bar-Shalom 1988). Every model is the second-order recursion (IM2)
+d_{k-1} = a1 d_{k-2} + a2 d_{k-3} + eta (a first-order model has a2 = 0), so
+each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
 
 1. local, as ``diskf-r``: the prediction x^ = A x_bar and the local
    update of the agent's *combined* estimate; the message is diskf-r's
    (x^, P^, x~, P~, the combined fused input d, S) and the agent's model
-   probabilities w (eight floats, one per model of ``input_models.BANK``,
-   0 for a model not in the bank). No H, R or y; one message per tick.
+   probabilities w (one float per model of ``input_models.BANK``, 0 for a
+   model not in the bank). No H, R or y; one message per tick.
 2. fuse, mixing: the models' prior probabilities are the fused senders'
    (the agent's own included) pooled by their normalised geometric mean
    (``input_models.pool_probabilities``), so an agent whose neighbourhood
@@ -22,24 +26,28 @@ model filter does (Blom and Bar-Shalom 1988):
    each model's prior is the mixture of the agent's last posteriors under
    the models' Markov chain (``input_models.model_weights``, ``mix``; the
    spread between the posteriors' means counted at most as much as their
-   own covariances, ``mix(bounded=True)``).
-3. fuse, per model: the input model's prediction (``input_predict``); the
-   neighbourhood's CI prior (as ``diskf-r``) reached by the affine map that
-   takes the agent's published prediction to it (``affine_prior``: the
-   identity where the agent is alone or every agent fused the same), the
-   conditional of the input kept (``equations.replace_marginal``); the
-   neighbours' relayed inputs for a persistent model (rho > 0); the input
-   into the state (``equations.input_to_state``); the neighbourhood's
-   stacked measurement information (exact from the messages) by the joint
-   Kalman update.
+   own covariances, ``mix(bounded=True)``). The oscillating models share
+   one model's probability before any evidence, and a change of model
+   moves to them by that share (``initial_probabilities``,
+   ``transition_matrix``): which period an oscillation has is one question.
+3. fuse, per model: the input model's prediction of the pair
+   (``pair_predict``); the neighbourhood's CI prior (as ``diskf-r``)
+   reached by the affine map that takes the agent's published prediction
+   to it (``affine_prior``: the identity where the agent is alone or every
+   agent fused the same), the conditional of the input kept
+   (``equations.replace_marginal``); the neighbours' relayed inputs for a
+   persistent first-order model (a2 = 0, rho = a1 > 0); the input into the
+   state, x = v + G d_{k-1} (``equations.input_to_state``); the
+   neighbourhood's stacked measurement information (exact from the
+   messages) by the joint Kalman update.
 4. fuse, weights: each model's likelihood of the neighbourhood's
    measurement, from U and u alone (``information_loglik``), updates the
    model probabilities; the output is the mixture's mean and covariance.
 
-With one model in the bank it is ``diskf-r`` with that input model.
-Evidence accumulates over ticks in the model probabilities (the chain's
-``switch`` probability keeps them from locking) and spreads through the
-pooling, so an agent that measures rarely still learns which model fits
+With one first-order model in the bank it is ``diskf-r`` with that input
+model. Evidence accumulates over ticks in the model probabilities (the
+chain's ``switch`` probability keeps them from locking) and spreads through
+the pooling, so an agent that measures rarely still learns which model fits
 from its neighbours' measurements and, through theirs, from further away.
 """
 from __future__ import annotations
@@ -83,19 +91,25 @@ class DISKFAuto(Estimator):
         o = self.params.auto
         run = sensors.whole  # an agent's own sensor takes the run's scales, as the engine does
         q_process, q_sensor = im.input_scales(model.Q, model.G, run.H, run.R, run.p)
-        self.bank, self.rho, self.q = im.default_bank(q_process, q_sensor, o.none, o.walk, o.zero_mean)
-        self.Pi = im.transition_matrix(len(self.bank), o.switch)
+        self.bank, self.a1, self.a2, self.q = im.default_bank(q_process, q_sensor, o.none, o.walk, o.zero_mean,
+                                                              o.oscillating)
+        self.F = im.companion(self.a1, self.a2, model.m)  # (M, 2m, 2m): (IM2) on the pair (d_{k-1}, d_{k-2})
+        self.mu0 = im.initial_probabilities(self.a2)
+        self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0)
         self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
         self.prior = 100.0 * float(self.q.max()) if self.q.max() > 0 else 1.0
+        # the input into the state reads the pair's first half: x = v + G d_{k-1}
+        self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
 
     def init(self, batch: tuple) -> AutoState:
         s = super().init(batch)
         n, m, M = self.model.n, self.model.m, len(self.bank)
-        S0 = np.broadcast_to(self.prior * np.eye(m), batch + (m, m)).copy()
-        z, Z = im.joint(s.x, s.P, np.zeros(batch + (m,)), S0, np.zeros(batch + (n, m)))
-        return AutoState(s.x, s.P, s.since, mu=np.full(batch + (M,), 1.0 / M),
+        S0 = np.broadcast_to(self.prior * np.eye(2 * m), batch + (2 * m, 2 * m)).copy()
+        z, Z = im.joint(s.x, s.P, np.zeros(batch + (2 * m,)), S0, np.zeros(batch + (n, 2 * m)))
+        return AutoState(s.x, s.P, s.since, mu=np.broadcast_to(self.mu0, batch + (M,)).copy(),
                          z=np.repeat(z[..., None, :], M, axis=-2), Z=np.repeat(Z[..., None, :, :], M, axis=-3),
-                         d_hold=np.zeros(batch + (m,)), S_hold=S0, held=np.zeros(batch, dtype=bool))
+                         d_hold=np.zeros(batch + (m,)), S_hold=S0[..., :m, :m].copy(),
+                         held=np.zeros(batch, dtype=bool))
 
     def local(self, state: AutoState, k: int, y, has):
         loc = self.local_kf(state, k, y, has)
@@ -106,7 +120,7 @@ class DISKFAuto(Estimator):
         return st, replace(self.message(loc, state.d_hold, state.S_hold, state.held), w=w)
 
     def fuse(self, state: AutoState, own: Message, senders: Message, nb: Neighbourhood):
-        n, G = self.model.n, self.model.G
+        n, m = self.model.n, self.model.m
         A = self.model.A_at(state.tick)
         _, Yp, Yu = self.fusion_inverses(state, own, senders)
         dy, dY = eq.information_contribution(senders.x_pred, Yp, senders.x_upd, Yu)
@@ -116,60 +130,61 @@ class DISKFAuto(Estimator):
         # 2. mixing
         c, w = im.model_weights(im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR), self.Pi)
         z0, Z0 = im.mix(w, state.z, state.Z, bounded=True)
-        x0, P0, d0, S0, C0 = im.split(z0, Z0, n)
-        # 3. per model: predict, the CI prior, the relayed inputs, the input into the state
-        d1, B, S1 = im.input_predict(A, C0, d0, S0, self.rho, self.q)
+        x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
+        # 3. per model: predict (the input pair e = (d_{k-1}, d_{k-2})), the CI prior, the relayed inputs,
+        # the input into the state
+        e1, B, S1 = im.pair_predict(A, C0, e0, S0, self.F, self.q)
         v, Pv = eq.predict(x0, P0, A, self.model.Q)
         v_c, Pv_c, _ = im.affine_prior(own.x_pred, own.P_pred, x_c, P_c, v, Pv, B)
-        d1, B, S1 = eq.replace_marginal(v, Pv, d1, B, S1, v_c, Pv_c)
-        v, Pv = v_c, Pv_c
-        d1, B, S1, v, Pv, relayed = self._relay(senders, nb, d1, B, S1, v, Pv)
-        x_s, P_s, C_s = eq.input_to_state(v, Pv, B, d1, S1, G)
+        e1, B, S1 = eq.replace_marginal(v, Pv, e1, B, S1, v_c, Pv_c)
+        zv, Zv = im.joint(v_c, Pv_c, e1, S1, B)
+        zv, Zv, relayed = self._relay(senders, nb, zv, Zv)
+        v, Pv, e1, S1, B = im.split(zv, Zv, n)
+        x_s, P_s, C_s = eq.input_to_state(v, Pv, B, e1, S1, self.G_pair)
         # 4. the measurement: likelihoods and the joint update
         U_m, u_m = U[..., None, :, :], u[..., None, :]
         Y, Ji = eq.information_pair(P_s, U_m)
         loglik = im.information_loglik(x_s, P_s, Y, Ji, U_m, u_m)
         x_k, P_k = eq.local_update(x_s, P_s, Y, Ji, u_m)
-        d_k, C_k, S_k = eq.replace_marginal(x_s, P_s, d1, C_s, S1, x_k, P_k)
+        e_k, C_k, S_k = eq.replace_marginal(x_s, P_s, e1, C_s, S1, x_k, P_k)
         mu = im.update_probabilities(c, loglik, FLOOR)
-        z, Z = im.joint(x_k, P_k, d_k, S_k, C_k)
+        z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
         zc, Zc = im.mix(mu[..., :, None], z, Z)
-        x, P, d, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
+        x, P, e, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
+        d, S = e[..., :m], S[..., :m, :m]
         held = state.held | (np.trace(U, axis1=-2, axis2=-1) > 0) | relayed
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, tick=state.tick)
         return st, Output(x, P, d, held)
 
-    def _relay(self, senders, nb, d1, B, S1, v, Pv):
+    def _relay(self, senders, nb, z, Z):
         """The neighbours' relayed inputs (their combined d, S) under each
-        persistent model (rho > 0): the fast CI of the other neighbours'
-        (rho d_j, rho^2 S_j + q I), then the fast CI of that with the
-        model's own prediction (d, S), replaces the model's input marginal,
-        p(v | d) kept. The agent's own message is left out: its combined
-        input mixes the models this one is to stay apart from."""
-        m = d1.shape[-1]
+        persistent first-order model (a2 = 0, rho = a1 > 0): the fast CI of
+        the other neighbours' (rho d_j, rho^2 S_j + q I), then the fast CI of
+        that with the model's own prediction of d_{k-1}, replaces the
+        model's marginal of d_{k-1} in the joint (v, d_{k-1}, d_{k-2}), the
+        conditional of the rest kept (``input_models.replace_part``). The
+        agent's own message is left out: its combined input mixes the models
+        this one is to stay apart from. z: (..., M, n + 2m), Z likewise."""
+        n, m = self.model.n, self.model.m
+        d_part = np.arange(n, n + m)
         others = nb.adj * ~nb.self_mask
-        relayed = np.zeros(d1.shape[:-2], dtype=bool)
-        out = [d1, B, S1, v, Pv]
-        for j, (rho, q) in enumerate(zip(self.rho, self.q)):
-            if rho == 0.0:
+        relayed = np.zeros(z.shape[:-2], dtype=bool)
+        z, Z = z.copy(), Z.copy()
+        for j, (rho, a2, q) in enumerate(zip(self.a1, self.a2, self.q)):
+            if a2 != 0.0 or rho == 0.0:
                 continue
             d_n, S_n, has_n = eq.input_fusion(others, rho * senders.d, rho * rho * senders.S + q * np.eye(m),
                                               senders.d_valid)
-            dj, Bj, Sj, vj, Pvj = d1[..., j, :], B[..., j, :, :], S1[..., j, :, :], v[..., j, :], Pv[..., j, :, :]
+            zj, Zj = z[..., j, :], Z[..., j, :, :]
+            dj, Sj = zj[..., n:n + m], Zj[..., n:n + m, n:n + m]
             pair = np.ones(has_n.shape + (1, 2))
             d_r, S_r, _ = eq.input_fusion(pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
                                           np.stack([np.ones_like(has_n), has_n], axis=-1))
-            d_r, S_r = d_r[..., 0, :], S_r[..., 0, :, :]
-            v_r, Bt_r, Pv_r = eq.replace_marginal(dj, Sj, vj, T(Bj), Pvj, d_r, S_r)
-            r1, r2 = has_n[..., None], has_n[..., None, None]
-            for a, new in zip(out, (d_r, T(Bt_r), S_r, v_r, Pv_r)):
-                sel = r1 if a.ndim == d1.ndim else r2
-                if a.ndim == d1.ndim:
-                    a[..., j, :] = np.where(sel, new, a[..., j, :])
-                else:
-                    a[..., j, :, :] = np.where(sel, new, a[..., j, :, :])
+            zr, Zr = im.replace_part(zj, Zj, d_part, d_r[..., 0, :], S_r[..., 0, :, :])
+            z[..., j, :] = np.where(has_n[..., None], zr, zj)
+            Z[..., j, :, :] = np.where(has_n[..., None, None], Zr, Zj)
             relayed = relayed | has_n
-        return (*out, relayed)
+        return z, Z, relayed
 
 
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)

@@ -252,15 +252,17 @@ def lowest(rows: dict) -> float:
 
 
 def bank_members(scn: Scenario) -> list:
-    """diskf-auto's bank on this scenario, each model alone: [(model name,
-    Params)], ``diskf-r`` with that input model (``input_models.default_bank``;
-    ``diskf-r`` with one input model is ``diskf-auto`` with that model alone in
-    its bank, the same input prior 10^4 max(q_process, q_sensor)). The best of
-    them on a case is what a choice of model that knew the case in advance
-    reaches with these models."""
+    """diskf-auto's first-order models on this scenario, each alone:
+    [(model name, Params)], ``diskf-r`` with that input model
+    (``input_models.default_bank``; ``diskf-r`` with one input model is
+    ``diskf-auto`` with that model alone in its bank, the same input prior
+    10^4 max(q_process, q_sensor)). The best of them on a case is what a
+    choice of model that knew the case in advance reaches with these models.
+    The oscillating models (a2 != 0) are not among them: ``diskf-r`` holds
+    first-order input models only."""
     est = algorithms.get(AUTO)(scn.model(), scn.sensors(), scn.params)
     out = []
-    for name, rho, q in zip(est.bank, est.rho, est.q):
+    for name, rho, q in ((b, a1, q) for b, a1, a2, q in zip(est.bank, est.a1, est.a2, est.q) if a2 == 0):
         kind = "none" if q == 0 else "walk" if rho == 1 else "mean-reverting"
         robust = replace(scn.params.robust, input_model=kind, input_walk=float(q) if q > 0 else None,
                          input_rho=float(rho) if kind == "mean-reverting" else scn.params.robust.input_rho)
@@ -537,7 +539,8 @@ def markdown(doc: dict, header: bool = True) -> str:
     return "\n".join(([HEADER, ""] if header else []) + lines)
 
 
-FAMILIES = (("no input", ("none",)), ("random walk", ("walk",)), ("zero-mean / mean-reverting", ("zero-mean", "reverting")))
+FAMILIES = (("no input", ("none",)), ("random walk", ("walk",)), ("zero-mean / mean-reverting", ("zero-mean", "reverting")),
+            ("oscillating", ("oscillating",)))
 
 
 def model_choice(scn: Scenario, seed: int = 0, agent: int = 0):
