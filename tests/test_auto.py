@@ -173,7 +173,8 @@ def test_model_evidence_reaches_an_agent_whose_neighbourhood_never_measures():
     3 (not linked to agent 1, nor is anyone it hears measuring) weighs the
     input models as agent 1 does, through its neighbours' pooled
     probabilities; without them its weights would stay where they began
-    (1/8 each: no measurement in its neighbourhood, no evidence)."""
+    (``initial_probabilities``: no measurement in its neighbourhood, no
+    evidence)."""
     from diskf_mesh import estimators as algorithms
     scn = load_scenario("quadrants").with_overrides(topology="ring", steps=150)
     tr = simulate(scn, [0])

@@ -434,16 +434,19 @@ def test_model_probabilities_that_are_not_probabilities_are_refused():
     """diskf-auto's w (``Exchanged.weights``): each value in [0, 1], summing
     to 1; what passes is decoded bit for bit."""
     from dataclasses import replace
+
+    from diskf_mesh.core.input_models import BANK
     v = tick_view("diskf-auto", tick=30)
     ex = v.alg.exchanged
     g = Guard(v.guard_config(exchanged=ex))
     j = v.linked[0]
     good = v.messages[j]
-    assert good.w.shape == (8,) and abs(good.w.sum() - 1.0) < 1e-12
+    M = len(good.w)
+    assert good.w.shape == (len(BANK),) and abs(good.w.sum() - 1.0) < 1e-12
     wm = admit(g, j, wire.encode(v.run_id, j, v.tick, good, ex), v.tick)
     assert wm is not None and wm.message.w.tobytes() == good.w.tobytes()
-    one_model = np.eye(8)[0]  # a sender sure of one model is a probability vector
+    one_model = np.eye(M)[0]  # a sender sure of one model is a probability vector
     assert admit(g, j, wire.encode(v.run_id, j, v.tick, replace(good, w=one_model), ex), v.tick) is not None
-    for w in (2.0 * good.w, 0.5 * good.w, np.full(8, 0.2), np.r_[1.5, -0.5, np.zeros(6)]):  # the last sums to 1
+    for w in (2.0 * good.w, 0.5 * good.w, np.full(M, 0.2), np.r_[1.5, -0.5, np.zeros(M - 2)]):  # the last sums to 1
         assert admit(g, j, wire.encode(v.run_id, j, v.tick, replace(good, w=w), ex), v.tick) is None, w
     assert g.counters.rejected == {"weights": 4}

@@ -263,7 +263,7 @@ def test_neighbour_sums_go_sender_by_sender_whatever_the_zeros(core):
 
 def test_neighbour_sums_do_not_depend_on_the_senders_memory_layout():
     """A value per sender taken out of a wider array by fancy indexing (as
-    diskf-auto takes its models out of a message's eight probabilities) is
+    diskf-auto takes its models out of a message's probabilities) is
     not C-contiguous; einsum's loop order, and so its rounding, would follow
     that layout. The engine's N senders (zeros included) and an agent's J
     then give the same bits only because ``nbr_sum`` sums a contiguous copy."""

@@ -188,7 +188,8 @@ def test_an_insiders_model_probabilities_are_caught_as_diverged(quadrants):
         if isinstance(e, ev.Publish) and KEYS.parse(e.key) == ("msg", 3):
             m = wire.decode(e.payload, run_id=RUN, sender=3, exchanged=auto)
             if m.tick >= 20:
-                w = np.r_[1.0 - 7e-6, np.full(7, 1e-6)]
+                w = np.full(m.message.w.shape, 1e-6)
+                w[0] = 1.0 - 1e-6 * (w.size - 1)
                 return dataclasses.replace(e, payload=wire.encode(RUN, 3, m.tick, dataclasses.replace(
                     m.message, w=w), auto))
         return e
