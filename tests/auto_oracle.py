@@ -26,9 +26,13 @@ def bank(qp, qs, none=True, walk=True, zero_mean=True, oscillating=True):
     out += [(1.0, 0.0, lo), (1.0, 0.0, mid), (1.0, 0.0, hi)] if walk else []
     out += [(0.0, 0.0, qs), (0.0, 0.0, hi), (rev, 0.0, mid), (rev, 0.0, hi)] if zero_mean else []
     r = 0.95
+    size = mid / (1.0 - rev ** 2)  # every oscillating model: the mean-reverting model's stationary variance
     for k in range(13) if oscillating else ():
         period = 4.0 * 2.0 ** (k / 4)  # poles r exp(+-2 pi i / period)
-        out.append((2 * r * np.cos(2 * np.pi / period), -r * r, mid))
+        a1, a2 = 2 * r * np.cos(2 * np.pi / period), -r * r
+        # the stationary variance per unit noise, from the Yule-Walker equations of the AR(2) recursion
+        g0 = np.linalg.solve([[1.0, -a1, -a2], [-a1, 1.0 - a2, 0.0], [-a2, -a1, 1.0]], [1.0, 0.0, 0.0])[0]
+        out.append((a1, a2, size / g0))
     return out
 
 

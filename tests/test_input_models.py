@@ -127,10 +127,13 @@ def test_default_bank_follows_the_scales():
     assert names[0] == "none" and a1[0] == 0.0 and q[0] == 0.0
     np.testing.assert_allclose(q[1:4], [lo, np.sqrt(lo * hi), hi])
     assert set(a1[1:4]) == {1.0} and not a2[:8].any()
-    # the oscillating models: every period of PERIODS at sqrt(lo hi), their names in the wire's order
+    # the oscillating models: every period of PERIODS, their names in the wire's order, each expecting
+    # the stationary variance of the mean-reverting model at sqrt(lo hi): sqrt(lo hi) / (1 - rho^2)
     assert names[8:] == im.OSCILLATING and names == im.BANK
-    np.testing.assert_allclose(q[8:], np.sqrt(lo * hi))
     np.testing.assert_allclose(a2[8:], -0.95 ** 2)
+    size = np.sqrt(lo * hi) / (1 - np.exp(-0.2))
+    np.testing.assert_allclose([q[j] * im.stationary_gain(a1[j], a2[j]) for j in range(8, 21)], size)
+    assert q[8] > 20 * q[20]  # the slowest model's noise is far smaller than the fastest's
     names, _, _, _ = im.default_bank(0.1, 2.0, none=False, zero_mean=False, oscillating_inputs=False)
     assert names == ("walk lo", "walk mid", "walk hi")
 
@@ -143,6 +146,13 @@ def test_oscillating_model_is_a_sinusoid():
     np.testing.assert_allclose(a1 * d[1:-1] + a2 * d[:-2], d[2:], atol=1e-12)
     a1, a2 = im.oscillating(4.0, 0.5)
     assert abs(a1) < 1e-15 and a2 == -0.25
+
+
+def test_stationary_gain_hand_worked():
+    """(IM2) with a1 = 0 is two interleaved AR(1) of coefficient a2:
+    variance 1 / (1 - a2^2); with a2 = 0 it is AR(1): 1 / (1 - a1^2)."""
+    assert im.stationary_gain(0.0, -0.5) == 1.0 / (1.0 - 0.25)
+    assert abs(im.stationary_gain(0.5, 0.0) - 1.0 / (1.0 - 0.25)) < 1e-15
 
 
 def test_companion_and_pair_predict_hand_worked():

@@ -337,7 +337,12 @@ def default_bank(q_process: float, q_sensor: float, none: bool = True, walk: boo
     that stays, drifts, or jumps); a zero-mean input at q_sensor and at hi
     (noise-like or switching inputs, small and large); mean-reverting inputs
     (rho = ``REVERT``) at sqrt(lo hi) and hi; oscillating inputs of every
-    period of ``PERIODS`` at sqrt(lo hi) (``oscillating``)."""
+    period of ``PERIODS`` (``oscillating``), each with the noise q that gives
+    it the stationary variance the mean-reverting model at sqrt(lo hi)
+    has, sqrt(lo hi) / (1 - REVERT^2) (``stationary_gain``): every
+    oscillating model expects an input of the same size, where one noise
+    for all would let the slow ones (poles near 1) expect one 25 times
+    larger than the fast ones."""
     lo, hi = min(q_process, q_sensor), 100.0 * max(q_process, q_sensor)
     mid = float(np.sqrt(lo * hi))
     bank = []
@@ -349,11 +354,18 @@ def default_bank(q_process: float, q_sensor: float, none: bool = True, walk: boo
         bank += [("zero-mean lo", 0.0, 0.0, q_sensor), ("zero-mean hi", 0.0, 0.0, hi)]
         bank += [("reverting mid", REVERT, 0.0, mid), ("reverting hi", REVERT, 0.0, hi)]
     if oscillating_inputs:
+        size = mid / (1.0 - REVERT ** 2)  # the variance the mean-reverting model at mid expects of the input
         for name, period in zip(OSCILLATING, PERIODS):
             a1, a2 = oscillating(period)
-            bank.append((name, float(a1), float(a2), mid))
+            bank.append((name, float(a1), float(a2), size / stationary_gain(a1, a2)))
     names, a1, a2, q = zip(*bank)
     return names, np.array(a1), np.array(a2), np.array(q)
+
+
+def stationary_gain(a1, a2) -> float:
+    """The stationary variance of (IM2) per unit of its noise variance q:
+    (1 - a2) / ((1 + a2) ((1 - a2)^2 - a1^2)) (a stable recursion)."""
+    return float((1.0 - a2) / ((1.0 + a2) * ((1.0 - a2) ** 2 - a1 ** 2)))
 
 
 def initial_probabilities(a2) -> np.ndarray:
