@@ -494,8 +494,9 @@ HEADER = (
     "(`diskf_mesh/studies/heldout.py`; the cases are listed there). Bold: the lowest state MAE of the case. "
     "NEES: the mean over the (tick, agent) cells whose neighbourhood measures / the share of the cells where every "
     "seed's neighbourhood measures whose NEES averaged over the seeds lies in the χ² 95 % band of that average. "
-    "`diskf-auto`'s chain switch probability was compared at 0.01, 0.001 and 0.0001 on 13 of these cases (3 seeds) "
-    "and set to 0.001; its other constants and every other default follow the scenario's scales.")
+    "`diskf-auto`'s chain switch probability was compared at 0.01, 0.001 and 0.0001 on these cases and set to "
+    "0.001, and its oscillating models' radius at 0.95 and e^(-1/10) and set to 0.95 (docs/estimators.md); their "
+    "periods (4 to 32 ticks) are fixed, and every other default follows the scenario's scales.")
 
 
 def markdown(doc: dict, header: bool = True) -> str:
