@@ -1,7 +1,7 @@
 """Random linear models nobody tuned on: how often each estimator diverges.
 Prints a table; not a test.
 
-    python benchmarks/random_models.py [--models 240] [--first 0] [--steps 100]
+    python benchmarks/random_models.py [--models 240] [--first 0] [--steps 100] [--estimators a,b]
 
 Model ``s`` is drawn from ``numpy.random.default_rng(s)``: n = 2..4 states,
 m = 1..2 inputs (m <= n), dynamics a rotation (with decay), a constant
@@ -74,14 +74,19 @@ def main(argv=None) -> int:
     p.add_argument("--models", type=int, default=240)
     p.add_argument("--first", type=int, default=0)
     p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--estimators", default="all", help="names, comma-separated (default: every estimator)")
     args = p.parse_args(argv)
     if args.models < 1 or args.first < 0 or args.steps < 1:
         p.error("--models and --steps must be at least 1, --first at least 0")
+    names = algorithms.NAMES if args.estimators == "all" else tuple(args.estimators.split(","))
+    unknown = [n for n in names if n not in algorithms.NAMES]
+    if unknown:
+        p.error(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join(algorithms.NAMES)})")
     diverged = defaultdict(list)
     for s in range(args.first, args.first + args.models):
         scn = parse_scenario(random_raw(s, args.steps))
         tr = simulate(scn, [0, 1])
-        for name in algorithms.NAMES:
+        for name in names:
             if experiment.run_or_none(tr, name, scn.params) is None:
                 diverged[name].append(s)
         print(f"\r{s - args.first + 1}/{args.models} models", end="", file=sys.stderr, flush=True)
@@ -90,7 +95,7 @@ def main(argv=None) -> int:
           f"{args.steps} ticks, simulation seeds 0 and 1\n")
     print("| estimator | diverged | models |")
     print("|---|---:|---|")
-    for name in algorithms.NAMES:
+    for name in names:
         models = diverged.get(name, [])
         shown = ", ".join(map(str, models[:12])) + (" ..." if len(models) > 12 else "")
         print(f"| {name} | {len(models)} | {shown} |")
