@@ -295,11 +295,11 @@ def companion(a1, a2, m: int) -> np.ndarray:
     F = [[a1 I, a2 I], [I, 0]] (m x m blocks). a1, a2: (...,). Returns
     (..., 2m, 2m)."""
     a1, a2 = np.asarray(a1, dtype=float), np.asarray(a2, dtype=float)
-    I = np.eye(m)
+    eye = np.eye(m)
     F = np.zeros(a1.shape + (2 * m, 2 * m))
-    F[..., :m, :m] = a1[..., None, None] * I
-    F[..., :m, m:] = a2[..., None, None] * I
-    F[..., m:, :m] = I
+    F[..., :m, :m] = a1[..., None, None] * eye
+    F[..., :m, m:] = a2[..., None, None] * eye
+    F[..., m:, :m] = eye
     return F
 
 
@@ -320,7 +320,7 @@ def pair_predict(A, C, e, S, F, q):
     """
     q = np.asarray(q, dtype=float)
     m = e.shape[-1] // 2
-    noise = np.zeros(e.shape[-1:] * 2)
+    noise = np.zeros((2 * m, 2 * m))  # eta drives d_{k-1} only
     noise[:m, :m] = np.eye(m)
     return mv(F, e), np.matmul(np.matmul(A, C), T(F)), sym(np.matmul(np.matmul(F, S), T(F))
                                                            + q[..., None, None] * noise)

@@ -58,7 +58,7 @@ import numpy as np
 
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core import input_models as im
-from diskf_mesh.core.linalg import T, nbr_sum
+from diskf_mesh.core.linalg import nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.estimators.base import EXCHANGED, Estimator, Exchanged, Setting, State

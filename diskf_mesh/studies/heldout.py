@@ -262,7 +262,9 @@ def bank_members(scn: Scenario) -> list:
     first-order input models only."""
     est = algorithms.get(AUTO)(scn.model(), scn.sensors(), scn.params)
     out = []
-    for name, rho, q in ((b, a1, q) for b, a1, a2, q in zip(est.bank, est.a1, est.a2, est.q) if a2 == 0):
+    for name, rho, a2, q in zip(est.bank, est.a1, est.a2, est.q):
+        if a2 != 0:
+            continue
         kind = "none" if q == 0 else "walk" if rho == 1 else "mean-reverting"
         robust = replace(scn.params.robust, input_model=kind, input_walk=float(q) if q > 0 else None,
                          input_rho=float(rho) if kind == "mean-reverting" else scn.params.robust.input_rho)
@@ -540,8 +542,8 @@ def markdown(doc: dict, header: bool = True) -> str:
     return "\n".join(([HEADER, ""] if header else []) + lines)
 
 
-FAMILIES = (("no input", ("none",)), ("random walk", ("walk",)), ("zero-mean / mean-reverting", ("zero-mean", "reverting")),
-            ("oscillating", ("oscillating",)))
+FAMILIES = (("no input", ("none",)), ("random walk", ("walk",)),
+            ("zero-mean / mean-reverting", ("zero-mean", "reverting")), ("oscillating", ("oscillating",)))
 
 
 def model_choice(scn: Scenario, seed: int = 0, agent: int = 0):

@@ -707,8 +707,8 @@ def section_heldout(ctx: Context, doc: dict | None) -> str:
     head = (
         "## 11. Beyond the shipped cases: the held-out suite and DISKF-auto's choice\n\n"
         "`diskf-auto` runs a bank of input models (no input, random walks, zero-mean and mean-reverting inputs, "
-        "oscillating inputs) and mixes them by their evidence; the figure shows its model probabilities over time for agent 1 of Scenario 1 in a ring, "
-        "with three inputs (drawn by this run; `diskf_mesh.studies.heldout.choice_figure`).\n\n"
+        "oscillating inputs) and mixes them by their evidence; the figure shows its model probabilities over time "
+        "for agent 1 of Scenario 1 in a ring, with three inputs (drawn by this run; `diskf_mesh.studies.heldout.choice_figure`).\n\n"
         + fig(ctx.f("auto_choice.png"), "DISKF-auto: probability of each input-model family over time (agent 1, "
               "Scenario 1 ring, seed 0), over the true input")
         + "\nThe held-out suite (`diskf_mesh/studies/heldout.py`, cases listed there) runs every estimator on "
