@@ -24,7 +24,7 @@ from sim.launcher import free_port  # noqa: E402
 
 def one(tmp: Path, name: str, ticks: int, scenario: str, live: bool) -> float:
     est = tmp / f"{name}.json"
-    cmd = [sys.executable, "-m", "sim.launcher", "--scenario", scenario, "--ticks", str(ticks), "--quiet",
+    cmd = [sys.executable, "-m", "sim.launcher", "--scenario", scenario, "--algorithm", "diskf", "--ticks", str(ticks), "--quiet",
            "--estimates", str(est), "--json", str(tmp / f"{name}-res.json"), "--logs", str(tmp / f"{name}-logs"),
            "--startup-timeout", "120"]
     if live:

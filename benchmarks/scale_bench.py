@@ -114,7 +114,7 @@ def one(n: int, per_host: int | None, ticks: int, scenario: str, tmp: Path, port
         netns: bool = False) -> dict:
     run_id = f"scale{n}{'h' if per_host else 's'}{os.getpid() % 1000}"
     est = tmp / f"{run_id}.json"
-    cmd = [sys.executable, "-m", "sim.launcher", "--scenario", scenario, "--agents", str(n), "--ticks", str(ticks),
+    cmd = [sys.executable, "-m", "sim.launcher", "--scenario", scenario, "--algorithm", "diskf", "--agents", str(n), "--ticks", str(ticks),
            "--run-id", run_id, "--estimates", str(est), "--json", str(tmp / f"{run_id}-res.json"),
            "--logs", str(tmp / run_id), "--quiet", "--startup-timeout", str(60 + 2 * n)]
     if rate:

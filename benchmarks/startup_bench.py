@@ -60,7 +60,7 @@ def one(mode: str, n: int, tmp: Path, before: Path | None) -> dict:
     run_id = f"su{mode}{n}{time.monotonic_ns() % 100000}"
     python = str(before / ".venv" / "bin" / "python") if mode == "before" else sys.executable
     env = {**os.environ, **({"DISKF_MESH_SPAWN": "exec"} if mode == "exec" else {})}
-    cmd = [python, "-m", "sim.launcher", *scenario, "--ticks", "3", "--run-id", run_id, "--quiet",
+    cmd = [python, "-m", "sim.launcher", *scenario, "--algorithm", "diskf", "--ticks", "3", "--run-id", run_id, "--quiet",
            "--json", str(tmp / f"{run_id}.json"), "--logs", str(tmp / run_id), "--startup-timeout", "120"]
     cpu0 = cpu_seconds()
     t0 = time.clock_gettime(time.CLOCK_BOOTTIME)

@@ -46,7 +46,7 @@ from diskf_mesh.mesh.runspec import RunSpec, agent_command, world_command
 from diskf_mesh.mesh.zenoh_config import ZenohOptions
 from sim import hosts
 
-SPEC = RunSpec("dynamic", "diskf", run_id="compose")
+SPEC = RunSpec("dynamic", run_id="compose")
 TICKS, SEED, PORT = 200, 0, 7447
 PYTHON = "python"  # the image's interpreter
 CREDENTIALS = "/credentials/compose"  # in the credentials volume
@@ -75,7 +75,7 @@ def services(spec: RunSpec = SPEC) -> dict:
     return out
 
 
-HOSTS_SPEC = RunSpec("dynamic", "diskf", run_id="compose-hosts")
+HOSTS_SPEC = RunSpec("dynamic", run_id="compose-hosts")
 HOSTS_CREDENTIALS = "/credentials/compose-hosts"
 HOSTS_PLAN = hosts.HostsPlan(
     f"tls/world:{PORT}", (hosts.Shard("a", tuple(range(1, 6)), f"tls/router-a:{PORT}", python=PYTHON,

@@ -19,13 +19,17 @@ from diskf_mesh.data.scenario import simulate
 from sim.launcher import Child, Launcher, build_children, free_port, loopback_options
 
 TOL = 1e-9
+# the estimator the mesh tests run (the paper's, the cheapest per tick); the
+# default's own runs: test_simnet_up, test_provenance, test_packaging
+MESH_ALGORITHM = "diskf"
 
 
 def up(tmp_path: Path, *args, timeout: float = 120.0) -> tuple:
     """``diskf-mesh up`` as a child process; returns (completed, estimates
     doc or None, results doc or None)."""
     est, res = tmp_path / "estimates.json", tmp_path / "results.json"
-    cmd = [sys.executable, "-m", "sim.launcher", *args, "--estimates", str(est), "--json", str(res),
+    cmd = [sys.executable, "-m", "sim.launcher", "--algorithm", MESH_ALGORITHM, *args, "--estimates", str(est),
+           "--json", str(res),
            "--logs", str(tmp_path / "logs"), "--quiet"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     load = lambda p: json.loads(p.read_text()) if p.exists() else None  # noqa: E731

@@ -57,8 +57,8 @@ def up_argv(tmp_path: Path, run_id: str) -> list:
     """The one command line of the run under attack: ``up --insecure``, the
     mesh an outsider can reach (the default run is credentialed: its receive
     path never sees these floods)."""
-    return [sys.executable, "-m", "sim.launcher", "--scenario", "dynamic", "--ticks", str(TICKS), "--seed", str(SEED),
-            "--run-id", run_id, "--estimates", str(tmp_path / "estimates.json"), "--json", str(tmp_path / "results.json"),
+    return [sys.executable, "-m", "sim.launcher", "--scenario", "dynamic", "--algorithm", "diskf", "--ticks", str(TICKS),
+            "--seed", str(SEED), "--run-id", run_id, "--estimates", str(tmp_path / "estimates.json"), "--json", str(tmp_path / "results.json"),
             "--logs", str(tmp_path / "logs"), "--quiet", "--collect-timeout", "30", "--tick-timeout", "60", "--insecure"]
 
 

@@ -205,7 +205,9 @@ def test_experiment_json_shape(tmp_path, capsys):
     code, out, err = run_cli(["experiment", "--seeds", "2", "--steps", "30", "--json", out_path], capsys)
     assert code == 0 and err == ""  # no progress bar when stderr is not a terminal
     results = json.loads(out_path.read_text())
-    assert list(results) == [*algorithms.NAMES, "provenance"]  # the estimators, then what made them
+    assert list(results) == [*algorithms.ALL, "provenance"]  # the estimators, then what made them
+    assert list(results)[0] == algorithms.DEFAULT == "diskf-auto"  # the table leads with the default
+    assert sorted(algorithms.ALL) == sorted(algorithms.NAMES)
     for per_topology in list(results.values())[:-1]:
         assert list(per_topology) == ["all", "ring", "none"]
         for row in per_topology.values():

@@ -34,7 +34,7 @@ from sim import hosts
 from sim.launcher import Child, Launcher
 from sim.netns import Namespaces
 
-from mesh_helpers import Progress, assert_same, reference, spawn, up, with_credentials
+from mesh_helpers import MESH_ALGORITHM, Progress, assert_same, reference, spawn, up, with_credentials
 
 pytestmark = pytest.mark.mesh
 
@@ -153,7 +153,7 @@ def test_hosts_with_routers_equal_the_single_host_run(tmp_path, three_hosts):
     assert "on 2 hosts" in done.stdout
     for key in ("x", "P", "d", "reported"):
         assert est[key] == single_est[key], key  # bit for bit, as on one host
-    assert_same(est, reference(RunSpec(run_id="hosts"), ticks, seed)[1])
+    assert_same(est, reference(RunSpec(algorithm=MESH_ALGORITHM, run_id="hosts"), ticks, seed)[1])
     routers = [ln for ln in (multi / "logs" / "router-a.log").read_text().splitlines() if ln.startswith("error")]
     assert not routers
 
@@ -161,7 +161,7 @@ def test_hosts_with_routers_equal_the_single_host_run(tmp_path, three_hosts):
 def _hosts_run(tmp_path, spaces, ticks, seed, world_extra=(), agent_extra=()):
     """(launcher, world, routers, shards, estimates path) of a run over the
     namespaces, from the command lines ``up --hosts`` starts; nothing started."""
-    spec = RunSpec(run_id="hostsrun")
+    spec = RunSpec(algorithm=MESH_ALGORITHM, run_id="hostsrun")
     plan = hosts.load(hosts_file(tmp_path / "hosts.toml", spaces))
     logs = tmp_path / "logs"
     logs.mkdir()

@@ -14,6 +14,7 @@ import pytest
 from cli_helpers import run_cli
 from diskf_mesh.data import provenance
 from diskf_mesh.data.scenario import load_scenario
+from diskf_mesh.estimators import DEFAULT
 
 
 def assert_provenance(doc: dict, *, estimator, seeds, ticks, scenario="dynamic", command=None) -> dict:
@@ -66,15 +67,15 @@ def test_up_results_estimates_and_recording_have_provenance(tmp_path):
                            "--logs", str(tmp_path / "logs"), "--quiet"], capture_output=True, text=True, timeout=240)
     assert done.returncode == 0, done.stderr
     for doc in (json.loads(res.read_text()), json.loads(est.read_text())):
-        prov = assert_provenance(doc, estimator="diskf", seeds=[4], ticks=6, command="world")
+        prov = assert_provenance(doc, estimator=DEFAULT, seeds=[4], ticks=6, command="world")
         assert prov["status"] is not None
         assert prov["scenario"] == provenance.scenario_ref(load_scenario("dynamic").with_overrides(steps=6))
     from diskf_mesh.recording.reader import read
 
     run = read(mcap).run
-    assert_provenance(run, estimator="diskf", seeds=[4], ticks=6, command="world")
+    assert_provenance(run, estimator=DEFAULT, seeds=[4], ticks=6, command="world")
     done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "replay", str(mcap), "--out", str(again)],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    prov = assert_provenance(json.loads(again.read_text()), estimator="diskf", seeds=[4], ticks=6, command="replay")
+    prov = assert_provenance(json.loads(again.read_text()), estimator=DEFAULT, seeds=[4], ticks=6, command="replay")
     assert prov["status"] in ("equal", "exact", "as planned") and prov["scenario"] == run["provenance"]["scenario"]

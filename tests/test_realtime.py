@@ -17,10 +17,10 @@ from diskf_mesh.mesh import clock as realtime
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.recording import reader
 from diskf_mesh.recording.replay import compare, replay
-from mesh_helpers import reference, up
+from mesh_helpers import MESH_ALGORITHM, reference, up
 
 
-SPEC = RunSpec(scenario="dynamic")
+SPEC = RunSpec("dynamic", MESH_ALGORITHM)
 
 
 def row_of(res: dict) -> dict:

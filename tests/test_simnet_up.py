@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diskf_mesh.estimators import DEFAULT
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch
 
@@ -27,12 +28,12 @@ def test_a_simulated_run_is_the_engine_bit_for_bit(tmp_path):
            "--net-delay-ms", "3", "--net-jitter-ms", "2", "--json", str(tmp_path / "r.json"),
            "--estimates", str(tmp_path / "e.json"), "--quiet", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    row = next(iter(json.loads((tmp_path / "r.json").read_text())["diskf"].values()))
+    row = next(iter(json.loads((tmp_path / "r.json").read_text())[DEFAULT].values()))
     assert row["status"] == "exact" and row["complete"]
     assert row["network"]["kind"] == "simulated" and row["network"]["virtual_s"] > 25 * 2 * 0.003
     doc = json.loads((tmp_path / "e.json").read_text())
     scn = load_scenario("random-geometric", agents=6).with_overrides(steps=25)
-    eng = batch.run(simulate(scn, [4]), "diskf", scn.params)
+    eng = batch.run(simulate(scn, [4]), DEFAULT, scn.params)  # the default, as up ran it
     x = np.array(doc["x"], dtype=float).reshape(eng.x.shape)
     assert np.array_equal(x, eng.x)
 
@@ -42,7 +43,7 @@ def test_network_loss_degrades_a_run_and_one_seed_is_one_run(tmp_path):
             "--collect-timeout", "0.5", "--run-id", "loss", "--quiet")
     runs = [up(*argv, "--json", str(tmp_path / f"{n}.json"), cwd=tmp_path) for n in range(2)]
     assert [r.returncode for r in runs] == [5, 5]  # degraded, not accepted without --allow-degraded
-    rows = [next(iter(json.loads((tmp_path / f"{n}.json").read_text())["diskf"].values())) for n in range(2)]
+    rows = [next(iter(json.loads((tmp_path / f"{n}.json").read_text())[DEFAULT].values())) for n in range(2)]
     assert rows[0]["status"] == "degraded" and rows[0]["evidence"]["degraded"]["agent_ticks"] > 0
     assert rows[0]["network"]["digest"] == rows[1]["network"]["digest"]
     ok = up(*argv, "--allow-degraded", "--json", str(tmp_path / "a.json"), cwd=tmp_path)
@@ -61,7 +62,7 @@ def test_link_latency_past_the_collect_timeout_is_planned_as_the_world_plans_it(
     r = up("--ticks", "6", "--latency-ms", "3000", "--collect-timeout", "1", "--json", str(tmp_path / "r.json"),
            "--quiet", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    row = next(iter(json.loads((tmp_path / "r.json").read_text())["diskf"].values()))
+    row = next(iter(json.loads((tmp_path / "r.json").read_text())[DEFAULT].values()))
     assert row["status"] == "as planned" and row["evidence"]["plan_deadline_s"] == 1.0
 
 
@@ -94,7 +95,7 @@ def test_a_recording_not_written_whole_fails_a_simulated_run(tmp_path, monkeypat
     code, out, err = run_cli(["up", "--network", "simulated", "--ticks", "6", "--record", tmp_path / "r.mcap",
                               "--json", tmp_path / "r.json", "--quiet"], capsys)
     assert code == exits.RECORDING_FAILED, err
-    row = next(iter(json.loads((tmp_path / "r.json").read_text())["diskf"].values()))
+    row = next(iter(json.loads((tmp_path / "r.json").read_text())[DEFAULT].values()))
     assert row["recording_failed"] == failed and row["status"] == "exact"
 
 

@@ -95,7 +95,7 @@ def simulate(scenario: ScenarioLike, *, seeds: int | Iterable[int] = (0,), steps
     return _scenario.simulate(scn, _seeds(seeds))
 
 
-def estimate(trace: TraceLike, estimator: str = "diskf", *, settings: Params | Mapping[str, Any] | None = None,
+def estimate(trace: TraceLike, estimator: str = _estimators.DEFAULT, *, settings: Params | Mapping[str, Any] | None = None,
              scenario: _scenario.Scenario | None = None) -> Run:
     """Run ``estimator`` on every seed of ``trace`` (a ``Trace``, a
     diskf-trace/1 document or its path) in-process, on the batched engine.
@@ -125,7 +125,7 @@ def estimate(trace: TraceLike, estimator: str = "diskf", *, settings: Params | M
     return Run(estimator, trace, est.x, est.P, est.d, est.d_valid, scores, prov)
 
 
-def run(scenario: ScenarioLike, estimator: str = "diskf", *, seeds: int | Iterable[int] = (0,),
+def run(scenario: ScenarioLike, estimator: str = _estimators.DEFAULT, *, seeds: int | Iterable[int] = (0,),
         steps: int | None = None, settings: Params | Mapping[str, Any] | None = None,
         topology: str | None = None, comm_range: float | None = None) -> Run:
     """``simulate`` then ``estimate``: one estimator on a scenario, in-process."""
@@ -146,7 +146,7 @@ def experiment(scenario: ScenarioLike, estimators: Sequence[str] | str = "all", 
     started = _provenance.now()
     scn = load_scenario(scenario)
     names = [n.strip() for n in estimators.split(",")] if isinstance(estimators, str) else list(estimators)
-    names = list(_estimators.NAMES) if names == ["all"] else [_estimator(n) for n in names]
+    names = list(_estimators.ALL) if names == ["all"] else [_estimator(n) for n in names]
     if topologies is None:
         if comm_range is not None:
             topologies = ["range"]
@@ -164,7 +164,7 @@ def experiment(scenario: ScenarioLike, estimators: Sequence[str] | str = "all", 
     return Experiment(results, prov)
 
 
-def replay(source: TraceLike, estimator: str = "diskf", *,
+def replay(source: TraceLike, estimator: str = _estimators.DEFAULT, *,
            settings: Params | Mapping[str, Any] | None = None) -> Run:
     """A recorded run again: a diskf-trace/1 trace (path, document or
     ``Trace``) with ``estimator``, or a recording of ``up --record``
@@ -208,7 +208,7 @@ def write_trace(trace: Trace, path: str | PathLike[str], *, seed_index: int = 0,
     save_json(path, trace_to_json(trace, seed_index, scenario=scenario, params=settings))
 
 
-def up(scenario: str | PathLike[str] = "dynamic", *, ticks: int | None = None, estimator: str = "diskf",
+def up(scenario: str | PathLike[str] = "dynamic", *, ticks: int | None = None, estimator: str = _estimators.DEFAULT,
        seed: int = 0, flags: Sequence[str] = (), timeout: float | None = None) -> MeshRun:
     """``diskf-mesh up``: the world and one OS process per agent over Zenoh
     on this host, in a child process. ``flags``: more of ``up``'s flags

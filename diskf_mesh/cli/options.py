@@ -14,7 +14,7 @@ from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.argtypes import (  # noqa: F401 (re-exported)
     estimator_list, estimator_name, fraction, milliseconds, positive, positive_int, range_value, seed_value,
     setting_value)
-from diskf_mesh.estimators import NAMES, SETTINGS, Params
+from diskf_mesh.estimators import DEFAULT, NAMES, SETTINGS, Params
 from diskf_mesh.data.outputs import (  # noqa: F401 (re-exported)
     check_output, check_output_dir, human_stream, json_safe, save_json)
 
@@ -42,8 +42,8 @@ def add_estimator_choice(parser, many: bool = False) -> None:
         parser.add_argument("--estimators", "--algorithms", dest="estimators", type=estimator_list, default="all",
                             metavar="all|E[,E...]", help=f"'all' or a comma list of {', '.join(NAMES)}")
     else:
-        parser.add_argument("--estimator", "--algorithm", dest="estimator", type=estimator_name, default="diskf",
-                            help=f"one of {', '.join(NAMES)} (default diskf)")
+        parser.add_argument("--estimator", "--algorithm", dest="estimator", type=estimator_name, default=DEFAULT,
+                            help=f"one of {', '.join(NAMES)} (default {DEFAULT})")
 
 
 def add_estimator_options(parser: argparse.ArgumentParser) -> None:

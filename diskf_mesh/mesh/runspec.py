@@ -32,7 +32,7 @@ HOST_COUNT_FLAG = "--agent-count"  # ``host``'s --agents is its range of ids: th
 @dataclass(frozen=True)
 class RunSpec:
     scenario: str = "dynamic"
-    algorithm: str = "diskf"
+    algorithm: str = estimators.DEFAULT
     run_id: str = DEFAULT_RUN_ID
     topology: str | None = None
     comm_range: float | None = None
@@ -64,8 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser, run_id_default: str | None = 
                   count_flag: str = "--agents") -> None:
     g = parser.add_argument_group("run")
     g.add_argument("--scenario", default="dynamic", help="a shipped scenario name or a .toml path (default: dynamic)")
-    g.add_argument("--estimator", "--algorithm", dest="algorithm", type=estimator_name, default="diskf",
-                   help=f"one of {', '.join(estimators.NAMES)} (default: diskf)")
+    g.add_argument("--estimator", "--algorithm", dest="algorithm", type=estimator_name,
+                   default=estimators.DEFAULT,
+                   help=f"one of {', '.join(estimators.NAMES)} (default: {estimators.DEFAULT})")
     g.add_argument("--run-id", default=run_id_default,
                    help="key prefix diskf/<run-id>/ shared by the world and its agents"
                         + (f" (default: {run_id_default})" if run_id_default else " (default: a fresh one)"))
