@@ -47,6 +47,7 @@ def recorded_ticks(spec: RunSpec, ticks: int, me: int) -> list:
     keys = Keys(RUN)
     j = ids.index(me)
     p = int(scn.sensors().p[j])
+    exchanged = algorithms.get(spec.algorithm).exchanged  # what its messages carry
     out = []
     for k, msgs, _ in lockstep(scn, spec.algorithm, trace):
         pos = trace.positions[k - 1]
@@ -54,7 +55,7 @@ def recorded_ticks(spec: RunSpec, ticks: int, me: int) -> list:
         samples = [(keys.meas(me), wire.encode_measurement(RUN, k, me, bool(trace.has[0, k - 1, j]),
                                                             trace.y[0, k - 1, j, :p])),
                    (keys.tick, wire.encode_tick(tick))]
-        samples += [(keys.msg(o, to=[me]), wire.encode(RUN, o, k, msgs[o]))
+        samples += [(keys.msg(o, to=[me]), wire.encode(RUN, o, k, msgs[o], exchanged))
                     for o in neighbours(scn, me, pos) if o != me]
         out.append(samples)
     return out
@@ -107,6 +108,8 @@ def one_round(spec: RunSpec, me: int, feed: list) -> dict:
                 timed(agent.est, math_s)  # made on tick 1: its local step is not in the math
     if agent.k != len(feed) + 1:
         raise RuntimeError(f"the agent stopped at tick {agent.k}")
+    if agent.counters.rejected:  # a feed the agent refuses measures another path than a run's
+        raise RuntimeError(f"the agent rejected recorded messages: {dict(agent.counters.rejected)}")
     return {"total": total, "math": math_s[0]}
 
 

@@ -207,3 +207,24 @@ def test_pool_probabilities_hand_worked():
     # against the other's log 0.5, mean weights 0.01^(1/2) 0.5^(1/2) : 1^(1/2) 0.5^(1/2) = 0.1 : 1
     pooled = im.pool_probabilities(np.ones((1, 2)), np.array([[0.0, 1.0], [0.5, 0.5]]), 0.01)
     np.testing.assert_allclose(pooled, [[0.1 / 1.1, 1.0 / 1.1]])
+
+
+@pytest.mark.parametrize("bounded", [False, True])
+def test_mix_gives_the_same_bits_for_any_batch_shape(bounded, monkeypatch):
+    """An agent (a batch of one, every term at once) and the engine (a large
+    batch, one model at a time) mix the same models into the same bits: the
+    mesh equals the engine only so."""
+    rng = np.random.default_rng(5)
+    B, M, k = 40, 21, 4
+    w = rng.dirichlet(np.ones(M), size=(B, M)).transpose(0, 2, 1)              # (B, M, J): columns sum to 1
+    z = rng.normal(size=(B, M, k)) * rng.choice([1e-3, 1.0, 1e3], size=(B, M, 1))
+    L = rng.normal(size=(B, M, k, k))
+    Z = L @ np.swapaxes(L, -1, -2) + 1e-3 * np.eye(k)
+    assert w.size * k * k > im.ALL_TERMS_AT_ONCE >= w[:1].size * k * k         # the engine's path, the agent's
+    engine = im.mix(w, z, Z, bounded=bounded)
+    agents = [im.mix(w[b:b + 1], z[b:b + 1], Z[b:b + 1], bounded=bounded) for b in range(B)]
+    for got, want in zip(map(np.concatenate, zip(*agents)), engine):
+        assert np.array_equal(got, want)
+    monkeypatch.setattr(im, "ALL_TERMS_AT_ONCE", 0)                              # every batch one model at a time
+    for got, want in zip(im.mix(w[:1], z[:1], Z[:1], bounded=bounded), agents[0]):
+        assert np.array_equal(got, want)

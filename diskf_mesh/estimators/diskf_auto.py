@@ -97,6 +97,7 @@ class DISKFAuto(Estimator):
         self.mu0 = im.initial_probabilities(self.a2)
         self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0)
         self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
+        self.relaying = np.flatnonzero((self.a2 == 0.0) & (self.a1 != 0.0))  # persistent first-order models
         self.prior = 100.0 * float(self.q.max()) if self.q.max() > 0 else 1.0
         # the input into the state reads the pair's first half: x = v + G d_{k-1}
         self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
@@ -164,27 +165,29 @@ class DISKFAuto(Estimator):
         model's marginal of d_{k-1} in the joint (v, d_{k-1}, d_{k-2}), the
         conditional of the rest kept (``input_models.replace_part``). The
         agent's own message is left out: its combined input mixes the models
-        this one is to stay apart from. z: (..., M, n + 2m), Z likewise."""
+        this one is to stay apart from. z: (..., M, n + 2m), Z likewise; the
+        models are one more batch axis of the same functions."""
         n, m = self.model.n, self.model.m
-        d_part = np.arange(n, n + m)
-        others = nb.adj * ~nb.self_mask
+        js = self.relaying
         relayed = np.zeros(z.shape[:-2], dtype=bool)
+        if js.size == 0:
+            return z, Z, relayed
+        rho, q = self.a1[js][:, None, None, None], self.q[js][:, None, None, None]  # (J, 1, 1, 1)
+        others = (nb.adj * ~nb.self_mask)[..., None, :, :]                          # (..., 1, R, S)
+        d_n, S_n, has_n = eq.input_fusion(others, rho[..., 0] * senders.d[..., None, :, :],
+                                          rho * rho * senders.S[..., None, :, :, :] + q * np.eye(m),
+                                          senders.d_valid[..., None, :])           # (..., J, R, ...)
+        d_n, S_n, has_n = np.moveaxis(d_n, -3, -2), np.moveaxis(S_n, -4, -3), np.moveaxis(has_n, -2, -1)
+        zj, Zj = z[..., js, :], Z[..., js, :, :]                                   # (..., R, J, ...)
+        dj, Sj = zj[..., n:n + m], Zj[..., n:n + m, n:n + m]
+        pair = np.ones(has_n.shape + (1, 2))
+        d_r, S_r, _ = eq.input_fusion(pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
+                                      np.stack([np.ones_like(has_n), has_n], axis=-1))
+        zr, Zr = im.replace_part(zj, Zj, np.arange(n, n + m), d_r[..., 0, :], S_r[..., 0, :, :])
         z, Z = z.copy(), Z.copy()
-        for j, (rho, a2, q) in enumerate(zip(self.a1, self.a2, self.q)):
-            if a2 != 0.0 or rho == 0.0:
-                continue
-            d_n, S_n, has_n = eq.input_fusion(others, rho * senders.d, rho * rho * senders.S + q * np.eye(m),
-                                              senders.d_valid)
-            zj, Zj = z[..., j, :], Z[..., j, :, :]
-            dj, Sj = zj[..., n:n + m], Zj[..., n:n + m, n:n + m]
-            pair = np.ones(has_n.shape + (1, 2))
-            d_r, S_r, _ = eq.input_fusion(pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
-                                          np.stack([np.ones_like(has_n), has_n], axis=-1))
-            zr, Zr = im.replace_part(zj, Zj, d_part, d_r[..., 0, :], S_r[..., 0, :, :])
-            z[..., j, :] = np.where(has_n[..., None], zr, zj)
-            Z[..., j, :, :] = np.where(has_n[..., None, None], Zr, Zj)
-            relayed = relayed | has_n
-        return z, Z, relayed
+        z[..., js, :] = np.where(has_n[..., None], zr, zj)
+        Z[..., js, :, :] = np.where(has_n[..., None, None], Zr, Zj)
+        return z, Z, has_n.any(axis=-1)
 
 
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
