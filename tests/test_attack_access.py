@@ -66,9 +66,10 @@ def spec_of(run_id: str) -> RunSpec:
 
 
 def start_up(tmp: Path, run_id: str, *extra) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "sim.launcher", "--scenario", "dynamic", "--algorithm", "diskf", "--ticks", str(TICKS),
-           "--seed", str(SEED), "--run-id", run_id, "--latency-ms", str(LATENCY_MS), "--estimates", str(tmp / "est.json"),
-           "--json", str(tmp / "res.json"), "--logs", str(tmp / "logs"), "--quiet", *extra]
+    cmd = [sys.executable, "-m", "sim.launcher", "--scenario", "dynamic", "--algorithm", "diskf",
+           "--ticks", str(TICKS), "--seed", str(SEED), "--run-id", run_id, "--latency-ms", str(LATENCY_MS),
+           "--estimates", str(tmp / "est.json"), "--json", str(tmp / "res.json"), "--logs", str(tmp / "logs"),
+           "--quiet", *extra]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 

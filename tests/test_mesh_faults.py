@@ -181,7 +181,8 @@ def test_up_names_the_child_that_died(tmp_path, allow):
     run_id = f"upkill{os.getpid()}{'a' if allow else ''}"
     ticks = 300 if allow else 3000  # without: far more than the run lasts (25 ms latency: 40 ticks/s at most)
     up_proc = subprocess.Popen([sys.executable, "-m", "sim.launcher", "--scenario", SCENARIO, "--algorithm", "diskf",
-                                "--ticks", str(ticks), "--run-id", run_id, "--quiet", "--json", str(tmp_path / "r.json"),
+                                "--ticks", str(ticks), "--run-id", run_id, "--quiet",
+                                "--json", str(tmp_path / "r.json"),
                                 "--logs", str(tmp_path / "logs"), "--latency-ms", "25", "--insecure",  # plain: the
                                 *(["--allow-missing", allow] if allow else [])],  # test watches the tokens itself
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

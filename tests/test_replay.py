@@ -102,7 +102,8 @@ def test_a_real_time_run_is_judged_on_replay_as_the_run_judged_it(tmp_path, caps
     """A real-time run degraded by deadline misses within --max-miss-rate
     exits 0; so do ``replay RUN.mcap`` and ``replay TRACE --fused EST``."""
     rec, est, res, trace = (tmp_path / n for n in ("r.mcap", "e.json", "r.json", "t.json"))
-    code, _, err = run_cli(["up", "--network", "simulated", "--algorithm", "diskf", "--ticks", 10, "--rate", 10, "--net-delay-ms", 20,
+    code, _, err = run_cli(["up", "--network", "simulated", "--algorithm", "diskf", "--ticks", 10, "--rate", 10,
+                            "--net-delay-ms", 20,
                             "--net-jitter-ms", 40, "--max-miss-rate", 1, "--record", rec, "--estimates", est,
                             "--json", res, "--quiet"], capsys)
     row = next(iter(json.loads(res.read_text())["diskf"].values()))

@@ -95,8 +95,8 @@ def simulate(scenario: ScenarioLike, *, seeds: int | Iterable[int] = (0,), steps
     return _scenario.simulate(scn, _seeds(seeds))
 
 
-def estimate(trace: TraceLike, estimator: str = _estimators.DEFAULT, *, settings: Params | Mapping[str, Any] | None = None,
-             scenario: _scenario.Scenario | None = None) -> Run:
+def estimate(trace: TraceLike, estimator: str = _estimators.DEFAULT, *,
+             settings: Params | Mapping[str, Any] | None = None, scenario: _scenario.Scenario | None = None) -> Run:
     """Run ``estimator`` on every seed of ``trace`` (a ``Trace``, a
     diskf-trace/1 document or its path) in-process, on the batched engine.
     ``settings`` replace or update the estimator settings the trace (or

@@ -169,13 +169,12 @@ class DISKFAuto(Estimator):
         models are one more batch axis of the same functions."""
         n, m = self.model.n, self.model.m
         js = self.relaying
-        relayed = np.zeros(z.shape[:-2], dtype=bool)
         if js.size == 0:
-            return z, Z, relayed
-        rho, q = self.a1[js][:, None, None, None], self.q[js][:, None, None, None]  # (J, 1, 1, 1)
-        others = (nb.adj * ~nb.self_mask)[..., None, :, :]                          # (..., 1, R, S)
-        d_n, S_n, has_n = eq.input_fusion(others, rho[..., 0] * senders.d[..., None, :, :],
-                                          rho * rho * senders.S[..., None, :, :, :] + q * np.eye(m),
+            return z, Z, np.zeros(z.shape[:-2], dtype=bool)
+        rho, q = self.a1[js][:, None, None], self.q[js][:, None, None, None]       # (J, 1, 1), (J, 1, 1, 1)
+        others = (nb.adj * ~nb.self_mask)[..., None, :, :]                         # (..., 1, R, S)
+        d_n, S_n, has_n = eq.input_fusion(others, rho * senders.d[..., None, :, :],
+                                          (rho * rho)[..., None] * senders.S[..., None, :, :, :] + q * np.eye(m),
                                           senders.d_valid[..., None, :])           # (..., J, R, ...)
         d_n, S_n, has_n = np.moveaxis(d_n, -3, -2), np.moveaxis(S_n, -4, -3), np.moveaxis(has_n, -2, -1)
         zj, Zj = z[..., js, :], Z[..., js, :, :]                                   # (..., R, J, ...)
