@@ -2,7 +2,7 @@
 Python (protocol and math) when its callbacks are fed recorded payloads in
 one thread. Prints figures; not a test.
 
-    python benchmarks/agent_bench.py [--scenario dynamic] [--algorithm diskf]
+    python benchmarks/agent_bench.py [--scenario dynamic] [--agents N] [--algorithm diskf]
                                      [--ticks 200] [--agent ID] [--repeat 5]
 
 The payloads of every tick are made first, from the scenario's trace and the
@@ -34,6 +34,8 @@ from diskf_mesh.mesh.events import AskTokens, Token, Tokens
 from diskf_mesh.mesh.keys import Keys, key_matches
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.shell import Shell
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.argtypes import positive_int
 from diskf_mesh.data.scenario import simulate
 
 RUN = "bench"
@@ -131,13 +133,17 @@ def timed(est: AgentEstimator, acc: list) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenario", default="dynamic")
+    p.add_argument("--agents", type=positive_int, help="agent count of a generated scenario (e.g. random-geometric)")
     p.add_argument("--algorithm", default="diskf", choices=algorithms.NAMES)
     p.add_argument("--ticks", type=int, default=200)
     p.add_argument("--agent", type=int, help="the agent's id (default: the scenario's fifth, or its last)")
     p.add_argument("--repeat", type=int, default=5)
     args = p.parse_args(argv)
-    spec = RunSpec(args.scenario, args.algorithm)
-    ids = [a.id for a in spec.load(args.ticks).agents]
+    spec = RunSpec(args.scenario, args.algorithm, agents=args.agents)
+    try:
+        ids = [a.id for a in spec.load(args.ticks).agents]
+    except InputError as e:
+        p.error(str(e))
     me = args.agent if args.agent is not None else ids[min(4, len(ids) - 1)]
     if me not in ids:
         p.error(f"agent {me} is not in {args.scenario} (ids {', '.join(map(str, ids))})")
@@ -145,7 +151,7 @@ def main(argv=None) -> int:
     best = min((one_round(spec, me, feed) for _ in range(max(args.repeat, 1))), key=lambda r: r["total"])
     us = {k: 1e6 * v / args.ticks for k, v in best.items()}
     heard = np.mean([len(s) - 2 for s in feed])
-    print(f"\n{args.algorithm} on {args.scenario}, agent {me}, {args.ticks} ticks, {heard:.1f} neighbour messages a "
+    print(f"\n{args.algorithm} on {args.scenario} ({len(ids)} agents), agent {me}, {args.ticks} ticks, {heard:.1f} neighbour messages a "
           f"tick; best of {args.repeat} rounds, one thread, no zenoh\n")
     print("| µs per tick | all of the callbacks | math (local + fuse) | protocol (the rest) |")
     print("|---|---:|---:|---:|")
