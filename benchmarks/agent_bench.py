@@ -151,8 +151,8 @@ def main(argv=None) -> int:
     best = min((one_round(spec, me, feed) for _ in range(max(args.repeat, 1))), key=lambda r: r["total"])
     us = {k: 1e6 * v / args.ticks for k, v in best.items()}
     heard = np.mean([len(s) - 2 for s in feed])
-    print(f"\n{args.algorithm} on {args.scenario} ({len(ids)} agents), agent {me}, {args.ticks} ticks, {heard:.1f} neighbour messages a "
-          f"tick; best of {args.repeat} rounds, one thread, no zenoh\n")
+    print(f"\n{args.algorithm} on {args.scenario} ({len(ids)} agents), agent {me}, {args.ticks} ticks, "
+          f"{heard:.1f} neighbour messages a tick; best of {args.repeat} rounds, one thread, no zenoh\n")
     print("| µs per tick | all of the callbacks | math (local + fuse) | protocol (the rest) |")
     print("|---|---:|---:|---:|")
     print(f"| {args.algorithm} | {us['total']:.0f} | {us['math']:.0f} | {us['total'] - us['math']:.0f} |")

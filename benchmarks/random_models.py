@@ -78,10 +78,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.models < 1 or args.first < 0 or args.steps < 1:
         p.error("--models and --steps must be at least 1, --first at least 0")
-    names = algorithms.NAMES if args.estimators == "all" else tuple(args.estimators.split(","))
-    unknown = [n for n in names if n not in algorithms.NAMES]
-    if unknown:
-        p.error(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join(algorithms.NAMES)})")
+    try:
+        names = algorithms.parse_list(args.estimators)
+    except ValueError as e:
+        p.error(f"--estimators: {e}")
     diverged = defaultdict(list)
     for s in range(args.first, args.first + args.models):
         scn = parse_scenario(random_raw(s, args.steps))

@@ -260,7 +260,8 @@ def replace_part(z, Z, part, a_new, Paa_new):
     ``part`` (indices) replaced by (a_new, Paa_new), the conditional of the
     other components given them kept: ``equations.replace_marginal`` on any
     split of one vector. z: (..., k); Z: (..., k, k); a_new: (..., len(part))."""
-    rest = np.array([i for i in range(z.shape[-1]) if i not in set(part)], dtype=np.intp)
+    taken = set(np.ravel(part).tolist())
+    rest = np.array([i for i in range(z.shape[-1]) if i not in taken], dtype=np.intp)
     part = np.asarray(part)
     b, Pab, Pbb = replace_marginal(z[..., part], Z[..., part[:, None], part], z[..., rest],
                                    Z[..., part[:, None], rest], Z[..., rest[:, None], rest], a_new, Paa_new)
