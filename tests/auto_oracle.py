@@ -16,6 +16,7 @@ import scipy.linalg
 from robust_oracle import _replace, fast_ci, scales
 
 FLOOR = 1e-6
+PRUNE = 1e-3
 
 
 def bank(qp, qs, none=True, walk=True, zero_mean=True, oscillating=True):
@@ -84,6 +85,8 @@ def run_auto(trace, options):
                 zs, Zs, ll, relayed = [], [], np.zeros(M), False
                 for j, (a1, a2, q) in enumerate(models):
                     wts = [Pi[s, j] * mu0[s] / c[j] for s in range(M)]
+                    wts = [w if w >= PRUNE else 0.0 for w in wts]  # small weights dropped, the column renormalised
+                    wts = [w / sum(wts) for w in wts]
                     zm = sum(w * a["z"][s] for w, s in zip(wts, range(M)))
                     within = sum(w * a["Z"][s] for w, s in zip(wts, range(M)))
                     spread = sum(w * np.outer(a["z"][s] - zm, a["z"][s] - zm) for w, s in zip(wts, range(M)))

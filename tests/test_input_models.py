@@ -99,6 +99,34 @@ def test_model_weights_and_mix_hand_worked():
     np.testing.assert_allclose(im.mix(np.array([[0.5], [0.5]]), z2, Z2, bounded=True)[1], [np.diag([3.0, 1.0])])
 
 
+def test_model_weights_prune_hand_worked():
+    # mu = (0.9995, 0.0005), switch 0.1: c = (0.9 * 0.9995 + 0.1 * 0.0005, 0.1 * 0.9995 + 0.9 * 0.0005)
+    # = (0.8996, 0.1004); w_10 = 0.1 * 0.0005 / 0.8996 = 5.6e-5 < 1e-3 is dropped, so model 0's prior is
+    # model 0's posterior alone; column 1 (w = (0.99955 / 1.004, 0.0045 / 1.004)) is kept
+    Pi = im.transition_matrix(2, 0.1)
+    mu = np.array([0.9995, 0.0005])
+    c, w = im.model_weights(mu, Pi)
+    np.testing.assert_allclose(w[1, 0], 0.1 * 0.0005 / 0.89960)
+    c_p, w_p = im.model_weights(mu, Pi, prune=1e-3)
+    np.testing.assert_array_equal(c_p, c)
+    np.testing.assert_array_equal(w_p[:, 0], [1.0, 0.0])
+    np.testing.assert_allclose(w_p[:, 1], [0.09995 / 0.1004, 0.00045 / 0.1004])
+    # the dropped model's covariance (1e8) no longer enters model 0's prior
+    z, Z = np.array([[0.0], [0.0]]), np.array([[[1.0]], [[1e8]]])
+    assert im.mix(w, z, Z)[1][0, 0, 0] == pytest.approx(1.0 + 5.558e-5 * 1e8, rel=1e-3)
+    assert im.mix(w_p, z, Z)[1][0, 0, 0] == 1.0
+    # three models, column 2's small weights (0.0003 / 0.3998 = 0.00075 each) dropped: all of its weight on model 2
+    Pi3 = np.array([[0.998, 0.001, 0.001], [0.001, 0.998, 0.001], [0.001, 0.001, 0.998]])
+    _, w3 = im.model_weights(np.array([0.3, 0.3, 0.4]), Pi3, prune=1e-3)
+    np.testing.assert_array_equal(w3[:, 2], [0.0, 0.0, 1.0])
+    # a batch gives the same bits as one by one
+    mus = np.random.default_rng(0).dirichlet(np.full(3, 0.05), size=(4, 5))
+    batch = im.model_weights(mus, Pi3, prune=1e-3)[1]
+    one = np.array([[im.model_weights(mus[a, b], Pi3, prune=1e-3)[1] for b in range(5)] for a in range(4)])
+    np.testing.assert_array_equal(batch, one)
+    np.testing.assert_allclose(batch.sum(axis=-2), 1.0)
+
+
 def test_update_probabilities_hand_worked():
     # c = (0.5, 0.5), log-likelihoods (0, log 3): mu = (0.25, 0.75); a floor of 0.3 lifts the first
     mu = im.update_probabilities(np.array([0.5, 0.5]), np.array([0.0, np.log(3.0)]), 1e-6)

@@ -130,16 +130,36 @@ def _dot(a, b):
     return out
 
 
-def model_weights(mu, Pi):
+def _column_sum(a):
+    """sum over axis -2 of (..., M, J), one row after the other (the same
+    bits for any batch shape)."""
+    s = a[..., 0, :]
+    for i in range(1, a.shape[-2]):
+        s = s + a[..., i, :]
+    return s
+
+
+def model_weights(mu, Pi, prune=0.0):
     """IMM mixing (Blom and Bar-Shalom): the predicted model probabilities
     c_j = sum_i Pi_ij mu_i and the mixing weights w_ij = Pi_ij mu_i / c_j.
     mu: (..., M); Pi: (M, M) rows sum to 1. Returns (c, w) with w (..., M, M),
-    w[..., i, j] the weight of model i in model j's mixed prior."""
+    w[..., i, j] the weight of model i in model j's mixed prior.
+
+    ``prune``: weights below it are set to 0 and each column renormalised
+    (c is unchanged). A model that holds almost no probability then enters
+    no other model's prior, while its own prior is still drawn from the
+    models that hold it (its weights there are large). Without it, a
+    minority model whose covariance grew through a silence adds it to the
+    dominant model's prior through a weight of 10^-5..10^-4 (docs/
+    estimators.md, "diskf-auto"). A column always keeps its largest weight
+    (at least 1/M)."""
     joint = mu[..., :, None] * Pi
-    c = joint[..., 0, :]
-    for i in range(1, mu.shape[-1]):
-        c = c + joint[..., i, :]
-    return c, joint / c[..., None, :]
+    c = _column_sum(joint)
+    w = joint / c[..., None, :]
+    if prune > 0.0:
+        w = np.where(w < prune, 0.0, w)
+        w = w / _column_sum(w)[..., None, :]
+    return c, w
 
 
 def mix(w, z, Z, bounded=False):

@@ -26,7 +26,9 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    each model's prior is the mixture of the agent's last posteriors under
    the models' Markov chain (``input_models.model_weights``, ``mix``; the
    spread between the posteriors' means counted at most as much as their
-   own covariances, ``mix(bounded=True)``). The oscillating models share
+   own covariances, ``mix(bounded=True)``; a weight below ``PRUNE`` dropped,
+   so a model of almost no probability, whose covariance grows through a
+   silence, does not widen the others' priors). The oscillating models share
    one model's probability before any evidence, and a change of model
    moves to them by that share (``initial_probabilities``,
    ``transition_matrix``): which period an oscillation has is one question.
@@ -129,7 +131,8 @@ class DISKFAuto(Estimator):
         ones = np.ones(senders.x_pred.shape[:-1], dtype=bool)
         x_c, P_c, _ = eq.input_fusion(nb.adj, senders.x_pred, senders.P_pred, ones)  # the CI prior
         # 2. mixing
-        c, w = im.model_weights(im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR), self.Pi)
+        c, w = im.model_weights(im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR), self.Pi,
+                                   PRUNE)
         z0, Z0 = im.mix(w, state.z, state.Z, bounded=True)
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
         # 3. per model: predict (the input pair e = (d_{k-1}, d_{k-2})), the CI prior, the relayed inputs,
@@ -190,3 +193,4 @@ class DISKFAuto(Estimator):
 
 
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
+PRUNE = 1e-3  # mixing weights below it are dropped (``input_models.model_weights``)
