@@ -102,7 +102,7 @@ def test_model_weights_and_mix_hand_worked():
 def test_model_weights_prune_hand_worked():
     # mu = (0.9995, 0.0005), switch 0.1: c = (0.9 * 0.9995 + 0.1 * 0.0005, 0.1 * 0.9995 + 0.9 * 0.0005)
     # = (0.8996, 0.1004); w_10 = 0.1 * 0.0005 / 0.8996 = 5.6e-5 < 1e-3 is dropped, so model 0's prior is
-    # model 0's posterior alone; column 1 (w = (0.99955 / 1.004, 0.0045 / 1.004)) is kept
+    # model 0's posterior alone; column 1 (w = (0.09995 / 0.1004, 0.00045 / 0.1004)) is kept
     Pi = im.transition_matrix(2, 0.1)
     mu = np.array([0.9995, 0.0005])
     c, w = im.model_weights(mu, Pi)

@@ -150,9 +150,9 @@ def model_weights(mu, Pi, prune=0.0):
     no other model's prior, while its own prior is still drawn from the
     models that hold it (its weights there are large). Without it, a
     minority model whose covariance grew through a silence adds it to the
-    dominant model's prior through a weight of 10^-5..10^-4 (docs/
-    estimators.md, "diskf-auto"). A column always keeps its largest weight
-    (at least 1/M)."""
+    dominant model's prior through a weight of 10^-5..10^-4
+    (docs/estimators.md, "Which estimator"). A column always keeps its
+    largest weight (at least 1/M)."""
     joint = mu[..., :, None] * Pi
     c = _column_sum(joint)
     w = joint / c[..., None, :]

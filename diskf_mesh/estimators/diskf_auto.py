@@ -131,8 +131,8 @@ class DISKFAuto(Estimator):
         ones = np.ones(senders.x_pred.shape[:-1], dtype=bool)
         x_c, P_c, _ = eq.input_fusion(nb.adj, senders.x_pred, senders.P_pred, ones)  # the CI prior
         # 2. mixing
-        c, w = im.model_weights(im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR), self.Pi,
-                                   PRUNE)
+        pooled = im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR)
+        c, w = im.model_weights(pooled, self.Pi, PRUNE)
         z0, Z0 = im.mix(w, state.z, state.Z, bounded=True)
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
         # 3. per model: predict (the input pair e = (d_{k-1}, d_{k-2})), the CI prior, the relayed inputs,
