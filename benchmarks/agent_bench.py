@@ -27,6 +27,9 @@ import time
 import numpy as np
 
 from diskf_mesh import estimators as algorithms
+from diskf_mesh.core.errors import InputError
+from diskf_mesh.data.argtypes import positive_int
+from diskf_mesh.data.scenario import simulate
 from diskf_mesh.mesh import wire
 from diskf_mesh.mesh.agent_machine import AgentMachine
 from diskf_mesh.mesh.estimator import AgentEstimator, lockstep, neighbours
@@ -34,9 +37,6 @@ from diskf_mesh.mesh.events import AskTokens, Token, Tokens
 from diskf_mesh.mesh.keys import Keys, key_matches
 from diskf_mesh.mesh.runspec import RunSpec
 from diskf_mesh.mesh.shell import Shell
-from diskf_mesh.core.errors import InputError
-from diskf_mesh.data.argtypes import positive_int
-from diskf_mesh.data.scenario import simulate
 
 RUN = "bench"
 

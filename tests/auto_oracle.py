@@ -85,8 +85,9 @@ def run_auto(trace, options):
                 zs, Zs, ll, relayed = [], [], np.zeros(M), False
                 for j, (a1, a2, q) in enumerate(models):
                     wts = [Pi[s, j] * mu0[s] / c[j] for s in range(M)]
-                    wts = [w if w >= PRUNE else 0.0 for w in wts]  # small weights dropped, the column renormalised
-                    wts = [w / sum(wts) for w in wts]
+                    kept = [w if w >= PRUNE else 0.0 for w in wts]  # small weights dropped, the column renormalised
+                    total = sum(kept)
+                    wts = [w / total for w in kept]
                     zm = sum(w * a["z"][s] for w, s in zip(wts, range(M)))
                     within = sum(w * a["Z"][s] for w, s in zip(wts, range(M)))
                     spread = sum(w * np.outer(a["z"][s] - zm, a["z"][s] - zm) for w, s in zip(wts, range(M)))

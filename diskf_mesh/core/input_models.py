@@ -130,15 +130,6 @@ def _dot(a, b):
     return out
 
 
-def _column_sum(a):
-    """sum over axis -2 of (..., M, J), one row after the other (the same
-    bits for any batch shape)."""
-    s = a[..., 0, :]
-    for i in range(1, a.shape[-2]):
-        s = s + a[..., i, :]
-    return s
-
-
 def model_weights(mu, Pi, prune=0.0):
     """IMM mixing (Blom and Bar-Shalom): the predicted model probabilities
     c_j = sum_i Pi_ij mu_i and the mixing weights w_ij = Pi_ij mu_i / c_j.
@@ -154,11 +145,11 @@ def model_weights(mu, Pi, prune=0.0):
     (docs/estimators.md, "Which estimator"). A column always keeps its
     largest weight (at least 1/M)."""
     joint = mu[..., :, None] * Pi
-    c = _column_sum(joint)
+    c = _ordered_sum(joint, -2)
     w = joint / c[..., None, :]
     if prune > 0.0:
         w = np.where(w < prune, 0.0, w)
-        w = w / _column_sum(w)[..., None, :]
+        w = w / _ordered_sum(w, -2)[..., None, :]
     return c, w
 
 
