@@ -12,14 +12,14 @@ It knows the shared motion model and parameters and only its own sensor
    has opened a later tick;
 4. fuse what it has, report the fused estimate to the world.
 
-With ``--rate`` (real time, ``diskf_mesh.mesh.clock``) step 3 ends at the
+With ``--rate`` (real time, ``diskf_mesh.mesh.protocol.clock``) step 3 ends at the
 deadline instead: ``--deadline-ms`` after tick k reached this agent (default
 half the period), or at once for an agent that fell behind; what came later
 is a deadline miss, never fused.
 
-The protocol is a state machine (``diskf_mesh.mesh.agent_machine``: events
+The protocol is a state machine (``diskf_mesh.mesh.protocol.agent_machine``: events
 in, effects out; its docstring follows one tick through the code); this
-module is its shell: zenoh and the wall clock (``diskf_mesh.mesh.shell``).
+module is its shell: zenoh and the wall clock (``diskf_mesh.mesh.process.shell``).
 Each step is taken by whichever event makes it possible, in the transport's
 callback (zenoh's network thread): the world's tick (its measurement came
 just before) runs steps 1-2, the last neighbour's message steps 3-4. The
@@ -28,7 +28,7 @@ silence) and tells it when the process was not running (SIGSTOP).
 
 Exit status: 0 only when the world says stop with "done" at the run's last
 tick; 2 (one line) when another process already holds this agent's id in the
-run (``mesh.keys``: every token carries its process's nonce); 3 (one line)
+run (``mesh.wire.keys``: every token carries its process's nonce); 3 (one line)
 when its estimator diverged: it told the world why and left, and the run goes
 on without it (``up`` ends ``incomplete``); 1 with one line on stderr
 otherwise: the world stopped the run early, or it has been gone
@@ -40,12 +40,12 @@ Link faults (``--loss``, ``--latency-ms``, ... or the scenario's
 by the run's seed (from the world's first tick). An agent started while the
 run is in progress (a restart after a crash) joins at the world's next tick
 and asks the world for the estimate to start from: a neighbour's fused
-estimate of the tick before (``diskf_mesh.mesh.rejoin``). So does an agent
+estimate of the tick before (``diskf_mesh.mesh.protocol.rejoin``). So does an agent
 that was frozen (SIGSTOP) past zenoh's lease and finds, when it wakes, that
 the world dropped it: it withdraws its ready token, declares a new one and
 rejoins like a restart.
 
-``--profile DIR`` writes where each tick's time went (``mesh.profile``).
+``--profile DIR`` writes where each tick's time went (``mesh.protocol.profile``).
 """
 from __future__ import annotations
 
@@ -54,17 +54,17 @@ import os
 import sys
 
 from diskf_mesh.data.argtypes import positive
-from diskf_mesh.mesh import clock as realtime
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh import runspec
-from diskf_mesh.mesh import zenoh_config
-from diskf_mesh.mesh.agent_machine import AgentMachine, AgentTiming
-from diskf_mesh.mesh.keys import Keys, new_nonce
-from diskf_mesh.mesh.log import Log
-from diskf_mesh.mesh.stopping import exit_on_sigterm
-from diskf_mesh.mesh.profile import AGENT_PHASES, NO_PHASES, Phases
-from diskf_mesh.mesh.shell import Shell
-from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
+from diskf_mesh.mesh.protocol import clock as realtime
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.process import runspec
+from diskf_mesh.mesh.process import zenoh_config
+from diskf_mesh.mesh.protocol.agent_machine import AgentMachine, AgentTiming
+from diskf_mesh.mesh.wire.keys import Keys, new_nonce
+from diskf_mesh.mesh.protocol.log import Log
+from diskf_mesh.mesh.process.stopping import exit_on_sigterm
+from diskf_mesh.mesh.protocol.profile import AGENT_PHASES, NO_PHASES, Phases
+from diskf_mesh.mesh.process.shell import Shell
+from diskf_mesh.mesh.process.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
@@ -133,7 +133,7 @@ def batch_scheduling() -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    exit_on_sigterm()  # first thing: stopped at any moment, its session closed (mesh.stopping)
+    exit_on_sigterm()  # first thing: stopped at any moment, its session closed (mesh.process.stopping)
     spec = runspec.from_args(args)
     scn = spec.load()
     clock = realtime.from_args(args)

@@ -6,11 +6,11 @@ one thread. Prints figures; not a test.
                                      [--ticks 200] [--agent ID] [--repeat 5]
 
 The payloads of every tick are made first, from the scenario's trace and the
-other agents' messages (``mesh.estimator.lockstep``): the world's tick and
+other agents' messages (``mesh.protocol.estimator.lockstep``): the world's tick and
 this agent's measurement, then its in-range neighbours' messages on their
-addressed keys. Then they reach the agent's machine (``mesh.agent_machine``)
+addressed keys. Then they reach the agent's machine (``mesh.protocol.agent_machine``)
 the way zenoh's callbacks hand them over in a real run: through its shell
-(``mesh.shell.Shell``: the lock, the event, ``handle``, the effects carried
+(``mesh.process.shell.Shell``: the lock, the event, ``handle``, the effects carried
 out) over a transport whose puts go nowhere: decode, guard, local step,
 encode, fusion, report. The table splits the time
 into the estimator's two calls (math) and the rest (protocol); the best of
@@ -30,13 +30,13 @@ from diskf_mesh import estimators as algorithms
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.argtypes import positive_int
 from diskf_mesh.data.scenario import simulate
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.agent_machine import AgentMachine
-from diskf_mesh.mesh.estimator import AgentEstimator, lockstep, neighbours
-from diskf_mesh.mesh.events import AskTokens, Token, Tokens
-from diskf_mesh.mesh.keys import Keys, key_matches
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.shell import Shell
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.agent_machine import AgentMachine
+from diskf_mesh.mesh.protocol.estimator import AgentEstimator, lockstep, neighbours
+from diskf_mesh.mesh.protocol.events import AskTokens, Token, Tokens
+from diskf_mesh.mesh.wire.keys import Keys, key_matches
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.shell import Shell
 
 RUN = "bench"
 

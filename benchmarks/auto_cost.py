@@ -5,7 +5,7 @@ other load):
 
 engine   the batched engine (``engine.batch.run``) on Scenario 1, all-to-all,
          20 seeds x 200 ticks x 4 agents: seconds per (seed, agent, tick)
-agent    one agent as an agent process runs it (``mesh.estimator.lockstep``:
+agent    one agent as an agent process runs it (``mesh.protocol.estimator.lockstep``:
          every agent of Scenario 2 a batch of one, local + fuse), 100 ticks:
          seconds per agent-tick
 
@@ -22,7 +22,7 @@ import time
 
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.mesh.estimator import lockstep
+from diskf_mesh.mesh.protocol.estimator import lockstep
 
 NAMES = ("diskf", "diskf-r", "diskf-auto")
 

@@ -9,10 +9,10 @@ options and shape (``sim.launcher.loopback_options``: the world listens on
 scouting; above ``sim.launcher.PEERS_UP_TO`` agents
 ``routed_loopback_options``: one router, ``diskf-mesh router``, every agent
 its client), over TLS with mutual authentication and the run's access control
-from fresh credentials of the run (``diskf_mesh.mesh.credentials``, one
+from fresh credentials of the run (``diskf_mesh.mesh.security.credentials``, one
 identity per process, as ``up`` makes them), the world's batching time
 limit (``sim.world.HOLD_MS``), zenoh's rx runtime of one thread, and the
-project's key layout (``diskf_mesh.mesh.keys``), so the access control
+project's key layout (``diskf_mesh.mesh.wire.keys``), so the access control
 checks the same keys. With ``--insecure`` both the floor and the project
 run plain zenoh (``up --insecure``). They exchange per tick exactly the
 messages of the project's protocol, with the project's sizes and addressing:
@@ -66,7 +66,7 @@ def sizes() -> dict:
     """Bytes of the project's payloads for n = 2, m = 1, p = 1."""
     import numpy as np
 
-    from diskf_mesh.mesh import wire
+    from diskf_mesh.mesh.wire import codec as wire
     from mesh_bench import message_bytes
 
     report = wire.encode_report("a1b2c3d4", 50, 200, np.zeros(2), np.eye(2), np.zeros(1), True,
@@ -89,8 +89,8 @@ def zenoh_session(role: str, identity: str, args):
     options ``up`` gives that process (see the module docstring)."""
     import zenoh
 
-    from diskf_mesh.mesh.transport import BATCHING, ZENOH_RUNTIME
-    from diskf_mesh.mesh.zenoh_config import ZenohOptions
+    from diskf_mesh.mesh.process.transport import BATCHING, ZENOH_RUNTIME
+    from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
     from sim.world import HOLD_MS
 
     os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
@@ -128,8 +128,8 @@ def publisher(zenoh, session, cache: dict, key: str, express: bool = True):
 # the bare agent
 # --------------------------------------------------------------------------
 def agent_main(args) -> int:
-    from diskf_mesh.mesh import credentials
-    from diskf_mesh.mesh.keys import Keys, new_nonce
+    from diskf_mesh.mesh.security import credentials
+    from diskf_mesh.mesh.wire.keys import Keys, new_nonce
 
     links, ids = links_of(args.scenario, args.n_agents, args.ticks)
     me = args.id
@@ -211,8 +211,8 @@ def agent_main(args) -> int:
 # the bare world
 # --------------------------------------------------------------------------
 def world_main(args) -> int:
-    from diskf_mesh.mesh import credentials
-    from diskf_mesh.mesh.keys import Keys, new_nonce
+    from diskf_mesh.mesh.security import credentials
+    from diskf_mesh.mesh.wire.keys import Keys, new_nonce
 
     links, ids = links_of(args.scenario, args.n_agents, args.ticks)
     N, K = len(ids), args.ticks
@@ -279,8 +279,9 @@ def world_main(args) -> int:
 def floor_run(scenario: str, agents: int | None, ticks: int, timeout: float, workdir: Path,
               insecure: bool = False) -> dict:
     """One floor run; its own fresh credentials in ``workdir`` unless ``insecure``."""
-    from diskf_mesh.mesh import credentials, runspec
-    from diskf_mesh.mesh.zenoh_config import ZenohOptions
+    from diskf_mesh.mesh.security import credentials
+    from diskf_mesh.mesh.process import runspec
+    from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
     from sim.launcher import free_ports, network_of
 
     _, ids = links_of(scenario, agents, ticks)

@@ -18,7 +18,7 @@ Columns of the first table:
                  (fused or not: out of range, late), on average
 
 With ``--profile`` every process measures where its ticks go
-(``up --profile``, ``diskf_mesh.mesh.profile``) and the benchmark adds:
+(``up --profile``, ``diskf_mesh.mesh.protocol.profile``) and the benchmark adds:
 
 * how the tick rate falls as agents are added: the CPU all processes spend
   per tick once ticking (start-up excluded), split into agents and world,
@@ -57,8 +57,8 @@ from pathlib import Path
 
 import numpy as np
 
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh import profile
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol import profile
 from diskf_mesh.core.messages import Message
 
 CORES = 2

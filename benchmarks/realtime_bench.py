@@ -6,7 +6,7 @@
 
 For each size (``dynamic``: Scenario 2's 9 agents; a number N: the
 ``random-geometric`` scenario with N agents), estimator and rate, one
-``diskf-mesh up --rate HZ`` (``diskf_mesh.mesh.clock``: the world ticks on the
+``diskf-mesh up --rate HZ`` (``diskf_mesh.mesh.protocol.clock``: the world ticks on the
 wall clock, each agent fuses what arrived by its deadline, half the period)
 and prints, in one Markdown table: the miss rate (messages not fused in time
 and reports not in by the tick's end, over both), the state error of the run
@@ -49,7 +49,7 @@ def lockstep_mae(size: str, algorithm: str, ticks: int) -> float:
     from diskf_mesh.data import metrics
     from diskf_mesh.data.scenario import simulate
     from diskf_mesh.engine import batch as engine
-    from diskf_mesh.mesh.runspec import RunSpec
+    from diskf_mesh.mesh.process.runspec import RunSpec
 
     spec = RunSpec(scenario="dynamic" if size == "dynamic" else "random-geometric", algorithm=algorithm,
                    agents=None if size == "dynamic" else int(size))

@@ -1,7 +1,7 @@
 """What TLS and zenoh's access control cost one message: two zenoh sessions in
 one process, ping-pong over loopback, as plain TCP (``--insecure``), TLS with
 mutual authentication, and TLS with the run's access control (what every
-mesh process runs, ``diskf_mesh.mesh.credentials``). Not a test.
+mesh process runs, ``diskf_mesh.mesh.security.credentials``). Not a test.
 
     python benchmarks/tls_bench.py [--messages 2000] [--rounds 5] [--size 163]
 
@@ -22,10 +22,10 @@ from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout's sim, as the other benchmarks do
-from diskf_mesh.mesh import credentials  # noqa: E402
-from diskf_mesh.mesh.keys import Keys  # noqa: E402
-from diskf_mesh.mesh.transport import ZenohTransport  # noqa: E402
-from diskf_mesh.mesh.zenoh_config import ZenohOptions  # noqa: E402
+from diskf_mesh.mesh.security import credentials  # noqa: E402
+from diskf_mesh.mesh.wire.keys import Keys  # noqa: E402
+from diskf_mesh.mesh.process.transport import ZenohTransport  # noqa: E402
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions  # noqa: E402
 from sim.launcher import free_port  # noqa: E402
 
 RUN = "tls-bench"

@@ -16,7 +16,7 @@ are (docs/docker.md):
   them to your own ids to read them; default: the image's user, 10001);
 * every service runs under an init (``init: true``), which forwards SIGTERM
   to the process at any moment, so that ``stop`` and ``down`` never wait
-  for the kill (``diskf_mesh.mesh.stopping``).
+  for the kill (``diskf_mesh.mesh.process.stopping``).
 
 ``docker/demo.sh`` runs a file to its end with compose v1 or v2 (detached,
 then waits for the world's exit: the one-shot ``credentials`` service must
@@ -42,8 +42,8 @@ import json
 import sys
 from pathlib import Path
 
-from diskf_mesh.mesh.runspec import RunSpec, agent_command, world_command
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.process.runspec import RunSpec, agent_command, world_command
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from sim import hosts
 
 SPEC = RunSpec("dynamic", run_id="compose")

@@ -37,12 +37,12 @@ from pathlib import Path
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.argtypes import positive
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
-from diskf_mesh.mesh import clock as realtime
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh import runspec
-from diskf_mesh.mesh import zenoh_config
-from diskf_mesh.mesh.log import Log
-from diskf_mesh.mesh.stopping import terminated
+from diskf_mesh.mesh.protocol import clock as realtime
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.process import runspec
+from diskf_mesh.mesh.process import zenoh_config
+from diskf_mesh.mesh.protocol.log import Log
+from diskf_mesh.mesh.process.stopping import terminated
 from sim.launcher import Child, Launcher, agent_flags
 
 STARTUP_TIMEOUT_S = 30.0
@@ -59,7 +59,7 @@ def register(subparsers) -> None:
     p.add_argument("--startup-timeout", type=positive, default=STARTUP_TIMEOUT_S, metavar="S",
                    help="seconds to wait for the --connect endpoint to answer (default %(default)s)")
     p.add_argument("--logs", metavar="DIR", help="the agents' stderr logs (default: a temporary directory)")
-    p.add_argument("--profile", metavar="DIR", help="agents: write DIR/agent-<id>.json (mesh.profile)")
+    p.add_argument("--profile", metavar="DIR", help="agents: write DIR/agent-<id>.json (mesh.protocol.profile)")
     realtime.add_arguments(p, world=False)  # the run's --rate and --deadline-ms, as up gives them to every agent
     add_fault_arguments(p)
     zenoh_config.add_arguments(p)

@@ -37,9 +37,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import credentials, runspec
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.process import runspec
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from sim.launcher import Child
 
 TOP_KEYS = ("credentials", "world", "hosts")

@@ -21,7 +21,7 @@ what is missing); 4 a real-time run beyond ``--max-miss-rate``; 5 degraded
 child failed; 2 on bad input.
 
 Every run is authenticated: ``up`` makes a fresh certificate authority and
-one certificate and key per process (``diskf_mesh.mesh.credentials``) in
+one certificate and key per process (``diskf_mesh.mesh.security.credentials``) in
 memory, never on disk, and hands each child its own identity alone, with
 the run's CA certificate, on its standard input (``--credentials -``: a
 socket the child reads to its end and closes at once). The router's identity
@@ -73,13 +73,13 @@ from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
-from diskf_mesh.mesh import clock as realtime
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh import runspec
-from diskf_mesh.mesh import zenoh_config
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.stopping import terminated
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.protocol import clock as realtime
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.process import runspec
+from diskf_mesh.mesh.process import zenoh_config
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.stopping import terminated
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from diskf_mesh.recording.writer import failure_line
 from sim import simulated
 from sim import zygote as forks

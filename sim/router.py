@@ -30,11 +30,11 @@ import threading
 from dataclasses import replace
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh import zenoh_config
-from diskf_mesh.mesh.keys import check_run_id
-from diskf_mesh.mesh.log import Log
-from diskf_mesh.mesh.transport import MeshError, ZenohTransport
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.process import zenoh_config
+from diskf_mesh.mesh.wire.keys import check_run_id
+from diskf_mesh.mesh.protocol.log import Log
+from diskf_mesh.mesh.process.transport import MeshError, ZenohTransport
 
 
 def register(subparsers) -> None:

@@ -1,9 +1,9 @@
 """``diskf-mesh up --network simulated``: the whole mesh in this one process.
 
 The world and every agent run their real protocol machines
-(``mesh.world_machine``, ``mesh.agent_machine``: the encoders, the guard,
+(``mesh.protocol.world_machine``, ``mesh.protocol.agent_machine``: the encoders, the guard,
 the estimators, the rejoin, the run's access rules) on the deterministic
-simulated network (``mesh.simnet``, ``mesh.simrun``) instead of zenoh: a
+simulated network (``mesh.simulated.simnet``, ``mesh.simulated.simrun``) instead of zenoh: a
 virtual clock, and links with a latency and loss model seeded by
 ``--net-seed`` (default ``--seed``). The run is checked and reported as a
 process mesh's is (the engine's replay, the status, the results table and
@@ -59,10 +59,10 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     from tqdm import tqdm
 
     from diskf_mesh.data import provenance
-    from diskf_mesh.mesh.keys import Keys
-    from diskf_mesh.mesh.log import Log
-    from diskf_mesh.mesh.simnet import Link
-    from diskf_mesh.mesh.simrun import SimPlan, simulate_run
+    from diskf_mesh.mesh.wire.keys import Keys
+    from diskf_mesh.mesh.protocol.log import Log
+    from diskf_mesh.mesh.simulated.simnet import Link
+    from diskf_mesh.mesh.simulated.simrun import SimPlan, simulate_run
     from diskf_mesh.studies.experiment import format_table
     from sim.world import failure, finish_run, run_failed, run_timings, setup_run
 

@@ -10,7 +10,7 @@ of tick k, or ``--tick-timeout`` seconds. A report of a past tick is counted
 ("stale") and dropped. At the end it says stop, computes the metrics and
 writes the same result JSON as ``experiment``:
 ``{algorithm: {setting: {mae_state, ...}}}``, plus, per setting, the link
-faults of the run, every agent's message counters (``diskf_mesh.mesh.counters``)
+faults of the run, every agent's message counters (``diskf_mesh.mesh.wire.counters``)
 and the ticks each agent did not report (``missing_ticks``: killed, or
 rejoining); ``--estimates`` writes every agent's fused estimates, what was
 missing, and every agent's counters.
@@ -42,17 +42,17 @@ agent-ticks are missing, of which agents, and why: never joined, left,
 rejoining, no report, rejected, not run; 0 within ``--allow-missing``); 5
 ``degraded`` (0 with ``--allow-degraded``, or in real time within
 ``--max-miss-rate``); 6 ``diverged``; 4 a real-time run beyond
-``--max-miss-rate``; 2 another world already runs this run id (``mesh.keys``
+``--max-miss-rate``; 2 another world already runs this run id (``mesh.wire.keys``
 nonces). The result JSON holds what was measured either way, with the
 status, its reason and evidence, ``complete``, the missing counts, the
 rejoins (tick and re-initialisation source), duplicate processes and pauses.
 
-The protocol is ``diskf_mesh.mesh.world_machine.WorldMachine`` (no I/O);
-``World`` runs it in a ``mesh.shell.Shell`` over zenoh and the wall clock:
+The protocol is ``diskf_mesh.mesh.protocol.world_machine.WorldMachine`` (no I/O);
+``World`` runs it in a ``mesh.process.shell.Shell`` over zenoh and the wall clock:
 the report that completes tick k opens tick k+1 in zenoh's callback itself
 (``mesh.process``'s docstring follows one tick world -> agent -> neighbour
 -> world through the code); ``--profile DIR`` writes where each tick's time
-went (``mesh.profile``).
+went (``mesh.protocol.profile``).
 """
 from __future__ import annotations
 
@@ -74,22 +74,22 @@ from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.core import exits
 from diskf_mesh.data.outputs import json_safe
 from diskf_mesh.engine.verify import RunStatus
-from diskf_mesh.mesh.counters import Counters
-from diskf_mesh.mesh.agent_machine import AgentTiming
-from diskf_mesh.mesh.run_status import accept, add_tolerances, run_status
+from diskf_mesh.mesh.wire.counters import Counters
+from diskf_mesh.mesh.protocol.agent_machine import AgentTiming
+from diskf_mesh.mesh.protocol.run_status import accept, add_tolerances, run_status
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
-from diskf_mesh.mesh import clock as realtime
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh import runspec
-from diskf_mesh.mesh import zenoh_config
-from diskf_mesh.mesh.keys import Keys, new_nonce
-from diskf_mesh.mesh.log import Log
-from diskf_mesh.mesh.profile import NO_PHASES, WORLD_PHASES, Phases
-from diskf_mesh.mesh.shell import Shell
-from diskf_mesh.mesh.world_machine import DUPLICATE, WorldMachine, WorldRecord, WorldTiming
-from diskf_mesh.mesh.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
+from diskf_mesh.mesh.protocol import clock as realtime
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.process import runspec
+from diskf_mesh.mesh.process import zenoh_config
+from diskf_mesh.mesh.wire.keys import Keys, new_nonce
+from diskf_mesh.mesh.protocol.log import Log
+from diskf_mesh.mesh.protocol.profile import NO_PHASES, WORLD_PHASES, Phases
+from diskf_mesh.mesh.process.shell import Shell
+from diskf_mesh.mesh.protocol.world_machine import DUPLICATE, WorldMachine, WorldRecord, WorldTiming
+from diskf_mesh.mesh.process.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
 from diskf_mesh.recording.writer import NO_RECORDER, NoRecorder, failure_line
 from diskf_mesh import live as live_server
 from diskf_mesh.data.scenario import Scenario, simulate
@@ -102,8 +102,8 @@ HOLD_MS = 5   # a measurement waits at most this long in zenoh's batch for its t
 
 
 class World:
-    """The world process: its protocol (``mesh.world_machine.WorldMachine``)
-    run by a ``mesh.shell.Shell`` over ``transport`` on the wall clock.
+    """The world process: its protocol (``mesh.protocol.world_machine.WorldMachine``)
+    run by a ``mesh.process.shell.Shell`` over ``transport`` on the wall clock.
     ``run`` returns the ``WorldRecord``; a run that could not go on raises
     ``MeshError`` (``DuplicateProcess``: another world holds the run id).
     ``interrupted = why`` (a signal handler) ends the run early at the
@@ -253,7 +253,7 @@ def deadline_summary(rec: WorldRecord, clock: realtime.Clock) -> dict:
 
 def checked_status(rec: WorldRecord, trace: Trace, scn: Scenario, spec, seed: int, faults: FaultConfig,
                    clock: realtime.Clock | None, collect_s: float = math.inf) -> RunStatus:
-    """The run checked by the engine (``mesh.run_status``): ``exact``, ``as
+    """The run checked by the engine (``mesh.protocol.run_status``): ``exact``, ``as
     planned``, ``degraded``, ``diverged`` or ``incomplete``, with its reason
     and evidence. The plan: a copy the link faults delay past the agents'
     deadline (real time's, else their ``collect_s``) is not planned to be
@@ -269,7 +269,7 @@ def status_fields(status: RunStatus) -> dict:
 
 
 def exit_status(status: RunStatus, summary: dict, args, clock: realtime.Clock | None) -> tuple:
-    """(exit status, level, line) of the run (``mesh.run_status.accept``
+    """(exit status, level, line) of the run (``mesh.protocol.run_status.accept``
     under ``--allow-missing``, ``--allow-degraded`` and, in real time,
     ``--max-miss-rate``); an incomplete run's line names what is missing
     per agent and why."""

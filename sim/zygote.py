@@ -42,7 +42,7 @@ import sys
 import threading
 import time
 
-from diskf_mesh.mesh import credentials
+from diskf_mesh.mesh.security import credentials
 
 SPAWN_ENV = "DISKF_MESH_SPAWN"  # "exec": no zygote
 FORKED = {"sim.world": "world", "agents.agent": "agent", "sim.router": "router", "sim.host": "host"}

@@ -5,8 +5,8 @@ from __future__ import annotations
 import collections
 import threading
 
-from diskf_mesh.mesh.keys import key_matches
-from diskf_mesh.mesh.transport import Transport, _Once
+from diskf_mesh.mesh.wire.keys import key_matches
+from diskf_mesh.mesh.process.transport import Transport, _Once
 
 class LocalBus:
     """A zenoh stand-in inside one process: ``bus.transport()`` per node.

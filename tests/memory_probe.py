@@ -14,7 +14,7 @@ import re
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
-from diskf_mesh.mesh import credentials
+from diskf_mesh.mesh.security import credentials
 
 _PEM = re.compile(rb"-----BEGIN (PRIVATE KEY|CERTIFICATE)-----((?:\\n|\n|[A-Za-z0-9+/=]){40,8000}?)"
                   rb"-----END \1-----")

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from diskf_mesh.data.scenario import simulate
 from sim.launcher import Child, Launcher, build_children, free_port, loopback_options
 
@@ -58,7 +58,7 @@ def assert_same(doc: dict, ref: engine.Estimates, tol: float = TOL) -> None:
 def assert_engine_bit_for_bit(doc: dict, spec: RunSpec, ticks: int, seed: int = 0) -> None:
     """Every agent's x and P are the engine's bit for bit, and every agent
     fused exactly its neighbours in range at every tick (none lost)."""
-    from diskf_mesh.mesh.estimator import neighbours
+    from diskf_mesh.mesh.protocol.estimator import neighbours
 
     trace, ref = reference(spec, ticks, seed)
     assert np.array(doc["reported"]).all()
@@ -115,7 +115,7 @@ def start_mesh(spec: RunSpec, ticks: int, seed: int, tmp_path: Path, world_zenoh
             c.argv = wrap(c.name, c.argv)
     mesh = Mesh(world, agents)
     mesh.world_endpoints = tuple(world_zenoh.listen)
-    mesh.run_id, mesh.credentials = spec.run_id, world_zenoh.credentials
+    mesh.run_id, mesh.security.credentials = spec.run_id, world_zenoh.credentials
     mesh.start_world()
     return mesh
 

@@ -7,10 +7,10 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from diskf_mesh import estimators as algorithms
-from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.estimators.base import State
-from diskf_mesh.mesh.guard import GuardConfig
-from diskf_mesh.mesh.keys import Keys
+from diskf_mesh.mesh.protocol.guard import GuardConfig
+from diskf_mesh.mesh.wire.keys import Keys
 from diskf_mesh.core.messages import Message, Neighbourhood
 from diskf_mesh.data.scenario import load_scenario, simulate
 

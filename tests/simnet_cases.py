@@ -27,11 +27,11 @@ from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch
 from diskf_mesh.engine.verify import nominal_links, planned_links
-from diskf_mesh.mesh.agent_machine import AgentTiming
-from diskf_mesh.mesh.events import FREEZE_S
-from diskf_mesh.mesh.simnet import Fault, Lease, Link
-from diskf_mesh.mesh.simrun import WORLD, SimPlan, agent_pid, simulate_run
-from diskf_mesh.mesh.world_machine import WorldTiming
+from diskf_mesh.mesh.protocol.agent_machine import AgentTiming
+from diskf_mesh.mesh.protocol.events import FREEZE_S
+from diskf_mesh.mesh.simulated.simnet import Fault, Lease, Link
+from diskf_mesh.mesh.simulated.simrun import WORLD, SimPlan, agent_pid, simulate_run
+from diskf_mesh.mesh.protocol.world_machine import WorldTiming
 from diskf_mesh.recording.replay import compare_reported
 
 ALGORITHMS = ("diskf", "diskf", "diskf", "diskf-r", "diskf-auto", "kcf", "diffkf", "ldrkf")

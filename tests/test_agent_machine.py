@@ -1,4 +1,4 @@
-"""The agent's protocol machine (``mesh.agent_machine``) without any transport:
+"""The agent's protocol machine (``mesh.protocol.agent_machine``) without any transport:
 events in, effects out, a virtual clock."""
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ import pytest
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.agent_machine import ASK_S, DUPLICATE_SAY_S, AgentMachine, AgentTiming
-from diskf_mesh.mesh.estimator import AgentEstimator, lockstep, neighbours
-from diskf_mesh.mesh.rejoin import start_from
-from diskf_mesh.mesh.events import (Ask, AskTokens, DeclareToken, DropToken, Finish, Publish, Reply, Sample,
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.agent_machine import ASK_S, DUPLICATE_SAY_S, AgentMachine, AgentTiming
+from diskf_mesh.mesh.protocol.estimator import AgentEstimator, lockstep, neighbours
+from diskf_mesh.mesh.protocol.rejoin import start_from
+from diskf_mesh.mesh.protocol.events import (Ask, AskTokens, DeclareToken, DropToken, Finish, Publish, Reply, Sample,
                                     SetTimer, Subscribe, Timer, Token, Tokens, WatchTokens, Woke)
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.keys import key_matches
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.wire.keys import key_matches
 
 RUN = "m"
 K = 12
@@ -430,11 +430,11 @@ def test_a_timer_fired_before_its_time_changes_nothing(run):
 
 
 def test_real_time_closes_at_the_deadline_from_when_the_tick_came(run):
-    """With a clock (``mesh.clock``) the collection of tick k ends
+    """With a clock (``mesh.protocol.clock``) the collection of tick k ends
     ``deadline_s`` after tick k reached the agent; a copy after that is late,
     never fused. An agent that gets to a tick after its deadline (it fell
     behind) closes it at once."""
-    from diskf_mesh.mesh.clock import Clock
+    from diskf_mesh.mesh.protocol.clock import Clock
     scn, trace, _ = run
     w = World(scn, trace)
     me = w.ids[4]

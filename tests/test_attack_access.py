@@ -43,12 +43,12 @@ import msgpack
 import numpy as np
 import pytest
 
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.transport import MeshError, ZenohTransport
-from diskf_mesh.mesh.zenoh_config import STDIN, ZenohOptions
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.transport import MeshError, ZenohTransport
+from diskf_mesh.mesh.process.zenoh_config import STDIN, ZenohOptions
 
 from memory_probe import identity_of
 from mesh_helpers import assert_same, reference

@@ -33,10 +33,10 @@ import msgpack
 import numpy as np
 import pytest
 
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.keys import Keys, address
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire.keys import Keys, address
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from mesh_helpers import assert_same, reference
 
 pytestmark = [pytest.mark.mesh, pytest.mark.slow]

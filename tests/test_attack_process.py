@@ -17,9 +17,9 @@ import pytest
 
 from diskf_mesh.data import metrics
 from diskf_mesh.engine.batch import Estimates
-from diskf_mesh.mesh.runspec import RunSpec, world_command
-from diskf_mesh.mesh.transport import ALIVE_GATE_ENV
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.process.runspec import RunSpec, world_command
+from diskf_mesh.mesh.process.transport import ALIVE_GATE_ENV
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from sim.launcher import Child, free_port, loopback_options
 
 from mesh_helpers import LEASE_MS, Progress, assert_same, error_lines, reference, spawn, start_mesh, with_credentials, \
@@ -348,7 +348,7 @@ def test_completeness_in_the_results():
     the one line."""
     from collections import Counter
 
-    from diskf_mesh.mesh.reports import RunReports
+    from diskf_mesh.mesh.protocol.reports import RunReports
     from sim.world import WorldRecord, completeness, missing_line
 
     K, N = 4, 3

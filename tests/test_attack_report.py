@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.guard import GuardConfig
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.guard import GuardConfig
 
 RUN = "report-test"
 
@@ -63,11 +63,11 @@ def test_a_forged_report_never_becomes_a_state_a_start_or_a_metric():
     neighbour's starting estimate): it is refused, the tick goes on
     without it, and a rejoining neighbour starts from another's estimate."""
     from diskf_mesh.data.scenario import simulate
-    from diskf_mesh.mesh.estimator import neighbours
-    from diskf_mesh.mesh.events import Answer, Query, Sample, Timer, Token, Tokens
-    from diskf_mesh.mesh.keys import Keys
-    from diskf_mesh.mesh.runspec import RunSpec
-    from diskf_mesh.mesh.world_machine import CLAIM, WorldMachine, WorldTiming
+    from diskf_mesh.mesh.protocol.estimator import neighbours
+    from diskf_mesh.mesh.protocol.events import Answer, Query, Sample, Timer, Token, Tokens
+    from diskf_mesh.mesh.wire.keys import Keys
+    from diskf_mesh.mesh.process.runspec import RunSpec
+    from diskf_mesh.mesh.protocol.world_machine import CLAIM, WorldMachine, WorldTiming
 
     spec = RunSpec("quadrants", "kcf", run_id=RUN, topology="ring")
     scn = spec.load(6)

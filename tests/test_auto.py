@@ -17,7 +17,7 @@ from diskf_mesh.data import metrics
 from diskf_mesh.data.scenario import load_scenario, parse_scenario, simulate
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.estimators import NAMES
-from diskf_mesh.mesh.estimator import lockstep
+from diskf_mesh.mesh.protocol.estimator import lockstep
 from diskf_mesh.studies import heldout
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -253,7 +253,7 @@ RATE_HZ = 5  # 200 ticks take 40 s: every stop below lands mid-run
 # rest together (agents or hosts first, then what they depend on)
 ONE_BY_ONE = {"docker-compose.yml": ("agent-1", "agent-2", "agent-3", "agent-4"),
               "docker-compose.hosts.yml": ("host-a", "router-b")}
-# exit status on SIGTERM (diskf_mesh.mesh.stopping): the world writes its results, marked interrupted, and exits
+# exit status on SIGTERM (diskf_mesh.mesh.process.stopping): the world writes its results, marked interrupted, and exits
 # 3 (incomplete), or 4 where real time had missed too many deadlines before (these runs are on the clock)
 STOPPED = {"world": (3, 4), "router": (0,), "agent": (128 + signal.SIGTERM,), "host": (128 + signal.SIGTERM,)}
 DOWN_WITHIN_S = 5.0  # several containers at once: the engine's own work shares the 2 cores; far from the 10 s grace

@@ -143,7 +143,7 @@ def test_help_is_plain_text_and_lists_every_exit_status():
 
 def test_plain_text_keeps_what_a_user_needs():
     doc = ("Starts the world (``python -m sim.world``) and ``PEERS_UP_TO`` peers "
-           "(``diskf_mesh.mesh.credentials``); see ``--logs`` and docs/hosts.md.")
+           "(``diskf_mesh.mesh.security.credentials``); see ``--logs`` and docs/hosts.md.")
     text = help_text.plain(doc)
     assert text == "Starts the world (diskf-mesh world) and 16 peers; see --logs and docs/hosts.md." or \
         ("diskf-mesh world" in text and "--logs" in text and "``" not in text and "credentials" not in text)

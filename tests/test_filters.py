@@ -170,8 +170,8 @@ def test_a_diverging_estimator_is_a_row_that_says_so_not_a_traceback():
     ticks). The engine names the
     estimator and the tick; ``experiment`` marks the row diverged and keeps
     the others."""
-    from diskf_mesh.mesh import wire
-    from diskf_mesh.mesh.runspec import RunSpec
+    from diskf_mesh.mesh.wire import codec as wire
+    from diskf_mesh.mesh.process.runspec import RunSpec
     from diskf_mesh.studies import experiment
 
     scn = load_scenario("quadrants").with_overrides(topology="none", steps=700)

@@ -19,10 +19,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.guard import REASONS, Guard
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.guard import REASONS, Guard
 from diskf_mesh.core.messages import Message
-from diskf_mesh.mesh.receive import Receiver
+from diskf_mesh.mesh.protocol.receive import Receiver
 from message_factory import tick_view
 
 EXAMPLES = 250

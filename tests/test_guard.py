@@ -8,12 +8,12 @@ import msgpack
 import numpy as np
 import pytest
 
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire.counters import Counters
 from diskf_mesh.data.faults import FaultConfig, FaultModel
-from diskf_mesh.mesh.guard import REASONS, Guard
+from diskf_mesh.mesh.protocol.guard import REASONS, Guard
 from diskf_mesh.core.messages import Message
-from diskf_mesh.mesh.receive import Receiver
+from diskf_mesh.mesh.protocol.receive import Receiver
 from message_factory import tick_view
 
 
@@ -140,7 +140,7 @@ def test_ticks_inside_the_window_pass(view):
 def test_logged_once_per_sender_and_reason(view, caplog):
     g = Guard(view.guard_config())
     j, k = view.linked[:2]
-    with caplog.at_level(logging.WARNING, logger="diskf_mesh.mesh.guard"):
+    with caplog.at_level(logging.WARNING, logger="diskf_mesh.mesh.protocol.guard"):
         for _ in range(5):
             admit(g, j, b"junk", view.tick)
             admit(g, k, b"junk", view.tick)
@@ -213,7 +213,7 @@ def test_receiver_with_faults_balances_its_books(view):
 def test_unknown_sender_ids_share_one_row_and_are_never_decoded(view, caplog):
     g = Guard(view.guard_config())
     ids = [int(i) for i in np.random.default_rng(1).integers(100, 2 ** 62, 10_000)]
-    with caplog.at_level(logging.WARNING, logger="diskf_mesh.mesh.guard"):
+    with caplog.at_level(logging.WARNING, logger="diskf_mesh.mesh.protocol.guard"):
         for i in ids:  # garbage: were it decoded, the reason would be "not-msgpack"
             assert admit(g, i, b"\xc1" * 300, view.tick) is None
     assert g.counters.rejected == {"unknown-sender": 10_000}
@@ -314,17 +314,17 @@ def test_what_waits_for_the_worlds_tick_is_bounded_and_gated_on_release(view):
 # the world's messages at an agent (agents.agent), fed bytes on a LocalBus
 # --------------------------------------------------------------------------
 class FedAgent:
-    """An agent's machine (``mesh.agent_machine``) of Scenario 2 working on
+    """An agent's machine (``mesh.protocol.agent_machine``) of Scenario 2 working on
     tick ``k`` (ticks before it fed as the world and its neighbours send
     them), for tests of what it takes from the world."""
 
     K = 30
 
     def __init__(self, k: int = 5):
-        from diskf_mesh.mesh.agent_machine import AgentMachine
-        from diskf_mesh.mesh.estimator import lockstep
-        from diskf_mesh.mesh.events import AskTokens, Token, Tokens
-        from diskf_mesh.mesh.keys import Keys
+        from diskf_mesh.mesh.protocol.agent_machine import AgentMachine
+        from diskf_mesh.mesh.protocol.estimator import lockstep
+        from diskf_mesh.mesh.protocol.events import AskTokens, Token, Tokens
+        from diskf_mesh.mesh.wire.keys import Keys
         from diskf_mesh.data.scenario import load_scenario, simulate
         self.scn = scn = load_scenario("dynamic")
         self.trace = simulate(scn, [0], steps=self.K)
@@ -344,11 +344,11 @@ class FedAgent:
         assert self.agent.k == k and not self.agent.collecting
 
     def sample(self, key: str, payload: bytes) -> None:
-        from diskf_mesh.mesh.events import Sample
+        from diskf_mesh.mesh.protocol.events import Sample
         self.agent.handle(Sample(key, payload), 0.0)
 
     def token(self, key: str, up: bool = True) -> None:
-        from diskf_mesh.mesh.events import Token
+        from diskf_mesh.mesh.protocol.events import Token
         self.agent.handle(Token(key, up), 0.0)
 
     def tick(self, t: int, **change) -> bytes:
@@ -366,7 +366,7 @@ class FedAgent:
         self.sample(self.keys.tick, self.tick(t))
 
     def neighbours(self, t: int) -> None:
-        from diskf_mesh.mesh.estimator import neighbours
+        from diskf_mesh.mesh.protocol.estimator import neighbours
         for o in neighbours(self.scn, self.me, self.trace.positions[t - 1]):
             if o != self.me:
                 self.sample(self.keys.msg(o, to=[self.me]), wire.encode("fed", o, t, self.msgs[t][o]))

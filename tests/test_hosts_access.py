@@ -19,11 +19,11 @@ import time
 
 import pytest
 
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.transport import MeshError, ZenohTransport
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.transport import MeshError, ZenohTransport
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from sim import hosts
 from sim.launcher import Launcher, free_port
 

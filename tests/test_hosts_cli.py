@@ -6,9 +6,9 @@ import pytest
 
 from diskf_mesh.cli import main as cli
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import runspec
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.process import runspec
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from sim import hosts
 
 WORLD = '[world]\nlisten = "tls/127.0.0.1:7447"\n'

@@ -10,8 +10,8 @@ import json
 import pytest
 
 from diskf_mesh.cli import main as cli
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.process.runspec import RunSpec
 from mesh_helpers import assert_engine_bit_for_bit, up
 from sim.launcher import free_port
 

@@ -28,9 +28,9 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.zenoh_config import STDIN, ZenohOptions
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.zenoh_config import STDIN, ZenohOptions
 from memory_probe import certificates, pems, public_key, usable_keys
 from sim.launcher import Child, Launcher, hand_over, one_host_children, run_identities
 
@@ -280,7 +280,7 @@ def test_kill_9_of_up_leaves_no_key_and_no_process(tmp_path):
 # --------------------------------------------------------------------------
 HOLDER = textwrap.dedent("""
     import os, sys, time
-    from diskf_mesh.mesh import credentials
+    from diskf_mesh.mesh.security import credentials
     fd = os.memfd_create("secret")
     os.write(fd, b"-----BEGIN PRIVATE KEY----- mine")
     secret = bytearray(b"-----BEGIN PRIVATE KEY----- in memory")
@@ -302,7 +302,7 @@ NOBODY = 65534
 
 def _runs_as_nobody(python: str, as_nobody: dict) -> bool:
     try:
-        return subprocess.run([python, "-c", "import diskf_mesh.mesh.credentials"], capture_output=True, timeout=60,
+        return subprocess.run([python, "-c", "import diskf_mesh.mesh.security.credentials"], capture_output=True, timeout=60,
                               **as_nobody).returncode == 0
     except OSError:
         return False

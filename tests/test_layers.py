@@ -14,6 +14,8 @@ PACKAGE = ROOT / "diskf_mesh"
 # bottom to top; a layer may import every layer listed before it
 LAYERS = ["core", "estimators", "data", "engine", "mesh", "studies", "recording", "live", "cli", "api"]
 APPS = {"agents", "sim"}  # the processes: may import the whole package, never each other's internals
+# the mesh layer's rooms, bottom to top; a room may import every room listed before it
+MESH_ROOMS = ["wire", "security", "protocol", "process", "simulated"]
 
 
 def _layer(path: Path) -> str:
@@ -81,4 +83,33 @@ def test_imports_point_down(path):
             ok = there not in APPS and LAYERS.index(there) < LAYERS.index(here)
         if not ok:
             bad.append(f"{path.relative_to(ROOT)}:{line}: {here} imports {module}")
+    assert not bad, "\n".join(bad)
+
+
+def _room(module_or_path: str) -> str | None:
+    parts = module_or_path.split(".")
+    if parts[:2] != ["diskf_mesh", "mesh"] or len(parts) < 3:
+        return None
+    return parts[2] if parts[2] in MESH_ROOMS else "mesh"
+
+
+def test_mesh_is_rooms():
+    mesh = PACKAGE / "mesh"
+    rooms = {p.name for p in mesh.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    assert rooms == set(MESH_ROOMS)
+    assert sorted(p.name for p in mesh.glob("*.py")) == ["__init__.py"]
+    for name in MESH_ROOMS:
+        assert "May import" in (mesh / name / "__init__.py").read_text(), name
+
+
+@pytest.mark.parametrize("path", sorted((PACKAGE / "mesh").rglob("*.py")), ids=lambda p: str(p.relative_to(ROOT)))
+def test_mesh_rooms_point_down(path):
+    here = _room(".".join(path.relative_to(ROOT).with_suffix("").parts))
+    bad = []
+    for line, module in _imports(path):
+        there = _room(module)
+        if there is None or there == "mesh" or here == "mesh" or there == here:
+            continue
+        if MESH_ROOMS.index(there) > MESH_ROOMS.index(here):
+            bad.append(f"{path.relative_to(ROOT)}:{line}: mesh.{here} imports {module}")
     assert not bad, "\n".join(bad)

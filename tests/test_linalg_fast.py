@@ -283,7 +283,7 @@ def test_an_agent_alone_computes_the_engine_bits(algorithm):
     """Every agent as a batch of one (``AgentEstimator``, what an agent process
     runs) in lockstep equals the engine on the same seed bit for bit, dense
     and gathered, on Scenario 2's changing links."""
-    from diskf_mesh.mesh.estimator import lockstep
+    from diskf_mesh.mesh.protocol.estimator import lockstep
 
     scn = load_scenario("dynamic")
     trace = simulate(scn, [0], steps=80)

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from diskf_mesh.cli import main as cli
-from diskf_mesh.mesh import credentials
+from diskf_mesh.mesh.security import credentials
 from sim import compose
 from sim.launcher import build_children
 

@@ -12,9 +12,9 @@ import pytest
 
 from agents.agent import Agent
 from diskf_mesh.core import exits
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.keys import key_matches
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.wire.keys import key_matches
 from local_bus import LocalBus
 from sim.launcher import Child, ChildFailed, Launcher
 from sim.world import World, WorldTiming

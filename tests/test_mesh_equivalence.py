@@ -7,7 +7,7 @@ import pytest
 
 from diskf_mesh import estimators as algorithms
 from diskf_mesh.data import metrics
-from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.process.runspec import RunSpec
 from diskf_mesh.data.scenario import shipped_scenarios
 
 from mesh_helpers import assert_same, reference, up

@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire.counters import Counters
 from diskf_mesh.data.faults import FaultConfig, delivered_links
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.transport import ZenohTransport
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.transport import ZenohTransport
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from diskf_mesh.data.scenario import simulate
 from sim.launcher import free_port
 

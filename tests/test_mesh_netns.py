@@ -28,8 +28,8 @@ import numpy as np
 import pytest
 
 from diskf_mesh.cli import main as cli
-from diskf_mesh.mesh.runspec import RunSpec, agent_command, world_command
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.process.runspec import RunSpec, agent_command, world_command
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from sim import hosts
 from sim.launcher import Child, Launcher
 from sim.netns import Namespaces

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 from diskf_mesh.cli import main as cli
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from mesh_helpers import assert_engine_bit_for_bit, up
 from sim import launcher
 from sim.launcher import PEERS_UP_TO, network_of

@@ -10,10 +10,10 @@ import msgpack
 import numpy as np
 import pytest
 
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.transport import ZenohTransport
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.transport import ZenohTransport
 from diskf_mesh.core.messages import Message
 from diskf_mesh.data.scenario import scenario_path, simulate
 
@@ -62,7 +62,7 @@ def test_an_estimators_declaration_makes_the_layout_and_the_guards_checks():
     and the guard checks what is declared (here: no P_pred, so no
     information check, and a bad P_pred cannot be refused)."""
     from diskf_mesh.estimators import EXCHANGED, Exchanged
-    from diskf_mesh.mesh.guard import Guard, GuardConfig
+    from diskf_mesh.mesh.protocol.guard import Guard, GuardConfig
 
     msg = _message(2, 1)
     assert wire.encode(RUN, 3, 12, msg) == wire.encode(RUN, 3, 12, msg, EXCHANGED)
@@ -203,7 +203,7 @@ def test_report_counters_are_validated_against_the_run():
             with pytest.raises(wire.Rejected) as e:
                 wire.decode_report(report(counters), n=2, m=1, ticks=ticks)
             assert e.value.reason == reason, counters
-    from diskf_mesh.mesh.counters import Counters
+    from diskf_mesh.mesh.wire.counters import Counters
     assert Counters(sent=2 ** 70, fused=3).to_dict(cap=bound)["sent"] == bound
 
 

@@ -1,4 +1,4 @@
-"""Real-time mode (``--rate``, ``diskf_mesh.mesh.clock``): the world ticks on
+"""Real-time mode (``--rate``, ``diskf_mesh.mesh.protocol.clock``): the world ticks on
 the wall clock, agents fuse what arrived by their deadline, misses are
 counted, and the record of what was fused replays the run bit for bit.
 Lockstep (no ``--rate``) is the engine bit for bit: test_mesh_equivalence."""
@@ -13,8 +13,8 @@ from diskf_mesh.cli import main as cli
 from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.engine import batch as engine
-from diskf_mesh.mesh import clock as realtime
-from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.protocol import clock as realtime
+from diskf_mesh.mesh.process.runspec import RunSpec
 from diskf_mesh.recording import reader
 from diskf_mesh.recording.replay import compare, replay
 from mesh_helpers import MESH_ALGORITHM, reference, up

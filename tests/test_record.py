@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from diskf_mesh import estimators as algorithms
-from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.mesh.wire.counters import Counters
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.recording.reader import read
 

@@ -13,12 +13,12 @@ import time
 import numpy as np
 import pytest
 
-from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.process.runspec import RunSpec
 from diskf_mesh.recording import reader
 from diskf_mesh.recording.replay import compare, replay
-from diskf_mesh.mesh.verdicts import TickVerdicts
+from diskf_mesh.mesh.protocol.verdicts import TickVerdicts
 
 from mesh_helpers import start_mesh
 

@@ -1,11 +1,11 @@
-"""A restarted agent's re-initialisation (``mesh.rejoin``), without zenoh."""
+"""A restarted agent's re-initialisation (``mesh.protocol.rejoin``), without zenoh."""
 from __future__ import annotations
 
 import numpy as np
 
-from diskf_mesh.mesh.rejoin import in_range, most_certain, start_from
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.estimator import AgentEstimator
+from diskf_mesh.mesh.protocol.rejoin import in_range, most_certain, start_from
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.estimator import AgentEstimator
 from diskf_mesh.data.scenario import load_scenario
 
 

@@ -12,7 +12,7 @@ import pytest
 from diskf_mesh.engine import centralized
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.core import equations as eq
-from diskf_mesh.mesh.estimator import lockstep
+from diskf_mesh.mesh.protocol.estimator import lockstep
 from diskf_mesh.core.model import RobustOptions
 from diskf_mesh.estimators import Params
 from diskf_mesh.data.scenario import load_scenario, simulate

@@ -6,9 +6,9 @@ import time
 
 import pytest
 
-from diskf_mesh.mesh.events import (Answer, Ask, AskTokens, DeclareQueryable, DeclareToken, Finish, Interrupt,
+from diskf_mesh.mesh.protocol.events import (Answer, Ask, AskTokens, DeclareQueryable, DeclareToken, Finish, Interrupt,
                                     Publish, Query, Reply, Sample, SetTimer, Subscribe, Timer, Tokens, Woke)
-from diskf_mesh.mesh.shell import Shell
+from diskf_mesh.mesh.process.shell import Shell
 from local_bus import LocalBus
 
 
@@ -99,7 +99,7 @@ def test_a_callbacks_failure_is_raised_by_run():
 
 
 def test_unanswered_queries_held_are_bounded(monkeypatch):
-    import diskf_mesh.mesh.shell as shell_module
+    import diskf_mesh.mesh.process.shell as shell_module
 
     monkeypatch.setattr(shell_module, "QUERIES_HELD", 3)
     m = Scripted(lambda now: [], lambda e, now: [])

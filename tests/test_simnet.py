@@ -9,10 +9,10 @@ import sys
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh import events as ev
-from diskf_mesh.mesh.keys import key_matches
-from diskf_mesh.mesh.simnet import Fault, Lease, Link, SimNet
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.protocol import events as ev
+from diskf_mesh.mesh.wire.keys import key_matches
+from diskf_mesh.mesh.simulated.simnet import Fault, Lease, Link, SimNet
 
 
 class Pong:
@@ -101,7 +101,7 @@ def test_one_seed_one_run_event_for_event():
 
 
 def test_a_run_does_not_depend_on_the_hash_seed():
-    code = ("import sys; sys.path.insert(0, 'tests'); from test_simnet import ping_pong; from diskf_mesh.mesh.simnet import Link;"
+    code = ("import sys; sys.path.insert(0, 'tests'); from test_simnet import ping_pong; from diskf_mesh.mesh.simulated.simnet import Link;"
             "print(ping_pong(3, link=Link(delay=0.001, jitter=0.01, loss=0.3, duplicate=0.3, reorder=0.3), "
             "n=20)[1].digest)")
     digests = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
@@ -304,8 +304,8 @@ def test_an_honest_agent_that_never_measures_is_carried_by_the_mesh():
 
     from diskf_mesh.data.scenario import simulate
     from diskf_mesh.engine import batch as engine
-    from diskf_mesh.mesh import wire
-    from diskf_mesh.mesh.simrun import simulate_run
+    from diskf_mesh.mesh.wire import codec as wire
+    from diskf_mesh.mesh.simulated.simrun import simulate_run
     from diskf_mesh.studies import heldout
 
     case, = [c for c in heldout.cases() if c.label == "CV none, zero"]
@@ -328,7 +328,7 @@ def test_an_agent_whose_estimator_diverges_leaves_at_once_with_its_reason():
     a tick) or raising; the world's check replays the ticks before the
     engine's failure and says the rest is not verified."""
     from diskf_mesh.data.scenario import load_scenario, simulate
-    from diskf_mesh.mesh.simrun import simulate_run
+    from diskf_mesh.mesh.simulated.simrun import simulate_run
 
     scn = load_scenario("quadrants").with_overrides(topology="none", steps=700)
     trace = simulate(scn, [0])

@@ -8,7 +8,7 @@ import simnet_cases as cases
 from simnet_cases import Case
 
 from diskf_mesh.data.faults import FaultConfig
-from diskf_mesh.mesh.simnet import Fault, Link
+from diskf_mesh.mesh.simulated.simnet import Fault, Link
 
 FOUND = [
     # diskf-r's input model took its default scales from the sensors it was given: the engine's are every

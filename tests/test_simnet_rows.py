@@ -21,12 +21,12 @@ import pytest
 from diskf_mesh import estimators
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch
-from diskf_mesh.mesh import events as ev
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.agent_machine import AgentTiming
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.simnet import Fault, Link
-from diskf_mesh.mesh.simrun import SimPlan, agent_pid, simulate_run
+from diskf_mesh.mesh.protocol import events as ev
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.agent_machine import AgentTiming
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.simulated.simnet import Fault, Link
+from diskf_mesh.mesh.simulated.simrun import SimPlan, agent_pid, simulate_run
 
 K = 40
 RUN = "sim"

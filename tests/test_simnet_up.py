@@ -68,10 +68,10 @@ def test_link_latency_past_the_collect_timeout_is_planned_as_the_world_plans_it(
 
 def test_simulate_run_plans_with_the_agents_deadline():
     from diskf_mesh.data.faults import FaultConfig
-    from diskf_mesh.mesh import clock as realtime
-    from diskf_mesh.mesh.agent_machine import AgentTiming
-    from diskf_mesh.mesh.simrun import SimPlan, simulate_run
-    from diskf_mesh.mesh.world_machine import WorldTiming
+    from diskf_mesh.mesh.protocol import clock as realtime
+    from diskf_mesh.mesh.protocol.agent_machine import AgentTiming
+    from diskf_mesh.mesh.simulated.simrun import SimPlan, simulate_run
+    from diskf_mesh.mesh.protocol.world_machine import WorldTiming
 
     scn = load_scenario("quadrants").with_overrides(steps=4)
     trace = simulate(scn, [0])

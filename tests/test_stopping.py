@@ -1,4 +1,4 @@
-"""SIGTERM ends a mesh process at any moment (diskf_mesh.mesh.stopping):
+"""SIGTERM ends a mesh process at any moment (diskf_mesh.mesh.process.stopping):
 through its finally blocks when the main thread runs Python, and within
 GRACE_S when it waits inside zenoh, where no Python handler can run."""
 from __future__ import annotations
@@ -10,9 +10,9 @@ import time
 
 import pytest
 
-from diskf_mesh.mesh.stopping import GRACE_S
+from diskf_mesh.mesh.process.stopping import GRACE_S
 
-PRELUDE = "import sys\nfrom diskf_mesh.mesh.stopping import exit_on_sigterm\nexit_on_sigterm()\n"
+PRELUDE = "import sys\nfrom diskf_mesh.mesh.process.stopping import exit_on_sigterm\nexit_on_sigterm()\n"
 
 
 def _sigterm_when_ready(code: str) -> tuple:
@@ -73,7 +73,7 @@ def test_a_signal_during_an_import_is_raised_after_it(tmp_path, name, handler, c
     raised inside, it can be dropped by a module lock's callback, become a
     RuntimeError, or make CPython end the process by SIGINT (status -2)."""
     (tmp_path / "under_signal.py").write_text(IMPORTED_UNDER_A_SIGNAL.replace("signal.SIG", f"signal.{name}"))
-    code = (f"import signal, sys, time\nfrom diskf_mesh.mesh import stopping\n"
+    code = (f"import signal, sys, time\nfrom diskf_mesh.mesh.process import stopping\n"
             f"signal.signal(signal.{name}, stopping.{handler})\nsys.path.insert(0, {str(tmp_path)!r})\n"
             "try:\n    import under_signal\n    time.sleep(5)\n    sys.exit(1)\n"
             f"except {caught}:\n    print(sys.modules['under_signal'].DONE, flush=True)\n    sys.exit(130)\n")

@@ -21,7 +21,7 @@ from cli_helpers import run_cli, simulated_doc, write
 from diskf_mesh.data.scenario import load_scenario, scenario_path
 from diskf_mesh.data.trace import load_trace
 
-from diskf_mesh.mesh.runspec import RunSpec
+from diskf_mesh.mesh.process.runspec import RunSpec
 from mesh_helpers import assert_same, reference, up
 
 NAMES = ["north-east", "north-west", "south-west", "south-east"]

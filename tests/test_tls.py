@@ -1,4 +1,4 @@
-"""Credentials (``diskf_mesh.mesh.credentials``, docs/security.md): the files,
+"""Credentials (``diskf_mesh.mesh.security.credentials``, docs/security.md): the files,
 the refusal to start without them, and what zenoh enforces with them, on
 sessions opened the way every mesh process opens them
 (``ZenohTransport(ZenohOptions(credentials=DIR, identity=...))``):
@@ -32,10 +32,10 @@ from cryptography.hazmat.primitives.asymmetric import ec
 
 from diskf_mesh.cli import main as cli
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.transport import MeshError, ZenohTransport
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.process.transport import MeshError, ZenohTransport
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from sim.launcher import free_port
 
 RUN = "tls-test"

@@ -16,8 +16,8 @@ from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import verify as V
 from diskf_mesh.estimators import get as get_estimator
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.estimator import AgentEstimator
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.estimator import AgentEstimator
 
 TICKS, SEED, ALG, RUN = 40, 3, "diskf", "verify"
 
@@ -218,7 +218,7 @@ def test_allow_missing_accepts_only_what_the_missing_reports_explain(run):
     between two agents that both reported is degradation the missing
     agent-tick does not explain: the run stays incomplete, and only
     ``--allow-missing`` with ``--allow-degraded`` accepts it."""
-    from diskf_mesh.mesh.run_status import accept
+    from diskf_mesh.mesh.protocol.run_status import accept
 
     scn, trace = run
     K, N = trace.has.shape[1:]
@@ -248,7 +248,7 @@ def test_allow_missing_accepts_only_what_the_missing_reports_explain(run):
 
 
 def test_accept_is_the_one_place_a_status_meets_the_users_tolerances():
-    from diskf_mesh.mesh.run_status import accept
+    from diskf_mesh.mesh.protocol.run_status import accept
 
     degraded = V.RunStatus("degraded", "3 agent-ticks fused fewer messages than planned", {})
     incomplete = V.RunStatus("incomplete", "2 of 100 agent-ticks not reported", {"missing_fraction": 0.02})

@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 
 from diskf_mesh.core import exits
-from diskf_mesh.mesh import credentials, wire
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.transport import ZenohTransport
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.process.transport import ZenohTransport
 from sim.launcher import free_port, loopback_options
 
 from mesh_helpers import Progress, assert_engine_bit_for_bit, reference, start_mesh, with_credentials

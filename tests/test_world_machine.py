@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 
 from diskf_mesh.data.scenario import simulate
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.clock import Clock
-from diskf_mesh.mesh.estimator import neighbours
-from diskf_mesh.mesh.events import (AskTokens, Answer, DeclareQueryable, DeclareToken, Finish, Interrupt, Publish,
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.clock import Clock
+from diskf_mesh.mesh.protocol.estimator import neighbours
+from diskf_mesh.mesh.protocol.events import (AskTokens, Answer, DeclareQueryable, DeclareToken, Finish, Interrupt, Publish,
                                     Query, Sample, SetTimer, Subscribe, Timer, Token, Tokens, WatchTokens, Woke)
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.runspec import RunSpec
-from diskf_mesh.mesh.world_machine import (CLAIM, DUPLICATE, FAILED, PAUSE_MIN_S, WorldMachine, WorldTiming)
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.process.runspec import RunSpec
+from diskf_mesh.mesh.protocol.world_machine import (CLAIM, DUPLICATE, FAILED, PAUSE_MIN_S, WorldMachine, WorldTiming)
 
 TICKS = 6
 RUN = "wm"
@@ -321,13 +321,13 @@ def test_the_machine_reads_no_clock_and_touches_no_network():
     import ast
     from pathlib import Path
 
-    import diskf_mesh.mesh.world_machine as wm
+    import diskf_mesh.mesh.protocol.world_machine as wm
 
     tree = ast.parse(Path(wm.__file__).read_text())
     imported = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     imported |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     forbidden = {"time", "threading", "socket", "random", "secrets", "os", "zenoh", "asyncio",
-                 "diskf_mesh.mesh.transport", "diskf_mesh.mesh.shell"}
+                 "diskf_mesh.mesh.process.transport", "diskf_mesh.mesh.process.shell"}
     assert not imported & forbidden
     names = {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
     assert not names & {"new_nonce", "monotonic", "perf_counter", "time_ns"}

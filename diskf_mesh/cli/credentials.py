@@ -24,8 +24,8 @@ import argparse
 from pathlib import Path
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import credentials
-from diskf_mesh.mesh.keys import check_run_id
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.wire.keys import check_run_id
 from diskf_mesh.data.scenario import load_scenario
 from diskf_mesh.cli.options import add_command, positive_int
 

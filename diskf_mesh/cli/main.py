@@ -24,7 +24,7 @@ import warnings
 
 from diskf_mesh import __version__
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import stopping
+from diskf_mesh.mesh.process import stopping
 
 COMMAND_MODULES = (
     "diskf_mesh.cli.experiment",

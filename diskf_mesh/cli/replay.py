@@ -28,7 +28,7 @@ from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics, provenance
 from diskf_mesh.core import exits
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh.run_status import add_tolerances
+from diskf_mesh.mesh.protocol.run_status import add_tolerances
 from diskf_mesh.data.trace import estimates_to_json, estimator_from_json, read_json, read_trace_file
 from diskf_mesh.cli.options import (
     add_command,

@@ -3,7 +3,7 @@
 ``Message`` holds the published quantities of Algorithm 1, step 2, as arrays
 with leading batch axes (seeds x agents in the engine; one agent in a
 process). It never holds a raw measurement, an H or an R. The wire format
-(schema version, sender id, tick) lives in ``diskf_mesh.mesh.wire``.
+(schema version, sender id, tick) lives in ``diskf_mesh.mesh.wire.codec``.
 
 Fields (tick k):
     x_pred, P_pred  x^_{k|k-1}, P^_{k|k-1}   prediction (without input)

@@ -6,7 +6,7 @@ overhead is most of the time; these kernels do the same IEEE operations on
 Python floats, so every result equals the numpy path of ``linalg`` bit for
 bit (``tests/test_linalg_fast.py``). ``linalg`` chooses between them;
 the checks of single messages, reports and starting estimates
-(``mesh.guard``, ``mesh.wire``) use ``eigen_range``, ``information_gain``
+(``mesh.protocol.guard``, ``mesh.wire.codec``) use ``eigen_range``, ``information_gain``
 and ``cholesky_ok``, which take nested lists (size 1 or 2) or arrays.
 """
 from __future__ import annotations

@@ -4,7 +4,7 @@ The fault model is pure logic. ``FaultModel.plan(sender, receiver, tick)``
 says what the link from ``sender`` to ``receiver`` does with the sender's
 message of ``tick``: nothing arrives (lost), or one or two copies arrive, each
 after its own delay. A transport applies the plan on the receiving side
-(``diskf_mesh.mesh.delayline`` holds delayed copies until they are due), so the
+(``diskf_mesh.mesh.protocol.delayline`` holds delayed copies until they are due), so the
 estimation code never sees a fault, only what arrived.
 
 Every decision is drawn from a numpy ``Generator`` seeded by

@@ -272,7 +272,7 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
     delivered sets (``planned_links``; None: no faults injected, the
     nominal links); ``message_digest(k, sender indices, the tick's Message
     batch) -> [bytes]``: the digests an agent reports of the messages it
-    fused (``mesh.wire.engine_digests``; None: digests are not checked); ``labels``: the agents' names in the evidence (default: the
+    fused (``mesh.wire.codec.engine_digests``; None: digests are not checked); ``labels``: the agents' names in the evidence (default: the
     trace's)."""
     whole = claims
     K_all, N = claims.reported.shape

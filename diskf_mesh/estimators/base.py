@@ -125,9 +125,9 @@ class Exchanged:
     """One array of the message an estimator's agents exchange (a field of
     ``Message``), declared once on its class (``Estimator.exchanged``).
 
-    The wire (``diskf_mesh.mesh.wire``) sends the declared arrays, in their
+    The wire (``diskf_mesh.mesh.wire.codec``) sends the declared arrays, in their
     order, as one float64 byte string, whole and row-major; the receiving
-    agent's guard (``diskf_mesh.mesh.guard``) checks every value for
+    agent's guard (``diskf_mesh.mesh.protocol.guard``) checks every value for
     finiteness and magnitude, and every covariance for symmetry, positive
     definiteness and conditioning. ``Message.d_valid`` always travels (a
     flag). A ``Message`` array an estimator does not declare does not travel:

@@ -9,7 +9,7 @@ from diskf_mesh.data import metrics, provenance
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.outputs import human_stream, json_safe, save_json
 from diskf_mesh.data.trace import estimates_to_json
-from diskf_mesh.mesh.run_status import accept
+from diskf_mesh.mesh.protocol.run_status import accept
 from diskf_mesh.recording.reader import read, take_ticks
 from diskf_mesh.recording.replay import recorded_miss_rate, recording_status, replay
 

@@ -24,8 +24,8 @@ from diskf_mesh.estimators import Params
 from diskf_mesh.engine import verify
 from diskf_mesh.engine.batch import Estimates
 from diskf_mesh.engine.verify import RunClaims, RunStatus
-from diskf_mesh.mesh.reports import RunReports
-from diskf_mesh.mesh.run_status import restarts_from_json, run_status
+from diskf_mesh.mesh.protocol.reports import RunReports
+from diskf_mesh.mesh.protocol.run_status import restarts_from_json, run_status
 from diskf_mesh.recording.reader import Recording
 
 

@@ -57,7 +57,7 @@ CHANNELS = {
         "MessageSent", "one agent message", required=("tick", "sender", "to", "digest"), **_TICK, sender=_ID,
         to={**_IDS, "description": "the agents it is addressed to (in range at its tick)"},
         digest={"type": "string", "description": "hex digest of the payload it published "
-                                                 "(diskf_mesh.mesh.wire.digest)"},
+                                                 "(diskf_mesh.mesh.wire.codec.digest)"},
         differs={**_IDS, "description": "receivers that fused a message of this sender and tick with another "
                                         "digest (not what it sent)"})}),
     "/agents/delivered": _obj("MessagesDelivered", "what became of every message of tick k at every receiver "
@@ -75,9 +75,9 @@ CHANNELS = {
         "Estimate", "one agent's", required=("agent", "x", "P", "d_valid", "fused"), agent=_ID,
         x=_VEC, P=_MAT, d={"type": ["array", "null"], "items": _NUM}, d_valid={"type": "boolean"}, fused=_IDS,
         digests={"type": "array", "items": {"type": "string"}, "description": "per sender of fused, in order: "
-                 "the hex digest of its message as fused (diskf_mesh.mesh.wire.message_digest)"},
+                 "the hex digest of its message as fused (diskf_mesh.mesh.wire.codec.message_digest)"},
         position_error={**_NUM, "description": "distance of the estimated position to the truth"})}),
-    "/agents/counters": _obj("Counters", "every agent's message counters after tick k (diskf_mesh.mesh.counters), flat",
+    "/agents/counters": _obj("Counters", "every agent's message counters after tick k (diskf_mesh.mesh.wire.counters), flat",
                              **_TICK, counters={"type": "array", "items": _obj(
         "AgentCounters", "one agent's", agent=_ID, counters={"type": "object", "additionalProperties": _INT})}),
     "/run/result": _obj("Result", "the run's end: status, ticks closed, metrics, the run checked by the "

@@ -28,7 +28,7 @@ measurements, truth; ``diskf-trace/1``) and estimator settings are attached
 as ``trace.json``, written first, so a recording replays on its own.
 
 What each agent sent and did with its neighbours' messages comes from its
-reports (``mesh.verdicts``; a report carries the digest of the agent's own
+reports (``mesh.protocol.verdicts``; a report carries the digest of the agent's own
 message as published and of each message it fused, never a message, so
 recording adds no message to the wire and no message reaches the world);
 a message that a receiver fused with another digest than its sender's is

@@ -1,10 +1,10 @@
-"""A whole mesh run on the simulated network (``mesh.simnet``).
+"""A whole mesh run on the simulated network (``mesh.simulated.simnet``).
 
-``simulate_run`` puts the world (``mesh.world_machine``) and every agent of a
-scenario (``mesh.agent_machine``) as machines on one ``SimNet``, each under
+``simulate_run`` puts the world (``mesh.protocol.world_machine``) and every agent of a
+scenario (``mesh.protocol.agent_machine``) as machines on one ``SimNet``, each under
 its own identity of the run's access rules (``credentials.access_control``),
 runs it on the virtual clock, and checks the result the way every run is
-checked (``mesh.run_status``: the engine replays what each agent said it
+checked (``mesh.protocol.run_status``: the engine replays what each agent said it
 fused). A ``SimPlan`` says what the network does: the links, a fault plan
 (pauses, crashes, restarts, interrupts), twins (a second process holding
 an agent's id), late starts. The agents' own link faults (``FaultConfig``,
@@ -23,13 +23,14 @@ from dataclasses import dataclass, field
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.data.trace import Trace
-from diskf_mesh.mesh import clock as realtime, credentials
-from diskf_mesh.mesh.agent_machine import AgentMachine, AgentTiming
-from diskf_mesh.mesh.keys import Keys
-from diskf_mesh.mesh.log import Log
-from diskf_mesh.mesh.run_status import run_status
-from diskf_mesh.mesh.simnet import Lease, Link, Outcome, SimNet
-from diskf_mesh.mesh.world_machine import WorldMachine, WorldTiming
+from diskf_mesh.mesh.protocol import clock as realtime
+from diskf_mesh.mesh.security import credentials
+from diskf_mesh.mesh.protocol.agent_machine import AgentMachine, AgentTiming
+from diskf_mesh.mesh.wire.keys import Keys
+from diskf_mesh.mesh.protocol.log import Log
+from diskf_mesh.mesh.protocol.run_status import run_status
+from diskf_mesh.mesh.simulated.simnet import Lease, Link, Outcome, SimNet
+from diskf_mesh.mesh.protocol.world_machine import WorldMachine, WorldTiming
 
 WORLD = "world"
 

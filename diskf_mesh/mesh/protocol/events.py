@@ -2,7 +2,7 @@
 
 A protocol machine (the world's, an agent's) holds the state of one mesh
 process and nothing else: no thread, no socket, no clock read. Its shell
-(zenoh and the wall clock in ``mesh.shell``, run by ``sim.world`` and
+(zenoh and the wall clock in ``mesh.process.shell``, run by ``sim.world`` and
 ``agents.agent``, or the seeded
 simulated network) reads the clock, hands it one event at a time with the
 time ``now`` (seconds; monotonic or virtual), and carries out the effects
@@ -47,7 +47,7 @@ Effects (what the process does):
 
 A machine reads nothing that differs between two runs of one seed: its
 token nonce and any randomness come in through its constructor, so the
-simulated network (``mesh.simnet``) replays a run event for event.
+simulated network (``mesh.simulated.simnet``) replays a run event for event.
 
 May import: core, estimators, data, engine (the mesh layer).
 """

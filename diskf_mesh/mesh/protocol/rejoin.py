@@ -39,7 +39,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from diskf_mesh.mesh.estimator import neighbours
+from diskf_mesh.mesh.protocol.estimator import neighbours
 
 
 def in_range(scn, agent_id: int, tick: int) -> set:

@@ -1,15 +1,22 @@
-"""A mesh process, and one tick through the mesh in the order the code runs it.
+"""mesh.process: one OS process of a run, and one tick through the mesh in the order the code runs it.
+
+    transport      Transport: zenoh sessions (the tests have an in-process bus of their own)
+    zenoh_config   session settings (TLS, access control, endpoints)
+    shell          runs a machine over a Transport on the wall clock (one lock, timers, Woke)
+    stopping       how a mesh process stops on a signal
+    runspec        one run's settings as command lines (launcher, compose)
+
 
 Each process of a run (the world, ``sim.world``; an agent, ``agents.agent``)
 is a protocol machine in a shell:
 
-    machine   ``mesh.world_machine.WorldMachine``,
-              ``mesh.agent_machine.AgentMachine``: the whole protocol, pure
-              (``mesh.events``: events in with the time ``now``, effects
+    machine   ``mesh.protocol.world_machine.WorldMachine``,
+              ``mesh.protocol.agent_machine.AgentMachine``: the whole protocol, pure
+              (``mesh.protocol.events``: events in with the time ``now``, effects
               out; no thread, no transport, no clock read), so the same
               code runs under zenoh and under the simulated network
-              (``mesh.simnet``), where a seed replays a run event for event
-    shell     ``mesh.shell.Shell``: the transport's callbacks hand each
+              (``mesh.simulated.simnet``), where a seed replays a run event for event
+    shell     ``mesh.process.shell.Shell``: the transport's callbacks hand each
               sample, token change, query and reply to the machine under
               one lock, on the transport's thread, and carry out its
               effects there (a put, a token, a timer); the main thread
@@ -17,7 +24,7 @@ is a protocol machine in a shell:
               not running (``Woke``)
 
 One tick k through the mesh (lockstep; real time differs only in who closes
-a tick, ``mesh.clock``):
+a tick, ``mesh.protocol.clock``):
 
  1. world      ``WorldMachine._open_tick(k)``: each live agent's
                measurement (``wire.encode_measurement``, on the agent's own
@@ -58,5 +65,5 @@ a tick, ``mesh.clock``):
                (``_advance`` -> ``_close_tick``) and opens tick k + 1
                (``_open_tick``, step 1) in the same event.
 
-May import: core, estimators, data, engine (the mesh layer).
+May import: core, estimators, data, engine, mesh.wire, mesh.security, mesh.protocol.
 """

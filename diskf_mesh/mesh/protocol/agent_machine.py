@@ -1,9 +1,9 @@
-"""One agent's protocol as a state machine: events in, effects out (``mesh.events``).
+"""One agent's protocol as a state machine: events in, effects out (``mesh.protocol.events``).
 
 ``AgentMachine`` holds everything an agent process knows about its run and
 nothing else: no transport, no thread, no clock read. A shell
-(``mesh.shell`` over zenoh and the wall clock, or the simulated network
-``mesh.simnet``) hands it one event at a time with the time ``now`` and
+(``mesh.process.shell`` over zenoh and the wall clock, or the simulated network
+``mesh.simulated.simnet``) hands it one event at a time with the time ``now`` and
 carries out the effects it returns, in order::
 
     m = AgentMachine(scn, agent_id, algorithm, keys, nonce)
@@ -11,7 +11,7 @@ carries out the effects it returns, in order::
     effects = m.handle(event, now)    # Publish, DeclareToken, Ask, ..., Finish
 
 One tick k, in the order the code below runs it (lockstep; real time
-differs only in when a tick is closed, ``mesh.clock``):
+differs only in when a tick is closed, ``mesh.protocol.clock``):
 
  1. ``_on_meas``, ``_on_tick``  the world's measurement of tick k and its
     tick (every position, the live set) come in as samples; each is decoded
@@ -24,7 +24,7 @@ differs only in when a tick is closed, ``mesh.clock``):
     a key addressed to the linked agents; the collection of tick k starts
     (``SetTimer("collect")`` at its deadline).
  3. ``_on_msg``  each neighbour's message goes through the receive path
-    (``mesh.receive``: guard, range gate, the link's faults, inbox); a copy
+    (``mesh.protocol.receive``: guard, range gate, the link's faults, inbox); a copy
     the fault layer delays comes back at ``Timer("delay")``.
  4. ``_close(k)``  once every linked sender is accounted for (arrived,
     lost, refused), at the collect timer, when a later tick is already in,
@@ -42,7 +42,7 @@ means this one leaves); declare the alive token; once the world and
 every agent are seen (or the world is already ticking: a restart), declare
 a ready token; join at the first tick the world counts this agent live
 (``_join``). A (re)joining agent asks the world for its starting estimate
-(``Ask`` on ``Keys.start``, ``mesh.rejoin``) and starts from the answer;
+(``Ask`` on ``Keys.start``, ``mesh.protocol.rejoin``) and starts from the answer;
 one that found the run in progress first asks once more whether another
 process holds its id (``_on_confirm``). Whichever way a process finds its
 id held (the claim, another token, the confirm, a tick naming another
@@ -81,17 +81,18 @@ from diskf_mesh import estimators
 from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.data.scenario import Scenario
-from diskf_mesh.mesh import clock as realtime
-from diskf_mesh.mesh import rejoin, wire
-from diskf_mesh.mesh.estimator import AgentEstimator, neighbours
-from diskf_mesh.mesh.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt, Publish,
+from diskf_mesh.mesh.protocol import clock as realtime
+from diskf_mesh.mesh.protocol import rejoin
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.estimator import AgentEstimator, neighbours
+from diskf_mesh.mesh.protocol.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt, Publish,
                                     Reply, Sample, SetTimer, Subscribe, Timer, Token, Tokens, WatchTokens, Woke)
-from diskf_mesh.mesh.guard import Guard, GuardConfig
-from diskf_mesh.mesh.keys import Keys, nonce as nonce_of
-from diskf_mesh.mesh.log import Log
-from diskf_mesh.mesh.profile import NO_PHASES, Phases
-from diskf_mesh.mesh.receive import Receiver
-from diskf_mesh.mesh.verdicts import TickVerdicts
+from diskf_mesh.mesh.protocol.guard import Guard, GuardConfig
+from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
+from diskf_mesh.mesh.protocol.log import Log
+from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
+from diskf_mesh.mesh.protocol.receive import Receiver
+from diskf_mesh.mesh.protocol.verdicts import TickVerdicts
 
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
 AHEAD_KEPT = 4   # ticks (and measurements) kept ahead of joining: a restart sees the world's latest
@@ -108,7 +109,7 @@ OK, FAILED, DUPLICATE = 0, 1, 2  # exit statuses (``Finish.code``)
 class AgentTiming:
     collect_timeout: float = 5.0   # wait for neighbours' messages after publishing
     world_timeout: float = 60.0    # longest silence from the world before giving up
-    clock: realtime.Clock | None = None  # real time (``mesh.clock``): fuse at its deadline; None: lockstep
+    clock: realtime.Clock | None = None  # real time (``mesh.protocol.clock``): fuse at its deadline; None: lockstep
 
 
 class AgentMachine:
@@ -120,7 +121,7 @@ class AgentMachine:
     link faults into this agent, a ``FaultConfig`` (seeded with the run's
     seed when the world's first tick tells it) or a seeded ``FaultModel``.
     ``log``: its one-line messages; ``profile``: where the time of each tick
-    goes (``mesh.profile``), if measured. ``ticks`` is the number of ticks
+    goes (``mesh.protocol.profile``), if measured. ``ticks`` is the number of ticks
     worked on so far."""
 
     def __init__(self, scn: Scenario, agent_id: int, algorithm: str, keys: Keys, nonce: str,
@@ -208,7 +209,7 @@ class AgentMachine:
         return self.k - 1 if self._worked else 0
 
     # ======================================================================
-    # the interface (mesh.events)
+    # the interface (mesh.protocol.events)
     # ======================================================================
     def start(self, now: float) -> list:
         """What this agent listens to, and the world's silence timer."""
@@ -376,7 +377,7 @@ class AgentMachine:
 
     def _near(self, positions) -> frozenset:
         """The ids in range of this agent (itself included) at ``positions``
-        (``mesh.estimator.neighbours``); the last answer again while the
+        (``mesh.protocol.estimator.neighbours``); the last answer again while the
         positions are those of the tick before (static agents)."""
         key = positions.tobytes()
         if key != self._near_key:
@@ -458,7 +459,7 @@ class AgentMachine:
     # -- 3. collect: the neighbours' messages through the receive path ---------
     def _on_msg(self, sender, payload, now: float) -> bool:
         """A neighbour's message (``sender``: its key's id, parsed once) into
-        the receive path (``mesh.receive``): the guard decodes it once and
+        the receive path (``mesh.protocol.receive``): the guard decodes it once and
         rejects (counts) what is malformed or off the window around tick k,
         the range gate drops (counts "out_of_range") one from an agent not
         linked to this one at the message's tick (one whose tick the world
@@ -815,7 +816,7 @@ class AgentMachine:
 
     def _restart_from(self, k: int) -> None:
         """A (re)joining agent's estimate of tick k - 1: the world's answer
-        (``mesh.rejoin``); every report from now on tells the world the tick
+        (``mesh.protocol.rejoin``); every report from now on tells the world the tick
         and the source (``wire.encode_report``'s "rj")."""
         start = self._start[1]
         src = None

@@ -76,7 +76,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh.keys import check_run_id
+from diskf_mesh.mesh.wire.keys import check_run_id
 
 FORMAT = "diskf-credentials/1"
 BUNDLE_FORMAT = "diskf-identities/1"  # identities handed over in memory (``bundle``)

@@ -1,8 +1,8 @@
-"""The world's protocol as a state machine: events in, effects out (``mesh.events``).
+"""The world's protocol as a state machine: events in, effects out (``mesh.protocol.events``).
 
 ``WorldMachine`` holds everything the world of a mesh run decides, and does
 nothing else: no transport, no thread, no clock read. Its shell
-(``mesh.shell.Shell`` over zenoh and the wall clock, or the simulated
+(``mesh.process.shell.Shell`` over zenoh and the wall clock, or the simulated
 network) hands it one event at a time with the time ``now`` and carries out
 the effects it returns, in order::
 
@@ -30,7 +30,7 @@ A run, in the order of this module:
                ``tick`` timer closes a tick whose reports did not all come.
  3. real time  with ``timing.clock`` the timer ``clock`` opens tick k at
                t0 + (k - 1) / HZ and ends tick k - 1 whatever came in
-               (``mesh.clock``); a report owed is taken whenever it comes.
+               (``mesh.protocol.clock``); a report owed is taken whenever it comes.
  4. tokens     an agent whose token goes drops out from the next tick on;
                one that comes back (a new ready token) is live from the tick
                after next (``_on_token``); a second world in the run id: the
@@ -66,16 +66,17 @@ import numpy as np
 
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.data.trace import Trace
-from diskf_mesh.mesh import clock as realtime
-from diskf_mesh.mesh import rejoin, wire
-from diskf_mesh.mesh.estimator import neighbours
-from diskf_mesh.mesh.events import (FREEZE_S, AskTokens, Answer, CancelTimer, DeclareQueryable, DeclareToken, Finish,
+from diskf_mesh.mesh.protocol import clock as realtime
+from diskf_mesh.mesh.protocol import rejoin
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.protocol.estimator import neighbours
+from diskf_mesh.mesh.protocol.events import (FREEZE_S, AskTokens, Answer, CancelTimer, DeclareQueryable, DeclareToken, Finish,
                                     Interrupt, Publish, Query, Sample, SetTimer, Subscribe, Timer, Token, Tokens,
                                     WatchTokens, Woke)
-from diskf_mesh.mesh.keys import Keys, nonce as nonce_of
-from diskf_mesh.mesh.log import Log
-from diskf_mesh.mesh.profile import NO_PHASES, Phases
-from diskf_mesh.mesh.reports import RunReports
+from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
+from diskf_mesh.mesh.protocol.log import Log
+from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
+from diskf_mesh.mesh.protocol.reports import RunReports
 
 PAUSE_MIN_S = 1.0    # a pause lasts at least this long (the links that closed while frozen close on waking)
 LATE_READY_S = 5.0   # allow_missing: after the startup timeout, how long the agents up have to be ready
@@ -92,7 +93,7 @@ class WorldTiming:
     startup_timeout: float = 30.0  # for every agent to be ready
     tick_timeout: float = 10.0     # for the reports of one tick (real time: of every tick, after the last)
     leave_timeout: float = 2.0     # after stop, for the agents to leave
-    clock: realtime.Clock | None = None  # real time (``mesh.clock``); None: lockstep
+    clock: realtime.Clock | None = None  # real time (``mesh.protocol.clock``); None: lockstep
 
 
 @dataclass
@@ -138,7 +139,7 @@ class WorldMachine:
     the scenario and its simulation (seed 0 of the trace is the run's
     truth); ``algorithm``, ``seed``: what the ticks announce; ``keys``: the
     run's key space; ``nonce``: this world's token suffix
-    (``mesh.keys.new_nonce``; given, so that a replay is the same run);
+    (``mesh.wire.keys.new_nonce``; given, so that a replay is the same run);
     ``timing``; ``allow_missing``: start without the agents not ready after
     ``startup_timeout``. Observers: ``log``, ``progress(k)`` after
     each tick, ``profile``, ``recorder`` (``diskf_mesh.recording.writer``'s
@@ -547,7 +548,7 @@ class WorldMachine:
                                      self._gone(i) if i not in self.ready else "no report")
 
     # ======================================================================
-    # 3. real time (``mesh.clock``)
+    # 3. real time (``mesh.protocol.clock``)
     # ======================================================================
     def _clock_tick(self, now: float) -> None:
         """Timer ``clock``: tick k opens at t0 + (k - 1) / HZ and ends when
@@ -603,7 +604,7 @@ class WorldMachine:
         """Hand the recorder every ended tick, in order, once its reports are
         all in (or ``LEAD_TICKS`` later, or at the end: the rest are
         missing). An agent further behind than that is out of the run anyway
-        (``mesh.clock``)."""
+        (``mesh.protocol.clock``)."""
         while self._unrecorded <= self._ended:
             k = self._unrecorded
             if self._owed.get(k) and not final and k >= self._ended - realtime.LEAD_TICKS:

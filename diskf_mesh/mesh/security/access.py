@@ -17,7 +17,7 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
-from diskf_mesh.mesh.keys import key_matches
+from diskf_mesh.mesh.wire.keys import key_matches
 
 
 def _covers(rule: str, expr: str) -> bool:

@@ -83,7 +83,7 @@ class Clock:
 
 def add_arguments(parser: argparse.ArgumentParser, world: bool = True) -> None:
     """``--rate``, ``--deadline-ms`` and (``world``) ``--max-miss-rate``."""
-    g = parser.add_argument_group("real time (diskf_mesh.mesh.clock; default: lockstep)")
+    g = parser.add_argument_group("real time (diskf_mesh.mesh.protocol.clock; default: lockstep)")
     g.add_argument("--rate", type=positive, metavar="HZ",
                    help="run on the wall clock: tick k opens at k/HZ s whether or not the reports came in")
     g.add_argument("--deadline-ms", type=positive, metavar="MS",

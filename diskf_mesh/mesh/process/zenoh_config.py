@@ -10,7 +10,7 @@
     --credentials DIR          this process's identity from a run's credentials
                                (``diskf-mesh credentials``): TLS links only, mutual
                                authentication, the run's access control
-                               (``diskf_mesh.mesh.credentials``); the flags above are
+                               (``diskf_mesh.mesh.security.credentials``); the flags above are
                                applied on top. ``-``: read from standard input (how
                                ``up`` hands each process its own identity, in memory)
     --insecure                 run without credentials (plain zenoh): a world or an
@@ -36,7 +36,7 @@ import sys
 from dataclasses import dataclass, field, replace
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.mesh import credentials as creds
+from diskf_mesh.mesh.security import credentials as creds
 
 MODES = ("peer", "client", "router")
 STDIN = "-"  # --credentials -: the identities are on standard input (``credentials.bundle``)

@@ -11,7 +11,7 @@ never inside the publisher's ``put``: a mesh
 process does its per-message work right there, under its own lock, and wakes
 its main thread only for what that thread does (start-up, timeouts, the
 end). Link faults are not here: they act in each agent's receive path
-(``diskf_mesh.mesh.receive``), on the messages this layer delivered.
+(``diskf_mesh.mesh.protocol.receive``), on the messages this layer delivered.
 """
 from __future__ import annotations
 

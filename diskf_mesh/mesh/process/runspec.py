@@ -18,8 +18,8 @@ from diskf_mesh import estimators
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.argtypes import estimator_name, positive_int, range_value
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, load_scenario
-from diskf_mesh.mesh.keys import check_run_id
-from diskf_mesh.mesh.zenoh_config import ZenohOptions
+from diskf_mesh.mesh.wire.keys import check_run_id
+from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 
 DEFAULT_RUN_ID = "default"
 WORLD_MODULE = "sim.world"

@@ -47,7 +47,7 @@ reason, when
 
 Each rejection is counted per reason in ``Counters.rejected`` and per
 (sender, reason) in ``Guard.by_sender``, and logged (``logging``, logger
-``diskf_mesh.mesh.guard``) once per sender and reason. Only the scenario's
+``diskf_mesh.mesh.protocol.guard``) once per sender and reason. Only the scenario's
 agents have a row of their own: every other id (and a key without one)
 shares the row ``None``, so neither table nor log grows with what an
 intruder sends. A message from this agent's own id is ignored without
@@ -58,7 +58,7 @@ accounts for that sender at that tick: the agent does not wait the collect
 timeout for a neighbour whose message was poisoned, and never fuses it.
 
 Late and duplicate messages are not errors: they are well-formed, and the
-inbox (``diskf_mesh.mesh.inbox``) counts and drops them.
+inbox (``diskf_mesh.mesh.protocol.inbox``) counts and drops them.
 
 The agent's ``_close`` is the last line: should fusion still fail on
 messages that passed the guard (a well-formed but inconsistent set, e.g.
@@ -75,14 +75,14 @@ import numpy as np
 
 from diskf_mesh.core import small
 from diskf_mesh.estimators.base import EXCHANGED
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.counters import Counters
-from diskf_mesh.mesh.profile import NO_PHASES, Phases
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire.counters import Counters
+from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 
 REASONS = wire.REASONS + tuple(r for r in ("key", "unknown-sender", "tick-past", "tick-future", "magnitude",
                                            "ill-conditioned", "weights", "information", "error", "fusion", "constants")
                                 if r not in wire.REASONS)
-LOGGER = logging.getLogger("diskf_mesh.mesh.guard")
+LOGGER = logging.getLogger("diskf_mesh.mesh.protocol.guard")
 WEIGHTS_ATOL = 1e-6  # how far from 1 the sum of a message's probabilities may be (its sender normalised them)
 
 
@@ -118,7 +118,7 @@ class Guard:
     def __init__(self, config: GuardConfig, counters: Counters | None = None, logger: logging.Logger = LOGGER,
                  profile: Phases = NO_PHASES):
         """``profile``: where the time of decoding and checking goes
-        (``mesh.profile``, phases "decode" and "guard")."""
+        (``mesh.protocol.profile``, phases "decode" and "guard")."""
         self.config = config
         self.counters = counters if counters is not None else Counters()
         self.by_sender: Counter = Counter()  # (known sender or None, reason) -> count

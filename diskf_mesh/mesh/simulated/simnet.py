@@ -1,13 +1,13 @@
 """A deterministic simulated network: every mesh process in one Python
 process, on a virtual clock, with the real protocol machines.
 
-The processes are sans-I/O machines (``mesh.events``: ``start(now)``,
+The processes are sans-I/O machines (``mesh.protocol.events``: ``start(now)``,
 ``handle(event, now)`` -> effects). ``SimNet`` carries out their effects on
-a virtual clock (``mesh.schedule``): what one publishes reaches every
+a virtual clock (``mesh.simulated.schedule``): what one publishes reaches every
 process subscribed to a matching key expression (``keys.matcher``)
 over a link with a delay, jitter, loss, duplication and reordering
 (``Link``), under the access rules of the run's credentials
-(``mesh.access``); liveliness tokens appear and go as zenoh's do (``Lease``);
+(``mesh.security.access``); liveliness tokens appear and go as zenoh's do (``Lease``);
 queries reach the processes that declared a matching queryable and the
 first answer comes back. Every random draw comes from one seeded
 ``numpy.random.Generator`` in event order, so one seed and one fault plan
@@ -49,10 +49,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from diskf_mesh.mesh import events as ev
-from diskf_mesh.mesh.access import Access
-from diskf_mesh.mesh.keys import matcher
-from diskf_mesh.mesh.schedule import Schedule, Trace
+from diskf_mesh.mesh.protocol import events as ev
+from diskf_mesh.mesh.security.access import Access
+from diskf_mesh.mesh.wire.keys import matcher
+from diskf_mesh.mesh.simulated.schedule import Schedule, Trace
 
 NO_LOSS = "**"
 

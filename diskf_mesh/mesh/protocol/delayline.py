@@ -1,7 +1,7 @@
 """Holds message copies until the fault model says they arrive.
 
 A pure queue on its owner's clock (no thread, no clock read): the receive
-path (``mesh.receive``) pushes each delayed copy with the time it is due,
+path (``mesh.protocol.receive``) pushes each delayed copy with the time it is due,
 and its agent's machine sets a timer at ``next_at`` and takes ``due(now)``
 when it fires, so a shell with the wall clock and the simulated network
 with a virtual one deliver the same copies in the same order.

@@ -54,7 +54,7 @@ sub-chunk wildcard): zenoh then routes the message to those agents only,
 and an agent out of range never spends a wake-up on it. The address only
 saves work; every receiver still gates by range itself.
 
-Payload formats are in ``diskf_mesh.mesh.wire``. The id in a key must equal the id
+Payload formats are in ``diskf_mesh.mesh.wire.codec``. The id in a key must equal the id
 in the payload; a receiver rejects a message whose key names another agent.
 """
 from __future__ import annotations

@@ -29,7 +29,7 @@ The estimator fuses only what arrived in time for its tick:
                                       late
     ``close()``                       the run is over: whatever is still held
                                       never made it into fusion, late
-    ``due(tick, at)``                 real time (``mesh.clock``): a copy of
+    ``due(tick, at)``                 real time (``mesh.protocol.clock``): a copy of
                                       ``tick`` arriving after ``at`` (the
                                       agent's clock) is late, even before
                                       ``take``: it missed its deadline
@@ -47,7 +47,7 @@ time the event came.
 """
 from __future__ import annotations
 
-from diskf_mesh.mesh.counters import Counters
+from diskf_mesh.mesh.wire.counters import Counters
 
 
 class Inbox:

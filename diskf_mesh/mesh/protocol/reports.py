@@ -1,5 +1,5 @@
 """What a run's reports said: one container for the world's record
-(``mesh.world_machine.WorldRecord``) and a recording's reader
+(``mesh.protocol.world_machine.WorldRecord``) and a recording's reader
 (``diskf_mesh.recording.reader.Recording``), which both extend it.
 
 Arrays (K, N, ...) over ticks 1..K and the agents in the scenario's order,

@@ -1,7 +1,7 @@
 """The shell that runs one protocol machine over a ``Transport`` on the real clock.
 
-A protocol machine (``mesh.world_machine``, ``mesh.agent_machine``) decides
-everything and does nothing (``mesh.events``). ``Shell`` is all it needs to
+A protocol machine (``mesh.protocol.world_machine``, ``mesh.protocol.agent_machine``) decides
+everything and does nothing (``mesh.protocol.events``). ``Shell`` is all it needs to
 run as a process:
 
     one lock      every event is handed to the machine under ``_cv`` (a
@@ -37,11 +37,11 @@ import math
 import threading
 import time
 
-from diskf_mesh.mesh.events import (FREEZE_S, Answer, Ask, AskTokens, CancelTimer, DeclareQueryable, DeclareToken,
+from diskf_mesh.mesh.protocol.events import (FREEZE_S, Answer, Ask, AskTokens, CancelTimer, DeclareQueryable, DeclareToken,
                                     DropToken, Finish, Interrupt, Publish, Query, Reply, Sample, SetTimer, Subscribe,
                                     Timer, Token, Tokens, WatchTokens, Woke)
-from diskf_mesh.mesh.profile import NO_PHASES, Phases
-from diskf_mesh.mesh.transport import Transport
+from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
+from diskf_mesh.mesh.process.transport import Transport
 
 POLL_S = 0.5  # the main thread looks at its timers at least this often
 QUERIES_HELD = 1024  # unanswered queries kept for the machine to answer later

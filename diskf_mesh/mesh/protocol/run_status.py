@@ -1,6 +1,6 @@
 """A mesh run's status at its end: what the world heard, checked by the engine.
 
-``run_status`` turns a run's reports (a ``mesh.reports.RunReports``: the
+``run_status`` turns a run's reports (a ``mesh.protocol.reports.RunReports``: the
 world's record, a recording) into ``engine.verify.RunClaims`` and asks
 ``engine.verify`` for the status: the world's end of run (``sim.world``),
 the simulated network and ``replay RUN.mcap`` call it, so every run is
@@ -27,7 +27,7 @@ from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.engine import verify
 from diskf_mesh.engine.verify import Restart, RunClaims, RunStatus
-from diskf_mesh.mesh import wire
+from diskf_mesh.mesh.wire import codec as wire
 
 
 def restarts_of(rejoins: dict, starts, index: dict) -> tuple:

@@ -26,7 +26,7 @@ Every map here is bounded by the guard's window (``max_lag`` + ``max_lead``
 + 1 ticks) times the scenario's agents: what a flood of other ids, ticks or
 copies sends costs counts, never memory.
 
-The agent's machine (``mesh.agent_machine``) calls ``on_payload`` for every
+The agent's machine (``mesh.protocol.agent_machine``) calls ``on_payload`` for every
 payload on a neighbour's key and, per tick, closes the tick once every
 linked sender is ``accounted`` for (or at its deadline) with ``take(tick,
 linked)``. A copy the fault layer delays waits in the ``DelayLine`` until
@@ -43,12 +43,12 @@ from __future__ import annotations
 
 import itertools
 
-from diskf_mesh.mesh import wire
-from diskf_mesh.mesh.counters import Counters
-from diskf_mesh.mesh.delayline import DelayLine
+from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire.counters import Counters
+from diskf_mesh.mesh.protocol.delayline import DelayLine
 from diskf_mesh.data.faults import PERFECT, FaultModel
-from diskf_mesh.mesh.guard import Guard
-from diskf_mesh.mesh.inbox import Inbox
+from diskf_mesh.mesh.protocol.guard import Guard
+from diskf_mesh.mesh.protocol.inbox import Inbox
 
 
 class Receiver:

@@ -28,7 +28,7 @@ kind "msg" (agent -> neighbours, one per agent and tick; ``Message``)::
 kind "report" (agent -> world, the fused estimate after tick k; ``Report``)::
 
     "s", "n", "m", "dt", "dv", "a" x (n), P (n x n), d (m),
-    "c" the agent's counters so far {name: int} (``mesh.counters``),
+    "c" the agent's counters so far {name: int} (``mesh.wire.counters``),
     "f" the senders whose messages of tick k went into this estimate (ids,
         at most ``MAX_LINKS``; optional, default none),
     "nf" the other senders linked at tick k and why their message did not:
@@ -105,7 +105,7 @@ import numpy as np
 from diskf_mesh.core.small import cholesky_ok, eigen_range
 from diskf_mesh.core.messages import Message
 from diskf_mesh.estimators.base import EXCHANGED
-from diskf_mesh.mesh.counters import SCALARS
+from diskf_mesh.mesh.wire.counters import SCALARS
 
 SCHEMA = 1
 DTYPE = "<f8"
