@@ -69,6 +69,7 @@ from diskf_mesh import estimators as algorithms
 from diskf_mesh.data import metrics
 from diskf_mesh.data.inputs import parse_input
 from diskf_mesh.data.scenario import Scenario, load_scenario, parse_scenario, simulate
+from diskf_mesh.data.trace import Trace
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.estimators import Params
 from diskf_mesh.studies import experiment
@@ -107,11 +108,96 @@ TOPOLOGIES_2 = (("range", 120.0), ("all", None))
 
 
 @dataclass(frozen=True)
+class World:
+    """How the world of a case differs from what its estimators are told
+    (the scenario's Q and R): its process noise covariance is ``Q`` x Q,
+    its measurement noise covariance ``R`` x R; a burst (each agent's own:
+    one starts with probability ``burst_rate`` at a tick and lasts
+    ``burst_ticks``) multiplies the measurement noise covariance by
+    ``burst``; each agent's measurement arrives at a tick with probability
+    ``measured`` (where its scenario lets it measure). Bursts and arrivals
+    are drawn from ``numpy.random.default_rng([seed, WORLD_STREAM])``."""
+
+    Q: float = 1.0
+    R: float = 1.0
+    burst: float = 1.0
+    burst_rate: float = 0.0
+    burst_ticks: int = 0
+    measured: float = 1.0
+
+    def simulate(self, scn: Scenario, seeds) -> Trace:
+        """``simulate`` of this world, the trace holding what the
+        estimators are told (``scn``'s model and sensors)."""
+        truth = replace(scn, Q=self.Q * scn.Q, agents=tuple(replace(a, R=self.R * a.R) for a in scn.agents))
+        tr = simulate(truth, seeds)
+        y, has = tr.y, tr.has
+        if self.burst_rate > 0 or self.measured < 1:
+            y, has = y.copy(), has.copy()
+            Lr = np.linalg.cholesky(truth.sensors().R)  # (N, p, p)
+            p = tr.sensors.p
+            valid = np.arange(y.shape[-1])[None, :] < p[:, None]
+            for b, s in enumerate(tr.seeds):
+                rng = np.random.default_rng([s, WORLD_STREAM])
+                K, N = has.shape[1:]
+                starts = rng.random((K, N)) < self.burst_rate
+                extra = np.einsum("iab,kib->kia", Lr, rng.standard_normal((K, N, y.shape[-1])))
+                arrives = rng.random((K, N)) < self.measured
+                on = np.zeros((K, N), dtype=bool)
+                for k in range(K):
+                    on[k] = starts[max(0, k - self.burst_ticks + 1):k + 1].any(axis=0)
+                y[b] += np.where((on[..., None] & valid & has[b][..., None]), math.sqrt(max(self.burst - 1, 0)) * extra, 0.0)
+                has[b] &= arrives
+                y[b] = np.where(has[b][..., None], y[b], 0.0)
+        return replace(tr, model=scn.model(tr.y.shape[1]), sensors=scn.sensors(), y=y, has=has)
+
+
+WORLD_STREAM = 2  # the second entropy word of a world's bursts and arrivals (the input's is 1)
+
+
+@dataclass(frozen=True)
+class Channels:
+    """An input whose channels are of different kinds: one ``[input]``
+    table per channel (m = 1 each); channel j of simulation seed s draws
+    as seed s + j x 10^6 (a random kind's stream of its own)."""
+
+    specs: tuple
+
+    def values(self, steps: int, sim_seed: int = 0) -> np.ndarray:
+        return np.concatenate([spec.values(steps, sim_seed + j * 10**6) for j, spec in enumerate(self.specs)], axis=1)
+
+
+@dataclass(frozen=True)
 class Case:
     group: str
     label: str
     scenario: Scenario
+    world: World | None = None  # None: the world is what the estimators are told
 
+    def simulate(self, seeds, steps: int | None = None):
+        """(the scenario with ``steps``, its trace on ``seeds`` in this case's world)."""
+        scn = self.scenario.with_overrides(steps=steps)
+        return scn, (simulate(scn, seeds) if self.world is None else self.world.simulate(scn, seeds))
+
+
+# the constant-acceleration model's 2-D jerk inputs (about 0.01)
+CA_INPUTS = {
+    "zero": dict(kind="constant", value=[0.0, 0.0]),
+    "steps 0.01": dict(kind="steps", scale=[0.01, 0.01], interval=40.0),
+    "sine 0.01": dict(kind="sine", amplitude=[0.01, 0.005], period=60.0),
+    "white 0.005": dict(kind="white", scale=[0.005, 0.005]),
+}
+# the worlds whose noise is not what the estimators are told (covariances x 10 and x 0.1)
+WRONG_NOISE = {"true R×10": World(R=10.0), "true R×0.1": World(R=0.1), "true Q×10": World(Q=10.0),
+               "true Q×0.1": World(Q=0.1)}
+BURSTS = World(burst=30.0, burst_rate=0.02, burst_ticks=10)  # about one burst of 10 ticks every 50 per agent
+RARE = World(measured=0.2)  # a fifth of the measurements arrive
+# per-channel kinds (m = 2, G = I): one [input] table per channel
+CHANNEL_INPUTS = {
+    "step | sine fast": (dict(kind="step", at=10, before=[0.0], after=[10.0]), SHIPPED_INPUTS["sine fast"]),
+    "step | white": (dict(kind="step", at=10, before=[0.0], after=[10.0]), SHIPPED_INPUTS["white"]),
+    "zero | sine fast": (SHIPPED_INPUTS["zero"], SHIPPED_INPUTS["sine fast"]),
+    "step | zero": (dict(kind="step", at=10, before=[0.0], after=[10.0]), SHIPPED_INPUTS["zero"]),
+}
 
 def _with_input(scn: Scenario, table) -> Scenario:
     return scn if table is None else replace(scn, input=parse_input(table, scn.G.shape[1]))
@@ -217,6 +303,48 @@ def cases() -> list[Case]:
         rg = load_scenario("random-geometric", agents=N)
         for name in VARIANT_INPUTS:
             out.append(Case("random geometric", f"RG{N}, {name}", _with_input(rg, SHIPPED_INPUTS[name])))
+    return out + grown_cases()
+
+
+def grown_cases() -> list[Case]:
+    """The families the suite grew by: the noise is not what the
+    estimators are told (covariances x 10 and x 0.1, measurement and
+    process; bursts of x 30), rare measurements, two input channels of
+    different kinds, the constant-acceleration model."""
+    out = []
+    q, dyn = load_scenario("quadrants"), load_scenario("dynamic")
+    for tag, world in WRONG_NOISE.items():
+        for name in VARIANT_INPUTS:
+            for t, r in TOPOLOGIES_1:
+                out.append(Case("wrong noise", f"{tag} S1 {t}, {name}",
+                                _topo(_with_input(q, SHIPPED_INPUTS[name]), t, r), world))
+        if world.R != 1.0:
+            for name in ("step", "zero"):
+                out.append(Case("wrong noise", f"{tag} S2 range 120, {name}",
+                                _topo(_with_input(dyn, SHIPPED_INPUTS[name]), "range", 120.0), world))
+    for name in VARIANT_INPUTS:
+        for t, r in TOPOLOGIES_1:
+            out.append(Case("bursts", f"bursts S1 {t}, {name}", _topo(_with_input(q, SHIPPED_INPUTS[name]), t, r),
+                            BURSTS))
+    for name in ("step", "zero"):
+        out.append(Case("bursts", f"bursts S2 range 120, {name}",
+                        _topo(_with_input(dyn, SHIPPED_INPUTS[name]), "range", 120.0), BURSTS))
+    for t, r in TOPOLOGIES_1:
+        for name in ("step", "zero"):
+            out.append(Case("rare measurement", f"rare S1 {t}, {name}", _topo(_with_input(q, SHIPPED_INPUTS[name]), t, r),
+                            RARE))
+        for name in ("zero", "steps 0.1"):
+            out.append(Case("rare measurement", f"rare CV {t}, {name}",
+                            _with_input(constant_velocity(t), CV_INPUTS[name]), RARE))
+    two = replace(q, G=np.eye(2))
+    for name, tables in CHANNEL_INPUTS.items():
+        for t, r in TOPOLOGIES_1:
+            out.append(Case("per-channel kinds", f"m=2 {t}, {name}",
+                            _topo(replace(two, input=Channels(tuple(parse_input(x, 1) for x in tables))), t, r)))
+    for t, _ in TOPOLOGIES_1:
+        ca = constant_acceleration(t)
+        for name, table in CA_INPUTS.items():
+            out.append(Case("constant acceleration", f"CA {t}, {name}", _with_input(ca, table)))
     return out
 
 
@@ -243,8 +371,7 @@ def run_case(case: Case, seeds, steps: int | None = None, names=None) -> dict:
     nees (over the observed cells), nees_band_share, diverged and
     error_ratio (the largest state error over the target's farthest
     distance from the origin; NaN where the run diverged)."""
-    scn = case.scenario.with_overrides(steps=steps)
-    tr = simulate(scn, seeds)
+    scn, tr = case.simulate(seeds, steps)
     seen = observed(tr)
     return {name: case_row(tr, name, scn.params, seen) for name in names or algorithms.NAMES}
 
@@ -298,8 +425,7 @@ def bank_members(scn: Scenario) -> list:
 def run_bank(case: Case, seeds, steps: int | None = None) -> dict:
     """{bank model: state MAE} on one case (``bank_members``), as ``run_case``
     measures it; NaN where the run diverged."""
-    scn = case.scenario.with_overrides(steps=steps)
-    tr = simulate(scn, seeds)
+    scn, tr = case.simulate(seeds, steps)
     seen = observed(tr)
     return {name: case_row(tr, "diskf-r", params, seen)["mae_state"] for name, params in bank_members(scn)}
 
@@ -321,8 +447,7 @@ def by_silence(case: Case, seeds, steps: int | None = None) -> dict:
     """{estimator or bank model: [state MAE over the agent-ticks whose own
     last measurement is 0, 1-5, 6-15, 16 or more ticks back]} on one case
     (``SILENCES``): ``diskf-auto`` and each model of its bank alone."""
-    scn = case.scenario.with_overrides(steps=steps)
-    tr = simulate(scn, seeds)
+    scn, tr = case.simulate(seeds, steps)
     since = ticks_since_measured(tr.has)
     out = {}
     for name, (alg, params) in [(AUTO, (AUTO, scn.params))] + [(m, ("diskf-r", p)) for m, p in bank_members(scn)]:
