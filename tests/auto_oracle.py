@@ -37,21 +37,23 @@ def bank(qp, qs, none=True, walk=True, zero_mean=True, oscillating=True):
     return out
 
 
-def noise_scale(alpha, beta, x, P, H, R, y, a0, f):
-    """One measured tick of the measurement noise scale (Särkkä and
-    Nummenmaa's variational Bayes step for R = r R_stated), in gain form:
-    (alpha, beta) forgotten towards IG(a0, a0), then updated with the
-    residual of the Kalman update of N(x, P) under r R."""
-    alpha, beta = f * alpha + (1 - f) * a0, f * beta + (1 - f) * a0
-    Sg = H @ P @ H.T + (beta / alpha) * R
-    L = P @ H.T @ np.linalg.inv(Sg)
-    xp, Pp = x + L @ (y - H @ x), P - L @ Sg @ L.T
-    e = y - H @ xp
-    Ri = np.linalg.inv(R)
-    return alpha + 0.5 * len(y), beta + 0.5 * (e @ Ri @ e + np.trace(Ri @ H @ Pp @ H.T))
+def noise_scale(theta, info, x, P, H, R, y, info0, f, dof):
+    """One measured tick of the measurement noise scale r = exp(theta)
+    (``core.noise``) written out on the sensor's own rows: the Student-t
+    weight of the measurement and one Fisher scoring step of
+    log N(y - H x; 0, H P H^T + r R) in theta. Returns (theta, info, w)."""
+    r = np.exp(theta)
+    S = H @ P @ H.T + r * R
+    e = y - H @ x
+    Si = np.linalg.inv(S)
+    w = min(1.0, (dof + len(y)) / (dof + e @ Si @ e))
+    score = 0.5 * r * (w * e @ Si @ R @ Si @ e - np.trace(Si @ R))
+    fisher = 0.5 * r * r * np.trace(Si @ R @ Si @ R)
+    info = f * info + (1 - f) * info0 + fisher
+    return float(np.clip(theta + score / info, 0.0, np.log(1e3))), info, w
 
 
-def run_auto(trace, options, noise_prior=5.0, noise_forget=0.98):
+def run_auto(trace, options, noise_prior=5.0, noise_forget=0.98, noise_dof=4.0):
     model, sensors = trace.model, trace.sensors
     B, K, N = trace.has.shape
     n, m = model.n, model.m
@@ -77,21 +79,20 @@ def run_auto(trace, options, noise_prior=5.0, noise_forget=0.98):
         Z0 = scipy.linalg.block_diag(model.P0, prior * np.eye(2 * m))
         agents = [dict(x=z0[:n].copy(), P=Z0[:n, :n].copy(), d=np.zeros(m), S=prior * np.eye(m), held=False,
                        mu=mu_first.copy(), z=[z0.copy() for _ in range(M)], Z=[Z0.copy() for _ in range(M)],
-                       alpha=noise_prior, beta=noise_prior)
+                       theta=0.0, info=noise_prior)
                   for _ in range(N)]
         links = trace.links[min(b, trace.links.shape[0] - 1)]
         for k in range(1, K + 1):
             A = model.A_at(k)
             pred = [(A @ a["x"], A @ a["P"] @ A.T + Q) for a in agents]
-            scale = np.ones(N)  # each agent's learned measurement noise scale, from its own measurement
+            scale = np.ones(N)  # each agent's weight 1 / (r w) of its own R, learned from its own measurement
             for i, a in enumerate(agents):
                 if options.noise and trace.has[b, k - 1, i]:
                     xi = pred[i][0] + (G @ a["d"] if a["held"] else 0.0)
-                    Pi_ = pred[i][1] + (G @ a["S"] @ G.T if a["held"] else 0.0)
-                    a["alpha"], a["beta"] = noise_scale(a["alpha"], a["beta"], xi, Pi_, Hs[i], Rs[i],
-                                                        trace.y[b, k - 1, i, : sensors.p[i]], noise_prior, noise_forget)
-                if options.noise:
-                    scale[i] = a["beta"] / a["alpha"]
+                    a["theta"], a["info"], w = noise_scale(a["theta"], a["info"], xi, pred[i][1], Hs[i], Rs[i],
+                                                           trace.y[b, k - 1, i, : sensors.p[i]], noise_prior,
+                                                           noise_forget, noise_dof)
+                    scale[i] = np.exp(a["theta"]) / w
             sent = [(a["d"].copy(), a["S"].copy(), a["held"]) for a in agents]
             sent_mu = [a["mu"].copy() for a in agents]
             new = []
@@ -150,7 +151,7 @@ def run_auto(trace, options, noise_prior=5.0, noise_forget=0.98):
                 Z = sum(mu[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
                 held = a["held"] or bool(meas) or relayed
                 new.append(dict(x=z[:n], P=Z[:n, :n], d=z[n:n + m], S=Z[n:n + m, n:n + m], held=held, mu=mu, z=zs,
-                                Z=Zs, alpha=a["alpha"], beta=a["beta"]))
+                                Z=Zs, theta=a["theta"], info=a["info"]))
             agents = new
             for i, a in enumerate(agents):
                 out["x"][b, k - 1, i], out["P"][b, k - 1, i] = a["x"], a["P"]

@@ -2,27 +2,35 @@
 paper's equations).
 
 Each agent holds one scale r of its own sensor's stated covariance: the
-world's measurement noise is taken to be N(0, r R). Its posterior is an
-inverse gamma IG(alpha, beta), r's estimate beta / alpha, updated at each
-tick the agent measures by one step of the variational Bayes adaptive
-Kalman filter (Särkkä and Nummenmaa, "Recursive noise adaptive Kalman
-filtering by variational Bayesian approximations", IEEE TAC 54(3), 2009),
-for a scalar scale of a known R:
+world's measurement noise is taken to be N(0, r R / lambda_k), r lasting
+and lambda_k a tick's own (a Student-t measurement of ``dof`` degrees of
+freedom: a burst is a tick of small lambda, not a change of r). At each
+tick the agent measures, with the prediction N(x, P) it scores the
+measurement against (in ``diskf-auto`` the state predicted with the input
+it last fused, so that an input the bank already follows is not read as
+noise), e = y - H x and S = H P H^T + r R:
 
-    forget   alpha- = f alpha + (1 - f) alpha0,  beta- = f beta + (1 - f) beta0   (NL1)
-    update   r- = beta- / alpha-,  J = P^-1 + U / r-,  x+ = J^-1 (P^-1 x + u / r-)
-             alpha = alpha- + p / 2
-             beta  = beta- + (y^T R^-1 y - 2 x+^T u + x+^T U x+ + tr(U J^-1)) / 2   (NL2)
+    weight  w = min(1, (dof + p) / (dof + e^T S^-1 e))                       (NL1)
 
-U = H^T R^-1 H and u = H^T R^-1 y are the measurement information under
-the stated R, so the bracket of (NL2) is (y - H x+)^T R^-1 (y - H x+) +
-tr(R^-1 H J^-1 H^T), the expected weighted residual under the posterior.
-The forgetting pulls the posterior back towards the prior IG(alpha0,
-alpha0) (r = 1, as stated) by 1 - f per measured tick only: a tick on which
-the agent measures nothing changes nothing. ``(x, P)`` is the prediction
-the measurement is scored against: in ``diskf-auto`` the state predicted
-with the input the agent last fused, so that an input the bank already
-follows is not read as noise.
+the Student-t update's weight of the measurement (one step of its EM; only
+ever down: a tick is never trusted more than stated), and theta = log r
+takes one step of recursive Fisher scoring on the Gaussian log-likelihood
+log N(e; 0, S(r)) (the residual weighted by w):
+
+    score   g = r / 2 [w e^T S^-1 R S^-1 e - tr(S^-1 R)]
+    info    i = r^2 / 2 tr(S^-1 R S^-1 R)
+            I <- f I + (1 - f) I0 + i,   theta <- theta + g / I              (NL2)
+
+(the padding rows of a shorter sensor, R = I and H = 0 there, left out of
+both traces). I is the information gathered on theta, forgotten by 1 - f
+per measured tick towards the prior's I0, so that r follows a world that
+changes; a tick on which the agent measures nothing changes nothing.
+Recursive scoring reaches r = 10 where one variational Bayes step
+(Särkkä and Nummenmaa 2009) per tick crawls: where H P H^T is not small
+against r R its update of r is mostly its own prior.
+
+The agent then weighs its measurement by w / r (its information U w / r,
+u w / r).
 
 Every function is pure, with leading batch axes.
 """
@@ -30,27 +38,30 @@ from __future__ import annotations
 
 import numpy as np
 
-from diskf_mesh.core.linalg import inv_spd, mv
+from diskf_mesh.core.linalg import T, inv_spd, mv, sym
+
+LOW, HIGH = 0.0, np.log(1e3)  # theta's bounds: r from 1 (as stated) to 10^3
 
 
-def forget(alpha, beta, alpha0: float, f: float, has):
-    """(NL1) where ``has``; unchanged elsewhere."""
-    return (np.where(has, f * alpha + (1.0 - f) * alpha0, alpha),
-            np.where(has, f * beta + (1.0 - f) * alpha0, beta))
-
-
-def update(alpha, beta, x, P, y, Ri, U, u, p, has):
-    """(NL2): the posterior (alpha, beta) after the measurement y (where
-    ``has``), scored against the prediction N(x, P). Ri: (..., p, p) the
-    stated R^-1 (padding rows: zero in y, so nothing); U, u the stated
-    measurement information; p: (...,) the sensor's rows."""
-    r = beta / alpha
-    Y = inv_spd(P)
-    J = inv_spd(Y + U / r[..., None, None])
-    xp = mv(J, mv(Y, x) + u / r[..., None])
-    quad = _dot(y, mv(Ri, y)) - 2.0 * _dot(xp, u) + _dot(xp, mv(U, xp)) + np.trace(U @ J, axis1=-2, axis2=-1)
-    return (np.where(has, alpha + 0.5 * p, alpha),
-            np.where(has, beta + 0.5 * np.maximum(quad, 0.0), beta))
+def learn(theta, info, x, P, y, H, R, p, has, info0: float, f: float, dof: float):
+    """(NL1), (NL2) where ``has``: (theta, info, w), unchanged (w = 1) elsewhere.
+    H: (..., p_max, n) and R: (..., p_max, p_max), padded as ``model.Sensors``
+    (zero rows of H, an identity block of R); p: (...,) the true rows; y
+    zero in the padding rows."""
+    r = np.exp(theta)
+    pad = H.shape[-2] - p
+    S = sym(np.matmul(np.matmul(H, P), T(H)) + r[..., None, None] * R)
+    Si = inv_spd(S)
+    e = y - mv(H, x)
+    SiR = np.matmul(Si, R)
+    nis = _dot(e, mv(Si, e))
+    w = np.minimum(1.0, (dof + p) / (dof + nis))
+    quad = _dot(e, mv(np.matmul(SiR, Si), e))
+    score = 0.5 * r * (w * quad - (np.trace(SiR, axis1=-2, axis2=-1) - pad / r))
+    fisher = 0.5 * r * r * (np.einsum("...ij,...ji->...", SiR, SiR) - pad / (r * r))
+    gathered = f * info + (1.0 - f) * info0 + fisher
+    step = np.clip(theta + score / gathered, LOW, HIGH)
+    return np.where(has, step, theta), np.where(has, gathered, info), np.where(has, w, 1.0)
 
 
 def _dot(a, b):

@@ -61,7 +61,7 @@ import numpy as np
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core import input_models as im
 from diskf_mesh.core import noise
-from diskf_mesh.core.linalg import congruence_const, inv_spd, mv, nbr_sum
+from diskf_mesh.core.linalg import mv, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.estimators.base import EXCHANGED, Estimator, Exchanged, Local, Setting, State
@@ -78,8 +78,8 @@ class AutoState(State):
     d_hold: np.ndarray | None = None  # (..., m) the combined input (the message's d)
     S_hold: np.ndarray | None = None  # (..., m, m)
     held: np.ndarray | None = None    # (...,) an input estimate exists
-    alpha: np.ndarray | None = None   # (...,) the own measurement noise scale's posterior IG(alpha, beta)
-    beta: np.ndarray | None = None    # (``core.noise``; r = beta / alpha, 1 as stated)
+    theta: np.ndarray | None = None   # (...,) log r, the own measurement noise scale (``core.noise``; 0 as stated)
+    info: np.ndarray | None = None    # (...,) the information gathered on theta
     tick: int = 0
 
 
@@ -107,7 +107,6 @@ class DISKFAuto(Estimator):
         # the input into the state reads the pair's first half: x = v + G d_{k-1}
         self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
         self.learn = o.noise
-        self.Ri = inv_spd(sensors.R)  # the stated R^-1 of each agent's own sensor (``core.noise``)
 
     def init(self, batch: tuple) -> AutoState:
         s = super().init(batch)
@@ -117,28 +116,27 @@ class DISKFAuto(Estimator):
         return AutoState(s.x, s.P, s.since, mu=np.broadcast_to(self.mu0, batch + (M,)).copy(),
                          z=np.repeat(z[..., None, :], M, axis=-2), Z=np.repeat(Z[..., None, :, :], M, axis=-3),
                          d_hold=np.zeros(batch + (m,)), S_hold=S0[..., :m, :m].copy(),
-                         held=np.zeros(batch, dtype=bool), alpha=np.full(batch, NOISE_PRIOR),
-                         beta=np.full(batch, NOISE_PRIOR))
+                         held=np.zeros(batch, dtype=bool), theta=np.zeros(batch),
+                         info=np.full(batch, NOISE_PRIOR))
 
     def local(self, state: AutoState, k: int, y, has):
-        alpha, beta = state.alpha, state.beta
+        theta, info = state.theta, state.info
         if not self.learn:
             loc = self.local_kf(state, k, y, has)
         else:  # the own sensor's noise scale learned first (``core.noise``), its information scaled by 1 / r
             x_pred, P_pred = eq.predict(state.x, state.P, self.model.A_at(k), self.model.Q)
             U, u = eq.measurement_information(self.sensor_info, y, has)
-            alpha, beta = noise.forget(alpha, beta, NOISE_PRIOR, NOISE_FORGET, has)
             G, held = self.model.G, state.held
             x_in = x_pred + np.where(held[..., None], mv(G, state.d_hold), 0.0)  # predicted with the fused input
-            P_in = P_pred + np.where(held[..., None, None], congruence_const(G, state.S_hold), 0.0)
-            alpha, beta = noise.update(alpha, beta, x_in, P_in, y, self.Ri, U, u, self.sensors.p, has)
-            r = beta / alpha
-            U, u = U / r[..., None, None], u / r[..., None]
+            theta, info, w = noise.learn(theta, info, x_in, P_pred, y, self.sensors.H, self.sensors.R, self.sensors.p,
+                                         has, NOISE_PRIOR, NOISE_FORGET, NOISE_DOF)
+            scale = w / np.exp(theta)
+            U, u = U * scale[..., None, None], u * scale[..., None]
             Y, Ji = eq.information_pair(P_pred, U)
             x_upd, P_upd = eq.local_update(x_pred, P_pred, Y, Ji, u, has)
             loc = Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji)
         st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
-                       Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, alpha=alpha, beta=beta,
+                       Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=theta, info=info,
                        tick=k)
         w = np.zeros(state.mu.shape[:-1] + (len(im.BANK),))
         w[..., self.slots] = state.mu
@@ -179,8 +177,8 @@ class DISKFAuto(Estimator):
         x, P, e, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
         d, S = e[..., :m], S[..., :m, :m]
         held = state.held | (np.trace(U, axis1=-2, axis2=-1) > 0) | relayed
-        st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, alpha=state.alpha,
-                       beta=state.beta, tick=state.tick)
+        st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=state.theta,
+                       info=state.info, tick=state.tick)
         return st, Output(x, P, d, held)
 
     def _relay(self, senders, nb, z, Z):
@@ -215,7 +213,8 @@ class DISKFAuto(Estimator):
         return z, Z, has_n.any(axis=-1)
 
 
-NOISE_PRIOR = 5.0    # alpha0 = beta0 of the noise scale's prior (``core.noise``): r = 1, worth 10 measured rows
-NOISE_FORGET = 0.98  # f of (NL1): the scale's memory, about 50 measured ticks
+NOISE_PRIOR = 5.0    # I0 of (NL2) (``core.noise``): the prior r = 1 worth ten measured rows that resolve it
+NOISE_FORGET = 0.98  # f of (NL2): the scale's memory, about 50 measured ticks
+NOISE_DOF = 4.0      # dof of (NL1): the Student-t measurement's degrees of freedom
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
 PRUNE = 1e-3  # mixing weights below it are dropped (``input_models.model_weights``)
