@@ -22,9 +22,10 @@ def test_chi2_band_matches_scipy(n, seeds):
 def test_every_case_builds_and_one_runs():
     cases = heldout.cases()
     labels = [c.label for c in cases]
-    assert len(labels) == len(set(labels)) == 148
+    assert len(labels) == len(set(labels)) == 235
     assert {c.group for c in cases} == {"inputs", "constant velocity", "3-D state", "p_i = 2", "mixed sensors",
-                                        "omega", "R scale", "random geometric"}
+                                        "omega", "R scale", "random geometric", "wrong noise", "bursts",
+                                        "rare measurement", "per-channel kinds", "constant acceleration"}
     doc = heldout.run(seeds=2, steps=20, select="S1 ring, white", progress=False)
     (res,) = doc["results"]
     assert set(res["rows"]) == set(NAMES)
@@ -216,3 +217,36 @@ def test_against_a_document_of_other_seeds_is_refused_before_running(tmp_path, c
     assert heldout.main(["--estimators", "nope"]) == 2
     assert heldout.main(["--against", str(tmp_path / "missing.json")]) == 2
     assert heldout.main(argv + ["--seeds", "1", "--figure", str(tmp_path / "f.png"), "--first-seed", "3"]) == 2
+
+
+def test_a_world_noisier_than_told_bursts_and_loses_measurements():
+    """The trace holds the stated model and sensors; its measurements the
+    world's noise: x 10 in covariance, x 30 in a burst, a fifth arriving."""
+    import numpy as np
+
+    from diskf_mesh.data.scenario import load_scenario
+
+    scn = load_scenario("quadrants").with_overrides(steps=200)
+    seeds = range(10)
+
+    def residual_var(world):
+        scn_, tr = heldout.Case("x", "x", scn, world).simulate(seeds)
+        e = tr.y[..., 0] - np.einsum("in,bkn->bki", tr.sensors.H[:, 0], tr.truth_x)
+        return tr, float((e[tr.has] ** 2).mean() / 2.0)  # Scenario 1's R is 2
+
+    base, v1 = residual_var(None)
+    tr10, v10 = residual_var(heldout.World(R=10.0))
+    assert 0.9 < v1 < 1.1 and 9.0 < v10 < 11.0
+    assert np.array_equal(tr10.sensors.R, base.sensors.R) and np.array_equal(tr10.model.Q, base.model.Q)
+    _, vb = residual_var(heldout.BURSTS)  # about a fifth of the ticks in a burst: 1 + 0.18 x 29
+    assert 4.0 < vb < 8.0
+    rare, _ = residual_var(heldout.RARE)
+    assert 0.15 < rare.has.sum() / base.has.sum() < 0.25 and not (rare.has & ~base.has).any()
+    assert (rare.y[~rare.has] == 0).all()
+
+
+def test_channels_draw_each_channel_of_its_own_kind():
+    (case,) = [c for c in heldout.cases() if c.label == "m=2 ring, step | white"]
+    _, tr = case.simulate([3], 40)
+    d = tr.truth_d[0]
+    assert (d[:10, 0] == 0).all() and (d[10:, 0] == 10).all() and 1.5 < d[:, 1].std() < 4.5

@@ -18,7 +18,16 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    update of the agent's *combined* estimate; the message is diskf-r's
    (x^, P^, x~, P~, the combined fused input d, S) and the agent's model
    probabilities w (one float per model of ``input_models.BANK``, 0 for a
-   model not in the bank). No H, R or y; one message per tick.
+   model not in the bank). No H, R or y; one message per tick. Before
+   the update (``[estimator.auto] noise``, on by default) the agent learns
+   how much noisier its own sensor is than stated (``core.noise``: a scale
+   r >= 1 of its R, one step of recursive Fisher scoring per measured
+   tick, the measurement scored against its state predicted with the input
+   it last fused) and weighs this tick's measurement by w / r (w <= 1 the
+   Student-t weight: a burst is one tick's, not the sensor's). Its local
+   update carries the weight, and so does every receiver's fusion and every
+   model's likelihood: the bank compares input models under the noise the
+   world shows, and the message is unchanged.
 2. fuse, mixing: the models' prior probabilities are the fused senders'
    (the agent's own included) pooled by their normalised geometric mean
    (``input_models.pool_probabilities``), so an agent whose neighbourhood
