@@ -166,35 +166,66 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
     state) -> state``, if given, may replace agents' states before tick k's
     local step (a restarted agent, ``engine.verify``); ``listen(k, msg)`` is
     handed every tick's messages."""
-    est = estimators.get(estimator)(trace.model, trace.sensors, params)
+    step = Stepper(trace, estimator, params, neighbours)
     B, K, N = trace.has.shape
     n, m = trace.model.n, trace.model.m
-    state = est.init((B, N))
-    draws = draw_stream(est, trace)
     # tick-major buffers: each tick writes one contiguous block
     xs = np.empty((K, B, N, n))
     Ps = np.empty((K, B, N, n, n))
     ds = np.empty((K, B, N, m))
     dv = np.empty((K, B, N), dtype=bool)
-    y, has = np.moveaxis(trace.y, 1, 0), np.moveaxis(trace.has, 1, 0)
     changed = link_changes(trace.links)
-    view = None
     for k in range(1, K + 1):
         if restart is not None:
-            state = restart(k, est, state)
-        try:
-            state, msg = est.local(state, k, y[k - 1], has[k - 1])
-            if listen is not None:
-                listen(k, msg)
-            if changed[k - 1]:
-                view = choose_links(trace.links[:, k - 1], B, neighbours)
-            state, out = view.fuse(est, state, msg, None if draws is None else draws[:, k - 1])
-        except np.linalg.LinAlgError as e:  # the same type, saying whose and when
-            raise Diverged(f"{estimator}, tick {k}: {e} (its covariance diverged)", k) from None
+            step.state = restart(k, step.est, step.state)
+        msg = step.local(k)
+        if listen is not None:
+            listen(k, msg)
+        out = step.fuse(k, msg, trace.links[:, k - 1] if changed[k - 1] else None)
         xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)
     return Estimates(*(np.moveaxis(a, 0, 1) for a in (xs, Ps, ds, dv)))
+
+
+class Stepper:
+    """The engine one tick at a time, on every seed of ``trace``: ``local(k)``
+    then ``fuse(k, msg, links)``; ``state`` is every agent's state between
+    the two calls (``run_batch`` runs it over all ticks; the world's check
+    as a run goes, ``engine.verify.Online``, one tick as its reports come)."""
+
+    def __init__(self, trace: Trace, estimator: str, params: Params | None = None, neighbours: str = "auto"):
+        self.name, self.neighbours = estimator, neighbours
+        self.est = estimators.get(estimator)(trace.model, trace.sensors, params)
+        self.B, self.N = trace.has.shape[0], trace.has.shape[2]
+        self.state = self.est.init((self.B, self.N))
+        self.draws = draw_stream(self.est, trace)
+        self.y, self.has = trace.y, trace.has
+        self.view = None
+
+    def local(self, k: int) -> Message:
+        """Tick k's local step: every agent's message."""
+        try:
+            self.state, msg = self.est.local(self.state, k, self.y[:, k - 1], self.has[:, k - 1])
+        except np.linalg.LinAlgError as e:
+            raise self.diverged(k, e) from None
+        return msg
+
+    def fuse(self, k: int, msg: Message, links: np.ndarray | None = None) -> Output:
+        """Tick k's fusion of ``msg`` over ``links`` ((1 or B, N, N); None:
+        the links of the tick before)."""
+        if links is not None:
+            self.view = choose_links(links, self.B, self.neighbours)
+        try:
+            self.state, out = self.view.fuse(self.est, self.state, msg,
+                                             None if self.draws is None else self.draws[:, k - 1])
+        except np.linalg.LinAlgError as e:
+            raise self.diverged(k, e) from None
+        return out
+
+    def diverged(self, k: int, e: Exception) -> "Diverged":
+        """The same type, saying whose and when."""
+        return Diverged(f"{self.name}, tick {k}: {e} (its covariance diverged)", k)
 
 
 class Diverged(np.linalg.LinAlgError):
