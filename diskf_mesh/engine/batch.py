@@ -55,11 +55,10 @@ class Estimates:
         return Estimates(self.x[index], self.P[index], self.d[index], self.d_valid[index])
 
 
-def draw_stream(est, trace: Trace) -> np.ndarray | None:
+def draw_stream(est, seeds, ticks: int) -> np.ndarray | None:
     """(B, K, N) the estimator's per-agent draws (``Estimator.draws``) for
-    every seed of ``trace``, or None if it draws nothing."""
-    K = trace.y.shape[1]
-    rows = [est.draws(s, trace.sensors.ids, K) for s in trace.seeds]
+    every seed of ``seeds`` over ``ticks`` ticks, or None if it draws nothing."""
+    rows = [est.draws(s, est.sensors.ids, ticks) for s in seeds]
     return None if rows[0] is None else np.stack([r.T for r in rows])
 
 
@@ -166,22 +165,20 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
     state) -> state``, if given, may replace agents' states before tick k's
     local step (a restarted agent, ``engine.verify``); ``listen(k, msg)`` is
     handed every tick's messages."""
-    step = Stepper(trace, estimator, params, neighbours)
     B, K, N = trace.has.shape
+    steps = Stepper(trace.model, trace.sensors, estimator, params, trace.seeds, K, neighbours)
     n, m = trace.model.n, trace.model.m
     # tick-major buffers: each tick writes one contiguous block
     xs = np.empty((K, B, N, n))
     Ps = np.empty((K, B, N, n, n))
     ds = np.empty((K, B, N, m))
     dv = np.empty((K, B, N), dtype=bool)
+    y, has = np.moveaxis(trace.y, 1, 0), np.moveaxis(trace.has, 1, 0)
     changed = link_changes(trace.links)
     for k in range(1, K + 1):
         if restart is not None:
-            step.state = restart(k, step.est, step.state)
-        msg = step.local(k)
-        if listen is not None:
-            listen(k, msg)
-        out = step.fuse(k, msg, trace.links[:, k - 1] if changed[k - 1] else None)
+            steps.state = restart(k, steps.est, steps.state)
+        out = steps.step(y[k - 1], has[k - 1], trace.links[:, k - 1] if changed[k - 1] else None, listen)
         xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)
@@ -189,43 +186,40 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
 
 
 class Stepper:
-    """The engine one tick at a time, on every seed of ``trace``: ``local(k)``
-    then ``fuse(k, msg, links)``; ``state`` is every agent's state between
-    the two calls (``run_batch`` runs it over all ticks; the world's check
-    as a run goes, ``engine.verify.Online``, one tick as its reports come)."""
+    """One estimator on every agent of ``sensors`` for each seed of ``seeds``
+    (a batch of B seeds x N agents), one tick at a time, at most ``ticks``:
+    what ``run_batch`` does per tick, for callers that get each tick's data as
+    it comes (``diskf_mesh.api.streaming``). ``state``: the agents' state
+    after the last tick, ``k`` that tick."""
 
-    def __init__(self, trace: Trace, estimator: str, params: Params | None = None, neighbours: str = "auto"):
-        self.name, self.neighbours = estimator, neighbours
-        self.est = estimators.get(estimator)(trace.model, trace.sensors, params)
-        self.B, self.N = trace.has.shape[0], trace.has.shape[2]
-        self.state = self.est.init((self.B, self.N))
-        self.draws = draw_stream(self.est, trace)
-        self.y, self.has = trace.y, trace.has
+    def __init__(self, model, sensors, estimator: str, params: Params | None, seeds, ticks: int,
+                 neighbours: str = "auto"):
+        self.name = estimator
+        self.est = estimators.get(estimator)(model, sensors, params)
+        self.B = len(seeds)
+        self.state = self.est.init((self.B, len(sensors.ids)))
+        self.draws = draw_stream(self.est, seeds, ticks)
+        self.neighbours = neighbours
+        self.k = 0
         self.view = None
 
-    def local(self, k: int) -> Message:
-        """Tick k's local step: every agent's message."""
+    def step(self, y: np.ndarray, has: np.ndarray, links: np.ndarray | None, listen=None) -> Output:
+        """Tick k = ``self.k`` + 1: the local step on ``y`` (B, N, p_max) where
+        ``has`` (B, N), then fusion over ``links`` (1 or B, N, N), or over the
+        previous tick's when None. ``listen(k, msg)`` is handed the messages."""
+        k = self.k = self.k + 1
+        est = self.est
         try:
-            self.state, msg = self.est.local(self.state, k, self.y[:, k - 1], self.has[:, k - 1])
-        except np.linalg.LinAlgError as e:
-            raise self.diverged(k, e) from None
-        return msg
-
-    def fuse(self, k: int, msg: Message, links: np.ndarray | None = None) -> Output:
-        """Tick k's fusion of ``msg`` over ``links`` ((1 or B, N, N); None:
-        the links of the tick before)."""
-        if links is not None:
-            self.view = choose_links(links, self.B, self.neighbours)
-        try:
-            self.state, out = self.view.fuse(self.est, self.state, msg,
-                                             None if self.draws is None else self.draws[:, k - 1])
-        except np.linalg.LinAlgError as e:
-            raise self.diverged(k, e) from None
+            self.state, msg = est.local(self.state, k, y, has)
+            if listen is not None:
+                listen(k, msg)
+            if links is not None:
+                self.view = choose_links(links, self.B, self.neighbours)
+            draws = None if self.draws is None else self.draws[:, k - 1]
+            self.state, out = self.view.fuse(est, self.state, msg, draws)
+        except np.linalg.LinAlgError as e:  # the same type, saying whose and when
+            raise Diverged(f"{self.name}, tick {k}: {e} (its covariance diverged)", k) from None
         return out
-
-    def diverged(self, k: int, e: Exception) -> "Diverged":
-        """The same type, saying whose and when."""
-        return Diverged(f"{self.name}, tick {k}: {e} (its covariance diverged)", k)
 
 
 class Diverged(np.linalg.LinAlgError):
