@@ -28,7 +28,7 @@ from diskf_mesh.mesh.security import credentials
 from diskf_mesh.mesh.protocol.agent_machine import AgentMachine, AgentTiming
 from diskf_mesh.mesh.wire.keys import Keys
 from diskf_mesh.mesh.protocol.log import Log
-from diskf_mesh.mesh.protocol.run_status import run_status
+from diskf_mesh.mesh.protocol.run_status import OnlineCheck, run_status
 from diskf_mesh.mesh.simulated.simnet import Lease, Link, Outcome, SimNet
 from diskf_mesh.mesh.protocol.world_machine import WorldMachine, WorldTiming
 
@@ -56,6 +56,7 @@ class SimPlan:
     world_timing: WorldTiming = WorldTiming()
     agent_timing: AgentTiming = AgentTiming()
     max_time: float = 3600.0
+    online: bool = True              # the world checks each tick as its reports come (and cuts off a liar)
 
 
 @dataclass
@@ -86,11 +87,16 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     net = SimNet(seed if net_seed is None else net_seed, link=plan.link, links=plan.links, policy=policy,
                  lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time)
 
+    deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
+
     def world(boot):
         first = boot.pid == WORLD and boot.incarnation == 0  # the observers watch the run's own world
+        online = OnlineCheck(trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
+                             deadline_s=deadline_s) if plan.online else None
         return WorldMachine(scn, trace, algorithm, seed, keys, boot.nonce, plan.world_timing,
                             log=Log(f"world {boot.pid}#{boot.incarnation}" if boot.incarnation else boot.pid, stream),
-                            progress=progress if first else None, recorder=recorder if first else None)
+                            progress=progress if first else None, recorder=recorder if first else None,
+                            online=online)
 
     def agent(i):
         def make(boot):
@@ -121,9 +127,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     w = out.machines[pid]
     status = None
     if verify and pid in out.finishes and w.record.reported.any():
-        at = plan.agent_timing
         status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
-                            deadline_s=realtime.agents_deadline(at.clock, at.collect_timeout),
-                            labels=scn.labels)
+                            deadline_s=deadline_s, labels=scn.labels)
     return SimRun(out, w, status, stream.getvalue() if stream is not None else "")
 
