@@ -160,3 +160,32 @@ def test_a_withheld_report_alone_is_only_incomplete(dynamic):
     assert r.status.status == "incomplete", r.status.reason
     assert r.status.evidence["unverified"] == 0
     assert accept(r.status, allow_missing=0.01)[0] == exits.OK
+
+
+@pytest.mark.parametrize("withhold", [None, WITHHELD])
+def test_replay_of_a_recording_says_the_same_and_never_exits_0(dynamic, tmp_path, withhold, capsys):
+    """The recording holds each tick's live set, so the engine applies the
+    same quarantine from the same ticks: ``replay`` finds the run's status
+    on what was delivered (diverged, or unverifiable), never exit 0 under
+    ``--allow-missing``; ``--accept-unverifiable`` accepts the unverifiable
+    one and its line gives the count."""
+    from diskf_mesh.data.faults import FaultConfig
+    from diskf_mesh.recording.command import replay_recording
+    from diskf_mesh.recording.writer import Recorder
+
+    scn, trace = dynamic
+    path = tmp_path / "run.mcap"
+    recorder = Recorder(path, trace, scn, scenario="dynamic", algorithm="diskf", seed=0, run_id=RUN,
+                        faults=FaultConfig())
+    r = run(dynamic, recorder=recorder, start=FROM, offset=OFFSET, withhold=withhold)
+    assert r.record.quarantined and r.status.status in ("diverged", "unverifiable")
+    assert recorder.finish("done", {}, r.status.to_json()) is None
+    want = exits.DIVERGED if withhold is None else exits.UNVERIFIABLE
+    for allow in (0.0, 0.2):
+        assert replay_recording(str(path), allow_missing=allow, allow_degraded=True) == want
+    err = capsys.readouterr().err
+    assert ("diverged" if withhold is None else "unverifiable run") in err, err
+    if withhold is not None:
+        assert replay_recording(str(path), allow_missing=0.2, accept_unverifiable=True) == exits.OK
+        n = r.status.evidence["unverified"]
+        assert f"unverifiable run accepted (--accept-unverifiable): {n} reported agent-ticks" in capsys.readouterr().err
