@@ -34,6 +34,7 @@ import numpy as np
 from diskf_mesh import estimators
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
+from diskf_mesh.data.lies import Liars
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.estimators import Params
 
@@ -53,6 +54,11 @@ class Estimates:
     def take(self, index) -> "Estimates":
         """Select seeds (the leading axis)."""
         return Estimates(self.x[index], self.P[index], self.d[index], self.d_valid[index])
+
+    def agents(self, columns) -> "Estimates":
+        """Select agents (by their place in the scenario)."""
+        return Estimates(self.x[:, :, columns], self.P[:, :, columns], self.d[:, :, columns],
+                         self.d_valid[:, :, columns])
 
 
 def draw_stream(est, trace: Trace) -> np.ndarray | None:
@@ -100,9 +106,17 @@ class GatheredLinks:
         rows = a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:])
         return np.take(rows, self.flat, axis=0).reshape(self.shape + a.shape[2:])
 
-    def fuse(self, est, state, msg: Message, draws):
+    def fuse(self, est, state, msg: Message, draws, sent: Message | None = None):
+        """``sent``: what the agents sent, if not ``msg`` (a liar's message,
+        ``data.lies``); each receiver fuses its own true message."""
         own = Message(**{f.name: getattr(msg, f.name)[:, :, None] for f in fields(Message)})
-        senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
+        if sent is None:
+            senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
+        else:
+            mine = self.self_mask[:, :, 0]
+            senders = Message(**{f.name: np.where(mine.reshape(mine.shape + (1,) * (getattr(own, f.name).ndim - 3)),
+                                                  getattr(own, f.name), self.gather(getattr(sent, f.name)))
+                                 for f in fields(Message)})
         nb = self.nb if draws is None else Neighbourhood(self.adj, self.self_mask, draws[:, :, None])
         st, out = est.fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders, nb)
         squeeze = lambda a: a[:, :, 0]  # noqa: E731
@@ -133,13 +147,15 @@ def choose_links(links: np.ndarray, B: int, mode: str = "auto"):
 # running
 # --------------------------------------------------------------------------
 def run(trace: Trace, estimator: str, params: Params | None = None, progress=None,
-        neighbours: str = "auto") -> Estimates:
+        neighbours: str = "auto", lies=()) -> Estimates:
     """Run one estimator (by name) on every seed of ``trace``.
 
     ``progress``, if given, is called with the number of ticks done (counted
     over all seed chunks when a large run is split, see ``seeds_per_chunk``).
     ``neighbours`` picks the message layout (see the module docstring);
-    all give the same estimates. A setting the estimator refuses
+    all give the same estimates. ``lies``: ``data.lies.Lie``s the agents
+    commit on their outgoing messages (and reports), with agents as the
+    run's ids (``Scenario.lies``). A setting the estimator refuses
     (``Estimator.refuse``) raises ``InputError`` first; its ``warning``, if
     any, is issued as a RuntimeWarning."""
     refused = estimators.get(estimator).refuse(params or Params(), trace.model, trace.sensors)
@@ -151,21 +167,24 @@ def run(trace: Trace, estimator: str, params: Params | None = None, progress=Non
     B = trace.has.shape[0]
     chunk = seeds_per_chunk(trace)
     if chunk >= B:
-        return run_batch(trace, estimator, params, progress, neighbours)
+        return run_batch(trace, estimator, params, progress, neighbours, lies=lies)
     K = trace.has.shape[1]
     parts = []
     for c, start in enumerate(range(0, B, chunk)):
         report = None if progress is None else (lambda k, done=c * K: progress(done + k))
-        parts.append(run_batch(take_seeds(trace, slice(start, start + chunk)), estimator, params, report, neighbours))
+        parts.append(run_batch(take_seeds(trace, slice(start, start + chunk)), estimator, params, report, neighbours,
+                               lies=lies))
     return Estimates(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Estimates)))
 
 
 def run_batch(trace: Trace, estimator: str, params: Params | None = None, progress=None,
-              neighbours: str = "auto", restart=None, listen=None) -> Estimates:
+              neighbours: str = "auto", restart=None, listen=None, lies=()) -> Estimates:
     """``run`` on all seeds of ``trace`` as one batch. ``restart(k, est,
     state) -> state``, if given, may replace agents' states before tick k's
     local step (a restarted agent, ``engine.verify``); ``listen(k, msg)`` is
-    handed every tick's messages."""
+    handed every tick's (true) messages. With ``lies`` every receiver is a
+    batch of one (``gather``), so that each fuses its own true message and
+    the others' as they were sent."""
     est = estimators.get(estimator)(trace.model, trace.sensors, params)
     B, K, N = trace.has.shape
     n, m = trace.model.n, trace.model.m
@@ -178,6 +197,9 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
     dv = np.empty((K, B, N), dtype=bool)
     y, has = np.moveaxis(trace.y, 1, 0), np.moveaxis(trace.has, 1, 0)
     changed = link_changes(trace.links)
+    liars = Liars(lies, trace.sensors.ids, n, trace.position_dims)
+    if liars:
+        neighbours = "gather"
     view = None
     for k in range(1, K + 1):
         if restart is not None:
@@ -188,7 +210,12 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
                 listen(k, msg)
             if changed[k - 1]:
                 view = choose_links(trace.links[:, k - 1], B, neighbours)
-            state, out = view.fuse(est, state, msg, None if draws is None else draws[:, k - 1])
+            tick_draws = None if draws is None else draws[:, k - 1]
+            if liars:
+                state, out = view.fuse(est, state, msg, tick_draws, liars.message(k, msg))
+                out = liars.report(k, out)
+            else:
+                state, out = view.fuse(est, state, msg, tick_draws)
         except np.linalg.LinAlgError as e:  # the same type, saying whose and when
             raise Diverged(f"{estimator}, tick {k}: {e} (its covariance diverged)", k) from None
         xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
@@ -279,13 +306,13 @@ def stack(traces) -> Trace:
     )
 
 
-def run_many(traces, estimator: str, params: Params | None = None, progress=None) -> list[Estimates]:
+def run_many(traces, estimator: str, params: Params | None = None, progress=None, lies=()) -> list[Estimates]:
     """``run`` on each trace, batched into one run when they are ``stackable``.
 
     Returns one ``Estimates`` per trace, equal to running each alone."""
     traces = list(traces)
     if len(traces) == 1 or not stackable(traces):
-        return [run(t, estimator, params, progress) for t in traces]
-    est = run(stack(traces), estimator, params, progress)
+        return [run(t, estimator, params, progress, lies=lies) for t in traces]
+    est = run(stack(traces), estimator, params, progress, lies=lies)
     bounds = np.cumsum([0] + [t.has.shape[0] for t in traces])
     return [est.take(slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
