@@ -63,7 +63,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 from diskf_mesh import live
@@ -82,6 +82,7 @@ from diskf_mesh.mesh.process.stopping import terminated
 from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from diskf_mesh.recording.writer import failure_line
 from sim import simulated
+from sim.child import Child
 from sim import zygote as forks
 from diskf_mesh.core import exits
 from diskf_mesh.engine.verify import RunStatus
@@ -199,22 +200,6 @@ def network_of(choice: str, agents: int) -> str:
     """``up --network``: "peers" or "router" ("auto": a peer mesh up to
     ``PEERS_UP_TO`` agents, a router above)."""
     return choice if choice != "auto" else ("peers" if agents <= PEERS_UP_TO else "router")
-
-
-@dataclass
-class Child:
-    name: str
-    argv: list
-    log: Path
-    proc: subprocess.Popen | None = None
-    identities: tuple = ()  # the identities it is handed (``Launcher``'s ``keys``), on its standard input
-
-    def last_error_line(self) -> str:
-        try:
-            lines = [ln for ln in self.log.read_text(errors="replace").splitlines() if ln.strip()]
-        except OSError:
-            return ""
-        return lines[-1] if lines else ""
 
 
 def hand_over(data: bytes) -> int:

@@ -5,7 +5,9 @@ range-gated scenario's own range, e.g. dynamic at 120, as up and simulate
 run it; any other scenario on the paper's all, ring, none), prints a table
 shaped like Table II and optionally writes the numbers as JSON
 ``{estimator: {topology: {mae_state, rmse_state, mae_input, rmse_input,
-input_coverage, nees, <metric>_std ...}}}``.
+input_coverage, nees, <metric>_std ...}}}``. An estimator that diverges in
+a setting is ``"diverged": true`` there, ``diverged`` in the table, and one
+line on standard error.
 """
 from __future__ import annotations
 
@@ -89,4 +91,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"Scenario {scn.name}: {args.seeds} seeds x {steps} ticks, {scn.N} agents; "
           f"* marks the best value of each row", file=text)
     print(experiment.format_table(results), file=text)
+    for name, rows in results.items():
+        gone = [experiment.TOPOLOGY_LABELS.get(st, st) for st, row in rows.items() if row.get("diverged")]
+        if gone:
+            print(f"diverged: {experiment.LABELS.get(name, name)} in {', '.join(gone)} (its covariance stopped being "
+                  "positive definite, or an estimate left what a message may carry): no metrics there",
+                  file=sys.stderr)
     return 0

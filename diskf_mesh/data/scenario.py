@@ -126,7 +126,10 @@ class Scenario:
 
     def positions(self, steps: int) -> np.ndarray:
         """Agent positions (steps, N, 2) at ticks 1..steps."""
-        ticks = np.arange(1, steps + 1)
+        return self.positions_at(np.arange(1, steps + 1))
+
+    def positions_at(self, ticks) -> np.ndarray:
+        """Agent positions (len(ticks), N, 2) at the given ticks."""
         return np.stack([a.position_at(ticks) for a in self.agents], axis=1)
 
     def check_size(self, seeds: int = 1, steps: int | None = None) -> None:

@@ -61,11 +61,10 @@ class Estimates:
                          self.d_valid[:, :, columns])
 
 
-def draw_stream(est, trace: Trace) -> np.ndarray | None:
+def draw_stream(est, seeds, ticks: int) -> np.ndarray | None:
     """(B, K, N) the estimator's per-agent draws (``Estimator.draws``) for
-    every seed of ``trace``, or None if it draws nothing."""
-    K = trace.y.shape[1]
-    rows = [est.draws(s, trace.sensors.ids, K) for s in trace.seeds]
+    every seed of ``seeds`` over ``ticks`` ticks, or None if it draws nothing."""
+    rows = [est.draws(s, est.sensors.ids, ticks) for s in seeds]
     return None if rows[0] is None else np.stack([r.T for r in rows])
 
 
@@ -185,11 +184,10 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
     handed every tick's (true) messages. With ``lies`` every receiver is a
     batch of one (``gather``), so that each fuses its own true message and
     the others' as they were sent."""
-    est = estimators.get(estimator)(trace.model, trace.sensors, params)
     B, K, N = trace.has.shape
     n, m = trace.model.n, trace.model.m
-    state = est.init((B, N))
-    draws = draw_stream(est, trace)
+    steps = Stepper(trace.model, trace.sensors, estimator, params, trace.seeds, K, neighbours,
+                    Liars(lies, trace.sensors.ids, n, trace.position_dims))
     # tick-major buffers: each tick writes one contiguous block
     xs = np.empty((K, B, N, n))
     Ps = np.empty((K, B, N, n, n))
@@ -197,31 +195,58 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
     dv = np.empty((K, B, N), dtype=bool)
     y, has = np.moveaxis(trace.y, 1, 0), np.moveaxis(trace.has, 1, 0)
     changed = link_changes(trace.links)
-    liars = Liars(lies, trace.sensors.ids, n, trace.position_dims)
-    if liars:
-        neighbours = "gather"
-    view = None
     for k in range(1, K + 1):
         if restart is not None:
-            state = restart(k, est, state)
-        try:
-            state, msg = est.local(state, k, y[k - 1], has[k - 1])
-            if listen is not None:
-                listen(k, msg)
-            if changed[k - 1]:
-                view = choose_links(trace.links[:, k - 1], B, neighbours)
-            tick_draws = None if draws is None else draws[:, k - 1]
-            if liars:
-                state, out = view.fuse(est, state, msg, tick_draws, liars.message(k, msg))
-                out = liars.report(k, out)
-            else:
-                state, out = view.fuse(est, state, msg, tick_draws)
-        except np.linalg.LinAlgError as e:  # the same type, saying whose and when
-            raise Diverged(f"{estimator}, tick {k}: {e} (its covariance diverged)", k) from None
+            steps.state = restart(k, steps.est, steps.state)
+        out = steps.step(y[k - 1], has[k - 1], trace.links[:, k - 1] if changed[k - 1] else None, listen)
         xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)
     return Estimates(*(np.moveaxis(a, 0, 1) for a in (xs, Ps, ds, dv)))
+
+
+class Stepper:
+    """One estimator on every agent of ``sensors`` for each seed of ``seeds``
+    (a batch of B seeds x N agents), one tick at a time, at most ``ticks``:
+    what ``run_batch`` does per tick, for callers that get each tick's data as
+    it comes (``diskf_mesh.api.streaming``). ``state``: the agents' state
+    after the last tick, ``k`` that tick. ``liars``: a ``data.lies.Liars``
+    of the agents' lies (every receiver is then a batch of one, ``gather``,
+    fusing its own true message and the others' as they were sent)."""
+
+    def __init__(self, model, sensors, estimator: str, params: Params | None, seeds, ticks: int,
+                 neighbours: str = "auto", liars: Liars | None = None):
+        self.name = estimator
+        self.est = estimators.get(estimator)(model, sensors, params)
+        self.B = len(seeds)
+        self.state = self.est.init((self.B, len(sensors.ids)))
+        self.draws = draw_stream(self.est, seeds, ticks)
+        self.liars = liars if liars else None
+        self.neighbours = "gather" if self.liars else neighbours
+        self.k = 0
+        self.view = None
+
+    def step(self, y: np.ndarray, has: np.ndarray, links: np.ndarray | None, listen=None) -> Output:
+        """Tick k = ``self.k`` + 1: the local step on ``y`` (B, N, p_max) where
+        ``has`` (B, N), then fusion over ``links`` (1 or B, N, N), or over the
+        previous tick's when None. ``listen(k, msg)`` is handed the messages."""
+        k = self.k = self.k + 1
+        est = self.est
+        try:
+            self.state, msg = est.local(self.state, k, y, has)
+            if listen is not None:
+                listen(k, msg)
+            if links is not None:
+                self.view = choose_links(links, self.B, self.neighbours)
+            draws = None if self.draws is None else self.draws[:, k - 1]
+            if self.liars is None:
+                self.state, out = self.view.fuse(est, self.state, msg, draws)
+            else:
+                self.state, out = self.view.fuse(est, self.state, msg, draws, self.liars.message(k, msg))
+                out = self.liars.report(k, out)
+        except np.linalg.LinAlgError as e:  # the same type, saying whose and when
+            raise Diverged(f"{self.name}, tick {k}: {e} (its covariance diverged)", k) from None
+        return out
 
 
 class Diverged(np.linalg.LinAlgError):

@@ -80,6 +80,18 @@ def diverged(est) -> bool:
                     and all(bool((np.abs(a) <= wire.MAX_ABS).all()) for a in (est.x, est.d)))
 
 
+def diverged_tick(est) -> int | None:
+    """The first tick (from 1) at which a run's estimates diverged
+    (``diverged``: in any seed or agent), or None."""
+    if not diverged(est):
+        return None
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(est.P).all(axis=(-2, -1))
+        for a in (est.x, est.d):
+            bad |= ~(np.abs(a) <= wire.MAX_ABS).all(axis=-1)
+    return int(np.flatnonzero(bad.any(axis=(0, 2)))[0]) + 1
+
+
 def run_or_none(trace, name: str, params: Params | None, lies=()):
     """``engine.run``, or None where the estimator diverged: its covariance
     lost positive definiteness (``numpy.linalg.LinAlgError``) or its
