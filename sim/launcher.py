@@ -633,6 +633,8 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         world_extra += ["--allow-missing", repr(args.allow_missing)]
     if args.allow_degraded:
         world_extra += ["--allow-degraded"]
+    if args.accept_unverifiable:
+        world_extra += ["--accept-unverifiable"]
     agent_extra = agent_flags(args, scn, args.collect_timeout, agent_world_timeout(args))
     world_extra, agent_extra = [a + b for a, b in zip((world_extra, agent_extra), realtime.argv(args))]
     faults = faults_from_args(args, scn.faults)
@@ -706,7 +708,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
 
 # the world's exit statuses that carry a run's results (``core.exits``); any other is a failure
 WORLD_VERDICTS = (exits.OK, exits.INCOMPLETE, exits.TOO_MANY_MISSES, exits.DEGRADED, exits.DIVERGED,
-                  exits.RECORDING_FAILED)
+                  exits.RECORDING_FAILED, exits.UNVERIFIABLE)
 
 
 def verdict(row: dict, args) -> None:
