@@ -15,7 +15,7 @@ import argparse
 import sys
 
 from diskf_mesh.studies import experiment
-from diskf_mesh.data import provenance
+from diskf_mesh.data import lies, provenance
 from diskf_mesh.data.scenario import load_scenario
 from diskf_mesh.cli.options import (
     add_command,
@@ -59,6 +59,7 @@ def register(subparsers) -> None:
     add_estimator_choice(p, many=True)
     p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
     add_estimator_options(p)
+    lies.add_arguments(p)
     p.add_argument("--json", metavar="OUT", help="also write the results as JSON (- for standard output)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -70,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.json, "json")
     started = provenance.now()
     scn = load_scenario(args.scenario, agents=args.agents)
+    if args.lie is not None:
+        scn = scn.with_lies(args.lie)
     settings = experiment.settings_for(*default_topologies(scn, args.topology, args.comm_range))
     params = estimator_params(scn.params, args)
     for st in settings:  # fail on a bad override before the long run
