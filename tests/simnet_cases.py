@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch
@@ -41,7 +42,7 @@ MSGS = "diskf/sim/agent/*/msg/**"
 # dynamic (9, in range of each other as they move)
 SCENARIOS = ("random-geometric", "random-geometric", "quadrants", "dynamic")
 SIZES = {"quadrants": 4, "dynamic": 9}
-STATUSES = ("exact", "as planned", "degraded", "diverged", "incomplete")
+STATUSES = exits.STATUSES
 
 
 @dataclass(frozen=True)

@@ -10,8 +10,10 @@ estimates it sends and reports, after withholding one report or not.
     a lie after a withheld report   the agent-ticks built on it cannot be
                                     verified: ``unverifiable``, never
                                     accepted by ``--allow-missing``, only
-                                    by ``--accept-unverifiable``; the world
-                                    cuts the liar off as well
+                                    by ``--accept-unverifiable`` (the world
+                                    cuts off no one it cannot prove lied:
+                                    an honest agent whose report was lost
+                                    looks the same)
 """
 from __future__ import annotations
 
@@ -132,13 +134,7 @@ def test_a_lie_after_a_withheld_report_is_unverifiable_and_never_exits_0(dynamic
     r = run(dynamic, online=online, start=FROM, offset=OFFSET, withhold=WITHHELD)
     st, rec = r.status, r.record
     assert not rec.reported[WITHHELD - 1, LIAR - 1]
-    if online:  # cut off within two ticks of the first that fused it
-        q = rec.quarantined
-        assert [(e["agent"], e["why"], e["withheld"], e["tick"]) for e in q] == [(LIAR, "unverifiable", WITHHELD, FROM)]
-        assert FROM < q[0]["from"] <= FROM + 2 and not rec.fused[q[0]["from"] - 1:, :, LIAR - 1].any()
-        assert st.evidence["quarantined"][0]["fused_by"] == [{"tick": t, "agent": 8} for t in range(FROM, q[0]["from"])]
-    else:
-        assert rec.reported.sum() == rec.reported.size - 1
+    assert not rec.quarantined and rec.reported.sum() == rec.reported.size - 1
     assert st.status == "unverifiable", st.reason
     un = st.evidence["unverifiable"]
     assert un["withheld"] == [{"agent": LIAR, "tick": WITHHELD}]
@@ -178,7 +174,7 @@ def test_replay_of_a_recording_says_the_same_and_never_exits_0(dynamic, tmp_path
     recorder = Recorder(path, trace, scn, scenario="dynamic", algorithm="diskf", seed=0, run_id=RUN,
                         faults=FaultConfig())
     r = run(dynamic, recorder=recorder, start=FROM, offset=OFFSET, withhold=withhold)
-    assert r.record.quarantined and r.status.status in ("diverged", "unverifiable")
+    assert bool(r.record.quarantined) == (withhold is None) and r.status.status in ("diverged", "unverifiable")
     assert recorder.finish("done", {}, r.status.to_json()) is None
     want = exits.DIVERGED if withhold is None else exits.UNVERIFIABLE
     for allow in (0.0, 0.2):

@@ -175,6 +175,15 @@ def nominal_links(trace: Trace, K: int, live: np.ndarray | None = None, first_ti
     return links
 
 
+def announced(trace: Trace, live: np.ndarray) -> Trace:
+    """``trace`` with each tick's links only between the agents that tick
+    counted live (``live`` (K, N), as a run's ticks announce it): the engine
+    applies a run's quarantine (and its joins and departures) from the same
+    ticks, so its estimates are the run's on what was delivered."""
+    K = live.shape[0]
+    return first_ticks(trace, K).with_links(nominal_links(trace, K, live)[None])
+
+
 def planned_links(nominal: np.ndarray, ids, faults: FaultConfig | None, seed: int,
                   deadline_s: float = np.inf, first_tick: int = 1) -> np.ndarray:
     """The nominal links (of ticks ``first_tick``...) after the injected
@@ -371,10 +380,8 @@ class Online:
         self.links = None
         self.ended = 0
 
-    def tick(self, k: int, claims: RunClaims, planned: np.ndarray) -> tuple:
-        """(``Judged``, the ticks of the missing reports that made states
-        unknown before tick k (N,)) of tick k, or None after the engine's
-        replay diverged."""
+    def tick(self, k: int, claims: RunClaims, planned: np.ndarray) -> Judged | None:
+        """Tick k's ``Judged``, or None after the engine's replay diverged."""
         if self.ended or k != self.step.k + 1:
             return None
         reported = claims.reported[k - 1]
@@ -408,8 +415,7 @@ class Online:
             for r, (ss, gs) in mine:
                 has[r, ss] = True
                 wrong[r, ss] = engine[ss] != gs
-        withheld = self.judge.withheld.copy()
-        return self.judge.tick(k, reported, bad, claims.fused[k - 1], has, wrong, [r.agent for r in restarts]), withheld
+        return self.judge.tick(k, reported, bad, claims.fused[k - 1], has, wrong, [r.agent for r in restarts])
 
 
 # --------------------------------------------------------------------------

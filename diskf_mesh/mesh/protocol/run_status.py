@@ -112,12 +112,12 @@ class OnlineCheck:
     each tick whose reports are final, ``tick(rec, k)`` replays it on the
     engine from the world's record ``rec`` (its reports, live sets,
     rejoins) with the same digests and planned links as ``run_status``,
-    and returns the agents to cut off: those it proves lied (a fused
-    message or a report of theirs the engine does not reproduce, on a
-    known state), and those whose state is unknown since they withheld a
-    report and whose message an agent fused that the engine does not
-    reproduce (``unverifiable``): [{"agent", "tick", "why", "withheld",
-    "fused_by"}], ids as the record holds them."""
+    and returns the agents it proves lied, to cut off: a fused message or
+    a report of theirs that the engine does not reproduce on a known
+    state: [{"agent", "tick", "why": "lied", "fused_by"}], ids as the
+    record holds them. An agent whose state is unknown (a report of its
+    did not come) is never cut off: an honest one whose report was lost
+    looks the same; what it changes is ``unverifiable`` at the end."""
 
     def __init__(self, trace: Trace, algorithm: str, params, *, run_id: str, seed: int,
                  faults: FaultConfig | None = None, deadline_s: float = math.inf):
@@ -142,16 +142,11 @@ class OnlineCheck:
         restarts = tuple(r for r in restarts_of(getattr(rec, "rejoins", {}), getattr(rec, "starts", ()), self.index)
                          if r.tick == k)
         claims = RunClaims(rec.x, rec.P, rec.d, rec.d_valid, rec.reported, rec.fused, None, restarts, digests)
-        found = self.online.tick(k, claims, planned[0])
-        if found is None:
+        judged = self.online.tick(k, claims, planned[0])
+        if judged is None:
             return []
-        judged, withheld = found
-        named = [(s, "lied", None) for s in judged.liars()]
-        named += [(s, "unverifiable", int(withheld[s])) for s in np.flatnonzero(judged.doubtful.any(0)).tolist()
-                  if withheld[s] > 0 and s not in judged.liars()]
-        return [{"agent": self.ids[s], "tick": k, "why": why, "withheld": since,
-                 "fused_by": [self.ids[r] for r in np.flatnonzero(judged.forged[:, s] | judged.doubtful[:, s])]}
-                for s, why, since in named]
+        return [{"agent": self.ids[s], "tick": k, "why": "lied",
+                 "fused_by": [self.ids[r] for r in np.flatnonzero(judged.forged[:, s])]} for s in judged.liars()]
 
 
 def quarantine_evidence(rec, names) -> tuple:
@@ -166,11 +161,10 @@ def quarantine_evidence(rec, names) -> tuple:
         fused_by = [{"tick": t + 1, "agent": names[r]} for t in range(q["tick"] - 1, min(q["from"] - 1, len(rec.fused)))
                     for r in np.flatnonzero(rec.fused[t, :, j]).tolist() if r != j]
         out.append({"agent": names[j], "why": q["why"], "named_at": q["tick"], "from": q["from"],
-                    "withheld": q["withheld"], "fused_by": fused_by})
+                    "fused_by": fused_by})
     line = "; ".join(
-        f"agent {q['agent']} cut off from tick {q['from']} ("
-        + ("it lied" if q["why"] == "lied" else f"unverifiable since its report of tick {q['withheld']} did not come")
-        + f", named at tick {q['named_at']}; {len(q['fused_by'])} agent-ticks fused it"
+        f"agent {q['agent']} cut off from tick {q['from']} (it lied, named at tick {q['named_at']}; "
+        f"{len(q['fused_by'])} agent-ticks fused it"
         + (f", first agent {q['fused_by'][0]['agent']} at tick {q['fused_by'][0]['tick']}" if q["fused_by"] else "")
         + ")" for q in out)
     return out, line

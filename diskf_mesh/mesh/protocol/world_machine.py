@@ -128,7 +128,7 @@ class WorldRecord(RunReports):
     ended_early: str = ""                      # why the run ended before tick K, if it did
     deadlines: Deadlines | None = None         # real time only
     labels: tuple = ()                         # the ids as the scenario gave them (results show these)
-    quarantined: list = field(default_factory=list)  # [{"agent", "tick", "why", "withheld", "fused_by", "from"}]
+    quarantined: list = field(default_factory=list)  # [{"agent", "tick", "why", "fused_by", "from"}]
 
     def label(self, i):
         """Agent ``i``'s id as the scenario gave it (``i`` itself if unknown)."""
@@ -846,10 +846,8 @@ class WorldMachine:
             q["from"] = self.k + 1
             self._quarantined[q["agent"]] = q
             self.record.quarantined.append(q)
-            what = ("its message or report is not what the algorithm computes" if q["why"] == "lied" else
-                    f"its report of tick {q['withheld']} did not come and its message is not what the engine "
-                    "computes")
-            self.log.info(f"tick {k}: agent {q['agent']} cut off from tick {q['from']} on: {what}"
+            self.log.info(f"tick {k}: agent {q['agent']} cut off from tick {q['from']} on: its message or report "
+                          "is not what the algorithm computes"
                           + (f" (fused by agent {', '.join(map(str, q['fused_by']))})" if q["fused_by"] else ""))
 
     # ======================================================================
