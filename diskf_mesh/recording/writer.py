@@ -324,7 +324,8 @@ class TickWriter:
         self.names = dict(zip(self.ids, trace.agent_labels))  # run id -> the user's id
         self.faults = FaultModel(faults, seed) if faults.active else None
         self._file = file
-        self._mcap = mcap or Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self._mcap = mcap or Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD,
+                                      enable_data_crcs=True)
         self._mcap.start(profile="", library=f"diskf-mesh/{__version__}")
         self._channel = {}
         for topic in CHANNELS:
