@@ -36,6 +36,10 @@ listed (``differs``). The copies and delays of each message are the
 seeded fault layer's plan (``faults.FaultModel``, the same seed and
 settings as the agents').
 
+Every CRC MCAP has is written (each chunk's, the data section's, each
+attachment's, the summary's), so ``replay`` can tell a whole file from one
+cut short or damaged (``recording.reader.scan``).
+
 Messages are stamped with a tick time: log time = recording start +
 k x ``TICK_PERIOD_S`` (so a viewer's timeline shows ticks evenly), publish
 time = the wall clock when the world closed the tick.
