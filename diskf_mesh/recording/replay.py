@@ -12,8 +12,8 @@ the plain comparison.
 A recording is checked whole first (``Recording.not_whole``): a whole MCAP file
 (``reader.scan``: every CRC, the summary, the footer), the run's result and
 every planned tick. One that is not is ``incomplete`` whatever its whole
-ticks replay to (``diverged`` if they diverge), and says why and its last
-whole tick.
+ticks replay to (``diverged`` or ``unverifiable`` if they are), and says
+why and its last whole tick.
 """
 from __future__ import annotations
 
@@ -52,8 +52,8 @@ def recording_status(rec: Recording) -> RunStatus:
     """The recorded run checked by the engine: its status, reason, evidence
     (planned with the deadline the run's own check used, if it said one);
     a recording that is not whole (``Recording.not_whole``) is ``incomplete``, or
-    ``diverged`` if its whole ticks diverge, its evidence's ``recording``
-    saying why and the last whole tick."""
+    ``diverged`` (``unverifiable``) if its whole ticks are, its evidence's
+    ``recording`` saying why and the last whole tick."""
     run = rec.run
     faults = FaultConfig.from_mapping(run.get("faults") or {})
     deadline = ((rec.result or {}).get("verification") or {}).get("plan_deadline_s")
@@ -67,7 +67,7 @@ def recording_status(rec: Recording) -> RunStatus:
     if not why:
         return st
     line = f"the recording is not whole: {why}; its last whole tick is {rec.ticks} of {rec.planned_ticks}"
-    if st.status == exits.DIVERGED_STATUS:
+    if st.status in (exits.DIVERGED_STATUS, exits.UNVERIFIABLE_STATUS):  # the worse verdict stays
         return RunStatus(st.status, f"{st.reason}; and {line}", st.evidence)
     return RunStatus(exits.INCOMPLETE_STATUS, f"{line} (ticks 1 to {rec.ticks} replay {st.status})", st.evidence)
 
