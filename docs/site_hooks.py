@@ -1,5 +1,8 @@
 """MkDocs hooks of the documentation site (mkdocs.yml).
 
+A page of ``docs/`` that ``mkdocs.yml``'s nav does not list goes under
+"More" at its end, so every page is in the navigation.
+
 A page whose first line is ``<!-- mirror: PATH -->`` shows the repository's
 file PATH (relative to the page) instead of its own text: the front page is
 the README, the changelog page CHANGELOG.md.
@@ -22,6 +25,27 @@ log = logging.getLogger("mkdocs.plugins.diskf_mesh")
 MIRROR = re.compile(r"\A<!-- mirror: (\S+) -->")
 FENCE = re.compile(r"^(```.*?^```)", re.M | re.S)
 LINK = re.compile(r"(!?)\[([^\]]*)\]\(([^)\s]+)\)")
+
+
+def on_config(config):
+    listed = set(_pages(config["nav"] or []))
+    docs = Path(config["docs_dir"])
+    extra = sorted(p.relative_to(docs).as_posix() for p in docs.rglob("*.md"))
+    excluded = config["exclude_docs"]
+    extra = [p for p in extra if p not in listed and not (excluded and excluded.match_file(p))]
+    if extra and config["nav"] is not None:
+        config["nav"].append({"More": extra})
+    return config
+
+
+def _pages(nav):
+    """Every page path a nav lists (its entries: a path, {title: path} or {title: [entries]})."""
+    for item in nav:
+        if isinstance(item, str):
+            yield item
+        elif isinstance(item, dict):
+            for v in item.values():
+                yield from ([v] if isinstance(v, str) else _pages(v))
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:

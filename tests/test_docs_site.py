@@ -74,3 +74,15 @@ def test_links_out_of_docs_become_paths_and_a_link_to_nothing_warns(caplog):
     mirrored = hooks.on_page_markdown("<!-- mirror: ../README.md -->\n", SimpleNamespace(
         file=SimpleNamespace(src_uri="index.md")), config, None)
     assert "](docs/" not in mirrored and "[docs/api.md](api.md)" in mirrored
+
+
+def test_a_page_the_nav_does_not_list_goes_under_more(tmp_path):
+    for name in ("index.md", "a.md", "b.md"):
+        (tmp_path / name).write_text("# page\n")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "c.md").write_text("# page\n")
+    config = {"docs_dir": str(tmp_path), "exclude_docs": None,
+              "nav": [{"Home": "index.md"}, {"Use": [{"A": "a.md"}]}]}
+    assert _hooks().on_config(config)["nav"][-1] == {"More": ["b.md", "sub/c.md"]}
+    config["nav"] = [{"Home": "index.md"}, {"Use": [{"A": "a.md"}, "b.md", "sub/c.md"]}]
+    assert _hooks().on_config(config)["nav"] == [{"Home": "index.md"}, {"Use": [{"A": "a.md"}, "b.md", "sub/c.md"]}]
