@@ -68,7 +68,7 @@ import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh import estimators
-from diskf_mesh.data.argtypes import positive, positive_int, seed_value
+from diskf_mesh.data.argtypes import positive_int, seconds, seed_value
 from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.core import exits
@@ -414,11 +414,11 @@ def add_timing_arguments(p) -> None:
     """A run's ``--startup-timeout``, ``--tick-timeout`` and
     ``--collect-timeout`` (``world``, ``up``): their defaults are
     ``WorldTiming``'s and ``AgentTiming``'s."""
-    p.add_argument("--startup-timeout", type=positive, default=WorldTiming.startup_timeout, metavar="S",
+    p.add_argument("--startup-timeout", type=seconds, default=WorldTiming.startup_timeout, metavar="S",
                    help="seconds to wait for every agent to be ready (default %(default)s)")
-    p.add_argument("--tick-timeout", type=positive, default=WorldTiming.tick_timeout, metavar="S",
+    p.add_argument("--tick-timeout", type=seconds, default=WorldTiming.tick_timeout, metavar="S",
                    help="world: seconds to wait for the reports of one tick (default %(default)s)")
-    p.add_argument("--collect-timeout", type=positive, default=AgentTiming.collect_timeout, metavar="S",
+    p.add_argument("--collect-timeout", type=seconds, default=AgentTiming.collect_timeout, metavar="S",
                    help="agents: seconds to wait for the neighbours' messages of a tick (default %(default)s); "
                         "with link latency injected, a message due later is not planned to be fused (the run's "
                         "status)")

@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass, fields, replace
 import numpy as np
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.data.argtypes import fraction, milliseconds
+from diskf_mesh.data.argtypes import MAX_MS, fraction, milliseconds
 
 PROBABILITIES = ("loss", "duplicate", "reorder")
 DURATIONS = ("latency_ms", "jitter_ms", "reorder_ms")
@@ -69,6 +69,8 @@ class FaultConfig:
                 raise InputError(f.name, f"must be a finite non-negative number, got {v!r}")
             if f.name in PROBABILITIES and v > 1:
                 raise InputError(f.name, f"is a probability, must be at most 1, got {v!r}")
+            if f.name in DURATIONS and v > MAX_MS:
+                raise InputError(f.name, f"must be at most {MAX_MS:.0f} ms (a day), got {v!r}")
 
     @property
     def active(self) -> bool:

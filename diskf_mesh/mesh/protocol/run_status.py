@@ -88,7 +88,9 @@ def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: 
     run's estimator, run id (its messages' digests), seed and link faults;
     ``deadline_s``: real time's deadline (a copy planned later is not
     planned to be fused). The evidence lists the ``restarts`` replayed
-    (``restarts_to_json``), so a recording replays them."""
+    (``restarts_to_json``), so a recording replays them. A run that ended
+    before any report (``rec.ended_early``: a world that gave up at its
+    start) is incomplete, its reason first."""
     ids = list(trace.sensors.ids)
     claims = claims_of(rec, ids, restarts)
     names = list(labels if labels is not None else trace.agent_labels)
@@ -98,6 +100,9 @@ def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: 
         planned = verify.planned_links(verify.nominal_links(trace, K, claims.live), ids, faults, seed, deadline_s)
     digest = wire.engine_digests(run_id, ids, estimators.get(algorithm).exchanged)
     st = verify.verify(trace, algorithm, params, claims, planned=planned, message_digest=digest, labels=names)
+    ended = getattr(rec, "ended_early", "")
+    if ended and not claims.reported.any():  # the world gave up before any report (a start-up failure): why
+        st = RunStatus(st.status, f"{ended}; {st.reason}", st.evidence)
     st.evidence["restarts"] = restarts_to_json(claims.restarts, names)
     if getattr(rec, "quarantined", None):
         st.evidence["quarantined"], line = quarantine_evidence(rec, names)

@@ -337,15 +337,16 @@ class WorldMachine:
             parts.append(f"no agent process for id {', '.join(map(str, absent))} (no liveliness token)")
         if stuck:
             parts.append(f"agent {', '.join(map(str, stuck))} up but not connected to every peer")
-        self._finish("failed", FAILED, f"after {self.timing.startup_timeout:g} s waiting for the agents: "
-                     + "; ".join(parts))
+        self.record.ended_early = (f"after {self.timing.startup_timeout:g} s waiting for the agents: "
+                                   + "; ".join(parts))
+        self._finish("failed", FAILED, self.record.ended_early)
 
     def _late_ready_over(self, now: float) -> None:
         if self.phase != "late-ready":
             return
         if not self.ready:
-            return self._finish("failed", FAILED, f"no agent ready {self.timing.startup_timeout + LATE_READY_S:g} s "
-                                                  "after the start")
+            self.record.ended_early = f"no agent ready {self.timing.startup_timeout + LATE_READY_S:g} s after the start"
+            return self._finish("failed", FAILED, self.record.ended_early)
         self._cancel_timer("late-ready")
         self.log.info(f"starting without agent {', '.join(str(i) for i in self.ids if i not in self.ready)}"
                       f" (not ready after {self.timing.startup_timeout:g} s; --allow-missing)")
