@@ -185,3 +185,23 @@ def test_replay_of_a_recording_says_the_same_and_never_exits_0(dynamic, tmp_path
         assert replay_recording(str(path), allow_missing=0.2, accept_unverifiable=True) == exits.OK
         n = r.status.evidence["unverified"]
         assert f"unverifiable run accepted (--accept-unverifiable): {n} reported agent-ticks" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("withhold", [None, WITHHELD])
+def test_the_check_as_the_run_goes_judges_each_tick_as_the_end_of_run_check(dynamic, withhold, monkeypatch):
+    """``engine.verify.Online`` fed the record tick by tick finds the same
+    diverged and unverifiable agent-ticks as the end-of-run replay."""
+    from diskf_mesh.engine import verify
+    from diskf_mesh.mesh.protocol.run_status import OnlineCheck
+
+    scn, trace = dynamic
+    r = run(dynamic, online=False, start=FROM, offset=OFFSET, withhold=withhold)
+    check = OnlineCheck(trace, "diskf", scn.params, run_id=RUN, seed=0)
+    judged = []
+    tick = verify.Judge.tick
+    monkeypatch.setattr(verify.Judge, "tick", lambda judge, *a, **kw: judged.append(tick(judge, *a, **kw)) or judged[-1])
+    named = [q for k in range(1, K + 1) for q in check.tick(r.record, k)]
+    ev = r.status.evidence
+    assert sum(int(j.diverged.sum()) for j in judged) == ev.get("diverged", {}).get("agent_ticks", 0)
+    assert sum(int(j.unverified.sum()) for j in judged) == ev["unverified"] > 0
+    assert [(q["agent"], q["tick"]) for q in named] == ([(LIAR, FROM)] if withhold is None else [])
