@@ -76,7 +76,7 @@ from diskf_mesh.data.outputs import json_safe
 from diskf_mesh.engine.verify import RunStatus
 from diskf_mesh.mesh.wire.counters import Counters
 from diskf_mesh.mesh.protocol.agent_machine import AgentTiming
-from diskf_mesh.mesh.protocol.run_status import accept, add_tolerances, run_status
+from diskf_mesh.mesh.protocol.run_status import OnlineCheck, accept, add_tolerances, run_status
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
@@ -111,9 +111,9 @@ class World:
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
                  timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None,
-                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER):
+                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER, online=None):
         self.machine = WorldMachine(scn, trace, algorithm, seed, keys, new_nonce(), timing,
-                                    log=log, progress=progress, profile=profile, recorder=recorder)
+                                    log=log, progress=progress, profile=profile, recorder=recorder, online=online)
         self.shell = Shell(self.machine, transport, profile)
 
     @property
@@ -517,8 +517,11 @@ def run(args: argparse.Namespace) -> int:
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
+            online = OnlineCheck(run.trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=args.seed,
+                                 faults=run.faults,
+                                 deadline_s=realtime.agents_deadline(run.clock, args.collect_timeout))
             world = World(scn, run.trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
-                          run_timings(args, run.clock)[0], progress, log, prof, run.recorder)
+                          run_timings(args, run.clock)[0], progress, log, prof, run.recorder, online)
             world.interrupted, signalled[0] = signalled[0], world
             rec = world.run(allow_missing=args.allow_missing > 0)
     except MeshError as e:
