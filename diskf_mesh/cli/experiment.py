@@ -71,19 +71,19 @@ def run(args: argparse.Namespace) -> int:
     settings = experiment.settings_for(*default_topologies(scn, args.topology, args.comm_range))
     params = estimator_params(scn.params, args)
     for st in settings:  # fail on a bad override before the long run
-        st.apply(scn, args.steps)
+        st.apply(scn, args.ticks)
     quiet = args.quiet or not sys.stderr.isatty()
     with tqdm(total=len(settings) * len(args.estimators), desc="experiment", unit="run",
               file=sys.stderr, disable=quiet) as bar:
-        results = experiment.run_experiment(scn, settings, args.estimators, range(args.seeds), args.steps,
+        results = experiment.run_experiment(scn, settings, args.estimators, range(args.seeds), args.ticks,
                                             params, progress=bar.update)
-    steps = args.steps or scn.steps
+    steps = args.ticks or scn.steps
     if args.json:
         prov = provenance.record(scenario=scn, seeds=range(args.seeds), ticks=steps, estimator=args.estimators,
                                  settings=params, faults=scn.faults, status="done", started=started, argv=args.argv)
         save_json(args.json, provenance.attach(results, prov), "json")
     text = human_stream(args.json)
-    print(f"Scenario {scn.name}: {args.seeds} seeds x {steps} ticks, {scn.N} agents; "
-          f"* marks the best value of each row", file=text)
+    print(f"Scenario {scn.name}: {args.seeds} seeds x {steps} ticks, {scn.N} agents"
+          + ("; * marks the best value of each row" if len(args.estimators) > 1 else ""), file=text)
     print(experiment.format_table(results), file=text)
     return 0
