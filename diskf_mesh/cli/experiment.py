@@ -10,7 +10,6 @@ input_coverage, nees, <metric>_std ...}}}``.
 from __future__ import annotations
 
 import argparse
-import sys
 
 from diskf_mesh.studies import experiment
 from diskf_mesh.data import provenance
@@ -26,6 +25,7 @@ from diskf_mesh.cli.options import (
     positive_int,
     save_json,
 )
+from diskf_mesh.cli.progress import Progress
 
 DEFAULT_TOPOLOGIES = ("all", "ring", "none")
 
@@ -58,13 +58,11 @@ def register(subparsers) -> None:
     p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
     add_estimator_options(p)
     p.add_argument("--json", metavar="OUT", help="also write the results as JSON (- for standard output)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress (a bar on a terminal, else a line per run)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     check_output(args.json, "json")
     started = provenance.now()
     scn = load_scenario(args.scenario, agents=args.agents)
@@ -72,11 +70,13 @@ def run(args: argparse.Namespace) -> int:
     params = estimator_params(scn.params, args)
     for st in settings:  # fail on a bad override before the long run
         st.apply(scn, args.ticks)
-    quiet = args.quiet or not sys.stderr.isatty()
-    with tqdm(total=len(settings) * len(args.estimators), desc="experiment", unit="run",
-              file=sys.stderr, disable=quiet) as bar:
+    runs = len(settings) * len(args.estimators)
+    with Progress("experiment", args.quiet, total=runs, unit="run") as shown:
+        shown.note(f"{runs} runs ({len(args.estimators)} estimators x {len(settings)} settings), "
+                   f"{args.seeds} seeds x {args.ticks or scn.steps} ticks each")
         results = experiment.run_experiment(scn, settings, args.estimators, range(args.seeds), args.ticks,
-                                            params, progress=bar.update)
+                                            params, progress=lambda n: shown.step(f"runs of {args.seeds} seeds",
+                                                                                  n=n))
     steps = args.ticks or scn.steps
     if args.json:
         prov = provenance.record(scenario=scn, seeds=range(args.seeds), ticks=steps, estimator=args.estimators,

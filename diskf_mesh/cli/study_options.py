@@ -26,7 +26,9 @@ def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: s
 def run_study(args: argparse.Namespace, action) -> int:
     from diskf_mesh.studies.suite import StudyConfig  # here, not at the top: --help loads every command module
 
-    cfg = StudyConfig(seeds=args.seeds, steps=args.ticks, quiet=args.quiet or not sys.stderr.isatty())
+    terminal = sys.stderr.isatty()
+    cfg = StudyConfig(seeds=args.seeds, steps=args.ticks, quiet=args.quiet or not terminal,
+                      lines=not args.quiet and not terminal)
     try:
         print(action(cfg, out_dir(args.out)))
     except ModuleNotFoundError as e:

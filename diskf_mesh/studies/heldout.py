@@ -399,8 +399,9 @@ def run(seeds: int = 20, steps: int | None = None, names=None, select=None, prog
     if jobs <= 1 or len(work) <= 1:
         results = [shown(i, _case_job(w)) for i, w in enumerate(work, 1)]
     else:
-        from concurrent.futures import ProcessPoolExecutor
-        with ProcessPoolExecutor(min(jobs, len(work))) as pool:
+        from diskf_mesh.studies.pool import process_pool
+
+        with process_pool(min(jobs, len(work))) as pool:
             results = [shown(i, r) for i, r in enumerate(pool.map(_case_job, work), 1)]
     return document(results, seeds, steps, first)
 
