@@ -569,6 +569,9 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
 
     began = time.monotonic() - process_age()  # when `diskf-mesh up` started (its interpreter's start)
     spec = runspec.from_args(args, run_id=args.run_id or secrets.token_hex(4))
+    if args.network == "simulated":
+        simulated.check_arguments(args)  # before anything is written
+    scn = spec.load(args.ticks)  # a bad scenario or fault value fails before anything is written
     out = Path(args.json or f"results/up-{spec.run_id}.json")
     check_output(out, "json", stdout=False, make_parent=args.json is None)  # before any work
     check_output(args.estimates, "estimates", stdout=False)
@@ -577,7 +580,6 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         live.check_port(args.live)
     if args.logs:
         check_output_dir(args.logs, "logs", create=False)  # created once the input is checked
-    scn = spec.load(args.ticks)
     ticks = scn.steps
     ids = [a.id for a in scn.agents]
     plan = None
@@ -599,6 +601,11 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         return code
     if simulated.given(args):
         raise InputError("network", "the --net-* options need --network simulated")
+    logs = Path(args.logs or tempfile.mkdtemp(prefix=f"diskf-up-{spec.run_id}-"))
+    try:
+        logs.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
     realtime.from_args(args)
     if plan is None and forks.enabled() and not zygotes:
         zygotes.append(forks.Zygote())
@@ -636,6 +643,8 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         world_extra += ["--allow-missing", repr(args.allow_missing)]
     if args.allow_degraded:
         world_extra += ["--allow-degraded"]
+    if args.accept_unverifiable:
+        world_extra += ["--accept-unverifiable"]
     agent_extra = agent_flags(args, scn, args.collect_timeout, agent_world_timeout(args))
     world_extra, agent_extra = [a + b for a, b in zip((world_extra, agent_extra), realtime.argv(args))]
     faults = faults_from_args(args, scn.faults)
@@ -709,7 +718,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
 
 # the world's exit statuses that carry a run's results (``core.exits``); any other is a failure
 WORLD_VERDICTS = (exits.OK, exits.INCOMPLETE, exits.TOO_MANY_MISSES, exits.DEGRADED, exits.DIVERGED,
-                  exits.RECORDING_FAILED)
+                  exits.RECORDING_FAILED, exits.UNVERIFIABLE)
 
 
 def verdict(row: dict, args) -> None:

@@ -3,11 +3,13 @@
 Each subcommand lives in its own module under ``diskf_mesh.cli`` (or
 ``sim``/``agents``) exposing ``register(subparsers)``, which adds a parser and
 sets ``func``. User errors raise ``InputError`` and end as one line
-``error: <field>: <message>`` with exit status 2, never a traceback; a
+``error: <field>: <message>`` with exit status 2, never a traceback; an
+estimator's numerical failure is one line ``error: ...`` with exit status
+1; a
 warning of the library (e.g. a KCF step that may diverge) is one line
 ``warning: <message>``.
 
-``--help`` loads every command module, so a module imports what only its
+``diskf-mesh --help`` loads every command module (a command, its own), so a module imports what only its
 action needs (matplotlib, tqdm, the studies) inside the action: ``--help``
 and the commands that draw nothing never load a plotting library.
 """
@@ -23,30 +25,30 @@ import sys
 import threading
 import warnings
 
+import numpy as np
+
 from diskf_mesh import __version__
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh.process import stopping
 
-COMMAND_MODULES = (
-    "diskf_mesh.cli.experiment",
-    "diskf_mesh.cli.replay",
-    "diskf_mesh.cli.inspect",
-    "diskf_mesh.cli.simulate",
-    "diskf_mesh.cli.figures",
-    "diskf_mesh.cli.report",
-    "diskf_mesh.cli.credentials",
-    "sim.world",
-    "agents.agent",
-    "sim.launcher",
-    "sim.router",
-    "sim.host",
-)
-
-
-# the mesh commands a user starts for a run: only that command's module is loaded (a process of a
-# run starts faster; every other command still loads all of them, for its --help)
-MESH_COMMANDS = {"up": "sim.launcher", "host": "sim.host", "router": "sim.router", "world": "sim.world",
-                 "agent": "agents.agent"}
+# every command's module: a command loads its own alone (it starts faster: ``up`` and the processes of a
+# run, ``experiment``); without a command, or with a word that names none, every module is loaded (the list
+# of commands and the nearest match of a word)
+COMMANDS = {
+    "experiment": "diskf_mesh.cli.experiment",
+    "replay": "diskf_mesh.cli.replay",
+    "inspect": "diskf_mesh.cli.inspect",
+    "simulate": "diskf_mesh.cli.simulate",
+    "figures": "diskf_mesh.cli.figures",
+    "report": "diskf_mesh.cli.report",
+    "credentials": "diskf_mesh.cli.credentials",
+    "world": "sim.world",
+    "agent": "agents.agent",
+    "up": "sim.launcher",
+    "router": "sim.router",
+    "host": "sim.host",
+}
+COMMAND_MODULES = tuple(COMMANDS.values())
 
 
 class _Parser(argparse.ArgumentParser):
@@ -160,12 +162,12 @@ def _one_line(message, category, filename, lineno, line=None) -> str:
 
 
 def main(argv=None, modules=COMMAND_MODULES) -> int:
-    """Run one command; ``modules`` limits the subcommands loaded (a mesh
-    process loads only its own, to start fast). ``up`` starts its run's
+    """Run one command; ``modules`` limits the subcommands loaded (a
+    command loads only its own, ``COMMANDS``, to start fast). ``up`` starts its run's
     zygote first of all (``sim.zygote.prestart``)."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    if modules is COMMAND_MODULES and argv[:1] and argv[0] in MESH_COMMANDS:
-        modules = (MESH_COMMANDS[argv[0]],)
+    if modules is COMMAND_MODULES and argv[:1] and argv[0] in COMMANDS:
+        modules = (COMMANDS[argv[0]],)
     if threading.current_thread() is threading.main_thread():
         # SIGTERM as SystemExit(143) where the main thread is, so that finally blocks run (partial files
         # removed, children stopped), and SIGINT as stopping.Interrupted (exit 130, never killed by SIGINT),
@@ -215,6 +217,9 @@ def _main(argv, modules) -> int:
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except np.linalg.LinAlgError as e:  # an estimator's numerical failure (``engine.Diverged``): one line
+        print(f"error: {e}", file=sys.stderr)
+        return 1
 
 
 def run_one(command: str, module: str, argv=None) -> int:
