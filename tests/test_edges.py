@@ -19,7 +19,7 @@ from diskf_mesh.cli import help_text
 from diskf_mesh.cli.main import COMMAND_MODULES, build_parser
 
 CLI = [sys.executable, "-m", "diskf_mesh.cli.main"]
-LONG = ["experiment", "--scenario", "random-geometric", "--agents", "200", "--seeds", "10", "--ticks", "1000"]
+LONG = ["experiment", "--scenario", "random-geometric", "--agents", "200", "--seeds", "10", "--ticks", "1000", "--quiet"]
 
 
 def started(argv, tmp_path):
@@ -91,9 +91,9 @@ def test_a_typo_gets_one_line_with_a_suggestion(argv, words, capsys):
 
 
 def test_an_option_of_another_command_is_not_suggested_as_itself(capsys):
-    """``experiment --live``: ``--live`` is ``up``'s."""
-    code, out, err = run_cli(["experiment", "--live", "5"], capsys)
-    assert code == 2 and err.strip() == "error: unknown option --live", err
+    """``experiment --network``: ``--network`` is ``up``'s."""
+    code, out, err = run_cli(["experiment", "--network", "peers"], capsys)
+    assert code == 2 and err.strip() == "error: unknown option --network", err
 
 
 @pytest.mark.parametrize("argv", [["world", "--startup-timeout", "-5"], ["up", "--collect-timeout", "0"],
