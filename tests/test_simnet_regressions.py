@@ -148,3 +148,20 @@ def test_a_late_start_past_the_startup_timeout():
     assert r.status.status == "incomplete" and r.status.evidence["missing_agent_ticks"] == case.ticks
     assert r.record.reported[:, j].sum() == 0 and np.delete(r.record.reported, j, axis=1).all()
     assert r.status.evidence["differing"] == 0
+
+
+def test_a_late_agent_joins_a_run_that_started_without_it():
+    """allow_missing: the world starts without agent 4 at 35 s (30 s and the
+    others' 5 s to be ready); agent 4 starts at 40 s, while the run goes,
+    and joins it from the prior; every estimate is the replay's."""
+    from diskf_mesh.mesh.simulated.simnet import Link
+    from diskf_mesh.mesh.simulated.simrun import SimPlan, simulate_run
+
+    scn, trace = cases.world("random-geometric", 5, 60, 14093)
+    r = simulate_run(scn, trace, "diffkf", 14093, plan=SimPlan(Link(0.5), late={4: 40.0}, allow_missing=True,
+                                                                max_time=900))
+    rep = r.record.reported
+    assert r.status.status == "incomplete" and r.status.evidence["differing"] == 0
+    assert np.delete(rep, 3, axis=1).all() and not rep[0, 3] and rep[-1, 3]
+    (joined,) = r.record.rejoins[4]
+    assert rep[joined["tick"] - 1:, 3].all() and not rep[:joined["tick"] - 1, 3].any()
