@@ -35,7 +35,7 @@ from diskf_mesh.mesh.security import credentials
 from diskf_mesh.mesh.protocol.agent_machine import AgentMachine, AgentTiming
 from diskf_mesh.mesh.wire.keys import Keys
 from diskf_mesh.mesh.protocol.log import Log
-from diskf_mesh.mesh.protocol.run_status import run_status
+from diskf_mesh.mesh.protocol.run_status import OnlineCheck, run_status
 from diskf_mesh.mesh.simulated.simnet import Lease, Link, Outcome, SimNet
 from diskf_mesh.mesh.protocol.world_machine import WorldMachine, WorldTiming
 
@@ -64,6 +64,7 @@ class SimPlan:
     agent_timing: AgentTiming = AgentTiming()
     allow_missing: bool = False      # the world starts without the agents not ready after its startup timeout
     max_time: float = 3600.0
+    online: bool = True              # the world checks each tick as its reports come (and cuts off a liar)
 
 
 class NetworkLosses:
@@ -148,11 +149,17 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     if recorder is not None:
         recorder = _Relabelled(recorder, losses)
 
+    deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
+
     def world(boot):
         first = boot.pid == WORLD and boot.incarnation == 0  # the observers watch the run's own world
+        online = OnlineCheck(trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
+                             deadline_s=deadline_s) if plan.online else None
         return WorldMachine(scn, trace, algorithm, seed, keys, boot.nonce, plan.world_timing,
-                            allow_missing=plan.allow_missing, log=Log(f"world {boot.pid}#{boot.incarnation}" if boot.incarnation else boot.pid, stream),
-                            progress=progress if first else None, recorder=recorder if first else None)
+                            allow_missing=plan.allow_missing,
+                            log=Log(f"world {boot.pid}#{boot.incarnation}" if boot.incarnation else boot.pid, stream),
+                            progress=progress if first else None, recorder=recorder if first else None,
+                            online=online)
 
     def agent(i):
         def make(boot):
@@ -185,9 +192,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     losses.relabel_record(w.record, list(w.record.ids))
     status = None
     if verify and pid in out.finishes:
-        at = plan.agent_timing
         status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
-                            deadline_s=realtime.agents_deadline(at.clock, at.collect_timeout),
-                            labels=scn.labels)
+                            deadline_s=deadline_s, labels=scn.labels)
     return SimRun(out, w, status, stream.getvalue() if stream is not None else "")
 
