@@ -17,8 +17,9 @@ the world replays the run on the engine before it says ``exact``;
 ``diskf_mesh.core.exits``): 0 exact or as planned; 3 with one line when
 agent-ticks are missing (0 within ``--allow-missing``: a warning line says
 what is missing); 4 a real-time run beyond ``--max-miss-rate``; 5 degraded
-(``--allow-degraded`` accepts it); 6 diverged (never accepted); 1 when a
-child failed; 2 on bad input.
+(``--allow-degraded`` accepts it); 6 diverged (never accepted); 8
+unverifiable (only ``--accept-unverifiable`` accepts it); 1 when a child
+failed; 2 on bad input.
 
 Every run is authenticated: ``up`` makes a fresh certificate authority and
 one certificate and key per process (``diskf_mesh.mesh.security.credentials``) in

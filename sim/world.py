@@ -32,8 +32,11 @@ live to come back (an agent that comes back while it pauses is live again at
 once), then sends that tick again (agents that had reported it send their
 report again). If none comes back the run ends early.
 
-At the end the world checks the run (``checked_status``,
-``diskf_mesh.engine.verify``): the engine replays it from what each agent
+As the run goes the world checks each tick once its reports are in
+(``mesh.protocol.run_status.OnlineCheck``) and cuts off an agent it proves
+lied: the ticks leave it out of the live set. At the end it checks the
+whole run (``checked_status``, ``diskf_mesh.engine.verify``): the engine
+replays it from what each agent
 said it fused, restarts re-initialised agents from the states handed to
 them, recomputes every fused message's digest and compares every reported
 estimate bit for bit. Exit status (``diskf_mesh.core.exits``): 0 when the run
@@ -41,7 +44,9 @@ is ``exact`` or ``as planned``; 3 ``incomplete`` (one line: how many
 agent-ticks are missing, of which agents, and why: never joined, left,
 rejoining, no report, rejected, not run; 0 within ``--allow-missing``); 5
 ``degraded`` (0 with ``--allow-degraded``, or in real time within
-``--max-miss-rate``); 6 ``diverged``; 4 a real-time run beyond
+``--max-miss-rate``); 6 ``diverged``; 8 ``unverifiable`` (reported
+agent-ticks built on a state the run did not report; 0 only with
+``--accept-unverifiable``); 4 a real-time run beyond
 ``--max-miss-rate``; 2 another world already runs this run id (``mesh.wire.keys``
 nonces). The result JSON holds what was measured either way, with the
 status, its reason and evidence, ``complete``, the missing counts, the

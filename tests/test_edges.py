@@ -240,7 +240,7 @@ def test_an_interrupted_recording_attaches_only_the_ticks_it_ran(tmp_path):
     proc.send_signal(signal.SIGINT)
     proc.communicate(timeout=120)
     rec = reader.read(path)
-    attached = sum(len(json.loads(r.data)["y"]) for r in reader.records(path.read_bytes())
+    attached = sum(len(json.loads(r.data)["y"]) for r in reader.scan(path.read_bytes())
                    if isinstance(r, Attachment))
     assert 5 <= rec.ticks < 3000 and rec.planned_ticks == 3000
     assert rec.ticks <= attached < rec.ticks + layout.SEGMENT_TICKS
