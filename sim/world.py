@@ -73,7 +73,7 @@ import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh import estimators
-from diskf_mesh.data.argtypes import positive_int, seconds, seed_value
+from diskf_mesh.data.argtypes import add_ticks, seconds, seed_value
 from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.core import exits
@@ -452,7 +452,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("world", help="the world process of a mesh run (ground truth, lockstep)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     runspec.add_arguments(p)
-    p.add_argument("--ticks", type=positive_int, metavar="K", help="ticks to run (default: the scenario's steps)")
+    add_ticks(p, help="ticks to run (default: the scenario's)")
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
     p.add_argument("--json", metavar="OUT", help="write the results {algorithm: {setting: metrics}}")
     p.add_argument("--estimates", metavar="OUT", help="write every agent's fused estimates and counters")

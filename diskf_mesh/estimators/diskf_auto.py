@@ -81,6 +81,10 @@ class AutoState(State):
 
 
 class DISKFAuto(Estimator):
+    """``diskf-auto`` (ours, not the paper's): ``diskf-r`` over a bank of
+    input models mixed by their evidence, as the interacting multiple model
+    filter does (the module's docstring has the steps)."""
+
     name = "diskf-auto"
     label = "DISKF-auto"
     color = "crimson"
