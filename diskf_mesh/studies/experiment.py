@@ -16,7 +16,7 @@ from diskf_mesh.data import metrics, provenance
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, simulate
 from diskf_mesh.estimators import Params
-from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire import payloads as wire
 
 # the label of every series a table or figure shows: each estimator's own
 # (``Estimator.label``), and the centralized bound's
