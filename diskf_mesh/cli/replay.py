@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         from diskf_mesh.recording.command import replay_recording
         check_output(args.out, "out")
         return replay_recording(args.trace, args.out, argv=args.argv, allow_missing=args.allow_missing,
-                                allow_degraded=args.allow_degraded)
+                                allow_degraded=args.allow_degraded, accept_unverifiable=args.accept_unverifiable)
     if args.fused is not None:
         return replay_run(args)
     if args.out is None:
@@ -133,4 +133,5 @@ def replay_run(args: argparse.Namespace) -> int:
     prov = trace_provenance(args, doc, trace, params, status.status, started, run.algorithm)
     return report_replay(status, est, trace, run.algorithm, trace.agent_labels, prov, args.out,
                          miss_rate=run.miss_rate, allow_missing=args.allow_missing,
-                         allow_degraded=args.allow_degraded, hint="not this run's trace, scenario, seed or settings?")
+                         allow_degraded=args.allow_degraded, accept_unverifiable=args.accept_unverifiable,
+                         hint="not this run's trace, scenario, seed or settings?")

@@ -23,6 +23,11 @@ Statuses (exit statuses: ``diskf_mesh.core.exits``), first that applies:
                  the first tick, agent and sender whose message it does not
                  reproduce (the agent itself when every message it fused was
                  the engine's)
+    unverifiable some reported agent-tick cannot be verified: it differs
+                 from the replay, built on a state the run did not report
+                 (``Judge``); how many, the first, and whose missing
+                 reports made the states unknown. ``--allow-missing`` never
+                 accepts it, only ``accept_unverifiable``
     incomplete   some agent-tick was not reported
     degraded     every agent-tick reported and reproduced, but some fused
                  fewer messages than planned: how many, which, and the
@@ -37,7 +42,8 @@ A history is unknown after an agent-tick that was not reported (what it
 fused is unknown) until that agent is re-initialised or its next report
 equals the replay bit for bit; an estimate built on an unknown sender's
 message whose digest is missing or differs is not verifiable
-(``unverified``), not a divergence.
+(``unverified``), not a divergence (``Judge``). ``Online`` is the same
+check one tick at a time, as a run's reports come (the mesh's world).
 
 May import: core, estimators, data (the engine layer).
 """
@@ -50,7 +56,7 @@ import numpy as np
 
 from diskf_mesh.core import exits
 from diskf_mesh.core.exits import (AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, EXACT_STATUS,
-                                   INCOMPLETE_STATUS)
+                                   INCOMPLETE_STATUS, UNVERIFIABLE_STATUS)
 from diskf_mesh.data.faults import FaultConfig, delivered_links
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.engine import batch
@@ -105,12 +111,19 @@ class RunStatus:
     def exit_code(self) -> int:
         return exits.STATUS_EXIT[self.status]
 
-    def accepted(self, *, allow_missing: float = 0.0, allow_degraded: bool = False) -> bool:
+    def accepted(self, *, allow_missing: float = 0.0, allow_degraded: bool = False,
+                 accept_unverifiable: bool = False) -> bool:
         """Whether the user accepted this status: exact and as planned always;
         incomplete within ``allow_missing`` (a share of the agent-ticks);
-        degraded with ``allow_degraded``; diverged never."""
+        degraded with ``allow_degraded``; unverifiable only with
+        ``accept_unverifiable`` (and its missing agent-ticks as incomplete);
+        diverged never."""
         if self.status in (EXACT_STATUS, AS_PLANNED_STATUS):
             return True
+        if self.status == UNVERIFIABLE_STATUS:
+            return accept_unverifiable and (
+                self.evidence.get("missing_fraction", 1.0) <= allow_missing or not self.evidence.get("missing_agent_ticks")
+            ) and (allow_degraded or not self.degraded_beyond_missing)
         if self.status == INCOMPLETE_STATUS:
             return (self.evidence.get("missing_fraction", 1.0) <= allow_missing
                     and (allow_degraded or not self.degraded_beyond_missing))
@@ -150,10 +163,10 @@ def first_claims(claims: RunClaims, K: int) -> RunClaims:
                      {key: v for key, v in claims.verdicts.items() if key[0] <= K}, cut(claims.why))
 
 
-def nominal_links(trace: Trace, K: int, live: np.ndarray | None = None) -> np.ndarray:
-    """(K, N, N): the range links of ticks 1..K between agents live at the
-    tick (``live`` (K, N); None: all), the diagonal True."""
-    links = np.array(trace.links[0, :K], dtype=bool)
+def nominal_links(trace: Trace, K: int, live: np.ndarray | None = None, first_tick: int = 1) -> np.ndarray:
+    """(K, N, N): the range links of ticks first_tick..K between agents
+    live at the tick (``live`` (ticks, N); None: all), the diagonal True."""
+    links = np.array(trace.links[0, first_tick - 1:K], dtype=bool)
     if live is not None:
         links &= live[:, :, None] & live[:, None, :]
     N = links.shape[-1]
@@ -161,14 +174,24 @@ def nominal_links(trace: Trace, K: int, live: np.ndarray | None = None) -> np.nd
     return links
 
 
+def announced(trace: Trace, live: np.ndarray) -> Trace:
+    """``trace`` with each tick's links only between the agents that tick
+    counted live (``live`` (K, N), as a run's ticks announce it): the engine
+    applies a run's quarantine (and its joins and departures) from the same
+    ticks, so its estimates are the run's on what was delivered."""
+    K = live.shape[0]
+    return first_ticks(trace, K).with_links(nominal_links(trace, K, live)[None])
+
+
 def planned_links(nominal: np.ndarray, ids, faults: FaultConfig | None, seed: int,
-                  deadline_s: float = np.inf) -> np.ndarray:
-    """The nominal links after the injected faults (``faults.delivered_links``
-    of the run's seed; ``ids``: the run's agent ids in the trace's order):
-    what the agents fuse when every copy due before ``deadline_s`` is in."""
+                  deadline_s: float = np.inf, first_tick: int = 1) -> np.ndarray:
+    """The nominal links (of ticks ``first_tick``...) after the injected
+    faults (``faults.delivered_links`` of the run's seed; ``ids``: the run's
+    agent ids in the trace's order): what the agents fuse when every copy
+    due before ``deadline_s`` is in."""
     if faults is None or not faults.active:
         return nominal
-    return delivered_links(nominal, list(ids), faults, seed, deadline_s)
+    return delivered_links(nominal, list(ids), faults, seed, deadline_s, first_tick)
 
 
 # --------------------------------------------------------------------------
@@ -203,6 +226,20 @@ def restarted(est, state, agent: int, x=None, P=None):
     return new
 
 
+def restart_at(k: int, restarts, claims: RunClaims, est, state):
+    """``state`` with tick k's ``restarts`` applied: each agent starts from
+    the state it was handed, or its source's report of tick k - 1 (the
+    replay's own state where that is not in the claims)."""
+    for r in restarts:
+        x, P = r.x, r.P
+        if x is None and r.source is not None:
+            x, P = claims.x[k - 2, r.source], claims.P[k - 2, r.source]
+            if not claims.reported[k - 2, r.source]:  # not in the claims: the replay's own
+                x, P = state.x[0, r.source].copy(), state.P[0, r.source].copy()
+        state = restarted(est, state, r.agent, x, P)
+    return state
+
+
 def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.ndarray | None = None,
            message_digest=None, wanted=None) -> tuple:
     """The engine on ticks 1..K of ``trace`` with exactly the fused sets of
@@ -222,14 +259,7 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
         by_tick.setdefault(int(r.tick), []).append(r)
 
     def restart(k, est, state):
-        for r in by_tick.get(k, ()):
-            x, P = r.x, r.P
-            if x is None and r.source is not None:
-                x, P = claims.x[k - 2, r.source], claims.P[k - 2, r.source]
-                if not claims.reported[k - 2, r.source]:  # not in the claims: the replay's own
-                    x, P = state.x[0, r.source].copy(), state.P[0, r.source].copy()
-            state = restarted(est, state, r.agent, x, P)
-        return state
+        return restart_at(k, by_tick.get(k, ()), claims, est, state)
 
     digests = {}
     need = {}
@@ -250,17 +280,144 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
 def differing(claims: RunClaims, est: Estimates) -> tuple:
     """((K, N) bool: reported agent-ticks whose x, P, d_valid or (where
     valid) d differ from ``est`` bit for bit; (K, N) largest |difference|)."""
-    r = claims.reported
-    x, P, d, dv = est.x[0], est.P[0], est.d[0], est.d_valid[0]
-    both = claims.d_valid & dv
+    return compare(claims.reported, claims.x, claims.P, claims.d, claims.d_valid,
+                   est.x[0], est.P[0], est.d[0], est.d_valid[0])
+
+
+def compare(r, cx, cP, cd, cdv, x, P, d, dv, largest: bool = True) -> tuple:
+    """``differing`` on arrays of any leading shape: the claims (``r``
+    reported, ``cx``, ``cP``, ``cd``, ``cdv``) against the engine's; without
+    ``largest`` the largest differences are not computed (None)."""
+    both = cdv & dv
     with np.errstate(invalid="ignore"):
-        dx = np.abs(x - claims.x).max(-1)
-        dP = np.abs(P - claims.P).max((-1, -2))
-        dd = np.where(both, np.abs(d - claims.d).max(-1), 0.0)
-        bad = r & ((x != claims.x).any(-1) | (P != claims.P).any((-1, -2)) | (dv != claims.d_valid)
-                   | (both & (d != claims.d).any(-1)))
+        bad = r & ((x != cx).any(-1) | (P != cP).any((-1, -2)) | (dv != cdv) | (both & (d != cd).any(-1)))
+        if not largest:
+            return bad, None
+        dx = np.abs(x - cx).max(-1)
+        dP = np.abs(P - cP).max((-1, -2))
+        dd = np.where(both, np.abs(d - cd).max(-1), 0.0)
     gap = np.where(r, np.fmax(np.fmax(dx, dP), dd), 0.0)
     return bad, np.nan_to_num(gap, nan=np.inf)
+
+
+# --------------------------------------------------------------------------
+# one tick's judgement
+# --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Judged:
+    """One tick's judgement (``Judge.tick``), (N,) over receivers or (N, N)
+    [receiver, sender]."""
+
+    diverged: np.ndarray     # (N,) a reported estimate that provably differs from the algorithm's
+    forged: np.ndarray       # (N, N) a fused message of a known sender the engine does not reproduce
+    unverified: np.ndarray   # (N,) a reported estimate that differs, built on an unknown state
+    doubtful: np.ndarray     # (N, N) a fused message of a sender whose state is unknown, not reproduced
+
+    def liars(self) -> list:
+        """The agents this tick proves lied: senders of forged messages, and
+        agents whose own estimate differs though every message they fused
+        was the engine's."""
+        own = self.diverged & ~self.forged.any(-1)
+        return sorted(set(np.flatnonzero(self.forged.any(0)).tolist()) | set(np.flatnonzero(own).tolist()))
+
+
+class Judge:
+    """The check of a run's ticks in order (``verify`` at the end of a run,
+    ``Online`` as it goes): which reported estimates diverged, which cannot
+    be verified, and whose state is known.
+
+    An agent's state is unknown after an agent-tick it did not report (what
+    it fused is unknown; ``withheld`` holds that tick) until it is
+    re-initialised or its next report equals the replay bit for bit; an
+    estimate built on an unknown state (its own, or an unknown sender's
+    message that the engine does not reproduce) that differs from the
+    replay is not a divergence but ``unverified``, and its own state is
+    unknown from then on."""
+
+    def __init__(self, N: int):
+        self.off = ~np.eye(N, dtype=bool)
+        self.unknown = np.zeros(N, dtype=bool)
+        self.withheld = np.zeros(N, dtype=int)  # the tick of the missing report that made the state unknown (0: none)
+
+    def tick(self, k: int, reported, bad, fused, has, wrong, restarted=()) -> Judged:
+        """Tick k: ``reported``, ``bad`` (its estimate differs from the
+        replay) (N,); ``fused``, ``has`` (a digest was reported), ``wrong``
+        (it differs from the engine's message's) (N, N) [receiver, sender];
+        ``restarted``: the agents re-initialised at k."""
+        unknown = self.unknown
+        unknown[list(restarted)] = False
+        self.withheld[list(restarted)] = 0
+        if unknown.any() or wrong.any():
+            fused = fused & self.off
+            forged = fused & wrong & ~unknown[None, :]   # a known sender's message the engine does not reproduce
+            doubtful = fused & unknown[None, :] & (~has | wrong)
+            tainted = unknown | doubtful.any(-1)
+            div = reported & (forged.any(-1) | (bad & ~tainted))
+        else:  # every state and message known: any difference is a divergence
+            forged, div, doubtful = wrong & self.off, reported & bad, np.zeros_like(wrong)
+        unver = reported & ~div & bad
+        self.withheld = np.where(~reported, np.where(self.withheld > 0, self.withheld, k),
+                                 np.where(unver & unknown, self.withheld, 0))
+        self.unknown = ~reported | (div & bad) | unver
+        return Judged(div, forged, unver, doubtful)
+
+
+class Online:
+    """The check as a run goes: ``replay`` and ``Judge`` one tick at a time,
+    each tick once its reports are final (the mesh's world), so an agent
+    that lies is named at the tick an honest agent fused its lie, not at the
+    run's end. ``tick(k, claims, planned)``: ``claims`` the run's claims so
+    far (at least tick k's and its digests), ``planned`` (N, N) tick k's
+    planned links (an agent-tick without a report: its row). The same
+    numbers as ``verify``'s replay, bit for bit: the same engine step
+    (``batch.Stepper``) on the same links, restarts and digests. Once the
+    engine's own replay diverges (``ended``: that tick) nothing more is
+    checked."""
+
+    def __init__(self, trace: Trace, algorithm: str, params, message_digest=None):
+        B, K, N = trace.has.shape
+        self.trace, self.message_digest = trace, message_digest
+        self.step = batch.Stepper(trace.model, trace.sensors, algorithm, params, trace.seeds[:1], K)
+        self.judge = Judge(N)
+        self.links = None
+        self.ended = 0
+
+    def tick(self, k: int, claims: RunClaims, planned: np.ndarray) -> Judged | None:
+        """Tick k's ``Judged``, or None after the engine's replay diverged."""
+        if self.ended or k != self.step.k + 1:
+            return None
+        reported = claims.reported[k - 1]
+        N = reported.shape[0]
+        links = np.array(claims.fused[k - 1], dtype=bool)
+        links[~reported] = planned[~reported]
+        links[np.arange(N), np.arange(N)] = True
+        mine = [(key[1], v) for key, v in claims.digests.items() if key[0] == k]
+        senders = sorted({int(s) for _, (ss, _) in mine for s in ss})
+        engine = np.zeros(N, dtype=np.uint64)
+
+        def listen(_, msg):
+            if self.message_digest is not None and senders:
+                engine[senders] = [digest_value(g) for g in self.message_digest(k, senders, msg)]
+
+        restarts = [r for r in claims.restarts if r.tick == k]
+        if restarts:
+            self.step.state = restart_at(k, restarts, claims, self.step.est, self.step.state)
+        changed = self.links is None or not np.array_equal(links, self.links)
+        self.links = links
+        tr = self.trace
+        try:
+            out = self.step.step(tr.y[:1, k - 1], tr.has[:1, k - 1], links[None] if changed else None, listen)
+        except batch.Diverged:
+            self.ended = k
+            return None
+        bad, _ = compare(reported, claims.x[k - 1], claims.P[k - 1], claims.d[k - 1], claims.d_valid[k - 1],
+                         out.x[0], out.P[0], out.d[0], out.d_valid[0], largest=False)
+        has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)
+        if self.message_digest is not None:
+            for r, (ss, gs) in mine:
+                has[r, ss] = True
+                wrong[r, ss] = engine[ss] != gs
+        return self.judge.tick(k, reported, bad, claims.fused[k - 1], has, wrong, [r.agent for r in restarts])
 
 
 # --------------------------------------------------------------------------
@@ -311,33 +468,23 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
     restarts = {}
     for r in claims.restarts:
         restarts.setdefault(int(r.tick), []).append(int(r.agent))
-    off = ~np.eye(N, dtype=bool)
-
-    unknown = np.zeros(N, dtype=bool)  # the agent's state after the previous tick is not known
-    first, unverified, diverged = None, 0, []
+    judge = Judge(N)
+    diverged, unverifiable = [], []
     for k in range(1, K + 1):
-        unknown[restarts.get(k, [])] = False
         has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)  # [receiver, sender]
         if engine_digests:
             engine = np.array([engine_digests.get((k, s), 0) for s in range(N)], dtype=np.uint64)
             for r, senders, digests in by_tick.get(k, ()):
                 has[r, senders] = True
                 wrong[r, senders] = engine[senders] != digests
-        reported, b = claims.reported[k - 1], bad[k - 1]
-        if unknown.any() or wrong.any():
-            fused = claims.fused[k - 1] & off
-            forged = fused & wrong & ~unknown[None, :]   # a known sender's message the engine does not reproduce
-            tainted = unknown | (fused & unknown[None, :] & (~has | wrong)).any(-1)
-            div = reported & (forged.any(-1) | (b & ~tainted))
-        else:  # every state and message known: any difference is a divergence
-            forged, div = wrong, reported & b
-        unver = reported & ~div & b
-        unverified += int(unver.sum())
-        for j in np.flatnonzero(div).tolist():
-            diverged.append((k, j, np.flatnonzero(forged[j]).tolist()))
-        if first is None and diverged:
-            first = diverged[0]
-        unknown = ~reported | (div & b) | unver
+        withheld = judge.withheld.copy()
+        j = judge.tick(k, claims.reported[k - 1], bad[k - 1], claims.fused[k - 1], has, wrong, restarts.get(k, ()))
+        for r in np.flatnonzero(j.diverged).tolist():
+            diverged.append((k, r, np.flatnonzero(j.forged[r]).tolist()))
+        for r in np.flatnonzero(j.unverified).tolist():
+            unverifiable.append((k, r, np.flatnonzero(j.doubtful[r]).tolist(), withheld))
+    first = diverged[0] if diverged else None
+    unverified = len(unverifiable)
 
     complete = bool(whole.reported.all())
     ev = {"agent_ticks": K_all * N, "reported": int(claims.reported.sum()), "ticks": K_all, "ticks_replayed": K,
@@ -370,17 +517,22 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
 
     shortfall = _shortfall(claims, planned, nominal, name)
     ev.update(shortfall)
-    after = (f"; the engine's replay itself diverged at tick {ended['tick']} ({ended['reason']}), so "
-             f"{ended['reported_after']} agent-ticks reported from it on are not verified" if ended else "")
-    if not complete or (ended and ended["reported_after"]):
+    missing_line = ""
+    if not complete:
         why = Counter()
         if whole.why is not None:
             why.update(str(w) or "not run" for w in whole.why[missing])
         ev["missing_why"] = dict(sorted(why.items()))
-        return RunStatus(INCOMPLETE_STATUS, f"{ev['missing_agent_ticks']} of {K_all * N} agent-ticks not reported "
-                         f"({100 * ev['missing_fraction']:.1f} %)"
-                         + (f": {', '.join(f'{w} {n}' for w, n in ev['missing_why'].items())}" if why else "")
-                         + after, ev)
+        missing_line = (f"{ev['missing_agent_ticks']} of {K_all * N} agent-ticks not reported "
+                        f"({100 * ev['missing_fraction']:.1f} %)"
+                        + (f": {', '.join(f'{w} {n}' for w, n in ev['missing_why'].items())}" if why else ""))
+    after = (f"the engine's replay itself diverged at tick {ended['tick']} ({ended['reason']}), so "
+             f"{ended['reported_after']} agent-ticks reported from it on are not verified" if ended else "")
+    if unverifiable:
+        ev["unverifiable"], line = _unverifiable(unverifiable, name)
+        return RunStatus(UNVERIFIABLE_STATUS, "; ".join(p for p in (line, missing_line, after) if p), ev)
+    if not complete or (ended and ended["reported_after"]):
+        return RunStatus(INCOMPLETE_STATUS, "; ".join(p for p in (missing_line, after) if p), ev)
     if shortfall["degraded"]["agent_ticks"]:
         dg = shortfall["degraded"]
         reasons = ", ".join(f"{w} {n}" for w, n in dg["why"].items())
@@ -415,6 +567,26 @@ def _nothing_replayed(claims: RunClaims, reason: str, **evidence) -> RunStatus:
                                                  "ticks_replayed": 0, "missing_agent_ticks": missing,
                                                  "missing_fraction": missing / (K * N) if K * N else 0.0,
                                                  **evidence})
+
+
+def _unverifiable(found: list, name) -> tuple:
+    """(evidence, line) of an ``unverifiable`` run: ``found`` [(tick, agent,
+    unknown senders whose messages it fused, the ticks of the missing
+    reports that made states unknown (N,))]."""
+    sources = {}
+    for k, j, senders, withheld in found:
+        for a in [j, *senders]:
+            if withheld[a] > 0:
+                sources.setdefault(a, int(withheld[a]))
+    ev = {"agent_ticks": len(found),
+          "listed": [{"tick": k, "agent": name(j), "senders": [name(s) for s in ss]} for k, j, ss, _ in found[:LISTED]],
+          "withheld": [{"agent": name(a), "tick": t} for a, t in sorted(sources.items(), key=lambda at: at[1])]}
+    k, j, senders, _ = found[0]
+    roots = ", ".join(f"agent {w['agent']}'s report of tick {w['tick']}" for w in ev["withheld"][:3])
+    return ev, (f"{len(found)} reported agent-ticks cannot be verified: they differ from the engine's replay on a "
+                "state the run did not report" + (f" ({roots} did not come)" if roots else "")
+                + f"; first: agent {name(j)} at tick {k}"
+                + (f", fusing agent {', '.join(str(name(s)) for s in senders)}'s message" if senders else ""))
 
 
 def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name) -> dict:

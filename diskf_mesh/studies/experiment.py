@@ -16,7 +16,7 @@ from diskf_mesh.data import metrics, provenance
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, simulate
 from diskf_mesh.estimators import Params
-from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire import payloads as wire
 
 # the label of every series a table or figure shows: each estimator's own
 # (``Estimator.label``), and the centralized bound's
@@ -92,13 +92,13 @@ def diverged_tick(est) -> int | None:
     return int(np.flatnonzero(bad.any(axis=(0, 2)))[0]) + 1
 
 
-def run_or_none(trace, name: str, params: Params | None):
+def run_or_none(trace, name: str, params: Params | None, lies=()):
     """``engine.run``, or None where the estimator diverged: its covariance
     lost positive definiteness (``numpy.linalg.LinAlgError``) or its
     estimates left the bounds of ``diverged``."""
     try:
         with np.errstate(all="ignore"):
-            est = engine.run(trace, name, params)
+            est = engine.run(trace, name, params, lies=lies)
     except (np.linalg.LinAlgError, FloatingPointError):
         return None
     return None if diverged(est) else est
@@ -142,7 +142,8 @@ def batches(scns, seeds, params: Params | None = None):
 def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Params | None = None,
                    progress=None) -> dict:
     """{estimator: {setting label: {metric: value}}} over all settings, for
-    the estimators ``names``.
+    the estimators ``names``. With lies (``Scenario.lies``) the liars send
+    them and the metrics cover the honest agents.
 
     Settings of one estimator run as one batch where they can (``batches``,
     ``engine.run_many``), so the per-tick overhead is paid once; the numbers
@@ -153,16 +154,18 @@ def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Pa
     for s in scns:  # before a list of the seeds is made
         s.check_size(len(seeds))
     seeds = list(seeds)
+    liars = {lie.agent for lie in scn.lies}
+    honest = [j for j, a in enumerate(scn.agents) if a.id not in liars]
     rows = {}
     for p, idx in batches(scns, seeds, params):
         traces = [simulate(scns[i], seeds) for i in idx]
         for name in names:
             try:
-                ests = [None if diverged(e) else e for e in engine.run_many(traces, name, p)]
+                ests = [None if diverged(e) else e for e in engine.run_many(traces, name, p, lies=scn.lies)]
             except np.linalg.LinAlgError:  # diverged in one of them at least: each alone, to say which
-                ests = [run_or_none(t, name, p) for t in traces]
+                ests = [run_or_none(t, name, p, scn.lies) for t in traces]
             for i, trace, est in zip(idx, traces, ests):
-                rows[name, i] = dict(DIVERGED) if est is None else summarize(trace, est)
+                rows[name, i] = dict(DIVERGED) if est is None else summarize(trace, est.agents(honest))
                 if progress is not None:
                     progress(1)
     return {a: {st.label: rows[a, i] for i, st in enumerate(settings)} for a in names}
@@ -200,7 +203,7 @@ def format_table(results: dict, metric_keys=TABLE_METRICS) -> str:
             vals = [round(_number(((results[a] or {}).get(st) or {}).get(key)), 2) for a in algs]
             finite = [v for v in vals if np.isfinite(v)]
             pick = max if key in HIGHER_IS_BETTER else min
-            best = pick(finite) if finite else None
+            best = pick(finite) if len(finite) > 1 else None  # one value is no comparison
             cells = "".join(f"{'diverged ' if g else _cell(v, v == best):>{width}}" for v, g in zip(vals, gone))
             comm = TOPOLOGY_LABELS.get(st, str(st)) if i == 0 else ""
             lines.append(f"{comm:<12}{METRIC_LABELS.get(key, key):<13}{cells}")
