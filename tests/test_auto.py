@@ -49,6 +49,20 @@ def test_auto_matches_oracle(name, topology, variant):
     assert_matches_oracle(scn, [0, 1], 1e-9)
 
 
+def test_auto_matches_oracle_learning_the_noise():
+    """With [estimator.auto] noise = true, in a world whose measurement noise
+    is 10 times what the sensors are told: the oracle learns each agent's
+    scale in gain form on the sensor's own rows."""
+    scn = heldout.scaled_R(load_scenario("quadrants").with_overrides(topology="ring", steps=40), 0.1)
+    scn = replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, noise=True)))
+    _, tr = heldout.Case("x", "x", scn, heldout.World(R=10.0)).simulate([0, 1])
+    want = auto_oracle.run_auto(tr, scn.params.auto)
+    est = engine.run(tr, "diskf-auto", scn.params)
+    sd = np.sqrt(np.diagonal(want["P"], axis1=-2, axis2=-1).max(axis=-1))
+    assert (np.abs(est.x - want["x"]).max(axis=-1) / sd).max() < 1e-9
+    assert (np.abs(est.P - want["P"]).max(axis=(-2, -1)) / np.abs(want["P"]).max(axis=(-2, -1))).max() < 1e-9
+
+
 def test_auto_matches_oracle_isolated_shipped():
     """Isolated agents of Scenario 1: long unobserved stretches under the
     wide prior, where the information form and the gain form agree to a few
@@ -57,10 +71,11 @@ def test_auto_matches_oracle_isolated_shipped():
     assert_matches_oracle(scn, [0], 1e-7)
 
 
-@pytest.mark.parametrize("neighbours", ["dense", "gather"])
-def test_auto_agents_alone_equal_engine(neighbours):
+@pytest.mark.parametrize("neighbours,noise", [("dense", False), ("gather", False), ("dense", True)])
+def test_auto_agents_alone_equal_engine(neighbours, noise):
     """Every agent a batch of one (as in an agent process): the engine's bits."""
     scn = load_scenario("dynamic").with_overrides(steps=40)
+    scn = replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, noise=noise)))
     tr = simulate(scn, [0])
     ref = engine.run(tr, "diskf-auto", scn.params, neighbours=neighbours)
     for k, _, outs in lockstep(scn, "diskf-auto", tr):

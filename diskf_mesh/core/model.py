@@ -184,7 +184,8 @@ class AutoOptions:
     switch:    the models' Markov chain: 1 - switch to stay (0.001: a change of
                input model expected about once in 1,000 ticks)
     noise:     each agent learns the scale of its own measurement noise
-               (``core.noise``) and weighs its measurement by it
+               (``core.noise``) and weighs its measurement by it (off by
+               default: it reads a jump of the input as noise, docs/estimators.md)
     """
 
     none: bool = True
@@ -192,7 +193,7 @@ class AutoOptions:
     zero_mean: bool = True
     oscillating: bool = True
     switch: float = 0.001
-    noise: bool = True
+    noise: bool = False
 
     def __post_init__(self):
         if not (self.none or self.walk or self.zero_mean or self.oscillating):

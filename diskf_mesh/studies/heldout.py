@@ -656,12 +656,13 @@ HEADER = (
     "0.001, and its oscillating models' radius at 0.95 and e^(-1/10) and set to 0.95 (docs/estimators.md); their "
     "periods (4 to 32 ticks) are fixed, and every other default follows the scenario's scales. The grown families "
     "(a world whose noise is not what the estimators are told, bursts, rare measurement, two input channels of "
-    "different kinds, the constant-acceleration model: ``grown_cases``) were added after those defaults; the "
-    "constants of the noise `diskf-auto` learns (`core.noise`: the prior's weight 5, the memory 0.98, the "
-    "Student-t's 4 degrees of freedom, r >= 1) were chosen on seeds 0..9 of ten of their cases (R × 10, R × 0.1, "
-    "Q × 10, Q × 0.1 and bursts, Scenario 1 in a ring with the step, Scenario 2 at range 120 with the step) and "
-    "Scenario 1's and 2's step; the seeds no constant was chosen on are 20..39 (`--first-seed 20`, below the "
-    "tables).")
+    "different kinds, the constant-acceleration model: `grown_cases`) were added after those defaults, and no "
+    "default was changed on them. The constants of the noise `diskf-auto` learns with `[estimator.auto] noise = "
+    "true` (`core.noise`, off by default: the prior's weight 5, the memory 0.98, the Student-t's 4 degrees of "
+    "freedom, r >= 1) were chosen on seeds 0..9 of eighteen of their cases (R × 10, R × 0.1, Q × 10, Q × 0.1 and "
+    "bursts with Scenario 1 in a ring or isolated, or Scenario 2 at range 120, with the step, no input or the "
+    "fast sine) and Scenario 1's and 2's step; the seeds no constant was chosen on are 20..39 (`--first-seed "
+    "20`).")
 
 
 def markdown(doc: dict, header: bool = True) -> str:
