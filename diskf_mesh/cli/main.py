@@ -37,6 +37,7 @@ COMMAND_MODULES = (
     "diskf_mesh.cli.simulate",
     "diskf_mesh.cli.figures",
     "diskf_mesh.cli.report",
+    "diskf_mesh.cli.resilience",
     "diskf_mesh.cli.credentials",
     "sim.world",
     "agents.agent",

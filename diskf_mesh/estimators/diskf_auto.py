@@ -63,7 +63,7 @@ from diskf_mesh.core import input_models as im
 from diskf_mesh.core.linalg import nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
-from diskf_mesh.estimators.base import EXCHANGED, Estimator, Exchanged, Setting, State
+from diskf_mesh.estimators.base import DEFENCE, EXCHANGED, Estimator, Exchanged, Setting, State
 
 AUTO = Setting("auto", AutoOptions(), "the input models diskf-auto weighs and its chain (model.AutoOptions), "
                "the [estimator.auto] table")
@@ -84,7 +84,7 @@ class DISKFAuto(Estimator):
     name = "diskf-auto"
     label = "DISKF-auto"
     color = "crimson"
-    settings = (AUTO,)
+    settings = (AUTO, DEFENCE)
     extends = "diskf"
     exchanged = EXCHANGED + (Exchanged("w", str(len(im.BANK)), weights=True),)
 

@@ -112,7 +112,7 @@ from diskf_mesh.core.linalg import T, inv_spd, mv, nbr_sum, sym
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.rkf import rkf_update
 from diskf_mesh.core.model import RobustOptions
-from diskf_mesh.estimators.base import Estimator, Setting
+from diskf_mesh.estimators.base import DEFENCE, Estimator, Setting
 from diskf_mesh.estimators.diskf import COMPENSATION, EPS, RESET, WINDOW, HeldState
 
 ROBUST = Setting("robust", RobustOptions(), "the switches of diskf-r (model.RobustOptions), "
@@ -144,7 +144,8 @@ class DISKFRobust(Estimator):
     name = "diskf-r"
     label = "DISKF-R"
     color = "midnightblue"
-    settings = (WINDOW, RESET, EPS, COMPENSATION, ROBUST)
+    settings = (WINDOW, RESET, EPS, COMPENSATION, ROBUST, DEFENCE)
+    screens = False  # its fusion is cheap: the screen would make the engine 1.7x slower (docs/security.md)
     extends = "diskf"  # an extension of DISKF under its constraints (the reports' "DISKF family")
 
     def __init__(self, model, sensors, params=None):

@@ -59,9 +59,11 @@ class AgentEstimator:
         columns = zip(*(own_row if j == me else _row(received[j]) for j in order))
         senders = Message(*(np.array([c]) for c in columns))  # (1, J, ...): Message.stack(rows)[None]
         nb = self._neighbourhood(len(order), order.index(me))
-        if self.draws is not None:
-            nb = Neighbourhood(nb.adj, nb.self_mask, np.array([[self.draws[k - 1]]]))
-        self.state, out = self.alg.fuse(self.state, own, senders, nb)
+        draws = None if self.draws is None else np.array([[self.draws[k - 1]]])
+        if draws is not None or self.alg.defends:
+            columns = np.array([[[position[j] for j in order]]]) if self.alg.defends else None
+            nb = Neighbourhood(nb.adj, nb.self_mask, draws, columns)
+        self.state, out = self.alg.screened_fuse(self.state, own, senders, nb)
         return out
 
     def _neighbourhood(self, J: int, own: int) -> Neighbourhood:
