@@ -10,6 +10,8 @@ diskf_mesh`` stays cheap for the processes of a run::
     print(res.table())
     run = diskf_mesh.run(scn, "diskf-r", seeds=[0, 1])        # estimates as numpy arrays
     run.x.shape, run.metrics["mae_state"]
+    net = diskf_mesh.Network(scn)                              # one tick at a time, from your own loop
+    est = net.step(measurements, links=links)                  # every agent's x, P, d
 
 Layers, bottom to top (each folder's docstring says what lives there;
 a module imports its own layer and those below, ``tests/test_layers.py``):
@@ -57,4 +59,5 @@ def __getattr__(name: str) -> object:
 
 
 def __dir__() -> list[str]:
-    return sorted([*globals(), *API])
+    """The API and the module's own dunders: no helper names."""
+    return sorted([*(n for n in globals() if n.startswith("__")), *API])

@@ -32,8 +32,11 @@ live to come back (an agent that comes back while it pauses is live again at
 once), then sends that tick again (agents that had reported it send their
 report again). If none comes back the run ends early.
 
-At the end the world checks the run (``checked_status``,
-``diskf_mesh.engine.verify``): the engine replays it from what each agent
+As the run goes the world checks each tick once its reports are in
+(``mesh.protocol.run_status.OnlineCheck``) and cuts off an agent it proves
+lied: the ticks leave it out of the live set. At the end it checks the
+whole run (``checked_status``, ``diskf_mesh.engine.verify``): the engine
+replays it from what each agent
 said it fused, restarts re-initialised agents from the states handed to
 them, recomputes every fused message's digest and compares every reported
 estimate bit for bit. Exit status (``diskf_mesh.core.exits``): 0 when the run
@@ -41,7 +44,9 @@ is ``exact`` or ``as planned``; 3 ``incomplete`` (one line: how many
 agent-ticks are missing, of which agents, and why: never joined, left,
 rejoining, no report, rejected, not run; 0 within ``--allow-missing``); 5
 ``degraded`` (0 with ``--allow-degraded``, or in real time within
-``--max-miss-rate``); 6 ``diverged``; 4 a real-time run beyond
+``--max-miss-rate``); 6 ``diverged``; 8 ``unverifiable`` (reported
+agent-ticks built on a state the run did not report; 0 only with
+``--accept-unverifiable``); 4 a real-time run beyond
 ``--max-miss-rate``; 2 another world already runs this run id (``mesh.wire.keys``
 nonces). The result JSON holds what was measured either way, with the
 status, its reason and evidence, ``complete``, the missing counts, the
@@ -68,7 +73,7 @@ import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh import estimators
-from diskf_mesh.data.argtypes import positive, positive_int, seed_value
+from diskf_mesh.data.argtypes import add_ticks, seconds, seed_value
 from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.core import exits
@@ -76,7 +81,7 @@ from diskf_mesh.data.outputs import json_safe
 from diskf_mesh.engine.verify import RunStatus
 from diskf_mesh.mesh.wire.counters import Counters
 from diskf_mesh.mesh.protocol.agent_machine import AgentTiming
-from diskf_mesh.mesh.protocol.run_status import accept, add_tolerances, run_status
+from diskf_mesh.mesh.protocol.run_status import OnlineCheck, accept, add_tolerances, run_status
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
@@ -111,9 +116,9 @@ class World:
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
                  timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None,
-                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER):
+                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER, online=None):
         self.machine = WorldMachine(scn, trace, algorithm, seed, keys, new_nonce(), timing,
-                                    log=log, progress=progress, profile=profile, recorder=recorder)
+                                    log=log, progress=progress, profile=profile, recorder=recorder, online=online)
         self.shell = Shell(self.machine, transport, profile)
 
     @property
@@ -414,11 +419,11 @@ def add_timing_arguments(p) -> None:
     """A run's ``--startup-timeout``, ``--tick-timeout`` and
     ``--collect-timeout`` (``world``, ``up``): their defaults are
     ``WorldTiming``'s and ``AgentTiming``'s."""
-    p.add_argument("--startup-timeout", type=positive, default=WorldTiming.startup_timeout, metavar="S",
+    p.add_argument("--startup-timeout", type=seconds, default=WorldTiming.startup_timeout, metavar="S",
                    help="seconds to wait for every agent to be ready (default %(default)s)")
-    p.add_argument("--tick-timeout", type=positive, default=WorldTiming.tick_timeout, metavar="S",
+    p.add_argument("--tick-timeout", type=seconds, default=WorldTiming.tick_timeout, metavar="S",
                    help="world: seconds to wait for the reports of one tick (default %(default)s)")
-    p.add_argument("--collect-timeout", type=positive, default=AgentTiming.collect_timeout, metavar="S",
+    p.add_argument("--collect-timeout", type=seconds, default=AgentTiming.collect_timeout, metavar="S",
                    help="agents: seconds to wait for the neighbours' messages of a tick (default %(default)s); "
                         "with link latency injected, a message due later is not planned to be fused (the run's "
                         "status)")
@@ -447,7 +452,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("world", help="the world process of a mesh run (ground truth, lockstep)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     runspec.add_arguments(p)
-    p.add_argument("--ticks", type=positive_int, metavar="K", help="ticks to run (default: the scenario's steps)")
+    add_ticks(p, help="ticks to run (default: the scenario's)")
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
     p.add_argument("--json", metavar="OUT", help="write the results {algorithm: {setting: metrics}}")
     p.add_argument("--estimates", metavar="OUT", help="write every agent's fused estimates and counters")
@@ -517,8 +522,11 @@ def run(args: argparse.Namespace) -> int:
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
+            online = OnlineCheck(run.trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=args.seed,
+                                 faults=run.faults,
+                                 deadline_s=realtime.agents_deadline(run.clock, args.collect_timeout))
             world = World(scn, run.trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
-                          run_timings(args, run.clock)[0], progress, log, prof, run.recorder)
+                          run_timings(args, run.clock)[0], progress, log, prof, run.recorder, online)
             world.interrupted, signalled[0] = signalled[0], world
             rec = world.run(allow_missing=args.allow_missing > 0)
     except MeshError as e:

@@ -104,7 +104,7 @@ def test_bad_input_names_the_field(moving):
         diskf_mesh.Network(scn, "nosuch")
     with pytest.raises(InputError, match=r"^settings\.windw: unknown estimator setting"):
         diskf_mesh.Network(scn, settings={"windw": 3})
-    with pytest.raises(InputError, match=r"^agent_id: agent 99 is not in scenario"):
+    with pytest.raises(InputError, match=r"^agent_id: 99 is not an agent of 'dynamic' \(ids 1, 2, 3, 4, 5, 6, 7, 8, 9\)"):
         diskf_mesh.Agent(scn, 99)
 
 
@@ -142,3 +142,30 @@ def test_the_examples_of_docs_api_run():
     assert np.linalg.norm(ns["est"].x - ns["x"], axis=-1).max() < 20  # metres, on a circle of 200
     exec(compile(agent, "api.md", "exec"), ns)
     assert ns["est"].tick == 40 and ns["est"].x.shape == (2,) and ns["b"].tick == 40
+
+
+def test_agents_named_in_the_scenario_go_by_their_names(moving, tmp_path):
+    """A scenario whose ids are names ("drone-1"): both levels take and give
+    the names, and compute what the same scenario with integer ids does."""
+    import re
+
+    from diskf_mesh.data.scenario import scenario_path
+
+    scn, trace = moving
+    names = iter(f"drone-{k}" for k in range(1, 10))
+    named = tmp_path / "named.toml"
+    named.write_text(re.sub(r"(?m)^id = \d+$", lambda m: f'id = "{next(names)}"', scenario_path("dynamic").read_text()))
+    net = diskf_mesh.Network(str(named), seed=SEED, ticks=TICKS)
+    assert net.ids == tuple(f"drone-{k}" for k in range(1, 10))
+    ref = diskf_mesh.estimate(trace, "diskf-auto", scenario=scn)
+    x = [net.step(rows(trace, k, net.sensors.p), links=trace.links[0, k]).x for k in range(TICKS)]
+    np.testing.assert_array_equal(np.array(x), ref.x[0])
+    got = []
+    for scenario, one, two in ((str(named), "drone-1", "drone-2"), (scn, 1, 2)):
+        a, b = diskf_mesh.Agent(scenario, one), diskf_mesh.Agent(scenario, two)
+        to_b, to_a = a.encode(a.local([1.0])), b.encode(b.local(None))
+        got.append((a.fuse({two: to_a}).x, b.fuse({one: to_b}).x))
+    np.testing.assert_array_equal(got[0], got[1])
+    a.local(None)
+    with pytest.raises(InputError, match=r"^received\['drone-2'\]: sender 'drone-2' is not an agent"):
+        a.fuse({"drone-2": to_a})

@@ -113,8 +113,9 @@ class Network:
 
     @property
     def ids(self) -> tuple:
-        """The agents' ids, in the order of every per-agent row."""
-        return self.sensors.ids
+        """The agents' ids as the scenario gives them (integers or names), in
+        the order of every per-agent row."""
+        return self.scenario.labels
 
     @property
     def tick(self) -> int:
@@ -185,8 +186,8 @@ class Network:
 
 
 class Agent:
-    """One agent (``agent_id``, an id of ``scenario``) of a network whose
-    messages you carry: each tick, ``local`` then ``fuse``.
+    """One agent (``agent_id``, its id in ``scenario``: an integer or a name)
+    of a network whose messages you carry: each tick, ``local`` then ``fuse``.
 
     The arguments are ``Network``'s. Messages are ``Message`` objects of
     unbatched arrays; ``encode`` makes bytes of one (the mesh's wire format,
@@ -199,13 +200,14 @@ class Agent:
 
     RUN_ID = "stream"  # the run id in the bytes of ``encode`` (the wire format names one)
 
-    def __init__(self, scenario, agent_id: int, estimator: str = _estimators.DEFAULT, *,
+    def __init__(self, scenario, agent_id: int | str, estimator: str = _estimators.DEFAULT, *,
                  settings: Params | Mapping[str, Any] | None = None, seed: int = 0, ticks: int | None = None):
         scn, name, params, self.ticks, _ = _setup(scenario, estimator, settings, ticks)
-        try:
-            self._agent = AgentEstimator(scn, agent_id, name, self.ticks, int(seed), params)
-        except ValueError as e:
-            raise InputError("agent_id", str(e)) from None
+        self._internal = {a.name: a.id for a in scn.agents}  # the scenario's ids -> the run's integer ids
+        if agent_id not in self._internal:
+            raise InputError("agent_id", f"{agent_id!r} is not an agent of {scn.name!r} "
+                                         f"(ids {', '.join(map(str, self._internal))})")
+        self._agent = AgentEstimator(scn, self._internal[agent_id], name, self.ticks, int(seed), params)
         self.scenario, self.estimator, self.settings = scn, name, params
         self.id = agent_id
         self._tick = 0
@@ -233,7 +235,7 @@ class Agent:
 
     def encode(self, msg: Message) -> bytes:
         """``msg`` (this agent's, of this tick) in the mesh's wire format."""
-        return codec.encode(self.RUN_ID, self.id, self._tick, msg, self._agent.alg.exchanged)
+        return codec.encode(self.RUN_ID, self._agent.agent_id, self._tick, msg, self._agent.alg.exchanged)
 
     def fuse(self, received: Mapping[int, Message | bytes]) -> Estimate:
         """This tick's fusion over ``received`` {sender id: its message of
@@ -243,9 +245,9 @@ class Agent:
             raise InputError("fuse", f"tick {self._tick + 1}: call local first")
         msgs = {}
         for j, m in received.items():
-            if j not in self._agent.ids:
+            if j not in self._internal:
                 raise InputError(f"received[{j!r}]", f"sender {j!r} is not an agent of {self.scenario.name!r}")
-            msgs[j] = self._decode(j, m) if isinstance(m, (bytes, bytearray, memoryview)) else m
+            msgs[self._internal[j]] = self._decode(j, m) if isinstance(m, (bytes, bytearray, memoryview)) else m
         out = self._agent.fuse(self._tick, self._own, msgs)
         self._own = None
         return _frozen(out, self._tick, (0, 0))
@@ -253,7 +255,7 @@ class Agent:
     def _decode(self, sender, data) -> Message:
         model = self._agent.alg.model
         try:
-            wm = codec.decode(bytes(data), run_id=self.RUN_ID, sender=sender, n=model.n, m=model.m,
+            wm = codec.decode(bytes(data), run_id=self.RUN_ID, sender=self._internal[sender], n=model.n, m=model.m,
                               exchanged=self._agent.alg.exchanged)
         except codec.Rejected as e:
             raise InputError(f"received[{sender}]", str(e)) from None

@@ -9,7 +9,7 @@ estimator's numerical failure is one line ``error: ...`` with exit status
 warning of the library (e.g. a KCF step that may diverge) is one line
 ``warning: <message>``.
 
-``--help`` loads every command module, so a module imports what only its
+``diskf-mesh --help`` loads every command module (a command, its own), so a module imports what only its
 action needs (matplotlib, tqdm, the studies) inside the action: ``--help``
 and the commands that draw nothing never load a plotting library.
 """
@@ -19,6 +19,7 @@ import argparse
 import difflib
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
@@ -30,34 +31,40 @@ from diskf_mesh import __version__
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh.process import stopping
 
-COMMAND_MODULES = (
-    "diskf_mesh.cli.experiment",
-    "diskf_mesh.cli.replay",
-    "diskf_mesh.cli.inspect",
-    "diskf_mesh.cli.simulate",
-    "diskf_mesh.cli.figures",
-    "diskf_mesh.cli.report",
-    "diskf_mesh.cli.resilience",
-    "diskf_mesh.cli.credentials",
-    "sim.world",
-    "agents.agent",
-    "sim.launcher",
-    "sim.router",
-    "sim.host",
-)
-
-
-# the mesh commands a user starts for a run: only that command's module is loaded (a process of a
-# run starts faster; every other command still loads all of them, for its --help)
-MESH_COMMANDS = {"up": "sim.launcher", "host": "sim.host", "router": "sim.router", "world": "sim.world",
-                 "agent": "agents.agent"}
+# every command's module: a command loads its own alone (it starts faster: ``up`` and the processes of a
+# run, ``experiment``); without a command, or with a word that names none, every module is loaded (the list
+# of commands and the nearest match of a word)
+COMMANDS = {
+    "experiment": "diskf_mesh.cli.experiment",
+    "replay": "diskf_mesh.cli.replay",
+    "inspect": "diskf_mesh.cli.inspect",
+    "simulate": "diskf_mesh.cli.simulate",
+    "figures": "diskf_mesh.cli.figures",
+    "report": "diskf_mesh.cli.report",
+    "resilience": "diskf_mesh.cli.resilience",
+    "credentials": "diskf_mesh.cli.credentials",
+    "world": "sim.world",
+    "agent": "agents.agent",
+    "up": "sim.launcher",
+    "router": "sim.router",
+    "host": "sim.host",
+}
+COMMAND_MODULES = tuple(COMMANDS.values())
 
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse's own usage errors: one line, status 2
+        """An unknown option or command is named first, with its nearest
+        match (argparse reports a missing required option before it)."""
+        argv = getattr(self, "argv", ())
+        choice = re.match(r"argument command: invalid choice: '?([^' ]+)'?", message)
         if message.startswith("unrecognized arguments: "):
-            message = _unknown(self, message.removeprefix("unrecognized arguments: ").split(),
-                               getattr(self, "argv", ()))
+            message = _unknown(self, message.removeprefix("unrecognized arguments: ").split(), argv)
+        elif choice:
+            close = difflib.get_close_matches(choice[1], sorted(_commands(self)), n=1, cutoff=0.6)
+            message = f"unknown command {choice[1]}" + (f" (did you mean {close[0]}?)" if close else "")
+        elif (stray := _stray_option(self, argv)) is not None:
+            message = _unknown(self, [stray], argv)
         self.exit(2, f"error: {message}\n")
 
     def format_help(self) -> str:
@@ -90,10 +97,25 @@ def _unknown(parser: argparse.ArgumentParser, words: list, argv=()) -> str:
     for word in words:
         if word.startswith("-"):
             flag = word.split("=", 1)[0]
-            options = _long_options(_command_parser(parser, argv))
-            close = difflib.get_close_matches(flag, sorted(options - {flag}), n=1, cutoff=0.6)
-            return f"unknown option {flag}" + (f" (did you mean {close[0]}?)" if close else "")
+            names = {o.lstrip("-"): o for o in _long_options(_command_parser(parser, argv)) if o != flag}
+            close = difflib.get_close_matches(flag.lstrip("-"), sorted(names), n=1, cutoff=0.6)  # "--" alike in all
+            return f"unknown option {flag}" + (f" (did you mean {names[close[0]]}?)" if close else "")
     return "unrecognized arguments: " + " ".join(words)
+
+
+def _stray_option(parser: argparse.ArgumentParser, argv) -> str | None:
+    """The first --word of ``argv`` that is no option of its command (nor
+    an abbreviation of one), or None."""
+    known = [o for o in _command_parser(parser, argv)._option_string_actions if o.startswith("--")]
+    for word in argv:
+        flag = word.split("=", 1)[0]
+        if flag.startswith("--") and flag != "--" and not any(o.startswith(flag) for o in known):
+            return flag
+    return None
+
+
+def _commands(parser: argparse.ArgumentParser) -> set:
+    return {name for a in parser._actions if isinstance(a, argparse._SubParsersAction) for name in a.choices}
 
 
 def _command_parser(parser: argparse.ArgumentParser, argv) -> argparse.ArgumentParser:
@@ -141,12 +163,12 @@ def _one_line(message, category, filename, lineno, line=None) -> str:
 
 
 def main(argv=None, modules=COMMAND_MODULES) -> int:
-    """Run one command; ``modules`` limits the subcommands loaded (a mesh
-    process loads only its own, to start fast). ``up`` starts its run's
+    """Run one command; ``modules`` limits the subcommands loaded (a
+    command loads only its own, ``COMMANDS``, to start fast). ``up`` starts its run's
     zygote first of all (``sim.zygote.prestart``)."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    if modules is COMMAND_MODULES and argv[:1] and argv[0] in MESH_COMMANDS:
-        modules = (MESH_COMMANDS[argv[0]],)
+    if modules is COMMAND_MODULES and argv[:1] and argv[0] in COMMANDS:
+        modules = (COMMANDS[argv[0]],)
     if threading.current_thread() is threading.main_thread():
         # SIGTERM as SystemExit(143) where the main thread is, so that finally blocks run (partial files
         # removed, children stopped), and SIGINT as stopping.Interrupted (exit 130, never killed by SIGINT),
@@ -179,7 +201,9 @@ def _main(argv, modules) -> int:
     if argv[:1] and argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version"):
         build_parser(()).error(f"unrecognized arguments: {argv[0]}")  # before 'required: command'
     parser = build_parser(modules)
-    parser.argv = list(argv)  # an unknown option's suggestion comes from the command's own options
+    for p in (parser, *(c for a in parser._actions if isinstance(a, argparse._SubParsersAction)
+                        for c in a.choices.values())):
+        p.argv = list(argv)  # an unknown option's suggestion comes from the command's own options
     args = parser.parse_args(argv)
     args.argv = list(argv)  # the command line, for the provenance of what it writes
     try:
