@@ -208,12 +208,11 @@ class State:
     evidence: np.ndarray | None = field(default=None, kw_only=True)
 
 
-DEFENCE = Setting("defence", "auto", "screen every neighbour's message before fusing it (core.resilience): a "
+DEFENCE = Setting("defence", False, "screen every neighbour's message before fusing it (core.resilience): a "
                   "prediction more certain than Q, or far outside the chi-square gate around the receiver's own "
                   "prediction (or the median of three or more), is not fused, and evidence against its sender "
-                  "accumulates and recovers slowly (docs/security.md). auto: on for diskf-auto; off for diskf, whose P "
-                  "leaves the input's covariance out, and for diskf-r and diskf-none, whose fusion costs less than "
-                  "the screen", choices=("auto", "on", "off"))
+                  "accumulates and recovers slowly; off by default: on clean runs it cuts honest neighbours in "
+                  "some held-out cases (docs/security.md)")
 
 
 @dataclass(frozen=True)
@@ -247,11 +246,6 @@ class Estimator:
     # its (x^, P^) (P~ <= P^); off for estimators whose x~ is something else
     # (L-DRKF sends its RKF estimate there).
     information_check: bool = True
-    # Whether ``defence = "auto"`` screens its senders (where it declares
-    # ``DEFENCE``): off where its covariances do not describe its errors (the
-    # gate would cut honest neighbours) or where the screen costs more than
-    # the fusion it guards.
-    screens: bool = True
 
     def __init__(self, model: LinearModel, sensors: Sensors, params=None):
         if params is None:
@@ -345,10 +339,7 @@ class Estimator:
     def defends(self) -> bool:
         """Whether this estimator screens its senders: it declares
         ``DEFENCE`` and the setting is on."""
-        if DEFENCE not in type(self).settings:
-            return False
-        choice = getattr(self.params, "defence", "off")
-        return choice == "on" or (choice == "auto" and self.screens)
+        return DEFENCE in type(self).settings and bool(getattr(self.params, "defence", False))
 
     def screened_fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
         """``fuse`` of the senders that pass the screen (``screen``), the

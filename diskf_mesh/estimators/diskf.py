@@ -42,7 +42,6 @@ class DISKF(Estimator):
     label = "DISKF"
     color = "tab:blue"
     settings = (WINDOW, RESET, EPS, COMPENSATION, HOLD_INPUT, DEFENCE)
-    screens = False  # P^* = P^ leaves the input's covariance out: its gate would cut honest neighbours
 
     def init(self, batch: tuple) -> HeldState:
         s = super().init(batch)

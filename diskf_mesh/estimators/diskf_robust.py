@@ -150,7 +150,6 @@ class DISKFRobust(Estimator):
     label = "DISKF-R"
     color = "midnightblue"
     settings = (WINDOW, RESET, EPS, COMPENSATION, ROBUST, DEFENCE)
-    screens = False  # its fusion is cheap: the screen would make the engine 1.7x slower (docs/security.md)
     extends = "diskf"  # an extension of DISKF under its constraints (the reports' "DISKF family")
 
     def __init__(self, model, sensors, params=None):

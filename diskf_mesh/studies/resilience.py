@@ -54,7 +54,7 @@ def measure(seeds, steps=None, progress=None) -> list:
         scn = load_scenario(name, agents=agents).with_overrides(steps=steps)
         trace = simulate(scn, list(seeds))
         honest = [j for j, a in enumerate(scn.agents) if a.id not in liars]
-        modes = {"off": dataclasses.replace(scn.params, defence="off"), "on": dataclasses.replace(scn.params, defence="on")}
+        modes = {"off": dataclasses.replace(scn.params, defence=False), "on": dataclasses.replace(scn.params, defence=True)}
         clean, clean_agents = _errors(trace, batch.run(trace, DEFAULT, modes["on"]), honest)
         for kind, size in LIES:
             lies = scn.with_lies([Lie(i, kind, size, start=START) for i in liars]).lies
