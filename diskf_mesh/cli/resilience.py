@@ -1,7 +1,7 @@
 """``diskf-mesh resilience``: what insiders' lies do to the honest agents of
 the default estimator, with the screen before fusion and without it.
 
-Scenario 2 and a 25-agent random geometric network (one and two insiders),
+Scenario 2 and a 25-agent random geometric network (one and two insiders: its best-connected agents),
 each lie of docs/security.md's table (offsets 10 to 5,000 m, drifts, a
 shrunk covariance, a replayed stale estimate, a false input) from tick 50,
 over seeds 0..S-1. Writes the table into DIR/security.md between its

@@ -28,9 +28,21 @@ TARGET = 1.5  # honest MAE within 1.5x the clean run's
 DIVERGED = 10.0  # an honest agent whose own MAE is 10x its clean one is counted as diverging
 LIES = (("offset", 10.0), ("offset", 50.0), ("offset", 200.0), ("offset", 500.0), ("offset", 5000.0),
         ("drift", 0.5), ("drift", 2.0), ("shrink", 20.0), ("stale", 20.0), ("input", 50.0))
-SETTINGS = (("Scenario 2, one insider (agent 3)", "dynamic", None, (3,)),
-            ("random geometric (25), one insider (agent 3)", "random-geometric", 25, (3,)),
-            ("random geometric (25), two insiders (agents 3, 14)", "random-geometric", 25, (3, 14)))
+# (title, scenario, agent count, insiders: their ids, or how many of the best-connected agents)
+SETTINGS = (("Scenario 2, one insider", "dynamic", None, (3,)),
+            ("random geometric (25), one insider", "random-geometric", 25, 1),
+            ("random geometric (25), two insiders", "random-geometric", 25, 2))
+
+
+def insiders(scn, trace, chosen) -> tuple:
+    """The insiders' ids: ``chosen`` itself, or that many of the agents with
+    the most links over the run (ties: the smaller id), so that a lie
+    reaches someone."""
+    if not isinstance(chosen, int):
+        return tuple(chosen)
+    degree = np.broadcast_to(trace.links, (1,) + trace.links.shape[1:])[0].sum(axis=(0, 2))
+    order = sorted(range(scn.N), key=lambda j: (-int(degree[j]), scn.agents[j].id))
+    return tuple(sorted(scn.agents[j].id for j in order[:chosen]))
 OFFSETS = tuple(size for kind, size in LIES if kind == "offset")
 
 
@@ -50,9 +62,11 @@ def measure(seeds, steps=None, progress=None) -> list:
     """One row per (setting, lie): the clean honest MAE, the MAE with the
     lie without and with the screen, and the worst honest agent's ratio."""
     rows = []
-    for title, name, agents, liars in SETTINGS:
+    for title, name, agents, chosen in SETTINGS:
         scn = load_scenario(name, agents=agents).with_overrides(steps=steps)
         trace = simulate(scn, list(seeds))
+        liars = insiders(scn, trace, chosen)
+        title = f"{title} (agent{'s' if len(liars) > 1 else ''} {', '.join(map(str, liars))})"
         honest = [j for j, a in enumerate(scn.agents) if a.id not in liars]
         modes = {"off": dataclasses.replace(scn.params, defence=False), "on": dataclasses.replace(scn.params, defence=True)}
         clean, clean_agents = _errors(trace, batch.run(trace, DEFAULT, modes["on"]), honest)
@@ -129,7 +143,8 @@ def figure(rows, path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    for (title, *_), color in zip(SETTINGS, ("tab:blue", "tab:orange", "tab:green")):
+    titles = list(dict.fromkeys(r["setting"] for r in rows))
+    for title, color in zip(titles, ("tab:blue", "tab:orange", "tab:green")):
         pts = [r for r in rows if r["setting"] == title and r["kind"] == "offset"]
         sizes = [r["size"] for r in pts]
         ax.plot(sizes, [r["off"] / r["clean"] for r in pts], "--o", color=color, alpha=0.6,
