@@ -92,6 +92,7 @@ from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
 from diskf_mesh.mesh.protocol.log import Log
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.protocol.receive import Receiver
+from diskf_mesh.mesh.protocol.shared import Shared
 from diskf_mesh.mesh.protocol.verdicts import TickVerdicts
 
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
@@ -121,12 +122,14 @@ class AgentMachine:
     link faults into this agent, a ``FaultConfig`` (seeded with the run's
     seed when the world's first tick tells it) or a seeded ``FaultModel``.
     ``log``: its one-line messages; ``profile``: where the time of each tick
-    goes (``mesh.protocol.profile``), if measured. ``ticks`` is the number of ticks
+    goes (``mesh.protocol.profile``), if measured; ``shared``: the decodes
+    other machines in this process made of the same payloads
+    (``mesh.protocol.shared``: the simulated network). ``ticks`` is the number of ticks
     worked on so far."""
 
     def __init__(self, scn: Scenario, agent_id: int, algorithm: str, keys: Keys, nonce: str,
                  timing: AgentTiming = AgentTiming(), faults: FaultConfig | FaultModel | None = None,
-                 log: Log | None = None, profile: Phases = NO_PHASES):
+                 log: Log | None = None, profile: Phases = NO_PHASES, shared: Shared | None = None):
         self.scn, self.keys, self.nonce, self.timing = scn, keys, nonce, timing
         self.ids = tuple(a.id for a in scn.agents)
         if agent_id not in self.ids:
@@ -150,7 +153,7 @@ class AgentMachine:
             keys.run_id, agent_id, frozenset(self.ids), n, m,
             information_check=declared.information_check, exchanged=declared.exchanged,
             **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
-            profile=profile), faults if isinstance(faults, FaultModel) else None)
+            profile=profile, shared=shared), faults if isinstance(faults, FaultModel) else None)
         self.counters = self.receiver.counters
         self.verdicts = TickVerdicts()  # per tick: who was fused, why the others were not
         self._qids = itertools.count(1)
@@ -282,7 +285,7 @@ class AgentMachine:
                 self._open(k, now)
                 if self.finish is not None:  # its estimator diverged
                     break
-            if not (self.linked[k] <= self.receiver.accounted(k) or self.stopped is not None
+            if not (self.receiver.all_accounted(k, self.linked[k]) or self.stopped is not None
                     or now >= self.deadline or any(j > k for j in self.ticks)):
                 break
             self._close(k)
@@ -327,7 +330,14 @@ class AgentMachine:
     def _on_tick(self, payload, now: float) -> bool:
         self.prof.begin()
         try:
-            t = wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids))
+            shared = self.receiver.guard.shared
+            if shared is None:
+                t = wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids))
+            else:
+                t = shared.once(payload, ("tick", self.keys.run_id, len(self.ids)),
+                                lambda: wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids)))
+                if isinstance(t, wire.Rejected):
+                    raise wire.Rejected(t.reason, t.detail, t.tick)
         finally:
             self.prof.end("decode")
         consts = (t.ticks, t.seed, t.algorithm, t.topology, t.comm_range)

@@ -85,14 +85,14 @@ def neighbours(scn: Scenario, agent_id: int, positions: np.ndarray) -> tuple:
 
     Range links: this agent's row of ``scenario.range_links`` only, with the
     same arithmetic (bit for bit the same squared distances), not all N x N."""
-    ids = [a.id for a in scn.agents]
-    i = ids.index(agent_id)
+    ids = scn.ids
+    i = scn.index(agent_id)
     if scn.topology == "range":
         diff = positions[i] - positions
         row = np.einsum("...k,...k->...", diff, diff) <= scn.comm_range * scn.comm_range
     else:
         row = links_for(scn, positions[None])[0, i]
-    return tuple(j for j, linked in zip(ids, row.tolist()) if linked)
+    return tuple(ids[j] for j in np.flatnonzero(row).tolist())
 
 
 def lockstep(scn: Scenario, algorithm: str, trace, seed: int = 0):
