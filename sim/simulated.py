@@ -56,8 +56,6 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     """The run; prints what ``up`` prints but its verdict, ends it as the
     world process does (``sim.world.finish_run``) and returns the world's
     exit status and the results row (None if the world failed)."""
-    from tqdm import tqdm
-
     from diskf_mesh.data import provenance
     from diskf_mesh.mesh.wire.keys import Keys
     from diskf_mesh.mesh.protocol.log import Log
@@ -69,9 +67,11 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     for flag, value in (("live", getattr(args, "live", None)), ("profile", args.profile), ("logs", args.logs)):
         if value:
             raise InputError(flag, "is for process meshes, not --network simulated")
+    K, N = scn.steps, len(scn.agents)
+    stages = Stages(K, f"{spec.algorithm} x {N} agents, simulated network", quiet=args.quiet)
+    stages.say(f"{scn.name}: {N} agents + world, {K} ticks, {spec.algorithm}: drawing the scenario's seed {args.seed}")
     run = setup_run(args, spec, scn, provenance.now())
     clock, trace = run.clock, run.trace
-    K, N = trace.has.shape[1], len(scn.agents)
     net_seed = args.seed if args.net_seed is None else args.net_seed
     keys = Keys(spec.run_id)
     link = Link(delay=args.net_delay_ms / 1000, jitter=args.net_jitter_ms / 1000, loss=args.net_loss,
@@ -80,14 +80,13 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     bound = args.startup_timeout + K * (args.tick_timeout + args.collect_timeout) + 60.0
     plan = SimPlan(link, secure=not args.insecure, world_timing=world_timing, agent_timing=agent_timing,
                    max_time=bound)
-    bar = tqdm(total=K, desc=f"{spec.algorithm} x {N} agents, simulated network", unit="tick", file=sys.stderr,
-               disable=args.quiet or not sys.stderr.isatty())
+    stages.say(f"start-up: the world and {N} agents join (every agent sees every other's token)")
     t0 = time.monotonic()
     try:
         r = simulate_run(scn, trace, spec.algorithm, args.seed, net_seed=net_seed, plan=plan, faults=run.faults,
-                         run_id=spec.run_id, verify=False, progress=lambda k: bar.update(1), recorder=run.recorder)
+                         run_id=spec.run_id, verify=False, progress=stages.tick, recorder=run.recorder)
     finally:
-        bar.close()
+        stages.close()
     wall = time.monotonic() - t0
     if r.log:
         sys.stderr.write(r.log)
@@ -97,6 +96,7 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     network = {"kind": "simulated", "delay_ms": args.net_delay_ms, "jitter_ms": args.net_jitter_ms,
                "loss": args.net_loss, "seed": net_seed, "virtual_s": r.outcome.end, "events": r.outcome.events,
                "wall_s": wall, "digest": r.outcome.digest}
+    stages.say("checking the run: the engine replays what every agent fused")
     code, results = finish_run(args, run, r.record, r.world.done, out, extra={"network": network})
     rate = K / wall if wall > 0 else math.inf
     print(f"{scn.name}: {N} agents + world on a simulated network (delay {args.net_delay_ms:g} ms, jitter "
@@ -108,3 +108,51 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
           + (f", recording: {args.record}" if args.record and not row.get("recording_failed") else ""))
     return code, row
+
+
+class Stages:
+    """Where a simulated run is, on stderr: a line per stage (setting up,
+    start-up, the ticks, the check) and, on a terminal, a progress bar of
+    the ticks with its ETA (tqdm), from the first tick; off a terminal, a
+    line at ticks 1 and K and about every tenth of the run, with the
+    time so far and the ETA. ``quiet``: nothing."""
+
+    def __init__(self, K: int, desc: str, quiet: bool = False, stream=None):
+        self.K, self.desc, self.quiet = K, desc, quiet
+        self.stream = sys.stderr if stream is None else stream
+        self.tty = self.stream.isatty()
+        self.bar = None
+        self.began = None   # when tick 1 came
+        self.every = max(1, K // 10)
+
+    def say(self, line: str) -> None:
+        if self.quiet:
+            return
+        if self.bar is not None:
+            self.bar.write(line, file=self.stream)
+        else:
+            print(line, file=self.stream, flush=True)
+
+    def tick(self, k: int) -> None:
+        """The world took the reports of tick ``k``."""
+        if self.quiet:
+            return
+        now = time.monotonic()
+        if self.began is None:
+            self.began = now
+            if self.tty:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=self.K, desc=self.desc, unit="tick", file=self.stream)
+        if self.bar is not None:
+            self.bar.update(k - self.bar.n)
+        elif k in (1, self.K) or k % self.every == 0:
+            spent = now - self.began
+            left = spent / (k - 1) * (self.K - k) if k > 1 else math.nan
+            self.say(f"tick {k}/{self.K}: {spent:.0f} s since tick 1"
+                     + (f", about {left:.0f} s to go" if math.isfinite(left) else ""))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None

@@ -108,3 +108,54 @@ def test_a_simulated_real_time_run_writes_the_estimates_a_world_writes(tmp_path)
     doc = json.loads((tmp_path / "e.json").read_text())
     assert doc["complete"] and doc["missing_agent_ticks"] == 0 and doc["rate_hz"] == 20.0
     assert fused_record_from_json(doc, doc["ids"]).miss_rate == doc["deadline_misses"]["miss_rate"] == 0.0
+
+
+def test_progress_is_a_line_per_stage_off_a_terminal_and_a_bar_on_one(tmp_path):
+    argv = ["--scenario", "random-geometric", "--agents", "4", "--ticks", "20", "--json", str(tmp_path / "r.json")]
+    off = up(*argv, cwd=tmp_path)
+    assert off.returncode == 0, off.stderr
+    lines = off.stderr.splitlines()
+    assert lines[0].startswith("random-geometric: 4 agents + world, 20 ticks")
+    assert any(line.startswith("start-up: ") for line in lines)
+    ticks = [line.split(":")[0] for line in lines if line.startswith("tick ")]
+    assert ticks == [f"tick {k}/20" for k in (1, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20)]
+    assert "about" in next(line for line in lines if line.startswith("tick 10/20"))  # the time to go
+    assert any(line.startswith("checking the run") for line in lines)
+    assert "\r" not in off.stderr  # no bar
+
+    import fcntl
+    import pty
+    import struct
+    import termios
+    main, sub = pty.openpty()
+    fcntl.ioctl(sub, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # a terminal's width for the bar
+    try:
+        on = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "up", "--network", "simulated", *argv],
+                            stdout=subprocess.PIPE, stderr=sub, cwd=tmp_path, timeout=300,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+        os.close(sub)
+        sub = None
+        seen = b""
+        while True:
+            try:
+                chunk = os.read(main, 65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            seen += chunk
+    finally:
+        os.close(main)
+        if sub is not None:
+            os.close(sub)
+    assert on.returncode == 0
+    text = seen.decode(errors="replace")
+    assert text.startswith("random-geometric: 4 agents + world, 20 ticks")
+    assert "20/20 [" in text and ("tick/s]" in text or "s/tick]" in text)  # tqdm's bar: ticks, elapsed<ETA, rate
+    assert "tick 10/20" not in text  # the bar, not the lines
+
+
+def test_quiet_prints_no_progress(tmp_path):
+    r = up("--scenario", "random-geometric", "--agents", "3", "--ticks", "5", "--quiet",
+           "--json", str(tmp_path / "r.json"), cwd=tmp_path)
+    assert r.returncode == 0 and r.stderr == "", r.stderr

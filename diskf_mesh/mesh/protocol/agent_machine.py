@@ -679,7 +679,8 @@ class AgentMachine:
             self.phase = "claim"
             self._claim_qid = next(self._qids)
             self._out.append(AskTokens(self._claim_qid, self.keys.alive(self.id), CLAIM_S))
-        if self.phase == "gather" and ((self.world_seen and (self.alive >= set(self.ids) or self.world_ticking))
+        # ``alive`` holds ids of the scenario only: all of them once it is as large
+        if self.phase == "gather" and ((self.world_seen and (len(self.alive) == len(self.ids) or self.world_ticking))
                                        or self.stopped is not None):
             if self.world_ticking and self.est is None:
                 self._joining(self.newest)
