@@ -176,7 +176,7 @@ class AgentMachine:
         self.world_gone_at = math.inf
         self.world_ticking = False  # the world's "ticking" token: the run is past its start
         self.alive = set()          # agent ids of the scenario with an alive token
-        self.alive_tokens = {}      # agent id -> nonces of its processes' alive tokens
+        self.alive_tokens = {}      # agent id -> nonces of its processes' alive tokens (a tuple: usually one)
         self._woke_at = -math.inf   # when this process found it had been frozen
         # -- start-up and joining
         self.phase = "world"      # world, claim, gather, peers, joining, leaving, finished
@@ -638,8 +638,12 @@ class AgentMachine:
         nonce is smaller (an earlier start) and this one has not worked on a
         tick yet; one that works since tick 1 keeps the id (its estimate is
         the engine's, a late twin's is not)."""
-        held = self.alive_tokens.setdefault(who, set())
-        (held.add if up else held.discard)(nonce_)
+        was = self.alive_tokens.get(who, ())
+        held = tuple(n for n in was if n != nonce_) + ((nonce_,) if up else ())
+        if held:
+            self.alive_tokens[who] = held
+        else:
+            self.alive_tokens.pop(who, None)
         (self.alive.add if held else self.alive.discard)(who)
         if not (up and who == self.id and self.claimed and nonce_ != self.nonce):
             return
@@ -728,7 +732,7 @@ class AgentMachine:
     def _others(self, nonces=()) -> set:
         """The nonces of other processes holding this agent's id: ``nonces``
         (an answer's) and the alive tokens of its id this one has seen."""
-        return (set(nonces) | self.alive_tokens.get(self.id, set())) - {self.nonce}
+        return (set(nonces) | set(self.alive_tokens.get(self.id, ()))) - {self.nonce}
 
     def _peers_seen(self) -> bool:
         """The agents the world counts live at its newest tick are seen (so

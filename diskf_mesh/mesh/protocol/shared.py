@@ -21,7 +21,7 @@ from typing import Callable
 
 from diskf_mesh.mesh.wire import codec as wire
 
-KEEP = 1 << 16   # results kept (the payloads of a few ticks of a large run)
+KEEP = 4096   # results kept: a payload's receivers all get it within a tick; one evicted early is computed again
 
 
 class Shared:
