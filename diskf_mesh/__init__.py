@@ -10,6 +10,8 @@ diskf_mesh`` stays cheap for the processes of a run::
     print(res.table())
     run = diskf_mesh.run(scn, "diskf-r", seeds=[0, 1])        # estimates as numpy arrays
     run.x.shape, run.metrics["mae_state"]
+    net = diskf_mesh.Network(scn)                              # one tick at a time, from your own loop
+    est = net.step(measurements, links=links)                  # every agent's x, P, d
 
 Layers, bottom to top (each folder's docstring says what lives there;
 a module imports its own layer and those below, ``tests/test_layers.py``):
@@ -35,12 +37,12 @@ TYPE_CHECKING = False  # typing's constant, without importing typing: the proces
 __version__ = "0.1.0"
 
 API = ("load_scenario", "simulate", "estimate", "run", "experiment", "replay", "up", "read_trace", "write_trace",
-       "estimator_names", "Run", "Experiment", "MeshRun", "InputError")
+       "estimator_names", "Run", "Experiment", "MeshRun", "Network", "Agent", "Estimate", "InputError")
 __all__ = ["__version__", *API]
 
 if TYPE_CHECKING:  # what type checkers and IDEs see; at run time __getattr__ loads it on first use
-    from diskf_mesh.api import (Experiment, MeshRun, Run, estimate, estimator_names, experiment, load_scenario,
-                                read_trace, replay, run, simulate, up, write_trace)
+    from diskf_mesh.api import (Agent, Estimate, Experiment, MeshRun, Network, Run, estimate, estimator_names,
+                                experiment, load_scenario, read_trace, replay, run, simulate, up, write_trace)
     from diskf_mesh.core.errors import InputError
 
 

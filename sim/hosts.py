@@ -41,7 +41,7 @@ from diskf_mesh.mesh.security import credentials
 from diskf_mesh.mesh.process import runspec
 from diskf_mesh.mesh.process.runspec import RunSpec
 from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
-from sim.launcher import Child
+from sim.child import Child
 
 TOP_KEYS = ("credentials", "world", "hosts")
 WORLD_KEYS = ("listen", "bind", "prefix", "python")

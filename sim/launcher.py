@@ -63,7 +63,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 from diskf_mesh import live
@@ -82,6 +82,7 @@ from diskf_mesh.mesh.process.stopping import terminated
 from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from diskf_mesh.recording.writer import failure_line
 from sim import simulated
+from sim.child import Child
 from sim import zygote as forks
 from diskf_mesh.core import exits
 from diskf_mesh.engine.verify import RunStatus
@@ -199,22 +200,6 @@ def network_of(choice: str, agents: int) -> str:
     """``up --network``: "peers" or "router" ("auto": a peer mesh up to
     ``PEERS_UP_TO`` agents, a router above)."""
     return choice if choice != "auto" else ("peers" if agents <= PEERS_UP_TO else "router")
-
-
-@dataclass
-class Child:
-    name: str
-    argv: list
-    log: Path
-    proc: subprocess.Popen | None = None
-    identities: tuple = ()  # the identities it is handed (``Launcher``'s ``keys``), on its standard input
-
-    def last_error_line(self) -> str:
-        try:
-            lines = [ln for ln in self.log.read_text(errors="replace").splitlines() if ln.strip()]
-        except OSError:
-            return ""
-        return lines[-1] if lines else ""
 
 
 def hand_over(data: bytes) -> int:
@@ -648,6 +633,8 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         world_extra += ["--allow-missing", repr(args.allow_missing)]
     if args.allow_degraded:
         world_extra += ["--allow-degraded"]
+    if args.accept_unverifiable:
+        world_extra += ["--accept-unverifiable"]
     agent_extra = agent_flags(args, scn, args.collect_timeout, agent_world_timeout(args))
     world_extra, agent_extra = [a + b for a, b in zip((world_extra, agent_extra), realtime.argv(args))]
     faults = faults_from_args(args, scn.faults)
@@ -721,7 +708,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
 
 # the world's exit statuses that carry a run's results (``core.exits``); any other is a failure
 WORLD_VERDICTS = (exits.OK, exits.INCOMPLETE, exits.TOO_MANY_MISSES, exits.DEGRADED, exits.DIVERGED,
-                  exits.RECORDING_FAILED)
+                  exits.RECORDING_FAILED, exits.UNVERIFIABLE)
 
 
 def verdict(row: dict, args) -> None:

@@ -278,7 +278,8 @@ def exit_status(status: RunStatus, summary: dict, args, clock: realtime.Clock | 
     miss = summary["deadline_misses"]["miss_rate"] if clock is not None else None
     max_rate = realtime.max_miss_rate(args) if clock is not None else None
     code, level, line = accept(status, allow_missing=args.allow_missing,
-                               allow_degraded=getattr(args, "allow_degraded", False), miss_rate=miss,
+                               allow_degraded=getattr(args, "allow_degraded", False),
+                               accept_unverifiable=getattr(args, "accept_unverifiable", False), miss_rate=miss,
                                max_miss_rate=max_rate)
     if code == exits.TOO_MANY_MISSES:
         line = miss_problem(summary, max_rate)

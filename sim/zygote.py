@@ -453,9 +453,10 @@ def serve(fd: int):
     return None
 
 
-def run_child(argv, cwd, fds, zygote: int) -> int:
+def run_child(argv, cwd, fds, zygote: int, command) -> int:
     """In a forked child: become the process ``argv`` stands for and run it
-    as ``python -m`` would; returns its exit status."""
+    as ``python -m`` would, with ``command`` (the command line's ``main``);
+    returns its exit status."""
     os.setsid()
     _prctl_deathsig(signal.SIGTERM)
     if os.getppid() != zygote:  # the zygote died before the line above
@@ -469,13 +470,13 @@ def run_child(argv, cwd, fds, zygote: int) -> int:
     set_title(argv)
     module, args = argv[2], argv[3:]
     sys.argv = [module, *args]
-    from diskf_mesh.cli import main as cli
-
-    return cli.main([FORKED[module], *args], modules=(module,))
+    return command([FORKED[module], *args], modules=(module,))
 
 
 if __name__ == "__main__":
     zygote_pid = os.getpid()
     job = serve(int(sys.argv[1]))
-    if job is not None:
-        sys.exit(run_child(*job, zygote_pid))
+    if job is not None:  # a forked child
+        from diskf_mesh.cli import main as cli  # loaded already (PRELOAD)
+
+        sys.exit(run_child(*job, zygote_pid, cli.main))

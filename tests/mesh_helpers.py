@@ -115,7 +115,7 @@ def start_mesh(spec: RunSpec, ticks: int, seed: int, tmp_path: Path, world_zenoh
             c.argv = wrap(c.name, c.argv)
     mesh = Mesh(world, agents)
     mesh.world_endpoints = tuple(world_zenoh.listen)
-    mesh.run_id, mesh.security.credentials = spec.run_id, world_zenoh.credentials
+    mesh.run_id, mesh.credentials = spec.run_id, world_zenoh.credentials
     mesh.start_world()
     return mesh
 

@@ -225,7 +225,7 @@ def test_an_interrupted_recording_attaches_only_the_ticks_it_ran(tmp_path):
 
     from mcap.records import Attachment
 
-    from diskf_mesh.recording import reader, writer
+    from diskf_mesh.recording import layout, reader
 
     path = tmp_path / "run.mcap"
     proc = started(["up", "--ticks", "3000", "--record", str(path), "--json", "r.json", "--quiet"], tmp_path)
@@ -243,5 +243,5 @@ def test_an_interrupted_recording_attaches_only_the_ticks_it_ran(tmp_path):
     attached = sum(len(json.loads(r.data)["y"]) for r in reader.records(path.read_bytes())
                    if isinstance(r, Attachment))
     assert 5 <= rec.ticks < 3000 and rec.planned_ticks == 3000
-    assert rec.ticks <= attached < rec.ticks + writer.SEGMENT_TICKS
+    assert rec.ticks <= attached < rec.ticks + layout.SEGMENT_TICKS
     assert reader.read(path).trace.shape[1] == attached

@@ -42,6 +42,16 @@ def test_comparing_estimators_with_a_plot(tmp_path):
     assert sum(line.split()[0] in ("diskf", "diskf-r", "kcf") for line in out.splitlines() if line.split()) == 3
 
 
+def test_streaming_loop_equals_the_engine(tmp_path):
+    """The loop's network, its agents carrying bytes, and the batched engine
+    on the logged data agree bit for bit (the script exits 1 otherwise)."""
+    out = run("streaming/run.py", "--ticks", "40", "--seed", "5", cwd=tmp_path)
+    assert "diskf-auto on 9 agents, 40 ticks" in out
+    assert "the batched engine on the logged data: the same estimates, bit for bit" in out
+    rows = [line.split() for line in out.splitlines() if line.split() and line.split()[0].isdigit()]
+    assert [int(r[0]) for r in rows] == [20, 40] and all(0 < float(r[1]) < 100 for r in rows)
+
+
 def test_every_example_has_a_test():
     scripts = {p.relative_to(EXAMPLES).as_posix() for p in EXAMPLES.glob("*/run.py")}
-    assert scripts == {"own-scenario/run.py", "own-data/run.py", "compare-estimators/run.py"}
+    assert scripts == {"own-scenario/run.py", "own-data/run.py", "compare-estimators/run.py", "streaming/run.py"}

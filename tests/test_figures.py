@@ -52,3 +52,24 @@ def test_out_that_is_a_file_is_bad_input(tmp_path, capsys):
     code, _, err = run_cli(["figures", "--out", f, *SHORT], capsys)
     assert code == 2
     assert err.startswith("error: out:") and len(err.strip().splitlines()) == 1
+
+
+def test_recording_figures_without_matplotlib_is_one_error_line(tmp_path, capsys):
+    """``figures --from`` without the plotting packages: one line naming the
+    README's own install command, exit 2, no folder made."""
+    import subprocess
+    import sys
+
+    from diskf_mesh.cli.study_options import INSTALL_FIGURES
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert f"`{INSTALL_FIGURES}`" in readme
+    code, _, err = run_cli(["up", "--network", "simulated", "--ticks", "5", "--record", tmp_path / "run.mcap",
+                            "--quiet"], capsys)
+    assert code == 0, err
+    block = "import sys; sys.modules['matplotlib'] = None; from diskf_mesh.cli.main import main; sys.exit(main(sys.argv[1:]))"
+    done = subprocess.run([sys.executable, "-c", block, "figures", "--from", "run.mcap", "--out", "figs"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and f"{INSTALL_FIGURES} in the diskf-mesh folder" in done.stderr
+    assert not (tmp_path / "figs").exists()

@@ -256,3 +256,38 @@ def test_mix_gives_the_same_bits_for_any_batch_shape(bounded, monkeypatch):
     monkeypatch.setattr(im, "ALL_TERMS_AT_ONCE", 0)                              # every batch one model at a time
     for got, want in zip(im.mix(w[:1], z[:1], Z[:1], bounded=bounded), agents[0]):
         assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("bounded", [False, True])
+def test_mix_leaves_out_zero_weights_with_the_same_bits(bounded):
+    """Pruned weights (0) add nothing: a batch whose columns hold 1 to M
+    nonzero weights mixes, column by column, the bits of the same column
+    alone, and of the plain sum over every model in order (its zero terms
+    included)."""
+    rng = np.random.default_rng(11)
+    B, M, k = 30, 21, 4
+    w = rng.dirichlet(np.ones(M), size=(B, M)).transpose(0, 2, 1)
+    keep = rng.random((B, M, M)) < rng.choice([0.05, 0.2, 1.0], size=(B, 1, M))
+    keep[:, 0, :] |= ~keep.any(axis=1)                                           # every column keeps a weight
+    w = np.where(keep, w, 0.0)
+    w = w / w.sum(axis=1, keepdims=True)
+    z = rng.normal(size=(B, M, k)) * rng.choice([1e-3, 1.0, 1e3], size=(B, M, 1))
+    L = rng.normal(size=(B, M, k, k))
+    Z = L @ np.swapaxes(L, -1, -2) + 1e-3 * np.eye(k)
+    mean, cov = im.mix(w, z, Z, bounded=bounded)
+    for b in (0, 7, 29):
+        for j in (0, 5, 20):
+            one = im.mix(w[b:b + 1, :, j:j + 1], z[b:b + 1], Z[b:b + 1], bounded=bounded)
+            assert np.array_equal(one[0][0, 0], mean[b, j]) and np.array_equal(one[1][0, 0], cov[b, j])
+            wj = w[b, :, j]
+            m = wj[0] * z[b, 0]
+            for i in range(1, M):
+                m = m + wj[i] * z[b, i]
+            within, spread = Z[b, 0] * wj[0], np.outer(z[b, 0] - m, z[b, 0] - m) * wj[0]
+            for i in range(1, M):
+                within = within + Z[b, i] * wj[i]
+                spread = spread + np.outer(z[b, i] - m, z[b, i] - m) * wj[i]
+            if bounded and np.trace(spread) > np.trace(within):
+                spread = spread * (np.trace(within) / np.trace(spread))
+            assert np.array_equal(m, mean[b, j])
+            assert np.array_equal(0.5 * ((within + spread) + (within + spread).T), cov[b, j])

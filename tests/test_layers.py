@@ -113,3 +113,64 @@ def test_mesh_rooms_point_down(path):
         if MESH_ROOMS.index(there) > MESH_ROOMS.index(here):
             bad.append(f"{path.relative_to(ROOT)}:{line}: mesh.{here} imports {module}")
     assert not bad, "\n".join(bad)
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph() -> dict:
+    """Module -> the project modules it imports (anywhere in it but its
+    ``__main__`` block, ``importlib.import_module("name")`` included); a
+    package's ``__init__`` is not a target (a submodule reaches its package's
+    namespace without a circle of modules)."""
+    modules = {_module_name(p): p for p in FILES}
+    graph = {}
+    for name, path in modules.items():
+        found = {m for _, m in _imports(path)}
+        tree = ast.parse(path.read_text())
+        skip = {id(n) for top in tree.body if _main_block(top) for n in ast.walk(top)}
+        found |= {n.args[0].value for n in ast.walk(tree) if id(n) not in skip and isinstance(n, ast.Call)
+                  and getattr(n.func, "attr", None) == "import_module" and n.args
+                  and isinstance(n.args[0], ast.Constant)}
+        graph[name] = {m for m in found if m in modules and m != name and modules[m].name != "__init__.py"}
+    return graph
+
+
+def circles(graph: dict) -> list:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while not component or component[-1] != v:
+                component.append(stack.pop())
+                on.discard(component[-1])
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_circles_are_found():
+    assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert circles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_circles():
+    """No module reaches itself again through the modules it imports."""
+    assert circles(_import_graph()) == []

@@ -58,3 +58,25 @@ def test_up_runs_from_an_install_in_an_empty_folder(wheel, tmp_path):
                           cwd=run, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert (run / "r.json").exists()
+
+
+def test_the_version_has_one_source():
+    """``diskf_mesh.__version__`` is the version: pyproject.toml reads it, the
+    installed metadata carries it, CITATION.cff and the changelog's latest
+    release name it, and the changelog keeps an Unreleased section on top."""
+    import importlib.metadata
+    import re
+    import tomllib
+
+    import yaml
+
+    from diskf_mesh import __version__
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert "version" not in project["project"] and "version" in project["project"]["dynamic"]
+    assert project["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "diskf_mesh.__version__"}
+    assert importlib.metadata.version("diskf-mesh") == __version__
+    assert str(yaml.safe_load((ROOT / "CITATION.cff").read_text())["version"]) == __version__
+    releases = re.findall(r"^## (\S+)(?: - (\d{4}-\d{2}-\d{2}))?$", (ROOT / "CHANGELOG.md").read_text(), re.M)
+    assert releases[0] == ("Unreleased", "")
+    assert releases[1][0] == __version__ and releases[1][1], "the latest release, with its date"

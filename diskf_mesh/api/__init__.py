@@ -3,6 +3,7 @@
     results   the result types (dataclasses of numpy arrays, with ``to_dict``)
     calls     load_scenario, simulate, estimate, run, experiment, replay,
               read_trace, write_trace, up
+    streaming Network and Agent: one tick at a time (``Estimate`` per tick)
 
 Reference: docs/api.md. Every call takes and returns plain values (paths,
 names, numpy arrays, dataclasses); bad input raises ``InputError`` naming
@@ -25,6 +26,7 @@ from diskf_mesh.api.calls import (
     write_trace,
 )
 from diskf_mesh.api.results import Experiment, MeshRun, Run
+from diskf_mesh.api.streaming import Agent, Estimate, Network
 
 __all__ = ["load_scenario", "simulate", "estimate", "run", "experiment", "replay", "up", "read_trace",
-           "write_trace", "estimator_names", "Run", "Experiment", "MeshRun"]
+           "write_trace", "estimator_names", "Run", "Experiment", "MeshRun", "Network", "Agent", "Estimate"]

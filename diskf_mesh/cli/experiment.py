@@ -5,7 +5,9 @@ range-gated scenario's own range, e.g. dynamic at 120, as up and simulate
 run it; any other scenario on the paper's all, ring, none), prints a table
 shaped like Table II and optionally writes the numbers as JSON
 ``{estimator: {topology: {mae_state, rmse_state, mae_input, rmse_input,
-input_coverage, nees, <metric>_std ...}}}``.
+input_coverage, nees, <metric>_std ...}}}``. An estimator that diverges in
+a setting is ``"diverged": true`` there, ``diverged`` in the table, and one
+line on standard error.
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import argparse
 import sys
 
 from diskf_mesh.studies import experiment
-from diskf_mesh.data import provenance
+from diskf_mesh.data import lies, provenance
 from diskf_mesh.data.scenario import load_scenario
 from diskf_mesh.cli.options import (
     add_command,
@@ -57,6 +59,7 @@ def register(subparsers) -> None:
     add_estimator_choice(p, many=True)
     p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
     add_estimator_options(p)
+    lies.add_arguments(p)
     p.add_argument("--json", metavar="OUT", help="also write the results as JSON (- for standard output)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -68,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.json, "json")
     started = provenance.now()
     scn = load_scenario(args.scenario, agents=args.agents)
+    if args.lie is not None:
+        scn = scn.with_lies(args.lie)
     settings = experiment.settings_for(*default_topologies(scn, args.topology, args.comm_range))
     params = estimator_params(scn.params, args)
     for st in settings:  # fail on a bad override before the long run
@@ -86,4 +91,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"Scenario {scn.name}: {args.seeds} seeds x {steps} ticks, {scn.N} agents; "
           f"* marks the best value of each row", file=text)
     print(experiment.format_table(results), file=text)
+    for name, rows in results.items():
+        gone = [experiment.TOPOLOGY_LABELS.get(st, st) for st, row in rows.items() if row.get("diverged")]
+        if gone:
+            print(f"diverged: {experiment.LABELS.get(name, name)} in {', '.join(gone)} (its covariance stopped being "
+                  "positive definite, or an estimate left what a message may carry): no metrics there",
+                  file=sys.stderr)
     return 0

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from functools import partial
 
-from diskf_mesh.cli.study_options import add_study_command, out_dir, run_study
+from diskf_mesh.cli.study_options import add_study_command, drawing, out_dir, run_study
 
 
 FORMATS = ("png", "pdf", "svg")  # as diskf_mesh.studies.figures.FORMATS, which loads matplotlib
@@ -36,6 +36,7 @@ def recording_figures(args) -> int:
     from diskf_mesh.recording.figures import make_recording_figures
     from diskf_mesh.recording.reader import read
 
-    paths = make_recording_figures(read(args.recording), out_dir(args.out), fmt=args.format)
+    rec = read(args.recording)
+    paths = drawing(args.command, lambda: make_recording_figures(rec, out_dir(args.out), fmt=args.format))
     print(f"{len(paths)} figures of {args.recording} -> {args.out}")
     return 0

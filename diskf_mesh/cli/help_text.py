@@ -34,6 +34,8 @@ EXIT_STATUSES = (
     (exits.DEGRADED, "a mesh run fused fewer messages than planned (--allow-degraded accepts it)"),
     (exits.DIVERGED, "a reported estimate that the engine does not reproduce"),
     (exits.RECORDING_FAILED, "the run's recording could not be written whole (e.g. a full disk)"),
+    (exits.UNVERIFIABLE, "a mesh run reported agent-ticks the engine cannot verify (built on a report that did not "
+                         "come); only --accept-unverifiable accepts it"),
     (130, "interrupted (Ctrl-C): every process it started is stopped"),
     (141, "its output pipe was closed (e.g. '| head')"),
     (143, "terminated (SIGTERM): every process it started is stopped"),

@@ -3,7 +3,9 @@
 Each subcommand lives in its own module under ``diskf_mesh.cli`` (or
 ``sim``/``agents``) exposing ``register(subparsers)``, which adds a parser and
 sets ``func``. User errors raise ``InputError`` and end as one line
-``error: <field>: <message>`` with exit status 2, never a traceback; a
+``error: <field>: <message>`` with exit status 2, never a traceback; an
+estimator's numerical failure is one line ``error: ...`` with exit status
+1; a
 warning of the library (e.g. a KCF step that may diverge) is one line
 ``warning: <message>``.
 
@@ -21,6 +23,8 @@ import signal
 import sys
 import threading
 import warnings
+
+import numpy as np
 
 from diskf_mesh import __version__
 from diskf_mesh.core.errors import InputError
@@ -189,6 +193,9 @@ def _main(argv, modules) -> int:
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except np.linalg.LinAlgError as e:  # an estimator's numerical failure (``engine.Diverged``): one line
+        print(f"error: {e}", file=sys.stderr)
+        return 1
 
 
 def run_one(command: str, module: str, argv=None) -> int:

@@ -6,7 +6,10 @@ The estimator settings are those the trace carries (``simulate`` writes its
 scenario's ``[estimator]`` table into it), so ``simulate`` + ``replay`` gives
 ``experiment``'s estimates bit for bit; ``Params()`` where the trace has
 none, and the estimator options (--window, --eps, ...) override them. A trace that breaks
-its schema (docs/formats.md) ends in one line naming the field, exit 2.
+its schema (docs/formats.md) ends in one line naming the field, exit 2. An
+estimator that diverges on the trace (its covariance stops being positive
+definite, or an estimate leaves what a message may carry) ends in one line
+saying whose and at which tick, exit 1, nothing written.
 
 ``--fused EST.json`` replays a mesh run (``up`` or ``world --estimates``, a
 real-time or faulty run included) from its estimates document: the engine runs
@@ -23,6 +26,7 @@ accepted). ``replay RUN.mcap`` checks a recording the same way.
 from __future__ import annotations
 
 import argparse
+import sys
 
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.data import metrics, provenance
@@ -61,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         from diskf_mesh.recording.command import replay_recording
         check_output(args.out, "out")
         return replay_recording(args.trace, args.out, argv=args.argv, allow_missing=args.allow_missing,
-                                allow_degraded=args.allow_degraded)
+                                allow_degraded=args.allow_degraded, accept_unverifiable=args.accept_unverifiable)
     if args.fused is not None:
         return replay_run(args)
     if args.out is None:
@@ -70,7 +74,15 @@ def run(args: argparse.Namespace) -> int:
     started = provenance.now()
     doc, trace = read_trace_file(args.trace)
     params = estimator_params(estimator_from_json(doc), args)
-    est = engine.run(trace, args.estimator, params)
+    try:
+        est = engine.run(trace, args.estimator, params)
+    except engine.Diverged as e:
+        return failed(f"{e}; nothing written")
+    from diskf_mesh.studies.experiment import diverged_tick
+    k = diverged_tick(est)
+    if k is not None:
+        return failed(f"{args.estimator}, tick {k}: an estimate is not finite or beyond what a message may carry "
+                      "(it diverged); nothing written")
     scores = metrics.compute(trace, est) if trace.truth_x is not None else None
     prov = trace_provenance(args, doc, trace, params, "done", started)
     save_json(args.out, provenance.attach(estimates_to_json(est, args.estimator, 0, scores, ids=trace.agent_labels),
@@ -81,6 +93,12 @@ def run(args: argparse.Namespace) -> int:
     for key, value in json_safe(scores or {}).items():
         print(f"  {key:<15}{'-' if value is None else f'{value:.4f}'}", file=text)
     return 0
+
+
+def failed(line: str) -> int:
+    """A replay whose estimator diverged: one line, exit 1, nothing written."""
+    print(f"error: {line}", file=sys.stderr)
+    return exits.FAILED
 
 
 def trace_provenance(args, doc: dict, trace, params, status: str, started: str, estimator=None) -> dict:
@@ -115,4 +133,5 @@ def replay_run(args: argparse.Namespace) -> int:
     prov = trace_provenance(args, doc, trace, params, status.status, started, run.algorithm)
     return report_replay(status, est, trace, run.algorithm, trace.agent_labels, prov, args.out,
                          miss_rate=run.miss_rate, allow_missing=args.allow_missing,
-                         allow_degraded=args.allow_degraded, hint="not this run's trace, scenario, seed or settings?")
+                         allow_degraded=args.allow_degraded, accept_unverifiable=args.accept_unverifiable,
+                         hint="not this run's trace, scenario, seed or settings?")

@@ -3,6 +3,7 @@ horizon, quiet) and the command skeleton around one action."""
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from pathlib import Path
 
@@ -11,6 +12,7 @@ from diskf_mesh.cli.options import add_command, check_output_dir, positive_int
 
 
 PLOTTING = ("matplotlib", "PIL")  # pyproject.toml's figures extra
+INSTALL_FIGURES = "pip install '.[figures]'"  # from a clone, as the README installs
 
 
 def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: str, action) -> None:
@@ -27,14 +29,23 @@ def run_study(args: argparse.Namespace, action) -> int:
     from diskf_mesh.studies.suite import StudyConfig  # here, not at the top: --help loads every command module
 
     cfg = StudyConfig(seeds=args.seeds, steps=args.steps, quiet=args.quiet or not sys.stderr.isatty())
+    print(drawing(args.command, lambda: action(cfg, out_dir(args.out))))
+    return 0
+
+
+def drawing(command: str, draw):
+    """``draw()``; ``InputError`` saying how to install the plotting
+    packages (as the README does) if they are not installed, found before
+    ``draw`` writes anything."""
     try:
-        print(action(cfg, out_dir(args.out)))
+        for name in PLOTTING:
+            importlib.import_module(name)
+        return draw()
     except ModuleNotFoundError as e:
         if (e.name or "").split(".")[0] not in PLOTTING:
             raise
-        raise InputError(args.command, f"needs {e.name}, which diskf-mesh installs only with its figures extra: "
-                                       "pip install 'diskf-mesh[figures]'") from None
-    return 0
+        raise InputError(command, f"needs {e.name}, which diskf-mesh installs only with its figures extra: "
+                                  f"{INSTALL_FIGURES} in the diskf-mesh folder") from None
 
 
 def out_dir(text: str) -> Path:

@@ -20,6 +20,13 @@ with the code this table gives it; ``replay RUN.mcap`` and ``replay
     7  RECORDING_FAILED the run's recording could not be written whole (a
                         full disk): its line names the file and the last
                         tick it holds
+    8  UNVERIFIABLE     reported agent-ticks the check cannot verify: built
+                        on a state the run did not report (a withheld or
+                        lost report, then an estimate or a message the
+                        engine does not reproduce), or reported after the
+                        engine's own replay diverged; never accepted by
+                        ``--allow-missing``, only by
+                        ``--accept-unverifiable`` (its line gives the count)
 """
 from __future__ import annotations
 
@@ -31,10 +38,12 @@ TOO_MANY_MISSES = 4
 DEGRADED = 5
 DIVERGED = 6
 RECORDING_FAILED = 7
+UNVERIFIABLE = 8
 STOPPED = INCOMPLETE  # an agent process that left because its estimator diverged (it told the world)
 
-EXACT_STATUS, AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, INCOMPLETE_STATUS = (
-    "exact", "as planned", "degraded", "diverged", "incomplete")
-STATUSES = (EXACT_STATUS, AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, INCOMPLETE_STATUS)
+EXACT_STATUS, AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, INCOMPLETE_STATUS, UNVERIFIABLE_STATUS = (
+    "exact", "as planned", "degraded", "diverged", "incomplete", "unverifiable")
+STATUSES = (EXACT_STATUS, AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, INCOMPLETE_STATUS,
+            UNVERIFIABLE_STATUS)
 STATUS_EXIT = {EXACT_STATUS: OK, AS_PLANNED_STATUS: OK, DEGRADED_STATUS: DEGRADED, DIVERGED_STATUS: DIVERGED,
-               INCOMPLETE_STATUS: INCOMPLETE}
+               INCOMPLETE_STATUS: INCOMPLETE, UNVERIFIABLE_STATUS: UNVERIFIABLE}

@@ -25,6 +25,8 @@ Every function is pure, with leading batch axes.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from diskf_mesh.core.equations import replace_marginal
@@ -158,8 +160,9 @@ def mix(w, z, Z, bounded=False):
     (..., M, J), the mean sum_i w_ij z_i and covariance
     sum_i w_ij Z_i + sum_i w_ij (z_i - mean)(z_i - mean)^T (the models' own
     covariances, then the spread between their means). z: (..., M, k);
-    Z: (..., M, k, k). Returns (..., J, k), (..., J, k, k). Sums run over i
-    in order (the same bits for any batch shape).
+    Z: (..., M, k, k). Returns (..., J, k), (..., J, k, k). Each sum runs
+    over the models i of nonzero weight, in order (the same bits for any
+    batch shape): a weight pruned to 0 (``model_weights``) costs nothing.
 
     ``bounded``: the spread counts at most as much as the models' own
     covariances (it is scaled down until its trace is at most theirs). The
@@ -170,27 +173,39 @@ def mix(w, z, Z, bounded=False):
     tick in ``tests/test_auto.py``'s velocity-only agent, until the
     covariance is no longer positive definite). Where the models disagree by
     less than their own uncertainty the mixture is the exact one."""
-    M, k = z.shape[-2], z.shape[-1]
-    if w.size * k * k <= ALL_TERMS_AT_ONCE:
-        # an agent's batch: every term at once (model axis i before the column axis j), then summed
-        # over i in order (``add.accumulate`` adds one term after the other, as the loop below does)
+    k = z.shape[-1]
+    if w.size * k * k <= ALL_TERMS_AT_ONCE and w.all():
+        # every term at once (model axis i before the column axis j), then summed over i in order
+        # (``add.accumulate`` adds one term after the other, as the slots below do)
         mean = _ordered_sum(w[..., :, :, None] * z[..., :, None, :], -3)      # (..., J, k)
         dz = z[..., :, None, :] - mean[..., None, :, :]                        # (..., M, J, k)
         wij = w[..., :, :, None, None]
         within = _ordered_sum(Z[..., :, None, :, :] * wij, -4)                  # (..., J, k, k)
         spread = _ordered_sum((dz[..., :, None] * dz[..., None, :]) * wij, -4)
-    else:  # the engine's batch: one model at a time, its terms small enough to stay in the cache
-        wi = lambda i: w[..., i, :]  # noqa: E731  (..., J)
-        mean = wi(0)[..., None] * z[..., 0:1, :]
-        for i in range(1, M):
-            mean = mean + wi(i)[..., None] * z[..., i:i + 1, :]
+    else:  # the terms of nonzero weight only, slot after slot (``_terms``)
+        batch, J = w.shape[:-2], w.shape[-1]
+        rows, wk, ends, back = _terms(w)
+        zk = np.broadcast_to(z, batch + z.shape[-2:]).reshape(-1, k)[rows]          # (terms, k)
+        Zk = np.broadcast_to(Z, batch + Z.shape[-3:]).reshape(-1, k, k)[rows]      # (terms, k, k)
+        slots = list(zip([0] + ends[:-1], ends))                                   # slot t: terms start:end
+        mean = wk[:ends[0], None] * zk[:ends[0]]
+        for start, end in slots[1:]:  # slot t adds to the end - start columns that have a t-th term
+            mean[:end - start] += wk[start:end, None] * zk[start:end]
         within = spread = None
-        for i in range(M):
-            dz = z[..., i:i + 1, :] - mean                        # (..., J, k)
-            a = Z[..., i:i + 1, :, :] * wi(i)[..., None, None]
-            b = (dz[..., :, None] * dz[..., None, :]) * wi(i)[..., None, None]
-            within = a if within is None else within + a
-            spread = b if spread is None else spread + b
+        for start, end in slots:
+            wt = wk[start:end, None, None]
+            dz = zk[start:end] - mean[:end - start]
+            a, b = Zk[start:end] * wt, (dz[:, :, None] * dz[:, None, :]) * wt
+            if within is None:
+                within, spread = a, b
+            else:
+                within[:end - start] += a
+                spread[:end - start] += b
+        if len(back) > ends[0]:  # columns of no nonzero weight (``model_weights`` leaves none): zeros
+            pad = len(back) - ends[0]
+            mean, within, spread = (np.concatenate([a, np.zeros((pad,) + a.shape[1:])]) for a in (mean, within, spread))
+        mean = mean[back].reshape(batch + (J, k))
+        within, spread = (s[back].reshape(batch + (J, k, k)) for s in (within, spread))
     if bounded:
         tw, ts = _trace(within), _trace(spread)
         over = ts > tw
@@ -198,17 +213,47 @@ def mix(w, z, Z, bounded=False):
     return mean, sym(within + spread)
 
 
-# the largest (batch x models x columns x k x k) for which ``mix`` makes every term at
-# once: an agent's 21 x 21 models with k = 4 are 7,056; the engine's batches are larger,
-# and there one model at a time is faster (its terms stay in the cache)
+def _terms(w):
+    """The nonzero weights of w (..., M, J), column by column, laid out for
+    ``mix``: (rows, wk, ends, back). The columns (every (batch, j)) are
+    sorted by how many nonzero weights they hold, most first; term t of
+    every column that has one forms slot t, the slots one after the other
+    (``ends`` where each stops), each slot's columns in that order, so slot
+    t's columns are the first ``end - start`` of slot 0's. ``rows``: each
+    term's model i as a row of the models flattened over the batch; ``wk``
+    its weight; ``back`` puts the sorted columns back in order."""
+    batch, (M, J) = w.shape[:-2], w.shape[-2:]
+    wt = np.ascontiguousarray(w.swapaxes(-1, -2)).reshape(-1, M)       # column j of batch b: row b J + j
+    count = np.count_nonzero(wt, axis=1)
+    by = np.argsort(-count, kind="stable")
+    wt, count = wt[by], count[by]
+    f = np.flatnonzero(wt)                                              # column after column, i in order
+    col, i = np.divmod(f, M)
+    t = np.arange(f.size) - (np.cumsum(count) - count)[col]             # the term's slot
+    order = np.argsort(t.astype(np.int16), kind="stable")              # slot after slot, columns in order
+    back = np.empty_like(by)
+    back[by] = np.arange(by.size)
+    rows = ((by // J) * M)[col] + i
+    return rows[order], wt.reshape(-1)[f][order], np.cumsum(np.bincount(t)).tolist(), back
+
+
+# the largest (batch x models x columns x k x k) for which ``mix`` makes every term at once (an
+# agent's 21 x 21 models with k = 4 are 7,056) when no weight is 0
 ALL_TERMS_AT_ONCE = 1 << 16
 
 
 def _ordered_sum(terms, axis: int):
     """The sum of ``terms`` over ``axis``, added in order (first + second,
     then + third, ...): the same bits for any batch shape, unlike ``sum``'s
-    pairwise summation."""
-    return np.take(np.add.accumulate(terms, axis=axis), -1, axis=axis)
+    pairwise summation. Small terms in one ``add.accumulate``, large ones
+    added one after the other (the same adds, without the partial sums)."""
+    if terms.shape[axis] < 3 or terms.size < 256 * terms.shape[axis]:
+        return np.take(np.add.accumulate(terms, axis=axis), -1, axis=axis)
+    terms = np.moveaxis(terms, axis, 0)
+    out = terms[0] + terms[1]
+    for term in terms[2:]:
+        out += term
+    return out
 
 
 def _trace(M):

@@ -36,6 +36,7 @@ import numpy as np
 
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
+from diskf_mesh.data.lies import Lie, resolve
 from diskf_mesh.data.inputs import InputSpec, parse_input
 from diskf_mesh.core.model import LinearModel, Sensors
 from diskf_mesh.estimators import REGISTRY, SETTINGS, Params
@@ -98,6 +99,7 @@ class Scenario:
     comm_range: float
     agents: tuple
     faults: dict = field(default_factory=dict)
+    lies: tuple = ()         # ``data.lies.Lie``s, each agent the run's id (the fault plan's [[faults.lies]])
 
     @property
     def N(self) -> int:
@@ -146,7 +148,10 @@ class Scenario:
 
     def positions(self, steps: int) -> np.ndarray:
         """Agent positions (steps, N, 2) at ticks 1..steps."""
-        ticks = np.arange(1, steps + 1)
+        return self.positions_at(np.arange(1, steps + 1))
+
+    def positions_at(self, ticks) -> np.ndarray:
+        """Agent positions (len(ticks), N, 2) at the given ticks."""
         return np.stack([a.position_at(ticks) for a in self.agents], axis=1)
 
     def check_size(self, seeds: int = 1, steps: int | None = None) -> None:
@@ -170,6 +175,11 @@ class Scenario:
         if params is not None:
             out = replace(out, params=params)
         return out
+
+    def with_lies(self, lies) -> "Scenario":
+        """This scenario with these lies (``data.lies.Lie``, agents as the
+        scenario names them) instead of its own."""
+        return replace(self, lies=resolve(lies, self.labels, [a.id for a in self.agents]))
 
 
 # --------------------------------------------------------------------------
@@ -274,8 +284,14 @@ def parse_scenario(raw: dict, agents: int | None = None, base: Path | None = Non
     labels = unique_ids([a.name for a in specs], "agents.id")
     specs = tuple(replace(a, id=i) for a, i in zip(specs, internal_ids(labels)))
 
-    faults = check_keys(raw.get("faults", {}), [f.name for f in fields(FaultConfig)], "faults")
+    faults = dict(raw.get("faults", {})) if isinstance(raw.get("faults", {}), dict) else raw.get("faults")
+    told = faults.pop("lies", []) if isinstance(faults, dict) else []
+    if not isinstance(told, list):
+        raise InputError("faults.lies", "must be a list of tables ([[faults.lies]])")
+    faults = check_keys(faults, [f.name for f in fields(FaultConfig)], "faults")
     FaultConfig.from_mapping(faults)
+    lies = resolve([Lie.from_mapping(t, f"faults.lies[{i}]") for i, t in enumerate(told)], labels,
+                   [a.id for a in specs])
     sensors = Sensors.from_list([a.id for a in specs], [a.H for a in specs], [a.R for a in specs])
     for cls in REGISTRY.values():  # a setting an estimator refuses for this model and these sensors
         refused = cls.refuse(params, LinearModel(A[None] if A.ndim == 2 else A, G, Q, x0, P0), sensors)
@@ -287,7 +303,7 @@ def parse_scenario(raw: dict, agents: int | None = None, base: Path | None = Non
         steps=steps, A=A, G=G, Q=Q, x0=x0, P0=P0, position_dims=pos_dims,
         input=input_spec,
         params=params, topology=topology, comm_range=comm_range,
-        agents=specs, faults=dict(faults),
+        agents=specs, faults=dict(faults), lies=lies,
     )
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from diskf_mesh import estimators
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
+from diskf_mesh.data.lies import Liars
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.estimators import Params
 
@@ -54,12 +55,16 @@ class Estimates:
         """Select seeds (the leading axis)."""
         return Estimates(self.x[index], self.P[index], self.d[index], self.d_valid[index])
 
+    def agents(self, columns) -> "Estimates":
+        """Select agents (by their place in the scenario)."""
+        return Estimates(self.x[:, :, columns], self.P[:, :, columns], self.d[:, :, columns],
+                         self.d_valid[:, :, columns])
 
-def draw_stream(est, trace: Trace) -> np.ndarray | None:
+
+def draw_stream(est, seeds, ticks: int) -> np.ndarray | None:
     """(B, K, N) the estimator's per-agent draws (``Estimator.draws``) for
-    every seed of ``trace``, or None if it draws nothing."""
-    K = trace.y.shape[1]
-    rows = [est.draws(s, trace.sensors.ids, K) for s in trace.seeds]
+    every seed of ``seeds`` over ``ticks`` ticks, or None if it draws nothing."""
+    rows = [est.draws(s, est.sensors.ids, ticks) for s in seeds]
     return None if rows[0] is None else np.stack([r.T for r in rows])
 
 
@@ -100,9 +105,17 @@ class GatheredLinks:
         rows = a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:])
         return np.take(rows, self.flat, axis=0).reshape(self.shape + a.shape[2:])
 
-    def fuse(self, est, state, msg: Message, draws):
+    def fuse(self, est, state, msg: Message, draws, sent: Message | None = None):
+        """``sent``: what the agents sent, if not ``msg`` (a liar's message,
+        ``data.lies``); each receiver fuses its own true message."""
         own = Message(**{f.name: getattr(msg, f.name)[:, :, None] for f in fields(Message)})
-        senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
+        if sent is None:
+            senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
+        else:
+            mine = self.self_mask[:, :, 0]
+            senders = Message(**{f.name: np.where(mine.reshape(mine.shape + (1,) * (getattr(own, f.name).ndim - 3)),
+                                                  getattr(own, f.name), self.gather(getattr(sent, f.name)))
+                                 for f in fields(Message)})
         nb = self.nb if draws is None else Neighbourhood(self.adj, self.self_mask, draws[:, :, None])
         st, out = est.fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders, nb)
         squeeze = lambda a: a[:, :, 0]  # noqa: E731
@@ -133,13 +146,15 @@ def choose_links(links: np.ndarray, B: int, mode: str = "auto"):
 # running
 # --------------------------------------------------------------------------
 def run(trace: Trace, estimator: str, params: Params | None = None, progress=None,
-        neighbours: str = "auto") -> Estimates:
+        neighbours: str = "auto", lies=()) -> Estimates:
     """Run one estimator (by name) on every seed of ``trace``.
 
     ``progress``, if given, is called with the number of ticks done (counted
     over all seed chunks when a large run is split, see ``seeds_per_chunk``).
     ``neighbours`` picks the message layout (see the module docstring);
-    all give the same estimates. A setting the estimator refuses
+    all give the same estimates. ``lies``: ``data.lies.Lie``s the agents
+    commit on their outgoing messages (and reports), with agents as the
+    run's ids (``Scenario.lies``). A setting the estimator refuses
     (``Estimator.refuse``) raises ``InputError`` first; its ``warning``, if
     any, is issued as a RuntimeWarning."""
     refused = estimators.get(estimator).refuse(params or Params(), trace.model, trace.sensors)
@@ -151,26 +166,28 @@ def run(trace: Trace, estimator: str, params: Params | None = None, progress=Non
     B = trace.has.shape[0]
     chunk = seeds_per_chunk(trace)
     if chunk >= B:
-        return run_batch(trace, estimator, params, progress, neighbours)
+        return run_batch(trace, estimator, params, progress, neighbours, lies=lies)
     K = trace.has.shape[1]
     parts = []
     for c, start in enumerate(range(0, B, chunk)):
         report = None if progress is None else (lambda k, done=c * K: progress(done + k))
-        parts.append(run_batch(take_seeds(trace, slice(start, start + chunk)), estimator, params, report, neighbours))
+        parts.append(run_batch(take_seeds(trace, slice(start, start + chunk)), estimator, params, report, neighbours,
+                               lies=lies))
     return Estimates(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Estimates)))
 
 
 def run_batch(trace: Trace, estimator: str, params: Params | None = None, progress=None,
-              neighbours: str = "auto", restart=None, listen=None) -> Estimates:
+              neighbours: str = "auto", restart=None, listen=None, lies=()) -> Estimates:
     """``run`` on all seeds of ``trace`` as one batch. ``restart(k, est,
     state) -> state``, if given, may replace agents' states before tick k's
     local step (a restarted agent, ``engine.verify``); ``listen(k, msg)`` is
-    handed every tick's messages."""
-    est = estimators.get(estimator)(trace.model, trace.sensors, params)
+    handed every tick's (true) messages. With ``lies`` every receiver is a
+    batch of one (``gather``), so that each fuses its own true message and
+    the others' as they were sent."""
     B, K, N = trace.has.shape
     n, m = trace.model.n, trace.model.m
-    state = est.init((B, N))
-    draws = draw_stream(est, trace)
+    steps = Stepper(trace.model, trace.sensors, estimator, params, trace.seeds, K, neighbours,
+                    Liars(lies, trace.sensors.ids, n, trace.position_dims))
     # tick-major buffers: each tick writes one contiguous block
     xs = np.empty((K, B, N, n))
     Ps = np.empty((K, B, N, n, n))
@@ -178,23 +195,58 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
     dv = np.empty((K, B, N), dtype=bool)
     y, has = np.moveaxis(trace.y, 1, 0), np.moveaxis(trace.has, 1, 0)
     changed = link_changes(trace.links)
-    view = None
     for k in range(1, K + 1):
         if restart is not None:
-            state = restart(k, est, state)
-        try:
-            state, msg = est.local(state, k, y[k - 1], has[k - 1])
-            if listen is not None:
-                listen(k, msg)
-            if changed[k - 1]:
-                view = choose_links(trace.links[:, k - 1], B, neighbours)
-            state, out = view.fuse(est, state, msg, None if draws is None else draws[:, k - 1])
-        except np.linalg.LinAlgError as e:  # the same type, saying whose and when
-            raise Diverged(f"{estimator}, tick {k}: {e} (its covariance diverged)", k) from None
+            steps.state = restart(k, steps.est, steps.state)
+        out = steps.step(y[k - 1], has[k - 1], trace.links[:, k - 1] if changed[k - 1] else None, listen)
         xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)
     return Estimates(*(np.moveaxis(a, 0, 1) for a in (xs, Ps, ds, dv)))
+
+
+class Stepper:
+    """One estimator on every agent of ``sensors`` for each seed of ``seeds``
+    (a batch of B seeds x N agents), one tick at a time, at most ``ticks``:
+    what ``run_batch`` does per tick, for callers that get each tick's data as
+    it comes (``diskf_mesh.api.streaming``). ``state``: the agents' state
+    after the last tick, ``k`` that tick. ``liars``: a ``data.lies.Liars``
+    of the agents' lies (every receiver is then a batch of one, ``gather``,
+    fusing its own true message and the others' as they were sent)."""
+
+    def __init__(self, model, sensors, estimator: str, params: Params | None, seeds, ticks: int,
+                 neighbours: str = "auto", liars: Liars | None = None):
+        self.name = estimator
+        self.est = estimators.get(estimator)(model, sensors, params)
+        self.B = len(seeds)
+        self.state = self.est.init((self.B, len(sensors.ids)))
+        self.draws = draw_stream(self.est, seeds, ticks)
+        self.liars = liars if liars else None
+        self.neighbours = "gather" if self.liars else neighbours
+        self.k = 0
+        self.view = None
+
+    def step(self, y: np.ndarray, has: np.ndarray, links: np.ndarray | None, listen=None) -> Output:
+        """Tick k = ``self.k`` + 1: the local step on ``y`` (B, N, p_max) where
+        ``has`` (B, N), then fusion over ``links`` (1 or B, N, N), or over the
+        previous tick's when None. ``listen(k, msg)`` is handed the messages."""
+        k = self.k = self.k + 1
+        est = self.est
+        try:
+            self.state, msg = est.local(self.state, k, y, has)
+            if listen is not None:
+                listen(k, msg)
+            if links is not None:
+                self.view = choose_links(links, self.B, self.neighbours)
+            draws = None if self.draws is None else self.draws[:, k - 1]
+            if self.liars is None:
+                self.state, out = self.view.fuse(est, self.state, msg, draws)
+            else:
+                self.state, out = self.view.fuse(est, self.state, msg, draws, self.liars.message(k, msg))
+                out = self.liars.report(k, out)
+        except np.linalg.LinAlgError as e:  # the same type, saying whose and when
+            raise Diverged(f"{self.name}, tick {k}: {e} (its covariance diverged)", k) from None
+        return out
 
 
 class Diverged(np.linalg.LinAlgError):
@@ -279,13 +331,13 @@ def stack(traces) -> Trace:
     )
 
 
-def run_many(traces, estimator: str, params: Params | None = None, progress=None) -> list[Estimates]:
+def run_many(traces, estimator: str, params: Params | None = None, progress=None, lies=()) -> list[Estimates]:
     """``run`` on each trace, batched into one run when they are ``stackable``.
 
     Returns one ``Estimates`` per trace, equal to running each alone."""
     traces = list(traces)
     if len(traces) == 1 or not stackable(traces):
-        return [run(t, estimator, params, progress) for t in traces]
-    est = run(stack(traces), estimator, params, progress)
+        return [run(t, estimator, params, progress, lies=lies) for t in traces]
+    est = run(stack(traces), estimator, params, progress, lies=lies)
     bounds = np.cumsum([0] + [t.has.shape[0] for t in traces])
     return [est.take(slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]

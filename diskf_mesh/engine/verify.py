@@ -23,6 +23,12 @@ Statuses (exit statuses: ``diskf_mesh.core.exits``), first that applies:
                  the first tick, agent and sender whose message it does not
                  reproduce (the agent itself when every message it fused was
                  the engine's)
+    unverifiable some reported agent-tick cannot be verified: it differs
+                 from the replay, built on a state the run did not report
+                 (``Judge``), or it came after the engine's own replay
+                 diverged; how many, the first, and whose missing reports
+                 made the states unknown. ``--allow-missing`` never accepts
+                 it, only ``accept_unverifiable``
     incomplete   some agent-tick was not reported
     degraded     every agent-tick reported and reproduced, but some fused
                  fewer messages than planned: how many, which, and the
@@ -37,7 +43,8 @@ A history is unknown after an agent-tick that was not reported (what it
 fused is unknown) until that agent is re-initialised or its next report
 equals the replay bit for bit; an estimate built on an unknown sender's
 message whose digest is missing or differs is not verifiable
-(``unverified``), not a divergence.
+(``unverified``), not a divergence (``Judge``). ``Online`` is the same
+check one tick at a time, as a run's reports come (the mesh's world).
 
 May import: core, estimators, data (the engine layer).
 """
@@ -50,7 +57,7 @@ import numpy as np
 
 from diskf_mesh.core import exits
 from diskf_mesh.core.exits import (AS_PLANNED_STATUS, DEGRADED_STATUS, DIVERGED_STATUS, EXACT_STATUS,
-                                   INCOMPLETE_STATUS)
+                                   INCOMPLETE_STATUS, UNVERIFIABLE_STATUS)
 from diskf_mesh.data.faults import FaultConfig, delivered_links
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.engine import batch
@@ -105,12 +112,19 @@ class RunStatus:
     def exit_code(self) -> int:
         return exits.STATUS_EXIT[self.status]
 
-    def accepted(self, *, allow_missing: float = 0.0, allow_degraded: bool = False) -> bool:
+    def accepted(self, *, allow_missing: float = 0.0, allow_degraded: bool = False,
+                 accept_unverifiable: bool = False) -> bool:
         """Whether the user accepted this status: exact and as planned always;
         incomplete within ``allow_missing`` (a share of the agent-ticks);
-        degraded with ``allow_degraded``; diverged never."""
+        degraded with ``allow_degraded``; unverifiable only with
+        ``accept_unverifiable`` (and its missing agent-ticks as incomplete);
+        diverged never."""
         if self.status in (EXACT_STATUS, AS_PLANNED_STATUS):
             return True
+        if self.status == UNVERIFIABLE_STATUS:
+            return accept_unverifiable and (
+                self.evidence.get("missing_fraction", 1.0) <= allow_missing or not self.evidence.get("missing_agent_ticks")
+            ) and (allow_degraded or not self.degraded_beyond_missing)
         if self.status == INCOMPLETE_STATUS:
             return (self.evidence.get("missing_fraction", 1.0) <= allow_missing
                     and (allow_degraded or not self.degraded_beyond_missing))
@@ -250,17 +264,83 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
 def differing(claims: RunClaims, est: Estimates) -> tuple:
     """((K, N) bool: reported agent-ticks whose x, P, d_valid or (where
     valid) d differ from ``est`` bit for bit; (K, N) largest |difference|)."""
-    r = claims.reported
-    x, P, d, dv = est.x[0], est.P[0], est.d[0], est.d_valid[0]
-    both = claims.d_valid & dv
+    return compare(claims.reported, claims.x, claims.P, claims.d, claims.d_valid,
+                   est.x[0], est.P[0], est.d[0], est.d_valid[0])
+
+
+def compare(r, cx, cP, cd, cdv, x, P, d, dv) -> tuple:
+    """``differing`` on arrays of any leading shape: the claims (``r``
+    reported, ``cx``, ``cP``, ``cd``, ``cdv``) against the engine's."""
+    both = cdv & dv
     with np.errstate(invalid="ignore"):
-        dx = np.abs(x - claims.x).max(-1)
-        dP = np.abs(P - claims.P).max((-1, -2))
-        dd = np.where(both, np.abs(d - claims.d).max(-1), 0.0)
-        bad = r & ((x != claims.x).any(-1) | (P != claims.P).any((-1, -2)) | (dv != claims.d_valid)
-                   | (both & (d != claims.d).any(-1)))
+        dx = np.abs(x - cx).max(-1)
+        dP = np.abs(P - cP).max((-1, -2))
+        dd = np.where(both, np.abs(d - cd).max(-1), 0.0)
+        bad = r & ((x != cx).any(-1) | (P != cP).any((-1, -2)) | (dv != cdv) | (both & (d != cd).any(-1)))
     gap = np.where(r, np.fmax(np.fmax(dx, dP), dd), 0.0)
     return bad, np.nan_to_num(gap, nan=np.inf)
+
+
+# --------------------------------------------------------------------------
+# one tick's judgement
+# --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Judged:
+    """One tick's judgement (``Judge.tick``), (N,) over receivers or (N, N)
+    [receiver, sender]."""
+
+    diverged: np.ndarray     # (N,) a reported estimate that provably differs from the algorithm's
+    forged: np.ndarray       # (N, N) a fused message of a known sender the engine does not reproduce
+    unverified: np.ndarray   # (N,) a reported estimate that differs, built on an unknown state
+    doubtful: np.ndarray     # (N, N) a fused message of a sender whose state is unknown, not reproduced
+
+    def liars(self) -> list:
+        """The agents this tick proves lied: senders of forged messages, and
+        agents whose own estimate differs though every message they fused
+        was the engine's."""
+        own = self.diverged & ~self.forged.any(-1)
+        return sorted(set(np.flatnonzero(self.forged.any(0)).tolist()) | set(np.flatnonzero(own).tolist()))
+
+
+class Judge:
+    """The check of a run's ticks in order (``verify`` at the end of a run,
+    ``Online`` as it goes): which reported estimates diverged, which cannot
+    be verified, and whose state is known.
+
+    An agent's state is unknown after an agent-tick it did not report (what
+    it fused is unknown; ``withheld`` holds that tick) until it is
+    re-initialised or its next report equals the replay bit for bit; an
+    estimate built on an unknown state (its own, or an unknown sender's
+    message that the engine does not reproduce) that differs from the
+    replay is not a divergence but ``unverified``, and its own state is
+    unknown from then on."""
+
+    def __init__(self, N: int):
+        self.off = ~np.eye(N, dtype=bool)
+        self.unknown = np.zeros(N, dtype=bool)
+        self.withheld = np.zeros(N, dtype=int)  # the tick of the missing report that made the state unknown (0: none)
+
+    def tick(self, k: int, reported, bad, fused, has, wrong, restarted=()) -> Judged:
+        """Tick k: ``reported``, ``bad`` (its estimate differs from the
+        replay) (N,); ``fused``, ``has`` (a digest was reported), ``wrong``
+        (it differs from the engine's message's) (N, N) [receiver, sender];
+        ``restarted``: the agents re-initialised at k."""
+        unknown = self.unknown
+        unknown[list(restarted)] = False
+        self.withheld[list(restarted)] = 0
+        if unknown.any() or wrong.any():
+            fused = fused & self.off
+            forged = fused & wrong & ~unknown[None, :]   # a known sender's message the engine does not reproduce
+            doubtful = fused & unknown[None, :] & (~has | wrong)
+            tainted = unknown | doubtful.any(-1)
+            div = reported & (forged.any(-1) | (bad & ~tainted))
+        else:  # every state and message known: any difference is a divergence
+            forged, div, doubtful = wrong & self.off, reported & bad, np.zeros_like(wrong)
+        unver = reported & ~div & bad
+        self.withheld = np.where(~reported, np.where(self.withheld > 0, self.withheld, k),
+                                 np.where(unver & unknown, self.withheld, 0))
+        self.unknown = ~reported | (div & bad) | unver
+        return Judged(div, forged, unver, doubtful)
 
 
 # --------------------------------------------------------------------------
@@ -311,33 +391,23 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
     restarts = {}
     for r in claims.restarts:
         restarts.setdefault(int(r.tick), []).append(int(r.agent))
-    off = ~np.eye(N, dtype=bool)
-
-    unknown = np.zeros(N, dtype=bool)  # the agent's state after the previous tick is not known
-    first, unverified, diverged = None, 0, []
+    judge = Judge(N)
+    diverged, unverifiable = [], []
     for k in range(1, K + 1):
-        unknown[restarts.get(k, [])] = False
         has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)  # [receiver, sender]
         if engine_digests:
             engine = np.array([engine_digests.get((k, s), 0) for s in range(N)], dtype=np.uint64)
             for r, senders, digests in by_tick.get(k, ()):
                 has[r, senders] = True
                 wrong[r, senders] = engine[senders] != digests
-        reported, b = claims.reported[k - 1], bad[k - 1]
-        if unknown.any() or wrong.any():
-            fused = claims.fused[k - 1] & off
-            forged = fused & wrong & ~unknown[None, :]   # a known sender's message the engine does not reproduce
-            tainted = unknown | (fused & unknown[None, :] & (~has | wrong)).any(-1)
-            div = reported & (forged.any(-1) | (b & ~tainted))
-        else:  # every state and message known: any difference is a divergence
-            forged, div = wrong, reported & b
-        unver = reported & ~div & b
-        unverified += int(unver.sum())
-        for j in np.flatnonzero(div).tolist():
-            diverged.append((k, j, np.flatnonzero(forged[j]).tolist()))
-        if first is None and diverged:
-            first = diverged[0]
-        unknown = ~reported | (div & b) | unver
+        withheld = judge.withheld.copy()
+        j = judge.tick(k, claims.reported[k - 1], bad[k - 1], claims.fused[k - 1], has, wrong, restarts.get(k, ()))
+        for r in np.flatnonzero(j.diverged).tolist():
+            diverged.append((k, r, np.flatnonzero(j.forged[r]).tolist()))
+        for r in np.flatnonzero(j.unverified).tolist():
+            unverifiable.append((k, r, np.flatnonzero(j.doubtful[r]).tolist(), withheld))
+    first = diverged[0] if diverged else None
+    unverified = len(unverifiable)
 
     complete = bool(whole.reported.all())
     ev = {"agent_ticks": K_all * N, "reported": int(claims.reported.sum()), "ticks": K_all, "ticks_replayed": K,
@@ -370,17 +440,20 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
 
     shortfall = _shortfall(claims, planned, nominal, name)
     ev.update(shortfall)
-    after = (f"; the engine's replay itself diverged at tick {ended['tick']} ({ended['reason']}), so "
-             f"{ended['reported_after']} agent-ticks reported from it on are not verified" if ended else "")
-    if not complete or (ended and ended["reported_after"]):
+    missing_line = ""
+    if not complete:
         why = Counter()
         if whole.why is not None:
             why.update(str(w) or "not run" for w in whole.why[missing])
         ev["missing_why"] = dict(sorted(why.items()))
-        return RunStatus(INCOMPLETE_STATUS, f"{ev['missing_agent_ticks']} of {K_all * N} agent-ticks not reported "
-                         f"({100 * ev['missing_fraction']:.1f} %)"
-                         + (f": {', '.join(f'{w} {n}' for w, n in ev['missing_why'].items())}" if why else "")
-                         + after, ev)
+        missing_line = (f"{ev['missing_agent_ticks']} of {K_all * N} agent-ticks not reported "
+                        f"({100 * ev['missing_fraction']:.1f} %)"
+                        + (f": {', '.join(f'{w} {n}' for w, n in ev['missing_why'].items())}" if why else ""))
+    if ev["unverified"]:
+        ev["unverifiable"], line = _unverifiable(unverifiable, ended, name)
+        return RunStatus(UNVERIFIABLE_STATUS, line + (f"; {missing_line}" if missing_line else ""), ev)
+    if not complete:
+        return RunStatus(INCOMPLETE_STATUS, missing_line, ev)
     if shortfall["degraded"]["agent_ticks"]:
         dg = shortfall["degraded"]
         reasons = ", ".join(f"{w} {n}" for w, n in dg["why"].items())
@@ -408,13 +481,40 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
 
 
 def _nothing_replayed(claims: RunClaims, reason: str, **evidence) -> RunStatus:
-    """``incomplete``, with not one tick replayed."""
+    """``incomplete`` with not one tick replayed; ``unverifiable`` if some
+    tick was reported (the engine's replay diverged at tick 1)."""
     K, N = claims.reported.shape
     missing = int((~claims.reported).sum())
-    return RunStatus(INCOMPLETE_STATUS, reason, {"agent_ticks": K * N, "reported": K * N - missing, "ticks": K,
-                                                 "ticks_replayed": 0, "missing_agent_ticks": missing,
-                                                 "missing_fraction": missing / (K * N) if K * N else 0.0,
-                                                 **evidence})
+    return RunStatus(UNVERIFIABLE_STATUS if missing < K * N else INCOMPLETE_STATUS, reason,
+                     {"agent_ticks": K * N, "reported": K * N - missing, "ticks": K, "ticks_replayed": 0,
+                      "unverified": K * N - missing, "missing_agent_ticks": missing,
+                      "missing_fraction": missing / (K * N) if K * N else 0.0, **evidence})
+
+
+def _unverifiable(found: list, ended: dict | None, name) -> tuple:
+    """(evidence, line) of an ``unverifiable`` run:
+    ``found`` [(tick, agent, unknown senders whose messages it fused,
+    the ticks of the missing reports that made states unknown (N,))], the
+    engine's replay's end ``ended``."""
+    sources = {}
+    for k, j, senders, withheld in found:
+        for a in [j, *senders]:
+            if withheld[a] > 0:
+                sources.setdefault(a, int(withheld[a]))
+    n = len(found) + (ended["reported_after"] if ended else 0)
+    ev = {"agent_ticks": n,
+          "listed": [{"tick": k, "agent": name(j), "senders": [name(s) for s in ss]} for k, j, ss, _ in found[:LISTED]],
+          "withheld": [{"agent": name(a), "tick": t} for a, t in sorted(sources.items(), key=lambda at: at[1])]}
+    parts = []
+    if found:
+        k, j, senders, _ = found[0]
+        roots = ", ".join(f"agent {w['agent']}'s report of tick {w['tick']}" for w in ev["withheld"][:3])
+        parts.append(f"{len(found)} differ from the engine's replay on a state the run did not report" + (f" ({roots} did not come)" if roots else "") + f"; first: agent {name(j)} at tick {k}"
+                     + (f", fusing agent {', '.join(str(name(s)) for s in senders)}'s message" if senders else ""))
+    if ended:
+        parts.append(f"the engine's replay itself diverged at tick {ended['tick']} ({ended['reason']}), so "
+                     f"{ended['reported_after']} agent-ticks reported from it on are not verified")
+    return ev, f"{n} reported agent-ticks cannot be verified: " + "; ".join(parts)
 
 
 def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name) -> dict:

@@ -14,7 +14,8 @@ from diskf_mesh.recording.reader import read, take_ticks
 from diskf_mesh.recording.replay import recorded_miss_rate, recording_status, replay
 
 
-def replay_recording(path, out=None, argv=None, allow_missing: float = 0.0, allow_degraded: bool = False) -> int:
+def replay_recording(path, out=None, argv=None, allow_missing: float = 0.0, allow_degraded: bool = False,
+                     accept_unverifiable: bool = False) -> int:
     """The recording's status (``recording_status``) and its exit status
     (``report_replay``)."""
     started = provenance.now()
@@ -31,11 +32,12 @@ def replay_recording(path, out=None, argv=None, allow_missing: float = 0.0, allo
     cut = "" if rec.ticks == rec.planned_ticks else f" (of {rec.planned_ticks} planned: the recording was cut short)"
     return report_replay(status, replay(rec), rec.trace, rec.algorithm, rec.ids, prov, out,
                          miss_rate=recorded_miss_rate(rec), allow_missing=allow_missing,
-                         allow_degraded=allow_degraded, cut=cut)
+                         allow_degraded=allow_degraded, accept_unverifiable=accept_unverifiable, cut=cut)
 
 
 def report_replay(status, est, trace, algorithm: str, ids, prov: dict, out=None, *, miss_rate=None,
-                  allow_missing: float = 0.0, allow_degraded: bool = False, cut: str = "", hint: str = "") -> int:
+                  allow_missing: float = 0.0, allow_degraded: bool = False, accept_unverifiable: bool = False,
+                  cut: str = "", hint: str = "") -> int:
     """The end of a replayed run (``replay RUN.mcap``, ``replay TRACE --fused
     EST``): ``est``, the engine on what each agent fused (ticks 1..K),
     scored on ``trace``'s truth and written to ``out`` with ``prov``; what
@@ -59,7 +61,7 @@ def report_replay(status, est, trace, algorithm: str, ids, prov: dict, out=None,
     for key, value in json_safe(scores or {}).items():
         print(f"  {key:<15}{'-' if value is None else f'{value:.4f}'}", file=text)
     code, level, line = accept(status, allow_missing=allow_missing, allow_degraded=allow_degraded,
-                               miss_rate=miss_rate, max_miss_rate=None if miss_rate is None else 1.0)
+                               accept_unverifiable=accept_unverifiable, miss_rate=miss_rate, max_miss_rate=None if miss_rate is None else 1.0)
     if level:
         print(f"{level}: replay: {line}" + (f" ({hint})" if hint and ev["differing"] == ev["reported"] else ""),
               file=sys.stderr)

@@ -22,7 +22,7 @@ from diskf_mesh.estimators import Params
 from diskf_mesh.data.trace import Trace, estimator_from_json, trace_from_json
 from diskf_mesh.engine.verify import first_ticks
 from diskf_mesh.mesh.protocol.reports import RunReports
-from diskf_mesh.recording.writer import FORMAT, SEGMENT_PREFIX, TRACE_ATTACHMENT, join_trace
+from diskf_mesh.recording.layout import FORMAT, SEGMENT_PREFIX, TRACE_ATTACHMENT, join_trace
 
 MAGIC = b"\x89MCAP0\r\n"
 _FOOTER = 0x02

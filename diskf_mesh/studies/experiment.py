@@ -80,13 +80,25 @@ def diverged(est) -> bool:
                     and all(bool((np.abs(a) <= wire.MAX_ABS).all()) for a in (est.x, est.d)))
 
 
-def run_or_none(trace, name: str, params: Params | None):
+def diverged_tick(est) -> int | None:
+    """The first tick (from 1) at which a run's estimates diverged
+    (``diverged``: in any seed or agent), or None."""
+    if not diverged(est):
+        return None
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(est.P).all(axis=(-2, -1))
+        for a in (est.x, est.d):
+            bad |= ~(np.abs(a) <= wire.MAX_ABS).all(axis=-1)
+    return int(np.flatnonzero(bad.any(axis=(0, 2)))[0]) + 1
+
+
+def run_or_none(trace, name: str, params: Params | None, lies=()):
     """``engine.run``, or None where the estimator diverged: its covariance
     lost positive definiteness (``numpy.linalg.LinAlgError``) or its
     estimates left the bounds of ``diverged``."""
     try:
         with np.errstate(all="ignore"):
-            est = engine.run(trace, name, params)
+            est = engine.run(trace, name, params, lies=lies)
     except (np.linalg.LinAlgError, FloatingPointError):
         return None
     return None if diverged(est) else est
@@ -130,7 +142,8 @@ def batches(scns, seeds, params: Params | None = None):
 def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Params | None = None,
                    progress=None) -> dict:
     """{estimator: {setting label: {metric: value}}} over all settings, for
-    the estimators ``names``.
+    the estimators ``names``. With lies (``Scenario.lies``) the liars send
+    them and the metrics cover the honest agents.
 
     Settings of one estimator run as one batch where they can (``batches``,
     ``engine.run_many``), so the per-tick overhead is paid once; the numbers
@@ -141,16 +154,18 @@ def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Pa
     for s in scns:  # before a list of the seeds is made
         s.check_size(len(seeds))
     seeds = list(seeds)
+    liars = {lie.agent for lie in scn.lies}
+    honest = [j for j, a in enumerate(scn.agents) if a.id not in liars]
     rows = {}
     for p, idx in batches(scns, seeds, params):
         traces = [simulate(scns[i], seeds) for i in idx]
         for name in names:
             try:
-                ests = [None if diverged(e) else e for e in engine.run_many(traces, name, p)]
+                ests = [None if diverged(e) else e for e in engine.run_many(traces, name, p, lies=scn.lies)]
             except np.linalg.LinAlgError:  # diverged in one of them at least: each alone, to say which
-                ests = [run_or_none(t, name, p) for t in traces]
+                ests = [run_or_none(t, name, p, scn.lies) for t in traces]
             for i, trace, est in zip(idx, traces, ests):
-                rows[name, i] = dict(DIVERGED) if est is None else summarize(trace, est)
+                rows[name, i] = dict(DIVERGED) if est is None else summarize(trace, est.agents(honest))
                 if progress is not None:
                     progress(1)
     return {a: {st.label: rows[a, i] for i, st in enumerate(settings)} for a in names}

@@ -141,6 +141,29 @@ def constant_velocity(topology: str) -> Scenario:
     return parse_scenario(raw)
 
 
+def constant_acceleration(topology: str) -> Scenario:
+    """n = 6 (x, vx, ax, y, vy, ay), one tick per step, a jerk input of
+    dimension 2; six agents measuring x, y or both (R = 1) at every tick.
+    C-DRKF and L-DRKF lose positive definiteness on it within 20 ticks in a
+    ring, and DISKF's estimates pass 1e15 (the paper's algorithm: its
+    compensation gain does not hold the unobserved acceleration back):
+    each run says ``diverged``."""
+    agents = []
+    for i in range(6):
+        H = [[[1, 0, 0, 0, 0, 0]], [[0, 0, 0, 1, 0, 0]], [[1, 0, 0, 0, 0, 0], [0, 0, 0, 1, 0, 0]]][i % 3]
+        agents.append(dict(id=i + 1, H=H, R=np.eye(len(H)).tolist(), sense="always", position=[0.0, 0.0]))
+    axis = np.array([[1.0, 1.0, 0.5], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]])
+    raw = dict(
+        name="constant-acceleration", steps=200,
+        model=dict(dynamics="matrix", A=np.kron(np.eye(2), axis).tolist(),
+                   G=np.kron(np.eye(2), [[1 / 6], [0.5], [1.0]]).tolist(),
+                   Q=np.kron(np.eye(2), np.diag([1e-2, 1e-3, 1e-4])).tolist(),
+                   x0=[0.0, 1.0, 0.0, 0.0, 0.5, 0.0], P0=np.kron(np.eye(2), np.diag([1.0, 0.1, 0.01])).tolist(),
+                   position_dims=[0, 3]),
+        topology=dict(kind=topology), agents=agents)
+    return parse_scenario(raw)
+
+
 def three_d(base: Scenario) -> Scenario:
     """Scenario 1 with a third state component (a decaying altitude, also
     pushed by the input) and p_i = 2 sensors: (x, z) or (y, z)."""

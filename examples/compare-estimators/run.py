@@ -4,7 +4,7 @@ Scenario 1 with 1-hop (ring) communication, the position error over time
 
     python examples/compare-estimators/run.py [--seeds 5] [--steps 200] [--out compare.png]
 
-Needs matplotlib (``pip install 'diskf-mesh[figures]'``).
+Needs matplotlib (``pip install '.[figures]'`` in the diskf-mesh folder).
 """
 from __future__ import annotations
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 from diskf_mesh import estimators
 from diskf_mesh.core.errors import InputError
+from diskf_mesh.data import lies as lying
 from diskf_mesh.data.argtypes import estimator_name, positive_int, range_value
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, load_scenario
 from diskf_mesh.mesh.wire.keys import check_run_id
@@ -37,11 +38,14 @@ class RunSpec:
     topology: str | None = None
     comm_range: float | None = None
     agents: int | None = None  # agent count of a generated scenario
+    lies: tuple | None = None  # ``data.lies.Lie``s given with --lie (None: the scenario's [[faults.lies]])
 
     def load(self, ticks: int | None = None) -> Scenario:
         """The scenario with the overrides applied (``InputError`` if bad)."""
         check_run_id(self.run_id)
         scn = load_scenario(self.scenario, agents=self.agents)
+        if self.lies is not None:
+            scn = scn.with_lies(self.lies)
         return scn.with_overrides(topology=self.topology, comm_range=self.comm_range, steps=ticks)
 
     def to_argv(self, count_flag: str = "--agents") -> list:
@@ -52,6 +56,8 @@ class RunSpec:
             out += ["--range", repr(float(self.comm_range))]
         if self.agents is not None:
             out += [count_flag, str(self.agents)]
+        if self.lies is not None:
+            out += lying.to_argv(self.lies)
         return out
 
 
@@ -74,11 +80,13 @@ def add_arguments(parser: argparse.ArgumentParser, run_id_default: str | None = 
     g.add_argument("--range", type=range_value, dest="comm_range", metavar="R",
                    help="communication radius (implies --topology range)")
     g.add_argument(count_flag, type=positive_int, dest="agents", metavar="N", help="agent count of a generated scenario")
+    lying.add_arguments(g)
 
 
 def from_args(args: argparse.Namespace, run_id: str | None = None) -> RunSpec:
     return RunSpec(scenario=args.scenario, algorithm=args.algorithm, run_id=run_id or args.run_id,
-                   topology=args.topology, comm_range=args.comm_range, agents=args.agents)
+                   topology=args.topology, comm_range=args.comm_range, agents=args.agents,
+                   lies=None if getattr(args, "lie", None) is None else tuple(args.lie))
 
 
 def world_command(spec: RunSpec, ticks: int, seed: int, zenoh: ZenohOptions, extra=(),

@@ -80,6 +80,7 @@ import numpy as np
 from diskf_mesh import estimators
 from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig, FaultModel
+from diskf_mesh.data.lies import Liars
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.mesh.protocol import clock as realtime
 from diskf_mesh.mesh.protocol import rejoin
@@ -149,6 +150,7 @@ class AgentMachine:
         declared = estimators.get(algorithm)
         self.exchanged = declared.exchanged  # what its messages carry (``Estimator.exchanged``)
         self.fault_config = faults if isinstance(faults, FaultConfig) else None
+        self.liars = Liars(scn.lies, (agent_id,), n, scn.position_dims)  # this agent's lies, if it is a liar
         self.receiver = Receiver(Guard(GuardConfig(
             keys.run_id, agent_id, frozenset(self.ids), n, m,
             information_check=declared.information_check, exchanged=declared.exchanged,
@@ -449,7 +451,7 @@ class AgentMachine:
         finally:
             prof.end("local")
         prof.begin()
-        payload = wire.encode(self.keys.run_id, self.id, k, self.own, self.exchanged)
+        payload = wire.encode(self.keys.run_id, self.id, k, self.liars.message(k, self.own), self.exchanged)
         self.own_digest = wire.digest(payload)  # the report says what was sent, not the message itself
         prof.end("encode")
         # addressed to the agents it fuses at tick k: links are symmetric (range, ring, all), so
@@ -510,6 +512,7 @@ class AgentMachine:
         problem = wire.report_problem(out.x[0, 0], out.P[0, 0], out.d[0, 0])
         if problem is not None:
             return self._diverged(k, f"its fused estimate would be refused ({problem[0]}: {problem[1]})")
+        out = self.liars.report(k, out)
         counters = self.receiver.snapshot(cap=wire.count_bound(self.constants[0]))
         fused_ids, not_fused = self.verdicts.of_tick(k, self.linked[k], heard, rejected, fused, failed)
         prof.begin()

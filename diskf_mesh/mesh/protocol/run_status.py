@@ -114,16 +114,22 @@ def add_tolerances(p, missing_also: str = "") -> None:
                    help="accept a run whose agent-ticks fused fewer messages than planned, e.g. a paused or slow "
                         f"agent's (exit 0, the results say degraded; without it exit {exits.DEGRADED}); a run "
                         f"whose estimates the engine does not reproduce (diverged) always exits {exits.DIVERGED}")
+    p.add_argument("--accept-unverifiable", action="store_true",
+                   help="accept a run with reported agent-ticks the engine cannot verify (built on a report that "
+                        f"did not come; without it exit {exits.UNVERIFIABLE}, whatever --allow-missing says): exit 0, "
+                        "the results say unverifiable and the final line gives the count")
 
 
 def accept(status: RunStatus, *, allow_missing: float = 0.0, allow_degraded: bool = False,
-           miss_rate: float | None = None, max_miss_rate: float | None = None) -> tuple:
+           accept_unverifiable: bool = False, miss_rate: float | None = None,
+           max_miss_rate: float | None = None) -> tuple:
     """(exit status, level, line) of a run with ``status`` under the user's
     tolerances; level "" (exact, as planned: nothing to say), "warning" (a
     status the user accepted) or "error". Real time (``miss_rate`` given):
     deadline misses within ``max_miss_rate`` are accepted degradation, more
     exit ``TOO_MANY_MISSES`` (the caller's line names the misses).
-    ``diverged`` is never accepted."""
+    ``diverged`` is never accepted; ``unverifiable`` only with
+    ``accept_unverifiable`` (its line gives the count either way)."""
     s = status.status
     if s == exits.DIVERGED_STATUS:
         return exits.DIVERGED, "error", f"diverged: {status.reason}"
@@ -131,6 +137,13 @@ def accept(status: RunStatus, *, allow_missing: float = 0.0, allow_degraded: boo
         return exits.TOO_MANY_MISSES, "error", ""
     if s in (exits.EXACT_STATUS, exits.AS_PLANNED_STATUS):
         return exits.OK, "", ""
+    if s == exits.UNVERIFIABLE_STATUS:
+        if status.accepted(allow_missing=allow_missing, allow_degraded=allow_degraded or miss_rate is not None,
+                           accept_unverifiable=accept_unverifiable):
+            return exits.OK, "warning", f"unverifiable run accepted (--accept-unverifiable): {status.reason}"
+        hint = ("--accept-unverifiable accepts it" if not accept_unverifiable else
+                "--accept-unverifiable with --allow-missing (and --allow-degraded) for the rest")
+        return exits.UNVERIFIABLE, "error", f"unverifiable run: {status.reason} ({hint})"
     realtime_ok = s in (exits.DEGRADED_STATUS, exits.INCOMPLETE_STATUS) and miss_rate is not None
     if status.accepted(allow_missing=allow_missing, allow_degraded=allow_degraded or realtime_ok):
         how = (f"--allow-missing {allow_missing:g}" + (" --allow-degraded" if status.degraded_beyond_missing else "")
