@@ -569,6 +569,9 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
 
     began = time.monotonic() - process_age()  # when `diskf-mesh up` started (its interpreter's start)
     spec = runspec.from_args(args, run_id=args.run_id or secrets.token_hex(4))
+    if args.network == "simulated":
+        simulated.check_arguments(args)  # before anything is written
+    scn = spec.load(args.ticks)  # a bad scenario or fault value fails before anything is written
     out = Path(args.json or f"results/up-{spec.run_id}.json")
     check_output(out, "json", stdout=False, make_parent=args.json is None)  # before any work
     check_output(args.estimates, "estimates", stdout=False)
@@ -577,14 +580,8 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         live.check_port(args.live)
     if args.logs:
         check_output_dir(args.logs, "logs")
-    scn = spec.load(args.ticks)
     ticks = scn.steps
     ids = [a.id for a in scn.agents]
-    logs = Path(args.logs or tempfile.mkdtemp(prefix=f"diskf-up-{spec.run_id}-"))
-    try:
-        logs.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
     plan = None
     if args.hosts:
         from sim import hosts
@@ -603,6 +600,11 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         return code
     if simulated.given(args):
         raise InputError("network", "the --net-* options need --network simulated")
+    logs = Path(args.logs or tempfile.mkdtemp(prefix=f"diskf-up-{spec.run_id}-"))
+    try:
+        logs.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
     realtime.from_args(args)
     if plan is None and forks.enabled() and not zygotes:
         zygotes.append(forks.Zygote())

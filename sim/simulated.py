@@ -19,7 +19,11 @@ the line after the run gives it next to the wall time.
     --net-seed S         the network's seed
 
 The run's own seeded link faults (``--loss``, ``--latency-ms``, ...) apply
-in each agent as in a process mesh (the run is then ``as planned``).
+in each agent as in a process mesh (the run is then ``as planned``). A run
+whose world gives up before its first tick (an agent not there after
+``--startup-timeout``) ends ``incomplete`` with the world's reason, exit 3;
+with ``--allow-missing`` the world starts without the agents not there, as
+a process world does, and they join when they come.
 """
 from __future__ import annotations
 
@@ -52,9 +56,21 @@ def given(args: argparse.Namespace) -> bool:
     return any(getattr(args, k) != v for k, v in NET_DEFAULTS.items())
 
 
+def check_arguments(args: argparse.Namespace) -> None:
+    """The options a simulated run refuses (one line, before anything is
+    written): those for processes, and a link delay no message could beat
+    (``--net-delay-ms`` at or past the agents' ``--collect-timeout``)."""
+    for flag, value in (("live", getattr(args, "live", None)), ("profile", args.profile), ("logs", args.logs)):
+        if value:
+            raise InputError(flag, "is for process meshes, not --network simulated")
+    if args.net_delay_ms >= 1000 * args.collect_timeout:
+        raise InputError("net-delay-ms", f"{args.net_delay_ms:g} ms is not below --collect-timeout "
+                                         f"{args.collect_timeout:g} s: no message could arrive in time to be fused")
+
+
 def run(args: argparse.Namespace, spec, scn, out) -> tuple:
-    """The run; prints what ``up`` prints but its verdict, ends it as the
-    world process does (``sim.world.finish_run``) and returns the world's
+    """The run (its options checked by ``check_arguments``); prints what
+    ``up`` prints but its verdict, ends it as the world process does (``sim.world.finish_run``) and returns the world's
     exit status and the results row (None if the world failed)."""
     from diskf_mesh.data import provenance
     from diskf_mesh.mesh.wire.keys import Keys
@@ -64,9 +80,6 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     from diskf_mesh.studies.experiment import format_table
     from sim.world import failure, finish_run, run_failed, run_timings, setup_run
 
-    for flag, value in (("live", getattr(args, "live", None)), ("profile", args.profile), ("logs", args.logs)):
-        if value:
-            raise InputError(flag, "is for process meshes, not --network simulated")
     K, N = scn.steps, len(scn.agents)
     stages = Stages(K, f"{spec.algorithm} x {N} agents, simulated network", quiet=args.quiet)
     stages.say(f"{scn.name}: {N} agents + world, {K} ticks, {spec.algorithm}: drawing the scenario's seed {args.seed}")
@@ -79,7 +92,7 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     world_timing, agent_timing = run_timings(args, clock)
     bound = args.startup_timeout + K * (args.tick_timeout + args.collect_timeout) + 60.0
     plan = SimPlan(link, secure=not args.insecure, world_timing=world_timing, agent_timing=agent_timing,
-                   max_time=bound)
+                   allow_missing=args.allow_missing > 0, max_time=bound)
     stages.say(f"start-up: the world and {N} agents join (every agent sees every other's token)")
     t0 = time.monotonic()
     try:
@@ -91,10 +104,12 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     if r.log:
         sys.stderr.write(r.log)
     end = r.outcome.finishes.get("world")
-    if end is not None and (error := failure(end)) is not None:
+    if end is not None and (error := failure(end)) is not None and not r.record.ended_early:
         return run_failed(error, run, Log("world")), None
+    # a world that gave up before its first tick (no agent process for an id, ...) ends with a status:
+    # incomplete, the reason in the results (completeness's ended_early) and the exit status
     network = {"kind": "simulated", "delay_ms": args.net_delay_ms, "jitter_ms": args.net_jitter_ms,
-               "loss": args.net_loss, "seed": net_seed, "virtual_s": r.outcome.end, "events": r.outcome.events,
+               "loss": args.net_loss, "lost": r.outcome.lost, "seed": net_seed, "virtual_s": r.outcome.end, "events": r.outcome.events,
                "wall_s": wall, "digest": r.outcome.digest}
     stages.say("checking the run: the engine replays what every agent fused")
     code, results = finish_run(args, run, r.record, r.world.done, out, extra={"network": network})

@@ -68,7 +68,7 @@ import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh import estimators
-from diskf_mesh.data.argtypes import positive, positive_int, seed_value
+from diskf_mesh.data.argtypes import positive_int, seconds, seed_value
 from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.core import exits
@@ -76,7 +76,7 @@ from diskf_mesh.data.outputs import json_safe
 from diskf_mesh.engine.verify import RunStatus
 from diskf_mesh.mesh.wire.counters import Counters
 from diskf_mesh.mesh.protocol.agent_machine import AgentTiming
-from diskf_mesh.mesh.protocol.run_status import accept, add_tolerances, run_status
+from diskf_mesh.mesh.protocol.run_status import OnlineCheck, accept, add_tolerances, run_status
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.data.faults import from_args as faults_from_args
@@ -111,9 +111,9 @@ class World:
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, transport: Transport,
                  timing: WorldTiming = WorldTiming(), progress=None, log: Log | None = None,
-                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER):
+                 profile: Phases = NO_PHASES, recorder: NoRecorder = NO_RECORDER, online=None):
         self.machine = WorldMachine(scn, trace, algorithm, seed, keys, new_nonce(), timing,
-                                    log=log, progress=progress, profile=profile, recorder=recorder)
+                                    log=log, progress=progress, profile=profile, recorder=recorder, online=online)
         self.shell = Shell(self.machine, transport, profile)
 
     @property
@@ -414,11 +414,11 @@ def add_timing_arguments(p) -> None:
     """A run's ``--startup-timeout``, ``--tick-timeout`` and
     ``--collect-timeout`` (``world``, ``up``): their defaults are
     ``WorldTiming``'s and ``AgentTiming``'s."""
-    p.add_argument("--startup-timeout", type=positive, default=WorldTiming.startup_timeout, metavar="S",
+    p.add_argument("--startup-timeout", type=seconds, default=WorldTiming.startup_timeout, metavar="S",
                    help="seconds to wait for every agent to be ready (default %(default)s)")
-    p.add_argument("--tick-timeout", type=positive, default=WorldTiming.tick_timeout, metavar="S",
+    p.add_argument("--tick-timeout", type=seconds, default=WorldTiming.tick_timeout, metavar="S",
                    help="world: seconds to wait for the reports of one tick (default %(default)s)")
-    p.add_argument("--collect-timeout", type=positive, default=AgentTiming.collect_timeout, metavar="S",
+    p.add_argument("--collect-timeout", type=seconds, default=AgentTiming.collect_timeout, metavar="S",
                    help="agents: seconds to wait for the neighbours' messages of a tick (default %(default)s); "
                         "with link latency injected, a message due later is not planned to be fused (the run's "
                         "status)")
@@ -517,8 +517,11 @@ def run(args: argparse.Namespace) -> int:
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
+            online = OnlineCheck(run.trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=args.seed,
+                                 faults=run.faults,
+                                 deadline_s=realtime.agents_deadline(run.clock, args.collect_timeout))
             world = World(scn, run.trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
-                          run_timings(args, run.clock)[0], progress, log, prof, run.recorder)
+                          run_timings(args, run.clock)[0], progress, log, prof, run.recorder, online)
             world.interrupted, signalled[0] = signalled[0], world
             rec = world.run(allow_missing=args.allow_missing > 0)
     except MeshError as e:

@@ -15,6 +15,7 @@ asserts the invariants:
     (d) every run ends in bounded virtual time with a status
     (e) a rejoining agent starts from a neighbour's estimate whenever a
         neighbour in range reported the tick before
+    (f) the world's check as the run goes cuts no agent off
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch
@@ -40,7 +42,7 @@ MSGS = "diskf/sim/agent/*/msg/**"
 # dynamic (9, in range of each other as they move)
 SCENARIOS = ("random-geometric", "random-geometric", "quadrants", "dynamic")
 SIZES = {"quadrants": 4, "dynamic": 9}
-STATUSES = ("exact", "as planned", "degraded", "diverged", "incomplete")
+STATUSES = exits.STATUSES
 
 
 @dataclass(frozen=True)
@@ -186,10 +188,14 @@ def check(case: Case, r) -> None:
     assert any(w == WORLD or w.startswith(WORLD + "~") for w in out.finishes) or _world_crashed(case), \
         "(d) the world never finished"
     if r.status is None:
-        assert _world_crashed(case) or not rec.reported.any(), "(d) a run that reported has no status"
+        assert _world_crashed(case), "(d) a run whose world finished has no status"
         return
     st = r.status
     assert st.status in STATUSES, st
+    if not rec.reported.any():  # the world gave up before any report (a start-up failure): incomplete, why
+        assert st.status == "incomplete" and st.evidence["missing_fraction"] == 1.0, st
+        assert r.world.finish is None or r.world.finish.reason in st.reason or not r.world.finish.reason, st
+        return
     ids = list(rec.ids)
     K = rec.reported.shape[0]
     live = rec.live
@@ -223,6 +229,8 @@ def check(case: Case, r) -> None:
         assert not short.any() and not more.any(), f"(b) {st.status} with fused sets off the plan"
     if rec.reported.all():
         assert ev["differing"] == 0, f"(b) {ev['differing']} estimates not reproduced"
+    # (f) an honest run cuts no agent off (the world's check as the run goes names no liar)
+    assert not rec.quarantined, f"(f) honest agents cut off: {rec.quarantined}"
     # (e) a rejoin starts from a neighbour's estimate when a neighbour in range reported the tick before
     for agent, rejoins in rec.rejoins.items():
         j = ids.index(agent)

@@ -51,6 +51,9 @@ def test_a_full_disk_while_recording_fails_the_run_with_one_line(tmp_path, small
     assert row["status"] == "exact"  # the run itself is whole: only its file is not
     rec = reader.read(mcap)
     assert rec.ticks >= written and not rec.finished
+    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "replay", str(mcap)], capture_output=True,
+                          text=True, timeout=120)  # its ticks replay exact, but the file is not the run
+    assert done.returncode == exits.INCOMPLETE and f"its last whole tick is {rec.ticks} of {TICKS}" in done.stderr
     world_log = (tmp_path / "logs" / "world.log").read_text().strip().splitlines()
     assert world_log[-1] == f"error: world: {lines[0][len('error: '):]}"
 

@@ -2,6 +2,7 @@
 with what it found; every one must keep the invariants now."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 import simnet_cases as cases
@@ -107,3 +108,43 @@ def test_a_twin_that_leaves_is_counted_by_the_world(case):
     left = [pid for pid, end in r.outcome.finishes.items() if "~" in pid and end.code == 2]
     assert left == [cases.agent_pid(who, 1)]
     assert r.record.duplicates == {who: 1}
+
+
+# sweep seeds 50,000-51,999 that ended with no status: the world gave up before any report came (an agent
+# started after the startup timeout, or crashed, paused or was interrupted before it was ready; the world
+# interrupted before tick 1; in 50371 a second world, and the run's world was taken for the one that left
+# as a duplicate), and a run with no report had none; 50067, 50410 and 50431 with no fault but a late start
+# (fixed: a world that ends before any report gives the run an incomplete status, its reason first; the
+# world that stayed is the run's)
+NO_STATUS = [50067, 50084, 50108, 50130, 50171, 50175, 50176, 50195, 50210, 50223, 50226, 50237, 50258, 50271,
+             50313, 50325, 50342, 50364, 50371, 50405, 50408, 50410, 50420, 50431, 50442, 50466, 50487, 50518,
+             50526, 50529, 50545, 50558, 50631, 50688, 50699, 50742, 50779, 50803, 50870]
+
+
+@pytest.mark.parametrize("seed", NO_STATUS)
+def test_sweep_seeds_that_ended_with_no_status(seed):
+    case = cases.from_seed(seed)
+    r = cases.run(case)
+    cases.check(case, r)
+    assert r.status.status == "incomplete" and not r.record.reported.any()
+    assert r.status.reason.startswith(r.world.finish.reason), (r.status.reason, r.world.finish)
+
+
+def test_a_late_start_past_the_startup_timeout():
+    """Sweep seed 50067: agent 4 starts 60 s late, no other fault. The
+    world gives up at 30 s: incomplete, naming agent 4. With allow_missing
+    the world starts without it and the others report every tick."""
+    from diskf_mesh.mesh.simulated.simrun import SimPlan, simulate_run
+
+    case = cases.from_seed(50067)
+    assert case.late == ((4, 60.01),) and not case.faults and case.injected is None
+    r = cases.run(case)
+    assert r.status.status == "incomplete"
+    assert r.status.reason.startswith("after 30 s waiting for the agents: no agent process for id 4")
+    scn, trace = cases.world(case.scenario, case.agents, case.ticks, case.seed)
+    plan = SimPlan(case.link, late=dict(case.late), allow_missing=True, max_time=case.bound)
+    r = simulate_run(scn, trace, case.algorithm, case.seed, plan=plan)
+    j = list(r.record.ids).index(4)
+    assert r.status.status == "incomplete" and r.status.evidence["missing_agent_ticks"] == case.ticks
+    assert r.record.reported[:, j].sum() == 0 and np.delete(r.record.reported, j, axis=1).all()
+    assert r.status.evidence["differing"] == 0

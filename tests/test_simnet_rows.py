@@ -201,8 +201,11 @@ def test_an_insiders_model_probabilities_are_caught_as_diverged(quadrants):
     st = r.status
     assert st.status == "diverged", st.reason
     assert st.evidence["diverged"]["tick"] == 20 and st.evidence["diverged"]["senders"] == [3]
-    moved = np.abs(r.record.x[20:] - honest.record.x[20:]).max()
+    moved = np.abs(r.record.x[20:, [0, 1, 3]] - honest.record.x[20:, [0, 1, 3]]).max()
     assert moved > 0  # the pooled probabilities did change the neighbours' estimates
+    # the world named it as the run went and cut it off within two ticks
+    assert [(q["agent"], q["tick"]) for q in r.record.quarantined] == [(3, 20)]
+    assert 20 < r.record.quarantined[0]["from"] <= 22
 
 
 # --------------------------------------------------------------------------

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from diskf_mesh.estimators import DEFAULT
 from diskf_mesh.data.scenario import load_scenario, simulate
@@ -108,6 +109,63 @@ def test_a_simulated_real_time_run_writes_the_estimates_a_world_writes(tmp_path)
     doc = json.loads((tmp_path / "e.json").read_text())
     assert doc["complete"] and doc["missing_agent_ticks"] == 0 and doc["rate_hz"] == 20.0
     assert fused_record_from_json(doc, doc["ids"]).miss_rate == doc["deadline_misses"]["miss_rate"] == 0.0
+
+
+def test_what_the_network_loses_is_lost_not_late(tmp_path, capsys):
+    from cli_helpers import run_cli
+    from diskf_mesh.core import exits
+    from diskf_mesh.recording import reader
+
+    code, out, err = run_cli(["up", "--network", "simulated", "--ticks", "10", "--net-loss", "0.2", "--json",
+                              tmp_path / "r.json", "--record", tmp_path / "r.mcap", "--quiet"], capsys)
+    assert code == exits.DEGRADED, err
+    row = next(iter(json.loads((tmp_path / "r.json").read_text())[DEFAULT].values()))
+    lost = row["network"]["lost"]
+    assert lost > 0 and f"lost {lost})" in row["reason"] and "late" not in row["reason"]
+    verdicts = [d["verdict"] for d in reader.read(tmp_path / "r.mcap").delivered]
+    assert verdicts.count("lost") == lost and "late" not in verdicts
+
+
+@pytest.mark.parametrize("argv", [
+    ["--net-delay-ms", "1e308"], ["--net-delay-ms", "-1"], ["--net-delay-ms", "nan"], ["--net-delay-ms", "5000"],
+    ["--net-jitter-ms", "inf"], ["--net-jitter-ms", "1e300"], ["--net-loss", "nan"], ["--net-loss", "1.01"],
+    ["--net-loss", "-0.5"], ["--net-seed", "-1"], ["--net-seed", "1e3"], ["--latency-ms", "1e308"],
+    ["--jitter-ms", "-5"], ["--reorder-ms", "nan"], ["--loss", "-0.1"], ["--duplicate", "1.5"], ["--reorder", "inf"],
+    ["--tick-timeout", "1e308"], ["--collect-timeout", "0"], ["--startup-timeout", "nan"],
+])
+def test_absurd_network_and_fault_values_are_refused(tmp_path, monkeypatch, capsys, argv):
+    from cli_helpers import run_cli
+
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run_cli(["up", "--network", "simulated", "--ticks", "3", *argv], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("error:"), err
+    assert not any(tmp_path.iterdir())
+
+
+def test_absurd_fault_values_in_a_scenario_are_refused(tmp_path, monkeypatch, capsys):
+    from cli_helpers import run_cli
+
+    monkeypatch.chdir(tmp_path)
+    shipped = (ROOT / "diskf_mesh" / "scenarios" / "quadrants.toml").read_text()
+    (tmp_path / "s.toml").write_text(shipped.replace("[topology]", "[faults]\nlatency_ms = 1e308\n\n[topology]"))
+    code, out, err = run_cli(["up", "--network", "simulated", "--ticks", "3", "--scenario", "s.toml"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "latency_ms" in err, err
+    assert [p.name for p in tmp_path.iterdir()] == ["s.toml"]
+
+
+def test_a_start_up_failure_ends_incomplete_with_its_reason(tmp_path, capsys):
+    """The world gives up waiting for the agents: the run still ends with a
+    status, incomplete, the world's reason in the JSON and exit 3."""
+    from cli_helpers import run_cli
+    from diskf_mesh.core import exits
+
+    code, out, err = run_cli(["up", "--network", "simulated", "--ticks", "5", "--startup-timeout", "0.0001",
+                              "--json", tmp_path / "r.json", "--quiet"], capsys)
+    assert code == exits.INCOMPLETE, err
+    row = next(iter(json.loads((tmp_path / "r.json").read_text())[DEFAULT].values()))
+    assert row["status"] == "incomplete" and row["reason"].startswith("after 0.0001 s waiting for the agents: ")
+    assert row["ended_early"] in row["reason"] and row["missing_fraction"] == 1.0
+    assert len(err.strip().splitlines()) == 1 and "waiting for the agents" in err
 
 
 def test_progress_is_a_line_per_stage_off_a_terminal_and_a_bar_on_one(tmp_path):

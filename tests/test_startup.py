@@ -65,3 +65,19 @@ def test_figures_without_the_figures_extra_is_one_error_line(tmp_path):
     assert len(errors) == 1 and errors[0].startswith("error: figures: ")
     assert errors[0].endswith("pip install '.[figures]' in the diskf-mesh folder")  # the README's install
     assert not out.exists()
+
+
+def test_a_command_loads_its_own_module_alone(tmp_path):
+    """A command loads no other command's module (it starts faster);
+    without a command, --help lists every one."""
+    probe = ("import sys\nfrom diskf_mesh.cli import main as cli\ntry:\n    cli.main(sys.argv[1:])\n"
+             "except SystemExit:\n    pass\n"
+             "print('LOADED', ','.join(sorted(set(cli.COMMAND_MODULES) & set(sys.modules))), file=sys.stderr)\n")
+    loaded = {}
+    for argv in (["experiment", "--help"], ["replay", "--help"], ["--help"]):
+        done = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True, text=True, cwd=tmp_path,
+                              timeout=120)
+        loaded[argv[0]] = done.stderr.rsplit("LOADED", 1)[1].strip().split(",")
+    assert loaded["experiment"] == ["diskf_mesh.cli.experiment"]
+    assert loaded["replay"] == ["diskf_mesh.cli.replay"]
+    assert sorted(loaded["--help"]) == sorted(__import__("diskf_mesh.cli.main").cli.main.COMMAND_MODULES)

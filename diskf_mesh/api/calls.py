@@ -169,7 +169,9 @@ def replay(source: TraceLike, estimator: str = _estimators.DEFAULT, *,
     """A recorded run again: a diskf-trace/1 trace (path, document or
     ``Trace``) with ``estimator``, or a recording of ``up --record``
     (``RUN.mcap``) on exactly what each agent fused, with the recording's
-    estimator and settings (``Run.equal``: reproduced bit for bit)."""
+    estimator and settings (``Run.equal``: reproduced bit for bit, the
+    recording whole; for one cut or damaged, False and the provenance's
+    status says why)."""
     if isinstance(source, (str, PathLike)) and str(source).endswith(".mcap"):
         return _replay_recording(Path(source))
     return estimate(source, estimator, settings=settings)
@@ -187,13 +189,13 @@ def _replay_recording(path: Path) -> Run:
     est = replay_fused(rec)
     trace = take_ticks(rec.trace, rec.ticks)
     scores = _metrics.compute(trace, est) if trace.truth_x is not None else None
-    equal = compare(rec, est).equal
+    equal, why = compare(rec, est).equal, rec.not_whole()
     made = rec.run.get("provenance") or {}
     prov = _provenance.record(scenario=made.get("scenario") or {"name": rec.run.get("scenario_name"), "sha256": None},
                               seeds=[rec.run.get("seed", 0)], ticks=rec.ticks, estimator=rec.algorithm,
                               settings=rec.run.get("params"), faults=rec.run.get("faults"),
-                              status="equal" if equal else "differs", started=started, command=_command())
-    return Run(rec.algorithm, trace, est.x, est.P, est.d, est.d_valid, scores, prov, equal)
+                              status=f"not whole: {why}" if why else "equal" if equal else "differs", started=started, command=_command())
+    return Run(rec.algorithm, trace, est.x, est.P, est.d, est.d_valid, scores, prov, equal and not why)
 
 
 def read_trace(path: str | PathLike[str]) -> Trace:

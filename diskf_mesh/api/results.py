@@ -23,7 +23,7 @@ class Run:
     (B, K, N); B seeds, K ticks, N agents. ``metrics``: MAE and RMSE of
     state and input, input coverage and NEES pooled over seeds, ticks and
     agents (None when the trace has no truth). ``equal``: for the replay of
-    a recording, whether it reproduced the recording bit for bit."""
+    a recording, whether it reproduced the whole recording bit for bit."""
 
     estimator: str
     trace: Trace

@@ -9,7 +9,7 @@ estimator's numerical failure is one line ``error: ...`` with exit status
 warning of the library (e.g. a KCF step that may diverge) is one line
 ``warning: <message>``.
 
-``--help`` loads every command module, so a module imports what only its
+``diskf-mesh --help`` loads every command module (a command, its own), so a module imports what only its
 action needs (matplotlib, tqdm, the studies) inside the action: ``--help``
 and the commands that draw nothing never load a plotting library.
 """
@@ -30,26 +30,24 @@ from diskf_mesh import __version__
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.mesh.process import stopping
 
-COMMAND_MODULES = (
-    "diskf_mesh.cli.experiment",
-    "diskf_mesh.cli.replay",
-    "diskf_mesh.cli.inspect",
-    "diskf_mesh.cli.simulate",
-    "diskf_mesh.cli.figures",
-    "diskf_mesh.cli.report",
-    "diskf_mesh.cli.credentials",
-    "sim.world",
-    "agents.agent",
-    "sim.launcher",
-    "sim.router",
-    "sim.host",
-)
-
-
-# the mesh commands a user starts for a run: only that command's module is loaded (a process of a
-# run starts faster; every other command still loads all of them, for its --help)
-MESH_COMMANDS = {"up": "sim.launcher", "host": "sim.host", "router": "sim.router", "world": "sim.world",
-                 "agent": "agents.agent"}
+# every command's module: a command loads its own alone (it starts faster: ``up`` and the processes of a
+# run, ``experiment``); without a command, or with a word that names none, every module is loaded (the list
+# of commands and the nearest match of a word)
+COMMANDS = {
+    "experiment": "diskf_mesh.cli.experiment",
+    "replay": "diskf_mesh.cli.replay",
+    "inspect": "diskf_mesh.cli.inspect",
+    "simulate": "diskf_mesh.cli.simulate",
+    "figures": "diskf_mesh.cli.figures",
+    "report": "diskf_mesh.cli.report",
+    "credentials": "diskf_mesh.cli.credentials",
+    "world": "sim.world",
+    "agent": "agents.agent",
+    "up": "sim.launcher",
+    "router": "sim.router",
+    "host": "sim.host",
+}
+COMMAND_MODULES = tuple(COMMANDS.values())
 
 
 class _Parser(argparse.ArgumentParser):
@@ -140,12 +138,12 @@ def _one_line(message, category, filename, lineno, line=None) -> str:
 
 
 def main(argv=None, modules=COMMAND_MODULES) -> int:
-    """Run one command; ``modules`` limits the subcommands loaded (a mesh
-    process loads only its own, to start fast). ``up`` starts its run's
+    """Run one command; ``modules`` limits the subcommands loaded (a
+    command loads only its own, ``COMMANDS``, to start fast). ``up`` starts its run's
     zygote first of all (``sim.zygote.prestart``)."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    if modules is COMMAND_MODULES and argv[:1] and argv[0] in MESH_COMMANDS:
-        modules = (MESH_COMMANDS[argv[0]],)
+    if modules is COMMAND_MODULES and argv[:1] and argv[0] in COMMANDS:
+        modules = (COMMANDS[argv[0]],)
     if threading.current_thread() is threading.main_thread():
         # SIGTERM as SystemExit(143) where the main thread is, so that finally blocks run (partial files
         # removed, children stopped), and SIGINT as stopping.Interrupted (exit 130, never killed by SIGINT),

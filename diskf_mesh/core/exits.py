@@ -8,7 +8,10 @@ with the code this table gives it; ``replay RUN.mcap`` and ``replay
     0  OK               exact, or as planned (only the injected faults)
     1  FAILED           a process failed (its one line says why)
     2  BAD_INPUT        bad input, or a duplicate process in the run
-    3  INCOMPLETE       agent-ticks missing beyond ``--allow-missing``; for
+    3  INCOMPLETE       agent-ticks missing beyond ``--allow-missing``; a
+                        run whose world gave up before any report; a
+                        recording that is not whole (``replay RUN.mcap``,
+                        whatever the tolerances); for
                         an agent process (``STOPPED``): its estimator
                         diverged, it told the world and left, and the run
                         went on without it

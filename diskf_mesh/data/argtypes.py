@@ -11,6 +11,9 @@ import math
 
 from diskf_mesh import estimators
 
+MAX_S = 86_400.0           # a day: no duration option (a timeout, a delay) may be longer
+MAX_MS = 1000.0 * MAX_S
+
 
 def _integer(text: str, low: int, what: str) -> int:
     try:
@@ -65,8 +68,13 @@ def fraction(text: str) -> float:
 
 
 def milliseconds(text: str) -> float:
-    """A finite non-negative number of milliseconds (``--latency-ms``)."""
-    return _number(text, lambda v: math.isfinite(v) and v >= 0, "a finite non-negative number of milliseconds")
+    """A non-negative number of milliseconds up to a day (``--latency-ms``, ``--net-delay-ms``)."""
+    return _number(text, lambda v: 0 <= v <= MAX_MS, f"a number of milliseconds from 0 to {MAX_MS:.0f} (a day)")
+
+
+def seconds(text: str) -> float:
+    """A number of seconds > 0, up to a day (``--tick-timeout``)."""
+    return _number(text, lambda v: 0 < v <= MAX_S, f"a number of seconds above 0, up to {MAX_S:.0f} (a day)")
 
 
 def positive(text: str) -> float:

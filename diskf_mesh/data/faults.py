@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass, fields, replace
 import numpy as np
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.data.argtypes import fraction, milliseconds
+from diskf_mesh.data.argtypes import MAX_MS, fraction, milliseconds
 
 PROBABILITIES = ("loss", "duplicate", "reorder")
 DURATIONS = ("latency_ms", "jitter_ms", "reorder_ms")
@@ -69,6 +69,8 @@ class FaultConfig:
                 raise InputError(f.name, f"must be a finite non-negative number, got {v!r}")
             if f.name in PROBABILITIES and v > 1:
                 raise InputError(f.name, f"is a probability, must be at most 1, got {v!r}")
+            if f.name in DURATIONS and v > MAX_MS:
+                raise InputError(f.name, f"must be at most {MAX_MS:.0f} ms (a day), got {v!r}")
 
     @property
     def active(self) -> bool:
@@ -190,9 +192,10 @@ class FaultModel:
         return Delivery(ms / 1000.0, copy, reordered)
 
 
-def delivered_links(links: np.ndarray, ids, config: FaultConfig, seed: int, deadline_s: float = math.inf) -> np.ndarray:
+def delivered_links(links: np.ndarray, ids, config: FaultConfig, seed: int, deadline_s: float = math.inf,
+                    first_tick: int = 1) -> np.ndarray:
     """The links of a run after the faults: ``links`` (K, N, N) bool,
-    [tick - 1, receiver, sender], with every off-diagonal link kept only where
+    [tick - first_tick, receiver, sender], with every off-diagonal link kept only where
     ``FaultModel(config, seed)`` delivers the sender's message of that tick to
     the receiver within ``deadline_s`` (a copy with a smaller delay).
 
@@ -204,10 +207,10 @@ def delivered_links(links: np.ndarray, ids, config: FaultConfig, seed: int, dead
     model = FaultModel(config, seed)
     out = links.copy()
     K, N, _ = links.shape
-    for k in range(1, K + 1):
+    for t in range(K):
         for r in range(N):
             for s in range(N):
-                if r != s and links[k - 1, r, s]:
-                    plan = model.plan(ids[s], ids[r], k)
-                    out[k - 1, r, s] = any(d.delay_s < deadline_s for d in plan)
+                if r != s and links[t, r, s]:
+                    plan = model.plan(ids[s], ids[r], t + first_tick)
+                    out[t, r, s] = any(d.delay_s < deadline_s for d in plan)
     return out

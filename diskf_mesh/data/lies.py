@@ -27,6 +27,9 @@ what it reports to the world) is false.
     reports  "honest" (default): its reports carry its true estimate;
              "lying": its reports carry the same lie (moved, shrunk, stale or
              with the false input), consistent with its messages
+    withhold a tick whose report the liar never sends (an agent process;
+             the world then cannot know what it fused: ``engine.verify``'s
+             ``unverifiable``)
 
 Every change is element-wise arithmetic on the liar's arrays, the same
 operation on the same operands wherever it runs.
@@ -44,7 +47,7 @@ from diskf_mesh.core.messages import Message, Output
 
 KINDS = ("offset", "drift", "shrink", "stale", "input")
 REPORTS = ("honest", "lying")
-KEYS = ("agent", "kind", "size", "from", "until", "on", "off", "scale", "reports")
+KEYS = ("agent", "kind", "size", "from", "until", "on", "off", "scale", "reports", "withhold")
 
 
 @dataclass(frozen=True)
@@ -61,6 +64,7 @@ class Lie:
     off: int = 0
     scale: float = 1e-3
     reports: str = "honest"
+    withhold: int | None = None
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -71,9 +75,9 @@ class Lie:
             raise InputError("lie.size", f"must be a finite number, got {self.size!r}")
         if self.kind == "stale" and (self.size < 1 or int(self.size) != self.size):
             raise InputError("lie.size", f"of a stale lie is a whole number of ticks >= 1, got {self.size!r}")
-        for name, low in (("start", 1), ("until", 1), ("on", 1), ("off", 0)):
+        for name, low in (("start", 1), ("until", 1), ("on", 1), ("off", 0), ("withhold", 1)):
             v = getattr(self, name)
-            if v is None and name in ("until", "on"):
+            if v is None and name in ("until", "on", "withhold"):
                 continue
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 key = "from" if name == "start" else name
@@ -169,7 +173,8 @@ def resolve(lies, labels, ids) -> tuple:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lie", action="append", type=_lie_arg, metavar="agent=ID,kind=K,size=X[,...]",
                         help="make an agent lie (repeat for several): kind offset|drift|shrink|stale|input, "
-                        "size, and optionally from, until, on, off, scale, reports=honest|lying (docs/faults.md); "
+                        "size, and optionally from, until, on, off, scale, reports=honest|lying, withhold=TICK "
+                        "(docs/faults.md); "
                         "replaces the scenario's [[faults.lies]]")
 
 
@@ -233,6 +238,10 @@ class Liars:
                     told = replace(told, P_pred=lie.scale * true.P_pred, P_upd=lie.scale * true.P_upd)
             out = _put(out, col, told)
         return out
+
+    def withholds(self, k: int) -> bool:
+        """Whether a liar here sends no report of tick ``k``."""
+        return any(lie.withhold == k for _, lie in self.lies)
 
     def report(self, k: int, out: Output) -> Output:
         """What the agents report at tick ``k``: ``out`` with each liar whose

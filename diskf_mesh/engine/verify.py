@@ -164,10 +164,10 @@ def first_claims(claims: RunClaims, K: int) -> RunClaims:
                      {key: v for key, v in claims.verdicts.items() if key[0] <= K}, cut(claims.why))
 
 
-def nominal_links(trace: Trace, K: int, live: np.ndarray | None = None) -> np.ndarray:
-    """(K, N, N): the range links of ticks 1..K between agents live at the
-    tick (``live`` (K, N); None: all), the diagonal True."""
-    links = np.array(trace.links[0, :K], dtype=bool)
+def nominal_links(trace: Trace, K: int, live: np.ndarray | None = None, first_tick: int = 1) -> np.ndarray:
+    """(K, N, N): the range links of ticks first_tick..K between agents
+    live at the tick (``live`` (ticks, N); None: all), the diagonal True."""
+    links = np.array(trace.links[0, first_tick - 1:K], dtype=bool)
     if live is not None:
         links &= live[:, :, None] & live[:, None, :]
     N = links.shape[-1]
@@ -175,14 +175,24 @@ def nominal_links(trace: Trace, K: int, live: np.ndarray | None = None) -> np.nd
     return links
 
 
+def announced(trace: Trace, live: np.ndarray) -> Trace:
+    """``trace`` with each tick's links only between the agents that tick
+    counted live (``live`` (K, N), as a run's ticks announce it): the engine
+    applies a run's quarantine (and its joins and departures) from the same
+    ticks, so its estimates are the run's on what was delivered."""
+    K = live.shape[0]
+    return first_ticks(trace, K).with_links(nominal_links(trace, K, live)[None])
+
+
 def planned_links(nominal: np.ndarray, ids, faults: FaultConfig | None, seed: int,
-                  deadline_s: float = np.inf) -> np.ndarray:
-    """The nominal links after the injected faults (``faults.delivered_links``
-    of the run's seed; ``ids``: the run's agent ids in the trace's order):
-    what the agents fuse when every copy due before ``deadline_s`` is in."""
+                  deadline_s: float = np.inf, first_tick: int = 1) -> np.ndarray:
+    """The nominal links (of ticks ``first_tick``...) after the injected
+    faults (``faults.delivered_links`` of the run's seed; ``ids``: the run's
+    agent ids in the trace's order): what the agents fuse when every copy
+    due before ``deadline_s`` is in."""
     if faults is None or not faults.active:
         return nominal
-    return delivered_links(nominal, list(ids), faults, seed, deadline_s)
+    return delivered_links(nominal, list(ids), faults, seed, deadline_s, first_tick)
 
 
 # --------------------------------------------------------------------------
@@ -217,6 +227,20 @@ def restarted(est, state, agent: int, x=None, P=None):
     return new
 
 
+def restart_at(k: int, restarts, claims: RunClaims, est, state):
+    """``state`` with tick k's ``restarts`` applied: each agent starts from
+    the state it was handed, or its source's report of tick k - 1 (the
+    replay's own state where that is not in the claims)."""
+    for r in restarts:
+        x, P = r.x, r.P
+        if x is None and r.source is not None:
+            x, P = claims.x[k - 2, r.source], claims.P[k - 2, r.source]
+            if not claims.reported[k - 2, r.source]:  # not in the claims: the replay's own
+                x, P = state.x[0, r.source].copy(), state.P[0, r.source].copy()
+        state = restarted(est, state, r.agent, x, P)
+    return state
+
+
 def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.ndarray | None = None,
            message_digest=None, wanted=None) -> tuple:
     """The engine on ticks 1..K of ``trace`` with exactly the fused sets of
@@ -236,14 +260,7 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
         by_tick.setdefault(int(r.tick), []).append(r)
 
     def restart(k, est, state):
-        for r in by_tick.get(k, ()):
-            x, P = r.x, r.P
-            if x is None and r.source is not None:
-                x, P = claims.x[k - 2, r.source], claims.P[k - 2, r.source]
-                if not claims.reported[k - 2, r.source]:  # not in the claims: the replay's own
-                    x, P = state.x[0, r.source].copy(), state.P[0, r.source].copy()
-            state = restarted(est, state, r.agent, x, P)
-        return state
+        return restart_at(k, by_tick.get(k, ()), claims, est, state)
 
     digests = {}
     need = {}
@@ -341,6 +358,64 @@ class Judge:
                                  np.where(unver & unknown, self.withheld, 0))
         self.unknown = ~reported | (div & bad) | unver
         return Judged(div, forged, unver, doubtful)
+
+
+class Online:
+    """The check as a run goes: ``replay`` and ``Judge`` one tick at a time,
+    each tick once its reports are final (the mesh's world), so an agent
+    that lies is named at the tick an honest agent fused its lie, not at the
+    run's end. ``tick(k, claims, planned)``: ``claims`` the run's claims so
+    far (at least tick k's and its digests), ``planned`` (N, N) tick k's
+    planned links (an agent-tick without a report: its row). The same
+    numbers as ``verify``'s replay, bit for bit: the same engine step
+    (``batch.Stepper``) on the same links, restarts and digests. Once the
+    engine's own replay diverges (``ended``: that tick) nothing more is
+    checked."""
+
+    def __init__(self, trace: Trace, algorithm: str, params, message_digest=None):
+        B, K, N = trace.has.shape
+        self.trace, self.message_digest = trace, message_digest
+        self.step = batch.Stepper(trace.model, trace.sensors, algorithm, params, trace.seeds[:1], K)
+        self.judge = Judge(N)
+        self.links = None
+        self.ended = 0
+
+    def tick(self, k: int, claims: RunClaims, planned: np.ndarray) -> Judged | None:
+        """Tick k's ``Judged``, or None after the engine's replay diverged."""
+        if self.ended or k != self.step.k + 1:
+            return None
+        reported = claims.reported[k - 1]
+        N = reported.shape[0]
+        links = np.array(claims.fused[k - 1], dtype=bool)
+        links[~reported] = planned[~reported]
+        links[np.arange(N), np.arange(N)] = True
+        mine = [(key[1], v) for key, v in claims.digests.items() if key[0] == k]
+        senders = sorted({int(s) for _, (ss, _) in mine for s in ss})
+        engine = np.zeros(N, dtype=np.uint64)
+
+        def listen(_, msg):
+            if self.message_digest is not None and senders:
+                engine[senders] = [digest_value(g) for g in self.message_digest(k, senders, msg)]
+
+        restarts = [r for r in claims.restarts if r.tick == k]
+        if restarts:
+            self.step.state = restart_at(k, restarts, claims, self.step.est, self.step.state)
+        changed = self.links is None or not np.array_equal(links, self.links)
+        self.links = links
+        tr = self.trace
+        try:
+            out = self.step.step(tr.y[:1, k - 1], tr.has[:1, k - 1], links[None] if changed else None, listen)
+        except batch.Diverged:
+            self.ended = k
+            return None
+        bad, _ = compare(reported, claims.x[k - 1], claims.P[k - 1], claims.d[k - 1], claims.d_valid[k - 1],
+                         out.x[0], out.P[0], out.d[0], out.d_valid[0])
+        has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)
+        if self.message_digest is not None:
+            for r, (ss, gs) in mine:
+                has[r, ss] = True
+                wrong[r, ss] = engine[ss] != gs
+        return self.judge.tick(k, reported, bad, claims.fused[k - 1], has, wrong, [r.agent for r in restarts])
 
 
 # --------------------------------------------------------------------------

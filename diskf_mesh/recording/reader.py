@@ -1,16 +1,20 @@
-"""Reading a recording back, whole or cut short.
+"""Reading a recording back, whole, cut short or damaged.
 
-``read(path)`` reads every complete MCAP record of the file and stops at the
-first one the end of the file cuts (a world killed mid-run leaves no
-summary, no footer, and perhaps half a chunk): the recording is then
-readable up to its last closed tick. Ticks after the last one whose closing
-record (``/world/tick``) is in the file are dropped, so every tick a
-``Recording`` holds is complete.
+``read(path)`` reads the file's MCAP records in order with the ``mcap``
+library's stream reader, every CRC checked (each chunk's, the data
+section's), each attachment's CRC and the summary's CRC checked here (the
+library reads past them), and stops at the first record that is cut (a world
+killed mid-run leaves no summary, no footer, and perhaps half a chunk) or
+fails its check: the recording is then readable up to its last closed tick
+before that record, and ``Recording.damage`` says why the file is not whole.
+Ticks after the last one whose closing record (``/world/tick``) is in the
+file are dropped, so every tick a ``Recording`` holds is complete.
 """
 from __future__ import annotations
 
 import json
 import struct
+import zlib
 from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
@@ -25,8 +29,9 @@ from diskf_mesh.mesh.protocol.reports import RunReports
 from diskf_mesh.recording.layout import FORMAT, SEGMENT_PREFIX, TRACE_ATTACHMENT, join_trace
 
 MAGIC = b"\x89MCAP0\r\n"
-_FOOTER = 0x02
+_FOOTER, _ATTACHMENT = 0x02, 0x09
 _HEAD = struct.Struct("<BQ")
+_FOOTER_FIELDS = struct.Struct("<QQ")  # summary start, summary offset start (the summary CRC follows)
 
 
 @dataclass
@@ -49,6 +54,7 @@ class Recording(RunReports):
     live: np.ndarray | None = None              # (K, N) the live set of each tick
     result: dict | None = None  # /run/result, when the run ended and wrote it
     finished: bool = False      # the file has its footer (the world closed it)
+    damage: str = ""            # why the file is not a whole MCAP file ("" if it is: ``scan``)
     messages_by_topic: dict = field(default_factory=dict)
 
     @property
@@ -59,10 +65,24 @@ class Recording(RunReports):
     def planned_ticks(self) -> int:
         return int(self.run["ticks"])
 
+    def not_whole(self) -> str:
+        """Why the recording is not the whole run ("" if it is): the file is
+        not a whole MCAP file (``damage``), or it lacks the run's result, or
+        ticks the run planned."""
+        if self.damage:
+            return self.damage
+        if self.result is None:
+            return "it has no result record (the run's end)"
+        if self.ticks < self.planned_ticks or int(self.result.get("ticks", -1)) != self.ticks:
+            return f"it holds {self.ticks} of the {self.planned_ticks} ticks the run planned"
+        return ""
+
 
 def whole_records(data: bytes) -> tuple:
-    """(end of the last whole record, whether the footer and the closing
-    magic are there) of an MCAP file's bytes."""
+    """(end of the last whole record before any damage the record walk
+    sees, whether the footer and the closing magic are there, why the file
+    is not whole so far: "" or a cut record, an attachment or the summary
+    failing its CRC) of an MCAP file's bytes."""
     if data[:8] != MAGIC:
         raise ValueError("not an MCAP file (no MCAP magic at its start)")
     pos = 8
@@ -71,28 +91,84 @@ def whole_records(data: bytes) -> tuple:
         end = pos + _HEAD.size + length
         if end > len(data):
             break
-        pos = end
+        if op == _ATTACHMENT and length >= 4 and zlib.crc32(data[pos + _HEAD.size:end - 4]) != int.from_bytes(
+                data[end - 4:end], "little"):
+            return pos, False, f"the attachment at byte {pos} fails its CRC"
         if op == _FOOTER:
-            return pos, data[pos:pos + 8] == MAGIC
-    return pos, False
+            closed = data[end:end + 8] == MAGIC
+            return end + 8 * closed, closed, _footer_damage(data, pos, end)
+        pos = end
+    return pos, False, "it ends inside a record, before its summary and footer: cut short, or a record's length damaged"
+
+
+def _footer_damage(data: bytes, pos: int, end: int) -> str:
+    """Why the footer at ``pos`` (its record ending at ``end``) does not
+    close a whole file: "" if the summary is there and its CRC (over the
+    summary section and the footer's fields before it) holds, and the
+    closing magic follows."""
+    if end - pos != _HEAD.size + _FOOTER_FIELDS.size + 4:
+        return f"the footer at byte {pos} has the wrong length"
+    start, _ = _FOOTER_FIELDS.unpack_from(data, pos + _HEAD.size)
+    crc = int.from_bytes(data[end - 4:end], "little")
+    if not 8 <= start <= pos:
+        return "it has no summary section" if start == 0 else f"the footer points outside the file (byte {start})"
+    if crc == 0 or zlib.crc32(data[start:end - 4]) != crc:
+        return "the summary fails its CRC" if crc else "the summary carries no CRC"
+    if data[end:] != MAGIC:
+        return "the closing magic is not the file's last 8 bytes"
+    return ""
+
+
+def scan(data: bytes):
+    """Every whole record (chunks opened), in file order, from the ``mcap``
+    library's stream reader with its CRC checks, up to the first record that
+    is cut or fails a check; then the reason the file is not whole ("" if
+    it is: every CRC holds, the data section carries one, and the summary's
+    statistics count the messages read). Yields the records, returns the
+    reason."""
+    from mcap.records import DataEnd, Message, Statistics
+    from mcap.stream_reader import StreamReader
+
+    end, _, damage = whole_records(data)
+    reader = StreamReader(BytesIO(data[:end]), validate_crcs=True, record_size_limit=len(data))
+    messages, counted, data_crc = 0, None, None
+    try:
+        for rec in reader.records:
+            if isinstance(rec, Message):
+                messages += 1
+            elif isinstance(rec, DataEnd):
+                data_crc = rec.data_section_crc
+            elif isinstance(rec, Statistics):
+                counted = rec.message_count
+            yield rec
+    except Exception as e:  # noqa: BLE001 - the library's error for a record cut or failing a check: stop there
+        return damage or _why(e)
+    if damage:
+        return damage
+    if not data_crc:
+        return "its data section carries no CRC"
+    if counted != messages:
+        return f"its summary counts {counted} messages, the file holds {messages}"
+    return ""
+
+
+def _why(e: Exception) -> str:
+    from mcap.exceptions import EndOfFile
+    from mcap.stream_reader import CRCValidationError
+
+    if isinstance(e, CRCValidationError):
+        return "the data section fails its CRC" if type(e.record).__name__ == "DataEnd" else "a chunk fails its CRC"
+    if isinstance(e, EndOfFile):
+        return "a record runs past the end of the file"
+    if type(e).__name__ == "ZstdError":
+        return "a chunk does not decompress"
+    return f"a record does not read ({type(e).__name__}: {e})"[:200]
 
 
 def records(data: bytes):
     """Every whole record (chunks opened), in file order; stops quietly at
-    a record the file cuts or a chunk that does not decompress."""
-    from mcap.stream_reader import StreamReader
-
-    end, _ = whole_records(data)
-    reader = StreamReader(BytesIO(data[8:end]), skip_magic=True)
-    it = reader.records
-    while True:
-        try:
-            rec = next(it)
-        except StopIteration:
-            return
-        except Exception:  # noqa: BLE001 - a damaged tail (bad CRC, undecompressable chunk): stop there
-            return
-        yield rec
+    a record the file cuts or one that fails its check (``scan``)."""
+    yield from scan(data)
 
 
 def read(path) -> Recording:
@@ -103,11 +179,17 @@ def read(path) -> Recording:
     except OSError as e:
         raise InputError("recording", f"cannot read {path}: {e.strerror or e}") from None
     try:
-        _, finished = whole_records(data)
+        _, finished, _ = whole_records(data)
     except ValueError as e:
         raise InputError("recording", f"{path}: {e}") from None
     channels, by_topic, trace_doc, segments = {}, {}, None, []
-    for rec in records(data):
+    walk = scan(data)
+    while True:
+        try:
+            rec = next(walk)
+        except StopIteration as stop:
+            damage = stop.value
+            break
         if isinstance(rec, Channel):
             channels[rec.id] = (rec.topic, rec.message_encoding == "json")
         elif isinstance(rec, Message) and rec.channel_id in channels:
@@ -123,11 +205,11 @@ def read(path) -> Recording:
     runs = by_topic.get("/run", [])
     if not runs or runs[0].get("format") != FORMAT or trace_doc is None:
         raise InputError("recording", f"{path} is not a diskf-mesh recording ({FORMAT}) or was cut before "
-                                      "its first tick")
-    return _assemble(str(path), runs[0], join_trace(trace_doc, segments), by_topic, finished)
+                                      "its first tick" + (f" ({damage})" if damage else ""))
+    return _assemble(str(path), runs[0], join_trace(trace_doc, segments), by_topic, finished, damage)
 
 
-def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: bool) -> Recording:
+def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: bool, damage: str) -> Recording:
     params = estimator_from_json({"estimator": trace_doc.pop("params", {})})  # diskf-r's switches too
     trace = trace_from_json(trace_doc)
     ids = tuple(run["ids"])
@@ -179,7 +261,8 @@ def _assemble(path: str, run: dict, trace_doc: dict, by_topic: dict, finished: b
     fields_ = {f: getattr(reports, f) for f in ("x", "P", "d", "d_valid", "reported", "fused", "digests", "verdicts")}
     return Recording(**fields_, live=live, path=path, run=run, trace=trace, params=params, ticks=K, ids=ids, sent=sent,
                      delivered=delivered, counters=counters, positions=positions, edges=edges,
-                     result=results[-1] if results else None, finished=finished, messages_by_topic=by_topic)
+                     result=results[-1] if results else None, finished=finished, damage=damage,
+                     messages_by_topic=by_topic)
 
 
 take_ticks = first_ticks  # the first K ticks of a trace (``engine.verify.first_ticks``)

@@ -8,6 +8,12 @@ restarts (``engine.verify``, the check every run makes at its end) and
 compares every recorded estimate bit for bit: ``recording_status`` is the
 run's status (exact, as planned, degraded, diverged, incomplete), ``compare``
 the plain comparison.
+
+A recording is checked whole first (``Recording.not_whole``): a whole MCAP file
+(``reader.scan``: every CRC, the summary, the footer), the run's result and
+every planned tick. One that is not is ``incomplete`` whatever its whole
+ticks replay to (``diverged`` or ``unverifiable`` if they are), and says
+why and its last whole tick.
 """
 from __future__ import annotations
 
@@ -16,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from diskf_mesh.core import exits
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data import schemas
 from diskf_mesh.data.faults import FaultConfig
@@ -43,14 +50,26 @@ def recorded_miss_rate(rec: Recording) -> float | None:
 
 def recording_status(rec: Recording) -> RunStatus:
     """The recorded run checked by the engine: its status, reason, evidence
-    (planned with the deadline the run's own check used, if it said one)."""
+    (planned with the deadline the run's own check used, if it said one);
+    a recording that is not whole (``Recording.not_whole``) is ``incomplete``, or
+    ``diverged`` (``unverifiable``) if its whole ticks are, its evidence's
+    ``recording`` saying why and the last whole tick."""
     run = rec.run
     faults = FaultConfig.from_mapping(run.get("faults") or {})
     deadline = ((rec.result or {}).get("verification") or {}).get("plan_deadline_s")
-    return run_status(rec, verify.first_ticks(rec.trace, rec.ticks), rec.algorithm, rec.params,
-                      run_id=run["run_id"], seed=int(run["seed"]), faults=faults,
-                      deadline_s=math.inf if deadline is None else float(deadline), labels=list(rec.ids),
-                      restarts=recorded_restarts(rec))
+    st = run_status(rec, verify.first_ticks(rec.trace, rec.ticks), rec.algorithm, rec.params,
+                    run_id=run["run_id"], seed=int(run["seed"]), faults=faults,
+                    deadline_s=math.inf if deadline is None else float(deadline), labels=list(rec.ids),
+                    restarts=recorded_restarts(rec))
+    why = rec.not_whole()
+    st.evidence["recording"] = {"whole": not why, "damage": why or None, "last_whole_tick": rec.ticks,
+                                "planned_ticks": rec.planned_ticks, "replayed_status": st.status}
+    if not why:
+        return st
+    line = f"the recording is not whole: {why}; its last whole tick is {rec.ticks} of {rec.planned_ticks}"
+    if st.status in (exits.DIVERGED_STATUS, exits.UNVERIFIABLE_STATUS):  # the worse verdict stays
+        return RunStatus(st.status, f"{st.reason}; and {line}", st.evidence)
+    return RunStatus(exits.INCOMPLETE_STATUS, f"{line} (ticks 1 to {rec.ticks} replay {st.status})", st.evidence)
 
 
 def replay(rec: Recording) -> Estimates:

@@ -17,17 +17,28 @@ def recorded_metrics(rec: Recording) -> dict:
     return metrics.summarize(*metrics.errors(trace, rec.estimates(fill=True)), mask=rec.reported[None])
 
 
-def summary(rec: Recording) -> dict:
+def summary(rec: Recording, recheck: bool = False) -> dict:
+    """The recording in numbers; its run's verdict as the run recorded it,
+    or with ``recheck`` the engine's verdict now (``replay.recording_status``)."""
     run = rec.run
+    if recheck:
+        from diskf_mesh.recording.replay import recording_status
+
+        st = recording_status(rec)
+        verdict = {"status": st.status, "reason": st.reason, "rechecked": True}
+    else:
+        stored = (rec.result or {}).get("verification") or {}
+        verdict = {**{k: v for k, v in stored.items() if k in ("status", "reason")}, "rechecked": False}
     verdicts = Counter(doc["verdict"] for doc in rec.delivered)
     reasons = Counter(doc.get("reason", "") for doc in rec.delivered if doc["verdict"] == "rejected")
     return {
         "file": rec.path,
         "format": run["format"],
         "finished": rec.finished,
+        "whole": not rec.not_whole(),
+        "not_whole": rec.not_whole() or None,
         "status": (rec.result or {}).get("status", "cut short" if not rec.finished else "unknown"),
-        "run_status": {k: v for k, v in ((rec.result or {}).get("verification") or {}).items()
-                       if k in ("status", "reason")},
+        "run_status": verdict,
         "run_id": run["run_id"],
         "scenario": run["scenario"],
         "algorithm": run["algorithm"],
@@ -57,11 +68,13 @@ def format_summary(s: dict) -> str:
     m = s["messages"]
     faults = ", ".join(f"{k} {v:g}" for k, v in s["faults"].items()) or "none"
     ticks = (f"{s['ticks']} of {s['planned_ticks']}" if s["ticks"] != s["planned_ticks"] else f"{s['ticks']}")
-    state = "complete" if s["finished"] else "cut short (no footer): read up to its last closed tick"
+    state = "whole" if s["whole"] else f"not whole, read up to its last whole tick ({s['not_whole']})"
+    v = s["run_status"]
     lines = [
         f"{s['file']}: {s['format']}, {state}; status {s['status']}",
-        ("checked by the engine at the run's end: " + (f"{s['run_status']['status']}: {s['run_status']['reason']}"
-                                                       if s["run_status"] else "not recorded (replay checks it)")),
+        (f"re-checked by the engine now: {v['status']}: {v['reason']}" if v["rechecked"] else
+         "as the run's own check recorded it, not re-checked (replay or inspect --check re-checks it): "
+         + (f"{v['status']}: {v['reason']}" if "status" in v else "none recorded")),
         f"run {s['run_id']}: scenario {s['scenario']}, "
         + (f"range {s['comm_range']:g}" if s["topology"] == "range" else f"topology {s['topology']}")
         + f", {s['algorithm']}, seed {s['seed']}, faults: {faults}",

@@ -36,6 +36,10 @@ listed (``differs``). The copies and delays of each message are the
 seeded fault layer's plan (``faults.FaultModel``, the same seed and
 settings as the agents').
 
+Every CRC MCAP has is written (each chunk's, the data section's, each
+attachment's, the summary's), so ``replay`` can tell a whole file from one
+cut short or damaged (``recording.reader.scan``).
+
 Messages are stamped with a tick time: log time = recording start +
 k x ``TICK_PERIOD_S`` (so a viewer's timeline shows ticks evenly), publish
 time = the wall clock when the world closed the tick.
@@ -284,7 +288,8 @@ class TickWriter:
         self.names = dict(zip(self.ids, trace.agent_labels))  # run id -> the user's id
         self.faults = FaultModel(faults, seed) if faults.active else None
         self._file = file
-        self._mcap = mcap or Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self._mcap = mcap or Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD,
+                                      enable_data_crcs=True)
         self._mcap.start(profile="", library=f"diskf-mesh/{__version__}")
         self._channel = {}
         for topic in CHANNELS:

@@ -523,8 +523,9 @@ class AgentMachine:
                                     out.d_valid[0, 0], counters, fused_ids, not_fused, self.own_digest, digests,
                                     self.rejoins[-1] if self.rejoins else None)
         prof.end("encode")
-        self._out.append(Publish(self.keys.report(self.id), report))
-        self.last_report = (k, report)
+        if not self.liars.withholds(k):
+            self._out.append(Publish(self.keys.report(self.id), report))
+            self.last_report = (k, report)
         prof.tick()
         prof.waiting = "wait-world"
         self.ticks.pop(k, None)

@@ -35,7 +35,7 @@ Agent phases (``AGENT_PHASES``)::
     publish          handing them to zenoh (``put``)
     other            the rest of the callbacks: routing, range gate, inbox
 
-World phases (``WORLD_PHASES``): wait-reports, decode, encode, publish, other.
+World phases (``WORLD_PHASES``): wait-reports, decode, check (the online check), encode, publish, other.
 """
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ import time
 from pathlib import Path
 
 AGENT_PHASES = ("wait-world", "wait-neighbours", "decode", "guard", "local", "fuse", "encode", "publish", "other")
-WORLD_PHASES = ("wait-reports", "decode", "encode", "publish", "other")
+WORLD_PHASES = ("wait-reports", "decode", "check", "encode", "publish", "other")
 FORMAT = "diskf-mesh-profile/2"
 
 

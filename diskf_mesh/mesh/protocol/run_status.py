@@ -16,6 +16,7 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -87,7 +88,9 @@ def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: 
     run's estimator, run id (its messages' digests), seed and link faults;
     ``deadline_s``: real time's deadline (a copy planned later is not
     planned to be fused). The evidence lists the ``restarts`` replayed
-    (``restarts_to_json``), so a recording replays them."""
+    (``restarts_to_json``), so a recording replays them. A run that ended
+    before any report (``rec.ended_early``: a world that gave up at its
+    start) is incomplete, its reason first."""
     ids = list(trace.sensors.ids)
     claims = claims_of(rec, ids, restarts)
     names = list(labels if labels is not None else trace.agent_labels)
@@ -97,10 +100,79 @@ def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: 
         planned = verify.planned_links(verify.nominal_links(trace, K, claims.live), ids, faults, seed, deadline_s)
     digest = wire.engine_digests(run_id, ids, estimators.get(algorithm).exchanged)
     st = verify.verify(trace, algorithm, params, claims, planned=planned, message_digest=digest, labels=names)
+    ended = getattr(rec, "ended_early", "")
+    if ended and not claims.reported.any():  # the world gave up before any report (a start-up failure): why
+        st = RunStatus(st.status, f"{ended}; {st.reason}", st.evidence)
     st.evidence["restarts"] = restarts_to_json(claims.restarts, names)
+    if getattr(rec, "quarantined", None):
+        st.evidence["quarantined"], line = quarantine_evidence(rec, names)
+        st = dataclasses.replace(st, reason=f"{st.reason}; {line}")
     if faults is not None and faults.active and math.isfinite(deadline_s):
         st.evidence["plan_deadline_s"] = deadline_s  # a replay plans with the same deadline
     return st
+
+
+class OnlineCheck:
+    """The world's check as the run goes (``engine.verify.Online``): after
+    each tick whose reports are final, ``tick(rec, k)`` replays it on the
+    engine from the world's record ``rec`` (its reports, live sets,
+    rejoins) with the same digests and planned links as ``run_status``,
+    and returns the agents it proves lied, to cut off: a fused message or
+    a report of theirs that the engine does not reproduce on a known
+    state: [{"agent", "tick", "why": "lied", "fused_by"}], ids as the
+    record holds them. An agent whose state is unknown (a report of its
+    did not come) is never cut off: an honest one whose report was lost
+    looks the same; what it changes is ``unverifiable`` at the end."""
+
+    def __init__(self, trace: Trace, algorithm: str, params, *, run_id: str, seed: int,
+                 faults: FaultConfig | None = None, deadline_s: float = math.inf):
+        self.ids = list(trace.sensors.ids)
+        self.trace, self.seed, self.deadline_s = trace, seed, deadline_s
+        self.faults = faults if faults is not None and faults.active else None
+        self.online = verify.Online(trace, algorithm, params,
+                                    wire.engine_digests(run_id, self.ids, estimators.get(algorithm).exchanged))
+        self.index = {i: j for j, i in enumerate(self.ids)}
+
+    def tick(self, rec, k: int) -> list:
+        N = len(self.ids)
+        live = rec.live[k - 1] if getattr(rec, "live", None) is not None else np.ones(N, dtype=bool)
+        planned = verify.nominal_links(self.trace, k, live[None], first_tick=k)
+        if self.faults is not None:
+            planned = verify.planned_links(planned, self.ids, self.faults, self.seed, self.deadline_s, first_tick=k)
+        digests = {}
+        for i in range(N):
+            said = rec.digests.get((k, i))
+            if said:
+                digests[(k, i)] = (np.array(said[0], dtype=np.intp), verify.digest_values(said[1]))
+        restarts = tuple(r for r in restarts_of(getattr(rec, "rejoins", {}), getattr(rec, "starts", ()), self.index)
+                         if r.tick == k)
+        claims = RunClaims(rec.x, rec.P, rec.d, rec.d_valid, rec.reported, rec.fused, None, restarts, digests)
+        judged = self.online.tick(k, claims, planned[0])
+        if judged is None:
+            return []
+        return [{"agent": self.ids[s], "tick": k, "why": "lied",
+                 "fused_by": [self.ids[r] for r in np.flatnonzero(judged.forged[:, s])]} for s in judged.liars()]
+
+
+def quarantine_evidence(rec, names) -> tuple:
+    """(evidence, line) of the agents the world cut off (``rec.quarantined``:
+    ``OnlineCheck.tick``'s, each with the tick it was cut off ``from``): who,
+    why, from which tick, and the honest agent-ticks that fused it from the
+    tick it was named to the one before it was cut off."""
+    index = {i: j for j, i in enumerate(rec.ids)}
+    out = []
+    for q in rec.quarantined:
+        j = index[q["agent"]]
+        fused_by = [{"tick": t + 1, "agent": names[r]} for t in range(q["tick"] - 1, min(q["from"] - 1, len(rec.fused)))
+                    for r in np.flatnonzero(rec.fused[t, :, j]).tolist() if r != j]
+        out.append({"agent": names[j], "why": q["why"], "named_at": q["tick"], "from": q["from"],
+                    "fused_by": fused_by})
+    line = "; ".join(
+        f"agent {q['agent']} cut off from tick {q['from']} (it lied, named at tick {q['named_at']}; "
+        f"{len(q['fused_by'])} agent-ticks fused it"
+        + (f", first agent {q['fused_by'][0]['agent']} at tick {q['fused_by'][0]['tick']}" if q["fused_by"] else "")
+        + ")" for q in out)
+    return out, line
 
 
 def add_tolerances(p, missing_also: str = "") -> None:

@@ -128,6 +128,7 @@ class WorldRecord(RunReports):
     ended_early: str = ""                      # why the run ended before tick K, if it did
     deadlines: Deadlines | None = None         # real time only
     labels: tuple = ()                         # the ids as the scenario gave them (results show these)
+    quarantined: list = field(default_factory=list)  # [{"agent", "tick", "why", "fused_by", "from"}]
 
     def label(self, i):
         """Agent ``i``'s id as the scenario gave it (``i`` itself if unknown)."""
@@ -141,14 +142,20 @@ class WorldMachine:
     run's key space; ``nonce``: this world's token suffix
     (``mesh.wire.keys.new_nonce``; given, so that a replay is the same run);
     ``timing``; ``allow_missing``: start without the agents not ready after
-    ``startup_timeout``. Observers: ``log``, ``progress(k)`` after
+    ``startup_timeout``; ``online``: the check as the run goes
+    (``mesh.protocol.run_status.OnlineCheck``; None: only at the end), whose
+    named agents are cut off (section 8). Observers: ``log``, ``progress(k)`` after
     each tick, ``profile``, ``recorder`` (``diskf_mesh.recording.writer``'s
     hooks ``on_open``, ``on_report``, ``on_close``; None: not recorded)."""
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, nonce: str,
                  timing: WorldTiming = WorldTiming(), allow_missing: bool = False, log: Log | None = None,
-                 progress=None, profile: Phases = NO_PHASES, recorder=None):
+                 progress=None, profile: Phases = NO_PHASES, recorder=None, online=None):
         self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
+        self.online = online
+        self._quarantined = {}         # id -> the online check's finding that cut it off
+        self._unchecked = []           # ticks whose reports are final, not checked yet (timer "check")
+        self._now = 0.0                # the time of the event being handled
         self.keys, self.nonce, self.timing = keys, nonce, timing
         self.allow_missing = allow_missing
         self.log, self.progress, self.prof, self.recorder = log or Log("world"), progress, profile, recorder
@@ -220,6 +227,7 @@ class WorldMachine:
         """One event; returns the effects, in order."""
         if self.phase == "finished":
             return []
+        self._now = now
         if isinstance(event, Sample):
             self._on_sample(event.key, event.payload, now)
         elif isinstance(event, Token):
@@ -285,6 +293,8 @@ class WorldMachine:
             self._clock_tick(now)
         elif name == "grace":
             self._end_clocked(now)
+        elif name == "check":
+            self._check_ticks()
         elif name == "pause":
             if self._paused and not self._pause_over(now):
                 self._set_timer("pause", self._paused_at + self.timing.startup_timeout)
@@ -327,15 +337,16 @@ class WorldMachine:
             parts.append(f"no agent process for id {', '.join(map(str, absent))} (no liveliness token)")
         if stuck:
             parts.append(f"agent {', '.join(map(str, stuck))} up but not connected to every peer")
-        self._finish("failed", FAILED, f"after {self.timing.startup_timeout:g} s waiting for the agents: "
-                     + "; ".join(parts))
+        self.record.ended_early = (f"after {self.timing.startup_timeout:g} s waiting for the agents: "
+                                   + "; ".join(parts))
+        self._finish("failed", FAILED, self.record.ended_early)
 
     def _late_ready_over(self, now: float) -> None:
         if self.phase != "late-ready":
             return
         if not self.ready:
-            return self._finish("failed", FAILED, f"no agent ready {self.timing.startup_timeout + LATE_READY_S:g} s "
-                                                  "after the start")
+            self.record.ended_early = f"no agent ready {self.timing.startup_timeout + LATE_READY_S:g} s after the start"
+            return self._finish("failed", FAILED, self.record.ended_early)
         self._cancel_timer("late-ready")
         self.log.info(f"starting without agent {', '.join(str(i) for i in self.ids if i not in self.ready)}"
                       f" (not ready after {self.timing.startup_timeout:g} s; --allow-missing)")
@@ -363,7 +374,7 @@ class WorldMachine:
     # 2. a tick (lockstep)
     # ======================================================================
     def _live(self, k: int) -> list:
-        return [i for i in self.ids if i in self.ready and self._joins_at.get(i, 0) <= k]
+        return [i for i in self.ids if i in self.ready and self._joins_at.get(i, 0) <= k and i not in self._quarantined]
 
     def _holder(self, agent: int, k: int) -> str:
         """The process (its nonce) counted as ``agent`` at tick k: at tick 1
@@ -382,6 +393,7 @@ class WorldMachine:
         """Send each live agent its measurement of tick k, then the tick. The
         measurements are not express: each waits in its agent's link for the
         (express) tick, so an agent gets both in one write and wakes once."""
+        self._check_ticks(k - 2)  # a liar named by then is cut off from this tick on
         tr, run, prof = self.trace, self.keys.run_id, self.prof
         live = self._live(k)
         self.k = self._open = k
@@ -396,7 +408,7 @@ class WorldMachine:
                 self._why[i] = None
                 self.record.live[k - 1, j] = True
             else:
-                self.record.why[k - 1, j] = self._why[i] or "left"
+                self.record.why[k - 1, j] = "quarantined" if i in self._quarantined else self._why[i] or "left"
         if self.recorder is not None:
             self.recorder.on_open(k, live)
         prof.begin()
@@ -525,6 +537,7 @@ class WorldMachine:
             self.log.once(("late", i), f"tick {k}: no report from agent {i} within {self.timing.tick_timeout:g} s")
         if self.recorder is not None:
             self.recorder.on_close(k, self._waiting)
+        self._check_later(k)
         self._open, self._waiting, self._closed = 0, set(), k  # its "tick" timer: moved by the next, or cancelled
         self.prof.tick()
         if self.progress is not None:
@@ -612,6 +625,7 @@ class WorldMachine:
             missing = self._owed.pop(k, set())
             if self.recorder is not None:
                 self.recorder.on_close(k, missing)
+            self._check_later(k)
             self._unrecorded += 1
 
     def _end_clocked(self, now: float) -> None:
@@ -782,7 +796,7 @@ class WorldMachine:
         fused estimate (``rejoin.most_certain``); the prior if none."""
         rec, t, run = self.record, tick - 2, self.keys.run_id
         if t >= 0:
-            near = set(neighbours(self.scn, agent, self.trace.positions[t])) - {agent}
+            near = set(neighbours(self.scn, agent, self.trace.positions[t])) - {agent} - set(self._quarantined)
             reported = {i: wire.Start(run, agent, tick, i, rec.x[t, j].copy(), rec.P[t, j].copy(),
                                       rec.d[t, j].copy(), bool(rec.d_valid[t, j]))
                         for i in sorted(near) for j in (self._index[i],) if rec.reported[t, j]}
@@ -801,6 +815,41 @@ class WorldMachine:
         runs = self.record.rejoins.setdefault(agent, [])
         entry = {"tick": int(tick), "source": source}
         runs[:] = sorted([r for r in runs if r["tick"] != entry["tick"]] + [entry], key=lambda r: r["tick"])
+
+    # ======================================================================
+    # 8. the check as the run goes
+    # ======================================================================
+    def _check_later(self, k: int) -> None:
+        """Tick k's reports are final: check it once the effects of this
+        event are out (timer ``check`` at once), so the next tick's
+        messages go first; at the latest before tick k + 2 opens."""
+        if self.online is not None:
+            self._unchecked.append(k)
+            self._set_timer("check", self._now)
+
+    def _check_ticks(self, upto: float = math.inf) -> None:
+        while self._unchecked and self._unchecked[0] <= upto:
+            self._check_tick(self._unchecked.pop(0))
+
+    def _check_tick(self, k: int) -> None:
+        """The online check replays tick k; an agent it names is cut off
+        from the next tick opened on (no tick counts it live again, so no
+        honest agent links to it or fuses its messages, and no rejoin
+        starts from its estimate); its missing ticks say "quarantined"."""
+        self.prof.begin()
+        try:
+            found = self.online.tick(self.record, k)
+        finally:
+            self.prof.end("check")
+        for q in found:
+            if q["agent"] in self._quarantined:
+                continue
+            q["from"] = self.k + 1
+            self._quarantined[q["agent"]] = q
+            self.record.quarantined.append(q)
+            self.log.info(f"tick {k}: agent {q['agent']} cut off from tick {q['from']} on: its message or report "
+                          "is not what the algorithm computes"
+                          + (f" (fused by agent {', '.join(map(str, q['fused_by']))})" if q["fused_by"] else ""))
 
     # ======================================================================
     # 7. the end
@@ -825,6 +874,7 @@ class WorldMachine:
             self.record.ticks_s = now - self._t1
             if self.clock is not None:
                 self._to_recorder(final=True)  # the ended ticks; the rest are missing
+        self._check_ticks()
         for name in list(self._timers):
             self._cancel_timer(name)
         self._open, self._waiting = 0, set()

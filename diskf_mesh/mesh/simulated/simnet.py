@@ -145,6 +145,7 @@ class Outcome:
     lines: list | None = None
     refused: dict = field(default_factory=dict)  # what the access rules refused, by message kind
     lost: int = 0             # samples lost on links (Link.loss) or to a dropped session
+    lost_samples: list = field(default_factory=list)  # (receiver pid, payload) of each of them
 
 
 class SimError(RuntimeError):
@@ -257,6 +258,7 @@ class SimNet:
         self._coming = 0          # boots and timed faults still in the queue
         self.refused = {}
         self.lost = 0
+        self.lost_samples = []    # (receiver pid, payload): what the network lost, for the run's verdicts
         self._events = 0
 
     # -- the run's processes and fault plan ---------------------------------
@@ -296,7 +298,7 @@ class SimNet:
         bounded = self._all_over()
         return Outcome(self.seed, dict(self._finishes), {pid: p.machine for pid, p in self._procs.items()},
                        self.trace.last, self.trace.events, self.trace.digest, bounded, self.trace.lines,
-                       dict(self.refused), self.lost)
+                       dict(self.refused), self.lost, self.lost_samples)
 
     def _all_over(self) -> bool:
         return bool(self._procs) and not self._running and not self._coming
@@ -338,6 +340,7 @@ class SimNet:
         if proc.state != "up" or not (local or proc.connected):
             if isinstance(event, ev.Sample):
                 self.lost += 1
+                self.lost_samples.append((proc.pid, event.payload))
             return
         self._handle(proc, event)
 
@@ -577,6 +580,7 @@ class SimNet:
             rng = self.rng
             if link.loss and rng.random() < link.loss:
                 self.lost += 1
+                self.lost_samples.append((b.pid, event.payload))
                 return
             copies = 2 if link.duplicate and rng.random() < link.duplicate else 1
             for _ in range(copies):

@@ -13,12 +13,19 @@ the plan every run can recompute from its seed) come with ``faults``.
 Process ids: ``world``, ``agent-<id>``, a twin ``agent-<id>~<n>``; a world
 twin ``world~<n>``.
 
+An agent names a linked sender's message that had not come when it closed
+the tick "late": it cannot tell a message the network lost from one still on
+its way. The simulated network can: the run's verdicts (the world's record,
+the recording) name every message it lost "lost" (``NetworkLosses``).
+
 May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+
+import msgpack
 
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import Scenario
@@ -28,7 +35,7 @@ from diskf_mesh.mesh.security import credentials
 from diskf_mesh.mesh.protocol.agent_machine import AgentMachine, AgentTiming
 from diskf_mesh.mesh.wire.keys import Keys
 from diskf_mesh.mesh.protocol.log import Log
-from diskf_mesh.mesh.protocol.run_status import run_status
+from diskf_mesh.mesh.protocol.run_status import OnlineCheck, run_status
 from diskf_mesh.mesh.protocol.shared import Shared
 from diskf_mesh.mesh.simulated.simnet import Lease, Link, Outcome, SimNet
 from diskf_mesh.mesh.protocol.world_machine import WorldMachine, WorldTiming
@@ -56,14 +63,67 @@ class SimPlan:
     extra: tuple = ()                # (pid, identity, factory(Boot), start time), ...: other processes
     world_timing: WorldTiming = WorldTiming()
     agent_timing: AgentTiming = AgentTiming()
+    allow_missing: bool = False      # the world starts without the agents not ready after its startup timeout
     max_time: float = 3600.0
+    online: bool = True              # the world checks each tick as its reports come (and cuts off a liar)
+
+
+class NetworkLosses:
+    """The agents' messages the network lost (``SimNet.lost_samples``), as
+    (receiver id, sender id, tick), and the verdicts that say so."""
+
+    def __init__(self, net: SimNet, ids):
+        self._net, self._seen, self._lost = net, 0, set()
+        self._ids = {agent_pid(i): i for i in ids}
+
+    def lost(self) -> set:
+        samples = self._net.lost_samples
+        for pid, payload in samples[self._seen:]:
+            receiver = self._ids.get(pid)
+            if receiver is None:
+                continue
+            try:
+                doc = msgpack.unpackb(payload, raw=False)
+            except (ValueError, msgpack.UnpackException):
+                continue
+            if isinstance(doc, dict) and doc.get("k") == "msg":
+                self._lost.add((receiver, doc.get("s"), doc.get("t")))
+        self._seen = len(samples)
+        return self._lost
+
+    def relabel(self, receiver, tick: int, not_fused) -> tuple:
+        """``not_fused`` ((sender, verdict), ...) of ``receiver``'s report of
+        ``tick`` with "late" made "lost" where the network lost the message."""
+        lost = self.lost()
+        return tuple((s, "lost" if v == "late" and (receiver, s, tick) in lost else v) for s, v in not_fused)
+
+    def relabel_record(self, rec, ids) -> None:
+        """The same in a world's record (``RunReports.verdicts``, senders by index)."""
+        for (tick, i), said in list(rec.verdicts.items()):
+            named = self.relabel(ids[i], tick, [(ids[j], v) for j, v in said])
+            rec.verdicts[(tick, i)] = tuple((j, v) for (j, _), (_, v) in zip(said, named))
+
+
+class _Relabelled:
+    """A recorder (``WorldMachine``'s observer) handed reports whose
+    verdicts say what the network lost."""
+
+    def __init__(self, recorder, losses: NetworkLosses):
+        self._recorder, self._losses = recorder, losses
+
+    def on_report(self, r) -> None:
+        self._recorder.on_report(replace(r, not_fused=self._losses.relabel(r.sender, r.tick, r.not_fused)))
+
+    def __getattr__(self, name):
+        return getattr(self._recorder, name)
 
 
 @dataclass
 class SimRun:
     outcome: Outcome
     world: WorldMachine              # the world that ran the run (its last incarnation)
-    status: object                   # engine.verify.RunStatus, or None if the world never finished
+    status: object                   # engine.verify.RunStatus (incomplete with the world's reason if it ended
+                                     # before any report), or None if the world never finished
     log: str                         # every process's lines
 
     @property
@@ -89,14 +149,23 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     policy = credentials.access_control(run_id, ids, observer=False, router=plan.router) if plan.secure else None
     net = SimNet(seed if net_seed is None else net_seed, link=plan.link, links=plan.links, policy=policy,
                  lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time)
+    losses = NetworkLosses(net, ids)
+    if recorder is not None:
+        recorder = _Relabelled(recorder, losses)
+
+    deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
 
     shared = Shared() if batch else None  # a payload's decode and checks, once for all its receivers
 
     def world(boot):
         first = boot.pid == WORLD and boot.incarnation == 0  # the observers watch the run's own world
+        online = OnlineCheck(trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
+                             deadline_s=deadline_s) if plan.online else None
         return WorldMachine(scn, trace, algorithm, seed, keys, boot.nonce, plan.world_timing,
+                            allow_missing=plan.allow_missing,
                             log=Log(f"world {boot.pid}#{boot.incarnation}" if boot.incarnation else boot.pid, stream),
-                            progress=progress if first else None, recorder=recorder if first else None)
+                            progress=progress if first else None, recorder=recorder if first else None,
+                            online=online)
 
     def agent(i):
         def make(boot):
@@ -121,15 +190,15 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
         add(pid, factory, identity, float(at))
     net.plan(plan.faults)
     out = net.run()
-    # the world that ran the run (of two holding the run id, one leaves: it heard no report)
+    # the world that ran the run (of two holding the run id, one leaves as a duplicate: it heard no report)
     worlds = [pid for pid in out.machines if pid == WORLD or pid.startswith(WORLD + "~")]
-    pid = max(worlds, key=lambda p: (int(out.machines[p].record.reported.sum()), p == WORLD))
+    stayed = lambda p: getattr(out.finishes.get(p), "status", None) != "duplicate"  # noqa: E731
+    pid = max(worlds, key=lambda p: (int(out.machines[p].record.reported.sum()), stayed(p), p == WORLD))
     w = out.machines[pid]
+    losses.relabel_record(w.record, list(w.record.ids))
     status = None
-    if verify and pid in out.finishes and w.record.reported.any():
-        at = plan.agent_timing
+    if verify and pid in out.finishes:
         status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
-                            deadline_s=realtime.agents_deadline(at.clock, at.collect_timeout),
-                            labels=scn.labels)
+                            deadline_s=deadline_s, labels=scn.labels)
     return SimRun(out, w, status, stream.getvalue() if stream is not None else "")
 
