@@ -261,17 +261,18 @@ def test_an_agents_stop_notice_names_only_what_it_may_say():
     assert missing.any() and set(r.record.why[missing, 0]) == {"left"}, set(r.record.why[missing, 0])
 
 
-def _replayed(e, kept={}):
-    """Agent 3's message of tick 30 replaced by its message of tick 5 (off the guard's window), of
-    tick 20 by an extreme one."""
-    if isinstance(e, ev.Publish) and KEYS.parse(e.key) == ("msg", 3):
-        tick = wire.decode(e.payload, run_id=RUN, sender=3, exchanged=EXCHANGED).tick
-        kept.setdefault(tick, e.payload)
-        if tick == 30:
-            return dataclasses.replace(e, payload=kept[5])
-        if tick == 20:
-            return dataclasses.replace(e, payload=extreme(e.payload, 3))
-    return e
+def _replayer():
+    """An edit: agent 3's message of tick 25 replaced by its message of tick 5 (off the guard's window)."""
+    kept = {}
+
+    def edit(e):
+        if isinstance(e, ev.Publish) and KEYS.parse(e.key) == ("msg", 3):
+            tick = wire.decode(e.payload, run_id=RUN, sender=3, exchanged=EXCHANGED).tick
+            kept.setdefault(tick, e.payload)
+            if tick == 25:
+                return dataclasses.replace(e, payload=kept[5])
+        return e
+    return edit
 
 
 @pytest.mark.parametrize("plan", ["replayed", "forger", "paused"])
@@ -281,7 +282,7 @@ def test_what_receivers_share_is_counted_by_each(quadrants, plan):
     counts it alone: the same run event for event, every agent's counters
     and rejections by sender the same."""
     scn, trace = quadrants
-    plans = {"replayed": SimPlan(Link(delay=0.002), wrap={agent_pid(3): lambda m: Tamper(m, _replayed)}),
+    plans = {"replayed": SimPlan(Link(delay=0.002), wrap={agent_pid(3): lambda m: Tamper(m, _replayer())}),
              "forger": SimPlan(Link(delay=0.002), router=True, links=fast_intruder,
                                extra=(("intruder", "router", Forger, 0.0),)),
              "paused": SimPlan(Link(delay=0.002), agent_timing=AgentTiming(collect_timeout=2.0),
