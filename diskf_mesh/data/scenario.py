@@ -115,6 +115,11 @@ class Scenario:
         """Every agent's id, in order."""
         return tuple(a.id for a in self.agents)
 
+    @functools.cached_property
+    def id_set(self) -> frozenset:
+        """The same ids, as a set."""
+        return frozenset(self.ids)
+
     def index(self, agent_id) -> int:
         """The place of agent ``agent_id`` in ``ids``."""
         return self._places[agent_id]

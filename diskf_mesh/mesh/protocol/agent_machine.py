@@ -132,7 +132,7 @@ class AgentMachine:
                  timing: AgentTiming = AgentTiming(), faults: FaultConfig | FaultModel | None = None,
                  log: Log | None = None, profile: Phases = NO_PHASES, shared: Shared | None = None):
         self.scn, self.keys, self.nonce, self.timing = scn, keys, nonce, timing
-        self.ids = tuple(a.id for a in scn.agents)
+        self.ids = scn.ids  # shared by every machine of the run, as ``scn.id_set``
         if agent_id not in self.ids:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} "
                              f"(ids {', '.join(map(str, self.ids))})")
@@ -152,7 +152,7 @@ class AgentMachine:
         self.fault_config = faults if isinstance(faults, FaultConfig) else None
         self.liars = Liars(scn.lies, (agent_id,), n, scn.position_dims)  # this agent's lies, if it is a liar
         self.receiver = Receiver(Guard(GuardConfig(
-            keys.run_id, agent_id, frozenset(self.ids), n, m,
+            keys.run_id, agent_id, scn.id_set, n, m,
             information_check=declared.information_check, exchanged=declared.exchanged,
             **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
             profile=profile, shared=shared), faults if isinstance(faults, FaultModel) else None)

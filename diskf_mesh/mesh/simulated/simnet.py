@@ -566,6 +566,8 @@ class SimNet:
         t = now + link.delay + (link.jitter * float(self.rng.random()) if link.jitter else 0.0)
         if held:
             return t + link.hold
+        if not link.jitter:  # a constant delay keeps the link's order by itself (and no pair's entry is kept)
+            return t
         ch = (a, b)
         t = max(t, self._channel.get(ch, 0.0))
         self._channel[ch] = t
