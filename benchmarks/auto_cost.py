@@ -1,19 +1,20 @@
 """Cost per agent-tick of diskf-auto against diskf and diskf-r, side by side.
 
-Two measurements, each repeated and the best kept (the least disturbed by
-other load):
+Three measurements, in CPU time (this process), each repeated with the
+estimators taking turns and the best kept (the least disturbed by other
+load):
 
-engine   the batched engine (``engine.batch.run``) on Scenario 1, all-to-all,
-         20 seeds x 200 ticks x 4 agents: seconds per (seed, agent, tick)
-agent    one agent as an agent process runs it (``mesh.protocol.estimator.lockstep``:
-         every agent of Scenario 2 a batch of one, local + fuse), 100 ticks:
-         seconds per agent-tick
+engine S1  the batched engine (``engine.batch.run``) on Scenario 1,
+           all-to-all, 20 seeds x 200 ticks x 4 agents
+engine S2  the same on Scenario 2 at range 120, 20 seeds x 200 ticks x 9 agents
+agent      one agent as an agent process runs it (``mesh.protocol.estimator.lockstep``:
+           every agent of Scenario 2 a batch of one, local + fuse), 100 ticks
 
     .venv/bin/python benchmarks/auto_cost.py [--repeat 3]
 
-Prints one row per estimator with the ratio to diskf. The ratios are what
-carries over between machines; absolute times depend on the machine and
-its load.
+Prints microseconds per (seed, agent, tick) and the ratio to diskf. The
+ratios are what carries over between machines; absolute times depend on the
+machine and its load. Nothing is started per run: no start-up to subtract.
 """
 from __future__ import annotations
 
@@ -27,13 +28,10 @@ from diskf_mesh.mesh.protocol.estimator import lockstep
 NAMES = ("diskf", "diskf-r", "diskf-auto")
 
 
-def best_of(fn, repeat: int) -> float:
-    out = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t)
-    return min(out)
+def cpu(fn) -> float:
+    t = time.process_time()
+    fn()
+    return time.process_time() - t
 
 
 def main(argv=None) -> int:
@@ -41,19 +39,25 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args(argv)
     s1 = load_scenario("quadrants")
-    tr1 = simulate(s1, range(20))
-    B, K, N = tr1.has.shape
-    s2 = load_scenario("dynamic").with_overrides(steps=100)
-    tr2 = simulate(s2, [0])
-    rows = {}
+    s2 = load_scenario("dynamic").with_overrides(comm_range=120)
+    tr1, tr2 = simulate(s1, range(20)), simulate(s2, range(20))
+    s3 = load_scenario("dynamic").with_overrides(steps=100)
+    tr3 = simulate(s3, [0])
+    runs = {
+        "engine S1": (lambda name: engine.run(tr1, name, s1.params), tr1.has.size),
+        "engine S2": (lambda name: engine.run(tr2, name, s2.params), tr2.has.size),
+        "agent": (lambda name: sum(1 for _ in lockstep(s3, name, tr3)), tr3.has.size),
+    }
+    best = {}
+    for _ in range(a.repeat):
+        for what, (run, steps) in runs.items():
+            for name in NAMES:
+                best[what, name] = min(best.get((what, name), float("inf")), cpu(lambda: run(name)) / steps)
+    head = "".join(f" {what + ' us':>14} {'x diskf':>8}" for what in runs)
+    print(f"{'estimator':<12}{head}")
     for name in NAMES:
-        t_engine = best_of(lambda: engine.run(tr1, name, s1.params), a.repeat) / (B * K * N)
-        t_agent = best_of(lambda: sum(1 for _ in lockstep(s2, name, tr2)), a.repeat) / (100 * s2.N)
-        rows[name] = (t_engine, t_agent)
-    base = rows["diskf"]
-    print(f"{'estimator':<12} {'engine us/agent-tick':>22} {'x diskf':>8} {'agent us/agent-tick':>21} {'x diskf':>8}")
-    for name, (te, ta) in rows.items():
-        print(f"{name:<12} {1e6 * te:>22.2f} {te / base[0]:>8.1f} {1e6 * ta:>21.1f} {ta / base[1]:>8.1f}")
+        cells = "".join(f" {1e6 * best[w, name]:>14.2f} {best[w, name] / best[w, 'diskf']:>8.1f}" for w in runs)
+        print(f"{name:<12}{cells}")
     return 0
 
 

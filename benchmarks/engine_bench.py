@@ -22,6 +22,7 @@ import time
 import tracemalloc
 
 from diskf_mesh import estimators as algorithms
+from diskf_mesh.data.argtypes import add_ticks
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.studies import experiment
 from diskf_mesh.engine import oracle
@@ -182,7 +183,7 @@ def big_table(names, agents: int, steps: int) -> str:
     ]
     info = None
     for a in names:
-        cmd = [sys.executable, os.path.abspath(__file__), "--child", a, "--agents", str(agents), "--steps", str(steps)]
+        cmd = [sys.executable, os.path.abspath(__file__), "--child", a, "--agents", str(agents), "--ticks", str(steps)]
         info = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
         total = info["sim"] + info["run"]
         lines.append(f"| {experiment.LABELS[a]} | {info['sim']:.2f} | {info['run']:.2f} | {total:.2f} "
@@ -198,7 +199,7 @@ def big_table(names, agents: int, steps: int) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20)
-    ap.add_argument("--steps", type=int, default=200)
+    add_ticks(ap, type=int, default=200, help="ticks per run (default 200)")
     ap.add_argument("--oracle-seeds", type=int, default=2, help="seeds per topology for the (slow) plain oracle")
     ap.add_argument("--repeat", type=int, default=5, help="rounds; the best of them is reported")
     ap.add_argument("--agents", type=int, default=1000)
@@ -208,19 +209,19 @@ def main(argv=None) -> int:
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        print(json.dumps(big_child(args.child, args.agents, args.steps)))
+        print(json.dumps(big_child(args.child, args.agents, args.ticks)))
         return 0
     if args.quick:
         args.seeds, args.repeat, args.agents = 5, 1, 300
     print(f"numpy engine benchmark, {os.cpu_count()} CPUs, python {sys.version.split()[0]}\n")
-    print(quadrant_tables(args.seeds, sorted({1, 5 * args.seeds}), args.steps, args.oracle_seeds, args.repeat))
+    print(quadrant_tables(args.seeds, sorted({1, 5 * args.seeds}), args.ticks, args.oracle_seeds, args.repeat))
     print()
     print(large_ratio_table(args.agents, args.ratio_steps, 2, args.repeat))
     print()
-    print(table2_line(args.seeds, args.steps, args.repeat))
+    print(table2_line(args.seeds, args.ticks, args.repeat))
     if args.big != "none":
         print()
-        print(big_table(algorithms.parse_list(args.big), args.agents, args.steps))
+        print(big_table(algorithms.parse_list(args.big), args.agents, args.ticks))
     return 0
 
 

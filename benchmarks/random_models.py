@@ -1,7 +1,7 @@
 """Random linear models nobody tuned on: how often each estimator diverges.
 Prints a table; not a test.
 
-    python benchmarks/random_models.py [--models 240] [--first 0] [--steps 100] [--estimators a,b]
+    python benchmarks/random_models.py [--models 240] [--first 0] [--ticks 100] [--estimators a,b]
 
 Model ``s`` is drawn from ``numpy.random.default_rng(s)``: n = 2..4 states,
 m = 1..2 inputs (m <= n), dynamics a rotation (with decay), a constant
@@ -24,6 +24,7 @@ from collections import defaultdict
 import numpy as np
 
 from diskf_mesh import estimators as algorithms
+from diskf_mesh.data.argtypes import add_ticks
 from diskf_mesh.data.scenario import parse_scenario, simulate
 from diskf_mesh.studies import experiment
 
@@ -73,10 +74,10 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--models", type=int, default=240)
     p.add_argument("--first", type=int, default=0)
-    p.add_argument("--steps", type=int, default=100)
+    add_ticks(p, type=int, default=100, help="ticks per model (default 100)")
     p.add_argument("--estimators", default="all", help="names, comma-separated (default: every estimator)")
     args = p.parse_args(argv)
-    if args.models < 1 or args.first < 0 or args.steps < 1:
+    if args.models < 1 or args.first < 0 or args.ticks < 1:
         p.error("--models and --steps must be at least 1, --first at least 0")
     try:
         names = algorithms.parse_list(args.estimators)
@@ -84,7 +85,7 @@ def main(argv=None) -> int:
         p.error(f"--estimators: {e}")
     diverged = defaultdict(list)
     for s in range(args.first, args.first + args.models):
-        scn = parse_scenario(random_raw(s, args.steps))
+        scn = parse_scenario(random_raw(s, args.ticks))
         tr = simulate(scn, [0, 1])
         for name in names:
             if experiment.run_or_none(tr, name, scn.params) is None:
@@ -92,7 +93,7 @@ def main(argv=None) -> int:
         print(f"\r{s - args.first + 1}/{args.models} models", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
     print(f"\n{args.models} random models (seeds {args.first}..{args.first + args.models - 1}), "
-          f"{args.steps} ticks, simulation seeds 0 and 1\n")
+          f"{args.ticks} ticks, simulation seeds 0 and 1\n")
     print("| estimator | diverged | models |")
     print("|---|---:|---|")
     for name in names:

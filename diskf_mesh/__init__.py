@@ -59,4 +59,5 @@ def __getattr__(name: str) -> object:
 
 
 def __dir__() -> list[str]:
-    return sorted([*globals(), *API])
+    """The API and the module's own dunders: no helper names."""
+    return sorted([*(n for n in globals() if n.startswith("__")), *API])

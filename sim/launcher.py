@@ -17,8 +17,9 @@ the world replays the run on the engine before it says ``exact``;
 ``diskf_mesh.core.exits``): 0 exact or as planned; 3 with one line when
 agent-ticks are missing (0 within ``--allow-missing``: a warning line says
 what is missing); 4 a real-time run beyond ``--max-miss-rate``; 5 degraded
-(``--allow-degraded`` accepts it); 6 diverged (never accepted); 1 when a
-child failed; 2 on bad input.
+(``--allow-degraded`` accepts it); 6 diverged (never accepted); 8
+unverifiable (only ``--accept-unverifiable`` accepts it); 1 when a child
+failed; 2 on bad input.
 
 Every run is authenticated: ``up`` makes a fresh certificate authority and
 one certificate and key per process (``diskf_mesh.mesh.security.credentials``) in
@@ -67,8 +68,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from diskf_mesh import live
-from diskf_mesh.data.argtypes import positive_int, seed_value
-from diskf_mesh.data.outputs import check_output, check_output_dir
+from diskf_mesh.data.argtypes import add_ticks, seed_value
+from diskf_mesh.data.outputs import check_output, check_output_dir, make_folder
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
@@ -505,7 +506,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("up", help="run the world and every agent as separate processes over Zenoh",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     runspec.add_arguments(p, run_id_default=None)
-    p.add_argument("--ticks", type=positive_int, metavar="K", help="ticks to run (default: the scenario's steps)")
+    add_ticks(p, help="ticks to run (default: the scenario's)")
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
     p.add_argument("--json", metavar="OUT", help="results file (default: results/up-<run-id>.json)")
     p.add_argument("--estimates", metavar="OUT", help="also write every agent's fused estimates")
@@ -579,7 +580,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     if args.live is not None:
         live.check_port(args.live)
     if args.logs:
-        check_output_dir(args.logs, "logs")
+        check_output_dir(args.logs, "logs", create=False)  # created once the input is checked
     ticks = scn.steps
     ids = [a.id for a in scn.agents]
     plan = None
@@ -594,6 +595,7 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     if args.network != "auto" and (plan is not None or not zopts.is_default):
         raise InputError("network", "chooses the shape of a run on one host: not with --hosts or zenoh flags")
     if args.network == "simulated":  # every process in this one (sim.simulated)
+        make_folder(out, "json")
         code, row = simulated.run(args, spec, scn, out)
         if row is not None:
             verdict(row, args)
@@ -622,6 +624,13 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
     else:
         print(f"warning: up: --insecure: plain zenoh; any process that reaches it can read and write run "
               f"{spec.run_id}", file=sys.stderr)
+    # the input is checked: from here on the run writes
+    make_folder(out, "json")
+    logs = Path(args.logs or tempfile.mkdtemp(prefix=f"diskf-up-{spec.run_id}-"))
+    try:
+        logs.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
     world_extra = ["--progress", "lines", "--json", str(out), *timing_argv(args)]
     if args.estimates:
         world_extra += ["--estimates", args.estimates]

@@ -32,8 +32,11 @@ live to come back (an agent that comes back while it pauses is live again at
 once), then sends that tick again (agents that had reported it send their
 report again). If none comes back the run ends early.
 
-At the end the world checks the run (``checked_status``,
-``diskf_mesh.engine.verify``): the engine replays it from what each agent
+As the run goes the world checks each tick once its reports are in
+(``mesh.protocol.run_status.OnlineCheck``) and cuts off an agent it proves
+lied: the ticks leave it out of the live set. At the end it checks the
+whole run (``checked_status``, ``diskf_mesh.engine.verify``): the engine
+replays it from what each agent
 said it fused, restarts re-initialised agents from the states handed to
 them, recomputes every fused message's digest and compares every reported
 estimate bit for bit. Exit status (``diskf_mesh.core.exits``): 0 when the run
@@ -41,7 +44,9 @@ is ``exact`` or ``as planned``; 3 ``incomplete`` (one line: how many
 agent-ticks are missing, of which agents, and why: never joined, left,
 rejoining, no report, rejected, not run; 0 within ``--allow-missing``); 5
 ``degraded`` (0 with ``--allow-degraded``, or in real time within
-``--max-miss-rate``); 6 ``diverged``; 4 a real-time run beyond
+``--max-miss-rate``); 6 ``diverged``; 8 ``unverifiable`` (reported
+agent-ticks built on a state the run did not report; 0 only with
+``--accept-unverifiable``); 4 a real-time run beyond
 ``--max-miss-rate``; 2 another world already runs this run id (``mesh.wire.keys``
 nonces). The result JSON holds what was measured either way, with the
 status, its reason and evidence, ``complete``, the missing counts, the
@@ -68,7 +73,7 @@ import numpy as np
 
 from diskf_mesh.data import metrics
 from diskf_mesh import estimators
-from diskf_mesh.data.argtypes import positive_int, seconds, seed_value
+from diskf_mesh.data.argtypes import add_ticks, seconds, seed_value
 from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import check_output, save_json
 from diskf_mesh.core import exits
@@ -447,7 +452,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("world", help="the world process of a mesh run (ground truth, lockstep)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     runspec.add_arguments(p)
-    p.add_argument("--ticks", type=positive_int, metavar="K", help="ticks to run (default: the scenario's steps)")
+    add_ticks(p, help="ticks to run (default: the scenario's)")
     p.add_argument("--seed", type=seed_value, default=0, metavar="S", help="simulation seed (default 0)")
     p.add_argument("--json", metavar="OUT", help="write the results {algorithm: {setting: metrics}}")
     p.add_argument("--estimates", metavar="OUT", help="write every agent's fused estimates and counters")

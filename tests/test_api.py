@@ -48,7 +48,7 @@ def test_run_equals_the_engine_bit_for_bit():
 def test_experiment_equals_the_command_line(tmp_path, capsys):
     out = tmp_path / "r.json"
     assert run_cli(["experiment", "--scenario", "quadrants", "--algorithms", "diskf,gdkf", "--seeds", "2",
-                    "--steps", "20", "--quiet", "--json", out], capsys)[0] == 0
+                    "--ticks", "20", "--quiet", "--json", out], capsys)[0] == 0
     cli = provenance.split(json.loads(out.read_text()))[1]
     res = diskf_mesh.experiment("quadrants", "diskf,gdkf", seeds=2, steps=20)
     assert provenance.split(res.to_dict())[1] == cli

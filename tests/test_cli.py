@@ -149,7 +149,7 @@ def test_replay_unwritable_out(tmp_path, capsys):
 
 
 SCENARIO_FILE = "<scenario file>"
-QUICK = ["--seeds", "1", "--steps", "5", "--quiet"]
+QUICK = ["--seeds", "1", "--ticks", "5", "--quiet"]
 BAD_EXPERIMENTS = {
     "unknown scenario": (["--scenario", "atlantis"], "scenario"),
     "missing scenario file": (["--scenario", "nowhere.toml"], "scenario"),
@@ -163,7 +163,7 @@ BAD_EXPERIMENTS = {
     "range without range topology": (["--topology", "ring", "--range", "100"], "range"),
     "range negative": (["--range", "-3"], "--range"),
     "seeds zero": (["--seeds", "0"], "--seeds"),
-    "steps text": (["--steps", "many"], "--steps"),
+    "steps text": (["--ticks", "many"], "--ticks"),
     "window": (["--window", "-2"], "--window"),
     "eps": (["--eps", "-1"], "--eps"),
 }
@@ -189,7 +189,7 @@ BAD_SIMULATIONS = {
     "unknown topology": (["--topology", "star"], "topology"),
     "range with ring": (["--topology", "ring", "--range", "50"], "range"),
     "seed negative": (["--seed", "-1"], "--seed"),
-    "steps zero": (["--steps", "0"], "--steps"),
+    "steps zero": (["--ticks", "0"], "--ticks"),
 }
 
 
@@ -202,8 +202,8 @@ def test_simulate_rejects_bad_input(case, tmp_path, capsys):
 
 def test_experiment_json_shape(tmp_path, capsys):
     out_path = tmp_path / "results.json"
-    code, out, err = run_cli(["experiment", "--seeds", "2", "--steps", "30", "--json", out_path], capsys)
-    assert code == 0 and err == ""  # no progress bar when stderr is not a terminal
+    code, out, err = run_cli(["experiment", "--seeds", "2", "--ticks", "30", "--json", out_path], capsys)
+    assert code == 0 and all(line.startswith("experiment: ") for line in err.splitlines())  # lines, not a bar
     results = json.loads(out_path.read_text())
     assert list(results) == [*algorithms.ALL, "provenance"]  # the estimators, then what made them
     assert list(results)[0] == algorithms.DEFAULT == "diskf-auto"  # the table leads with the default
@@ -255,7 +255,7 @@ def test_installed_entry_point(tmp_path):
     env = dict(os.environ, PYTHONWARNINGS="ignore")
     bindir = os.path.dirname(sys.executable)
     exe = os.path.join(bindir, "diskf-mesh") if os.path.exists(os.path.join(bindir, "diskf-mesh")) else "diskf-mesh"
-    ok = subprocess.run([exe, "simulate", "--steps", "10", "--out", str(trace)],
+    ok = subprocess.run([exe, "simulate", "--ticks", "10", "--out", str(trace)],
                         capture_output=True, text=True, env=env, timeout=60)
     assert ok.returncode == 0, ok.stderr
     assert json.loads(trace.read_text())["format"] == "diskf-trace/1"
@@ -358,7 +358,7 @@ def _trace(tmp_path):
 # command argv (before the output flag), the output flag, the field, the function doing the work
 WRITERS = {
     "experiment": (lambda tmp: ["experiment", *QUICK], "--json", "json", "diskf_mesh.studies.experiment.run_experiment"),
-    "simulate": (lambda tmp: ["simulate", "--steps", "5"], "--out", "out", "diskf_mesh.cli.simulate.simulate"),
+    "simulate": (lambda tmp: ["simulate", "--ticks", "5"], "--out", "out", "diskf_mesh.cli.simulate.simulate"),
     "replay": (lambda tmp: ["replay", _trace(tmp)], "--out", "out", "diskf_mesh.engine.batch.run"),
 }
 
@@ -446,7 +446,7 @@ def test_up_and_world_refuse_stdout_for_results(tmp_path, capsys):
 def test_study_output_folder_checked_first(command, tmp_path, capsys, monkeypatch):
     blocked = blocker(tmp_path)
     for out in (blocked, "/proc/diskf-figures"):
-        code, _, err = run_cli([command, "--out", out, "--seeds", "1", "--steps", "5", "--quiet"], capsys)
+        code, _, err = run_cli([command, "--out", out, "--seeds", "1", "--ticks", "5", "--quiet"], capsys)
         assert code == 2 and err.startswith("error: out:") and err.count("\n") == 1, err
     assert blocked.read_text() == ""
 
@@ -456,7 +456,7 @@ def test_outputs_follow_the_umask(mask, tmp_path, capsys):
     out_path = tmp_path / "trace.json"
     old = os.umask(mask)
     try:
-        code, _, _ = run_cli(["simulate", "--steps", "5", "--out", out_path], capsys)
+        code, _, _ = run_cli(["simulate", "--ticks", "5", "--out", out_path], capsys)
     finally:
         os.umask(old)
     assert code == 0
@@ -466,7 +466,7 @@ def test_outputs_follow_the_umask(mask, tmp_path, capsys):
 def test_output_replaces_a_regular_file(tmp_path, capsys):
     out_path = tmp_path / "trace.json"
     out_path.write_text("old")
-    code, _, _ = run_cli(["simulate", "--steps", "5", "--out", out_path], capsys)
+    code, _, _ = run_cli(["simulate", "--ticks", "5", "--out", out_path], capsys)
     assert code == 0 and json.loads(out_path.read_text())["format"] == "diskf-trace/1"
     assert [p.name for p in tmp_path.iterdir()] == ["trace.json"]
 
@@ -476,7 +476,7 @@ def test_json_dash_writes_to_stdout(tmp_path, capsys):
     assert code == 0
     results = json.loads(out)  # stdout carries the JSON alone; the table went to stderr
     assert list(results) == ["diskf", "provenance"] and "MAE(state)" in err
-    code, out, err = run_cli(["simulate", "--steps", "5", "--out", "-"], capsys)
+    code, out, err = run_cli(["simulate", "--ticks", "5", "--out", "-"], capsys)
     assert code == 0 and json.loads(out)["format"] == "diskf-trace/1"
     code, out, err = run_cli(["replay", _trace(tmp_path), "--out", "-"], capsys)
     assert code == 0 and json.loads(out)["format"] == "diskf-estimates/1"

@@ -54,7 +54,7 @@ def test_experiment_command_one_line_per_diverged_estimator(ca, tmp_path, capsys
     path.write_text(_toml(ca[0]))
     out = tmp_path / "r.json"
     code, text, err = run_cli(["experiment", "--scenario", path, "--estimators", "cdrkf,kcf", "--topology", "ring",
-                               "--seeds", 1, "--steps", K, "--json", out, "--quiet"], capsys)
+                               "--seeds", 1, "--ticks", K, "--json", out, "--quiet"], capsys)
     assert code == 0 and "Traceback" not in err
     assert [line for line in err.splitlines() if line.startswith("diverged:")] == [
         "diverged: C-DRKF in 1-hop (its covariance stopped being positive definite, or an estimate left what a "

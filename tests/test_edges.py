@@ -19,7 +19,7 @@ from diskf_mesh.cli import help_text
 from diskf_mesh.cli.main import COMMAND_MODULES, build_parser
 
 CLI = [sys.executable, "-m", "diskf_mesh.cli.main"]
-LONG = ["experiment", "--scenario", "random-geometric", "--agents", "200", "--seeds", "10", "--steps", "1000"]
+LONG = ["experiment", "--scenario", "random-geometric", "--agents", "200", "--seeds", "10", "--ticks", "1000", "--quiet"]
 
 
 def started(argv, tmp_path):
@@ -91,9 +91,9 @@ def test_a_typo_gets_one_line_with_a_suggestion(argv, words, capsys):
 
 
 def test_an_option_of_another_command_is_not_suggested_as_itself(capsys):
-    """``experiment --ticks``: ``--ticks`` is ``up``'s; ``experiment`` has ``--steps``."""
-    code, out, err = run_cli(["experiment", "--ticks", "5"], capsys)
-    assert code == 2 and err.strip() == "error: unknown option --ticks", err
+    """``experiment --network``: ``--network`` is ``up``'s."""
+    code, out, err = run_cli(["experiment", "--network", "peers"], capsys)
+    assert code == 2 and err.strip() == "error: unknown option --network", err
 
 
 @pytest.mark.parametrize("argv", [["world", "--startup-timeout", "-5"], ["up", "--collect-timeout", "0"],
@@ -152,7 +152,7 @@ def test_plain_text_keeps_what_a_user_needs():
 @pytest.mark.parametrize("fmt, magic", [("png", b"\x89PNG"), ("pdf", b"%PDF"), ("svg", b"<?xml")])
 def test_figures_in_every_format(tmp_path, capsys, fmt, magic):
     out = tmp_path / "figs"
-    code, stdout, err = run_cli(["figures", "--out", out, "--seeds", "1", "--steps", "20", "--quiet",
+    code, stdout, err = run_cli(["figures", "--out", out, "--seeds", "1", "--ticks", "20", "--quiet",
                                  "--format", fmt], capsys)
     assert code == 0, err
     files = sorted(out.iterdir())
@@ -195,7 +195,7 @@ def test_the_truth_is_drawn_in_its_colour(tmp_path):
 
 @pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux")
 def test_report_shows_a_line_per_study_when_not_a_terminal(tmp_path):
-    done = subprocess.run([*CLI, "report", "--out", str(tmp_path), "--seeds", "1", "--steps", "15", "--jobs", "2"],
+    done = subprocess.run([*CLI, "report", "--out", str(tmp_path), "--seeds", "1", "--ticks", "15", "--jobs", "2"],
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     lines = [line for line in done.stderr.splitlines() if line.startswith("report: [")]
@@ -240,7 +240,7 @@ def test_an_interrupted_recording_attaches_only_the_ticks_it_ran(tmp_path):
     proc.send_signal(signal.SIGINT)
     proc.communicate(timeout=120)
     rec = reader.read(path)
-    attached = sum(len(json.loads(r.data)["y"]) for r in reader.records(path.read_bytes())
+    attached = sum(len(json.loads(r.data)["y"]) for r in reader.scan(path.read_bytes())
                    if isinstance(r, Attachment))
     assert 5 <= rec.ticks < 3000 and rec.planned_ticks == 3000
     assert rec.ticks <= attached < rec.ticks + layout.SEGMENT_TICKS

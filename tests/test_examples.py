@@ -37,7 +37,7 @@ def test_own_data_as_a_trace(tmp_path):
 
 
 def test_comparing_estimators_with_a_plot(tmp_path):
-    out = run("compare-estimators/run.py", "--seeds", "1", "--steps", "30", "--out", "cmp.svg", cwd=tmp_path)
+    out = run("compare-estimators/run.py", "--seeds", "1", "--ticks", "30", "--out", "cmp.svg", cwd=tmp_path)
     assert (tmp_path / "cmp.svg").read_text().lstrip().startswith("<?xml")
     assert sum(line.split()[0] in ("diskf", "diskf-r", "kcf") for line in out.splitlines() if line.split()) == 3
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from cli_helpers import run_cli
 from diskf_mesh.data import provenance
 
-SHORT = ["--seeds", "2", "--steps", "30", "--quiet"]
+SHORT = ["--seeds", "2", "--ticks", "30", "--quiet"]
 FIGURES = {
     "scenario_dynamic.png", "scenario_stationary.png", "trajectories_stationary_ring.png",
     "trajectories_dynamic_120.png", "inputs_stationary_ring.png", "inputs_dynamic_120.png",

@@ -37,7 +37,7 @@ def test_every_schema_is_valid_and_shipped_as_package_data():
 def simulate_replay(tmp_path, capsys, scenario, algorithm="diskf", steps=STEPS, extra=()):
     """(trace doc, estimates doc) written by simulate and replay."""
     trace, est = tmp_path / f"{algorithm}-trace.json", tmp_path / f"{algorithm}-est.json"
-    code, _, err = run_cli(["simulate", "--scenario", scenario, "--steps", steps, "--out", trace, *extra], capsys)
+    code, _, err = run_cli(["simulate", "--scenario", scenario, "--ticks", steps, "--out", trace, *extra], capsys)
     assert code == 0, err
     code, _, err = run_cli(["replay", trace, "--algorithm", algorithm, "--out", est], capsys)
     assert code == 0, err
@@ -176,7 +176,7 @@ def test_simulate_replay_equals_experiment(algorithm, scenario, odd_scenario, tm
     assert trace_doc["estimator"] == dataclasses.asdict(scn.params)
     res = tmp_path / "experiment.json"
     code, _, err = run_cli(["experiment", "--scenario", name, "--algorithms", algorithm, "--seeds", "1",
-                            "--steps", "60", "--json", res], capsys)
+                            "--ticks", "60", "--json", res], capsys)
     assert code == 0, err
     (row,) = json.loads(res.read_text())[algorithm].values()
     assert {k: row[k] for k in est["metrics"]} == est["metrics"]  # bit for bit
@@ -187,7 +187,7 @@ def test_simulate_replay_equals_experiment(algorithm, scenario, odd_scenario, tm
 def test_experiment_on_dynamic_defaults_to_its_own_range(tmp_path, capsys):
     res = tmp_path / "experiment.json"
     code, _, err = run_cli(["experiment", "--scenario", "dynamic", "--algorithms", "diskf", "--seeds", "1",
-                            "--steps", "20", "--json", res], capsys)
+                            "--ticks", "20", "--json", res], capsys)
     assert code == 0, err
     assert list(json.loads(res.read_text())["diskf"]) == ["range=120"]
 

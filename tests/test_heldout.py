@@ -208,7 +208,7 @@ def test_against_a_document_of_other_seeds_is_refused_before_running(tmp_path, c
 
     monkeypatch.setattr(heldout, "run", ran)
     monkeypatch.setattr(heldout, "choice_figure", ran)
-    argv = ["--estimators", "kcf", "--against", str(path), "--steps", "20", "--select", "S1 none, white"]
+    argv = ["--estimators", "kcf", "--against", str(path), "--ticks", "20", "--select", "S1 none, white"]
     assert heldout.main(argv + ["--seeds", "2"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
     assert heldout.main(argv + ["--seeds", "1", "--select", "S1 all, white"]) == 2  # a case it does not hold

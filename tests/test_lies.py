@@ -136,7 +136,7 @@ def test_a_liar_fuses_its_own_true_message(dynamic):
 def test_experiment_takes_a_lie_and_scores_the_honest_agents(tmp_path):
     out = tmp_path / "r.json"
     run = lambda *a: subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "experiment", "--scenario",  # noqa
-                                     "dynamic", "--steps", "60", "--seeds", "1", "--estimators", "diskf-auto",
+                                     "dynamic", "--ticks", "60", "--seeds", "1", "--estimators", "diskf-auto",
                                      "--quiet", *a], capture_output=True, text=True, timeout=300)
     clean, lied = run("--json", str(out)), run("--lie", "agent=3,kind=offset,size=5000,from=20", "--json",
                                                  str(tmp_path / "l.json"))

@@ -63,7 +63,7 @@ def test_the_registry_loads_the_plugin_by_its_entry_point(env):
 def test_experiment_runs_the_plugin(env, tmp_path):
     out = tmp_path / "res.json"
     cli(env, "experiment", "--scenario", "quadrants", "--estimators", f"diffkf,{NAME}", "--topology", "all,none",
-        "--seeds", 2, "--steps", 40, "--quiet", "--json", out)
+        "--seeds", 2, "--ticks", 40, "--quiet", "--json", out)
     res = json.loads(out.read_text())
     local = res[NAME]
     # no fusion: the topology changes nothing, and it is DiffKF without neighbours
@@ -81,7 +81,7 @@ def _no_input(res) -> bool:
 
 def test_the_plugins_setting_from_the_command_line_and_the_scenario(env, tmp_path):
     out = tmp_path / "res.json"
-    common = ("--estimators", NAME, "--topology", "all", "--seeds", 1, "--steps", 20, "--quiet", "--json", out)
+    common = ("--estimators", NAME, "--topology", "all", "--seeds", 1, "--ticks", 20, "--quiet", "--json", out)
     cli(env, "experiment", "--scenario", "quadrants", "--report-input", "off", *common)
     assert _no_input(json.loads(out.read_text()))
     text = (ROOT / "diskf_mesh" / "scenarios" / "quadrants.toml").read_text()
@@ -105,7 +105,7 @@ def test_up_runs_the_plugin_and_equals_the_engine(env, tmp_path):
                           env=env, capture_output=True, text=True, timeout=240)
     assert done.returncode == 0, done.stderr
     trace, ref = tmp_path / "trace.json", tmp_path / "ref.json"
-    cli(env, "simulate", "--scenario", "dynamic", "--steps", TICKS, "--seed", SEED, "--out", trace)
+    cli(env, "simulate", "--scenario", "dynamic", "--ticks", TICKS, "--seed", SEED, "--out", trace)
     cli(env, "replay", trace, "--estimator", NAME, "--out", ref)
     doc = json.loads(ref.read_text())
     d = np.array([[r if r is not None else [np.nan] for r in tick] for tick in doc["d"]])

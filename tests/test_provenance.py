@@ -41,7 +41,7 @@ def test_the_scenario_hash_follows_its_content():
 def test_experiment_json_has_provenance(tmp_path, capsys):
     out = tmp_path / "r.json"
     code, _, err = run_cli(["experiment", "--scenario", "dynamic", "--algorithms", "diskf,kcf", "--seeds", "2",
-                            "--steps", "12", "--quiet", "--json", out], capsys)
+                            "--ticks", "12", "--quiet", "--json", out], capsys)
     assert code == 0, err
     doc = json.loads(out.read_text())
     prov = assert_provenance(doc, estimator=["diskf", "kcf"], seeds=[0, 1], ticks=12, command="experiment")
@@ -52,7 +52,7 @@ def test_experiment_json_has_provenance(tmp_path, capsys):
 
 def test_replay_out_has_provenance(tmp_path, capsys):
     trace, est = tmp_path / "t.json", tmp_path / "e.json"
-    assert run_cli(["simulate", "--scenario", "dynamic", "--seed", "3", "--steps", "10", "--out", trace], capsys)[0] == 0
+    assert run_cli(["simulate", "--scenario", "dynamic", "--seed", "3", "--ticks", "10", "--out", trace], capsys)[0] == 0
     code, _, err = run_cli(["replay", trace, "--estimator", "kcf", "--out", est], capsys)
     assert code == 0, err
     prov = assert_provenance(json.loads(est.read_text()), estimator="kcf", seeds=[3], ticks=10, command="replay")

@@ -41,7 +41,7 @@ def test_large_sparse_network_runs_in_the_gathered_layout():
 def test_cli_agents_option(tmp_path, capsys):
     out = tmp_path / "r.json"
     code, text, _ = run_cli(["experiment", "--scenario", "random-geometric", "--agents", "40", "--topology", "range",
-                             "--steps", "10", "--seeds", "1", "--algorithms", "diskf", "--quiet", "--json", out], capsys)
+                             "--ticks", "10", "--seeds", "1", "--algorithms", "diskf", "--quiet", "--json", out], capsys)
     assert code == 0 and "40 agents" in text
     assert "diskf" in json.loads(out.read_text())
     code, _, err = run_cli(["experiment", "--agents", "40", "--seeds", "1", "--quiet"], capsys)

@@ -123,7 +123,7 @@ def assert_cli_replays(tmp_path, doc: dict, ticks: int) -> None:
     estimate bit for bit (exit 0); fused sets changed, or a trace of
     another seed, and it says the run diverged (``exits.DIVERGED``)."""
     trace = tmp_path / "trace.json"
-    assert cli.main(["simulate", "--scenario", "dynamic", "--steps", str(ticks), "--out", str(trace)]) == 0
+    assert cli.main(["simulate", "--scenario", "dynamic", "--ticks", str(ticks), "--out", str(trace)]) == 0
     est, out = tmp_path / "estimates.json", tmp_path / "replayed.json"
     assert json.loads(est.read_text()) == doc
     assert cli.main(["replay", str(trace), "--fused", str(est), "--out", str(out)]) == 0
@@ -137,7 +137,7 @@ def assert_cli_replays(tmp_path, doc: dict, ticks: int) -> None:
     (tmp_path / "bent.json").write_text(json.dumps(bent))
     assert cli.main(["replay", str(trace), "--fused", str(tmp_path / "bent.json")]) == exits.DIVERGED
     other = tmp_path / "seed1.json"
-    assert cli.main(["simulate", "--scenario", "dynamic", "--steps", str(ticks), "--seed", "1", "--out", str(other)]) == 0
+    assert cli.main(["simulate", "--scenario", "dynamic", "--ticks", str(ticks), "--seed", "1", "--out", str(other)]) == 0
     assert cli.main(["replay", str(other), "--fused", str(est)]) == exits.DIVERGED
 
 

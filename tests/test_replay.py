@@ -26,7 +26,7 @@ def reference():
 
 
 def simulate_file(path, capsys):
-    code, _, err = run_cli(["simulate", "--topology", TOPOLOGY, "--steps", STEPS, "--seed", SEED,
+    code, _, err = run_cli(["simulate", "--topology", TOPOLOGY, "--ticks", STEPS, "--seed", SEED,
                             "--out", path], capsys)
     assert code == 0, err
 
@@ -108,7 +108,7 @@ def test_a_real_time_run_is_judged_on_replay_as_the_run_judged_it(tmp_path, caps
                             "--json", res, "--quiet"], capsys)
     row = next(iter(json.loads(res.read_text())["diskf"].values()))
     assert code == 0 and row["status"] == "degraded" and row["deadline_misses"]["miss_rate"] > 0, err
-    assert run_cli(["simulate", "--scenario", "dynamic", "--steps", 10, "--out", trace], capsys)[0] == 0
+    assert run_cli(["simulate", "--scenario", "dynamic", "--ticks", 10, "--out", trace], capsys)[0] == 0
     assert run_cli(["replay", trace, "--fused", est], capsys)[0] == 0
     code, _, err = run_cli(["replay", rec, "--out", tmp_path / "again.json"], capsys)
     assert code == 0, err

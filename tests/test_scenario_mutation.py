@@ -245,7 +245,7 @@ def test_cli_on_mutated_scenarios(case, tmp_path):
     path.write_text(to_toml(doc))
     out = tmp_path / "r.json"
     env = dict(os.environ, PYTHONWARNINGS="ignore")
-    p = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "experiment", "--scenario", str(path), "--steps",
+    p = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "experiment", "--scenario", str(path), "--ticks",
                         str(STEPS), "--seeds", "1", "--algorithms", "diskf", "--quiet", "--json", str(out)],
                        capture_output=True, text=True, env=env, timeout=120)
     if field is None:

@@ -18,6 +18,11 @@ estimates it sends and reports, after withholding one report or not.
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -185,3 +190,45 @@ def test_replay_of_a_recording_says_the_same_and_never_exits_0(dynamic, tmp_path
         assert replay_recording(str(path), allow_missing=0.2, accept_unverifiable=True) == exits.OK
         n = r.status.evidence["unverified"]
         assert f"unverifiable run accepted (--accept-unverifiable): {n} reported agent-ticks" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("withhold", [None, WITHHELD])
+def test_the_check_as_the_run_goes_judges_each_tick_as_the_end_of_run_check(dynamic, withhold, monkeypatch):
+    """``engine.verify.Online`` fed the record tick by tick finds the same
+    diverged and unverifiable agent-ticks as the end-of-run replay."""
+    from diskf_mesh.engine import verify
+    from diskf_mesh.mesh.protocol.run_status import OnlineCheck
+
+    scn, trace = dynamic
+    r = run(dynamic, online=False, start=FROM, offset=OFFSET, withhold=withhold)
+    check = OnlineCheck(trace, "diskf", scn.params, run_id=RUN, seed=0)
+    judged = []
+    tick = verify.Judge.tick
+    monkeypatch.setattr(verify.Judge, "tick", lambda judge, *a, **kw: judged.append(tick(judge, *a, **kw)) or judged[-1])
+    named = [q for k in range(1, K + 1) for q in check.tick(r.record, k)]
+    ev = r.status.evidence
+    assert sum(int(j.diverged.sum()) for j in judged) == ev.get("diverged", {}).get("agent_ticks", 0)
+    assert sum(int(j.unverified.sum()) for j in judged) == ev["unverified"] > 0
+    assert [(q["agent"], q["tick"]) for q in named] == ([(LIAR, FROM)] if withhold is None else [])
+
+
+def test_up_on_the_simulated_network_never_exits_0_on_a_lie_after_a_withheld_report(tmp_path):
+    """``up --network simulated`` with the lie planned (``--lie ...,withhold=``):
+    exit 8 whatever ``--allow-missing`` and ``--allow-degraded`` say; 0 only
+    with ``--accept-unverifiable``, its line giving the count."""
+    lie = f"agent={LIAR},kind=offset,size={OFFSET},from={FROM},reports=lying,withhold={WITHHELD}"
+
+    def up(*flags):
+        res = tmp_path / f"r{len(flags)}.json"
+        done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "up", "--network", "simulated",
+                               "--scenario", "dynamic", "--algorithm", "diskf", "--ticks", str(K), "--lie", lie,
+                               "--json", str(res), "--quiet", *flags], capture_output=True, text=True, cwd=tmp_path,
+                              timeout=300, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+        return done, next(iter(json.loads(res.read_text())["diskf"].values()))
+
+    done, row = up("--allow-missing", "1", "--allow-degraded")
+    assert done.returncode == exits.UNVERIFIABLE and row["status"] == "unverifiable", done.stderr
+    n = row["evidence"]["unverified"]
+    assert f"unverifiable run: {n} reported agent-ticks cannot be verified" in done.stderr
+    done, row = up("--allow-missing", "1", "--accept-unverifiable")
+    assert done.returncode == exits.OK and f"accepted (--accept-unverifiable): {n} reported" in done.stderr

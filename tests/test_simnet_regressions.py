@@ -110,15 +110,18 @@ def test_a_twin_that_leaves_is_counted_by_the_world(case):
     assert r.record.duplicates == {who: 1}
 
 
-# sweep seeds 50,000-51,999 that ended with no status: the world gave up before any report came (an agent
+# the 89 sweep seeds of 50,000-51,999 that ended with no status: the world gave up before any report came (an agent
 # started after the startup timeout, or crashed, paused or was interrupted before it was ready; the world
 # interrupted before tick 1; in 50371 a second world, and the run's world was taken for the one that left
 # as a duplicate), and a run with no report had none; 50067, 50410 and 50431 with no fault but a late start
 # (fixed: a world that ends before any report gives the run an incomplete status, its reason first; the
 # world that stayed is the run's)
-NO_STATUS = [50067, 50084, 50108, 50130, 50171, 50175, 50176, 50195, 50210, 50223, 50226, 50237, 50258, 50271,
-             50313, 50325, 50342, 50364, 50371, 50405, 50408, 50410, 50420, 50431, 50442, 50466, 50487, 50518,
-             50526, 50529, 50545, 50558, 50631, 50688, 50699, 50742, 50779, 50803, 50870]
+NO_STATUS = [50067, 50084, 50108, 50130, 50171, 50175, 50176, 50195, 50210, 50223, 50226, 50237, 50258, 50271, 50313,
+             50325, 50342, 50364, 50371, 50405, 50408, 50410, 50420, 50431, 50442, 50466, 50487, 50518, 50526, 50529,
+             50545, 50558, 50631, 50688, 50699, 50742, 50779, 50803, 50870, 50896, 50899, 50902, 50916, 50920, 50922,
+             50930, 50940, 50975, 50976, 50988, 51002, 51008, 51072, 51082, 51112, 51121, 51141, 51169, 51189, 51191,
+             51235, 51268, 51276, 51301, 51312, 51322, 51343, 51348, 51363, 51402, 51404, 51449, 51466, 51490, 51511,
+             51555, 51642, 51649, 51655, 51681, 51682, 51706, 51724, 51726, 51750, 51754, 51914, 51954, 51957]
 
 
 @pytest.mark.parametrize("seed", NO_STATUS)
@@ -148,3 +151,20 @@ def test_a_late_start_past_the_startup_timeout():
     assert r.status.status == "incomplete" and r.status.evidence["missing_agent_ticks"] == case.ticks
     assert r.record.reported[:, j].sum() == 0 and np.delete(r.record.reported, j, axis=1).all()
     assert r.status.evidence["differing"] == 0
+
+
+def test_a_late_agent_joins_a_run_that_started_without_it():
+    """allow_missing: the world starts without agent 4 at 35 s (30 s and the
+    others' 5 s to be ready); agent 4 starts at 40 s, while the run goes,
+    and joins it from the prior; every estimate is the replay's."""
+    from diskf_mesh.mesh.simulated.simnet import Link
+    from diskf_mesh.mesh.simulated.simrun import SimPlan, simulate_run
+
+    scn, trace = cases.world("random-geometric", 5, 60, 14093)
+    r = simulate_run(scn, trace, "diffkf", 14093, plan=SimPlan(Link(0.5), late={4: 40.0}, allow_missing=True,
+                                                                max_time=900))
+    rep = r.record.reported
+    assert r.status.status == "incomplete" and r.status.evidence["differing"] == 0
+    assert np.delete(rep, 3, axis=1).all() and not rep[0, 3] and rep[-1, 3]
+    (joined,) = r.record.rejoins[4]
+    assert rep[joined["tick"] - 1:, 3].all() and not rep[:joined["tick"] - 1, 3].any()

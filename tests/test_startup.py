@@ -33,8 +33,8 @@ def run(argv, cwd):
 
 @pytest.mark.parametrize("argv", [
     ["--help"], ["experiment", "--help"], ["up", "--help"],
-    ["experiment", "--seeds", "1", "--steps", "5", "--algorithms", "diskf"],
-    ["simulate", "--steps", "5", "--out", "trace.json"],
+    ["experiment", "--seeds", "1", "--ticks", "5", "--algorithms", "diskf"],
+    ["simulate", "--ticks", "5", "--out", "trace.json"],
 ], ids=lambda a: " ".join(a))
 def test_commands_that_draw_nothing_load_no_plotting_library(argv, tmp_path):
     done, loaded = run(argv, tmp_path)
@@ -43,7 +43,7 @@ def test_commands_that_draw_nothing_load_no_plotting_library(argv, tmp_path):
 
 
 def test_replay_loads_no_plotting_library(tmp_path):
-    assert run(["simulate", "--steps", "5", "--out", "trace.json"], tmp_path)[0].returncode == 0
+    assert run(["simulate", "--ticks", "5", "--out", "trace.json"], tmp_path)[0].returncode == 0
     done, loaded = run(["replay", "trace.json", "--out", "est.json"], tmp_path)
     assert done.returncode == 0 and loaded == ""
 
@@ -58,7 +58,7 @@ def test_figures_without_the_figures_extra_is_one_error_line(tmp_path):
     in one line saying how to install it, exit 2, nothing written."""
     probe = "import sys; sys.modules['matplotlib'] = None\n" + PROBE
     out = tmp_path / "figs"
-    done = subprocess.run([sys.executable, "-c", probe, "figures", "--out", str(out), "--seeds", "1", "--steps", "5"],
+    done = subprocess.run([sys.executable, "-c", probe, "figures", "--out", str(out), "--seeds", "1", "--ticks", "5"],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and done.stdout == ""
     errors = [line for line in done.stderr.splitlines() if not line.startswith("LOADED")]

@@ -67,10 +67,10 @@ def test_scenario_with_names_experiment_and_simulate_replay(tmp_path, capsys):
     named = named_dynamic(tmp_path)
     assert load_scenario(named).labels == tuple(DYNAMIC_NAMES)
     for scn, tag in (("dynamic", "plain"), (named, "named")):
-        code, _, err = run_cli(["experiment", "--scenario", scn, "--steps", 40, "--seeds", 2,
+        code, _, err = run_cli(["experiment", "--scenario", scn, "--ticks", 40, "--seeds", 2,
                                 "--json", tmp_path / f"exp-{tag}.json", "--quiet"], capsys)
         assert code == 0, err
-        code, _, err = run_cli(["simulate", "--scenario", scn, "--steps", 40, "--seed", 3,
+        code, _, err = run_cli(["simulate", "--scenario", scn, "--ticks", 40, "--seed", 3,
                                 "--out", tmp_path / f"trace-{tag}.json"], capsys)
         assert code == 0, err
         code, _, err = run_cli(["replay", tmp_path / f"trace-{tag}.json", "--algorithm", "diskf",
@@ -144,7 +144,7 @@ def test_bad_scenario_ids_rejected(case, tmp_path, capsys):
     path = tmp_path / "bad.toml"
     path.write_text(text)
     out = tmp_path / "out.json"
-    code, stdout, err = run_cli(["experiment", "--scenario", path, "--steps", 5, "--json", out, "--quiet"], capsys)
+    code, stdout, err = run_cli(["experiment", "--scenario", path, "--ticks", 5, "--json", out, "--quiet"], capsys)
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and lines[0].startswith(f"error: {field}"), err
     assert not out.exists()

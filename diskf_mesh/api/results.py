@@ -1,4 +1,4 @@
-"""What the API's calls return: frozen dataclasses holding numpy arrays,
+"""What the API's calls return: frozen dataclasses holding read-only numpy arrays,
 each with ``to_dict()`` giving the JSON document the command line writes for
 the same result (provenance included)."""
 from __future__ import annotations
@@ -34,6 +34,12 @@ class Run:
     metrics: dict[str, float] | None
     provenance: dict[str, Any]
     equal: bool | None = None
+
+    def __post_init__(self):
+        for name in ("x", "P", "d", "d_valid"):  # frozen to the arrays' elements: read-only views
+            view = np.asarray(getattr(self, name)).view()
+            view.flags.writeable = False
+            object.__setattr__(self, name, view)
 
     @property
     def estimates(self) -> Estimates:

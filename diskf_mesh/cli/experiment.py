@@ -28,6 +28,7 @@ from diskf_mesh.cli.options import (
     positive_int,
     save_json,
 )
+from diskf_mesh.cli.progress import Progress
 
 DEFAULT_TOPOLOGIES = ("all", "ring", "none")
 
@@ -61,13 +62,11 @@ def register(subparsers) -> None:
     add_estimator_options(p)
     lies.add_arguments(p)
     p.add_argument("--json", metavar="OUT", help="also write the results as JSON (- for standard output)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress (a bar on a terminal, else a line per run)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     check_output(args.json, "json")
     started = provenance.now()
     scn = load_scenario(args.scenario, agents=args.agents)
@@ -76,20 +75,22 @@ def run(args: argparse.Namespace) -> int:
     settings = experiment.settings_for(*default_topologies(scn, args.topology, args.comm_range))
     params = estimator_params(scn.params, args)
     for st in settings:  # fail on a bad override before the long run
-        st.apply(scn, args.steps)
-    quiet = args.quiet or not sys.stderr.isatty()
-    with tqdm(total=len(settings) * len(args.estimators), desc="experiment", unit="run",
-              file=sys.stderr, disable=quiet) as bar:
-        results = experiment.run_experiment(scn, settings, args.estimators, range(args.seeds), args.steps,
-                                            params, progress=bar.update)
-    steps = args.steps or scn.steps
+        st.apply(scn, args.ticks)
+    runs = len(settings) * len(args.estimators)
+    with Progress("experiment", args.quiet, total=runs, unit="run") as shown:
+        shown.note(f"{runs} runs ({len(args.estimators)} estimators x {len(settings)} settings), "
+                   f"{args.seeds} seeds x {args.ticks or scn.steps} ticks each")
+        results = experiment.run_experiment(scn, settings, args.estimators, range(args.seeds), args.ticks,
+                                            params, progress=lambda n: shown.step(f"runs of {args.seeds} seeds",
+                                                                                  n=n))
+    steps = args.ticks or scn.steps
     if args.json:
         prov = provenance.record(scenario=scn, seeds=range(args.seeds), ticks=steps, estimator=args.estimators,
                                  settings=params, faults=scn.faults, status="done", started=started, argv=args.argv)
         save_json(args.json, provenance.attach(results, prov), "json")
     text = human_stream(args.json)
-    print(f"Scenario {scn.name}: {args.seeds} seeds x {steps} ticks, {scn.N} agents; "
-          f"* marks the best value of each row", file=text)
+    print(f"Scenario {scn.name}: {args.seeds} seeds x {steps} ticks, {scn.N} agents"
+          + ("; * marks the best value of each row" if len(args.estimators) > 1 else ""), file=text)
     print(experiment.format_table(results), file=text)
     for name, rows in results.items():
         gone = [experiment.TOPOLOGY_LABELS.get(st, st) for st, row in rows.items() if row.get("diverged")]

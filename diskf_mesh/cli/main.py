@@ -19,6 +19,7 @@ import argparse
 import difflib
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
@@ -52,9 +53,17 @@ COMMAND_MODULES = tuple(COMMANDS.values())
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse's own usage errors: one line, status 2
+        """An unknown option or command is named first, with its nearest
+        match (argparse reports a missing required option before it)."""
+        argv = getattr(self, "argv", ())
+        choice = re.match(r"argument command: invalid choice: '?([^' ]+)'?", message)
         if message.startswith("unrecognized arguments: "):
-            message = _unknown(self, message.removeprefix("unrecognized arguments: ").split(),
-                               getattr(self, "argv", ()))
+            message = _unknown(self, message.removeprefix("unrecognized arguments: ").split(), argv)
+        elif choice:
+            close = difflib.get_close_matches(choice[1], sorted(_commands(self)), n=1, cutoff=0.6)
+            message = f"unknown command {choice[1]}" + (f" (did you mean {close[0]}?)" if close else "")
+        elif (stray := _stray_option(self, argv)) is not None:
+            message = _unknown(self, [stray], argv)
         self.exit(2, f"error: {message}\n")
 
     def format_help(self) -> str:
@@ -87,10 +96,25 @@ def _unknown(parser: argparse.ArgumentParser, words: list, argv=()) -> str:
     for word in words:
         if word.startswith("-"):
             flag = word.split("=", 1)[0]
-            options = _long_options(_command_parser(parser, argv))
-            close = difflib.get_close_matches(flag, sorted(options - {flag}), n=1, cutoff=0.6)
-            return f"unknown option {flag}" + (f" (did you mean {close[0]}?)" if close else "")
+            names = {o.lstrip("-"): o for o in _long_options(_command_parser(parser, argv)) if o != flag}
+            close = difflib.get_close_matches(flag.lstrip("-"), sorted(names), n=1, cutoff=0.6)  # "--" alike in all
+            return f"unknown option {flag}" + (f" (did you mean {names[close[0]]}?)" if close else "")
     return "unrecognized arguments: " + " ".join(words)
+
+
+def _stray_option(parser: argparse.ArgumentParser, argv) -> str | None:
+    """The first --word of ``argv`` that is no option of its command (nor
+    an abbreviation of one), or None."""
+    known = [o for o in _command_parser(parser, argv)._option_string_actions if o.startswith("--")]
+    for word in argv:
+        flag = word.split("=", 1)[0]
+        if flag.startswith("--") and flag != "--" and not any(o.startswith(flag) for o in known):
+            return flag
+    return None
+
+
+def _commands(parser: argparse.ArgumentParser) -> set:
+    return {name for a in parser._actions if isinstance(a, argparse._SubParsersAction) for name in a.choices}
 
 
 def _command_parser(parser: argparse.ArgumentParser, argv) -> argparse.ArgumentParser:
@@ -176,7 +200,9 @@ def _main(argv, modules) -> int:
     if argv[:1] and argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version"):
         build_parser(()).error(f"unrecognized arguments: {argv[0]}")  # before 'required: command'
     parser = build_parser(modules)
-    parser.argv = list(argv)  # an unknown option's suggestion comes from the command's own options
+    for p in (parser, *(c for a in parser._actions if isinstance(a, argparse._SubParsersAction)
+                        for c in a.choices.values())):
+        p.argv = list(argv)  # an unknown option's suggestion comes from the command's own options
     args = parser.parse_args(argv)
     args.argv = list(argv)  # the command line, for the provenance of what it writes
     try:

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.argtypes import (  # noqa: F401 (re-exported)
-    estimator_list, estimator_name, fraction, milliseconds, positive, positive_int, range_value, seed_value,
+    add_ticks, estimator_list, estimator_name, fraction, milliseconds, positive, positive_int, range_value, seed_value,
     setting_value)
 from diskf_mesh.estimators import DEFAULT, NAMES, SETTINGS, Params
 from diskf_mesh.data.outputs import (  # noqa: F401 (re-exported)
@@ -30,19 +30,19 @@ def add_scenario_options(parser: argparse.ArgumentParser) -> None:
                         help="a shipped scenario name or a .toml path (default: quadrants)")
     parser.add_argument("--range", type=range_value, metavar="R", dest="comm_range",
                         help="communication radius of the 'range' topology")
-    parser.add_argument("--steps", type=positive_int, metavar="K", help="horizon in ticks (default: the scenario's)")
+    add_ticks(parser)
     parser.add_argument("--agents", type=positive_int, metavar="N",
                         help="agent count of a generated scenario (e.g. random-geometric; default: the scenario's)")
 
 
 def add_estimator_choice(parser, many: bool = False) -> None:
-    """``--estimator NAME`` (``--algorithm`` kept as an alias), or with
-    ``many`` ``--estimators all|A[,A...]`` (alias ``--algorithms``)."""
+    """``--estimator NAME``, or with ``many`` ``--estimators all|A[,A...]``;
+    each command takes either spelling (and ``--algorithm(s)``, the old one)."""
     if many:
-        parser.add_argument("--estimators", "--algorithms", dest="estimators", type=estimator_list, default="all",
+        parser.add_argument("--estimators", "--estimator", "--algorithms", "--algorithm", dest="estimators", type=estimator_list, default="all",
                             metavar="all|E[,E...]", help=f"'all' or a comma list of {', '.join(NAMES)}")
     else:
-        parser.add_argument("--estimator", "--algorithm", dest="estimator", type=estimator_name, default=DEFAULT,
+        parser.add_argument("--estimator", "--estimators", "--algorithm", dest="estimator", type=estimator_name, default=DEFAULT,
                             help=f"one of {', '.join(NAMES)} (default {DEFAULT})")
 
 

@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     scn = load_scenario(args.scenario, agents=args.agents)
     topology = args.topology or ("range" if args.comm_range is not None else scn.topology)
     setting, = settings_for([topology], args.comm_range)
-    scn = setting.apply(scn, args.steps)
+    scn = setting.apply(scn, args.ticks)
     trace = simulate(scn, [args.seed])
     save_json(args.out, trace_to_json(trace, 0, scenario=scn.name, params=scn.params))
     B, K, N = trace.shape

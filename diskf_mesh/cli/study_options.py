@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.cli.options import add_command, check_output_dir, positive_int
+from diskf_mesh.cli.options import add_command, add_ticks, check_output_dir, positive_int
 
 
 PLOTTING = ("matplotlib", "PIL")  # pyproject.toml's figures extra
@@ -20,7 +20,7 @@ def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: s
     p = add_command(subparsers, name, summary, doc)
     p.add_argument("--out", required=True, metavar="DIR", help=out_help)
     p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
-    p.add_argument("--steps", type=positive_int, metavar="K", help="horizon in ticks (default: the scenarios')")
+    add_ticks(p, help="horizon in ticks (default: the scenarios')")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=lambda args: run_study(args, action))
 
@@ -28,7 +28,9 @@ def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: s
 def run_study(args: argparse.Namespace, action) -> int:
     from diskf_mesh.studies.suite import StudyConfig  # here, not at the top: --help loads every command module
 
-    cfg = StudyConfig(seeds=args.seeds, steps=args.steps, quiet=args.quiet or not sys.stderr.isatty())
+    terminal = sys.stderr.isatty()
+    cfg = StudyConfig(seeds=args.seeds, steps=args.ticks, quiet=args.quiet or not terminal,
+                      lines=not args.quiet and not terminal)
     print(drawing(args.command, lambda: action(cfg, out_dir(args.out))))
     return 0
 

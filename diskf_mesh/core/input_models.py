@@ -278,6 +278,11 @@ def update_probabilities(c, loglik, floor: float):
 
 
 def _sum_last(a):
+    """The sum over the last axis, entry after entry in order: a few rows
+    (an agent's) in one ``add.accumulate``, many one column at a time (the
+    same adds)."""
+    if a.size <= 32 * a.shape[-1]:
+        return np.add.accumulate(a, axis=-1)[..., -1]
     out = a[..., 0]
     for i in range(1, a.shape[-1]):
         out = out + a[..., i]

@@ -8,11 +8,29 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 from diskf_mesh import estimators
 
 MAX_S = 86_400.0           # a day: no duration option (a timeout, a delay) may be longer
 MAX_MS = 1000.0 * MAX_S
+
+
+class Renamed(argparse._StoreAction):
+    """An option with an old spelling that still works: its option strings
+    are the new one first and the old ones after; the old one gives one
+    line on standard error, ``note: --steps is now --ticks``."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if option_string is not None and option_string != self.option_strings[0]:
+            print(f"note: {option_string} is now {self.option_strings[0]}", file=sys.stderr)
+        super().__call__(parser, namespace, values, option_string)
+
+
+def add_ticks(parser, help: str = "horizon in ticks (default: the scenario's)", **kw) -> None:
+    """``--ticks K`` (``--steps`` the old spelling), into ``ticks``."""
+    parser.add_argument("--ticks", "--steps", dest="ticks", action=Renamed, metavar="K",
+                        type=kw.pop("type", positive_int), help=help, **kw)
 
 
 def _integer(text: str, low: int, what: str) -> int:
@@ -94,6 +112,8 @@ def setting_value(setting):
 
 
 def estimator_name(text: str) -> str:
+    if "," in text:
+        raise argparse.ArgumentTypeError(f"one estimator here, got {text.strip()!r} (experiment compares several)")
     try:
         estimators.get(text.strip())
     except ValueError as e:

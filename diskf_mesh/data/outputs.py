@@ -132,7 +132,9 @@ def check_output(path, option: str, *, stdout: bool = True, make_parent: bool = 
     """Raise ``InputError(option, ...)`` unless ``path`` can be written.
 
     ``None`` (option not given) passes; ``-`` passes only when ``stdout``;
-    ``make_parent`` creates a missing folder (for a default path)."""
+    with ``make_parent`` (a default path) a missing folder is one the
+    caller creates once the work starts (``make_folder``): the nearest
+    folder that exists must take it."""
     if path is None:
         return
     text = str(path)
@@ -146,23 +148,35 @@ def check_output(path, option: str, *, stdout: bool = True, make_parent: bool = 
     _refuse_special(p, text, option)
     folder = p.parent
     if make_parent:
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise InputError(option, f"cannot create folder {folder}: {_why(e)}") from None
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent
     if not folder.is_dir():
         raise InputError(option, f"cannot write {text}: folder {folder} does not exist")
     _probe(folder, text, option)
 
 
-def check_output_dir(path, option: str) -> Path:
-    """The output folder ``path``, created if absent and checked writable."""
+def make_folder(path, option: str) -> None:
+    """The folder of the output ``path`` (``check_output`` with
+    ``make_parent``), created when the work starts."""
+    folder = Path(path).parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(option, f"cannot create folder {folder}: {_why(e)}") from None
+
+
+def check_output_dir(path, option: str, create: bool = True) -> Path:
+    """The output folder ``path``, created if absent (not with ``create``
+    False: then a folder that can be created later) and checked writable."""
     text = str(path)
     if text == "":
         raise InputError(option, "needs a folder name")
     p = Path(text)
     if p.exists() and not p.is_dir():
         raise InputError(option, f"{text} exists and is not a folder")
+    if not create and not p.exists():
+        check_output(p / "probe", option, stdout=False, make_parent=True)
+        return p
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as e:

@@ -35,6 +35,9 @@ class _Consensus(Estimator):
 
 
 class KCF(_Consensus):
+    """KCF, Olfati-Saber's Kalman-consensus filter (no input in the state;
+    the module's docstring has its update)."""
+
     name = "kcf"
     label = "KCF"
     color = "tab:red"
@@ -78,6 +81,9 @@ def consensus_step_problem(eps: float, links: np.ndarray) -> str | None:
 
 
 class DiffKF(_Consensus):
+    """DiffKF, Cattivelli and Sayed's diffusion Kalman filter, combine then
+    adapt, one round (no input in the state)."""
+
     name = "diffkf"
     label = "DiffKF"
     color = "tab:purple"
@@ -107,6 +113,9 @@ def gossip_adjacency(adj, self_mask, u):
 
 
 class GDKF(_Consensus):
+    """GDKF, gossip: DiffKF with the agent and one neighbour drawn at random
+    every tick (seeded per agent)."""
+
     name = "gdkf"
     label = "GDKF"
     color = "tab:cyan"

@@ -31,6 +31,13 @@ class HeldState(State):
 
 
 class DISKF(Estimator):
+    """DISKF, Algorithm 1 of Wu and Mehta: each agent predicts, updates with
+    its own measurement and estimates the unknown input over a window of
+    ticks (``local``); it then fuses its neighbours' inputs, predicts with
+    the fused input, fuses the neighbours' state information and compensates
+    the state towards their predictions (``fuse``). Settings: ``window``,
+    ``reset``, ``eps``, ``compensation``, ``hold_input``."""
+
     name = "diskf"
     label = "DISKF"
     color = "tab:blue"

@@ -60,7 +60,7 @@ import numpy as np
 
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core import input_models as im
-from diskf_mesh.core.linalg import nbr_sum
+from diskf_mesh.core.linalg import identity, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.estimators.base import EXCHANGED, Estimator, Exchanged, Setting, State, run_scales
@@ -81,6 +81,10 @@ class AutoState(State):
 
 
 class DISKFAuto(Estimator):
+    """``diskf-auto`` (ours, not the paper's): ``diskf-r`` over a bank of
+    input models mixed by their evidence, as the interacting multiple model
+    filter does (the module's docstring has the steps)."""
+
     name = "diskf-auto"
     label = "DISKF-auto"
     color = "crimson"
@@ -176,9 +180,9 @@ class DISKFAuto(Estimator):
         rho, q = self.a1[js][:, None, None], self.q[js][:, None, None, None]       # (J, 1, 1), (J, 1, 1, 1)
         others = (nb.adj * ~nb.self_mask)[..., None, :, :]                         # (..., 1, R, S)
         d_n, S_n, has_n = eq.input_fusion(others, rho * senders.d[..., None, :, :],
-                                          (rho * rho)[..., None] * senders.S[..., None, :, :, :] + q * np.eye(m),
+                                          (rho * rho)[..., None] * senders.S[..., None, :, :, :] + q * identity(m),
                                           senders.d_valid[..., None, :])           # (..., J, R, ...)
-        d_n, S_n, has_n = np.moveaxis(d_n, -3, -2), np.moveaxis(S_n, -4, -3), np.moveaxis(has_n, -2, -1)
+        d_n, S_n, has_n = d_n.swapaxes(-3, -2), S_n.swapaxes(-4, -3), has_n.swapaxes(-2, -1)
         zj, Zj = z[..., js, :], Z[..., js, :, :]                                   # (..., R, J, ...)
         dj, Sj = zj[..., n:n + m], Zj[..., n:n + m, n:n + m]
         pair = np.ones(has_n.shape + (1, 2))

@@ -140,6 +140,11 @@ class RobustState(HeldState):
 
 
 class DISKFRobust(Estimator):
+    """``diskf-r`` (ours, not the paper's): DISKF with the input in the
+    filter's model (a random walk by default, ``input_model``), so an input
+    seen only now and then is carried between sightings; its other switches
+    are this module's settings."""
+
     name = "diskf-r"
     label = "DISKF-R"
     color = "midnightblue"

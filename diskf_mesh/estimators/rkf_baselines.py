@@ -19,6 +19,10 @@ from diskf_mesh.estimators.base import Estimator, State, uniform_weights
 
 
 class CDRKF(Estimator):
+    """C-DRKF (Liu et al. 2018): each agent runs the recursive Kalman filter
+    of Gillijns and De Moor on its whole neighbourhood's measurement
+    information, stacked in information form."""
+
     name = "cdrkf"
     label = "C-DRKF"
     color = "tab:orange"
@@ -40,6 +44,10 @@ class CDRKF(Estimator):
 
 
 class LDRKF(Estimator):
+    """L-DRKF (Peng et al. 2023): a local recursive Kalman filter on the
+    agent's own measurement, then one round of equal-weight state consensus
+    over the neighbourhood."""
+
     name = "ldrkf"
     label = "L-DRKF"
     color = "tab:green"

@@ -153,6 +153,7 @@ def scan(data: bytes):
 
 
 def _why(e: Exception) -> str:
+    """The damage the stream reader's error ``e`` found, in words."""
     from mcap.exceptions import EndOfFile
     from mcap.stream_reader import CRCValidationError
 
@@ -163,12 +164,6 @@ def _why(e: Exception) -> str:
     if type(e).__name__ == "ZstdError":
         return "a chunk does not decompress"
     return f"a record does not read ({type(e).__name__}: {e})"[:200]
-
-
-def records(data: bytes):
-    """Every whole record (chunks opened), in file order; stops quietly at
-    a record the file cuts or one that fails its check (``scan``)."""
-    yield from scan(data)
 
 
 def read(path) -> Recording:

@@ -16,7 +16,7 @@ from diskf_mesh.data import metrics, provenance
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.scenario import TOPOLOGIES, Scenario, simulate
 from diskf_mesh.estimators import Params
-from diskf_mesh.mesh.wire import codec as wire
+from diskf_mesh.mesh.wire import payloads as wire
 
 # the label of every series a table or figure shows: each estimator's own
 # (``Estimator.label``), and the centralized bound's
@@ -203,7 +203,7 @@ def format_table(results: dict, metric_keys=TABLE_METRICS) -> str:
             vals = [round(_number(((results[a] or {}).get(st) or {}).get(key)), 2) for a in algs]
             finite = [v for v in vals if np.isfinite(v)]
             pick = max if key in HIGHER_IS_BETTER else min
-            best = pick(finite) if finite else None
+            best = pick(finite) if len(finite) > 1 else None  # one value is no comparison
             cells = "".join(f"{'diverged ' if g else _cell(v, v == best):>{width}}" for v, g in zip(vals, gone))
             comm = TOPOLOGY_LABELS.get(st, str(st)) if i == 0 else ""
             lines.append(f"{comm:<12}{METRIC_LABELS.get(key, key):<13}{cells}")

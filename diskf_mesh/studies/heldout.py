@@ -67,6 +67,7 @@ import numpy as np
 
 from diskf_mesh import estimators as algorithms
 from diskf_mesh.data import metrics
+from diskf_mesh.data.argtypes import add_ticks
 from diskf_mesh.data.inputs import parse_input
 from diskf_mesh.data.scenario import Scenario, load_scenario, parse_scenario, simulate
 from diskf_mesh.engine import batch as engine
@@ -421,8 +422,9 @@ def run(seeds: int = 20, steps: int | None = None, names=None, select=None, prog
     if jobs <= 1 or len(work) <= 1:
         results = [shown(i, _case_job(w)) for i, w in enumerate(work, 1)]
     else:
-        from concurrent.futures import ProcessPoolExecutor
-        with ProcessPoolExecutor(min(jobs, len(work))) as pool:
+        from diskf_mesh.studies.pool import process_pool
+
+        with process_pool(min(jobs, len(work))) as pool:
             results = [shown(i, r) for i, r in enumerate(pool.map(_case_job, work), 1)]
     return document(results, seeds, steps, first)
 
@@ -480,7 +482,7 @@ def comparable(old: dict, labels, seeds: int, steps: int | None, first: int) -> 
     for key, default, value in (("seeds", None, seeds), ("first_seed", 0, first), ("steps", None, steps)):
         if old.get(key, default) != value:
             raise Mismatch(f"the stored document has {key} = {old.get(key, default)}, this run {value}: "
-                           "run with the same --seeds, --first-seed and --steps")
+                           "run with the same --seeds, --first-seed and --ticks")
     have = {r.get("case") for r in old["results"]}
     missing = [label for label in labels if label not in have]
     if missing:
@@ -614,7 +616,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=0,
                     help="the first seed (default 0): a check on seeds no default was chosen on, e.g. 100")
-    ap.add_argument("--steps", type=int, default=None)
+    add_ticks(ap, type=int, default=None, help="horizon in ticks (default: each case's)")
     ap.add_argument("--select", default=None, action="append",
                     help="only the cases whose label contains this (or a group name); may be repeated")
     ap.add_argument("--estimators", default=None, metavar="A,B",
@@ -633,8 +635,8 @@ def main(argv=None) -> int:
                     help="only this case (its label): the state MAE of diskf-auto and of each bank model alone, by "
                          "ticks since the agent's own last measurement")
     a = ap.parse_args(argv)
-    if a.seeds < 1 or (a.steps is not None and a.steps < 1):
-        print("error: --seeds and --steps must be at least 1", file=sys.stderr)
+    if a.seeds < 1 or (a.ticks is not None and a.ticks < 1):
+        print("error: --seeds and --ticks must be at least 1", file=sys.stderr)
         return 2
     if a.first_seed < 0:
         print("error: --first-seed must be at least 0", file=sys.stderr)
@@ -654,7 +656,7 @@ def main(argv=None) -> int:
             if not labels:
                 raise Mismatch("--select matches no case")
             old = stored(a.against)
-            comparable(old, labels, a.seeds, a.steps, a.first_seed)
+            comparable(old, labels, a.seeds, a.ticks, a.first_seed)
         except Mismatch as e:
             print(f"error: --against {a.against}: {e}", file=sys.stderr)
             return 2
@@ -669,12 +671,12 @@ def main(argv=None) -> int:
               "measurement")
         print("| estimator | " + " | ".join(heads) + " |")
         print("|---|" + "---:|" * len(heads))
-        for name, v in by_silence(found[0], seeds, a.steps).items():
+        for name, v in by_silence(found[0], seeds, a.ticks).items():
             print(f"| {name} | " + " | ".join(f"{x:.1f}" for x in v) + " |")
         return 0
     if a.figure:
         choice_figure(a.figure)
-    doc = run(a.seeds, a.steps, names=names, select=a.select, bank=a.bank, first=a.first_seed, jobs=a.jobs)
+    doc = run(a.seeds, a.ticks, names=names, select=a.select, bank=a.bank, first=a.first_seed, jobs=a.jobs)
     if old is not None:
         doc = merge(doc, old)
     if a.json:

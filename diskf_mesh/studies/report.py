@@ -24,6 +24,7 @@ from diskf_mesh.studies import suite as studies
 from diskf_mesh.data import provenance
 from diskf_mesh.data.outputs import atomic_open, save_json
 from diskf_mesh.studies.experiment import LABELS
+from diskf_mesh.studies.pool import process_pool
 from diskf_mesh.data.scenario import load_scenario
 
 METRICS = ("mae_state", "rmse_state", "mae_input", "rmse_input")
@@ -883,15 +884,15 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cas
     """Every job, and the held-out ``cases`` if given, in ``jobs`` processes
     (each seeded, so the numbers do not depend on which process runs it):
     (studies.Results, figure paths, [held-out record per case], CPU seconds of the cases);
-    ``progress(title, seconds)`` after each job and after the last case of
-    each group of cases (their seconds summed)."""
+    ``progress(title, seconds)`` after each job and each case. The jobs show
+    no bars of their own (``progress`` says how far it is); Ctrl-C stops the
+    workers at once (``pool.process_pool``)."""
     titles = {k: t for k, t, _ in JOBS}
     parts: dict = {}
     paths: dict = {}
     records: dict = {}
     size = Counter(c.group for c in cases)
     left = dict(size)
-    spent = dict.fromkeys(size, 0.0)
     cpu_seconds = 0.0
 
     def finished(key, part, figs, seconds):
@@ -906,23 +907,22 @@ def run_jobs(cfg: studies.StudyConfig, figdir, progress=None, jobs: int = 1, cas
         cpu_seconds += cpu
         g = cases[i].group
         left[g] -= 1
-        spent[g] += seconds
-        if progress is not None and left[g] == 0:
-            progress(f"held-out suite: {g} ({size[g]} cases)", spent[g])
+        if progress is not None:
+            progress(f"held-out suite, {g} {size[g] - left[g]}/{size[g]}: {cases[i].label}", seconds)
 
     # the largest held-out cases first, after the report's own jobs
     order = sorted(range(len(cases)), key=lambda i: -cases[i].scenario.N)
+    quiet = replace(cfg, quiet=True, lines=False)
     if jobs <= 1:
         for key, _, _ in JOBS:
-            finished(key, *run_job(key, cfg, figdir))
+            finished(key, *run_job(key, quiet, figdir))
         for i in order:
             case_done(i, *run_heldout_case(cases[i], cfg.seeds, cfg.steps))
     else:
         import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed
+        from concurrent.futures import as_completed
 
-        quiet = replace(cfg, quiet=True)  # no bars from the workers: the lines say how far it is
-        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with process_pool(jobs, multiprocessing.get_context("spawn")) as pool:
             futures = {pool.submit(run_job, key, quiet, figdir): key for key, _, _ in JOBS}
             futures.update({pool.submit(run_heldout_case, cases[i], cfg.seeds, cfg.steps): i for i in order})
             for f in as_completed(futures):
@@ -952,16 +952,20 @@ def write_report(cfg: studies.StudyConfig, out_dir, progress=None, jobs: int = 1
                  with_heldout: bool = False) -> list[Path]:
     """Run every job (in ``jobs`` processes), which draw the figures from
     their own runs, then write the markdown and the JSON;
-    ``progress(i, n, title, seconds)`` after each job, each group of
-    held-out cases and the writing, if given. ``with_heldout`` also runs the
+    ``progress(i, n, title, seconds)`` first with i = 0 (what runs, in how
+    many processes), then after each job, each held-out case and the
+    writing, if given. ``with_heldout`` also runs the
     held-out suite (section 11); without it, the suite's results of an
     earlier run in ``out_dir/results.json`` are kept, with their own
     provenance, and section 11 says when and how they were made."""
     out = Path(out_dir)
     started = provenance.now()
     cases = heldout.cases() if with_heldout else []
-    n = len(JOBS) + len({c.group for c in cases}) + 1
+    n = len(JOBS) + len(cases) + 1
     steps = [0]
+    if progress is not None:  # at once: the first study may take a minute
+        progress(0, n, f"{len(JOBS)} studies" + (f" and {len(cases)} held-out cases" if cases else "")
+                 + f" in {jobs} process{'es' if jobs > 1 else ''}", 0.0)
 
     def line(title: str, seconds: float) -> None:
         steps[0] += 1

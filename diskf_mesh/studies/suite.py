@@ -17,6 +17,7 @@ Rows are ``{metric: pooled value, metric_std: spread over seeds}`` as in
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -46,6 +47,34 @@ def range_setting(r: float) -> Setting:
     return Setting(f"{r:g}", "range", float(r))
 
 
+class _Line:
+    """``StudyConfig.bar`` off a terminal: a line when the study starts, one
+    at least every ``EVERY_S`` while it runs, and one when it ends."""
+
+    EVERY_S = 15.0
+
+    def __init__(self, total: int, desc: str):
+        self.total, self.desc, self.done = total, desc, 0
+        self.t0 = self.last = time.monotonic()
+
+    def _say(self, text: str) -> None:
+        print(f"{self.desc}: {text}", file=sys.stderr, flush=True)
+        self.last = time.monotonic()
+
+    def update(self, n: int = 1) -> None:
+        self.done += n
+        if time.monotonic() - self.last >= self.EVERY_S and self.done < self.total:
+            self._say(f"{self.done}/{self.total} runs, {time.monotonic() - self.t0:.0f} s")
+
+    def __enter__(self):
+        self._say(f"{self.total} runs")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if exc[0] is None:
+            self._say(f"{self.total}/{self.total} runs, {time.monotonic() - self.t0:.1f} s")
+
+
 @dataclass(frozen=True)
 class StudyConfig:
     """What every study shares: seeds 0..seeds-1, horizon, algorithms, bars."""
@@ -54,12 +83,16 @@ class StudyConfig:
     steps: int | None = None
     algorithms: tuple = algorithms.NAMES
     quiet: bool = False
+    lines: bool = False  # with quiet: a line per study on standard error instead of a bar (not a terminal)
 
     @property
     def seed_range(self) -> range:
         return range(self.seeds)
 
-    def bar(self, total: int, desc: str) -> tqdm:
+    def bar(self, total: int, desc: str):
+        """A study's progress: a tqdm bar, or with ``lines`` one line when it ends."""
+        if self.quiet and self.lines:
+            return _Line(total, desc)
         return tqdm(total=total, desc=desc, unit="run", file=sys.stderr, disable=self.quiet, leave=False)
 
     def scenario(self, name: str, setting: Setting | None = None) -> Scenario:

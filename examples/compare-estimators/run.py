@@ -2,7 +2,7 @@
 Scenario 1 with 1-hop (ring) communication, the position error over time
 (mean over agents and seeds), one line per estimator, saved as a figure.
 
-    python examples/compare-estimators/run.py [--seeds 5] [--steps 200] [--out compare.png]
+    python examples/compare-estimators/run.py [--seeds 5] [--ticks 200] [--out compare.png]
 
 Needs matplotlib (``pip install '.[figures]'`` in the diskf-mesh folder).
 """
@@ -32,15 +32,15 @@ def position_error(run) -> np.ndarray:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--ticks", type=int, default=200)
     ap.add_argument("--out", default="compare.png")
     args = ap.parse_args()
 
     # one trace for all, so every estimator sees the same measurements
-    trace = diskf_mesh.simulate("quadrants", seeds=args.seeds, steps=args.steps, topology="ring")
+    trace = diskf_mesh.simulate("quadrants", seeds=args.seeds, steps=args.ticks, topology="ring")
     scn = diskf_mesh.load_scenario("quadrants")
     fig, ax = plt.subplots(figsize=(8, 4.5), constrained_layout=True)
-    ticks = np.arange(1, args.steps + 1)
+    ticks = np.arange(1, args.ticks + 1)
     for name in ESTIMATORS:
         run = diskf_mesh.estimate(trace, name, scenario=scn)
         ax.plot(ticks, position_error(run), label=f"{name} (MAE {run.metrics['mae_state']:.1f})", lw=1.4)

@@ -70,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser, run_id_default: str | None = 
                   count_flag: str = "--agents") -> None:
     g = parser.add_argument_group("run")
     g.add_argument("--scenario", default="dynamic", help="a shipped scenario name or a .toml path (default: dynamic)")
-    g.add_argument("--estimator", "--algorithm", dest="algorithm", type=estimator_name,
+    g.add_argument("--estimator", "--estimators", "--algorithm", dest="algorithm", type=estimator_name,
                    default=estimators.DEFAULT,
                    help=f"one of {', '.join(estimators.NAMES)} (default: {estimators.DEFAULT})")
     g.add_argument("--run-id", default=run_id_default,

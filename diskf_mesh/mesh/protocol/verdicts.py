@@ -4,9 +4,12 @@ Every report of tick k carries (``wire.Report``) the senders whose messages
 went into the fused estimate and, for every other sender linked at tick k,
 why not:
 
-    lost                 the link dropped it (``faults.FaultModel``)
+    lost                 the link dropped it (``faults.FaultModel``); on the
+                         simulated network also what the network lost
+                         (``mesh.simulated.simrun.NetworkLosses`` relabels it)
     late                 no copy had arrived when the agent closed tick k
-                         (a copy that comes later is counted late and dropped)
+                         (a copy that comes later is counted late and dropped;
+                         over zenoh a message lost on the way is late too)
     rejected:<reason>    the guard refused it (``guard.REASONS``), or fusion
                          failed on the tick's messages ("rejected:fusion")
 

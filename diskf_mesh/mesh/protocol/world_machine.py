@@ -50,6 +50,12 @@ A run, in the order of this module:
  7. the end    after tick K (or an interrupt, or no agent left): publish
                stop, wait up to ``leave_timeout`` for the agents to leave,
                then ``Finish``.
+ 8. the check  once tick k's reports are final (``_check_later``: on a
+               timer after the effects of the event that made them so,
+               before tick k + 2 opens at the latest) ``online``
+               (``mesh.protocol.run_status.OnlineCheck``) replays it on the
+               engine; an agent it proves lied is cut off: no later tick
+               counts it live (``WorldRecord.quarantined``).
 
 Observers (the recorder, the progress callback, the profile, the log) are
 called as the run goes; they never feed back into the machine.
@@ -817,41 +823,6 @@ class WorldMachine:
         runs[:] = sorted([r for r in runs if r["tick"] != entry["tick"]] + [entry], key=lambda r: r["tick"])
 
     # ======================================================================
-    # 8. the check as the run goes
-    # ======================================================================
-    def _check_later(self, k: int) -> None:
-        """Tick k's reports are final: check it once the effects of this
-        event are out (timer ``check`` at once), so the next tick's
-        messages go first; at the latest before tick k + 2 opens."""
-        if self.online is not None:
-            self._unchecked.append(k)
-            self._set_timer("check", self._now)
-
-    def _check_ticks(self, upto: float = math.inf) -> None:
-        while self._unchecked and self._unchecked[0] <= upto:
-            self._check_tick(self._unchecked.pop(0))
-
-    def _check_tick(self, k: int) -> None:
-        """The online check replays tick k; an agent it names is cut off
-        from the next tick opened on (no tick counts it live again, so no
-        honest agent links to it or fuses its messages, and no rejoin
-        starts from its estimate); its missing ticks say "quarantined"."""
-        self.prof.begin()
-        try:
-            found = self.online.tick(self.record, k)
-        finally:
-            self.prof.end("check")
-        for q in found:
-            if q["agent"] in self._quarantined:
-                continue
-            q["from"] = self.k + 1
-            self._quarantined[q["agent"]] = q
-            self.record.quarantined.append(q)
-            self.log.info(f"tick {k}: agent {q['agent']} cut off from tick {q['from']} on: its message or report "
-                          "is not what the algorithm computes"
-                          + (f" (fused by agent {', '.join(map(str, q['fused_by']))})" if q["fused_by"] else ""))
-
-    # ======================================================================
     # 7. the end
     # ======================================================================
     def _interrupt(self, why: str, now: float) -> None:
@@ -889,3 +860,38 @@ class WorldMachine:
         self.phase = "finished"
         self.finish = Finish(status, code, reason)
         self._emit(self.finish)
+
+    # ======================================================================
+    # 8. the check as the run goes
+    # ======================================================================
+    def _check_later(self, k: int) -> None:
+        """Tick k's reports are final: check it once the effects of this
+        event are out (timer ``check`` at once), so the next tick's
+        messages go first; at the latest before tick k + 2 opens."""
+        if self.online is not None:
+            self._unchecked.append(k)
+            self._set_timer("check", self._now)
+
+    def _check_ticks(self, upto: float = math.inf) -> None:
+        while self._unchecked and self._unchecked[0] <= upto:
+            self._check_tick(self._unchecked.pop(0))
+
+    def _check_tick(self, k: int) -> None:
+        """The online check replays tick k; an agent it names is cut off
+        from the next tick opened on (no tick counts it live again, so no
+        honest agent links to it or fuses its messages, and no rejoin
+        starts from its estimate); its missing ticks say "quarantined"."""
+        self.prof.begin()
+        try:
+            found = self.online.tick(self.record, k)
+        finally:
+            self.prof.end("check")
+        for q in found:
+            if q["agent"] in self._quarantined:
+                continue
+            q["from"] = self.k + 1
+            self._quarantined[q["agent"]] = q
+            self.record.quarantined.append(q)
+            self.log.info(f"tick {k}: agent {q['agent']} cut off from tick {q['from']} on: its message or report "
+                          "is not what the algorithm computes"
+                          + (f" (fused by agent {', '.join(map(str, q['fused_by']))})" if q["fused_by"] else ""))
