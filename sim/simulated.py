@@ -81,7 +81,7 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     from sim.world import failure, finish_run, run_failed, run_timings, setup_run
 
     K, N = scn.steps, len(scn.agents)
-    stages = Stages(K, f"{spec.algorithm} x {N} agents, simulated network", quiet=args.quiet)
+    stages = Stages(K, quiet=args.quiet)
     stages.say(f"{scn.name}: {N} agents + world, {K} ticks, {spec.algorithm}: drawing the scenario's seed {args.seed}")
     run = setup_run(args, spec, scn, provenance.now())
     clock, trace = run.clock, run.trace
@@ -126,48 +126,32 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
 
 
 class Stages:
-    """Where a simulated run is, on stderr: a line per stage (setting up,
-    start-up, the ticks, the check) and, on a terminal, a progress bar of
-    the ticks with its ETA (tqdm), from the first tick; off a terminal, a
-    line at ticks 1 and K and about every tenth of the run, with the
-    time so far and the ETA. ``quiet``: nothing."""
+    """Where a simulated run is (``cli.progress.Progress``, command ``up``):
+    a line per stage (setting up, start-up, the check) and the ticks: on a
+    terminal a bar with its ETA, else a line at ticks 1 and K and about
+    every tenth of the run with the time to go. ``quiet``: nothing."""
 
-    def __init__(self, K: int, desc: str, quiet: bool = False, stream=None):
-        self.K, self.desc, self.quiet = K, desc, quiet
-        self.stream = sys.stderr if stream is None else stream
-        self.tty = self.stream.isatty()
-        self.bar = None
+    def __init__(self, K: int, quiet: bool = False):
+        from diskf_mesh.cli.progress import Progress
+
+        self.K, self.every = K, max(1, K // 10)
+        self.progress = Progress("up", quiet=quiet, total=K, unit="tick")
         self.began = None   # when tick 1 came
-        self.every = max(1, K // 10)
+        self.shown = 0      # ticks shown so far
 
     def say(self, line: str) -> None:
-        if self.quiet:
-            return
-        if self.bar is not None:
-            self.bar.write(line, file=self.stream)
-        else:
-            print(line, file=self.stream, flush=True)
+        self.progress.note(line)
 
     def tick(self, k: int) -> None:
         """The world took the reports of tick ``k``."""
-        if self.quiet:
-            return
         now = time.monotonic()
         if self.began is None:
             self.began = now
-            if self.tty:
-                from tqdm import tqdm
-
-                self.bar = tqdm(total=self.K, desc=self.desc, unit="tick", file=self.stream)
-        if self.bar is not None:
-            self.bar.update(k - self.bar.n)
-        elif k in (1, self.K) or k % self.every == 0:
-            spent = now - self.began
-            left = spent / (k - 1) * (self.K - k) if k > 1 else math.nan
-            self.say(f"tick {k}/{self.K}: {spent:.0f} s since tick 1"
-                     + (f", about {left:.0f} s to go" if math.isfinite(left) else ""))
+        if self.progress.bars or k in (1, self.K) or k % self.every == 0:
+            left = (now - self.began) / (k - 1) * (self.K - k) if k > 1 else math.nan
+            self.progress.step(f"tick {k}" + (f", about {left:.0f} s to go" if math.isfinite(left) else ""),
+                               now - self.began, n=k - self.shown)
+            self.shown = k
 
     def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-            self.bar = None
+        self.progress.close()

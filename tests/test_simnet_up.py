@@ -173,12 +173,12 @@ def test_progress_is_a_line_per_stage_off_a_terminal_and_a_bar_on_one(tmp_path):
     off = up(*argv, cwd=tmp_path)
     assert off.returncode == 0, off.stderr
     lines = off.stderr.splitlines()
-    assert lines[0].startswith("random-geometric: 4 agents + world, 20 ticks")
-    assert any(line.startswith("start-up: ") for line in lines)
-    ticks = [line.split(":")[0] for line in lines if line.startswith("tick ")]
-    assert ticks == [f"tick {k}/20" for k in (1, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20)]
-    assert "about" in next(line for line in lines if line.startswith("tick 10/20"))  # the time to go
-    assert any(line.startswith("checking the run") for line in lines)
+    assert lines[0].startswith("up: random-geometric: 4 agents + world, 20 ticks")
+    assert any(line.startswith("up: start-up: ") for line in lines)
+    ticks = [line.split("]")[0] for line in lines if line.startswith("up: [")]
+    assert ticks == [f"up: [{k}/20" for k in (1, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20)]
+    assert "s to go" in next(line for line in lines if line.startswith("up: [10/20]"))  # the time to go
+    assert any(line.startswith("up: checking the run") for line in lines)
     assert "\r" not in off.stderr  # no bar
 
     import fcntl
@@ -208,9 +208,9 @@ def test_progress_is_a_line_per_stage_off_a_terminal_and_a_bar_on_one(tmp_path):
             os.close(sub)
     assert on.returncode == 0
     text = seen.decode(errors="replace")
-    assert text.startswith("random-geometric: 4 agents + world, 20 ticks")
-    assert "20/20 [" in text and ("tick/s]" in text or "s/tick]" in text)  # tqdm's bar: ticks, elapsed<ETA, rate
-    assert "tick 10/20" not in text  # the bar, not the lines
+    assert "up: random-geometric: 4 agents + world, 20 ticks" in text.split("\n")[0]  # above the bar, at once
+    assert "20/20 [" in text and ("tick/s" in text or "s/tick" in text)  # tqdm's bar: ticks, elapsed<ETA, rate
+    assert "up: [10/20]" not in text  # the bar, not the lines
 
 
 def test_quiet_prints_no_progress(tmp_path):
