@@ -168,7 +168,7 @@ class Keys:
         return _parse(self.root, key) if len(key) <= CACHED_KEY else _parse.__wrapped__(self.root, key)
 
 
-@functools.lru_cache(maxsize=4096)
+@functools.lru_cache(maxsize=1 << 16)  # a few keys per agent: a simulated run's thousands of agents share it
 def _parse(root: str, key: str) -> tuple:
     root = root + "/"
     if not key.startswith(root):
