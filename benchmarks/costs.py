@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -81,10 +82,35 @@ def duration(seconds: float) -> str:
     return f"{minutes:.1f} min" if minutes < 10 else f"{minutes:.0f} min"
 
 
-def summary(row: dict) -> str:
+def summary(row: dict | None) -> str:
     """An entry's figures as the README and the docs quote them (the words
     of a link to this file): '70 s, 139 s of CPU'."""
+    if row is None:
+        return "not measured yet"
+    if row.get("cpu_s") is None:
+        return f"about {duration(row['wall_s'])}"
     return f"{duration(row['wall_s'])}, {duration(row['cpu_s'])} of CPU"
+
+
+PLAIN = ("costs", "costs.md", "docs/costs.md")  # a link's words that only point to the page
+LINK = re.compile(r"\[([^\]]*)\]\(((?:docs/)?costs\.md#([a-z0-9-]+))\)")
+
+
+def relink(text: str, doc: dict) -> str:
+    """``text`` with the words of every link to an entry of this file
+    (``[...](docs/costs.md#report)``) its figures (``summary``); a link
+    whose words are the page's name only points there."""
+    def words(m):
+        if m[3] not in BY_KEY or m[1] in PLAIN:
+            return m[0]
+        return f"[{summary(doc.get(m[3]))}]({m[2]})"
+
+    return LINK.sub(words, text)
+
+
+def quoting() -> list[Path]:
+    """The pages that quote costs: the README and the docs."""
+    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 
 def measure(cost: Cost) -> dict:
@@ -123,12 +149,15 @@ def render(doc: dict) -> str:
             continue
         if row["machine"] not in machines:
             machines.append(row["machine"])
-        under = " (under load)" if row["load"] > row["cores"] else ""
-        failed = f"; exit {row['exit']}" if row["exit"] else ""
+        under = " (under load)" if row["load"] is None or row["load"] > row["cores"] else ""
+        failed = f"; exit {row['exit']}" if row.get("exit") else ""
+        cpu = "" if row.get("cpu_s") is None else duration(row["cpu_s"])
+        ratio = "" if row.get("cpu_s") is None else f"{row['cpu_s'] / max(row['wall_s'], 1e-9):.2f}"
+        load = "shared" if row["load"] is None else f"{row['load']:.1f}"
+        note = f" ({row['note']})" if row.get("note") else ""
         lines.append(f"| <a id=\"{cost.key}\"></a>{cost.key} | {cost.what} | `{row['command']}` | "
-                     f"{duration(row['wall_s'])} | {duration(row['cpu_s'])} | "
-                     f"{row['cpu_s'] / max(row['wall_s'], 1e-9):.2f} | {row['load']:.1f} ({row['cores']}){under} | "
-                     f"{row['date']}, machine {machines.index(row['machine']) + 1}{failed} |")
+                     f"{duration(row['wall_s'])} | {cpu} | {ratio} | {load} ({row['cores']}){under} | "
+                     f"{row['date']}, machine {machines.index(row['machine']) + 1}{failed}{note} |")
     lines += ["", *(f"Machine {i}: {m}" for i, m in enumerate(machines, 1)), ""]
     return "\n".join(lines)
 
@@ -150,6 +179,10 @@ def main(argv=None) -> int:
         print(f"costs: {key}: {summary(doc[key])}, load {doc[key]['load']}", file=sys.stderr, flush=True)
         JSON.write_text(json.dumps(doc, indent=1) + "\n")  # each entry as soon as it is measured
     MARKDOWN.write_text(render(doc))
+    for page in quoting():
+        text = page.read_text()
+        if relink(text, doc) != text:
+            page.write_text(relink(text, doc))
     return 0
 
 

@@ -232,3 +232,22 @@ def test_up_on_the_simulated_network_never_exits_0_on_a_lie_after_a_withheld_rep
     assert f"unverifiable run: {n} reported agent-ticks cannot be verified" in done.stderr
     done, row = up("--allow-missing", "1", "--accept-unverifiable")
     assert done.returncode == exits.OK and f"accepted (--accept-unverifiable): {n} reported" in done.stderr
+
+
+def test_in_real_time_the_world_names_a_liar_within_3_ticks_and_cuts_it_off(dynamic):
+    """A real-time run (``--rate``): a tick's reports are final when they all
+    came (or ``LEAD_TICKS`` later); the check of tick 50 names the liar and
+    it is cut off within 3 ticks."""
+    from diskf_mesh.mesh.protocol import clock as realtime
+    from diskf_mesh.mesh.protocol.agent_machine import AgentTiming
+    from diskf_mesh.mesh.protocol.world_machine import WorldTiming
+
+    scn, trace = dynamic
+    clock = realtime.Clock(rate_hz=20.0, deadline_s=0.02)
+    plan = SimPlan(Link(delay=0.002), world_timing=WorldTiming(clock=clock), agent_timing=AgentTiming(clock=clock),
+                   wrap={agent_pid(LIAR): lambda m: Liar(m, LIAR, start=FROM, offset=OFFSET)})
+    r = simulate_run(scn, trace, "diskf", 0, run_id=RUN, plan=plan)
+    [q] = r.record.quarantined
+    assert q["agent"] == LIAR and q["tick"] == FROM and FROM < q["from"] <= FROM + 3, q
+    assert not r.record.fused[q["from"] - 1:, :, LIAR - 1].any()
+    assert r.status.status == "diverged", r.status.reason

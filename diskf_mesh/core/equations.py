@@ -167,8 +167,12 @@ def input_fusion(adj, d, S, valid):
     tot = row_sum(W)
     has = tot > 0
     Wn = W / np.where(has, tot, 1.0)[..., None]
-    info = nbr_sum(Wn, Si, 2)
-    vec = nbr_sum(Wn, mv(Si, d), 1)
+    if m == 1:  # both one-entry sums in one: the second entry takes the place of the zero padding
+        both = nbr_sum(Wn, np.concatenate([Si[..., 0], mv(Si, d)], axis=-1), 1)
+        info, vec = both[..., :1, None], both[..., 1:]
+    else:
+        info = nbr_sum(Wn, Si, 2)
+        vec = nbr_sum(Wn, mv(Si, d), 1)
     # Where no sender is valid, every weight is 0, so vec = 0, and the
     # identity placeholder's inverse is exactly I: d_bar = 0 and S_bar = I.
     S_bar = inv_spd(np.where(has[..., None, None], info, identity(m)))

@@ -26,8 +26,7 @@ with the code this table gives it; ``replay RUN.mcap`` and ``replay
     8  UNVERIFIABLE     reported agent-ticks the check cannot verify: built
                         on a state the run did not report (a withheld or
                         lost report, then an estimate or a message the
-                        engine does not reproduce), or reported after the
-                        engine's own replay diverged; never accepted by
+                        engine does not reproduce); never accepted by
                         ``--allow-missing``, only by
                         ``--accept-unverifiable`` (its line gives the count)
 """

@@ -306,8 +306,19 @@ def _second_entry(x: np.ndarray) -> np.ndarray:
 
 def row_sum(w: np.ndarray) -> np.ndarray:
     """(..., R) the sum of each row of weights (..., R, S), sender by sender
-    (as ``nbr_sum``), whatever the number of zero weights in it."""
-    return nbr_sum(w, np.ones(w.shape[-1:] + (1,)), 1)[..., 0]
+    (as ``nbr_sum``), whatever the number of zero weights in it: the
+    weights times the rows (1, 0), made once per sender count (a one-entry
+    core as ``_second_entry`` pads it)."""
+    return nbr_sum(w, _one_zero(w.shape[-1]), 1)[..., 0]
+
+
+@lru_cache(maxsize=None)
+def _one_zero(senders: int) -> np.ndarray:
+    """(senders, 2) rows (1, 0), read-only (``row_sum``)."""
+    rows = np.zeros((senders, 2))
+    rows[:, 0] = 1.0
+    rows.flags.writeable = False
+    return rows
 
 
 def sum_order(x: np.ndarray, core_ndim: int) -> str:

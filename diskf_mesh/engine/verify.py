@@ -25,10 +25,9 @@ Statuses (exit statuses: ``diskf_mesh.core.exits``), first that applies:
                  the engine's)
     unverifiable some reported agent-tick cannot be verified: it differs
                  from the replay, built on a state the run did not report
-                 (``Judge``), or it came after the engine's own replay
-                 diverged; how many, the first, and whose missing reports
-                 made the states unknown. ``--allow-missing`` never accepts
-                 it, only ``accept_unverifiable``
+                 (``Judge``); how many, the first, and whose missing
+                 reports made the states unknown. ``--allow-missing`` never
+                 accepts it, only ``accept_unverifiable``
     incomplete   some agent-tick was not reported
     degraded     every agent-tick reported and reproduced, but some fused
                  fewer messages than planned: how many, which, and the
@@ -285,15 +284,18 @@ def differing(claims: RunClaims, est: Estimates) -> tuple:
                    est.x[0], est.P[0], est.d[0], est.d_valid[0])
 
 
-def compare(r, cx, cP, cd, cdv, x, P, d, dv) -> tuple:
+def compare(r, cx, cP, cd, cdv, x, P, d, dv, largest: bool = True) -> tuple:
     """``differing`` on arrays of any leading shape: the claims (``r``
-    reported, ``cx``, ``cP``, ``cd``, ``cdv``) against the engine's."""
+    reported, ``cx``, ``cP``, ``cd``, ``cdv``) against the engine's; without
+    ``largest`` the largest differences are not computed (None)."""
     both = cdv & dv
     with np.errstate(invalid="ignore"):
+        bad = r & ((x != cx).any(-1) | (P != cP).any((-1, -2)) | (dv != cdv) | (both & (d != cd).any(-1)))
+        if not largest:
+            return bad, None
         dx = np.abs(x - cx).max(-1)
         dP = np.abs(P - cP).max((-1, -2))
         dd = np.where(both, np.abs(d - cd).max(-1), 0.0)
-        bad = r & ((x != cx).any(-1) | (P != cP).any((-1, -2)) | (dv != cdv) | (both & (d != cd).any(-1)))
     gap = np.where(r, np.fmax(np.fmax(dx, dP), dd), 0.0)
     return bad, np.nan_to_num(gap, nan=np.inf)
 
@@ -409,7 +411,7 @@ class Online:
             self.ended = k
             return None
         bad, _ = compare(reported, claims.x[k - 1], claims.P[k - 1], claims.d[k - 1], claims.d_valid[k - 1],
-                         out.x[0], out.P[0], out.d[0], out.d_valid[0])
+                         out.x[0], out.P[0], out.d[0], out.d_valid[0], largest=False)
         has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)
         if self.message_digest is not None:
             for r, (ss, gs) in mine:
@@ -524,11 +526,13 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
         missing_line = (f"{ev['missing_agent_ticks']} of {K_all * N} agent-ticks not reported "
                         f"({100 * ev['missing_fraction']:.1f} %)"
                         + (f": {', '.join(f'{w} {n}' for w, n in ev['missing_why'].items())}" if why else ""))
-    if ev["unverified"]:
-        ev["unverifiable"], line = _unverifiable(unverifiable, ended, name)
-        return RunStatus(UNVERIFIABLE_STATUS, line + (f"; {missing_line}" if missing_line else ""), ev)
-    if not complete:
-        return RunStatus(INCOMPLETE_STATUS, missing_line, ev)
+    after = (f"the engine's replay itself diverged at tick {ended['tick']} ({ended['reason']}), so "
+             f"{ended['reported_after']} agent-ticks reported from it on are not verified" if ended else "")
+    if unverifiable:
+        ev["unverifiable"], line = _unverifiable(unverifiable, name)
+        return RunStatus(UNVERIFIABLE_STATUS, "; ".join(p for p in (line, missing_line, after) if p), ev)
+    if not complete or (ended and ended["reported_after"]):
+        return RunStatus(INCOMPLETE_STATUS, "; ".join(p for p in (missing_line, after) if p), ev)
     if shortfall["degraded"]["agent_ticks"]:
         dg = shortfall["degraded"]
         reasons = ", ".join(f"{w} {n}" for w, n in dg["why"].items())
@@ -556,40 +560,33 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
 
 
 def _nothing_replayed(claims: RunClaims, reason: str, **evidence) -> RunStatus:
-    """``incomplete`` with not one tick replayed; ``unverifiable`` if some
-    tick was reported (the engine's replay diverged at tick 1)."""
+    """``incomplete``, with not one tick replayed."""
     K, N = claims.reported.shape
     missing = int((~claims.reported).sum())
-    return RunStatus(UNVERIFIABLE_STATUS if missing < K * N else INCOMPLETE_STATUS, reason,
-                     {"agent_ticks": K * N, "reported": K * N - missing, "ticks": K, "ticks_replayed": 0,
-                      "unverified": K * N - missing, "missing_agent_ticks": missing,
-                      "missing_fraction": missing / (K * N) if K * N else 0.0, **evidence})
+    return RunStatus(INCOMPLETE_STATUS, reason, {"agent_ticks": K * N, "reported": K * N - missing, "ticks": K,
+                                                 "ticks_replayed": 0, "missing_agent_ticks": missing,
+                                                 "missing_fraction": missing / (K * N) if K * N else 0.0,
+                                                 **evidence})
 
 
-def _unverifiable(found: list, ended: dict | None, name) -> tuple:
-    """(evidence, line) of an ``unverifiable`` run:
-    ``found`` [(tick, agent, unknown senders whose messages it fused,
-    the ticks of the missing reports that made states unknown (N,))], the
-    engine's replay's end ``ended``."""
+def _unverifiable(found: list, name) -> tuple:
+    """(evidence, line) of an ``unverifiable`` run: ``found`` [(tick, agent,
+    unknown senders whose messages it fused, the ticks of the missing
+    reports that made states unknown (N,))]."""
     sources = {}
     for k, j, senders, withheld in found:
         for a in [j, *senders]:
             if withheld[a] > 0:
                 sources.setdefault(a, int(withheld[a]))
-    n = len(found) + (ended["reported_after"] if ended else 0)
-    ev = {"agent_ticks": n,
+    ev = {"agent_ticks": len(found),
           "listed": [{"tick": k, "agent": name(j), "senders": [name(s) for s in ss]} for k, j, ss, _ in found[:LISTED]],
           "withheld": [{"agent": name(a), "tick": t} for a, t in sorted(sources.items(), key=lambda at: at[1])]}
-    parts = []
-    if found:
-        k, j, senders, _ = found[0]
-        roots = ", ".join(f"agent {w['agent']}'s report of tick {w['tick']}" for w in ev["withheld"][:3])
-        parts.append(f"{len(found)} differ from the engine's replay on a state the run did not report" + (f" ({roots} did not come)" if roots else "") + f"; first: agent {name(j)} at tick {k}"
-                     + (f", fusing agent {', '.join(str(name(s)) for s in senders)}'s message" if senders else ""))
-    if ended:
-        parts.append(f"the engine's replay itself diverged at tick {ended['tick']} ({ended['reason']}), so "
-                     f"{ended['reported_after']} agent-ticks reported from it on are not verified")
-    return ev, f"{n} reported agent-ticks cannot be verified: " + "; ".join(parts)
+    k, j, senders, _ = found[0]
+    roots = ", ".join(f"agent {w['agent']}'s report of tick {w['tick']}" for w in ev["withheld"][:3])
+    return ev, (f"{len(found)} reported agent-ticks cannot be verified: they differ from the engine's replay on a "
+                "state the run did not report" + (f" ({roots} did not come)" if roots else "")
+                + f"; first: agent {name(j)} at tick {k}"
+                + (f", fusing agent {', '.join(str(name(s)) for s in senders)}'s message" if senders else ""))
 
 
 def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name) -> dict:

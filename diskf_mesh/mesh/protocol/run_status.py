@@ -8,9 +8,12 @@ checked the same way. Message digests are the wire's
 (``wire.engine_digests``); the planned links are the live range links after
 the run's seeded link faults (``verify.planned_links``).
 
+``OnlineCheck`` is the same check one tick at a time, as the world's reports
+come: it names the agents to cut off (``mesh.protocol.world_machine``).
+
 ``accept`` is the one place a status meets the user's tolerances
-(``--allow-missing``, ``--allow-degraded``, real time's ``--max-miss-rate``)
-and becomes an exit status (``core.exits``).
+(``--allow-missing``, ``--allow-degraded``, ``--accept-unverifiable``, real
+time's ``--max-miss-rate``) and becomes an exit status (``core.exits``).
 
 May import: core, estimators, data, engine (the mesh layer).
 """

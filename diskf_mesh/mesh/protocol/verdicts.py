@@ -6,7 +6,7 @@ why not:
 
     lost                 the link dropped it (``faults.FaultModel``); on the
                          simulated network also what the network lost
-                         (``mesh.simulated.simrun.NetworkLosses`` relabels it)
+                         (``WorldMachine``'s ``verdicts``: ``simrun.NetworkLosses``)
     late                 no copy had arrived when the agent closed tick k
                          (a copy that comes later is counted late and dropped;
                          over zenoh a message lost on the way is late too)

@@ -66,7 +66,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -150,15 +150,18 @@ class WorldMachine:
     ``timing``; ``allow_missing``: start without the agents not ready after
     ``startup_timeout``; ``online``: the check as the run goes
     (``mesh.protocol.run_status.OnlineCheck``; None: only at the end), whose
-    named agents are cut off (section 8). Observers: ``log``, ``progress(k)`` after
+    named agents are cut off (section 8); ``verdicts(receiver, tick,
+    not_fused)``: a report's verdicts with what the network knows of the
+    tick's messages (the simulated network: those it lost are "lost", not
+    "late"; None: the report's own). Observers: ``log``, ``progress(k)`` after
     each tick, ``profile``, ``recorder`` (``diskf_mesh.recording.writer``'s
     hooks ``on_open``, ``on_report``, ``on_close``; None: not recorded)."""
 
     def __init__(self, scn: Scenario, trace: Trace, algorithm: str, seed: int, keys: Keys, nonce: str,
                  timing: WorldTiming = WorldTiming(), allow_missing: bool = False, log: Log | None = None,
-                 progress=None, profile: Phases = NO_PHASES, recorder=None, online=None):
+                 progress=None, profile: Phases = NO_PHASES, recorder=None, online=None, verdicts=None):
         self.scn, self.trace, self.algorithm, self.seed = scn, trace, algorithm, seed
-        self.online = online
+        self.online, self.verdicts = online, verdicts
         self._quarantined = {}         # id -> the online check's finding that cut it off
         self._unchecked = []           # ticks whose reports are final, not checked yet (timer "check")
         self._now = 0.0                # the time of the event being handled
@@ -501,6 +504,8 @@ class WorldMachine:
                                    n=self.trace.model.n, m=self.trace.model.m, ticks=self.K, agents=len(self.ids))
         finally:
             self.prof.end("decode")
+        if self.verdicts is not None and r.not_fused:
+            r = replace(r, not_fused=self.verdicts(r.sender, r.tick, r.not_fused))
         i = self._index[sender]
         if self.clock is not None:
             self._on_clocked_report(r, i, now)

@@ -15,15 +15,16 @@ twin ``world~<n>``.
 
 An agent names a linked sender's message that had not come when it closed
 the tick "late": it cannot tell a message the network lost from one still on
-its way. The simulated network can: the run's verdicts (the world's record,
-the recording) name every message it lost "lost" (``NetworkLosses``).
+its way. The simulated network can: the world takes every report's verdicts
+through ``NetworkLosses.relabel``, so the run's record, status, deadline
+misses and recording name every message it lost "lost".
 
 May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import msgpack
 
@@ -97,26 +98,6 @@ class NetworkLosses:
         lost = self.lost()
         return tuple((s, "lost" if v == "late" and (receiver, s, tick) in lost else v) for s, v in not_fused)
 
-    def relabel_record(self, rec, ids) -> None:
-        """The same in a world's record (``RunReports.verdicts``, senders by index)."""
-        for (tick, i), said in list(rec.verdicts.items()):
-            named = self.relabel(ids[i], tick, [(ids[j], v) for j, v in said])
-            rec.verdicts[(tick, i)] = tuple((j, v) for (j, _), (_, v) in zip(said, named))
-
-
-class _Relabelled:
-    """A recorder (``WorldMachine``'s observer) handed reports whose
-    verdicts say what the network lost."""
-
-    def __init__(self, recorder, losses: NetworkLosses):
-        self._recorder, self._losses = recorder, losses
-
-    def on_report(self, r) -> None:
-        self._recorder.on_report(replace(r, not_fused=self._losses.relabel(r.sender, r.tick, r.not_fused)))
-
-    def __getattr__(self, name):
-        return getattr(self._recorder, name)
-
 
 @dataclass
 class SimRun:
@@ -150,8 +131,6 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     net = SimNet(seed if net_seed is None else net_seed, link=plan.link, links=plan.links, policy=policy,
                  lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time)
     losses = NetworkLosses(net, ids)
-    if recorder is not None:
-        recorder = _Relabelled(recorder, losses)
 
     deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
 
@@ -162,7 +141,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
         online = OnlineCheck(trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
                              deadline_s=deadline_s) if plan.online else None
         return WorldMachine(scn, trace, algorithm, seed, keys, boot.nonce, plan.world_timing,
-                            allow_missing=plan.allow_missing,
+                            allow_missing=plan.allow_missing, verdicts=losses.relabel,
                             log=Log(f"world {boot.pid}#{boot.incarnation}" if boot.incarnation else boot.pid, stream),
                             progress=progress if first else None, recorder=recorder if first else None,
                             online=online)
@@ -195,7 +174,6 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     stayed = lambda p: getattr(out.finishes.get(p), "status", None) != "duplicate"  # noqa: E731
     pid = max(worlds, key=lambda p: (int(out.machines[p].record.reported.sum()), stayed(p), p == WORLD))
     w = out.machines[pid]
-    losses.relabel_record(w.record, list(w.record.ids))
     status = None
     if verify and pid in out.finishes:
         status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
