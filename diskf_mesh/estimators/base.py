@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from diskf_mesh.core import equations as eq
+from diskf_mesh.core import input_models as im
 from diskf_mesh.core import resilience as rs
 from diskf_mesh.core.linalg import inv_spd, inv_spd_each
 from diskf_mesh.core.messages import Message, Neighbourhood
@@ -401,6 +402,20 @@ class Estimator:
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):  # pragma: no cover
         raise NotImplementedError
+
+
+def run_scales(model: LinearModel, sensors: Sensors) -> tuple:
+    """``input_models.input_scales`` of ``model`` over every sensor of the
+    run (``Sensors.whole``: an agent's own sensor takes the run's scales, as
+    the engine does), computed once per run's sensors and model noise and
+    kept with the sensors (``Sensors.derived``): a run of N agents builds N
+    estimators."""
+    run = sensors.whole
+    key = ("input_scales", id(model.Q), id(model.G))
+    hit = run.derived.get(key)
+    if hit is None or hit[0] is not model.Q or hit[1] is not model.G:
+        hit = run.derived[key] = (model.Q, model.G, im.input_scales(model.Q, model.G, run.H, run.R, run.p))
+    return hit[2]
 
 
 def uniform_weights(adj: np.ndarray) -> np.ndarray:
