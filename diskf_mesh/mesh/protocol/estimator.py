@@ -60,7 +60,7 @@ class AgentEstimator:
         nb = self._neighbourhood(len(order), order.index(me))
         draws = None if self.draws is None else np.array([[self.draws[k - 1]]])
         if draws is not None or self.alg.defends:
-            columns = np.array([[[position[j] for j in order]]]) if self.alg.defends else None
+            columns = np.array([[[self.scenario.index(j) for j in order]]]) if self.alg.defends else None
             nb = Neighbourhood(nb.adj, nb.self_mask, draws, columns)
         self.state, out = self.alg.screened_fuse(self.state, own, senders, nb)
         return out
