@@ -41,6 +41,7 @@ COMMANDS = {
     "simulate": "diskf_mesh.cli.simulate",
     "figures": "diskf_mesh.cli.figures",
     "report": "diskf_mesh.cli.report",
+    "resilience": "diskf_mesh.cli.resilience",
     "credentials": "diskf_mesh.cli.credentials",
     "world": "sim.world",
     "agent": "agents.agent",
