@@ -72,8 +72,6 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     """The run (its options checked by ``check_arguments``); prints what
     ``up`` prints but its verdict, ends it as the world process does (``sim.world.finish_run``) and returns the world's
     exit status and the results row (None if the world failed)."""
-    from tqdm import tqdm
-
     from diskf_mesh.data import provenance
     from diskf_mesh.mesh.wire.keys import Keys
     from diskf_mesh.mesh.protocol.log import Log
@@ -82,9 +80,11 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     from diskf_mesh.studies.experiment import format_table
     from sim.world import failure, finish_run, run_failed, run_timings, setup_run
 
+    K, N = scn.steps, len(scn.agents)
+    stages = Stages(K, quiet=args.quiet)
+    stages.say(f"{scn.name}: {N} agents + world, {K} ticks, {spec.algorithm}: drawing the scenario's seed {args.seed}")
     run = setup_run(args, spec, scn, provenance.now())
     clock, trace = run.clock, run.trace
-    K, N = trace.has.shape[1], len(scn.agents)
     net_seed = args.seed if args.net_seed is None else args.net_seed
     keys = Keys(spec.run_id)
     link = Link(delay=args.net_delay_ms / 1000, jitter=args.net_jitter_ms / 1000, loss=args.net_loss,
@@ -93,14 +93,13 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     bound = args.startup_timeout + K * (args.tick_timeout + args.collect_timeout) + 60.0
     plan = SimPlan(link, secure=not args.insecure, world_timing=world_timing, agent_timing=agent_timing,
                    allow_missing=args.allow_missing > 0, max_time=bound)
-    bar = tqdm(total=K, desc=f"{spec.algorithm} x {N} agents, simulated network", unit="tick", file=sys.stderr,
-               disable=args.quiet or not sys.stderr.isatty())
+    stages.say(f"start-up: the world and {N} agents join (every agent sees every other's token)")
     t0 = time.monotonic()
     try:
         r = simulate_run(scn, trace, spec.algorithm, args.seed, net_seed=net_seed, plan=plan, faults=run.faults,
-                         run_id=spec.run_id, verify=False, progress=lambda k: bar.update(1), recorder=run.recorder)
+                         run_id=spec.run_id, verify=False, progress=stages.tick, recorder=run.recorder)
     finally:
-        bar.close()
+        stages.close()
     wall = time.monotonic() - t0
     if r.log:
         sys.stderr.write(r.log)
@@ -112,6 +111,7 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     network = {"kind": "simulated", "delay_ms": args.net_delay_ms, "jitter_ms": args.net_jitter_ms,
                "loss": args.net_loss, "lost": r.outcome.lost, "seed": net_seed, "virtual_s": r.outcome.end, "events": r.outcome.events,
                "wall_s": wall, "digest": r.outcome.digest}
+    stages.say("checking the run: the engine replays what every agent fused")
     code, results = finish_run(args, run, r.record, r.world.done, out, extra={"network": network})
     rate = K / wall if wall > 0 else math.inf
     print(f"{scn.name}: {N} agents + world on a simulated network (delay {args.net_delay_ms:g} ms, jitter "
@@ -123,3 +123,35 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     print(f"results: {out}" + (f", estimates: {args.estimates}" if args.estimates else "")
           + (f", recording: {args.record}" if args.record and not row.get("recording_failed") else ""))
     return code, row
+
+
+class Stages:
+    """Where a simulated run is (``cli.progress.Progress``, command ``up``):
+    a line per stage (setting up, start-up, the check) and the ticks: on a
+    terminal a bar with its ETA, else a line at ticks 1 and K and about
+    every tenth of the run with the time to go. ``quiet``: nothing."""
+
+    def __init__(self, K: int, quiet: bool = False):
+        from diskf_mesh.cli.progress import Progress
+
+        self.K, self.every = K, max(1, K // 10)
+        self.progress = Progress("up", quiet=quiet, total=K, unit="tick")
+        self.began = None   # when tick 1 came
+        self.shown = 0      # ticks shown so far
+
+    def say(self, line: str) -> None:
+        self.progress.note(line)
+
+    def tick(self, k: int) -> None:
+        """The world took the reports of tick ``k``."""
+        now = time.monotonic()
+        if self.began is None:
+            self.began = now
+        if self.progress.bars or k in (1, self.K) or k % self.every == 0:
+            left = (now - self.began) / (k - 1) * (self.K - k) if k > 1 else math.nan
+            self.progress.step(f"tick {k}" + (f", about {left:.0f} s to go" if math.isfinite(left) else ""),
+                               now - self.began, n=k - self.shown)
+            self.shown = k
+
+    def close(self) -> None:
+        self.progress.close()

@@ -138,8 +138,8 @@ def test_experiment_takes_a_lie_and_scores_the_honest_agents(tmp_path):
     run = lambda *a: subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "experiment", "--scenario",  # noqa
                                      "dynamic", "--ticks", "60", "--seeds", "1", "--estimators", "diskf-auto",
                                      "--quiet", *a], capture_output=True, text=True, timeout=300)
-    clean, lied = run("--json", str(out)), run("--lie", "agent=3,kind=offset,size=5000,from=20", "--json",
-                                                 str(tmp_path / "l.json"))
+    lie = ("--lie", "agent=3,kind=offset,size=5000,from=20", "--defence", "off")  # undefended: the lie shows
+    clean, lied = run("--json", str(out)), run(*lie, "--json", str(tmp_path / "l.json"))
     assert clean.returncode == lied.returncode == 0, lied.stderr
     mae = lambda p: next(iter(json.loads(p.read_text())["diskf-auto"].values()))["mae_state"]  # noqa: E731
     assert mae(tmp_path / "l.json") > 2 * mae(out)

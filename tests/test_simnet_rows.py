@@ -256,3 +256,41 @@ def test_an_agents_stop_notice_names_only_what_it_may_say():
     r = _tiny_hg_run(wrap={agent_pid(1): lambda m: Tamper(m, lie)})
     missing = ~r.record.reported[:, 0]
     assert missing.any() and set(r.record.why[missing, 0]) == {"left"}, set(r.record.why[missing, 0])
+
+
+def _replayer():
+    """An edit: agent 3's message of tick 25 replaced by its message of tick 5 (off the guard's window)."""
+    kept = {}
+
+    def edit(e):
+        if isinstance(e, ev.Publish) and KEYS.parse(e.key) == ("msg", 3):
+            tick = wire.decode(e.payload, run_id=RUN, sender=3, exchanged=EXCHANGED).tick
+            kept.setdefault(tick, e.payload)
+            if tick == 25:
+                return dataclasses.replace(e, payload=kept[5])
+        return e
+    return edit
+
+
+@pytest.mark.parametrize("plan", ["replayed", "forger", "paused"])
+def test_what_receivers_share_is_counted_by_each(quadrants, plan):
+    """A payload decoded and checked once for all its receivers
+    (``simulate_run(batch=True)``) is still counted by each receiver as it
+    counts it alone: the same run event for event, every agent's counters
+    and rejections by sender the same."""
+    scn, trace = quadrants
+    plans = {"replayed": SimPlan(Link(delay=0.002), wrap={agent_pid(3): lambda m: Tamper(m, _replayer())}),
+             "forger": SimPlan(Link(delay=0.002), router=True, links=fast_intruder,
+                               extra=(("intruder", "router", Forger, 0.0),)),
+             "paused": SimPlan(Link(delay=0.002), agent_timing=AgentTiming(collect_timeout=2.0),
+                               faults=(Fault("pause", agent_pid(2), at=10 * 3 * 0.002, duration=5.0),))}
+    a, b = (simulate_run(scn, trace, "diskf", 0, run_id=RUN, plan=plans[plan], batch=batch) for batch in (True, False))
+    assert a.outcome.digest == b.outcome.digest and a.outcome.events == b.outcome.events
+    rejected = 0
+    for i in range(1, 5):
+        ma, mb = a.outcome.machines[agent_pid(i)], b.outcome.machines[agent_pid(i)]
+        assert ma.counters == mb.counters
+        assert ma.receiver.guard.by_sender == mb.receiver.guard.by_sender
+        rejected += sum(ma.counters.rejected.values())
+    assert a.status.status == b.status.status
+    assert rejected > 0 or plan != "replayed"

@@ -73,3 +73,32 @@ def test_a_seed_replays_event_for_event():
         case = cases.from_seed(seed)
         a, b = cases.run(case), cases.run(case)
         assert a.outcome.digest == b.outcome.digest and a.outcome.events == b.outcome.events
+
+
+def test_batched_and_per_agent_runs_are_one_run():
+    """The simulated network computes what many machines share once
+    (``simulate_run(batch=True)``) and each machine alone otherwise: the two
+    are one run, event for event (the digest folds every payload), with the
+    same counters, records and status, for every estimator, under faults,
+    restarts and rejoins."""
+    covered, restarts = set(), 0
+    for seed in range(200):
+        case = cases.from_seed(seed)
+        restart = any(f.kind == "restart" for f in case.faults)
+        if case.algorithm in covered and not (restart and restarts < 3):
+            continue
+        if not (case.faults or case.injected or case.link.faults):
+            continue
+        covered.add(case.algorithm)
+        restarts += restart
+        a, b = cases.run(case, batch=True), cases.run(case, batch=False)
+        assert (a.outcome.digest, a.outcome.events, a.outcome.lost) == (b.outcome.digest, b.outcome.events,
+                                                                         b.outcome.lost), f"seed {seed}"
+        for pid, m in a.outcome.machines.items():
+            n = b.outcome.machines[pid]
+            assert getattr(m, "counters", None) == getattr(n, "counters", None), f"seed {seed} {pid}"
+        assert a.record.reported.tolist() == b.record.reported.tolist()
+        assert (a.status is None) == (b.status is None) and (a.status is None or a.status.status == b.status.status)
+        if covered >= set(cases.ALGORITHMS) and restarts >= 3:
+            break
+    assert covered >= set(cases.ALGORITHMS) and restarts >= 3, (covered, restarts)

@@ -169,3 +169,54 @@ def test_a_start_up_failure_ends_incomplete_with_its_reason(tmp_path, capsys):
     assert row["status"] == "incomplete" and row["reason"].startswith("after 0.0001 s waiting for the agents: ")
     assert row["ended_early"] in row["reason"] and row["missing_fraction"] == 1.0
     assert len(err.strip().splitlines()) == 1 and "waiting for the agents" in err
+
+
+def test_progress_is_a_line_per_stage_off_a_terminal_and_a_bar_on_one(tmp_path):
+    argv = ["--scenario", "random-geometric", "--agents", "4", "--ticks", "20", "--json", str(tmp_path / "r.json")]
+    off = up(*argv, cwd=tmp_path)
+    assert off.returncode == 0, off.stderr
+    lines = off.stderr.splitlines()
+    assert lines[0].startswith("up: random-geometric: 4 agents + world, 20 ticks")
+    assert any(line.startswith("up: start-up: ") for line in lines)
+    ticks = [line.split("]")[0] for line in lines if line.startswith("up: [")]
+    assert ticks == [f"up: [{k}/20" for k in (1, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20)]
+    assert "s to go" in next(line for line in lines if line.startswith("up: [10/20]"))  # the time to go
+    assert any(line.startswith("up: checking the run") for line in lines)
+    assert "\r" not in off.stderr  # no bar
+
+    import fcntl
+    import pty
+    import struct
+    import termios
+    main, sub = pty.openpty()
+    fcntl.ioctl(sub, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # a terminal's width for the bar
+    try:
+        on = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "up", "--network", "simulated", *argv],
+                            stdout=subprocess.PIPE, stderr=sub, cwd=tmp_path, timeout=300,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+        os.close(sub)
+        sub = None
+        seen = b""
+        while True:
+            try:
+                chunk = os.read(main, 65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            seen += chunk
+    finally:
+        os.close(main)
+        if sub is not None:
+            os.close(sub)
+    assert on.returncode == 0
+    text = seen.decode(errors="replace")
+    assert "up: random-geometric: 4 agents + world, 20 ticks" in text.split("\n")[0]  # above the bar, at once
+    assert "20/20 [" in text and ("tick/s" in text or "s/tick" in text)  # tqdm's bar: ticks, elapsed<ETA, rate
+    assert "up: [10/20]" not in text  # the bar, not the lines
+
+
+def test_quiet_prints_no_progress(tmp_path):
+    r = up("--scenario", "random-geometric", "--agents", "3", "--ticks", "5", "--quiet",
+           "--json", str(tmp_path / "r.json"), cwd=tmp_path)
+    assert r.returncode == 0 and r.stderr == "", r.stderr

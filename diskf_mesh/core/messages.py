@@ -62,11 +62,14 @@ class Neighbourhood:
     self_mask: (..., R, S) True where sender s is receiver r
     draws:     (..., R) the estimator's draw of each receiver at this tick
                (``Estimator.draws``, e.g. GDKF's gossip), None if it has none
+    columns:   (..., R, S) each sender's place among the run's agents (the
+               scenario's order), None where sender s is agent s
     """
 
     adj: np.ndarray
     self_mask: np.ndarray
     draws: np.ndarray | None = None
+    columns: np.ndarray | None = None
 
     @cached_property
     def n_neighbours(self) -> np.ndarray:

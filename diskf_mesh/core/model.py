@@ -56,6 +56,8 @@ class Sensors:
     # the run's sensors this is a selection of (``select``): an agent process holds its own sensor
     # alone, and takes the run's scales (``input_models.input_scales``) from every sensor, as the engine
     run: "Sensors | None" = field(default=None, compare=False, repr=False)
+    # what is computed once from every sensor of the run (``whole``) and shared by its selections
+    derived: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def whole(self) -> "Sensors":

@@ -26,6 +26,7 @@ Format (see ``scenarios/quadrants.toml`` for a commented example):
 from __future__ import annotations
 
 import difflib
+import functools
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
@@ -109,8 +110,34 @@ class Scenario:
         """Every agent's id as the scenario gave it, in order."""
         return tuple(a.name for a in self.agents)
 
+    @functools.cached_property
+    def ids(self) -> tuple:
+        """Every agent's id, in order."""
+        return tuple(a.id for a in self.agents)
+
+    @functools.cached_property
+    def id_set(self) -> frozenset:
+        """The same ids, as a set."""
+        return frozenset(self.ids)
+
+    def index(self, agent_id) -> int:
+        """The place of agent ``agent_id`` in ``ids``."""
+        return self._places[agent_id]
+
+    @functools.cached_property
+    def _places(self) -> dict:
+        return {j: i for i, j in enumerate(self.ids)}
+
     def sensors(self) -> Sensors:
-        return Sensors.from_list([a.id for a in self.agents], [a.H for a in self.agents], [a.R for a in self.agents])
+        """Every agent's sensor (made once; read-only arrays)."""
+        return self._sensors
+
+    @functools.cached_property
+    def _sensors(self) -> Sensors:
+        s = Sensors.from_list(self.ids, [a.H for a in self.agents], [a.R for a in self.agents])
+        for a in (s.H, s.R, s.p):
+            a.flags.writeable = False
+        return s
 
     def model(self, steps: int | None = None) -> LinearModel:
         K = steps or self.steps

@@ -82,7 +82,7 @@ class DenseLinks:
 
     def fuse(self, est, state, msg: Message, draws):
         nb = self.nb if draws is None else Neighbourhood(self.adj, self.self_mask, draws)
-        return est.fuse(state, msg, msg, nb)
+        return est.screened_fuse(state, msg, msg, nb)
 
 
 class GatheredLinks:
@@ -98,7 +98,8 @@ class GatheredLinks:
         self.adj = np.broadcast_to(linked[..., None, :].astype(float), (B, N, 1, D))
         is_self = linked & (idx == np.arange(N)[:, None])
         self.self_mask = np.broadcast_to(is_self[..., None, :], (B, N, 1, D))
-        self.nb = Neighbourhood(self.adj, self.self_mask)
+        self.columns = idx[..., None, :]  # each slot's sender among the run's agents
+        self.nb = Neighbourhood(self.adj, self.self_mask, columns=self.columns)
 
     def gather(self, a: np.ndarray) -> np.ndarray:
         """(B, N, ...) per sender -> (B, N, D, ...) per receiver and slot."""
@@ -116,8 +117,8 @@ class GatheredLinks:
             senders = Message(**{f.name: np.where(mine.reshape(mine.shape + (1,) * (getattr(own, f.name).ndim - 3)),
                                                   getattr(own, f.name), self.gather(getattr(sent, f.name)))
                                  for f in fields(Message)})
-        nb = self.nb if draws is None else Neighbourhood(self.adj, self.self_mask, draws[:, :, None])
-        st, out = est.fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders, nb)
+        nb = self.nb if draws is None else Neighbourhood(self.adj, self.self_mask, draws[:, :, None], self.columns)
+        st, out = est.screened_fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders, nb)
         squeeze = lambda a: a[:, :, 0]  # noqa: E731
         return per_receiver(st, squeeze), Output(squeeze(out.x), squeeze(out.P), squeeze(out.d), squeeze(out.d_valid))
 

@@ -217,7 +217,8 @@ def restarted(est, state, agent: int, x=None, P=None):
         a = getattr(state, f.name)
         if isinstance(a, np.ndarray):
             a = a.copy()
-            a[:, agent] = getattr(fresh, f.name)[:, agent]
+            start = getattr(fresh, f.name)
+            a[:, agent] = 0 if start is None else start[:, agent]  # None: made at the first fusion, zeros
             out[f.name] = a
     new = replace(state, **out)
     if x is not None:

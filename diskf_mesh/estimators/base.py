@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from diskf_mesh.core import equations as eq
+from diskf_mesh.core import input_models as im
+from diskf_mesh.core import resilience as rs
 from diskf_mesh.core.linalg import inv_spd, inv_spd_each
 from diskf_mesh.core.messages import Message, Neighbourhood
 from diskf_mesh.core.model import LinearModel, Sensors
@@ -201,6 +203,17 @@ class State:
     # Keyword-only, so an estimator's own state (a subclass) lists its
     # fields positionally after ``since``.
     Y_pred: np.ndarray | None = field(default=None, kw_only=True)
+    # The evidence against each agent of the run as a neighbour (..., N),
+    # ``core.resilience.accumulate``; None until the first screened fusion
+    # (``Estimator.screened_fuse``), as all zeros.
+    evidence: np.ndarray | None = field(default=None, kw_only=True)
+
+
+DEFENCE = Setting("defence", False, "screen every neighbour's message before fusing it (core.resilience): a "
+                  "prediction more certain than Q, or far outside the chi-square gate around the receiver's own "
+                  "prediction (or the median of three or more), is not fused, and evidence against its sender "
+                  "accumulates and recovers slowly; off by default: on clean runs it cuts honest neighbours in "
+                  "some held-out cases (docs/security.md)")
 
 
 @dataclass(frozen=True)
@@ -322,12 +335,87 @@ class Estimator:
             d, S, valid,
         )
 
+    # -- screening the senders (``core.resilience``) ----------------------
+    @property
+    def defends(self) -> bool:
+        """Whether this estimator screens its senders: it declares
+        ``DEFENCE`` and the setting is on."""
+        return DEFENCE in type(self).settings and bool(getattr(self.params, "defence", False))
+
+    def screened_fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
+        """``fuse`` of the senders that pass the screen (``screen``), the
+        evidence against each kept in the state; ``fuse`` itself where the
+        estimator does not defend itself. The engine and the agent process
+        call this."""
+        if not self.defends:
+            return self.fuse(state, own, senders, nb)
+        weights, evidence = self.screen(state, own, senders, nb)
+        if weights is not nb.adj:
+            nb = Neighbourhood(weights, nb.self_mask, nb.draws, nb.columns)
+        st, out = self.fuse(state, own, senders, nb)
+        return dataclasses.replace(st, evidence=evidence), out
+
+    def screen(self, state: State, own: Message, senders: Message, nb: Neighbourhood):
+        """(the adjacency with every sender that fails the screen or is
+        distrusted at 0, nb.adj itself when none is; the evidence after this
+        tick): ``core.resilience``'s floor, gate and evidence on the state
+        predictions and the input estimates. A sender passes the gate where
+        it is close to the receiver's own prediction or, with three or more
+        reporting, to their median."""
+        adj = nb.adj
+        linked = (adj > 0) & ~nb.self_mask
+        evidence = state.evidence
+        if evidence is None:
+            evidence = np.zeros(state.x.shape[:-1] + (self.sensors.whole.N,))
+        if not linked.any():
+            return adj, evidence
+        gate, allowance, limit, suspect = rs.thresholds()
+        before = rs.columns_of(evidence, nb.columns)
+        si, ri = rs.linked_pairs(linked)
+        median = rs.reference(adj > 0, senders.x_pred, own.x_pred)
+        q_own, q_med = rs.gate_statistics(senders.x_pred[si], senders.P_pred[si],
+                                          (own.x_pred[ri], median[ri]), own.P_pred[ri])
+        q = np.minimum(q_own, q_med)
+        failed = (q > gate) | rs.below_floor(senders.P_pred, self.model.Q)[si]
+        d_valid = senders.d_valid[si] & own.d_valid[ri]
+        if d_valid.any():  # the input estimates, where both sides have one
+            d_med = rs.reference((adj > 0) & np.expand_dims(senders.d_valid, -2), senders.d, own.d)
+            S_send = np.where(d_valid[:, None, None], senders.S[si], 1.0)
+            qd_own, qd_med = rs.gate_statistics(senders.d[si], S_send, (own.d[ri], d_med[ri]), own.S[ri])
+            qd = np.where(d_valid, np.minimum(qd_own, qd_med), 0.0)
+            failed |= qd > gate
+            q = np.maximum(q, qd)
+        step = np.zeros(linked.shape)
+        step[linked] = q
+        hit = np.zeros(linked.shape, dtype=bool)
+        hit[linked] = failed
+        after = rs.accumulate(before, step, hit, allowance, suspect)
+        evidence = rs.put_columns(evidence, nb.columns, after, linked)
+        cut = linked & (after >= limit)
+        if not cut.any():
+            return adj, evidence
+        return np.where(cut, 0.0, adj), evidence
+
     # -- interface -------------------------------------------------------
     def local(self, state: State, k: int, y, has):  # pragma: no cover - abstract
         raise NotImplementedError
 
     def fuse(self, state: State, own: Message, senders: Message, nb: Neighbourhood):  # pragma: no cover
         raise NotImplementedError
+
+
+def run_scales(model: LinearModel, sensors: Sensors) -> tuple:
+    """``input_models.input_scales`` of ``model`` over every sensor of the
+    run (``Sensors.whole``: an agent's own sensor takes the run's scales, as
+    the engine does), computed once per run's sensors and model noise and
+    kept with the sensors (``Sensors.derived``): a run of N agents builds N
+    estimators."""
+    run = sensors.whole
+    key = ("input_scales", id(model.Q), id(model.G))
+    hit = run.derived.get(key)
+    if hit is None or hit[0] is not model.Q or hit[1] is not model.G:
+        hit = run.derived[key] = (model.Q, model.G, im.input_scales(model.Q, model.G, run.H, run.R, run.p))
+    return hit[2]
 
 
 def uniform_weights(adj: np.ndarray) -> np.ndarray:

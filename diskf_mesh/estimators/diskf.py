@@ -8,7 +8,7 @@ import numpy as np
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import COMPENSATION_FORMS
-from diskf_mesh.estimators.base import Estimator, Setting, State
+from diskf_mesh.estimators.base import DEFENCE, Estimator, Setting, State
 
 # DISKF's parameters; diskf-r shares the first four
 WINDOW = Setting("window", 5, "observation time window in ticks (None: no window)", kind=int, low=0, optional=True)
@@ -41,7 +41,7 @@ class DISKF(Estimator):
     name = "diskf"
     label = "DISKF"
     color = "tab:blue"
-    settings = (WINDOW, RESET, EPS, COMPENSATION, HOLD_INPUT)
+    settings = (WINDOW, RESET, EPS, COMPENSATION, HOLD_INPUT, DEFENCE)
 
     def init(self, batch: tuple) -> HeldState:
         s = super().init(batch)

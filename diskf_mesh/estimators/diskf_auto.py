@@ -73,7 +73,7 @@ from diskf_mesh.core import noise
 from diskf_mesh.core.linalg import identity, mv, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
-from diskf_mesh.estimators.base import EXCHANGED, Estimator, Exchanged, Local, Setting, State
+from diskf_mesh.estimators.base import DEFENCE, EXCHANGED, Estimator, Exchanged, Local, Setting, State, run_scales
 
 AUTO = Setting("auto", AutoOptions(), "the input models diskf-auto weighs and its chain (model.AutoOptions), "
                "the [estimator.auto] table")
@@ -100,15 +100,14 @@ class DISKFAuto(Estimator):
     name = "diskf-auto"
     label = "DISKF-auto"
     color = "crimson"
-    settings = (AUTO,)
+    settings = (AUTO, DEFENCE)
     extends = "diskf"
     exchanged = EXCHANGED + (Exchanged("w", str(len(im.BANK)), weights=True),)
 
     def __init__(self, model, sensors, params=None):
         super().__init__(model, sensors, params)
         o = self.params.auto
-        run = sensors.whole  # an agent's own sensor takes the run's scales, as the engine does
-        q_process, q_sensor = im.input_scales(model.Q, model.G, run.H, run.R, run.p)
+        q_process, q_sensor = run_scales(model, sensors)
         self.bank, self.a1, self.a2, self.q = im.default_bank(q_process, q_sensor, o.none, o.walk, o.zero_mean,
                                                               o.oscillating)
         self.F = im.companion(self.a1, self.a2, model.m)  # (M, 2m, 2m): (IM2) on the pair (d_{k-1}, d_{k-2})

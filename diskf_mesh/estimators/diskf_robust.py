@@ -112,7 +112,7 @@ from diskf_mesh.core.linalg import T, inv_spd, mv, nbr_sum, sym
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.rkf import rkf_update
 from diskf_mesh.core.model import RobustOptions
-from diskf_mesh.estimators.base import Estimator, Setting
+from diskf_mesh.estimators.base import DEFENCE, Estimator, Setting, run_scales
 from diskf_mesh.estimators.diskf import COMPENSATION, EPS, RESET, WINDOW, HeldState
 
 ROBUST = Setting("robust", RobustOptions(), "the switches of diskf-r (model.RobustOptions), "
@@ -126,8 +126,7 @@ def input_model_of(o: RobustOptions, model, sensors):
     variance (``input_prior``), each from the scenario's scales where not
     given (``input_models.default_scales``, over every sensor of the run:
     ``Sensors.whole``)."""
-    run = sensors.whole  # an agent's own sensor takes the run's scales, as the engine does
-    walk, prior = im.default_scales(*im.input_scales(model.Q, model.G, run.H, run.R, run.p))
+    walk, prior = im.default_scales(*run_scales(model, sensors))
     q = 0.0 if o.input_model == "none" else (walk if o.input_walk is None else o.input_walk)
     return im.model_rho(o.input_model, o.input_rho), q, (prior if o.input_prior is None else o.input_prior)
 
@@ -149,7 +148,7 @@ class DISKFRobust(Estimator):
     name = "diskf-r"
     label = "DISKF-R"
     color = "midnightblue"
-    settings = (WINDOW, RESET, EPS, COMPENSATION, ROBUST)
+    settings = (WINDOW, RESET, EPS, COMPENSATION, ROBUST, DEFENCE)
     extends = "diskf"  # an extension of DISKF under its constraints (the reports' "DISKF family")
 
     def __init__(self, model, sensors, params=None):

@@ -93,6 +93,7 @@ from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
 from diskf_mesh.mesh.protocol.log import Log
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.protocol.receive import Receiver
+from diskf_mesh.mesh.protocol.shared import Shared
 from diskf_mesh.mesh.protocol.verdicts import TickVerdicts
 
 LINKS_KEPT = 16  # link sets of past ticks kept, to gate late messages too
@@ -122,14 +123,16 @@ class AgentMachine:
     link faults into this agent, a ``FaultConfig`` (seeded with the run's
     seed when the world's first tick tells it) or a seeded ``FaultModel``.
     ``log``: its one-line messages; ``profile``: where the time of each tick
-    goes (``mesh.protocol.profile``), if measured. ``ticks`` is the number of ticks
+    goes (``mesh.protocol.profile``), if measured; ``shared``: the decodes
+    other machines in this process made of the same payloads
+    (``mesh.protocol.shared``: the simulated network). ``ticks`` is the number of ticks
     worked on so far."""
 
     def __init__(self, scn: Scenario, agent_id: int, algorithm: str, keys: Keys, nonce: str,
                  timing: AgentTiming = AgentTiming(), faults: FaultConfig | FaultModel | None = None,
-                 log: Log | None = None, profile: Phases = NO_PHASES):
+                 log: Log | None = None, profile: Phases = NO_PHASES, shared: Shared | None = None):
         self.scn, self.keys, self.nonce, self.timing = scn, keys, nonce, timing
-        self.ids = tuple(a.id for a in scn.agents)
+        self.ids = scn.ids  # shared by every machine of the run, as ``scn.id_set``
         if agent_id not in self.ids:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} "
                              f"(ids {', '.join(map(str, self.ids))})")
@@ -149,10 +152,10 @@ class AgentMachine:
         self.fault_config = faults if isinstance(faults, FaultConfig) else None
         self.liars = Liars(scn.lies, (agent_id,), n, scn.position_dims)  # this agent's lies, if it is a liar
         self.receiver = Receiver(Guard(GuardConfig(
-            keys.run_id, agent_id, frozenset(self.ids), n, m,
+            keys.run_id, agent_id, scn.id_set, n, m,
             information_check=declared.information_check, exchanged=declared.exchanged,
             **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
-            profile=profile), faults if isinstance(faults, FaultModel) else None)
+            profile=profile, shared=shared), faults if isinstance(faults, FaultModel) else None)
         self.counters = self.receiver.counters
         self.verdicts = TickVerdicts()  # per tick: who was fused, why the others were not
         self._qids = itertools.count(1)
@@ -175,7 +178,7 @@ class AgentMachine:
         self.world_gone_at = math.inf
         self.world_ticking = False  # the world's "ticking" token: the run is past its start
         self.alive = set()          # agent ids of the scenario with an alive token
-        self.alive_tokens = {}      # agent id -> nonces of its processes' alive tokens
+        self.alive_tokens = {}      # agent id -> nonces of its processes' alive tokens (a tuple: usually one)
         self._woke_at = -math.inf   # when this process found it had been frozen
         # -- start-up and joining
         self.phase = "world"      # world, claim, gather, peers, joining, leaving, finished
@@ -284,7 +287,7 @@ class AgentMachine:
                 self._open(k, now)
                 if self.finish is not None:  # its estimator diverged
                     break
-            if not (self.linked[k] <= self.receiver.accounted(k) or self.stopped is not None
+            if not (self.receiver.all_accounted(k, self.linked[k]) or self.stopped is not None
                     or now >= self.deadline or any(j > k for j in self.ticks)):
                 break
             self._close(k)
@@ -329,7 +332,14 @@ class AgentMachine:
     def _on_tick(self, payload, now: float) -> bool:
         self.prof.begin()
         try:
-            t = wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids))
+            shared = self.receiver.guard.shared
+            if shared is None:
+                t = wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids))
+            else:
+                t = shared.once(payload, ("tick", self.keys.run_id, len(self.ids)),
+                                lambda: wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids)))
+                if isinstance(t, wire.Rejected):
+                    raise wire.Rejected(t.reason, t.detail, t.tick)
         finally:
             self.prof.end("decode")
         consts = (t.ticks, t.seed, t.algorithm, t.topology, t.comm_range)
@@ -632,8 +642,12 @@ class AgentMachine:
         nonce is smaller (an earlier start) and this one has not worked on a
         tick yet; one that works since tick 1 keeps the id (its estimate is
         the engine's, a late twin's is not)."""
-        held = self.alive_tokens.setdefault(who, set())
-        (held.add if up else held.discard)(nonce_)
+        was = self.alive_tokens.get(who, ())
+        held = tuple(n for n in was if n != nonce_) + ((nonce_,) if up else ())
+        if held:
+            self.alive_tokens[who] = held
+        else:
+            self.alive_tokens.pop(who, None)
         (self.alive.add if held else self.alive.discard)(who)
         if not (up and who == self.id and self.claimed and nonce_ != self.nonce):
             return
@@ -673,7 +687,8 @@ class AgentMachine:
             self.phase = "claim"
             self._claim_qid = next(self._qids)
             self._out.append(AskTokens(self._claim_qid, self.keys.alive(self.id), CLAIM_S))
-        if self.phase == "gather" and ((self.world_seen and (self.alive >= set(self.ids) or self.world_ticking))
+        # ``alive`` holds ids of the scenario only: all of them once it is as large
+        if self.phase == "gather" and ((self.world_seen and (len(self.alive) == len(self.ids) or self.world_ticking))
                                        or self.stopped is not None):
             if self.world_ticking and self.est is None:
                 self._joining(self.newest)
@@ -721,7 +736,7 @@ class AgentMachine:
     def _others(self, nonces=()) -> set:
         """The nonces of other processes holding this agent's id: ``nonces``
         (an answer's) and the alive tokens of its id this one has seen."""
-        return (set(nonces) | self.alive_tokens.get(self.id, set())) - {self.nonce}
+        return (set(nonces) | set(self.alive_tokens.get(self.id, ()))) - {self.nonce}
 
     def _peers_seen(self) -> bool:
         """The agents the world counts live at its newest tick are seen (so

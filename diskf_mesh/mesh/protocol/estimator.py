@@ -22,12 +22,11 @@ from diskf_mesh.data.scenario import Scenario, links_for
 
 class AgentEstimator:
     def __init__(self, scn: Scenario, agent_id: int, algorithm: str, ticks: int, seed: int, params=None):
-        self.ids = tuple(a.id for a in scn.agents)
+        self.ids = scn.ids
         if agent_id not in self.ids:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} (ids {', '.join(map(str, self.ids))})")
         self.agent_id = agent_id
         self.index = self.ids.index(agent_id)
-        self._position = {j: i for i, j in enumerate(self.ids)}  # scenario order of the senders
         self.scenario = scn
         self.sensors = scn.sensors().select([self.index])   # this agent's H, R only
         self.algorithm = algorithm
@@ -53,15 +52,17 @@ class AgentEstimator:
     def fuse(self, k: int, own: Message, received: dict) -> Output:
         """Steps 3 and 4 with ``received`` {sender id: unbatched Message},
         which may or may not hold this agent's own message (``own`` is used)."""
-        me, position = self.agent_id, self._position
-        order = sorted({j for j in received if j != me} | {me}, key=position.__getitem__)
+        me = self.agent_id
+        order = sorted({j for j in received if j != me} | {me}, key=self.scenario.index)  # scenario order
         own_row = tuple(a[0, 0] for a in _row(own))
         columns = zip(*(own_row if j == me else _row(received[j]) for j in order))
         senders = Message(*(np.array([c]) for c in columns))  # (1, J, ...): Message.stack(rows)[None]
         nb = self._neighbourhood(len(order), order.index(me))
-        if self.draws is not None:
-            nb = Neighbourhood(nb.adj, nb.self_mask, np.array([[self.draws[k - 1]]]))
-        self.state, out = self.alg.fuse(self.state, own, senders, nb)
+        draws = None if self.draws is None else np.array([[self.draws[k - 1]]])
+        if draws is not None or self.alg.defends:
+            columns = np.array([[[self.scenario.index(j) for j in order]]]) if self.alg.defends else None
+            nb = Neighbourhood(nb.adj, nb.self_mask, draws, columns)
+        self.state, out = self.alg.screened_fuse(self.state, own, senders, nb)
         return out
 
     def _neighbourhood(self, J: int, own: int) -> Neighbourhood:
@@ -85,14 +86,14 @@ def neighbours(scn: Scenario, agent_id: int, positions: np.ndarray) -> tuple:
 
     Range links: this agent's row of ``scenario.range_links`` only, with the
     same arithmetic (bit for bit the same squared distances), not all N x N."""
-    ids = [a.id for a in scn.agents]
-    i = ids.index(agent_id)
+    ids = scn.ids
+    i = scn.index(agent_id)
     if scn.topology == "range":
         diff = positions[i] - positions
         row = np.einsum("...k,...k->...", diff, diff) <= scn.comm_range * scn.comm_range
     else:
         row = links_for(scn, positions[None])[0, i]
-    return tuple(j for j, linked in zip(ids, row.tolist()) if linked)
+    return tuple(ids[j] for j in np.flatnonzero(row).tolist())
 
 
 def lockstep(scn: Scenario, algorithm: str, trace, seed: int = 0):

@@ -78,6 +78,7 @@ from diskf_mesh.estimators.base import EXCHANGED
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.wire.counters import Counters
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
+from diskf_mesh.mesh.protocol.shared import Shared
 
 REASONS = wire.REASONS + tuple(r for r in ("key", "unknown-sender", "tick-past", "tick-future", "magnitude",
                                            "ill-conditioned", "weights", "information", "error", "fusion", "constants")
@@ -116,14 +117,19 @@ class Refused:
 
 class Guard:
     def __init__(self, config: GuardConfig, counters: Counters | None = None, logger: logging.Logger = LOGGER,
-                 profile: Phases = NO_PHASES):
+                 profile: Phases = NO_PHASES, shared: Shared | None = None):
         """``profile``: where the time of decoding and checking goes
-        (``mesh.protocol.profile``, phases "decode" and "guard")."""
+        (``mesh.protocol.profile``, phases "decode" and "guard");
+        ``shared``: the decodes and payload-only checks other receivers of
+        the same payload made (``mesh.protocol.shared``; the simulated
+        network), None: every payload decoded here."""
         self.config = config
         self.counters = counters if counters is not None else Counters()
         self.by_sender: Counter = Counter()  # (known sender or None, reason) -> count
         self.logger = logger
         self.profile = profile
+        self.shared = shared
+        self._how = (None, None)  # (config, its ``Shared.how``)
 
     # -- entry point -----------------------------------------------------
     def screen(self, sender, payload, tick: int):
@@ -138,21 +144,39 @@ class Guard:
             return None
         prof = self.profile
         try:
+            shared = self.shared
+            hit = None if shared is None else shared.entry(payload, (sender, self._shared_how(c)))
             prof.begin()
             try:
-                wm = wire.decode(payload, run_id=c.run_id, sender=sender, n=c.n, m=c.m, exchanged=c.exchanged)
-            except wire.Rejected as e:
-                # a body naming another agent or run is not this sender's message of its tick (a copy, a
-                # replay): it accounts for no tick, so it cannot stand in for the sender's real message
-                mine = e.reason not in ("sender", "run")
-                return self._reject(sender, e.reason, e.detail,
-                                    e.tick if mine and self.in_window(e.tick, tick) else None)
+                if hit:
+                    wm = hit[0]
+                else:
+                    try:
+                        wm = wire.decode(payload, run_id=c.run_id, sender=sender, n=c.n, m=c.m,
+                                         exchanged=c.exchanged)
+                    except wire.Rejected as e:
+                        wm = e
+                    if hit is not None:
+                        hit.append(wm)
             finally:
                 prof.end("decode")
+            if isinstance(wm, wire.Rejected):
+                # a body naming another agent or run is not this sender's message of its tick (a copy, a
+                # replay): it accounts for no tick, so it cannot stand in for the sender's real message
+                mine = wm.reason not in ("sender", "run")
+                return self._reject(sender, wm.reason, wm.detail,
+                                    wm.tick if mine and self.in_window(wm.tick, tick) else None)
             prof.begin()
             try:
                 inside = self.in_window(wm.tick, tick)
-                reason = message_problem(wm, c) if inside else self._off_window(wm.tick, tick)
+                if not inside:
+                    reason = self._off_window(wm.tick, tick)
+                elif hit is None:
+                    reason = message_problem(wm, c)
+                else:  # the payload's own checks, once for every receiver
+                    if len(hit) == 1:
+                        hit.append(message_problem(wm, c))
+                    reason = hit[1]
             finally:
                 prof.end("guard")
             if reason is not None:
@@ -160,6 +184,15 @@ class Guard:
             return wm
         except Exception as e:  # noqa: BLE001 - a guard that raises would stop the agent
             return self._reject(sender, "error", f"{type(e).__name__}: {e}")
+
+    def _shared_how(self, c: GuardConfig) -> int:
+        """What a payload's decode and checks depend on besides the payload
+        and its sender: this run's shapes and limits (not the receiver's
+        window), as a ``Shared.how``."""
+        if self._how[0] is not c:
+            self._how = (c, self.shared.how(("msg", c.run_id, c.n, c.m, c.exchanged, c.max_abs, c.max_cond,
+                                             c.information_rtol, c.information_check)))
+        return self._how[1]
 
     # -- checks beyond the decoder's ---------------------------------------
     def in_window(self, t, tick: int) -> bool:

@@ -50,6 +50,9 @@ from __future__ import annotations
 from diskf_mesh.mesh.wire.counters import Counters
 
 
+_NONE: dict = {}
+
+
 class Inbox:
     def __init__(self, counters: Counters | None = None, keep: int | None = None):
         self.counters = counters if counters is not None else Counters()
@@ -120,6 +123,10 @@ class Inbox:
     def senders(self, tick: int) -> set:
         """Who has been heard for ``tick`` so far (to stop waiting early)."""
         return set(self._held.get(tick, ()))
+
+    def held(self, tick: int):
+        """The same, read-only and not copied: {sender: message} held for ``tick``."""
+        return self._held.get(tick, _NONE)
 
     @property
     def pending(self) -> int:

@@ -179,6 +179,13 @@ class Receiver:
             heard |= refused.keys()
         return heard
 
+    def all_accounted(self, tick: int, senders) -> bool:
+        """Whether every one of ``senders`` is ``accounted`` for at ``tick``
+        (stops at the first that is not: one look per arrival)."""
+        held = self.inbox.held(tick)
+        lost, refused = self._lost.get(tick, ()), self._refused.get(tick, ())
+        return all(s in held or s in lost or s in refused for s in senders)
+
     def refusals(self, tick: int) -> dict:
         """{sender: the guard's reason} of the messages of ``tick`` it refused
         (the first refusal per sender), until ``take`` of that tick."""

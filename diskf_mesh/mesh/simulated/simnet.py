@@ -156,10 +156,11 @@ class _Proc:
     """One incarnation of a process."""
 
     __slots__ = ("pid", "identity", "inc", "factory", "machine", "state", "connected", "backlog", "watches",
-                 "tokens", "timers", "counts", "paused_at", "pause_serial", "order")
+                 "tokens", "timers", "counts", "paused_at", "pause_serial", "order", "name")
 
     def __init__(self, pid, identity, inc, factory, order):
         self.pid, self.identity, self.inc, self.factory, self.order = pid, identity, inc, factory, order
+        self.name = f"{pid}#{inc}"  # in the trace of every event it handles
         self.machine = None
         self.state = "up"         # up, paused, dead, done
         self.connected = True
@@ -176,7 +177,7 @@ class _Proc:
         return self.state in ("up", "paused") and self.connected
 
     def __repr__(self):
-        return f"{self.pid}#{self.inc}"
+        return self.name
 
 
 class _Routes:
@@ -357,7 +358,7 @@ class SimNet:
 
     def _log(self, proc, event) -> None:
         t = self.sched.now
-        who = repr(proc)
+        who = proc.name
         if isinstance(event, ev.Sample):
             self.trace.add(t, who, "sample", event.key, event.payload)
         elif isinstance(event, ev.Token):
@@ -566,6 +567,8 @@ class SimNet:
         t = now + link.delay + (link.jitter * float(self.rng.random()) if link.jitter else 0.0)
         if held:
             return t + link.hold
+        if not link.jitter:  # a constant delay keeps the link's order by itself (and no pair's entry is kept)
+            return t
         ch = (a, b)
         t = max(t, self._channel.get(ch, 0.0))
         self._channel[ch] = t

@@ -37,6 +37,7 @@ from diskf_mesh.mesh.protocol.agent_machine import AgentMachine, AgentTiming
 from diskf_mesh.mesh.wire.keys import Keys
 from diskf_mesh.mesh.protocol.log import Log
 from diskf_mesh.mesh.protocol.run_status import OnlineCheck, run_status
+from diskf_mesh.mesh.protocol.shared import Shared
 from diskf_mesh.mesh.simulated.simnet import Lease, Link, Outcome, SimNet
 from diskf_mesh.mesh.protocol.world_machine import WorldMachine, WorldTiming
 
@@ -114,12 +115,15 @@ class SimRun:
 def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_seed: int | None = None,
                  plan: SimPlan = SimPlan(), faults: FaultConfig | None = None, run_id: str = "sim",
                  keep_lines: bool = False, quiet: bool = True, verify: bool = True, progress=None,
-                 recorder=None) -> SimRun:
+                 recorder=None, batch: bool = True) -> SimRun:
     """The run of ``scn`` (simulated as ``trace``, seed ``seed``) with
     ``algorithm`` on the simulated network seeded by ``net_seed`` (default
     ``seed``) under ``plan``. ``quiet``: the processes' lines go to
     ``SimRun.log`` instead of stderr; ``progress(k)``, ``recorder``: the
-    world's observers (``WorldMachine``)."""
+    world's observers (``WorldMachine``). ``batch``: what the machines
+    compute from one payload is computed once for all of them
+    (``mesh.protocol.shared``); False: each machine alone, as in a process
+    mesh (the same run, bit for bit)."""
     keys = Keys(run_id)
     ids = tuple(a.id for a in scn.agents)
     stream = io.StringIO() if quiet else None
@@ -129,6 +133,8 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     losses = NetworkLosses(net, ids)
 
     deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
+
+    shared = Shared() if batch else None  # a payload's decode and checks, once for all its receivers
 
     def world(boot):
         first = boot.pid == WORLD and boot.incarnation == 0  # the observers watch the run's own world
@@ -144,7 +150,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
         def make(boot):
             who = f"agent {i}" + (f" ({boot.pid}#{boot.incarnation})" if boot.incarnation or "~" in boot.pid else "")
             return AgentMachine(scn, i, algorithm, keys, boot.nonce, plan.agent_timing, faults=faults,
-                                log=Log(who, stream))
+                                log=Log(who, stream), shared=shared)
         return make
 
     def add(pid, factory, identity, at=0.0):

@@ -62,6 +62,7 @@ from __future__ import annotations
 import functools
 import re
 import secrets
+import sys
 import time
 from dataclasses import dataclass
 
@@ -167,7 +168,7 @@ class Keys:
         return _parse(self.root, key) if len(key) <= CACHED_KEY else _parse.__wrapped__(self.root, key)
 
 
-@functools.lru_cache(maxsize=4096)
+@functools.lru_cache(maxsize=1 << 16)  # a few keys per agent: a simulated run's thousands of agents share it
 def _parse(root: str, key: str) -> tuple:
     root = root + "/"
     if not key.startswith(root):
@@ -189,8 +190,8 @@ def _parse(root: str, key: str) -> tuple:
 
 
 def nonce(key: str) -> str:
-    """The nonce a token key ends with."""
-    return key.rsplit("/", 1)[-1]
+    """The nonce a token key ends with (interned: a process's nonce is held by every other)."""
+    return sys.intern(key.rsplit("/", 1)[-1])
 
 
 def address(ids) -> str:
@@ -241,7 +242,7 @@ def _pattern(expr: str) -> str:
     return out
 
 
-@functools.lru_cache(maxsize=1024)
+@functools.lru_cache(maxsize=1 << 16)  # a run's expressions: a few per agent
 def matcher(expr: str):
     """``fullmatch`` of a key expression's compiled pattern: ``matcher(e)(key)``
     is truthy where zenoh's ``KeyExpr(e).includes(key)`` is (for keys and

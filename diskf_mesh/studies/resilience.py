@@ -1,0 +1,162 @@
+"""The resilience study: what one or two insiders' lies (``data.lies``) do
+to the honest agents of the default estimator, with the screen before
+fusion (``core.resilience``, ``defence``) and without it.
+
+Per setting (Scenario 2; a 25-agent random geometric network with one and
+with two insiders) and per lie (offsets 10 to 5,000 m, drifts, a shrunk
+covariance, a replayed stale estimate, a false input, all from tick
+``START``), the honest agents' state MAE over seeds 0..S-1 and every tick,
+against the clean run's. The liar's own estimator stays honest (it fuses
+its own true message), so its reports, honest or lying, change nothing an
+honest agent fuses: one column holds both (``tests/test_lies.py`` checks
+that the honest estimates are the same bits).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from diskf_mesh.data import metrics
+from diskf_mesh.data.lies import Lie
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.engine import batch
+from diskf_mesh.estimators import DEFAULT
+
+START = 50
+TARGET = 1.5  # honest MAE within 1.5x the clean run's
+DIVERGED = 10.0  # an honest agent whose own MAE is 10x its clean one is counted as diverging
+LIES = (("offset", 10.0), ("offset", 50.0), ("offset", 200.0), ("offset", 500.0), ("offset", 5000.0),
+        ("drift", 0.5), ("drift", 2.0), ("shrink", 20.0), ("stale", 20.0), ("input", 50.0))
+# (title, scenario, agent count, insiders: their ids, or how many of the best-connected agents)
+SETTINGS = (("Scenario 2, one insider", "dynamic", None, (3,)),
+            ("random geometric (25), one insider", "random-geometric", 25, 1),
+            ("random geometric (25), two insiders", "random-geometric", 25, 2))
+
+
+def insiders(scn, trace, chosen) -> tuple:
+    """The insiders' ids: ``chosen`` itself, or that many of the agents with
+    the most links over the run (ties: the smaller id), so that a lie
+    reaches someone."""
+    if not isinstance(chosen, int):
+        return tuple(chosen)
+    degree = np.broadcast_to(trace.links, (1,) + trace.links.shape[1:])[0].sum(axis=(0, 2))
+    order = sorted(range(scn.N), key=lambda j: (-int(degree[j]), scn.agents[j].id))
+    return tuple(sorted(scn.agents[j].id for j in order[:chosen]))
+OFFSETS = tuple(size for kind, size in LIES if kind == "offset")
+
+
+def describe(kind: str, size: float) -> str:
+    return {"offset": f"offset {size:g} m", "drift": f"drift {size:g} m/tick",
+            "shrink": f"covariance x1e-3, {size:g} m", "stale": f"{size:g}-tick-old estimate",
+            "input": f"false input {size:g}"}[kind]
+
+
+def _errors(trace, est, honest):
+    """(pooled honest MAE, per honest agent MAE)."""
+    e_state = metrics.errors(trace, est.agents(honest))[0]
+    return float(e_state.mean()), e_state.mean(axis=(0, 1))
+
+
+def measure(seeds, steps=None, progress=None) -> list:
+    """One row per (setting, lie): the clean honest MAE, the MAE with the
+    lie without and with the screen, and the worst honest agent's ratio."""
+    rows = []
+    for title, name, agents, chosen in SETTINGS:
+        scn = load_scenario(name, agents=agents).with_overrides(steps=steps)
+        trace = simulate(scn, list(seeds))
+        liars = insiders(scn, trace, chosen)
+        title = f"{title} (agent{'s' if len(liars) > 1 else ''} {', '.join(map(str, liars))})"
+        honest = [j for j, a in enumerate(scn.agents) if a.id not in liars]
+        modes = {"off": dataclasses.replace(scn.params, defence=False), "on": dataclasses.replace(scn.params, defence=True)}
+        clean, clean_agents = _errors(trace, batch.run(trace, DEFAULT, modes["on"]), honest)
+        for kind, size in LIES:
+            lies = scn.with_lies([Lie(i, kind, size, start=START) for i in liars]).lies
+            row = {"setting": title, "kind": kind, "size": size, "lie": describe(kind, size), "clean": clean}
+            for mode, params in modes.items():
+                try:
+                    mae, per_agent = _errors(trace, batch.run(trace, DEFAULT, params, lies=lies), honest)
+                    worst = float(np.max(per_agent / clean_agents))
+                except np.linalg.LinAlgError:
+                    mae, worst = float("inf"), float("inf")
+                row[mode], row[f"worst_{mode}"] = mae, worst
+            rows.append(row)
+            if progress is not None:
+                progress(1)
+    return rows
+
+
+def missing(rows) -> list:
+    """The rows whose defended honest MAE misses the target, or where an
+    honest agent diverges."""
+    return [r for r in rows if not (r["on"] <= TARGET * r["clean"]) or not (r["worst_on"] < DIVERGED)]
+
+
+def table(rows) -> str:
+    """The markdown table."""
+    out = ["| setting | lie | clean | without the screen | with it | worst honest agent with it | target |",
+           "|---|---|---:|---:|---:|---:|:---:|"]
+    missed = missing(rows)
+    for r in rows:
+        ok = r not in missed
+        out.append(f"| {r['setting']} | {r['lie']} | {r['clean']:.2f} | {r['off']:.2f} ({r['off'] / r['clean']:.2f}x) "
+                   f"| {r['on']:.2f} ({r['on'] / r['clean']:.2f}x) | {r['worst_on']:.2f}x | "
+                   f"{'met' if ok else '**missed**'} |")
+    return "\n".join(out)
+
+
+BEGIN, END = "<!-- resilience table: diskf-mesh resilience -->", "<!-- end of the resilience table -->"
+
+
+def write(rows, out, command: str) -> tuple:
+    """The table into ``out``/security.md between its markers (``BEGIN``,
+    ``END``) if it has them, else ``out``/resilience.md; the figure into
+    ``out``/figures/resilience.png; the numbers into ``out``/resilience.json.
+    Returns the paths written."""
+    import json
+
+    from diskf_mesh.data.outputs import save_json
+
+    block = f"{BEGIN}\n\n{table(rows)}\n\nMade by `{command}`.\n\n{END}"
+    doc = out / "security.md"
+    text = doc.read_text() if doc.exists() else ""
+    if BEGIN in text and END in text:
+        head, _, rest = text.partition(BEGIN)
+        _, _, tail = rest.partition(END)
+        target, text = doc, head + block + tail
+    else:
+        target, text = out / "resilience.md", f"# Resilience to insiders\n\n{block}\n"
+    target.write_text(text)
+    (out / "figures").mkdir(exist_ok=True)
+    fig = out / "figures" / "resilience.png"
+    figure(rows, fig)
+    numbers = out / "resilience.json"
+    save_json(str(numbers), json.loads(json.dumps(rows, default=float)), "json")
+    return target, fig, numbers
+
+
+def figure(rows, path) -> None:
+    """Honest MAE (x the clean run's) against the offset's size, with and
+    without the screen, one colour per setting."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    titles = list(dict.fromkeys(r["setting"] for r in rows))
+    for title, color in zip(titles, ("tab:blue", "tab:orange", "tab:green")):
+        pts = [r for r in rows if r["setting"] == title and r["kind"] == "offset"]
+        sizes = [r["size"] for r in pts]
+        ax.plot(sizes, [r["off"] / r["clean"] for r in pts], "--o", color=color, alpha=0.6,
+                label=f"{title}: no screen")
+        ax.plot(sizes, [r["on"] / r["clean"] for r in pts], "-s", color=color, label=f"{title}: screen")
+    ax.axhline(TARGET, color="grey", lw=0.8, ls=":")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("the insider's offset (m)")
+    ax.set_ylabel("honest MAE / clean run's")
+    ax.set_title(f"{DEFAULT}: honest error against an insider's offset (from tick {START})")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

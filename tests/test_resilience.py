@@ -1,0 +1,117 @@
+"""The screen before fusion (``core.resilience``, ``Estimator.screened_fuse``):
+its pieces on hand-made numbers, the same bits in every layout, a clean run
+untouched, and the runs where it is what wins."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from diskf_mesh.core import resilience as rs
+from diskf_mesh.data import metrics
+from diskf_mesh.data.lies import parse_text
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.engine import batch
+from diskf_mesh.engine.verify import announced
+from diskf_mesh.estimators import get
+from diskf_mesh.mesh.simulated.simrun import simulate_run
+
+
+def test_the_reference_is_the_median_of_three_or_more_and_ignores_the_unlinked():
+    values = np.array([[0.0, 10.0], [1.0, 11.0], [500.0, -500.0], [2.0, 12.0]])  # (S, m)
+    own = np.array([[9.0, 9.0], [8.0, 8.0]])                                      # (R, m)
+    linked = np.array([[True, True, True, False], [True, False, True, False]])
+    ref = rs.reference(linked, values, own)
+    assert np.array_equal(ref[0], [1.0, 10.0])   # the median of three: the liar's far values do not move it
+    assert np.array_equal(ref[1], own[1])       # two: its own
+    # the same receiver in a layout of its linked senders alone: the same bits
+    alone = rs.reference(np.ones((1, 3), dtype=bool), values[:3], own[:1])
+    assert np.array_equal(alone[0], ref[0])
+
+
+def test_gate_statistic_floor_and_evidence():
+    q_own, q_ref = rs.gate_statistics(np.array([[3.0, 4.0]]), np.array([[[1.0, 0.0], [0.0, 1.0]]]),
+                                      (np.zeros((1, 2)), np.array([[3.0, 4.0]])), np.array([[[1.0, 0.0], [0.0, 1.0]]]))
+    assert q_own[0] == pytest.approx(12.5) and q_ref[0] == 0.0   # 25 / (1 + 1)
+    Q = 0.2 * np.eye(2)
+    assert rs.below_floor(np.array([0.19 * np.eye(2), 0.2 * np.eye(2), np.eye(2)]), Q).tolist() == [True, False, False]
+    gate, allowance, limit, suspect = rs.thresholds()
+    e = rs.accumulate(np.array([0.0, 50.0, 0.0]), np.array([allowance + 5, 0.0, 1.0]),
+                      np.array([False, False, True]), allowance, suspect)
+    assert e.tolist() == [5.0, 50.0 - allowance, suspect]
+    assert (suspect - limit) / allowance == rs.RECOVERY  # ticks of honest messages to win a neighbour back
+
+
+def test_evidence_follows_the_sender_not_its_slot():
+    ev = np.array([[0.0, 1.0, 2.0, 3.0]])              # (R=1, N=4)
+    cols = np.array([[3, 1]])                          # slots: agents 3 and 1
+    assert rs.columns_of(ev, cols).tolist() == [[3.0, 1.0]]
+    out = rs.put_columns(ev, cols, np.array([[30.0, 10.0]]), np.array([[True, False]]))
+    assert out.tolist() == [[0.0, 1.0, 2.0, 30.0]]
+
+
+@pytest.fixture(scope="module")
+def dynamic():
+    scn = load_scenario("dynamic")
+    return scn, simulate(scn, [0, 1])
+
+
+def _honest_mae(trace, est, scn, liar=None):
+    keep = [j for j, a in enumerate(scn.agents) if a.id != liar]
+    return metrics.compute(trace, est.agents(keep))["mae_state"]
+
+
+def _on(scn):
+    return dataclasses.replace(scn.params, defence=True)
+
+
+def test_a_clean_run_is_the_undefended_run_bit_for_bit(dynamic):
+    """No honest neighbour fails the screen on Scenario 2: with it, diskf-auto
+    gives the undefended estimates exactly."""
+    scn, trace = dynamic
+    on = batch.run(trace, "diskf-auto", _on(scn))
+    off = batch.run(trace, "diskf-auto", scn.params)
+    assert get("diskf-auto")(trace.model, trace.sensors, _on(scn)).defends
+    assert not get("diskf-auto")(trace.model, trace.sensors, scn.params).defends  # off by default
+    assert np.array_equal(on.x, off.x) and np.array_equal(on.P, off.P)
+
+
+@pytest.mark.parametrize("text, undefended, defended", [
+    ("agent=3,kind=shrink,size=20,from=50", 50.0, 1.3),    # measured 264x and 1.09x (seeds 0-3)
+    ("agent=3,kind=offset,size=5000,from=50", 50.0, 1.3),  # 134x and 1.06x
+])
+def test_the_screen_is_what_keeps_honest_agents_right(dynamic, text, undefended, defended):
+    """Scenario 2, one insider: the honest agents' error against the clean
+    run's, without the screen and with it."""
+    scn, trace = dynamic
+    lies = scn.with_lies([parse_text(text)]).lies
+    clean = _honest_mae(trace, batch.run(trace, "diskf-auto", scn.params), scn, 3)
+    off = batch.run(trace, "diskf-auto", dataclasses.replace(scn.params, defence=False), lies=lies)
+    on = batch.run(trace, "diskf-auto", _on(scn), lies=lies)
+    assert _honest_mae(trace, off, scn, 3) > undefended * clean
+    assert _honest_mae(trace, on, scn, 3) < defended * clean
+
+
+def test_an_agent_process_screens_as_the_engine_does(dynamic):
+    """The agent's batch of one (its own senders, their places in the run)
+    keeps the evidence per neighbour as the engine's dense layout does: the
+    same estimates bit for bit with a liar that the screen cuts."""
+    scn, trace = dynamic
+    scn = scn.with_overrides(steps=80, params=_on(scn)).with_lies([parse_text("agent=3,kind=shrink,size=20,from=30")])
+    one = batch.take_seeds(trace, slice(0, 1))
+    one = dataclasses.replace(one, y=one.y[:, :80], has=one.has[:, :80], links=one.links[:, :80],
+                              truth_x=one.truth_x[:, :80], truth_d=one.truth_d[:, :80])
+    eng = batch.run(one, "diskf-auto", scn.params, lies=scn.lies)
+    dense = batch.run(one, "diskf-auto", scn.params, neighbours="dense")  # no lie: the dense layout screens too
+    gathered = batch.run(one, "diskf-auto", scn.params, neighbours="gather")
+    assert np.array_equal(dense.x, gathered.x)
+    honest = [j for j, a in enumerate(scn.agents) if a.id != 3]
+    undefended = batch.run(one, "diskf-auto", dataclasses.replace(scn.params, defence=False), lies=scn.lies)
+    assert not np.array_equal(eng.x[:, :, honest], undefended.x[:, :, honest])  # the screen acted
+    r = simulate_run(scn, one, "diskf-auto", 0)
+    # the world's online check cuts the liar off when an agent fuses it; the engine takes the same live sets
+    run = batch.run(announced(one, r.record.live), "diskf-auto", scn.params, lies=scn.lies)
+    reported = r.record.reported
+    assert np.array_equal(r.record.x[reported], run.x[0][reported])
+    assert np.array_equal(eng.x[0, :20], run.x[0, :20])
