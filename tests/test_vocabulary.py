@@ -31,6 +31,9 @@ def test_every_command_takes_ticks_and_the_old_spelling_with_a_note(command, cap
     assert capsys.readouterr().err == ""
     assert _parse([command, "--steps", "7", *extra]).ticks == 7
     assert capsys.readouterr().err == "note: --steps is now --ticks\n"
+    (sub,) = [a for a in build_parser(COMMAND_MODULES)._actions if a.__class__.__name__ == "_SubParsersAction"]
+    shown = sub.choices[command].format_help()
+    assert "--ticks K" in shown and "--steps" not in shown  # the old spelling works, --help teaches the new
 
 
 def test_the_old_spelling_gives_the_same_result(tmp_path, capsys):

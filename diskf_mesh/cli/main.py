@@ -130,8 +130,9 @@ def _command_parser(parser: argparse.ArgumentParser, argv) -> argparse.ArgumentP
 
 def _long_options(parser: argparse.ArgumentParser) -> set:
     """Every --option of ``parser`` and of its subcommands (argparse reports
-    a subcommand's unknown option from the top parser)."""
-    out = {o for o in parser._option_string_actions if o.startswith("--")}
+    a subcommand's unknown option from the top parser) that --help shows
+    (an old spelling is not offered)."""
+    out = {o for o, a in parser._option_string_actions.items() if o.startswith("--") and a.help != argparse.SUPPRESS}
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for sub in action.choices.values():

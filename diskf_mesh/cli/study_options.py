@@ -21,7 +21,7 @@ def add_study_command(subparsers, name: str, summary: str, doc: str, out_help: s
     p.add_argument("--out", required=True, metavar="DIR", help=out_help)
     p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
     add_ticks(p, help="horizon in ticks (default: the scenarios')")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress (a bar on a terminal, else a line per stage)")
     p.set_defaults(func=lambda args: run_study(args, action))
 
 

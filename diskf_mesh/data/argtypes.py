@@ -17,20 +17,25 @@ MAX_MS = 1000.0 * MAX_S
 
 
 class Renamed(argparse._StoreAction):
-    """An option with an old spelling that still works: its option strings
-    are the new one first and the old ones after; the old one gives one
-    line on standard error, ``note: --steps is now --ticks``."""
+    """The old spelling of an option, kept working and out of ``--help``:
+    it stores into the new option's ``dest`` and says so in one line on
+    standard error, ``note: --steps is now --ticks``."""
+
+    def __init__(self, option_strings, dest, now: str = "", **kw):
+        super().__init__(option_strings, dest, help=argparse.SUPPRESS, **kw)
+        self.now = now
 
     def __call__(self, parser, namespace, values, option_string=None):
-        if option_string is not None and option_string != self.option_strings[0]:
-            print(f"note: {option_string} is now {self.option_strings[0]}", file=sys.stderr)
+        print(f"note: {option_string} is now {self.now}", file=sys.stderr)
         super().__call__(parser, namespace, values, option_string)
 
 
 def add_ticks(parser, help: str = "horizon in ticks (default: the scenario's)", **kw) -> None:
     """``--ticks K`` (``--steps`` the old spelling), into ``ticks``."""
-    parser.add_argument("--ticks", "--steps", dest="ticks", action=Renamed, metavar="K",
-                        type=kw.pop("type", positive_int), help=help, **kw)
+    kind = kw.pop("type", positive_int)
+    parser.add_argument("--ticks", dest="ticks", metavar="K", type=kind, help=help, **kw)
+    parser.add_argument("--steps", dest="ticks", metavar="K", type=kind, action=Renamed, now="--ticks",
+                        default=argparse.SUPPRESS)
 
 
 def _integer(text: str, low: int, what: str) -> int:
