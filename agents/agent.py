@@ -53,7 +53,7 @@ import argparse
 import os
 import sys
 
-from diskf_mesh.data.argtypes import positive
+from diskf_mesh.data.argtypes import seconds
 from diskf_mesh.mesh.protocol import clock as realtime
 from diskf_mesh.mesh.security import credentials
 from diskf_mesh.mesh.process import runspec
@@ -106,9 +106,9 @@ def register(subparsers) -> None:
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--id", type=int, required=True, dest="agent_id", help="this agent's id in the scenario")
     runspec.add_arguments(p)
-    p.add_argument("--collect-timeout", type=positive, default=AgentTiming.collect_timeout, metavar="S",
+    p.add_argument("--collect-timeout", type=seconds, default=AgentTiming.collect_timeout, metavar="S",
                    help="seconds to wait for the neighbours' messages of a tick (default %(default)s)")
-    p.add_argument("--world-timeout", type=positive, default=AgentTiming.world_timeout, metavar="S",
+    p.add_argument("--world-timeout", type=seconds, default=AgentTiming.world_timeout, metavar="S",
                    help="seconds of silence from the world before giving up (default %(default)s)")
     p.add_argument("--profile", metavar="DIR",
                    help="measure where each tick's time goes (decode, guard, local, fuse, encode, publish, "

@@ -35,7 +35,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from diskf_mesh.core.errors import InputError
-from diskf_mesh.data.argtypes import positive
+from diskf_mesh.data.argtypes import seconds
 from diskf_mesh.data.faults import add_arguments as add_fault_arguments
 from diskf_mesh.mesh.protocol import clock as realtime
 from diskf_mesh.mesh.security import credentials
@@ -54,9 +54,9 @@ def register(subparsers) -> None:
     p.add_argument("--agents", required=True, metavar="IDS", dest="ids",
                    help="the agent ids this host runs: ranges and commas, e.g. 1-25 or 1-20,31")
     runspec.add_arguments(p, run_id_default=None, count_flag=runspec.HOST_COUNT_FLAG)
-    p.add_argument("--collect-timeout", type=positive, metavar="S", help="agents: seconds to wait for neighbours")
-    p.add_argument("--world-timeout", type=positive, metavar="S", help="agents: longest silence of the world")
-    p.add_argument("--startup-timeout", type=positive, default=STARTUP_TIMEOUT_S, metavar="S",
+    p.add_argument("--collect-timeout", type=seconds, metavar="S", help="agents: seconds to wait for neighbours")
+    p.add_argument("--world-timeout", type=seconds, metavar="S", help="agents: longest silence of the world")
+    p.add_argument("--startup-timeout", type=seconds, default=STARTUP_TIMEOUT_S, metavar="S",
                    help="seconds to wait for the --connect endpoint to answer (default %(default)s)")
     p.add_argument("--logs", metavar="DIR", help="the agents' stderr logs (default: a temporary directory)")
     p.add_argument("--profile", metavar="DIR", help="agents: write DIR/agent-<id>.json (mesh.protocol.profile)")

@@ -602,11 +602,6 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         return code
     if simulated.given(args):
         raise InputError("network", "the --net-* options need --network simulated")
-    logs = Path(args.logs or tempfile.mkdtemp(prefix=f"diskf-up-{spec.run_id}-"))
-    try:
-        logs.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError("logs", f"cannot create {logs}: {e.strerror or e}") from None
     realtime.from_args(args)
     if plan is None and forks.enabled() and not zygotes:
         zygotes.append(forks.Zygote())

@@ -101,7 +101,7 @@ def test_an_option_of_another_command_is_not_suggested_as_itself(capsys):
 def test_a_timeout_must_be_a_positive_number(argv, capsys):
     code, out, err = run_cli(argv, capsys)
     assert code == 2 and out == "" and len(err.strip().splitlines()) == 1, err
-    assert err.startswith(f"error: argument {argv[1]}: must be a positive number"), err
+    assert err.startswith(f"error: argument {argv[1]}: must be a number of seconds above 0"), err
 
 
 def test_a_folder_given_as_a_scenario_says_so(tmp_path, capsys):
