@@ -516,7 +516,7 @@ def register(subparsers) -> None:
     add_timing_arguments(p)
     add_allow_missing(p)
     realtime.add_arguments(p)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress (bar or lines)")
     p.add_argument("--profile", metavar="DIR",
                    help="world and agents measure where each tick's time goes: DIR/world.json, "
                         "DIR/agent-<id>.json (benchmarks/mesh_bench.py --profile prints them)")
@@ -564,8 +564,6 @@ def run_identities(run_id: str, ids, children, observer: bool, world_routes: boo
 
 
 def _run(args: argparse.Namespace, zygotes: list) -> int:
-    from tqdm import tqdm
-
     from diskf_mesh.studies.experiment import format_table
 
     began = time.monotonic() - process_age()  # when `diskf-mesh up` started (its interpreter's start)
@@ -658,15 +656,14 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
 
     if zopts.credentials == zenoh_config.STDIN:
         keys = run_identities(spec.run_id, ids, [world, *services, *agents], False, world_routes)
-    quiet = args.quiet or not sys.stderr.isatty()
     where = f" on {len(plan.shards)} hosts" if plan is not None else (" through a router" if services else "")
-    bar = tqdm(total=ticks, desc=f"{spec.algorithm} x {len(ids)} agents{where}", unit="tick", file=sys.stderr,
-               disable=quiet)
+    bar = simulated.Stages(ticks, quiet=args.quiet)  # a bar on a terminal, else a line at about every tenth tick
+    bar.say(f"{spec.algorithm} x {len(ids)} agents{where}, {ticks} ticks")
     t0 = time.monotonic()
     timing = {}
 
     def progress(k, K):
-        bar.update(k - bar.n)
+        bar.tick(k)
 
     launcher = Launcher(world, agents, progress, first_tick=lambda: timing.setdefault("first", time.monotonic()),
                         tolerate_agents=args.allow_missing > 0, services=services,

@@ -135,3 +135,17 @@ def test_a_terminal_gets_a_bar(argv, bar, tmp_path):
     seen = _on_a_terminal(argv, tmp_path)
     assert bar in seen and "\r" in seen, seen[-500:]
     assert "] runs of" not in seen and "report: [" not in seen  # no lines: the bar
+
+
+@pytest.mark.mesh
+def test_the_process_mesh_shows_lines_off_a_terminal_and_a_bar_on_one(tmp_path):
+    argv = ["up", "--scenario", "dynamic", "--ticks", "20", "--json", "r.json"]
+    done = subprocess.run([*CLI, *argv], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.splitlines()
+    assert lines[0] == "up: diskf-auto x 9 agents, 20 ticks", lines
+    ticks = [ln for ln in lines if ln.startswith("up: [")]
+    assert ticks[0].startswith("up: [1/20] tick 1") and ticks[-1].startswith("up: [20/20] tick 20"), lines
+    seen = _on_a_terminal(argv, tmp_path)
+    assert "up: 100%" in seen and "20/20 [" in seen and "\r" in seen, seen[-500:]
+    assert "up: [" not in seen  # the bar, not the lines
