@@ -9,7 +9,13 @@ waiting for the jobs they run (``ProcessPoolExecutor``'s own exit waits).
 from __future__ import annotations
 
 import signal
+import sys
 from contextlib import contextmanager
+
+# Workers terminated mid-job leave the queues' semaphores to multiprocessing's
+# resource tracker, which frees them and says so on stderr after the command's
+# own last line; the tracker takes its warning filters from sys.warnoptions.
+TRACKER_QUIET = "ignore:resource_tracker:UserWarning"
 
 
 def _ignore_sigint() -> None:
@@ -22,6 +28,8 @@ def process_pool(jobs: int, context=None):
     multiprocessing context, e.g. ``get_context("spawn")``)."""
     from concurrent.futures import ProcessPoolExecutor
 
+    if TRACKER_QUIET not in sys.warnoptions:  # before the first pool starts the tracker
+        sys.warnoptions.append(TRACKER_QUIET)
     pool = ProcessPoolExecutor(jobs, mp_context=context, initializer=_ignore_sigint)
     try:
         yield pool
