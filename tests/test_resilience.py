@@ -115,3 +115,17 @@ def test_an_agent_process_screens_as_the_engine_does(dynamic):
     reported = r.record.reported
     assert np.array_equal(r.record.x[reported], run.x[0][reported])
     assert np.array_equal(eng.x[0, :20], run.x[0, :20])
+
+
+def test_a_tick_where_nothing_can_grow_is_decided_from_the_own_statistics():
+    """The screen's short way: no evidence, no floor failure and every
+    statistic against the receiver's own prediction within the allowance
+    means nothing changes; any one of them outside, and the whole screen runs."""
+    zero, no = np.zeros((1, 3)), np.zeros(2, dtype=bool)
+    small = np.array([1.0, 9.0])
+    assert rs.nothing_grows(zero, no, small, None, 9.0)
+    assert rs.nothing_grows(zero, no, small, np.array([0.0, 2.0]), 9.0)
+    assert not rs.nothing_grows(zero, no, np.array([1.0, 9.5]), None, 9.0)
+    assert not rs.nothing_grows(zero, no, small, np.array([0.0, 9.5]), 9.0)
+    assert not rs.nothing_grows(zero, np.array([False, True]), small, None, 9.0)
+    assert not rs.nothing_grows(np.array([[0.0, 1e-3, 0.0]]), no, small, None, 9.0)

@@ -129,6 +129,18 @@ def below_floor(P: np.ndarray, floor: np.ndarray) -> np.ndarray:
     return eigvalsh(P - floor)[..., 0] < -RTOL * scale
 
 
+def nothing_grows(evidence, floor, q_own, qd_own, allowance: float) -> bool:
+    """Whether a tick's screen changes nothing, decided from the statistics
+    against the receivers' own predictions alone: no evidence yet, no
+    prediction below the floor, and every statistic against the receiver's
+    own prediction (state, and input where given) within the allowance. The
+    statistic that counts is the smaller of that and the one against the
+    median, so it too is within the allowance: no evidence grows, no gate
+    fails, no sender is cut (``accumulate`` leaves zeros at zero)."""
+    return (not floor.any() and not (q_own > allowance).any()
+            and (qd_own is None or not (qd_own > allowance).any()) and not evidence.any())
+
+
 def accumulate(evidence, statistic, failed, allowance: float, suspect: float):
     """Page's CUSUM per pair: max(0, evidence + statistic - allowance), or
     ``suspect`` where a test ``failed`` outright (if that is more)."""

@@ -370,18 +370,26 @@ class Estimator:
         if not linked.any():
             return adj, evidence
         gate, allowance, limit, suspect = rs.thresholds()
-        before = rs.columns_of(evidence, nb.columns)
         si, ri = rs.linked_pairs(linked)
-        median = rs.reference(adj > 0, senders.x_pred, own.x_pred)
-        q_own, q_med = rs.gate_statistics(senders.x_pred[si], senders.P_pred[si],
-                                          (own.x_pred[ri], median[ri]), own.P_pred[ri])
-        q = np.minimum(q_own, q_med)
-        failed = (q > gate) | rs.below_floor(senders.P_pred, self.model.Q)[si]
+        floor = rs.below_floor(senders.P_pred, self.model.Q)[si]
+        q_own, = rs.gate_statistics(senders.x_pred[si], senders.P_pred[si], (own.x_pred[ri],), own.P_pred[ri])
         d_valid = senders.d_valid[si] & own.d_valid[ri]
         if d_valid.any():  # the input estimates, where both sides have one
-            d_med = rs.reference((adj > 0) & np.expand_dims(senders.d_valid, -2), senders.d, own.d)
             S_send = np.where(d_valid[:, None, None], senders.S[si], 1.0)
-            qd_own, qd_med = rs.gate_statistics(senders.d[si], S_send, (own.d[ri], d_med[ri]), own.S[ri])
+            qd_own, = rs.gate_statistics(senders.d[si], S_send, (own.d[ri],), own.S[ri])
+            qd_own = np.where(d_valid, qd_own, 0.0)
+        else:
+            qd_own = None
+        if rs.nothing_grows(evidence, floor, q_own, qd_own, allowance):
+            return adj, evidence  # the statistics against the medians are no larger: nothing changes
+        before = rs.columns_of(evidence, nb.columns)
+        median = rs.reference(adj > 0, senders.x_pred, own.x_pred)
+        q_med, = rs.gate_statistics(senders.x_pred[si], senders.P_pred[si], (median[ri],), own.P_pred[ri])
+        q = np.minimum(q_own, q_med)
+        failed = (q > gate) | floor
+        if qd_own is not None:
+            d_med = rs.reference((adj > 0) & np.expand_dims(senders.d_valid, -2), senders.d, own.d)
+            qd_med, = rs.gate_statistics(senders.d[si], S_send, (d_med[ri],), own.S[ri])
             qd = np.where(d_valid, np.minimum(qd_own, qd_med), 0.0)
             failed |= qd > gate
             q = np.maximum(q, qd)
