@@ -129,3 +129,25 @@ def test_a_tick_where_nothing_can_grow_is_decided_from_the_own_statistics():
     assert not rs.nothing_grows(zero, no, small, np.array([0.0, 9.5]), 9.0)
     assert not rs.nothing_grows(zero, np.array([False, True]), small, None, 9.0)
     assert not rs.nothing_grows(np.array([[0.0, 1e-3, 0.0]]), no, small, None, 9.0)
+
+
+def test_the_studys_world_column_is_the_simulated_network_and_the_engine_on_its_live_sets(dynamic):
+    """``studies.resilience.world_run``: the run on the simulated network,
+    the world naming the liar at the first tick an honest agent fused its lie
+    and quarantining it; the honest errors are the engine's on the live sets
+    the ticks announced (``announced``), bit for bit, and below the screen's
+    alone."""
+    from diskf_mesh.data.lies import Lie
+    from diskf_mesh.studies import resilience as study
+
+    scn, trace = dynamic
+    scn = scn.with_overrides(steps=70, params=_on(scn)).with_lies([Lie(3, "offset", 500.0, start=study.START)])
+    honest = [j for j, a in enumerate(scn.agents) if a.id != 3]
+    e_state, cuts, status = study.world_run(scn, 0, honest)
+    assert status == "diverged" and cuts == [(0, 3, study.START, study.START + 2)]
+    r = simulate_run(scn, simulate(scn, [0]), "diskf-auto", 0)
+    one = simulate(scn, [0])
+    run = batch.run(announced(one, r.record.live), "diskf-auto", scn.params, lies=scn.lies)
+    assert np.array_equal(e_state, metrics.errors(one, run.agents(honest))[0])
+    screen_only = batch.run(one, "diskf-auto", scn.params, lies=scn.lies)
+    assert e_state.mean() < 0.8 * metrics.errors(one, screen_only.agents(honest))[0].mean()

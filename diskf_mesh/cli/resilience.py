@@ -1,10 +1,12 @@
 """``diskf-mesh resilience``: what insiders' lies do to the honest agents of
-the default estimator, with the screen before fusion and without it.
+the default estimator: without the screen before fusion, with it alone (the
+engine), and with it and the world's check as the run goes (the simulated
+network, where the world names a liar and quarantines it, as in ``up``).
 
 Scenario 2 and a 25-agent random geometric network (one and two insiders: its best-connected agents),
 each lie of docs/security.md's table (offsets 10 to 5,000 m, drifts, a
 shrunk covariance, a replayed stale estimate, a false input) from tick 50,
-over seeds 0..S-1. Writes the table into DIR/security.md between its
+over seeds 0..S-1 (the simulated runs in one process per core). Writes the table into DIR/security.md between its
 markers (else DIR/resilience.md), the figure DIR/figures/resilience.png and
 the numbers DIR/resilience.json. ``--out docs`` regenerates the committed
 table.
@@ -20,15 +22,16 @@ def resilience(cfg, out) -> str:
     from tqdm import tqdm
 
     from diskf_mesh.studies import resilience as study
+    from diskf_mesh.studies.report import workers
 
-    command = f"diskf-mesh resilience --out {out} --seeds {cfg.seeds}" + (f" --steps {cfg.steps}" if cfg.steps else "")
-    with tqdm(total=len(study.SETTINGS) * len(study.LIES), desc="resilience", unit="lie", file=sys.stderr,
+    command = f"diskf-mesh resilience --out {out} --seeds {cfg.seeds}" + (f" --ticks {cfg.steps}" if cfg.steps else "")
+    with tqdm(total=2 * len(study.SETTINGS) * len(study.LIES), desc="resilience", unit="cell", file=sys.stderr,
               disable=cfg.quiet) as bar:
-        rows = study.measure(range(cfg.seeds), cfg.steps, progress=bar.update)
+        rows = study.measure(range(cfg.seeds), cfg.steps, progress=bar.update, jobs=workers())
     table, fig, numbers = study.write(rows, out, command)
     missed = study.missing(rows)
     return (f"resilience -> {table}, {fig}, {numbers}: {len(rows) - len(missed)} of {len(rows)} cells within "
-            f"{study.TARGET}x the clean run's honest MAE with the screen")
+            f"{study.TARGET}x the clean run's honest MAE with the screen and the world's check")
 
 
 def register(subparsers) -> None:
