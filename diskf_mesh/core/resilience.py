@@ -114,11 +114,19 @@ def gate_statistics(x_send, P_send, x_refs, P_ref) -> list:
 
 
 def linked_pairs(linked: np.ndarray) -> tuple:
-    """(sender index, receiver index) of the linked pairs of ``linked``
-    (..., R, S): the first into arrays (..., S, ...), the second into
-    (..., R, ...)."""
-    idx = np.nonzero(linked)
-    return idx[:-2] + (idx[-1],), idx[:-1]
+    """(flat index of each linked pair into ``linked`` (..., R, S), of its
+    sender into the (..., S) senders, of its receiver into the (..., R)
+    receivers): flat indices, for ``take``."""
+    R, S = linked.shape[-2:]
+    flat = np.flatnonzero(linked)
+    return flat, flat // (R * S) * S + flat % S, flat // S
+
+
+def take(a: np.ndarray, index: np.ndarray, core_ndim: int) -> np.ndarray:
+    """(P, *core) the entries ``index`` (flat, ``linked_pairs``) of ``a``
+    (..., *core)."""
+    core = a.shape[a.ndim - core_ndim:]
+    return a.reshape((-1,) + core).take(index, axis=0)
 
 
 def below_floor(P: np.ndarray, floor: np.ndarray) -> np.ndarray:

@@ -1,9 +1,17 @@
 """The resilience study: what one or two insiders' lies (``data.lies``) do
 to the honest agents of the default estimator: without the screen before
-fusion (``core.resilience``, ``defence``), with it alone (the engine), and
-with it and the world's check as the run goes (the simulated network,
-``mesh.simulated``: the world replays each tick as its reports come, names
-the liar and quarantines it through the live sets, as in ``up``).
+fusion (``core.resilience``, ``defence``), with it alone, and with it and
+the world's check as the run goes (the world replays each tick as its
+reports come, names the liar and quarantines it through the live sets, as
+in ``up`` and on the simulated network).
+
+The world's column is the engine on the live sets the world announces
+(``quarantine``, ``engine.verify.announced``): the world names a liar at the
+first tick another agent received a lie of its (a message the engine does
+not reproduce) and, its check of that tick running while the next tick is
+out, cuts it off from the tick after the next. That is the run on the
+simulated network bit for bit (``world_run``; ``tests/test_resilience.py``
+checks the live sets and the estimates on both settings).
 
 Per setting (Scenario 2; a 25-agent random geometric network with one and
 with two insiders) and per lie (offsets 10 to 5,000 m, drifts, a shrunk
@@ -27,10 +35,12 @@ from diskf_mesh.data import metrics
 from diskf_mesh.data.lies import Lie
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch
+from diskf_mesh.engine.verify import announced
 from diskf_mesh.estimators import DEFAULT
 from diskf_mesh.mesh.simulated.simrun import simulate_run
 
 START = 50
+LAG = 2  # a liar named by the check of tick k is cut off from tick k + 2
 TARGET = 1.5  # honest MAE within 1.5x the clean run's
 DIVERGED = 10.0  # an honest agent whose own MAE is 10x its clean one is counted as diverging
 LIES = (("offset", 10.0), ("offset", 50.0), ("offset", 200.0), ("offset", 500.0), ("offset", 5000.0),
@@ -65,6 +75,45 @@ def _errors(trace, est, honest):
     return float(e_state.mean()), e_state.mean(axis=(0, 1))
 
 
+def quarantine(scn, trace) -> tuple:
+    """(live (K, N), [(agent id, named at, cut off from)]) of a run of
+    ``scn`` (its lies) on ``trace`` (one seed) with the world's check: each
+    liar named at the first tick it lies to a live agent linked to it, cut
+    off ``LAG`` ticks later."""
+    links = np.asarray(trace.links[0], dtype=bool)
+    K, N = links.shape[:2]
+    ids = [a.id for a in scn.agents]
+    live = np.ones((K, N), dtype=bool)
+    cuts, named = [], set()
+    for k in range(1, K + 1):
+        for lie in scn.lies:
+            j = ids.index(lie.agent)
+            if j in named or not lie.lying(k):
+                continue
+            heard = links[k - 1, :, j] & live[k - 1]
+            heard[j] = False
+            if heard.any():
+                named.add(j)
+                live[k - 1 + LAG:, j] = False
+                cuts.append((lie.agent, k, k + LAG))
+    return live, cuts
+
+
+def with_world(scn, trace, params, honest) -> tuple:
+    """The honest agents' state errors (B, K, H) of ``scn``'s lies on
+    ``trace`` with the world's check (``quarantine``, per seed) and the
+    screen set by ``params``, and the quarantines [(seed, agent, named at,
+    cut off from)]."""
+    errors, cuts = [], []
+    for b, seed in enumerate(trace.seeds):
+        one = batch.take_seeds(trace, slice(b, b + 1))
+        live, found = quarantine(scn, one)
+        est = batch.run(announced(one, live), DEFAULT, params, lies=scn.lies)
+        errors.append(metrics.errors(one, est.agents(honest))[0])
+        cuts += [(int(seed),) + c for c in found]
+    return np.concatenate(errors), cuts
+
+
 def world_run(scn, seed: int, honest) -> tuple:
     """The run of ``scn`` (its lies and settings) on the simulated network
     with seed ``seed``, the world checking as the run goes: (the honest
@@ -81,51 +130,36 @@ def world_run(scn, seed: int, honest) -> tuple:
     return e_state, [(seed, q["agent"], q["tick"], q["from"]) for q in rec.quarantined], run.status.status
 
 
-def measure(seeds, steps=None, progress=None, world: bool = True, jobs: int = 1) -> list:
+def measure(seeds, steps=None, progress=None) -> list:
     """One row per (setting, lie): the clean honest MAE, the MAE with the
-    lie without the screen, with it (the engine) and, with ``world``, with
-    it and the world's check (the simulated network, a run per seed in
-    ``jobs`` processes), and the worst honest agent's ratio to its clean
-    MAE. ``progress(1)`` after each cell's engine runs and each cell's
-    simulated runs."""
-    from diskf_mesh.studies.pool import process_pool
-
-    seeds = list(seeds)
-    rows, pending = [], []
-    with process_pool(jobs) as pool:
-        for title, name, agents, chosen in SETTINGS:
-            scn = load_scenario(name, agents=agents).with_overrides(steps=steps)
-            trace = simulate(scn, seeds)
-            liars = insiders(scn, trace, chosen)
-            title = f"{title} (agent{'s' if len(liars) > 1 else ''} {', '.join(map(str, liars))})"
-            honest = [j for j, a in enumerate(scn.agents) if a.id not in liars]
-            modes = {"off": dataclasses.replace(scn.params, defence=False),
-                     "on": dataclasses.replace(scn.params, defence=True)}
-            clean, clean_agents = _errors(trace, batch.run(trace, DEFAULT, modes["on"]), honest)
-            for kind, size in LIES:
-                lying = [Lie(i, kind, size, start=START) for i in liars]
-                lies = scn.with_lies(lying).lies
-                row = {"setting": title, "kind": kind, "size": size, "lie": describe(kind, size), "clean": clean}
-                if world:
-                    defended = scn.with_lies(lying).with_overrides(params=modes["on"])
-                    pending.append((row, clean_agents, [pool.submit(world_run, defended, s, honest) for s in seeds]))
-                for mode, params in modes.items():
-                    try:
-                        mae, per_agent = _errors(trace, batch.run(trace, DEFAULT, params, lies=lies), honest)
-                        worst = float(np.max(per_agent / clean_agents))
-                    except np.linalg.LinAlgError:
-                        mae, worst = float("inf"), float("inf")
-                    row[mode], row[f"worst_{mode}"] = mae, worst
-                rows.append(row)
-                if progress is not None:
-                    progress(1)
-        for row, clean_agents, futures in pending:
-            done = [f.result() for f in futures]
-            e_state = np.concatenate([d[0] for d in done])
+    lie without the screen, with it, and with it and the world's check
+    (``with_world``), and the worst honest agent's ratio to its clean MAE.
+    ``progress(1)`` after each cell."""
+    rows = []
+    for title, name, agents, chosen in SETTINGS:
+        scn = load_scenario(name, agents=agents).with_overrides(steps=steps)
+        trace = simulate(scn, list(seeds))
+        liars = insiders(scn, trace, chosen)
+        title = f"{title} (agent{'s' if len(liars) > 1 else ''} {', '.join(map(str, liars))})"
+        honest = [j for j, a in enumerate(scn.agents) if a.id not in liars]
+        modes = {"off": dataclasses.replace(scn.params, defence=False),
+                 "on": dataclasses.replace(scn.params, defence=True)}
+        clean, clean_agents = _errors(trace, batch.run(trace, DEFAULT, modes["on"]), honest)
+        for kind, size in LIES:
+            lying = scn.with_lies([Lie(i, kind, size, start=START) for i in liars])
+            row = {"setting": title, "kind": kind, "size": size, "lie": describe(kind, size), "clean": clean}
+            for mode, params in modes.items():
+                try:
+                    mae, per_agent = _errors(trace, batch.run(trace, DEFAULT, params, lies=lying.lies), honest)
+                    worst = float(np.max(per_agent / clean_agents))
+                except np.linalg.LinAlgError:
+                    mae, worst = float("inf"), float("inf")
+                row[mode], row[f"worst_{mode}"] = mae, worst
+            e_state, row["cut"] = with_world(lying, trace, modes["on"], honest)
             row["world"] = float(e_state.mean())
             row["worst_world"] = float(np.max(e_state.mean(axis=(0, 1)) / clean_agents))
-            row["cut"] = [c for d in done for c in d[1]]
-            row["statuses"] = [d[2] for d in done]
+            row["seeds"] = len(trace.seeds)
+            rows.append(row)
             if progress is not None:
                 progress(1)
     return rows
@@ -149,7 +183,7 @@ def missing(rows, mode: str = "world") -> list:
 def quarantines(row) -> str:
     """The world's cuts of ``row``: the ticks each insider was named at and
     cut off from over the seeds, and in how many seeds."""
-    cuts, seeds = row["cut"], len(row["statuses"])
+    cuts, seeds = row["cut"], row["seeds"]
     if not cuts:
         return f"none (0 of {seeds})"
     named, cut = [c[2] for c in cuts], [c[3] for c in cuts]
