@@ -101,16 +101,23 @@ def quarantine(scn, trace) -> tuple:
 
 def with_world(scn, trace, params, honest) -> tuple:
     """The honest agents' state errors (B, K, H) of ``scn``'s lies on
-    ``trace`` with the world's check (``quarantine``, per seed) and the
-    screen set by ``params``, and the quarantines [(seed, agent, named at,
-    cut off from)]."""
-    errors, cuts = [], []
-    for b, seed in enumerate(trace.seeds):
-        one = batch.take_seeds(trace, slice(b, b + 1))
-        live, found = quarantine(scn, one)
-        est = batch.run(announced(one, live), DEFAULT, params, lies=scn.lies)
-        errors.append(metrics.errors(one, est.agents(honest))[0])
-        cuts += [(int(seed),) + c for c in found]
+    ``trace`` with the world's check (``quarantine``, per seed; the seeds
+    with the same links and live sets in one engine batch) and the screen
+    set by ``params``, and the quarantines [(seed, agent, named at, cut off
+    from)]."""
+    B = len(trace.seeds)
+    found = [quarantine(scn, batch.take_seeds(trace, slice(b, b + 1))) for b in range(B)]
+    shared = trace.links.shape[0] == 1
+    groups: dict = {}
+    for b, (live, _) in enumerate(found):
+        groups.setdefault((live.tobytes(), 0 if shared else b), []).append(b)
+    errors = [None] * B
+    for members in groups.values():
+        some = batch.take_seeds(trace, np.array(members))
+        est = batch.run(announced(some, found[members[0]][0]), DEFAULT, params, lies=scn.lies)
+        for i, b in enumerate(members):
+            errors[b] = metrics.errors(some, est.agents(honest))[0][i:i + 1]
+    cuts = [(int(trace.seeds[b]),) + c for b, (_, cs) in enumerate(found) for c in cs]
     return np.concatenate(errors), cuts
 
 
