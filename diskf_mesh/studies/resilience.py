@@ -77,9 +77,9 @@ def _errors(trace, est, honest):
 
 def quarantine(scn, trace) -> tuple:
     """(live (K, N), [(agent id, named at, cut off from)]) of a run of
-    ``scn`` (its lies) on ``trace`` (one seed) with the world's check: each
-    liar named at the first tick it lies to a live agent linked to it, cut
-    off ``LAG`` ticks later."""
+    ``scn`` (its lies, their reports honest, none withheld) on ``trace``
+    (one seed) with the world's check: each liar named at the first tick it
+    lies to a live agent linked to it, cut off ``LAG`` ticks later."""
     links = np.asarray(trace.links[0], dtype=bool)
     K, N = links.shape[:2]
     ids = [a.id for a in scn.agents]
