@@ -522,8 +522,8 @@ def run(args: argparse.Namespace) -> int:
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
-            online = OnlineCheck(run.trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=args.seed,
-                                 faults=run.faults,
+            online = OnlineCheck(run.trace, estimators.get(spec.algorithm), scn.params, run_id=spec.run_id,
+                                 seed=args.seed, faults=run.faults,
                                  deadline_s=realtime.agents_deadline(run.clock, args.collect_timeout))
             world = World(scn, run.trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
                           run_timings(args, run.clock)[0], progress, log, prof, run.recorder, online)
