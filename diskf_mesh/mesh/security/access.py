@@ -12,7 +12,9 @@ declarer's rules allow that message on that expression. ``Access(None)``
 
 An identity that is no subject of the policy (no certificate of the run)
 may do nothing. The expressions that allow one (identity, message, flow)
-are gathered once, as compiled matchers.
+are gathered once, as compiled matchers; answers are remembered per
+(identity, message, key, flow), ``MEMO`` of them (a run's puts repeat
+their keys every tick: every pair of linked agents' is one).
 
 May import: core, estimators, data, engine (the mesh layer).
 """
@@ -20,12 +22,15 @@ from __future__ import annotations
 
 from diskf_mesh.mesh.wire.keys import matcher
 
+MEMO = 1 << 21
+
 
 class Access:
     def __init__(self, policy: dict | None):
         self.enabled = bool(policy and policy.get("enabled", True))
         self._rules = {}  # identity -> [(flows, messages, key expressions)] allowed
         self._grants = {}  # (identity, message, flow) -> (the expressions allowing it, their matchers)
+        self._memo = {}
         if not self.enabled:
             return
         if policy.get("default_permission", "deny") != "deny":
@@ -42,6 +47,10 @@ class Access:
     def allowed(self, identity: str | None, message: str, key: str, flow: str = "ingress") -> bool:
         if not self.enabled:
             return True
+        memo = (identity, message, key, flow)
+        hit = self._memo.get(memo)
+        if hit is not None:
+            return hit
         grant = self._grants.get((identity, message, flow))
         if grant is None:
             exprs = tuple(dict.fromkeys(e for flows, messages, es in self._rules.get(identity, ())
@@ -49,7 +58,11 @@ class Access:
             grant = self._grants[(identity, message, flow)] = (frozenset(exprs), tuple(map(matcher, exprs)))
         # a rule covers a key, or an expression its own wildcards match chunk for chunk (or itself)
         exprs, matchers = grant
-        return key in exprs or any(m(key) is not None for m in matchers)
+        hit = key in exprs or any(m(key) is not None for m in matchers)
+        if len(self._memo) >= MEMO:
+            self._memo.clear()
+        self._memo[memo] = hit
+        return hit
 
     def put(self, sender: str | None, receiver: str | None, key: str) -> bool:
         """A put of ``sender`` on ``key`` reaches ``receiver``."""
