@@ -235,6 +235,8 @@ class WorldMachine:
                 DeclareQueryable(self.keys.start("*")),
                 AskTokens(CLAIM, self.keys.alive_world, CLAIM_S)]
 
+    read = Sample  # a sample is the event ``handle`` takes, as it is: the world reads reports in ``handle``
+
     def handle(self, event, now: float) -> list:
         """One event; returns the effects, in order."""
         if self.phase == "finished":
