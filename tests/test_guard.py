@@ -344,8 +344,7 @@ class FedAgent:
         assert self.agent.k == k and not self.agent.collecting
 
     def sample(self, key: str, payload: bytes) -> None:
-        from diskf_mesh.mesh.protocol.events import Sample
-        self.agent.handle(Sample(key, payload), 0.0)
+        self.agent.handle(self.agent.read(key, payload), 0.0)
 
     def token(self, key: str, up: bool = True) -> None:
         from diskf_mesh.mesh.protocol.events import Token

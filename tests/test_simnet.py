@@ -18,6 +18,8 @@ from diskf_mesh.mesh.simulated.simnet import Fault, Lease, Link, SimNet
 class Pong:
     """Answers every ping with a pong of the same number; declares a token; answers queries."""
 
+    read = ev.Sample  # takes its samples as they are
+
     def __init__(self, boot):
         self.boot = boot
         self.events = []
@@ -38,6 +40,8 @@ class Pong:
 class Ping:
     """Sends pings 1..n once it sees a pong token, one at a time, again after
     ``retry`` s without an answer; finishes at n, or after ``give_up`` s."""
+
+    read = ev.Sample  # takes its samples as they are
 
     def __init__(self, boot, n=5, retry=1.0, give_up=60.0):
         self.boot, self.n, self.retry, self.give_up = boot, n, retry, give_up
@@ -122,6 +126,8 @@ def test_links_keep_order_unless_a_copy_is_held_back():
 
 
 class Burst:
+    read = ev.Sample  # takes its samples as they are
+
     def __init__(self, boot):
         pass
 
@@ -133,6 +139,8 @@ class Burst:
 
 
 class Sink:
+    read = ev.Sample  # takes its samples as they are
+
     def __init__(self, boot):
         self.got = []
 
@@ -193,6 +201,8 @@ def test_a_crash_drops_tokens_at_once_or_after_the_lease_and_a_restart_is_a_new_
 
 def test_a_query_gets_the_first_answer_or_none():
     class Asker:
+        read = ev.Sample  # takes its samples as they are
+
         def __init__(self, boot):
             self.replies = []
 
@@ -221,6 +231,8 @@ def test_the_access_rules_of_the_credentials_hold():
     policy = credentials.access_control("r", [1, 2], observer=False, router=False)
 
     class Agent:
+        read = ev.Sample  # takes its samples as they are
+
         def __init__(self, boot):
             self.id = int(boot.identity.split("-")[1])
             self.got = []
@@ -242,6 +254,8 @@ def test_the_access_rules_of_the_credentials_hold():
             return []
 
     class World:
+        read = ev.Sample  # takes its samples as they are
+
         def __init__(self, boot):
             pass
 

@@ -49,11 +49,8 @@ def claims_of(scn, trace, links=None, restarts=(), live=None):
     for k in range(1, K + 1):
         for r in restarts:
             if r.tick == k:
-                a = agents[ids[r.agent]] = AgentEstimator(scn, ids[r.agent], ALG, K, SEED)
-                if r.source is not None:  # else from the prior, as a fresh agent
-                    a.state = replace(a.state, x=x[k - 2, r.source].reshape(a.state.x.shape),
-                                      P=P[k - 2, r.source].reshape(a.state.P.shape),
-                                      since=np.zeros_like(a.state.since))
+                start = None if r.source is None else (x[k - 2, r.source], P[k - 2, r.source])  # None: the prior
+                agents[ids[r.agent]] = AgentEstimator(scn, ids[r.agent], ALG, K, SEED, start=start)
         msgs = {i: agents[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :agents[i].p])
                 for j, i in enumerate(ids)}
         for j, i in enumerate(ids):

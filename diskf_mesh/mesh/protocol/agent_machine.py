@@ -8,14 +8,20 @@ carries out the effects it returns, in order::
 
     m = AgentMachine(scn, agent_id, algorithm, keys, nonce)
     effects = m.start(now)            # Subscribe, WatchTokens, SetTimer
+    event = m.read(key, payload)      # a sample, decoded once at the edge (``mesh.protocol.intake``)
     effects = m.handle(event, now)    # Publish, DeclareToken, Ask, ..., Finish
+
+The machine never sees bytes of the world's or a neighbour's: ``read``
+turns each sample into a typed event (``TickArrived``,
+``MeasurementArrived``, ``StopArrived``, ``MessageArrived``,
+``Unreadable``: ``mesh.protocol.events``) before ``handle``.
 
 One tick k, in the order the code below runs it (lockstep; real time
 differs only in when a tick is closed, ``mesh.protocol.clock``):
 
  1. ``_on_meas``, ``_on_tick``  the world's measurement of tick k and its
-    tick (every position, the live set) come in as samples; each is decoded
-    once and taken if it fits the run (``_meas_problem``,
+    tick (every position, the live set) come in, decoded at the edge, and
+    are taken if they fit the run (``_meas_problem``,
     ``_tick_problem``). The tick gives the agents linked at k (``linked``)
     and lets the neighbours' messages of k that came before it onto their
     links (``Receiver.release``).
@@ -23,8 +29,9 @@ differs only in when a tick is closed, ``mesh.protocol.clock``):
     (``AgentEstimator.local``), ONE message (``wire.encode``), published on
     a key addressed to the linked agents; the collection of tick k starts
     (``SetTimer("collect")`` at its deadline).
- 3. ``_on_msg``  each neighbour's message goes through the receive path
-    (``mesh.protocol.receive``: guard, range gate, the link's faults, inbox); a copy
+ 3. ``_on_msg``  each neighbour's message (decoded and its values checked
+    at the edge: ``Guard.read``) goes through the receive path
+    (``mesh.protocol.receive``: the guard's window, range gate, the link's faults, inbox); a copy
     the fault layer delays comes back at ``Timer("delay")``.
  4. ``_close(k)``  once every linked sender is accounted for (arrived,
     lost, refused), at the collect timer, when a later tick is already in,
@@ -69,7 +76,6 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
-import dataclasses
 import functools
 import itertools
 import math
@@ -83,13 +89,14 @@ from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.data.lies import Liars
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.mesh.protocol import clock as realtime
-from diskf_mesh.mesh.protocol import rejoin
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.estimator import AgentEstimator, neighbours
-from diskf_mesh.mesh.protocol.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt, Publish,
-                                    Reply, Sample, SetTimer, Subscribe, Timer, Token, TokenBatch, Tokens,
-                                    WatchTokens, Woke)
+from diskf_mesh.mesh.protocol.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt,
+                                             MeasurementArrived, MessageArrived, Publish, Reply, Sample, SetTimer,
+                                             StopArrived, Subscribe, TickArrived, Timer, Token, TokenBatch, Tokens,
+                                             Unreadable, WatchTokens, Woke)
 from diskf_mesh.mesh.protocol.guard import Guard, GuardConfig
+from diskf_mesh.mesh.protocol.intake import Intake
 from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
 from diskf_mesh.mesh.protocol.log import Log
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
@@ -107,6 +114,7 @@ CLAIM_S = 1.0    # the liveliness query for another process holding this agent's
 ASK_S = 5.0      # a (re)joining agent waits this long for the world's answer, then asks again
 
 OK, FAILED, DUPLICATE = 0, 1, 2  # exit statuses (``Finish.code``)
+ARRIVALS = frozenset({TickArrived, MeasurementArrived, StopArrived, MessageArrived, Unreadable, Sample})
 
 
 @dataclass(frozen=True)
@@ -153,13 +161,13 @@ class AgentMachine:
         self.kept = AHEAD_KEPT if timing.clock is None else realtime.LEAD_TICKS + 2
         declared = estimators.get(algorithm)
         self.exchanged = declared.exchanged  # what its messages carry (``Estimator.exchanged``)
-        self.fault_config = faults if isinstance(faults, FaultConfig) else None
         self.liars = Liars(scn.lies, (agent_id,), n, scn.position_dims)  # this agent's lies, if it is a liar
-        self.receiver = Receiver(Guard(GuardConfig(
-            keys.run_id, agent_id, scn.id_set, n, m,
-            information_check=declared.information_check, exchanged=declared.exchanged,
-            **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
-            profile=profile, shared=shared), faults if isinstance(faults, FaultModel) else None)
+        guard = Guard(GuardConfig(keys.run_id, agent_id, scn.id_set, n, m,
+                                  information_check=declared.information_check, exchanged=declared.exchanged,
+                                  **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
+                      profile=profile, shared=shared)
+        self.intake = Intake(keys, agent_id, self.p, len(self.ids), guard, profile)  # ``read``: the edge
+        self.receiver = Receiver(guard, faults)
         self.counters = self.receiver.counters
         self.verdicts = TickVerdicts()  # per tick: who was fused, why the others were not
         self._qids = itertools.count(1)
@@ -229,14 +237,20 @@ class AgentMachine:
         self._step(now)
         return out
 
+    def read(self, key: str, payload: bytes):
+        """A sample on one of this agent's keys as the event ``handle``
+        takes (``mesh.protocol.intake``: decoded once, at the edge)."""
+        return self.intake.read(key, payload)
+
     def handle(self, event, now: float) -> list:
-        """Take in one event at ``now``; returns the effects, in order."""
+        """Take in one event at ``now`` (a sample as ``read`` made it);
+        returns the effects, in order."""
         self._out = out = []
         if self.finish is not None:
             return out
         kind = type(event)
-        if kind is Sample:
-            if self._on_sample(event.key, event.payload, now):
+        if kind in ARRIVALS:
+            if self._on_arrival(event, now):
                 self._step(now)
             return out
         if kind is Token:
@@ -299,31 +313,26 @@ class AgentMachine:
         if self.stopped is not None and not self.collecting and self.finish is None:
             self._end()
 
-    def _on_sample(self, key: str, payload, now: float) -> bool:
-        """A sample: the world's tick, measurement or stop, a neighbour's
-        message. False if it changed nothing a step waits for."""
-        kind, who = self.keys.parse(key)
-        if kind == "msg":
-            return self._on_msg(who, payload, now)
-        try:
-            if kind == "tick":
-                return self._on_tick(payload, now)
-            if kind == "meas":
-                return self._on_meas(payload, now)
-            if kind == "stop":
-                self.stopped = wire.decode_stop(payload, run_id=self.keys.run_id)
-                return True
-        except wire.Rejected as e:
-            return self._refuse(kind, e.reason, e.detail)
-        return False
+    def _on_arrival(self, event, now: float) -> bool:
+        """A sample, as ``read`` made it: the world's tick, measurement or
+        stop, a neighbour's message. False if it changed nothing a step
+        waits for."""
+        kind = type(event)
+        if kind is MessageArrived:
+            return self._on_msg(event, now)
+        if kind is TickArrived:
+            return self._on_tick(event.tick, now)
+        if kind is MeasurementArrived:
+            return self._on_meas(event.measurement, now)
+        if kind is StopArrived:
+            self.stopped = event.stop
+            return True
+        if kind is Unreadable:
+            return self._refuse(event.kind, event.reason, event.detail)
+        return False  # a sample on a key no step reads
 
     # -- 1. the world's tick and this agent's measurement ---------------------
-    def _on_meas(self, payload, now: float) -> bool:
-        self.prof.begin()
-        try:
-            mm = wire.decode_measurement(payload, run_id=self.keys.run_id, agent=self.id, p=self.p)
-        finally:
-            self.prof.end("decode")
+    def _on_meas(self, mm: wire.Measurement, now: float) -> bool:
         if mm.tick < self.k:
             return True
         problem = self._meas_problem(mm)
@@ -334,19 +343,7 @@ class AgentMachine:
         self._bound(self.meas)
         return True
 
-    def _on_tick(self, payload, now: float) -> bool:
-        self.prof.begin()
-        try:
-            shared = self.receiver.guard.shared
-            if shared is None:
-                t = wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids))
-            else:
-                t = shared.once(payload, ("tick", self.keys.run_id, len(self.ids)),
-                                lambda: wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids)))
-                if isinstance(t, wire.Rejected):
-                    raise wire.Rejected(t.reason, t.detail, t.tick)
-        finally:
-            self.prof.end("decode")
+    def _on_tick(self, t: wire.Tick, now: float) -> bool:
         consts = (t.ticks, t.seed, t.algorithm, t.topology, t.comm_range)
         if t.tick < self.k or t.tick in self.ticks:
             self.last_heard = now
@@ -368,11 +365,8 @@ class AgentMachine:
         self.last_heard = now
         if self.constants is None:
             self.constants = consts
-            guard = self.receiver.guard
-            guard.config = dataclasses.replace(guard.config, ticks=t.ticks)
+            self.receiver.learn_run(t.ticks, t.seed)
         self.K, self.newest = t.ticks, max(self.newest, t.tick)
-        if self.fault_config is not None and self.receiver.faults is None:
-            self.receiver.use_faults(FaultModel(self.fault_config, t.seed))
         self.ticks[t.tick] = t
         clock = self.timing.clock
         if clock is not None:  # a copy after the deadline is late, even before the close
@@ -474,16 +468,17 @@ class AgentMachine:
         prof.waiting = "wait-neighbours"
 
     # -- 3. collect: the neighbours' messages through the receive path ---------
-    def _on_msg(self, sender, payload, now: float) -> bool:
-        """A neighbour's message (``sender``: its key's id, parsed once) into
-        the receive path (``mesh.protocol.receive``): the guard decodes it once and
-        rejects (counts) what is malformed or off the window around tick k,
+    def _on_msg(self, arrival: MessageArrived, now: float) -> bool:
+        """A neighbour's message (read at the edge: its key's id, its decode,
+        the checks of its own values) into the receive path
+        (``mesh.protocol.receive``): the guard rejects (counts) what is
+        malformed or off the window around tick k,
         the range gate drops (counts "out_of_range") one from an agent not
         linked to this one at the message's tick (one whose tick the world
         has not opened here yet waits for it), and the inbox holds the rest
         until the tick is fused. False if it was dropped."""
         self.receiver.advance(self.k)
-        taken = self.receiver.on_payload(sender, payload, self.linked, now)
+        taken = self.receiver.on_message(arrival, self.linked, now)
         self._arm_delay()
         return taken
 
@@ -813,7 +808,9 @@ class AgentMachine:
                                 f"the world runs algorithm {t.algorithm}, topology {t.topology}, range "
                                 f"{t.comm_range:g}; this agent {mine_[0]}, {mine_[1]}, {mine_[2]:g}: start both "
                                 "with the same flags")
-        est = AgentEstimator(self.scn, self.id, self.algorithm, t.ticks, t.seed)
+        start = self._start[1] if restart else None  # the world's answer (None: the prior)
+        est = AgentEstimator(self.scn, self.id, self.algorithm, t.ticks, t.seed,
+                             start=None if start is None else (start.x, start.P))
         if not self._worked:
             self._worked = True
             self._started_late = restart
@@ -821,7 +818,7 @@ class AgentMachine:
         self.est = est
         self.phase = "working"
         if restart:
-            self._restart_from(k)
+            self._restarted(k, start)
 
     def _on_reply(self, qid: int, payload) -> None:
         """The world's answer to the query for the starting estimate; one
@@ -847,15 +844,12 @@ class AgentMachine:
             self._refuse("start", e.reason, e.detail)
         self._start = (k, start)
 
-    def _restart_from(self, k: int) -> None:
-        """A (re)joining agent's estimate of tick k - 1: the world's answer
-        (``mesh.protocol.rejoin``); every report from now on tells the world the tick
-        and the source (``wire.encode_report``'s "rj")."""
-        start = self._start[1]
-        src = None
-        if start is not None:
-            rejoin.start_from(self.est, start.x, start.P)
-            src = start.source
+    def _restarted(self, k: int, start) -> None:
+        """A (re)joining agent started at tick ``k`` from the world's answer
+        ``start`` (``mesh.protocol.rejoin``; None: the prior): every report from
+        now on tells the world the tick and the source (``wire.encode_report``'s
+        "rj")."""
+        src = None if start is None else start.source
         self.rejoins.append((k, src))
         self.log.info(f"joined at tick {k}, re-initialised from "
                       + (f"agent {src}'s fused estimate of tick {k - 1}" if src is not None else "the prior"))

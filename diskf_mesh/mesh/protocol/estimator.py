@@ -10,7 +10,7 @@ same numbers. No transport or timing here.
 """
 from __future__ import annotations
 
-from dataclasses import fields
+from dataclasses import fields, replace
 from operator import attrgetter
 
 import numpy as np
@@ -21,7 +21,12 @@ from diskf_mesh.data.scenario import Scenario, links_for
 
 
 class AgentEstimator:
-    def __init__(self, scn: Scenario, agent_id: int, algorithm: str, ticks: int, seed: int, params=None):
+    """Agent ``agent_id``'s estimator over a run of ``ticks`` ticks with
+    ``seed`` (its draws), from the prior, or from ``start`` = (x, P) with a
+    new observation window (a rejoin: ``mesh.protocol.rejoin``)."""
+
+    def __init__(self, scn: Scenario, agent_id: int, algorithm: str, ticks: int, seed: int, params=None,
+                 start=None):
         self.ids = scn.ids
         if agent_id not in self.ids:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} (ids {', '.join(map(str, self.ids))})")
@@ -31,7 +36,11 @@ class AgentEstimator:
         self.sensors = scn.sensors().select([self.index])   # this agent's H, R only
         self.algorithm = algorithm
         self.alg = estimators.get(algorithm)(scn.model(ticks), self.sensors, params or scn.params)
-        self.state = self.alg.init((1, 1))
+        st = self.state = self.alg.init((1, 1))
+        if start is not None:
+            x, P = start
+            self.state = replace(st, x=np.array(x, dtype=float).reshape(st.x.shape),
+                                 P=np.array(P, dtype=float).reshape(st.P.shape), since=np.zeros_like(st.since))
         draws = self.alg.draws(seed, [agent_id], ticks)  # this agent's row of the engine's (Estimator.draws)
         self.draws = None if draws is None else draws[0]
         self._neighbourhoods = {}  # (senders, own position) -> Neighbourhood

@@ -30,6 +30,22 @@ Events (what happened to the process):
                               tokens the network holds now
     Interrupt(why)            the process was told to stop (a signal's name)
 
+A shell reads every ``Sample`` through its machine first,
+``machine.read(key, payload)``: the world handles the sample as it is; an
+agent's comes back decoded once, at its edge (``mesh.protocol.intake``), as
+one of
+
+    TickArrived(tick)         the world's tick (a ``wire.Tick``)
+    MeasurementArrived(measurement)   this agent's measurement (``wire.Measurement``)
+    StopArrived(stop)         the world's stop (``wire.Stop``)
+    MessageArrived(sender, message, problem)
+                              a neighbour's message: the id its key names,
+                              the decoded ``wire.WireMessage`` (or the
+                              ``wire.Rejected`` its decode raised) and what
+                              the checks of its own values found
+                              (``guard.Guard.read``)
+    Unreadable(kind, reason, detail)  a world's payload that does not decode
+
 Effects (what the process does):
 
     Subscribe(key)                  deliver the samples of a key expression
@@ -115,7 +131,38 @@ class Interrupt:
     why: str
 
 
-Event = Sample | Token | TokenBatch | Timer | Query | Reply | Woke | Tokens | Interrupt
+# -- an agent's samples, decoded at its edge (``mesh.protocol.intake``) ----------
+@dataclass(frozen=True, slots=True)
+class TickArrived:
+    tick: object              # wire.Tick
+
+
+@dataclass(frozen=True, slots=True)
+class MeasurementArrived:
+    measurement: object       # wire.Measurement
+
+
+@dataclass(frozen=True, slots=True)
+class StopArrived:
+    stop: object              # wire.Stop
+
+
+@dataclass(frozen=True, slots=True)
+class MessageArrived:
+    sender: int | None        # the id the key names (None: not an integer)
+    message: object           # wire.WireMessage, the wire.Rejected of its decode, or None: not decoded
+    problem: tuple | None     # (reason, detail) of the checks of its own values, or None
+
+
+@dataclass(frozen=True, slots=True)
+class Unreadable:
+    kind: str                 # tick, meas, stop
+    reason: str
+    detail: str
+
+
+Arrival = TickArrived | MeasurementArrived | StopArrived | MessageArrived | Unreadable
+Event = Sample | Token | TokenBatch | Timer | Query | Reply | Woke | Tokens | Interrupt | Arrival
 
 
 # -- effects ------------------------------------------------------------------

@@ -2,7 +2,8 @@
 process, on a virtual clock, with the real protocol machines.
 
 The processes are sans-I/O machines (``mesh.protocol.events``: ``start(now)``,
-``handle(event, now)`` -> effects). ``SimNet`` carries out their effects on
+``handle(event, now)`` -> effects; a sample goes through ``read(key,
+payload)`` first, as under zenoh). ``SimNet`` carries out their effects on
 a virtual clock (``mesh.simulated.schedule``): what one publishes reaches every
 process subscribed to a matching key expression (``keys.matcher``)
 over a link with a delay, jitter, loss, duplication and reordering
@@ -448,7 +449,8 @@ class SimNet:
         now = self.sched.now
         self._log(proc, event)
         try:
-            effects = proc.machine.handle(event, now)
+            machine = proc.machine
+            effects = machine.handle(machine.read(event.key, event.payload) if type(event) is ev.Sample else event, now)
         except Exception as e:
             raise SimError(f"seed {self.seed}: {proc!r} raised {type(e).__name__} at t={now:.6f} on "
                            f"{_describe(event)} (event {self._events}; SimNet(seed={self.seed}) with the same "

@@ -3,9 +3,9 @@
 ``simulate_run`` puts the world (``mesh.protocol.world_machine``) and every agent of a
 scenario (``mesh.protocol.agent_machine``) as machines on one ``SimNet``, each under
 its own identity of the run's access rules (``credentials.access_control``),
-runs it on the virtual clock, and checks the result the way every run is
-checked (``mesh.protocol.run_status``: the engine replays what each agent said it
-fused). A ``SimPlan`` says what the network does: the links, a fault plan
+runs it on the virtual clock; ``SimRun.status`` checks the result the way
+every run is checked (``mesh.protocol.run_status``: the engine replays what
+each agent said it fused). A ``SimPlan`` says what the network does: the links, a fault plan
 (pauses, crashes, restarts, interrupts), twins (a second process holding
 an agent's id), late starts. The agents' own link faults (``FaultConfig``,
 the plan every run can recompute from its seed) come with ``faults``.
@@ -23,6 +23,7 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
+import functools
 import io
 from dataclasses import dataclass, field
 
@@ -102,20 +103,38 @@ class NetworkLosses:
 
 @dataclass
 class SimRun:
+    """A simulated run as it ended; ``status`` judges it (once, when asked)."""
+
     outcome: Outcome
     world: WorldMachine              # the world that ran the run (its last incarnation)
-    status: object                   # engine.verify.RunStatus (incomplete with the world's reason if it ended
-                                     # before any report), or None if the world never finished
+    finished: bool                   # ... and it finished
     log: str                         # every process's lines
+    scn: Scenario
+    trace: Trace
+    algorithm: str
+    seed: int
+    faults: FaultConfig | None
+    run_id: str
+    deadline_s: float                # the agents' deadline (real time; inf: lockstep)
 
     @property
     def record(self):
         return self.world.record
 
+    @functools.cached_property
+    def status(self):
+        """``engine.verify.RunStatus`` of the run (``mesh.protocol.run_status``:
+        incomplete with the world's reason if it ended before any report),
+        or None if the world never finished."""
+        if not self.finished:
+            return None
+        return run_status(self.record, self.trace, self.algorithm, self.scn.params, run_id=self.run_id,
+                          seed=self.seed, faults=self.faults, deadline_s=self.deadline_s, labels=self.scn.labels)
+
 
 def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_seed: int | None = None,
                  plan: SimPlan = SimPlan(), faults: FaultConfig | None = None, run_id: str = "sim",
-                 keep_lines: bool = False, quiet: bool = True, verify: bool = True, progress=None,
+                 keep_lines: bool = False, quiet: bool = True, progress=None,
                  recorder=None, batch: bool = True) -> SimRun:
     """The run of ``scn`` (simulated as ``trace``, seed ``seed``) with
     ``algorithm`` on the simulated network seeded by ``net_seed`` (default
@@ -174,10 +193,6 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     worlds = [pid for pid in out.machines if pid == WORLD or pid.startswith(WORLD + "~")]
     stayed = lambda p: getattr(out.finishes.get(p), "status", None) != "duplicate"  # noqa: E731
     pid = max(worlds, key=lambda p: (int(out.machines[p].record.reported.sum()), stayed(p), p == WORLD))
-    w = out.machines[pid]
-    status = None
-    if verify and pid in out.finishes:
-        status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
-                            deadline_s=deadline_s, labels=scn.labels)
-    return SimRun(out, w, status, stream.getvalue() if stream is not None else "")
+    return SimRun(out, out.machines[pid], pid in out.finishes, stream.getvalue() if stream is not None else "",
+                  scn, trace, algorithm, seed, faults, run_id, deadline_s)
 
