@@ -138,6 +138,17 @@ class OnlineCheck:
                                     wire.engine_digests(run_id, self.ids, estimator.exchanged))
         self.index = {i: j for j, i in enumerate(self.ids)}
 
+    def submit(self, rec, k: int) -> None:
+        """Tick k's reports in ``rec`` are final (the world's machine says
+        so before it asks ``result``): nothing to do here, where ``result``
+        checks at once; a check in another process starts on them
+        (``mesh.process.checker``)."""
+
+    def result(self, rec, k: int, wait: bool = True) -> list:
+        """``tick(rec, k)``: always done here (a check in another process
+        says None while it is not done, unless ``wait``)."""
+        return self.tick(rec, k)
+
     def tick(self, rec, k: int) -> list:
         N = len(self.ids)
         live = rec.live[k - 1] if getattr(rec, "live", None) is not None else np.ones(N, dtype=bool)
