@@ -93,14 +93,15 @@ from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.estimator import AgentEstimator, neighbours
 from diskf_mesh.mesh.protocol.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt,
                                              MeasurementArrived, MessageArrived, Publish, Reply, Sample, SetTimer,
-                                             StopArrived, Subscribe, TickArrived, Timer, Token, Tokens, Unreadable,
-                                             WatchTokens, Woke)
+                                             StopArrived, Subscribe, TickArrived, Timer, Token, TokenBatch, Tokens,
+                                             Unreadable, WatchTokens, Woke)
 from diskf_mesh.mesh.protocol.guard import Guard, GuardConfig
 from diskf_mesh.mesh.protocol.intake import Intake
 from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
 from diskf_mesh.mesh.protocol.log import Log
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.protocol.receive import Receiver
+from diskf_mesh.mesh.protocol.roster import Roster, parse_batch
 from diskf_mesh.mesh.protocol.shared import Shared
 from diskf_mesh.mesh.protocol.verdicts import TickVerdicts
 
@@ -136,6 +137,8 @@ class AgentMachine:
     other machines in this process made of the same payloads
     (``mesh.protocol.shared``: the simulated network). ``ticks`` is the number of ticks
     worked on so far."""
+
+    batches_tokens = True  # takes ``TokenBatch`` (the simulated network's casts of many tokens)
 
     def __init__(self, scn: Scenario, agent_id: int, algorithm: str, keys: Keys, nonce: str,
                  timing: AgentTiming = AgentTiming(), faults: FaultConfig | FaultModel | None = None,
@@ -186,8 +189,7 @@ class AgentMachine:
         self.world_gone = False
         self.world_gone_at = math.inf
         self.world_ticking = False  # the world's "ticking" token: the run is past its start
-        self.alive = set()          # agent ids of the scenario with an alive token
-        self.alive_tokens = {}      # agent id -> nonces of its processes' alive tokens (a tuple: usually one)
+        self.alive = Roster(self.ids, scn.places, agent_id)  # the agents with an alive token
         self._woke_at = -math.inf   # when this process found it had been frozen
         # -- start-up and joining
         self.phase = "world"      # world, claim, gather, peers, joining, leaving, finished
@@ -253,6 +255,8 @@ class AgentMachine:
             return out
         if kind is Token:
             self._on_token(event.key, event.up, now)
+        elif kind is TokenBatch:
+            self._on_tokens(event.keys, event.up, now)
         elif kind is Timer:
             self._on_timer(event.name, now)
         elif kind is Reply:
@@ -614,6 +618,22 @@ class AgentMachine:
         elif kind == "alive" and who in self.ids:
             self._on_agent_token(who, nonce_of(key), up, now)
 
+    def _on_tokens(self, batch: tuple, up: bool, now: float) -> None:
+        """Many tokens at once (``TokenBatch``): the others' alive tokens
+        counted in one call, the world's and this id's one by one."""
+        shared = self.receiver.guard.shared
+        parse = lambda: parse_batch(self.keys, self.scn.places, batch)  # noqa: E731
+        places, nonces, others = parse() if shared is None else shared.once(batch, ("tokens", self.keys.root), parse)
+        for key in others:
+            self._on_token(key, up, now)
+        own = self.scn.index(self.id)
+        mine = places == own
+        if mine.any():
+            for j in np.flatnonzero(mine).tolist():
+                self._on_agent_token(self.id, nonces[j], up, now)
+            places = places[~mine]
+        self.alive.tokens(places, up)
+
     def _on_world_token(self, nonce_: str, up: bool, now: float) -> None:
         """The world's token came or went. Gone while this process was frozen
         past zenoh's lease: the world has dropped this agent from the run, so
@@ -638,13 +658,7 @@ class AgentMachine:
         nonce is smaller (an earlier start) and this one has not worked on a
         tick yet; one that works since tick 1 keeps the id (its estimate is
         the engine's, a late twin's is not)."""
-        was = self.alive_tokens.get(who, ())
-        held = tuple(n for n in was if n != nonce_) + ((nonce_,) if up else ())
-        if held:
-            self.alive_tokens[who] = held
-        else:
-            self.alive_tokens.pop(who, None)
-        (self.alive.add if held else self.alive.discard)(who)
+        self.alive.token(who, nonce_, up)
         if not (up and who == self.id and self.claimed and nonce_ != self.nonce):
             return
         if self._late():
@@ -683,8 +697,7 @@ class AgentMachine:
             self.phase = "claim"
             self._claim_qid = next(self._qids)
             self._out.append(AskTokens(self._claim_qid, self.keys.alive(self.id), CLAIM_S))
-        # ``alive`` holds ids of the scenario only: all of them once it is as large
-        if self.phase == "gather" and ((self.world_seen and (len(self.alive) == len(self.ids) or self.world_ticking))
+        if self.phase == "gather" and ((self.world_seen and (self.alive.complete or self.world_ticking))
                                        or self.stopped is not None):
             if self.world_ticking and self.est is None:
                 self._joining(self.newest)
@@ -732,12 +745,12 @@ class AgentMachine:
     def _others(self, nonces=()) -> set:
         """The nonces of other processes holding this agent's id: ``nonces``
         (an answer's) and the alive tokens of its id this one has seen."""
-        return (set(nonces) | set(self.alive_tokens.get(self.id, ()))) - {self.nonce}
+        return (set(nonces) | set(self.alive.mine)) - {self.nonce}
 
     def _peers_seen(self) -> bool:
         """The agents the world counts live at its newest tick are seen (so
         this agent's first message reaches them)."""
-        return not self.ticks or set(self.ticks[max(self.ticks)].live) - {self.id} <= self.alive
+        return not self.ticks or self.alive.has(set(self.ticks[max(self.ticks)].live) - {self.id})
 
     def _ready(self) -> None:
         """Declare a ready token: this agent joins at the first tick after

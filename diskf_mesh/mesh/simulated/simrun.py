@@ -68,6 +68,7 @@ class SimPlan:
     allow_missing: bool = False      # the world starts without the agents not ready after its startup timeout
     max_time: float = 3600.0
     online: bool = True              # the world checks each tick as its reports come (and cuts off a liar)
+    views: bool = True               # the agents share views of the tokens (``SimNet(views=)``; False: one each)
 
 
 class NetworkLosses:
@@ -148,7 +149,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     stream = io.StringIO() if quiet else None
     policy = credentials.access_control(run_id, ids, observer=False, router=plan.router) if plan.secure else None
     net = SimNet(seed if net_seed is None else net_seed, link=plan.link, links=plan.links, policy=policy,
-                 lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time)
+                 lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time, views=plan.views)
     losses = NetworkLosses(net, ids)
 
     deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
