@@ -84,3 +84,15 @@ def test_report_s_quoted_cost_names_its_command():
     row = DOC["report"]
     assert row["command"] == "diskf-mesh report --out DIR" and row["exit"] == 0
     assert re.search(r"\d+ cores", row["machine"]) or "cores" in row["machine"]
+
+
+def test_the_tours_simulated_run_is_the_measured_one_and_takes_about_a_minute():
+    """The README's simulated-network command is the entry ``tour`` measures,
+    of a size that takes about a minute of CPU; the larger one is linked with
+    its own cost."""
+    readme = (ROOT / "README.md").read_text()
+    command = costs.shown(costs.BY_KEY["tour"].argv).replace(" --json DIR/r.json", "")
+    assert command in readme
+    assert "(docs/costs.md#tour)" in readme and "(docs/costs.md#simulated-1000)" in readme
+    tour = DOC["tour"]
+    assert tour["exit"] == 0 and tour["cpu_s"] < 90

@@ -16,7 +16,9 @@ from diskf_mesh.core.linalg import (
     inv_spd,
     inv_spd_cholesky,
     inv_spd_each,
+    matmul_left,
     matmul_right,
+    matmul_shared,
     mv,
     nbr_sum,
     nbr_sum_pair,
@@ -131,6 +133,21 @@ def test_one_blas_call_equals_stacked_matmul(shape, n):
     X, A = rng.standard_normal(shape + (n, n)) * 10.0 ** rng.uniform(-6, 6, shape + (n, n)), rng.standard_normal((n, n))
     np.testing.assert_array_equal(matmul_right(X, A), np.matmul(X, A))
     np.testing.assert_array_equal(congruence_const(A, X), np.matmul(np.matmul(A, X), T(A)))
+
+
+@pytest.mark.parametrize("shape", [(20, 9, 21), (1, 1, 21), (60, 4, 21), (3,)])
+@pytest.mark.parametrize("r, k, c", [(2, 2, 2), (2, 4, 4), (4, 2, 2), (3, 3, 1), (1, 2, 2), (2, 1, 3)])
+def test_one_blas_call_per_shared_factor_equals_stacked_matmul(shape, r, k, c):
+    """A constant left factor (one product for the stack) and a factor
+    shared by the M models of an agent (one product per agent) give
+    np.matmul's bits."""
+    rng = np.random.default_rng(r + 10 * k + 100 * c)
+    scaled = lambda s: rng.standard_normal(s) * 10.0 ** rng.uniform(-6, 6, s)  # noqa: E731
+    A, X = scaled((r, k)), scaled(shape + (k, c))
+    np.testing.assert_array_equal(matmul_left(A, X), np.matmul(A, X))
+    L, R = scaled(shape[:-1] + (1, r, k)), scaled(shape[:-1] + (1, c, k))
+    np.testing.assert_array_equal(matmul_shared(L, X), np.matmul(L, X))
+    np.testing.assert_array_equal(matmul_shared(L, X, R), np.matmul(np.matmul(L, X), R))
 
 
 @pytest.mark.parametrize("n", [1, 2, 3])

@@ -26,6 +26,8 @@ from diskf_mesh.core.linalg import (
     eigvalsh,
     identity,
     inv_spd,
+    matmul_left,
+    matmul_right,
     mv,
     nbr_sum,
     nbr_sum_pair,
@@ -464,10 +466,10 @@ def input_to_state(v, Pv, B, d, S, G):
     eq. (info_kf_prediction) with the input's covariance kept.
     v: (..., n), Pv: (..., n, n), B: (..., n, m), d: (..., m), S: (..., m, m).
     """
-    GS = np.matmul(G, S)
-    GB = np.matmul(G, T(B))
+    GS = matmul_left(G, S)
+    GB = matmul_left(G, T(B))
     x = v + mv(G, d)
-    P = sym(Pv + GB + T(GB) + np.matmul(GS, T(G)))
+    P = sym(Pv + GB + T(GB) + matmul_right(GS, T(G)))
     return x, P, B + GS
 
 

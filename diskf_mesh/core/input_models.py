@@ -30,7 +30,7 @@ import math
 import numpy as np
 
 from diskf_mesh.core.equations import replace_marginal
-from diskf_mesh.core.linalg import T, inv_spd, mv, nbr_sum, row_sum, solve, sym
+from diskf_mesh.core.linalg import T, inv_spd, matmul_left, matmul_shared, mv, nbr_sum, row_sum, solve, sym
 
 INPUT_MODELS = ("walk", "mean-reverting", "none")
 
@@ -349,7 +349,7 @@ def affine_prior(x_from, P_from, x_to, P_to, v, Pv, B):
     Mt = np.matmul(L_to, solve(L_from, np.broadcast_to(np.eye(L_from.shape[-1]), L_from.shape)))
     Mt = Mt[..., None, :, :]  # over the models' axis
     v_new = x_to[..., None, :] + mv(Mt, v - x_from[..., None, :])
-    return v_new, sym(np.matmul(np.matmul(Mt, Pv), T(Mt))), np.matmul(Mt, B)
+    return v_new, sym(matmul_shared(Mt, Pv, T(Mt))), matmul_shared(Mt, B)
 
 
 REVERT = float(np.exp(-0.1))  # rho of the bank's mean-reverting models: a memory of 10 ticks
@@ -406,7 +406,7 @@ def pair_predict(A, C, e, S, F, q):
     m = e.shape[-1] // 2
     noise = np.zeros((2 * m, 2 * m))  # eta drives d_{k-1} only
     noise[:m, :m] = np.eye(m)
-    return mv(F, e), np.matmul(np.matmul(A, C), T(F)), sym(np.matmul(np.matmul(F, S), T(F))
+    return mv(F, e), np.matmul(matmul_left(A, C), T(F)), sym(np.matmul(np.matmul(F, S), T(F))
                                                            + q[..., None, None] * noise)
 
 

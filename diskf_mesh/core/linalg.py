@@ -95,6 +95,38 @@ def matmul_right(X: np.ndarray, B: np.ndarray) -> np.ndarray:
     return (X.reshape(-1, X.shape[-1]) @ B).reshape(X.shape[:-1] + B.shape[-1:])
 
 
+def matmul_left(A: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """A @ X for one matrix A (r, k) and a stack X (..., k, c), as ONE BLAS
+    product: (X^T A^T)^T, every entry the same k-term dot product as
+    np.matmul(A, X)'s, bit for bit (``tests/test_linalg_fast.py``). A few
+    matrices take np.matmul itself (faster there), and so do products with
+    a single row or column (np.matmul runs those as matrix-vector products,
+    whose BLAS kernel rounds differently)."""
+    if A.ndim != 2 or 1 in A.shape or X.shape[-1] == 1 or X.size <= FEW * X.shape[-1] * X.shape[-2]:
+        return np.matmul(A, X)
+    return T(matmul_right(transposed(X), T(A)))
+
+
+def matmul_shared(L: np.ndarray, X: np.ndarray, R: np.ndarray | None = None) -> np.ndarray:
+    """L @ X (and then @ R) for a stack X (..., M, k, c) whose M matrices
+    share their factors L (..., 1, r, k) (and R (..., 1, c, s)): one BLAS
+    product per L for all M of them ([X_1 ... X_M] side by side, then
+    stacked), bit for bit np.matmul's (``tests/test_linalg_fast.py``;
+    products with a single row or column are np.matmul's, as in
+    ``matmul_left``)."""
+    batch, (M, k, c) = X.shape[:-3], X.shape[-3:]
+    r = L.shape[-2]
+    if 1 in (r, k, c) or (R is not None and R.shape[-1] == 1):
+        LX = np.matmul(L, X)
+        return LX if R is None else np.matmul(LX, R)
+    side = np.ascontiguousarray(np.swapaxes(X, -3, -2)).reshape(batch + (k, M * c))  # (..., k, M c)
+    LX = np.matmul(L[..., 0, :, :], side).reshape(batch + (r, M, c))
+    if R is None:
+        return np.swapaxes(LX, -3, -2)
+    stacked = np.ascontiguousarray(np.swapaxes(LX, -3, -2)).reshape(batch + (M * r, c))  # (..., M r, c)
+    return np.matmul(stacked, R[..., 0, :, :]).reshape(batch + (M, r, R.shape[-1]))
+
+
 def congruence_const(A: np.ndarray, P: np.ndarray) -> np.ndarray:
     """A @ P @ A^T for one (n, n) matrix A and a stack P, equal to
     np.matmul(np.matmul(A, P), A.T) bit for bit, in two BLAS products:

@@ -1,0 +1,103 @@
+"""diskf-auto's outputs on many cases, saved or compared bit for bit.
+
+A change meant to make ``diskf-auto`` faster must not move a bit of what it
+computes. This runs it on the engine over Table II (Scenario 1, all three
+topologies, 20 seeds), every case of the held-out suite
+(``studies.heldout.cases``: 2 seeds, the first ``--ticks`` ticks), each with
+the noise learning (``[estimator.auto] noise``) and the screen (``defence``)
+off and on (every fourth case in all four settings, the rest with both off),
+and one agent at a time as an agent process runs it
+(``mesh.protocol.estimator.lockstep``) on a few of them; then either saves
+every output (``--save FILE``, an ``.npz``) or compares them with a saved
+file (``--check FILE``) with ``np.array_equal`` and exits 1 on any
+difference, naming the cases that differ.
+
+    git archive BASE | tar -x -C /tmp/base
+    PYTHONPATH=/tmp/base python benchmarks/auto_bits.py --save /tmp/auto.npz
+    python benchmarks/auto_bits.py --check /tmp/auto.npz
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.studies.experiment import run_or_none
+from diskf_mesh.mesh.protocol.estimator import lockstep
+from diskf_mesh.studies import heldout
+
+NAME = "diskf-auto"
+SETTINGS = {"": (False, False), "noise": (True, False), "defence": (False, True), "noise+defence": (True, True)}
+
+
+def with_settings(params, noise: bool, defence: bool):
+    return replace(params, auto=replace(params.auto, noise=noise), defence=defence)
+
+
+def engine_outputs(tr, params) -> list:
+    est = run_or_none(tr, NAME, params)
+    return [np.array([np.nan])] if est is None else [est.x, est.P, est.d, est.d_valid]
+
+
+def agent_outputs(scn, tr) -> list:
+    xs, Ps, ds, dv = [], [], [], []
+    for _, _, outs in lockstep(scn, NAME, tr):
+        for o in outs.values():
+            xs.append(o.x), Ps.append(o.P), ds.append(o.d), dv.append(o.d_valid)
+    return [np.array(xs), np.array(Ps), np.array(ds), np.array(dv)]
+
+
+def outputs(ticks: int):
+    """Yields (label, [arrays]) for every case."""
+    q = load_scenario("quadrants")
+    for topology in ("all", "ring", "none"):
+        scn = q.with_overrides(topology=topology)
+        tr = simulate(scn, range(20))
+        for tag in ("", "noise+defence"):
+            yield f"Table II {topology} {tag}", engine_outputs(tr, with_settings(scn.params, *SETTINGS[tag]))
+    for i, case in enumerate(heldout.cases()):
+        scn, tr = case.simulate(range(2), ticks)
+        for tag, (noise, defence) in SETTINGS.items():
+            if tag and i % 4:
+                continue
+            yield f"{case.label} {tag}", engine_outputs(tr, with_settings(scn.params, noise, defence))
+        if i % 16 == 0 and len(scn.agents) <= 9:
+            for tag in ("", "noise+defence"):
+                p = with_settings(scn.params, *SETTINGS[tag])
+                yield f"{case.label} {tag} agent", agent_outputs(scn.with_overrides(params=p), tr)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    what = ap.add_mutually_exclusive_group(required=True)
+    what.add_argument("--save", metavar="FILE")
+    what.add_argument("--check", metavar="FILE")
+    ap.add_argument("--ticks", type=int, default=60)
+    a = ap.parse_args(argv)
+    saved = None if a.check is None else np.load(a.check)
+    found, differ, t0 = {}, [], time.process_time()
+    for n, (label, arrays) in enumerate(outputs(a.ticks)):
+        for j, arr in enumerate(arrays):
+            key = f"{label} #{j}"
+            found[key] = arr
+            if saved is not None and (key not in saved.files or not np.array_equal(saved[key], arr, equal_nan=True)):
+                differ.append(key)
+        if n % 20 == 0:
+            print(f"{n} cases, {time.process_time() - t0:.0f} s CPU, {len(differ)} differ", file=sys.stderr, flush=True)
+    if saved is None:
+        np.savez(a.save, **found)
+        print(f"{len(found)} arrays saved to {a.save}")
+        return 0
+    missing = sorted(set(saved.files) - set(found))
+    for key in differ + missing:
+        print("differs" if key in found else "missing", key)
+    print(f"{len(found)} arrays compared: {len(differ)} differ, {len(missing)} missing")
+    return 1 if differ or missing else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
