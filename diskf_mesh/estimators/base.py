@@ -363,14 +363,14 @@ class Estimator:
         it is close to the receiver's own prediction or, with three or more
         reporting, to their median."""
         adj = nb.adj
-        linked = (adj > 0) & ~nb.self_mask
+        linked = nb.linked
         evidence = state.evidence
         if evidence is None:
             evidence = np.zeros(state.x.shape[:-1] + (self.sensors.whole.N,))
         if not linked.any():
             return adj, evidence
         gate, allowance, limit, suspect = rs.thresholds()
-        flat, si, ri = rs.linked_pairs(linked)  # the linked pairs, as flat indices into senders and receivers
+        flat, si, ri = nb.linked_pairs  # the linked pairs, as flat indices into senders and receivers
         take = rs.take
         floor = take(rs.below_floor(senders.P_pred, self.model.Q), si, 0)
         P_send, P_own = take(senders.P_pred, si, 2), take(own.P_pred, ri, 2)
