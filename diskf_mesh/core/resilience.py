@@ -73,13 +73,6 @@ def thresholds() -> tuple:
     return gate, allowance, limit, limit + RECOVERY * allowance
 
 
-def pairs(send: np.ndarray, recv: np.ndarray, core_ndim: int) -> tuple:
-    """(sender's value, receiver's value) broadcast to (..., R, S, *core):
-    ``send`` (..., S, *core), ``recv`` (..., R, *core)."""
-    axis = send.ndim - core_ndim - 1
-    return np.expand_dims(send, axis), np.expand_dims(recv, axis + 1)
-
-
 def reference(linked: np.ndarray, values: np.ndarray, own: np.ndarray, robust_from: int = 3) -> np.ndarray:
     """(..., R, m) what each receiver checks its senders against: the
     coordinate-wise median of the ``linked`` (..., R, S) senders' ``values``

@@ -60,7 +60,6 @@ def insiders(scn, trace, chosen) -> tuple:
     degree = np.broadcast_to(trace.links, (1,) + trace.links.shape[1:])[0].sum(axis=(0, 2))
     order = sorted(range(scn.N), key=lambda j: (-int(degree[j]), scn.agents[j].id))
     return tuple(sorted(scn.agents[j].id for j in order[:chosen]))
-OFFSETS = tuple(size for kind, size in LIES if kind == "offset")
 
 
 def describe(kind: str, size: float) -> str:
