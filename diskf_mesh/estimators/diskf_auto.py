@@ -205,10 +205,11 @@ class DISKFAuto(Estimator):
         relaying models' replaced, and whether any was."""
         n, m = self.model.n, self.model.m
         js = self.relaying
-        if js.size == 0:
+        others = nb.adj * ~nb.self_mask
+        if js.size == 0 or not (others * senders.d_valid[..., None, :]).any():  # no other sender relays an input
             return v, Pv, e, S, B, np.zeros(v.shape[:-2], dtype=bool)
         rho, q = self.a1[js][:, None, None], self.q[js][:, None, None, None]       # (J, 1, 1), (J, 1, 1, 1)
-        others = (nb.adj * ~nb.self_mask)[..., None, :, :]                         # (..., 1, R, S)
+        others = others[..., None, :, :]                                           # (..., 1, R, S)
         d_n, S_n, has_n = eq.input_fusion(others, rho * senders.d[..., None, :, :],
                                           (rho * rho)[..., None] * senders.S[..., None, :, :, :] + q * identity(m),
                                           senders.d_valid[..., None, :])           # (..., J, R, ...)
