@@ -97,7 +97,7 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     t0 = time.monotonic()
     try:
         r = simulate_run(scn, trace, spec.algorithm, args.seed, net_seed=net_seed, plan=plan, faults=run.faults,
-                         run_id=spec.run_id, verify=False, progress=stages.tick, recorder=run.recorder)
+                         run_id=spec.run_id, progress=stages.tick, recorder=run.recorder)
     finally:
         stages.close()
     wall = time.monotonic() - t0

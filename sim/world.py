@@ -33,8 +33,9 @@ once), then sends that tick again (agents that had reported it send their
 report again). If none comes back the run ends early.
 
 As the run goes the world checks each tick once its reports are in
-(``mesh.protocol.run_status.OnlineCheck``) and cuts off an agent it proves
-lied: the ticks leave it out of the live set. At the end it checks the
+(``mesh.protocol.run_status.OnlineCheck``; in lockstep in a process of its
+own beside the world, ``mesh.process.checker``) and cuts off an agent it
+proves lied: the ticks leave it out of the live set. At the end it checks the
 whole run (``checked_status``, ``diskf_mesh.engine.verify``): the engine
 replays it from what each agent
 said it fused, restarts re-initialised agents from the states handed to
@@ -92,6 +93,7 @@ from diskf_mesh.mesh.process import zenoh_config
 from diskf_mesh.mesh.wire.keys import Keys, new_nonce
 from diskf_mesh.mesh.protocol.log import Log
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, WORLD_PHASES, Phases
+from diskf_mesh.mesh.process.checker import CheckProcess
 from diskf_mesh.mesh.process.shell import Shell
 from diskf_mesh.mesh.protocol.world_machine import DUPLICATE, WorldMachine, WorldRecord, WorldTiming
 from diskf_mesh.mesh.process.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
@@ -473,10 +475,6 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from diskf_mesh.studies.experiment import format_table
-
     check_output(args.json, "json", stdout=False)  # before any work: a bad path must not cost the run
     check_output(args.estimates, "estimates", stdout=False)
     check_output(args.record, "record", stdout=False)
@@ -495,6 +493,28 @@ def run(args: argparse.Namespace) -> int:
     started = provenance.now()
     spec = runspec.from_args(args)
     scn = spec.load(args.ticks)
+    # lockstep: the check as the run goes in a process of its own, forked before the credentials are read
+    checker = CheckProcess(lambda: online_check(args, spec, scn, simulate(scn, [args.seed]),
+                                                faults_from_args(args, scn.faults), None)
+                           ) if realtime.from_args(args) is None else None
+    try:
+        return _run(args, spec, scn, started, signalled, checker)
+    finally:
+        if checker is not None:
+            checker.close()
+
+
+def online_check(args, spec, scn: Scenario, trace: Trace, faults: FaultConfig, clock) -> OnlineCheck:
+    """The world's check as the run goes (``OnlineCheck``) of a run."""
+    return OnlineCheck(trace, estimators.get(spec.algorithm), scn.params, run_id=spec.run_id, seed=args.seed,
+                       faults=faults, deadline_s=realtime.agents_deadline(clock, args.collect_timeout))
+
+
+def _run(args, spec, scn: Scenario, started: str, signalled: list, checker) -> int:
+    from tqdm import tqdm
+
+    from diskf_mesh.studies.experiment import format_table
+
     zenoh = zenoh_config.from_args(args, credentials.WORLD, spec.run_id)
     run = setup_run(args, spec, scn, started)
     if args.live is not None:  # the live server: fed as the recorder is
@@ -520,11 +540,9 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
 
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
+    online = checker if checker is not None else online_check(args, spec, scn, run.trace, run.faults, run.clock)
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
-            online = OnlineCheck(run.trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=args.seed,
-                                 faults=run.faults,
-                                 deadline_s=realtime.agents_deadline(run.clock, args.collect_timeout))
             world = World(scn, run.trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
                           run_timings(args, run.clock)[0], progress, log, prof, run.recorder, online)
             world.interrupted, signalled[0] = signalled[0], world
@@ -534,6 +552,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         bar.close()
         if prof:
+            if checker is not None:
+                prof.add_cpu("check", checker.ticking_cpu_s)
             prof.write(args.profile, "world")
     code, results = finish_run(args, run, rec, world.done, args.json, log=log)
     if args.progress != "lines":

@@ -5,19 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from diskf_mesh import estimators
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.agent_machine import ASK_S, DUPLICATE_SAY_S, AgentMachine, AgentTiming
 from diskf_mesh.mesh.protocol.estimator import AgentEstimator, lockstep, neighbours
-from diskf_mesh.mesh.protocol.rejoin import start_from
-from diskf_mesh.mesh.protocol.events import (Ask, AskTokens, DeclareToken, DropToken, Finish, Publish, Reply, Sample,
-                                    SetTimer, Subscribe, Timer, Token, Tokens, WatchTokens, Woke)
+from diskf_mesh.mesh.protocol.events import (Ask, AskTokens, DeclareToken, DropToken, Finish, MeasurementArrived,
+                                             MessageArrived, Publish, Reply, Sample, SetTimer, StopArrived, Subscribe,
+                                             TickArrived, Timer, Token, Tokens, Unreadable, WatchTokens, Woke)
 from diskf_mesh.mesh.wire.keys import Keys
 from diskf_mesh.mesh.wire.keys import key_matches
 
 RUN = "m"
+DISKF = estimators.get("diskf")
 K = 12
 SEED = 3
 
@@ -31,6 +33,11 @@ def run():
 
 def of(effects, kind):
     return [e for e in effects if isinstance(e, kind)]
+
+
+def hand(m, event, now):
+    """``event`` into ``m`` as a shell hands it: a sample read first (``AgentMachine.read``)."""
+    return m.handle(m.read(event.key, event.payload) if isinstance(event, Sample) else event, now)
 
 
 class World:
@@ -67,18 +74,18 @@ def started(scn, i, now=0.0, ticking=False, timing=AgentTiming(), faults=None):
     """Agent ``i``'s machine through its start-up: subscribed, id claimed,
     alive and ready tokens declared; returns (machine, effects so far)."""
     w = World(scn, None)
-    m = AgentMachine(scn, i, "diskf", Keys(RUN), f"n{i}", timing, faults)
+    m = AgentMachine(scn, i, DISKF, Keys(RUN), f"n{i}", timing, faults)
     out = m.start(now)
     assert {e.key for e in of(out, Subscribe)} == {m.keys.tick, m.keys.meas(i), m.keys.stop, m.keys.msg_to(i)}
     assert of(out, WatchTokens)
     for tok in w.tokens(ticking):
         if tok.key != m.keys.alive(i, f"n{i}"):
-            out += m.handle(tok, now)
+            out += hand(m, tok, now)
     ask, = of(out, AskTokens)
     assert ask.key == m.keys.alive(i)
-    out += m.handle(Tokens(ask.qid, ()), now)
+    out += hand(m, Tokens(ask.qid, ()), now)
     assert DeclareToken(m.keys.alive(i, f"n{i}")) in out
-    out += m.handle(Token(m.keys.alive(i, f"n{i}"), True), now)
+    out += hand(m, Token(m.keys.alive(i, f"n{i}"), True), now)
     return m, out
 
 
@@ -89,8 +96,8 @@ def collecting_tick_1(run, now=0.0, **kw):
     w = World(scn, trace)
     me = w.ids[4]
     m, out = started(scn, me, **kw)
-    m.handle(w.meas(1, me), now)
-    m.handle(w.tick(1), now)
+    hand(m, w.meas(1, me), now)
+    hand(m, w.tick(1), now)
     return m, w, me, of(out, DeclareToken)[-1].key
 
 
@@ -102,9 +109,9 @@ def test_one_tick_publishes_one_message_then_one_report_equal_to_the_engine(run)
     m, out = started(scn, me)
     assert of(out, DeclareToken)[-1].key.startswith(m.keys.ready(me, ""))
     msgs = {k: mm for k, mm, _ in lockstep(scn, "diskf", trace, SEED)}
-    out = m.handle(w.meas(1, me), 0.1)
+    out = hand(m, w.meas(1, me), 0.1)
     assert of(out, Publish) == []                        # the tick is not in yet
-    out = m.handle(w.tick(1), 0.2)
+    out = hand(m, w.tick(1), 0.2)
     pub, = of(out, Publish)                              # exactly one message, to the agents in range
     linked = set(neighbours(scn, me, trace.positions[0])) - {me}
     assert pub.key == m.keys.msg(me, to=linked)
@@ -112,12 +119,38 @@ def test_one_tick_publishes_one_message_then_one_report_equal_to_the_engine(run)
     assert SetTimer("collect", 0.2 + m.timing.collect_timeout) in out
     reports = []
     for j in sorted(linked):
-        out = m.handle(Sample(m.keys.msg(j, to=[me]), wire.encode(RUN, j, 1, msgs[1][j])), 0.3)
+        out = hand(m, Sample(m.keys.msg(j, to=[me]), wire.encode(RUN, j, 1, msgs[1][j])), 0.3)
         reports += [e for e in of(out, Publish) if e.key == m.keys.report(me)]
     r = wire.decode_report(reports[0].payload, run_id=RUN, sender=me)
     assert len(reports) == 1 and r.tick == 1 and r.fused == tuple(sorted(linked)) and r.not_fused == ()
     i = ids.index(me)
     assert r.x.tobytes() == ref.x[0, 0, i].tobytes() and r.P.tobytes() == ref.P[0, 0, i].tobytes()
+
+
+def test_a_sample_is_read_at_the_edge_into_the_typed_event_the_machine_handles(run):
+    """``read`` decodes each sample once (the world's tick, measurement and
+    stop; a neighbour's message with the checks of its own values); a
+    world's payload that does not decode is ``Unreadable`` and counted as
+    refused once handled; ``handle`` takes typed events made by hand, with
+    no bytes: the measurement and tick open tick 1."""
+    scn, trace, _ = run
+    w = World(scn, trace)
+    me, j = w.ids[4], w.ids[0]
+    m, _ = started(scn, me)
+    msgs = {k: mm for k, mm, _ in lockstep(scn, "diskf", trace, SEED)}
+    read = lambda sample: m.read(sample.key, sample.payload)  # noqa: E731
+    tick, meas, stop = read(w.tick(1)), read(w.meas(1, me)), read(w.stop())
+    assert type(tick) is TickArrived and tick.tick.tick == 1 and tick.tick.live == tuple(w.ids)
+    assert type(meas) is MeasurementArrived and meas.measurement.tick == 1
+    assert type(stop) is StopArrived and stop.stop.why == "done"
+    msg = m.read(m.keys.msg(j, to=[me]), wire.encode(RUN, j, 1, msgs[1][j]))
+    assert type(msg) is MessageArrived and msg.sender == j and msg.message.tick == 1 and msg.problem is None
+    bad = m.read(m.keys.tick, b"\xc1")
+    assert type(bad) is Unreadable and bad.kind == "tick" and m.counters.rejected == {}
+    assert m.handle(bad, 0.0) == [] and m.counters.rejected == {bad.reason: 1}
+    assert m.handle(MeasurementArrived(meas.measurement), 0.1) == []
+    pub, = of(m.handle(TickArrived(tick.tick), 0.2), Publish)
+    assert pub.payload == wire.encode(RUN, me, 1, msgs[1][me])
 
 
 def test_the_collect_timer_closes_the_tick_with_what_came(run):
@@ -126,13 +159,13 @@ def test_the_collect_timer_closes_the_tick_with_what_came(run):
     me = w.ids[4]
     m, _ = started(scn, me)
     msgs = {k: mm for k, mm, _ in lockstep(scn, "diskf", trace, SEED)}
-    m.handle(w.meas(1, me), 1.0)
-    m.handle(w.tick(1), 1.0)
+    hand(m, w.meas(1, me), 1.0)
+    hand(m, w.tick(1), 1.0)
     linked = sorted(set(neighbours(scn, me, trace.positions[0])) - {me})
     assert len(linked) >= 2
-    out = m.handle(Sample(m.keys.msg(linked[0], to=[me]), wire.encode(RUN, linked[0], 1, msgs[1][linked[0]])), 1.5)
+    out = hand(m, Sample(m.keys.msg(linked[0], to=[me]), wire.encode(RUN, linked[0], 1, msgs[1][linked[0]])), 1.5)
     assert of(out, Publish) == []
-    out = m.handle(Timer("collect"), 1.0 + m.timing.collect_timeout)
+    out = hand(m, Timer("collect"), 1.0 + m.timing.collect_timeout)
     rep, = of(out, Publish)
     r = wire.decode_report(rep.payload, run_id=RUN, sender=me)
     assert r.fused == (linked[0],) and r.not_fused == tuple((j, "late") for j in linked[1:])
@@ -160,9 +193,9 @@ def test_a_whole_run_of_machines_equals_the_engine_bit_for_bit(run, monkeypatch)
     for k in range(1, K + 1):
         queue = []
         for i, m in machines.items():
-            queue += m.handle(w.meas(k, i), now)
+            queue += hand(m, w.meas(k, i), now)
         for i, m in machines.items():
-            queue += m.handle(w.tick(k), now)
+            queue += hand(m, w.tick(k), now)
         while queue:
             e = queue.pop(0)
             assert isinstance(e, (Publish, SetTimer)), e
@@ -174,14 +207,14 @@ def test_a_whole_run_of_machines_equals_the_engine_bit_for_bit(run, monkeypatch)
                 continue
             for i, m2 in machines.items():
                 if key_matches(m2.keys.msg_to(i), e.key):
-                    queue += m2.handle(Sample(e.key, e.payload), now)
+                    queue += hand(m2, Sample(e.key, e.payload), now)
         now += 0.01
     for j, i in enumerate(w.ids):
         for k in range(1, K + 1):
             r = got[(k, i)]
             assert r.x.tobytes() == ref.x[0, k - 1, j].tobytes() and r.P.tobytes() == ref.P[0, k - 1, j].tobytes()
     for m in machines.values():
-        fin, = m.handle(w.stop(), now)
+        fin, = hand(m, w.stop(), now)
         assert fin == Finish("done", 0, "")
 
 
@@ -193,16 +226,16 @@ def test_delayed_copies_are_timers_of_the_machine(run):
     me = w.ids[4]
     m, _ = started(scn, me, faults=FaultConfig(latency_ms=100))
     msgs = {k: mm for k, mm, _ in lockstep(scn, "diskf", trace, SEED)}
-    m.handle(w.meas(1, me), 0.0)
-    m.handle(w.tick(1), 0.0)
+    hand(m, w.meas(1, me), 0.0)
+    hand(m, w.tick(1), 0.0)
     linked = sorted(set(neighbours(scn, me, trace.positions[0])) - {me})
     timers = []
     for j in linked:
-        out = m.handle(Sample(m.keys.msg(j, to=[me]), wire.encode(RUN, j, 1, msgs[1][j])), 0.0)
+        out = hand(m, Sample(m.keys.msg(j, to=[me]), wire.encode(RUN, j, 1, msgs[1][j])), 0.0)
         assert of(out, Publish) == []
         timers += [e for e in of(out, SetTimer) if e.name == "delay"]
     assert timers == [SetTimer("delay", 0.1)]
-    out = m.handle(Timer("delay"), 0.1)
+    out = hand(m, Timer("delay"), 0.1)
     rep, = of(out, Publish)
     assert wire.decode_report(rep.payload, run_id=RUN, sender=me).fused == tuple(linked)
 
@@ -215,31 +248,30 @@ def test_a_rejoining_agent_asks_the_world_and_starts_from_its_answer(run):
     m, out = started(scn, me, ticking=True)             # a restart: the world ticks already
     assert m.rejoining and of(out, DeclareToken)[-1].key.startswith(m.keys.ready(me, ""))
     others = [i for i in w.ids if i != me]
-    assert of(m.handle(w.tick(J - 1, live=others), 0.0), Ask) == []   # the world is at J - 1 without it
-    m.handle(w.meas(J, me), 10.0)
-    out = m.handle(w.tick(J), 10.0)
+    assert of(hand(m, w.tick(J - 1, live=others), 0.0), Ask) == []   # the world is at J - 1 without it
+    hand(m, w.meas(J, me), 10.0)
+    out = hand(m, w.tick(J), 10.0)
     ask, = of(out, Ask)
     assert ask.key == m.keys.start(me) and wire.decode_join(ask.payload, sender=me).tick == J
     confirm, = of(out, AskTokens)                       # and once more: does another process hold the id?
     assert confirm.key == m.keys.alive(me)
     assert of(out, Publish) == []                       # no message before both are in
-    assert of(m.handle(Tokens(confirm.qid, (m.keys.alive(me, "n5"),)), 10.05), Publish) == []
+    assert of(hand(m, Tokens(confirm.qid, (m.keys.alive(me, "n5"),)), 10.05), Publish) == []
     x, P = np.array([3.0, -1.0]), np.diag([0.5, 0.25])
-    out = m.handle(Reply(ask.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 10.1)
+    out = hand(m, Reply(ask.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 10.1)
     assert m.rejoins == [(J, 7)]
     msg, = of(out, Publish)                             # then its one message of tick J, nothing else
-    est = AgentEstimator(scn, me, "diskf", K, SEED)     # ... from the answered estimate, bit for bit
-    start_from(est, x, P)
+    est = AgentEstimator(scn, me, DISKF, K, SEED, start=(x, P))  # ... from the answered estimate, bit for bit
     j = w.ids.index(me)
     own = est.local(J, bool(trace.has[0, J - 1, j]), trace.y[0, J - 1, j, :est.p])
     assert msg.payload == wire.encode(RUN, me, J, own)
     assert m.est is not None and m.k == J and m.collecting
     for k in (J, J + 1):  # every report from now on tells the world how this estimate started
         now = 10.0 + 10 * (k - J + 1)
-        rep, = [e for e in of(m.handle(Timer("collect"), now), Publish) if m.keys.parse(e.key)[0] == "report"]
+        rep, = [e for e in of(hand(m, Timer("collect"), now), Publish) if m.keys.parse(e.key)[0] == "report"]
         assert wire.decode_report(rep.payload, run_id=RUN, sender=me).restart == (J, 7)
-        m.handle(w.meas(k + 1, me), now)
-        m.handle(w.tick(k + 1), now)
+        hand(m, w.meas(k + 1, me), now)
+        hand(m, w.tick(k + 1), now)
 
 
 def asking(run, J=4, now=10.0):
@@ -250,17 +282,17 @@ def asking(run, J=4, now=10.0):
     w = World(scn, trace)
     me = w.ids[4]
     m, _ = started(scn, me, ticking=True)
-    m.handle(w.tick(J - 1, live=[i for i in w.ids if i != me]), 0.0)
-    m.handle(w.meas(J, me), now)
-    out = m.handle(w.tick(J), now)
-    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), now)
+    hand(m, w.tick(J - 1, live=[i for i in w.ids if i != me]), 0.0)
+    hand(m, w.meas(J, me), now)
+    out = hand(m, w.tick(J), now)
+    hand(m, Tokens(of(out, AskTokens)[0].qid, ()), now)
     return m, of(out, Ask)[0], out
 
 
 def test_an_answer_that_fails_the_guard_leaves_the_prior(run):
     m, ask, _ = asking(run)
     bad = wire.encode_start(RUN, m.id, 4, 2, np.array([1.0, 0.0]), np.diag([1e-8, 1e8]), np.zeros(1), False)
-    m.handle(Reply(ask.qid, bad), 10.1)
+    hand(m, Reply(ask.qid, bad), 10.1)
     assert m.rejoins == [(4, None)] and m.counters.rejected == {"ill-conditioned": 1}
 
 
@@ -273,15 +305,15 @@ def test_no_answer_is_asked_again_and_the_worlds_answer_decides_the_start(run):
     had reported the tick before)."""
     m, ask, out = asking(run)
     assert SetTimer("ask", 10.0 + ASK_S) in out
-    assert m.handle(Reply(ask.qid, None), 10.2) == []   # ended without an answer: wait for the timer
-    out = m.handle(Timer("ask"), 10.0 + ASK_S)
+    assert hand(m, Reply(ask.qid, None), 10.2) == []   # ended without an answer: wait for the timer
+    out = hand(m, Timer("ask"), 10.0 + ASK_S)
     again, = of(out, Ask)
     assert again.qid != ask.qid and again.payload == ask.payload and SetTimer("ask", 10.0 + 2 * ASK_S) in out
     assert of(out, Publish) == [] and m.rejoins == [] and m.est is None
     x, P = np.array([3.0, -1.0]), np.diag([0.5, 0.25])
     late = wire.encode_start(RUN, m.id, 4, 2, x, P, np.zeros(1), False)
-    assert of(m.handle(Reply(ask.qid, late), 15.1), Publish) == []  # an answer to the first query: too late
-    out = m.handle(Reply(again.qid, late), 15.2)
+    assert of(hand(m, Reply(ask.qid, late), 15.1), Publish) == []  # an answer to the first query: too late
+    out = hand(m, Reply(again.qid, late), 15.2)
     assert m.rejoins == [(4, 2)] and len([e for e in of(out, Publish) if "/msg/" in e.key]) == 1
 
 
@@ -295,17 +327,17 @@ def test_a_late_joiner_that_finds_its_id_held_just_before_joining_leaves(run):
     w = World(scn, trace)
     me = w.ids[4]
     m, out = started(scn, me, ticking=True)
-    m.handle(w.meas(6, me), 1.0)
-    out = m.handle(w.tick(6), 1.0)
+    hand(m, w.meas(6, me), 1.0)
+    out = hand(m, w.tick(6), 1.0)
     confirm, = of(out, AskTokens)
     ask, = of(out, Ask)
-    out = m.handle(Reply(ask.qid, wire.encode_start(RUN, me, 6, None, np.zeros(2), np.eye(2), np.zeros(1), False)),
+    out = hand(m, Reply(ask.qid, wire.encode_start(RUN, me, 6, None, np.zeros(2), np.eye(2), np.zeros(1), False)),
                    1.1)
     assert of(out, Publish) == []
-    out = m.handle(Tokens(confirm.qid, (m.keys.alive(me, "n0"), m.keys.alive(me, "n5"))), 2.0)
+    out = hand(m, Tokens(confirm.qid, (m.keys.alive(me, "n0"), m.keys.alive(me, "n5"))), 2.0)
     assert out == [Publish(m.keys.duplicate(me), b"n5"), SetTimer("leave", 2.0 + DUPLICATE_SAY_S)]
-    assert m.handle(w.tick(7), 2.1) == []  # leaving: it works on nothing
-    fin, = m.handle(Timer("leave"), 2.0 + DUPLICATE_SAY_S)
+    assert hand(m, w.tick(7), 2.1) == []  # leaving: it works on nothing
+    fin, = hand(m, Timer("leave"), 2.0 + DUPLICATE_SAY_S)
     assert fin.code == 2 and "n0" in fin.reason and m.est is None
 
 
@@ -321,15 +353,15 @@ def test_a_process_the_world_does_not_count_as_its_id_leaves_before_working(run)
     for ticking in (False, True):  # at tick 1 (both started at once) and joining a run in progress
         m, out = started(scn, me, ticking=ticking)
         k = 6 if ticking else 1
-        m.handle(w.meas(k, me), 1.0)
-        out = m.handle(w.tick(k, holders={me: "n0"}), 1.0)
+        hand(m, w.meas(k, me), 1.0)
+        out = hand(m, w.tick(k, holders={me: "n0"}), 1.0)
         assert out == [Publish(m.keys.duplicate(me), b"n5"), SetTimer("leave", 1.0 + DUPLICATE_SAY_S)]
-        fin, = m.handle(Timer("leave"), 1.0 + DUPLICATE_SAY_S)
+        fin, = hand(m, Timer("leave"), 1.0 + DUPLICATE_SAY_S)
         assert isinstance(fin, Finish) and fin.code == 2 and wire.holder_tag("n0").hex() in fin.reason
         assert m.est is None and m.rejoins == []
     m, _ = started(scn, me)
-    m.handle(w.meas(1, me), 1.0)
-    out = m.handle(w.tick(1, holders={}), 1.0)  # it is the one counted
+    hand(m, w.meas(1, me), 1.0)
+    out = hand(m, w.tick(1, holders={}), 1.0)  # it is the one counted
     assert [e for e in of(out, Publish) if "/msg/" in e.key] and m.est is not None
 
 
@@ -341,34 +373,34 @@ def test_a_process_that_sees_its_id_held_before_its_claim_is_answered_tells_the_
     scn, trace, _ = run
     w = World(scn, trace)
     me = w.ids[2]
-    m = AgentMachine(scn, me, "diskf", Keys(RUN), "n9")
+    m = AgentMachine(scn, me, DISKF, Keys(RUN), "n9")
     m.start(0.0)
-    claim, = of(m.handle(Token(m.keys.world("w0"), True), 0.0), AskTokens)
-    out = m.handle(w.tick(6, holders={}), 0.1)  # it names process "n3" as agent 3
+    claim, = of(hand(m, Token(m.keys.world("w0"), True), 0.0), AskTokens)
+    out = hand(m, w.tick(6, holders={}), 0.1)  # it names process "n3" as agent 3
     assert out == [Publish(m.keys.duplicate(me), b"n9"), SetTimer("leave", 0.1 + DUPLICATE_SAY_S)]
-    assert m.handle(Tokens(claim.qid, ()), 0.2) == []  # leaving: no token declared
-    fin, = m.handle(Timer("leave"), 0.1 + DUPLICATE_SAY_S)
+    assert hand(m, Tokens(claim.qid, ()), 0.2) == []  # leaving: no token declared
+    fin, = hand(m, Timer("leave"), 0.1 + DUPLICATE_SAY_S)
     assert fin.code == 2 and m.est is None
 
 
 def test_another_process_with_this_id_makes_this_one_leave_with_2(run):
     scn, _, _ = run
     me = 1
-    m = AgentMachine(scn, me, "diskf", Keys(RUN), "n2")
+    m = AgentMachine(scn, me, DISKF, Keys(RUN), "n2")
     m.start(0.0)
-    ask, = of(m.handle(Token(m.keys.world("w0"), True), 0.0), AskTokens)
-    out = m.handle(Tokens(ask.qid, (m.keys.alive(me, "n1"),)), 0.5)
+    ask, = of(hand(m, Token(m.keys.world("w0"), True), 0.0), AskTokens)
+    out = hand(m, Tokens(ask.qid, (m.keys.alive(me, "n1"),)), 0.5)
     assert Publish(m.keys.duplicate(me), b"n2") in out and not of(out, DeclareToken)
-    fin, = m.handle(Timer("leave"), 0.7)
-    assert fin.code == 2 and m.handle(Timer("world"), 100.0) == []
+    fin, = hand(m, Timer("leave"), 0.7)
+    assert fin.code == 2 and hand(m, Timer("world"), 100.0) == []
 
 
 def test_a_silent_world_ends_the_agent_at_its_timeout(run):
     scn, _, _ = run
-    m = AgentMachine(scn, 1, "diskf", Keys(RUN), "n1", AgentTiming(world_timeout=30.0))
+    m = AgentMachine(scn, 1, DISKF, Keys(RUN), "n1", AgentTiming(world_timeout=30.0))
     out = m.start(5.0)
     assert SetTimer("world", 35.0) in out
-    fin, = m.handle(Timer("world"), 35.0)
+    fin, = hand(m, Timer("world"), 35.0)
     assert fin.code == 1 and "no word from the world for 30 s" in fin.reason
 
 
@@ -376,10 +408,10 @@ def test_frozen_past_the_lease_it_rejoins(run):
     """Woke (the shell found it had been paused), then the world's token
     goes: this agent was dropped, it withdraws its ready token and rejoins."""
     m, w, me, ready = collecting_tick_1(run)
-    m.handle(Timer("collect"), 5.0)
+    hand(m, Timer("collect"), 5.0)
     assert m.est is not None and m.k == 2
-    m.handle(Woke(8.0), 20.0)
-    out = m.handle(Token(m.keys.world("w0"), False), 20.5)
+    hand(m, Woke(8.0), 20.0)
+    out = hand(m, Token(m.keys.world("w0"), False), 20.5)
     assert m.est is None and m.rejoining
     assert out == [DropToken(ready), DeclareToken(m.keys.ready(me, "n5.2"))]
 
@@ -394,27 +426,27 @@ def test_a_restart_cut_off_from_the_world_asks_for_its_start_once_the_world_is_b
     w = World(scn, trace)
     me = w.ids[4]
     m, _ = started(scn, me, ticking=True)
-    m.handle(w.tick(J - 1, live=[i for i in w.ids if i != me]), 0.0)
-    m.handle(Token(m.keys.world("w0"), False), 9.0)         # its session went down
-    m.handle(w.meas(J, me), 10.0)
-    out = m.handle(w.tick(J), 10.0)
+    hand(m, w.tick(J - 1, live=[i for i in w.ids if i != me]), 0.0)
+    hand(m, Token(m.keys.world("w0"), False), 9.0)         # its session went down
+    hand(m, w.meas(J, me), 10.0)
+    out = hand(m, w.tick(J), 10.0)
     assert of(out, Ask) == [] and m.est is None               # no question while cut off
-    out = m.handle(Token(m.keys.world("w0"), True), 10.2)     # back
+    out = hand(m, Token(m.keys.world("w0"), True), 10.2)     # back
     ask, = of(out, Ask)
-    m.handle(Tokens(of(out, AskTokens)[0].qid, ()), 10.2)
-    m.handle(Token(m.keys.world("w0"), False), 10.3)          # cut off again before the answer
-    assert m.handle(Reply(ask.qid, None), 10.4) == [] and m.est is None and m.rejoins == []
-    again, = of(m.handle(Token(m.keys.world("w0"), True), 11.0), Ask)
+    hand(m, Tokens(of(out, AskTokens)[0].qid, ()), 10.2)
+    hand(m, Token(m.keys.world("w0"), False), 10.3)          # cut off again before the answer
+    assert hand(m, Reply(ask.qid, None), 10.4) == [] and m.est is None and m.rejoins == []
+    again, = of(hand(m, Token(m.keys.world("w0"), True), 11.0), Ask)
     x, P = np.array([3.0, -1.0]), np.diag([0.5, 0.25])
-    m.handle(Reply(again.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 11.1)
+    hand(m, Reply(again.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 11.1)
     assert m.rejoins == [(J, 7)] and m.est is not None
 
 
 def test_the_world_going_without_a_freeze_is_waited_for(run):
     m, *_ = collecting_tick_1(run)
-    m.handle(Timer("collect"), 5.0)
-    assert m.handle(Token(m.keys.world("w0"), False), 20.5) == [] and m.est is not None
-    fin, = m.handle(Timer("world"), 5.0 + 60.0)
+    hand(m, Timer("collect"), 5.0)
+    assert hand(m, Token(m.keys.world("w0"), False), 20.5) == [] and m.est is not None
+    fin, = hand(m, Timer("world"), 5.0 + 60.0)
     assert fin.code == 1 and "the world is gone" in fin.reason
 
 
@@ -423,10 +455,10 @@ def test_a_timer_fired_before_its_time_changes_nothing(run):
     since set again for later: the machine looks at the time itself."""
     m, *_ = collecting_tick_1(run, 1.0)
     for name in ("collect", "world", "delay", "peers", "ask", "nothing"):
-        out = m.handle(Timer(name), 2.0)
+        out = hand(m, Timer(name), 2.0)
         assert all(isinstance(e, SetTimer) and e.at > 2.0 for e in out) and m.collecting   # at most set again
     m2, _, _ = asking(run)
-    assert m2.handle(Timer("ask"), 11.0) == [] and m2.est is None
+    assert hand(m2, Timer("ask"), 11.0) == [] and m2.est is None
 
 
 def test_real_time_closes_at_the_deadline_from_when_the_tick_came(run):
@@ -441,16 +473,16 @@ def test_real_time_closes_at_the_deadline_from_when_the_tick_came(run):
     m, _ = started(scn, me, timing=AgentTiming(clock=Clock(10.0, 0.05)))
     msgs = {k: mm for k, mm, _ in lockstep(scn, "diskf", trace, SEED)}
     linked = sorted(set(neighbours(scn, me, trace.positions[0])) - {me})
-    m.handle(w.meas(1, me), 1.0)
-    out = m.handle(w.tick(1), 1.0)
+    hand(m, w.meas(1, me), 1.0)
+    out = hand(m, w.tick(1), 1.0)
     assert SetTimer("collect", 1.05) in out
-    m.handle(Sample(m.keys.msg(linked[0], to=[me]), wire.encode(RUN, linked[0], 1, msgs[1][linked[0]])), 1.02)
-    rep, = of(m.handle(Timer("collect"), 1.05), Publish)
+    hand(m, Sample(m.keys.msg(linked[0], to=[me]), wire.encode(RUN, linked[0], 1, msgs[1][linked[0]])), 1.02)
+    rep, = of(hand(m, Timer("collect"), 1.05), Publish)
     r = wire.decode_report(rep.payload, run_id=RUN, sender=me)
     assert r.fused == (linked[0],) and dict(r.not_fused) == {j: "late" for j in linked[1:]}
-    m.handle(Sample(m.keys.msg(linked[1], to=[me]), wire.encode(RUN, linked[1], 1, msgs[1][linked[1]])), 1.06)
+    hand(m, Sample(m.keys.msg(linked[1], to=[me]), wire.encode(RUN, linked[1], 1, msgs[1][linked[1]])), 1.06)
     assert m.counters.late == 1 and m.counters.fused == 1
-    m.handle(w.tick(2), 1.1)                            # tick 2 came at 1.1, its measurement only at 1.3:
-    out = m.handle(w.meas(2, me), 1.3)                  # past its deadline (1.15), opened and closed at once
+    hand(m, w.tick(2), 1.1)                            # tick 2 came at 1.1, its measurement only at 1.3:
+    out = hand(m, w.meas(2, me), 1.3)                  # past its deadline (1.15), opened and closed at once
     assert [m.keys.parse(e.key)[0] for e in of(out, Publish)] == ["msg", "report"]
     assert not of(out, SetTimer) and m.k == 3

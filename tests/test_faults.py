@@ -11,7 +11,7 @@ from diskf_mesh.mesh.wire.counters import Counters, total
 from diskf_mesh.mesh.protocol.delayline import DelayLine
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import PERFECT, FaultConfig, FaultModel, add_arguments, from_args
-from diskf_mesh.mesh.protocol.inbox import Inbox
+from diskf_mesh.mesh.protocol.receive import Inbox
 
 ALL = FaultConfig(loss=0.2, latency_ms=5, jitter_ms=5, duplicate=0.05, reorder=0.05)
 

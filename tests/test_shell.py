@@ -16,6 +16,8 @@ class Scripted:
     """A machine that answers each event with ``script(event, now)`` and
     keeps every event it was handed."""
 
+    read = Sample  # takes its samples as they are
+
     def __init__(self, first, script):
         self.first, self.script, self.seen = first, script, []
 

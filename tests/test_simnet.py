@@ -18,6 +18,8 @@ from diskf_mesh.mesh.simulated.simnet import Fault, Lease, Link, SimNet
 class Pong:
     """Answers every ping with a pong of the same number; declares a token; answers queries."""
 
+    read = ev.Sample  # takes its samples as they are
+
     def __init__(self, boot):
         self.boot = boot
         self.events = []
@@ -38,6 +40,8 @@ class Pong:
 class Ping:
     """Sends pings 1..n once it sees a pong token, one at a time, again after
     ``retry`` s without an answer; finishes at n, or after ``give_up`` s."""
+
+    read = ev.Sample  # takes its samples as they are
 
     def __init__(self, boot, n=5, retry=1.0, give_up=60.0):
         self.boot, self.n, self.retry, self.give_up = boot, n, retry, give_up
@@ -122,6 +126,8 @@ def test_links_keep_order_unless_a_copy_is_held_back():
 
 
 class Burst:
+    read = ev.Sample  # takes its samples as they are
+
     def __init__(self, boot):
         pass
 
@@ -133,6 +139,8 @@ class Burst:
 
 
 class Sink:
+    read = ev.Sample  # takes its samples as they are
+
     def __init__(self, boot):
         self.got = []
 
@@ -193,6 +201,8 @@ def test_a_crash_drops_tokens_at_once_or_after_the_lease_and_a_restart_is_a_new_
 
 def test_a_query_gets_the_first_answer_or_none():
     class Asker:
+        read = ev.Sample  # takes its samples as they are
+
         def __init__(self, boot):
             self.replies = []
 
@@ -221,6 +231,8 @@ def test_the_access_rules_of_the_credentials_hold():
     policy = credentials.access_control("r", [1, 2], observer=False, router=False)
 
     class Agent:
+        read = ev.Sample  # takes its samples as they are
+
         def __init__(self, boot):
             self.id = int(boot.identity.split("-")[1])
             self.got = []
@@ -242,6 +254,8 @@ def test_the_access_rules_of_the_credentials_hold():
             return []
 
     class World:
+        read = ev.Sample  # takes its samples as they are
+
         def __init__(self, boot):
             pass
 
@@ -347,3 +361,26 @@ def test_an_agent_whose_estimator_diverges_leaves_at_once_with_its_reason():
     assert st.status == "incomplete" and st.evidence["differing"] == 0, st.reason
     ended = st.evidence["replay_ended"]
     assert ended["tick"] == 633 and ended["reported_after"] == int(rec.reported[632:].sum()) > 0
+
+
+def test_routes_find_addressed_subscriptions_as_a_scan_would():
+    """An agent's subscription to the messages addressed to it
+    (``.../msg/$*_<id>_$*``) is found by the key's address pieces; the
+    answer is the one matching every expression gives."""
+    from diskf_mesh.mesh.simulated.simnet import _Routes
+    from diskf_mesh.mesh.wire.keys import Keys, key_matches
+
+    class P:
+        def __init__(self, order):
+            self.order = order
+
+    k, routes = Keys("r"), _Routes()
+    procs = [P(i) for i in range(12)]
+    exprs = [(p, k.msg_to(p.order)) for p in procs] + [(procs[3], k.msgs), (procs[4], f"{k.root}/agent/*/msg/$*_1$*")]
+    for p, e in exprs:
+        routes.add(e, p)
+    routes.remove(procs[5])
+    for to in ([], [1], [3, 5, 11], [0, 10, 2], [1, 1], [12]):
+        for key in (k.msg(7, to=to), k.msg(7, to=to) + "x", k.report(1)):
+            want = sorted((p.order, e) for p, e in exprs if p is not procs[5] and key_matches(e, key))
+            assert sorted((p.order, e) for p, e in routes.match(key)) == want, key

@@ -94,6 +94,8 @@ class Forger:
     """Forges agent 4's message of every tick, far out, as soon as the world's
     tick opens it (from agent 4's message of the tick before, as agent 1 hears it)."""
 
+    read = ev.Sample  # takes its samples as they are
+
     def __init__(self, boot):
         self.last = None
 

@@ -393,7 +393,11 @@ class Online:
         links[~reported] = planned[~reported]
         links[np.arange(N), np.arange(N)] = True
         mine = [(key[1], v) for key, v in claims.digests.items() if key[0] == k]
-        senders = sorted({int(s) for _, (ss, _) in mine for s in ss})
+        if mine:  # every (receiver, sender, digest) of the tick at once
+            rows = np.repeat([r for r, _ in mine], [len(ss) for _, (ss, _) in mine])
+            cols = np.concatenate([ss for _, (ss, _) in mine]).astype(np.intp)
+            said = np.concatenate([gs for _, (_, gs) in mine])
+        senders = np.unique(cols).tolist() if mine else []
         engine = np.zeros(N, dtype=np.uint64)
 
         def listen(_, msg):
@@ -414,10 +418,9 @@ class Online:
         bad, _ = compare(reported, claims.x[k - 1], claims.P[k - 1], claims.d[k - 1], claims.d_valid[k - 1],
                          out.x[0], out.P[0], out.d[0], out.d_valid[0], largest=False)
         has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)
-        if self.message_digest is not None:
-            for r, (ss, gs) in mine:
-                has[r, ss] = True
-                wrong[r, ss] = engine[ss] != gs
+        if self.message_digest is not None and mine:
+            has[rows, cols] = True
+            wrong[rows, cols] = engine[cols] != said
         return self.judge.tick(k, reported, bad, claims.fused[k - 1], has, wrong, [r.agent for r in restarts])
 
 

@@ -3,6 +3,7 @@
     transport      Transport: zenoh sessions (the tests have an in-process bus of their own)
     zenoh_config   session settings (TLS, access control, endpoints)
     shell          runs a machine over a Transport on the wall clock (one lock, timers, Woke)
+    checker        the world's check as the run goes, in a process of its own
     stopping       how a mesh process stops on a signal
     runspec        one run's settings as command lines (launcher, compose)
 
@@ -30,11 +31,13 @@ a tick, ``mesh.protocol.clock``):
                measurement (``wire.encode_measurement``, on the agent's own
                key, not express) and then the tick (``wire.encode_tick``:
                every position and the live set), published.
- 2. agent      ``AgentMachine._on_meas``, ``_on_tick``: the key is parsed
-               once (``Keys.parse``: kind and agent id), the payload decoded
-               once (``wire.decode_measurement``, ``wire.decode_tick``) and
-               taken if it fits the run (``_meas_problem``,
-               ``_tick_problem``). The tick gives the agents linked at k
+ 2. agent      the shell reads each sample at the machine's edge
+               (``AgentMachine.read`` -> ``mesh.protocol.intake``): the key
+               parsed once (``Keys.parse``: kind and agent id), the payload
+               decoded once (``wire.decode_measurement``,
+               ``wire.decode_tick``) into a typed event;
+               ``AgentMachine._on_meas``, ``_on_tick`` take it if it fits
+               the run (``_meas_problem``, ``_tick_problem``). The tick gives the agents linked at k
                (live, in range: ``linked``) and lets through the neighbours'
                messages of k that came before it (``Receiver.release``).
  3. agent      ``AgentMachine._open(k)``: the local step
@@ -42,12 +45,12 @@ a tick, ``mesh.protocol.clock``):
                (``wire.encode``: the fields its estimator exchanges,
                ``Estimator.exchanged``) and published on a key addressed to
                the linked agents; the collect timer set.
- 4. neighbour  ``AgentMachine._on_msg`` -> ``Receiver.on_payload(sender,
-               payload, links, now)`` with the sender the key named:
-               ``Guard.screen`` decodes the payload once (``wire.decode``:
-               schema, finite, positive definite) and checks the same floats
-               once (the tick window, magnitude, conditioning, information:
-               ``guard``); the range gate drops a sender not linked at the
+ 4. neighbour  at the edge, ``Guard.read`` decodes the payload once
+               (``wire.decode``: schema, finite, positive definite) and
+               checks the same floats once (magnitude, conditioning,
+               information: ``guard``) into a ``MessageArrived``;
+               ``AgentMachine._on_msg`` -> ``Receiver.on_message``:
+               ``Guard.judge`` checks the tick window; the range gate drops a sender not linked at the
                message's tick; the link's faults (``FaultModel.plan``,
                delayed copies in the ``DelayLine`` until the machine's
                "delay" timer); the message then waits in one place, the

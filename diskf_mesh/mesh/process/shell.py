@@ -9,7 +9,8 @@ run as a process:
                   monotonic time ``now``; the effects it returns are carried
                   out right there, in order (a put, a token, a timer)
     callbacks     the transport's threads (zenoh's network thread) call in
-                  with samples, token changes, queries and replies: the
+                  with samples (each read by the machine into its event,
+                  ``machine.read``), token changes, queries and replies: the
                   event goes to the machine on that thread, with no hop to
                   another (a report that completes a tick opens the next in
                   zenoh's callback)
@@ -38,7 +39,7 @@ import threading
 import time
 
 from diskf_mesh.mesh.protocol.events import (FREEZE_S, Answer, Ask, AskTokens, CancelTimer, DeclareQueryable, DeclareToken,
-                                    DropToken, Finish, Interrupt, Publish, Query, Reply, Sample, SetTimer, Subscribe,
+                                    DropToken, Finish, Interrupt, Publish, Query, Reply, SetTimer, Subscribe,
                                     Timer, Token, Tokens, WatchTokens, Woke)
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.process.transport import Transport
@@ -95,6 +96,15 @@ class Shell:
                 self._failure = e
             self._cv.notify_all()
 
+    def _on_sample(self, key: str, payload: bytes) -> None:
+        """A sample, read by the machine (``machine.read``: an agent's is
+        decoded there, once) into the event it handles."""
+        try:
+            event = self.machine.read(key, payload)
+        except BaseException as e:  # noqa: BLE001 - a callback must not swallow a failure
+            return self._fail(e)
+        self._feed(event)
+
     def _on_query(self, key: str, payload: bytes, reply) -> None:
         with self._cv:
             qid = next(self._qids)
@@ -121,7 +131,7 @@ class Shell:
                 if reply is not None:
                     reply(e.payload)
             elif isinstance(e, Subscribe):
-                self.transport.subscribe(e.key, lambda key, payload: self._feed(Sample(key, payload)))
+                self.transport.subscribe(e.key, self._on_sample)
             elif isinstance(e, WatchTokens):
                 self.transport.watch_tokens(e.key, lambda key, up: self._feed(Token(key, bool(up))))
             elif isinstance(e, DeclareQueryable):

@@ -1,11 +1,11 @@
 """mesh.protocol: the sans-I/O protocol machines and everything they call (no thread, no socket, no clock read).
 
     events         the boundary: events into a protocol machine, effects out
+    intake         an agent's edge: a sample read once into a typed event (key parsed, payload decoded)
     agent_machine  an agent's protocol: one tick in order (open, collect, close), joining, rejoining
     world_machine  the world's protocol: ticks, reports, liveliness, pauses, the rejoin answers
-    receive        an agent's receive path: gate -> guard -> faults -> inbox
+    receive        an agent's receive path: guard -> gate -> faults -> inbox (the one place a message waits)
     guard          the fusion guard (a message's values before it may be fused)
-    inbox          the one place a neighbour's message waits (for its tick, for fusion)
     delayline      the links' delayed copies
     estimator      an agent's estimator: the engine's functions on a batch of one
     rejoin         where a (re)joining agent starts: a neighbour's fused estimate, or the prior

@@ -6,16 +6,22 @@ nothing else: no transport, no thread, no clock read. A shell
 ``mesh.simulated.simnet``) hands it one event at a time with the time ``now`` and
 carries out the effects it returns, in order::
 
-    m = AgentMachine(scn, agent_id, algorithm, keys, nonce)
+    m = AgentMachine(scn, agent_id, estimators.get(name), keys, nonce)
     effects = m.start(now)            # Subscribe, WatchTokens, SetTimer
+    event = m.read(key, payload)      # a sample, decoded once at the edge (``mesh.protocol.intake``)
     effects = m.handle(event, now)    # Publish, DeclareToken, Ask, ..., Finish
+
+The machine never sees bytes of the world's or a neighbour's: ``read``
+turns each sample into a typed event (``TickArrived``,
+``MeasurementArrived``, ``StopArrived``, ``MessageArrived``,
+``Unreadable``: ``mesh.protocol.events``) before ``handle``.
 
 One tick k, in the order the code below runs it (lockstep; real time
 differs only in when a tick is closed, ``mesh.protocol.clock``):
 
  1. ``_on_meas``, ``_on_tick``  the world's measurement of tick k and its
-    tick (every position, the live set) come in as samples; each is decoded
-    once and taken if it fits the run (``_meas_problem``,
+    tick (every position, the live set) come in, decoded at the edge, and
+    are taken if they fit the run (``_meas_problem``,
     ``_tick_problem``). The tick gives the agents linked at k (``linked``)
     and lets the neighbours' messages of k that came before it onto their
     links (``Receiver.release``).
@@ -23,8 +29,9 @@ differs only in when a tick is closed, ``mesh.protocol.clock``):
     (``AgentEstimator.local``), ONE message (``wire.encode``), published on
     a key addressed to the linked agents; the collection of tick k starts
     (``SetTimer("collect")`` at its deadline).
- 3. ``_on_msg``  each neighbour's message goes through the receive path
-    (``mesh.protocol.receive``: guard, range gate, the link's faults, inbox); a copy
+ 3. ``_on_msg``  each neighbour's message (decoded and its values checked
+    at the edge: ``Guard.read``) goes through the receive path
+    (``mesh.protocol.receive``: the guard's window, range gate, the link's faults, inbox); a copy
     the fault layer delays comes back at ``Timer("delay")``.
  4. ``_close(k)``  once every linked sender is accounted for (arrived,
     lost, refused), at the collect timer, when a later tick is already in,
@@ -69,7 +76,6 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
-import dataclasses
 import functools
 import itertools
 import math
@@ -77,22 +83,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diskf_mesh import estimators
 from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.data.lies import Liars
 from diskf_mesh.data.scenario import Scenario
+from diskf_mesh.estimators.base import Estimator
 from diskf_mesh.mesh.protocol import clock as realtime
-from diskf_mesh.mesh.protocol import rejoin
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.estimator import AgentEstimator, neighbours
-from diskf_mesh.mesh.protocol.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt, Publish,
-                                    Reply, Sample, SetTimer, Subscribe, Timer, Token, Tokens, WatchTokens, Woke)
+from diskf_mesh.mesh.protocol.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt,
+                                             MeasurementArrived, MessageArrived, Publish, Reply, Sample, SetTimer,
+                                             StopArrived, Subscribe, TickArrived, Timer, Token, TokenBatch, Tokens,
+                                             Unreadable, WatchTokens, Woke)
 from diskf_mesh.mesh.protocol.guard import Guard, GuardConfig
+from diskf_mesh.mesh.protocol.intake import Intake
 from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
 from diskf_mesh.mesh.protocol.log import Log
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.protocol.receive import Receiver
+from diskf_mesh.mesh.protocol.roster import Roster, parse_batch
 from diskf_mesh.mesh.protocol.shared import Shared
 from diskf_mesh.mesh.protocol.verdicts import TickVerdicts
 
@@ -105,6 +114,7 @@ CLAIM_S = 1.0    # the liveliness query for another process holding this agent's
 ASK_S = 5.0      # a (re)joining agent waits this long for the world's answer, then asks again
 
 OK, FAILED, DUPLICATE = 0, 1, 2  # exit statuses (``Finish.code``)
+ARRIVALS = frozenset({TickArrived, MeasurementArrived, StopArrived, MessageArrived, Unreadable, Sample})
 
 
 @dataclass(frozen=True)
@@ -116,7 +126,8 @@ class AgentTiming:
 
 class AgentMachine:
     """The protocol of agent ``agent_id`` of scenario ``scn`` in the run of
-    ``keys`` (module docstring).
+    ``keys`` (module docstring) with ``estimator``, the class
+    ``estimators.get`` resolved.
 
     ``nonce``: this process's token suffix (``keys.new_nonce()`` in a real
     process; any distinct, sortable string in a simulation). ``faults``: the
@@ -128,7 +139,9 @@ class AgentMachine:
     (``mesh.protocol.shared``: the simulated network). ``ticks`` is the number of ticks
     worked on so far."""
 
-    def __init__(self, scn: Scenario, agent_id: int, algorithm: str, keys: Keys, nonce: str,
+    batches_tokens = True  # takes ``TokenBatch`` (the simulated network's casts of many tokens)
+
+    def __init__(self, scn: Scenario, agent_id: int, estimator: type[Estimator], keys: Keys, nonce: str,
                  timing: AgentTiming = AgentTiming(), faults: FaultConfig | FaultModel | None = None,
                  log: Log | None = None, profile: Phases = NO_PHASES, shared: Shared | None = None):
         self.scn, self.keys, self.nonce, self.timing = scn, keys, nonce, timing
@@ -137,7 +150,8 @@ class AgentMachine:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} "
                              f"(ids {', '.join(map(str, self.ids))})")
         self.id = agent_id
-        self.algorithm = algorithm
+        self.estimator = estimator  # the class ``estimators.get`` resolved, once for the run
+        self.algorithm = estimator.name
         self.log = log or Log(f"agent {agent_id}")
         self.prof = profile
         n, m = scn.G.shape
@@ -147,15 +161,14 @@ class AgentMachine:
         # tick (the guard's window two); real time further, for an agent that fell behind
         self.lead = 1 if timing.clock is None else realtime.LEAD_TICKS
         self.kept = AHEAD_KEPT if timing.clock is None else realtime.LEAD_TICKS + 2
-        declared = estimators.get(algorithm)
-        self.exchanged = declared.exchanged  # what its messages carry (``Estimator.exchanged``)
-        self.fault_config = faults if isinstance(faults, FaultConfig) else None
+        self.exchanged = estimator.exchanged  # what its messages carry (``Estimator.exchanged``)
         self.liars = Liars(scn.lies, (agent_id,), n, scn.position_dims)  # this agent's lies, if it is a liar
-        self.receiver = Receiver(Guard(GuardConfig(
-            keys.run_id, agent_id, scn.id_set, n, m,
-            information_check=declared.information_check, exchanged=declared.exchanged,
-            **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
-            profile=profile, shared=shared), faults if isinstance(faults, FaultModel) else None)
+        guard = Guard(GuardConfig(keys.run_id, agent_id, scn.id_set, n, m,
+                                  information_check=estimator.information_check, exchanged=estimator.exchanged,
+                                  **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
+                      profile=profile, shared=shared)
+        self.intake = Intake(keys, agent_id, self.p, len(self.ids), guard, profile)  # ``read``: the edge
+        self.receiver = Receiver(guard, faults)
         self.counters = self.receiver.counters
         self.verdicts = TickVerdicts()  # per tick: who was fused, why the others were not
         self._qids = itertools.count(1)
@@ -177,8 +190,7 @@ class AgentMachine:
         self.world_gone = False
         self.world_gone_at = math.inf
         self.world_ticking = False  # the world's "ticking" token: the run is past its start
-        self.alive = set()          # agent ids of the scenario with an alive token
-        self.alive_tokens = {}      # agent id -> nonces of its processes' alive tokens (a tuple: usually one)
+        self.alive = Roster(self.ids, scn.places, agent_id)  # the agents with an alive token
         self._woke_at = -math.inf   # when this process found it had been frozen
         # -- start-up and joining
         self.phase = "world"      # world, claim, gather, peers, joining, leaving, finished
@@ -226,18 +238,26 @@ class AgentMachine:
         self._step(now)
         return out
 
+    def read(self, key: str, payload: bytes):
+        """A sample on one of this agent's keys as the event ``handle``
+        takes (``mesh.protocol.intake``: decoded once, at the edge)."""
+        return self.intake.read(key, payload)
+
     def handle(self, event, now: float) -> list:
-        """Take in one event at ``now``; returns the effects, in order."""
+        """Take in one event at ``now`` (a sample as ``read`` made it);
+        returns the effects, in order."""
         self._out = out = []
         if self.finish is not None:
             return out
         kind = type(event)
-        if kind is Sample:
-            if self._on_sample(event.key, event.payload, now):
+        if kind in ARRIVALS:
+            if self._on_arrival(event, now):
                 self._step(now)
             return out
         if kind is Token:
             self._on_token(event.key, event.up, now)
+        elif kind is TokenBatch:
+            self._on_tokens(event.keys, event.up, now)
         elif kind is Timer:
             self._on_timer(event.name, now)
         elif kind is Reply:
@@ -274,12 +294,9 @@ class AgentMachine:
             if not self.collecting:
                 if self.stopped is not None:
                     break
-                if k in self.ticks and self.id not in self.ticks[k].live:
-                    self._resync(f"the world counts this agent out at tick {k}", now)
-                    self._start_up(now)
-                    break
-                if k not in self.ticks and any(j > k for j in self.ticks):
-                    self._resync(f"tick {k} never came", now)
+                why = self._out_of_run(k)
+                if why:
+                    self._resync(why, now)
                     self._start_up(now)
                     break
                 if k not in self.ticks or k not in self.meas:
@@ -294,31 +311,36 @@ class AgentMachine:
         if self.stopped is not None and not self.collecting and self.finish is None:
             self._end()
 
-    def _on_sample(self, key: str, payload, now: float) -> bool:
-        """A sample: the world's tick, measurement or stop, a neighbour's
-        message. False if it changed nothing a step waits for."""
-        kind, who = self.keys.parse(key)
-        if kind == "msg":
-            return self._on_msg(who, payload, now)
-        try:
-            if kind == "tick":
-                return self._on_tick(payload, now)
-            if kind == "meas":
-                return self._on_meas(payload, now)
-            if kind == "stop":
-                self.stopped = wire.decode_stop(payload, run_id=self.keys.run_id)
-                return True
-        except wire.Rejected as e:
-            return self._refuse(kind, e.reason, e.detail)
-        return False
+    def _out_of_run(self, k: int) -> str:
+        """Why this agent is out of the run at tick ``k`` ("": it is not):
+        the world's tick k counts it out, or a later tick came and k never
+        did."""
+        if k in self.ticks and self.id not in self.ticks[k].live:
+            return f"the world counts this agent out at tick {k}"
+        if k not in self.ticks and any(j > k for j in self.ticks):
+            return f"tick {k} never came"
+        return ""
+
+    def _on_arrival(self, event, now: float) -> bool:
+        """A sample, as ``read`` made it: the world's tick, measurement or
+        stop, a neighbour's message. False if it changed nothing a step
+        waits for."""
+        kind = type(event)
+        if kind is MessageArrived:
+            return self._on_msg(event, now)
+        if kind is TickArrived:
+            return self._on_tick(event.tick, now)
+        if kind is MeasurementArrived:
+            return self._on_meas(event.measurement, now)
+        if kind is StopArrived:
+            self.stopped = event.stop
+            return True
+        if kind is Unreadable:
+            return self._refuse(event.kind, event.reason, event.detail)
+        return False  # a sample on a key no step reads
 
     # -- 1. the world's tick and this agent's measurement ---------------------
-    def _on_meas(self, payload, now: float) -> bool:
-        self.prof.begin()
-        try:
-            mm = wire.decode_measurement(payload, run_id=self.keys.run_id, agent=self.id, p=self.p)
-        finally:
-            self.prof.end("decode")
+    def _on_meas(self, mm: wire.Measurement, now: float) -> bool:
         if mm.tick < self.k:
             return True
         problem = self._meas_problem(mm)
@@ -329,19 +351,7 @@ class AgentMachine:
         self._bound(self.meas)
         return True
 
-    def _on_tick(self, payload, now: float) -> bool:
-        self.prof.begin()
-        try:
-            shared = self.receiver.guard.shared
-            if shared is None:
-                t = wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids))
-            else:
-                t = shared.once(payload, ("tick", self.keys.run_id, len(self.ids)),
-                                lambda: wire.decode_tick(payload, run_id=self.keys.run_id, agents=len(self.ids)))
-                if isinstance(t, wire.Rejected):
-                    raise wire.Rejected(t.reason, t.detail, t.tick)
-        finally:
-            self.prof.end("decode")
+    def _on_tick(self, t: wire.Tick, now: float) -> bool:
         consts = (t.ticks, t.seed, t.algorithm, t.topology, t.comm_range)
         if t.tick < self.k or t.tick in self.ticks:
             self.last_heard = now
@@ -363,11 +373,8 @@ class AgentMachine:
         self.last_heard = now
         if self.constants is None:
             self.constants = consts
-            guard = self.receiver.guard
-            guard.config = dataclasses.replace(guard.config, ticks=t.ticks)
+            self.receiver.learn_run(t.ticks, t.seed)
         self.K, self.newest = t.ticks, max(self.newest, t.tick)
-        if self.fault_config is not None and self.receiver.faults is None:
-            self.receiver.use_faults(FaultModel(self.fault_config, t.seed))
         self.ticks[t.tick] = t
         clock = self.timing.clock
         if clock is not None:  # a copy after the deadline is late, even before the close
@@ -469,16 +476,17 @@ class AgentMachine:
         prof.waiting = "wait-neighbours"
 
     # -- 3. collect: the neighbours' messages through the receive path ---------
-    def _on_msg(self, sender, payload, now: float) -> bool:
-        """A neighbour's message (``sender``: its key's id, parsed once) into
-        the receive path (``mesh.protocol.receive``): the guard decodes it once and
-        rejects (counts) what is malformed or off the window around tick k,
+    def _on_msg(self, arrival: MessageArrived, now: float) -> bool:
+        """A neighbour's message (read at the edge: its key's id, its decode,
+        the checks of its own values) into the receive path
+        (``mesh.protocol.receive``): the guard rejects (counts) what is
+        malformed or off the window around tick k,
         the range gate drops (counts "out_of_range") one from an agent not
         linked to this one at the message's tick (one whose tick the world
         has not opened here yet waits for it), and the inbox holds the rest
         until the tick is fused. False if it was dropped."""
         self.receiver.advance(self.k)
-        taken = self.receiver.on_payload(sender, payload, self.linked, now)
+        taken = self.receiver.on_message(arrival, self.linked, now)
         self._arm_delay()
         return taken
 
@@ -618,6 +626,22 @@ class AgentMachine:
         elif kind == "alive" and who in self.ids:
             self._on_agent_token(who, nonce_of(key), up, now)
 
+    def _on_tokens(self, batch: tuple, up: bool, now: float) -> None:
+        """Many tokens at once (``TokenBatch``): the others' alive tokens
+        counted in one call, the world's and this id's one by one."""
+        shared = self.receiver.guard.shared
+        parse = lambda: parse_batch(self.keys, self.scn.places, batch)  # noqa: E731
+        places, nonces, others = parse() if shared is None else shared.once(batch, ("tokens", self.keys.root), parse)
+        for key in others:
+            self._on_token(key, up, now)
+        own = self.scn.index(self.id)
+        mine = places == own
+        if mine.any():
+            for j in np.flatnonzero(mine).tolist():
+                self._on_agent_token(self.id, nonces[j], up, now)
+            places = places[~mine]
+        self.alive.tokens(places, up)
+
     def _on_world_token(self, nonce_: str, up: bool, now: float) -> None:
         """The world's token came or went. Gone while this process was frozen
         past zenoh's lease: the world has dropped this agent from the run, so
@@ -642,13 +666,7 @@ class AgentMachine:
         nonce is smaller (an earlier start) and this one has not worked on a
         tick yet; one that works since tick 1 keeps the id (its estimate is
         the engine's, a late twin's is not)."""
-        was = self.alive_tokens.get(who, ())
-        held = tuple(n for n in was if n != nonce_) + ((nonce_,) if up else ())
-        if held:
-            self.alive_tokens[who] = held
-        else:
-            self.alive_tokens.pop(who, None)
-        (self.alive.add if held else self.alive.discard)(who)
+        self.alive.token(who, nonce_, up)
         if not (up and who == self.id and self.claimed and nonce_ != self.nonce):
             return
         if self._late():
@@ -687,8 +705,7 @@ class AgentMachine:
             self.phase = "claim"
             self._claim_qid = next(self._qids)
             self._out.append(AskTokens(self._claim_qid, self.keys.alive(self.id), CLAIM_S))
-        # ``alive`` holds ids of the scenario only: all of them once it is as large
-        if self.phase == "gather" and ((self.world_seen and (len(self.alive) == len(self.ids) or self.world_ticking))
+        if self.phase == "gather" and ((self.world_seen and (self.alive.complete or self.world_ticking))
                                        or self.stopped is not None):
             if self.world_ticking and self.est is None:
                 self._joining(self.newest)
@@ -736,12 +753,12 @@ class AgentMachine:
     def _others(self, nonces=()) -> set:
         """The nonces of other processes holding this agent's id: ``nonces``
         (an answer's) and the alive tokens of its id this one has seen."""
-        return (set(nonces) | set(self.alive_tokens.get(self.id, ()))) - {self.nonce}
+        return (set(nonces) | set(self.alive.mine)) - {self.nonce}
 
     def _peers_seen(self) -> bool:
         """The agents the world counts live at its newest tick are seen (so
         this agent's first message reaches them)."""
-        return not self.ticks or set(self.ticks[max(self.ticks)].live) - {self.id} <= self.alive
+        return not self.ticks or self.alive.has(set(self.ticks[max(self.ticks)].live) - {self.id})
 
     def _ready(self) -> None:
         """Declare a ready token: this agent joins at the first tick after
@@ -799,7 +816,9 @@ class AgentMachine:
                                 f"the world runs algorithm {t.algorithm}, topology {t.topology}, range "
                                 f"{t.comm_range:g}; this agent {mine_[0]}, {mine_[1]}, {mine_[2]:g}: start both "
                                 "with the same flags")
-        est = AgentEstimator(self.scn, self.id, self.algorithm, t.ticks, t.seed)
+        start = self._start[1] if restart else None  # the world's answer (None: the prior)
+        est = AgentEstimator(self.scn, self.id, self.estimator, t.ticks, t.seed,
+                             start=None if start is None else (start.x, start.P))
         if not self._worked:
             self._worked = True
             self._started_late = restart
@@ -807,7 +826,7 @@ class AgentMachine:
         self.est = est
         self.phase = "working"
         if restart:
-            self._restart_from(k)
+            self._restarted(k, start)
 
     def _on_reply(self, qid: int, payload) -> None:
         """The world's answer to the query for the starting estimate; one
@@ -833,15 +852,12 @@ class AgentMachine:
             self._refuse("start", e.reason, e.detail)
         self._start = (k, start)
 
-    def _restart_from(self, k: int) -> None:
-        """A (re)joining agent's estimate of tick k - 1: the world's answer
-        (``mesh.protocol.rejoin``); every report from now on tells the world the tick
-        and the source (``wire.encode_report``'s "rj")."""
-        start = self._start[1]
-        src = None
-        if start is not None:
-            rejoin.start_from(self.est, start.x, start.P)
-            src = start.source
+    def _restarted(self, k: int, start) -> None:
+        """A (re)joining agent started at tick ``k`` from the world's answer
+        ``start`` (``mesh.protocol.rejoin``; None: the prior): every report from
+        now on tells the world the tick and the source (``wire.encode_report``'s
+        "rj")."""
+        src = None if start is None else start.source
         self.rejoins.append((k, src))
         self.log.info(f"joined at tick {k}, re-initialised from "
                       + (f"agent {src}'s fused estimate of tick {k - 1}" if src is not None else "the prior"))

@@ -10,18 +10,25 @@ same numbers. No transport or timing here.
 """
 from __future__ import annotations
 
-from dataclasses import fields
+from dataclasses import fields, replace
 from operator import attrgetter
 
 import numpy as np
 
 from diskf_mesh import estimators
+from diskf_mesh.estimators.base import Estimator
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.data.scenario import Scenario, links_for
 
 
 class AgentEstimator:
-    def __init__(self, scn: Scenario, agent_id: int, algorithm: str, ticks: int, seed: int, params=None):
+    """Agent ``agent_id``'s ``estimator`` (the class ``estimators.get``
+    resolved) over a run of ``ticks`` ticks with ``seed`` (its draws), from
+    the prior, or from ``start`` = (x, P) with a new observation window (a
+    rejoin: ``mesh.protocol.rejoin``)."""
+
+    def __init__(self, scn: Scenario, agent_id: int, estimator: type[Estimator], ticks: int, seed: int,
+                 params=None, start=None):
         self.ids = scn.ids
         if agent_id not in self.ids:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} (ids {', '.join(map(str, self.ids))})")
@@ -29,9 +36,12 @@ class AgentEstimator:
         self.index = self.ids.index(agent_id)
         self.scenario = scn
         self.sensors = scn.sensors().select([self.index])   # this agent's H, R only
-        self.algorithm = algorithm
-        self.alg = estimators.get(algorithm)(scn.model(ticks), self.sensors, params or scn.params)
-        self.state = self.alg.init((1, 1))
+        self.alg = estimator(scn.model(ticks), self.sensors, params or scn.params)
+        st = self.state = self.alg.init((1, 1))
+        if start is not None:
+            x, P = start
+            self.state = replace(st, x=np.array(x, dtype=float).reshape(st.x.shape),
+                                 P=np.array(P, dtype=float).reshape(st.P.shape), since=np.zeros_like(st.since))
         draws = self.alg.draws(seed, [agent_id], ticks)  # this agent's row of the engine's (Estimator.draws)
         self.draws = None if draws is None else draws[0]
         self._neighbourhoods = {}  # (senders, own position) -> Neighbourhood
@@ -104,7 +114,8 @@ def lockstep(scn: Scenario, algorithm: str, trace, seed: int = 0):
     per tick; ``seed``: the run's seed (the estimator's draws)."""
     ids = [a.id for a in scn.agents]
     K = trace.has.shape[1]
-    agents = {i: AgentEstimator(scn, i, algorithm, K, seed) for i in ids}
+    estimator = estimators.get(algorithm)
+    agents = {i: AgentEstimator(scn, i, estimator, K, seed) for i in ids}
     for k in range(1, K + 1):
         msgs = {i: agents[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :agents[i].p])
                 for j, i in enumerate(ids)}

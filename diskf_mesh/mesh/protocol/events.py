@@ -15,6 +15,10 @@ Events (what happened to the process):
 
     Sample(key, payload)      a sample on a key the process subscribes to
     Token(key, up)            a liveliness token appeared (up) or went
+    TokenBatch(keys, up)      the tokens of ``keys`` appeared (up) or went at
+                              one instant: ``Token(key, up)`` for each key, in
+                              order (a shell that delivers many tokens to many
+                              machines at once: the simulated network)
     Timer(name)               a timer the machine set (``SetTimer``) fired
     Query(qid, key, payload)  a query on a key this process answers
     Reply(qid, payload)       the answer to a query this process made
@@ -25,6 +29,22 @@ Events (what happened to the process):
     Tokens(qid, keys)         the answer to ``AskTokens``: the keys of the
                               tokens the network holds now
     Interrupt(why)            the process was told to stop (a signal's name)
+
+A shell reads every ``Sample`` through its machine first,
+``machine.read(key, payload)``: the world handles the sample as it is; an
+agent's comes back decoded once, at its edge (``mesh.protocol.intake``), as
+one of
+
+    TickArrived(tick)         the world's tick (a ``wire.Tick``)
+    MeasurementArrived(measurement)   this agent's measurement (``wire.Measurement``)
+    StopArrived(stop)         the world's stop (``wire.Stop``)
+    MessageArrived(sender, message, problem)
+                              a neighbour's message: the id its key names,
+                              the decoded ``wire.WireMessage`` (or the
+                              ``wire.Rejected`` its decode raised) and what
+                              the checks of its own values found
+                              (``guard.Guard.read``)
+    Unreadable(kind, reason, detail)  a world's payload that does not decode
 
 Effects (what the process does):
 
@@ -71,6 +91,12 @@ class Token:
     up: bool
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class TokenBatch:
+    keys: tuple
+    up: bool
+
+
 @dataclass(frozen=True, slots=True)
 class Timer:
     name: str
@@ -105,7 +131,38 @@ class Interrupt:
     why: str
 
 
-Event = Sample | Token | Timer | Query | Reply | Woke | Tokens | Interrupt
+# -- an agent's samples, decoded at its edge (``mesh.protocol.intake``) ----------
+@dataclass(frozen=True, slots=True)
+class TickArrived:
+    tick: object              # wire.Tick
+
+
+@dataclass(frozen=True, slots=True)
+class MeasurementArrived:
+    measurement: object       # wire.Measurement
+
+
+@dataclass(frozen=True, slots=True)
+class StopArrived:
+    stop: object              # wire.Stop
+
+
+@dataclass(frozen=True, slots=True)
+class MessageArrived:
+    sender: int | None        # the id the key names (None: not an integer)
+    message: object           # wire.WireMessage, the wire.Rejected of its decode, or None: not decoded
+    problem: tuple | None     # (reason, detail) of the checks of its own values, or None
+
+
+@dataclass(frozen=True, slots=True)
+class Unreadable:
+    kind: str                 # tick, meas, stop
+    reason: str
+    detail: str
+
+
+Arrival = TickArrived | MeasurementArrived | StopArrived | MessageArrived | Unreadable
+Event = Sample | Token | TokenBatch | Timer | Query | Reply | Woke | Tokens | Interrupt | Arrival
 
 
 # -- effects ------------------------------------------------------------------

@@ -1,8 +1,11 @@
 """The fusion guard: nothing an agent receives can corrupt its estimate.
 
-Every payload that arrives on a neighbour's message key goes through
-``Guard.screen(sender, payload, tick)`` (``sender``: the id the key names,
-parsed once by the agent) before it can reach fusion. It returns the decoded
+Every payload that arrives on a neighbour's message key goes through the
+guard before it can reach fusion, in two halves: ``Guard.read(sender,
+payload)`` at the agent's edge (``mesh.protocol.intake``; ``sender``: the
+id the key names, parsed once) decodes it and checks its own values, and
+``Guard.judge(arrival, tick)`` in the agent's receive path checks the tick
+window and counts (``screen`` is both). It returns the decoded
 ``wire.WireMessage`` or a refusal; it never raises. The payload is decoded
 once (``wire.decode``), and every check below runs once, on the floats the
 decoder read (``WireMessage.values``); what is checked follows from the
@@ -58,7 +61,7 @@ accounts for that sender at that tick: the agent does not wait the collect
 timeout for a neighbour whose message was poisoned, and never fuses it.
 
 Late and duplicate messages are not errors: they are well-formed, and the
-inbox (``diskf_mesh.mesh.protocol.inbox``) counts and drops them.
+inbox (``diskf_mesh.mesh.protocol.receive.Inbox``) counts and drops them.
 
 The agent's ``_close`` is the last line: should fusion still fail on
 messages that passed the guard (a well-formed but inconsistent set, e.g.
@@ -77,6 +80,7 @@ from diskf_mesh.core import small
 from diskf_mesh.estimators.base import EXCHANGED
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.wire.counters import Counters
+from diskf_mesh.mesh.protocol.events import MessageArrived
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.protocol.shared import Shared
 
@@ -84,6 +88,7 @@ REASONS = wire.REASONS + tuple(r for r in ("key", "unknown-sender", "tick-past",
                                            "ill-conditioned", "weights", "information", "error", "fusion", "constants")
                                 if r not in wire.REASONS)
 LOGGER = logging.getLogger("diskf_mesh.mesh.protocol.guard")
+ERROR = "error"    # what the decoder or a check raised (never expected: the fuzz test asserts it)
 WEIGHTS_ATOL = 1e-6  # how far from 1 the sum of a message's probabilities may be (its sender normalised them)
 
 
@@ -136,54 +141,72 @@ class Guard:
         """``payload`` on the key of agent ``sender`` (an int, or None when
         the key's id is not one) at ``tick``, the agent's current tick: the
         decoded message if it may be fused at (or around) ``tick``, a
-        ``Refused``, or None for the agent's own message."""
+        ``Refused``, or None for the agent's own message (``read``, then
+        ``judge``)."""
+        return self.judge(self.read(sender, payload), tick)
+
+    def read(self, sender, payload) -> MessageArrived:
+        """What ``payload`` on the key of agent ``sender`` says by itself,
+        before any receiver's state: its decode and the checks of its own
+        values (``message_problem``), each once (with ``shared``: once for
+        every receiver of the payload). Nothing is decoded for a key naming
+        no agent of the run or this agent itself (``judge`` refuses or
+        ignores it). Never raises: what the decoder or the checks raised is
+        a refusal with reason "error"."""
         c = self.config
+        if sender is None or sender not in c.known or sender == c.me:
+            return MessageArrived(sender, None, None)
+        shared = self.shared
+        hit = None if shared is None else shared.entry(payload, (sender, self._shared_how(c)))
+        if hit:
+            return MessageArrived(sender, *hit)
+        prof = self.profile
+        problem = None
+        prof.begin()
+        try:
+            wm = wire.decode(payload, run_id=c.run_id, sender=sender, n=c.n, m=c.m, exchanged=c.exchanged)
+        except wire.Rejected as e:
+            wm = e
+        except Exception as e:  # noqa: BLE001 - a guard that raises would stop the agent
+            wm, problem = None, (ERROR, f"{type(e).__name__}: {e}")
+        finally:
+            prof.end("decode")
+        if isinstance(wm, wire.WireMessage):
+            prof.begin()
+            try:
+                problem = message_problem(wm, c)
+            except Exception as e:  # noqa: BLE001
+                problem = ERROR, f"{type(e).__name__}: {e}"
+            finally:
+                prof.end("guard")
+        if hit is not None:
+            hit += (wm, problem)
+        return MessageArrived(sender, wm, problem)
+
+    def judge(self, arrival: MessageArrived, tick: int):
+        """``arrival`` (``read``'s) at ``tick``, the agent's current tick:
+        the decoded message if it may be fused at (or around) ``tick``, a
+        ``Refused`` (counted), or None for the agent's own message."""
+        c = self.config
+        sender, wm = arrival.sender, arrival.message
         if sender is None or sender not in c.known:
             return self._reject(None, "key" if sender is None else "unknown-sender")
         if sender == c.me:
             return None
-        prof = self.profile
-        try:
-            shared = self.shared
-            hit = None if shared is None else shared.entry(payload, (sender, self._shared_how(c)))
-            prof.begin()
-            try:
-                if hit:
-                    wm = hit[0]
-                else:
-                    try:
-                        wm = wire.decode(payload, run_id=c.run_id, sender=sender, n=c.n, m=c.m,
-                                         exchanged=c.exchanged)
-                    except wire.Rejected as e:
-                        wm = e
-                    if hit is not None:
-                        hit.append(wm)
-            finally:
-                prof.end("decode")
-            if isinstance(wm, wire.Rejected):
-                # a body naming another agent or run is not this sender's message of its tick (a copy, a
-                # replay): it accounts for no tick, so it cannot stand in for the sender's real message
-                mine = wm.reason not in ("sender", "run")
-                return self._reject(sender, wm.reason, wm.detail,
-                                    wm.tick if mine and self.in_window(wm.tick, tick) else None)
-            prof.begin()
-            try:
-                inside = self.in_window(wm.tick, tick)
-                if not inside:
-                    reason = self._off_window(wm.tick, tick)
-                elif hit is None:
-                    reason = message_problem(wm, c)
-                else:  # the payload's own checks, once for every receiver
-                    if len(hit) == 1:
-                        hit.append(message_problem(wm, c))
-                    reason = hit[1]
-            finally:
-                prof.end("guard")
-            if reason is not None:
-                return self._reject(sender, *reason, wm.tick if inside else None)
-            return wm
-        except Exception as e:  # noqa: BLE001 - a guard that raises would stop the agent
-            return self._reject(sender, "error", f"{type(e).__name__}: {e}")
+        if wm is None:  # its decode raised
+            return self._reject(sender, *arrival.problem)
+        if isinstance(wm, wire.Rejected):
+            # a body naming another agent or run is not this sender's message of its tick (a copy, a
+            # replay): it accounts for no tick, so it cannot stand in for the sender's real message
+            mine = wm.reason not in ("sender", "run")
+            return self._reject(sender, wm.reason, wm.detail,
+                                wm.tick if mine and self.in_window(wm.tick, tick) else None)
+        inside = self.in_window(wm.tick, tick)
+        reason = arrival.problem if inside else self._off_window(wm.tick, tick)
+        if reason is not None:
+            # a check that raised says nothing of the message's tick
+            return self._reject(sender, *reason, wm.tick if inside and reason[0] != ERROR else None)
+        return wm
 
     def _shared_how(self, c: GuardConfig) -> int:
         """What a payload's decode and checks depend on besides the payload

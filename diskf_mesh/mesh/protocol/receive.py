@@ -1,11 +1,11 @@
 """The receive path of one agent: guard, range gate, the link's faults, the inbox.
 
-    payload on a neighbour's key (its id parsed once, by the agent)
-      -> ``Guard.screen``     rejected (counted by reason; one that named a
+    a neighbour's message as the agent's edge read it (``MessageArrived``:
+    its key's id, its decode and the checks of its own values, each once)
+      -> ``Guard.judge``      rejected (counted by reason; one that named a
                               tick in the window accounts for its sender at
-                              that tick), or a decoded message (decoded
-                              once, every value and the tick window checked
-                              once)
+                              that tick), or the decoded message, its tick
+                              in the window around the agent's
       -> range gate           the sender not in range at the message's tick:
                               out_of_range += 1, never on a link. A message
                               whose tick the world has not opened here yet
@@ -26,8 +26,8 @@ Every map here is bounded by the guard's window (``max_lag`` + ``max_lead``
 + 1 ticks) times the scenario's agents: what a flood of other ids, ticks or
 copies sends costs counts, never memory.
 
-The agent's machine (``mesh.protocol.agent_machine``) calls ``on_payload`` for every
-payload on a neighbour's key and, per tick, closes the tick once every
+The agent's machine (``mesh.protocol.agent_machine``) calls ``on_message``
+for every message on a neighbour's key and, per tick, closes the tick once every
 linked sender is ``accounted`` for (or at its deadline) with ``take(tick,
 linked)``. A copy the fault layer delays waits in the ``DelayLine`` until
 the time it is due: the machine sets a timer at ``next_due`` and calls
@@ -38,25 +38,79 @@ exactly the run without this layer.
 No thread, no lock, no clock read: every call carries the time ``now`` of
 the event that made it (the wall clock under the real transport, virtual
 time in the simulated network), so a seeded run replays exactly.
+
+``Inbox``: the one place a neighbour's message waits.
+
+A message waits here in one of two stages: before its link, for its tick to
+open at this agent (the world's tick gives the links), and after its link
+delivered it, until its tick is fused.
+
+    ``wait_for_tick(sender, tick, m)``  a message whose tick the world has
+                                      not opened here yet: held (first copy
+                                      per (sender, tick); False for a repeat)
+    ``opened(tick)``                  the world's tick is in: what waited for
+                                      it, {sender: message}, goes on a link
+    ``skipped(tick)``                 the agent works on ``tick`` now: how
+                                      many waited for an earlier one (their
+                                      tick was skipped; never on a link)
+
+The estimator fuses only what arrived in time for its tick:
+
+    ``offer(sender, tick, message, now)``  a copy that arrived at ``now``:
+                                      the first copy of
+                                      (sender, tick) is held; a later one is a
+                                      duplicate (fused at most once); one for
+                                      a tick already fused is late
+    ``take(tick, linked)``            the messages of ``tick`` from the senders
+                                      in ``linked``, sorted by sender id (so
+                                      fusion sums in a fixed order); every
+                                      other one held for ``tick`` is unlinked,
+                                      and ``tick`` is closed: anything for it
+                                      or an earlier tick that comes later is
+                                      late
+    ``close()``                       the run is over: whatever is still held
+                                      never made it into fusion, late
+    ``due(tick, at)``                 real time (``mesh.protocol.clock``): a copy of
+                                      ``tick`` arriving after ``at`` (the
+                                      agent's clock) is late, even before
+                                      ``take``: it missed its deadline
+
+Bounded: a (sender, tick) is remembered (to tell a duplicate) only for
+``keep`` ticks behind the last tick taken; the receiver's guard refuses
+anything older before it gets here, and anything further ahead than its
+window, so what waits for its tick is one message per scenario agent and
+tick of the window.
+
+Counts go to a ``Counters`` (arrived, duplicate, fused, late, unlinked; the
+receiver counts what waited for a tick and never went on a link). No lock
+and no clock: its agent's machine calls it, one event at a time, with the
+time the event came.
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
+from diskf_mesh.data.faults import PERFECT, FaultConfig, FaultModel
+from diskf_mesh.mesh.protocol.delayline import DelayLine
+from diskf_mesh.mesh.protocol.events import MessageArrived
+from diskf_mesh.mesh.protocol.guard import Guard
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.wire.counters import Counters
-from diskf_mesh.mesh.protocol.delayline import DelayLine
-from diskf_mesh.data.faults import PERFECT, FaultModel
-from diskf_mesh.mesh.protocol.guard import Guard
-from diskf_mesh.mesh.protocol.inbox import Inbox
 
 
 class Receiver:
-    def __init__(self, guard: Guard, faults: FaultModel | None = None):
+    """The receive path of agent ``guard.config.me``; ``faults``: the link
+    faults into it, a seeded ``FaultModel``, or a ``FaultConfig`` seeded
+    with the run's seed once the world's first tick tells it
+    (``learn_run``)."""
+
+    def __init__(self, guard: Guard, faults: FaultConfig | FaultModel | None = None):
         self.guard = guard
         self.me = guard.config.me
         self.counters: Counters = guard.counters
-        self.faults = faults if faults is not None and faults.config.active else None
+        self._fault_config = faults if isinstance(faults, FaultConfig) and faults.active else None
+        self.faults = faults if isinstance(faults, FaultModel) and faults.config.active else None
         self.inbox = Inbox(self.counters, keep=guard.config.max_lag)
         self._delay = DelayLine()
         self._copies_left: dict = {}   # send event -> copies not yet arrived
@@ -75,16 +129,28 @@ class Receiver:
             self.tick = tick
             self.counters.out_of_range += self.inbox.skipped(tick)
 
+    def learn_run(self, ticks: int, seed: int) -> None:
+        """The run's constants, from the world's first tick taken (before
+        any neighbour's message went on a link): the guard's window ends at
+        its last tick, and a ``FaultConfig`` is seeded with its seed."""
+        self.guard.config = dataclasses.replace(self.guard.config, ticks=ticks)
+        if self._fault_config is not None and self.faults is None:
+            self.faults = FaultModel(self._fault_config, seed)
+
     def on_payload(self, sender, payload, links=None, now: float = 0.0) -> bool:
         """A payload on agent ``sender``'s message key (None: the key's id is
-        not an integer) at ``now``. ``links``: {tick: ids in range at that
-        tick} for the ticks the world has opened (None: no range gate).
-        Returns whether a wait may be over (a message or a refusal accounted
-        for a sender)."""
-        wm = self.guard.screen(sender, payload, self.tick)
+        not an integer) at ``now``: ``on_message`` of the guard's read."""
+        return self.on_message(self.guard.read(sender, payload), links, now)
+
+    def on_message(self, arrival: MessageArrived, links=None, now: float = 0.0) -> bool:
+        """A neighbour's message as the agent's edge read it (``Guard.read``)
+        at ``now``. ``links``: {tick: ids in range at that tick} for the
+        ticks the world has opened (None: no range gate). Returns whether a
+        wait may be over (a message or a refusal accounted for a sender)."""
+        wm = self.guard.judge(arrival, self.tick)
         if not isinstance(wm, wire.WireMessage):
             if wm is not None and wm.tick is not None:
-                self._refused.setdefault(wm.tick, {}).setdefault(sender, wm.reason)
+                self._refused.setdefault(wm.tick, {}).setdefault(arrival.sender, wm.reason)
                 return True
             return False
         if links is not None:
@@ -207,11 +273,6 @@ class Receiver:
             del self._digests[t]
         return out
 
-    def use_faults(self, faults: FaultModel | None) -> None:
-        """Set the link faults once the run's seed is known (before any
-        neighbour's message was let through)."""
-        self.faults = faults if faults is not None and faults.config.active else None
-
     def snapshot(self, cap: int | None = None) -> dict:
         """The counters with the gauges (in flight, pending) filled in, flat
         (none above ``cap``)."""
@@ -226,3 +287,91 @@ class Receiver:
             self._arrive(item, 0.0)
         self.counters.in_flight = self.counters.pending = 0
         return self.counters
+
+
+_NONE: dict = {}
+
+
+class Inbox:
+    def __init__(self, counters: Counters | None = None, keep: int | None = None):
+        self.counters = counters if counters is not None else Counters()
+        self.keep = keep             # ticks behind the last taken whose arrivals are remembered (None: all)
+        self._seen: dict = {}        # tick -> senders arrived so far
+        self._held: dict = {}        # tick -> {sender: message}
+        self._closed_through = 0     # ticks <= this were fused
+        self._closed = False         # the run is over: everything is late
+        self._due: dict = {}         # tick -> deadline (real time): a copy after it is late
+        self._early: dict = {}       # tick -> {sender: message} before the world's tick of that tick
+
+    def wait_for_tick(self, sender: int, tick: int, message) -> bool:
+        """Hold ``message`` of ``tick`` until the tick opens here; False (not
+        held) if ``sender`` already has one waiting for it."""
+        early = self._early.setdefault(tick, {})
+        if sender in early:
+            return False
+        early[sender] = message
+        return True
+
+    def opened(self, tick: int) -> dict:
+        """{sender: message} that waited for ``tick``, no longer held."""
+        return self._early.pop(tick, {})
+
+    def skipped(self, tick: int) -> int:
+        """Drop what waited for a tick before ``tick``; how many."""
+        old = [t for t in self._early if t < tick]
+        return sum(len(self._early.pop(t)) for t in old)
+
+    def due(self, tick: int, at: float) -> None:
+        self._due[tick] = at
+
+    def offer(self, sender: int, tick: int, message, now: float = 0.0) -> str:
+        """A copy that arrived at ``now``; returns what happened: "held",
+        "duplicate" or "late"."""
+        c = self.counters
+        c.arrived += 1
+        seen = self._seen.setdefault(tick, set())
+        if sender in seen:
+            c.duplicate += 1
+            return "duplicate"
+        seen.add(sender)
+        if self._closed or tick <= self._closed_through or (
+                self._due and tick in self._due and now > self._due[tick]):
+            c.late += 1
+            return "late"
+        self._held.setdefault(tick, {})[sender] = message
+        return "held"
+
+    def take(self, tick: int, linked) -> list:
+        """[(sender, message)] of ``tick`` from ``linked`` senders, by sender id."""
+        c = self.counters
+        for t in [t for t in self._held if t < tick]:  # skipped ticks: never fused
+            c.late += len(self._held.pop(t))
+        held = self._held.pop(tick, {})
+        linked = set(linked)
+        out = sorted((s, msg) for s, msg in held.items() if s in linked) if held else []
+        c.fused += len(out)
+        c.unlinked += len(held) - len(out)
+        self._closed_through = max(self._closed_through, tick)
+        for t in [t for t in self._due if t <= tick]:
+            del self._due[t]
+        if self.keep is not None:
+            for t in [t for t in self._seen if t < tick - self.keep]:
+                del self._seen[t]
+        return out
+
+    def senders(self, tick: int) -> set:
+        """Who has been heard for ``tick`` so far (to stop waiting early)."""
+        return set(self._held.get(tick, ()))
+
+    def held(self, tick: int):
+        """The same, read-only and not copied: {sender: message} held for ``tick``."""
+        return self._held.get(tick, _NONE)
+
+    @property
+    def pending(self) -> int:
+        return sum(len(h) for h in self._held.values())
+
+    def close(self) -> None:
+        self.counters.late += sum(len(h) for h in self._held.values())
+        self._held.clear()
+        self._closed = True

@@ -14,7 +14,7 @@ of tick J - 1 to start from, and the world answers (``wire.encode_start``):
   smallest trace(P_bar), the most certain (``most_certain``). Within range,
   this is what a freshly started node could ask a neighbour for; it starts
   the agent where the network already is. The agent resets its observation
-  window (``start_from``).
+  window (``AgentEstimator``'s ``start``).
 * **its prior** (x0, P0), as a fresh agent at tick 1, when no linked agent
   reported tick J - 1 (it rejoined alone). In a moving-target scenario the
   prior is far from the truth and P0 does not say so: that agent's error
@@ -35,8 +35,6 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from diskf_mesh.mesh.protocol.estimator import neighbours
@@ -55,11 +53,3 @@ def most_certain(reports: dict, linked):
     linked = set(linked)
     usable = [(float(np.trace(r.P)), s) for s, r in sorted(reports.items()) if s in linked]
     return min(usable)[1] if usable else None
-
-
-def start_from(est, x, P) -> None:
-    """Set ``est.state`` (an ``AgentEstimator``) to the estimate ``x``, ``P``
-    and restart its observation window."""
-    st = est.state
-    est.state = replace(st, x=np.array(x, dtype=float).reshape(st.x.shape),
-                        P=np.array(P, dtype=float).reshape(st.P.shape), since=np.zeros_like(st.since))

@@ -55,7 +55,10 @@ A run, in the order of this module:
                before tick k + 2 opens at the latest) ``online``
                (``mesh.protocol.run_status.OnlineCheck``) replays it on the
                engine; an agent it proves lied is cut off: no later tick
-               counts it live (``WorldRecord.quarantined``).
+               counts it live (``WorldRecord.quarantined``). A check that
+               runs elsewhere (``mesh.process.checker``) may answer later:
+               in lockstep the world waits for it only before tick k + 2
+               opens, which cuts a liar off from the same tick.
 
 Observers (the recorder, the progress callback, the profile, the log) are
 called as the run goes; they never feed back into the machine.
@@ -232,6 +235,8 @@ class WorldMachine:
                 DeclareQueryable(self.keys.start("*")),
                 AskTokens(CLAIM, self.keys.alive_world, CLAIM_S)]
 
+    read = Sample  # a sample is the event ``handle`` takes, as it is: the world reads reports in ``handle``
+
     def handle(self, event, now: float) -> list:
         """One event; returns the effects, in order."""
         if self.phase == "finished":
@@ -303,7 +308,7 @@ class WorldMachine:
         elif name == "grace":
             self._end_clocked(now)
         elif name == "check":
-            self._check_ticks()
+            self._check_ticks(wait=self.clock is not None or not self._open)
         elif name == "pause":
             if self._paused and not self._pause_over(now):
                 self._set_timer("pause", self._paused_at + self.timing.startup_timeout)
@@ -877,20 +882,33 @@ class WorldMachine:
             self._unchecked.append(k)
             self._set_timer("check", self._now)
 
-    def _check_ticks(self, upto: float = math.inf) -> None:
+    def _check_ticks(self, upto: float = math.inf, wait: bool = True) -> None:
+        """Check the final ticks up to ``upto``, in order. An online check
+        that runs elsewhere (``online.result`` None: not done yet) is only
+        waited for with ``wait``: the timer ``check`` of a lockstep tick
+        waits for none while the next tick is open, since its finding
+        counts from the same tick on when it is taken at that tick's end
+        (``_open_tick`` waits) as when it is taken at once."""
+        for k in self._unchecked:
+            self.online.submit(self.record, k)
         while self._unchecked and self._unchecked[0] <= upto:
-            self._check_tick(self._unchecked.pop(0))
+            if not self._check_tick(self._unchecked[0], wait):
+                return
+            self._unchecked.pop(0)
 
-    def _check_tick(self, k: int) -> None:
+    def _check_tick(self, k: int, wait: bool = True) -> bool:
         """The online check replays tick k; an agent it names is cut off
         from the next tick opened on (no tick counts it live again, so no
         honest agent links to it or fuses its messages, and no rejoin
-        starts from its estimate); its missing ticks say "quarantined"."""
+        starts from its estimate); its missing ticks say "quarantined".
+        False if its finding is not in yet (and not ``wait``)."""
         self.prof.begin()
         try:
-            found = self.online.tick(self.record, k)
+            found = self.online.result(self.record, k, wait)
         finally:
             self.prof.end("check")
+        if found is None:
+            return False
         for q in found:
             if q["agent"] in self._quarantined:
                 continue
@@ -900,3 +918,4 @@ class WorldMachine:
             self.log.info(f"tick {k}: agent {q['agent']} cut off from tick {q['from']} on: its message or report "
                           "is not what the algorithm computes"
                           + (f" (fused by agent {', '.join(map(str, q['fused_by']))})" if q["fused_by"] else ""))
+        return True

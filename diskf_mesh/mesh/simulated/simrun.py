@@ -3,9 +3,9 @@
 ``simulate_run`` puts the world (``mesh.protocol.world_machine``) and every agent of a
 scenario (``mesh.protocol.agent_machine``) as machines on one ``SimNet``, each under
 its own identity of the run's access rules (``credentials.access_control``),
-runs it on the virtual clock, and checks the result the way every run is
-checked (``mesh.protocol.run_status``: the engine replays what each agent said it
-fused). A ``SimPlan`` says what the network does: the links, a fault plan
+runs it on the virtual clock; ``SimRun.status`` checks the result the way
+every run is checked (``mesh.protocol.run_status``: the engine replays what
+each agent said it fused). A ``SimPlan`` says what the network does: the links, a fault plan
 (pauses, crashes, restarts, interrupts), twins (a second process holding
 an agent's id), late starts. The agents' own link faults (``FaultConfig``,
 the plan every run can recompute from its seed) come with ``faults``.
@@ -23,11 +23,13 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
+import functools
 import io
 from dataclasses import dataclass, field
 
 import msgpack
 
+from diskf_mesh import estimators
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.data.trace import Trace
@@ -67,6 +69,7 @@ class SimPlan:
     allow_missing: bool = False      # the world starts without the agents not ready after its startup timeout
     max_time: float = 3600.0
     online: bool = True              # the world checks each tick as its reports come (and cuts off a liar)
+    views: bool = True               # the agents share views of the tokens (``SimNet(views=)``; False: one each)
 
 
 class NetworkLosses:
@@ -101,20 +104,38 @@ class NetworkLosses:
 
 @dataclass
 class SimRun:
+    """A simulated run as it ended; ``status`` judges it (once, when asked)."""
+
     outcome: Outcome
     world: WorldMachine              # the world that ran the run (its last incarnation)
-    status: object                   # engine.verify.RunStatus (incomplete with the world's reason if it ended
-                                     # before any report), or None if the world never finished
+    finished: bool                   # ... and it finished
     log: str                         # every process's lines
+    scn: Scenario
+    trace: Trace
+    algorithm: str
+    seed: int
+    faults: FaultConfig | None
+    run_id: str
+    deadline_s: float                # the agents' deadline (real time; inf: lockstep)
 
     @property
     def record(self):
         return self.world.record
 
+    @functools.cached_property
+    def status(self):
+        """``engine.verify.RunStatus`` of the run (``mesh.protocol.run_status``:
+        incomplete with the world's reason if it ended before any report),
+        or None if the world never finished."""
+        if not self.finished:
+            return None
+        return run_status(self.record, self.trace, self.algorithm, self.scn.params, run_id=self.run_id,
+                          seed=self.seed, faults=self.faults, deadline_s=self.deadline_s, labels=self.scn.labels)
+
 
 def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_seed: int | None = None,
                  plan: SimPlan = SimPlan(), faults: FaultConfig | None = None, run_id: str = "sim",
-                 keep_lines: bool = False, quiet: bool = True, verify: bool = True, progress=None,
+                 keep_lines: bool = False, quiet: bool = True, progress=None,
                  recorder=None, batch: bool = True) -> SimRun:
     """The run of ``scn`` (simulated as ``trace``, seed ``seed``) with
     ``algorithm`` on the simulated network seeded by ``net_seed`` (default
@@ -129,16 +150,17 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     stream = io.StringIO() if quiet else None
     policy = credentials.access_control(run_id, ids, observer=False, router=plan.router) if plan.secure else None
     net = SimNet(seed if net_seed is None else net_seed, link=plan.link, links=plan.links, policy=policy,
-                 lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time)
+                 lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time, views=plan.views)
     losses = NetworkLosses(net, ids)
 
     deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
 
     shared = Shared() if batch else None  # a payload's decode and checks, once for all its receivers
+    estimator = estimators.get(algorithm)  # resolved once: every agent's and the world's online check
 
     def world(boot):
         first = boot.pid == WORLD and boot.incarnation == 0  # the observers watch the run's own world
-        online = OnlineCheck(trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
+        online = OnlineCheck(trace, estimator, scn.params, run_id=run_id, seed=seed, faults=faults,
                              deadline_s=deadline_s) if plan.online else None
         return WorldMachine(scn, trace, algorithm, seed, keys, boot.nonce, plan.world_timing,
                             allow_missing=plan.allow_missing, verdicts=losses.relabel,
@@ -149,7 +171,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     def agent(i):
         def make(boot):
             who = f"agent {i}" + (f" ({boot.pid}#{boot.incarnation})" if boot.incarnation or "~" in boot.pid else "")
-            return AgentMachine(scn, i, algorithm, keys, boot.nonce, plan.agent_timing, faults=faults,
+            return AgentMachine(scn, i, estimator, keys, boot.nonce, plan.agent_timing, faults=faults,
                                 log=Log(who, stream), shared=shared)
         return make
 
@@ -173,10 +195,6 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     worlds = [pid for pid in out.machines if pid == WORLD or pid.startswith(WORLD + "~")]
     stayed = lambda p: getattr(out.finishes.get(p), "status", None) != "duplicate"  # noqa: E731
     pid = max(worlds, key=lambda p: (int(out.machines[p].record.reported.sum()), stayed(p), p == WORLD))
-    w = out.machines[pid]
-    status = None
-    if verify and pid in out.finishes:
-        status = run_status(w.record, trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
-                            deadline_s=deadline_s, labels=scn.labels)
-    return SimRun(out, w, status, stream.getvalue() if stream is not None else "")
+    return SimRun(out, out.machines[pid], pid in out.finishes, stream.getvalue() if stream is not None else "",
+                  scn, trace, algorithm, seed, faults, run_id, deadline_s)
 

@@ -1,0 +1,112 @@
+"""The world's check as the run goes, answered late or in a process of its
+own (``mesh.process.checker.CheckProcess``): the same findings, the liar cut
+off from the same tick, a failure of the check raised in the world."""
+from __future__ import annotations
+
+import os
+import signal
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from diskf_mesh import estimators
+from diskf_mesh.mesh.process.checker import CheckFailed, CheckProcess
+from diskf_mesh.mesh.protocol import run_status
+from diskf_mesh.mesh.simulated import simrun
+from test_simnet_liars import FROM, LIAR, OFFSET, RUN, dynamic, run  # noqa: F401 - the fixture
+
+assert dynamic
+
+
+class LateCheck(run_status.OnlineCheck):
+    """An ``OnlineCheck`` whose finding is only there when the world waits
+    for it (as a check in another process still busy)."""
+
+    asked_early = 0
+
+    def result(self, rec, k, wait=True):
+        if not wait:
+            LateCheck.asked_early += 1
+            return None
+        return super().result(rec, k, wait)
+
+
+def test_a_check_answered_only_when_waited_for_cuts_the_liar_off_from_the_same_tick(dynamic, monkeypatch):
+    at_once = run(dynamic, start=FROM, offset=OFFSET)
+    monkeypatch.setattr(simrun, "OnlineCheck", LateCheck)
+    late = run(dynamic, start=FROM, offset=OFFSET)
+    assert LateCheck.asked_early > 0  # the ticks went on without its finding
+    assert late.record.quarantined == at_once.record.quarantined and len(late.record.quarantined) == 1
+    assert late.record.quarantined[0]["tick"] == FROM
+    for a, b in ((late.record.live, at_once.record.live), (late.record.x, at_once.record.x),
+                 (late.record.fused, at_once.record.fused)):
+        np.testing.assert_array_equal(a, b)
+    assert late.status.to_json() == at_once.status.to_json()
+
+
+def test_the_check_in_its_own_process_finds_what_the_check_in_the_world_finds(dynamic):
+    scn, trace = dynamic
+    rec = run(dynamic, online=False, start=FROM, offset=OFFSET).record  # the liar never cut off: it lies on
+    make = lambda: run_status.OnlineCheck(trace, estimators.get("diskf"), scn.params, run_id=RUN, seed=0)  # noqa: E731
+    here, there = make(), CheckProcess(make)
+    try:
+        found = []
+        for k in range(1, rec.reported.shape[0] + 1):
+            there.submit(rec, k)
+            found.append(there.result(rec, k))
+            assert found[-1] == here.tick(rec, k), k
+        assert [q["tick"] for f in found for q in f][0] == FROM and {q["agent"] for f in found for q in f} == {LIAR}
+        assert there.ticking_cpu_s > 0
+    finally:
+        there.close()
+
+
+def fake(seconds: float):
+    """A check of 3 ticks of 2 agents that takes ``seconds`` a tick and finds
+    the tick."""
+    trace = SimpleNamespace(has=np.zeros((1, 3, 2), dtype=bool), model=SimpleNamespace(n=2, m=1))
+    return SimpleNamespace(trace=trace, tick=lambda rec, k: time.sleep(seconds) or [k])
+
+
+def record(K=3, N=2):
+    return SimpleNamespace(x=np.zeros((K, N, 2)), P=np.zeros((K, N, 2, 2)), d=np.zeros((K, N, 1)),
+                           d_valid=np.zeros((K, N), dtype=bool), reported=np.ones((K, N), dtype=bool),
+                           fused=np.zeros((K, N, N), dtype=bool), live=np.ones((K, N), dtype=bool), digests={},
+                           rejoins={}, starts=[])
+
+
+def test_a_finding_not_in_yet_is_none_unless_waited_for_and_the_process_ends_with_the_world():
+    check = CheckProcess(lambda: fake(0.5))
+    rec = record()
+    try:
+        check.submit(rec, 1)
+        assert check.result(rec, 1, wait=False) is None
+        assert check.result(rec, 1) == [1]
+        os.kill(check._proc.pid, signal.SIGINT)  # a Ctrl-C reaches the world, which ends the run
+        assert check.result(rec, 2) == [2]  # submitted when asked
+        assert check._proc.is_alive()
+    finally:
+        check.close()
+    assert not check._proc.is_alive() and check._proc.exitcode == 0
+
+
+def test_a_check_that_fails_in_its_process_fails_in_the_world():
+    def broken():
+        raise ZeroDivisionError("the replay")
+
+    check = CheckProcess(broken)
+    try:
+        with pytest.raises(CheckFailed, match="ZeroDivisionError: the replay"):
+            check.result(record(), 1)
+    finally:
+        check.close()
+
+    check = CheckProcess(lambda: fake(0.0))
+    try:
+        os.kill(check._proc.pid, signal.SIGKILL)
+        with pytest.raises(CheckFailed, match="ended .* before tick 1 was checked"):
+            check.result(record(), 1)
+    finally:
+        check.close()
