@@ -40,7 +40,7 @@ from diskf_mesh.estimators import DEFAULT
 from diskf_mesh.mesh.simulated.simrun import simulate_run
 
 START = 50
-LAG = 2  # a liar named by the check of tick k is cut off from tick k + 2
+LAG = 2  # a liar named by the check of tick k is cut off from tick k + 2 (lockstep)
 TARGET = 1.5  # honest MAE within 1.5x the clean run's
 DIVERGED = 10.0  # an honest agent whose own MAE is 10x its clean one is counted as diverging
 LIES = (("offset", 10.0), ("offset", 50.0), ("offset", 200.0), ("offset", 500.0), ("offset", 5000.0),
