@@ -361,3 +361,26 @@ def test_an_agent_whose_estimator_diverges_leaves_at_once_with_its_reason():
     assert st.status == "incomplete" and st.evidence["differing"] == 0, st.reason
     ended = st.evidence["replay_ended"]
     assert ended["tick"] == 633 and ended["reported_after"] == int(rec.reported[632:].sum()) > 0
+
+
+def test_routes_find_addressed_subscriptions_as_a_scan_would():
+    """An agent's subscription to the messages addressed to it
+    (``.../msg/$*_<id>_$*``) is found by the key's address pieces; the
+    answer is the one matching every expression gives."""
+    from diskf_mesh.mesh.simulated.simnet import _Routes
+    from diskf_mesh.mesh.wire.keys import Keys, key_matches
+
+    class P:
+        def __init__(self, order):
+            self.order = order
+
+    k, routes = Keys("r"), _Routes()
+    procs = [P(i) for i in range(12)]
+    exprs = [(p, k.msg_to(p.order)) for p in procs] + [(procs[3], k.msgs), (procs[4], f"{k.root}/agent/*/msg/$*_1$*")]
+    for p, e in exprs:
+        routes.add(e, p)
+    routes.remove(procs[5])
+    for to in ([], [1], [3, 5, 11], [0, 10, 2], [1, 1], [12]):
+        for key in (k.msg(7, to=to), k.msg(7, to=to) + "x", k.report(1)):
+            want = sorted((p.order, e) for p, e in exprs if p is not procs[5] and key_matches(e, key))
+            assert sorted((p.order, e) for p, e in routes.match(key)) == want, key

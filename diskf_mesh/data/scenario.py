@@ -122,10 +122,11 @@ class Scenario:
 
     def index(self, agent_id) -> int:
         """The place of agent ``agent_id`` in ``ids``."""
-        return self._places[agent_id]
+        return self.places[agent_id]
 
     @functools.cached_property
-    def _places(self) -> dict:
+    def places(self) -> dict:
+        """Every agent id -> its place in ``ids`` (one dict, shared by whoever looks)."""
         return {j: i for i, j in enumerate(self.ids)}
 
     def sensors(self) -> Sensors:

@@ -6,7 +6,7 @@ nothing else: no transport, no thread, no clock read. A shell
 ``mesh.simulated.simnet``) hands it one event at a time with the time ``now`` and
 carries out the effects it returns, in order::
 
-    m = AgentMachine(scn, agent_id, algorithm, keys, nonce)
+    m = AgentMachine(scn, agent_id, estimators.get(name), keys, nonce)
     effects = m.start(now)            # Subscribe, WatchTokens, SetTimer
     event = m.read(key, payload)      # a sample, decoded once at the edge (``mesh.protocol.intake``)
     effects = m.handle(event, now)    # Publish, DeclareToken, Ask, ..., Finish
@@ -83,24 +83,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diskf_mesh import estimators
 from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.data.lies import Liars
 from diskf_mesh.data.scenario import Scenario
+from diskf_mesh.estimators.base import Estimator
 from diskf_mesh.mesh.protocol import clock as realtime
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.estimator import AgentEstimator, neighbours
 from diskf_mesh.mesh.protocol.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt,
                                              MeasurementArrived, MessageArrived, Publish, Reply, Sample, SetTimer,
-                                             StopArrived, Subscribe, TickArrived, Timer, Token, Tokens, Unreadable,
-                                             WatchTokens, Woke)
+                                             StopArrived, Subscribe, TickArrived, Timer, Token, TokenBatch, Tokens,
+                                             Unreadable, WatchTokens, Woke)
 from diskf_mesh.mesh.protocol.guard import Guard, GuardConfig
 from diskf_mesh.mesh.protocol.intake import Intake
 from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
 from diskf_mesh.mesh.protocol.log import Log
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.protocol.receive import Receiver
+from diskf_mesh.mesh.protocol.roster import Roster, parse_batch
 from diskf_mesh.mesh.protocol.shared import Shared
 from diskf_mesh.mesh.protocol.verdicts import TickVerdicts
 
@@ -125,7 +126,8 @@ class AgentTiming:
 
 class AgentMachine:
     """The protocol of agent ``agent_id`` of scenario ``scn`` in the run of
-    ``keys`` (module docstring).
+    ``keys`` (module docstring) with ``estimator``, the class
+    ``estimators.get`` resolved.
 
     ``nonce``: this process's token suffix (``keys.new_nonce()`` in a real
     process; any distinct, sortable string in a simulation). ``faults``: the
@@ -137,7 +139,9 @@ class AgentMachine:
     (``mesh.protocol.shared``: the simulated network). ``ticks`` is the number of ticks
     worked on so far."""
 
-    def __init__(self, scn: Scenario, agent_id: int, algorithm: str, keys: Keys, nonce: str,
+    batches_tokens = True  # takes ``TokenBatch`` (the simulated network's casts of many tokens)
+
+    def __init__(self, scn: Scenario, agent_id: int, estimator: type[Estimator], keys: Keys, nonce: str,
                  timing: AgentTiming = AgentTiming(), faults: FaultConfig | FaultModel | None = None,
                  log: Log | None = None, profile: Phases = NO_PHASES, shared: Shared | None = None):
         self.scn, self.keys, self.nonce, self.timing = scn, keys, nonce, timing
@@ -146,7 +150,8 @@ class AgentMachine:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} "
                              f"(ids {', '.join(map(str, self.ids))})")
         self.id = agent_id
-        self.algorithm = algorithm
+        self.estimator = estimator  # the class ``estimators.get`` resolved, once for the run
+        self.algorithm = estimator.name
         self.log = log or Log(f"agent {agent_id}")
         self.prof = profile
         n, m = scn.G.shape
@@ -156,11 +161,10 @@ class AgentMachine:
         # tick (the guard's window two); real time further, for an agent that fell behind
         self.lead = 1 if timing.clock is None else realtime.LEAD_TICKS
         self.kept = AHEAD_KEPT if timing.clock is None else realtime.LEAD_TICKS + 2
-        declared = estimators.get(algorithm)
-        self.exchanged = declared.exchanged  # what its messages carry (``Estimator.exchanged``)
+        self.exchanged = estimator.exchanged  # what its messages carry (``Estimator.exchanged``)
         self.liars = Liars(scn.lies, (agent_id,), n, scn.position_dims)  # this agent's lies, if it is a liar
         guard = Guard(GuardConfig(keys.run_id, agent_id, scn.id_set, n, m,
-                                  information_check=declared.information_check, exchanged=declared.exchanged,
+                                  information_check=estimator.information_check, exchanged=estimator.exchanged,
                                   **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
                       profile=profile, shared=shared)
         self.intake = Intake(keys, agent_id, self.p, len(self.ids), guard, profile)  # ``read``: the edge
@@ -186,8 +190,7 @@ class AgentMachine:
         self.world_gone = False
         self.world_gone_at = math.inf
         self.world_ticking = False  # the world's "ticking" token: the run is past its start
-        self.alive = set()          # agent ids of the scenario with an alive token
-        self.alive_tokens = {}      # agent id -> nonces of its processes' alive tokens (a tuple: usually one)
+        self.alive = Roster(self.ids, scn.places, agent_id)  # the agents with an alive token
         self._woke_at = -math.inf   # when this process found it had been frozen
         # -- start-up and joining
         self.phase = "world"      # world, claim, gather, peers, joining, leaving, finished
@@ -253,6 +256,8 @@ class AgentMachine:
             return out
         if kind is Token:
             self._on_token(event.key, event.up, now)
+        elif kind is TokenBatch:
+            self._on_tokens(event.keys, event.up, now)
         elif kind is Timer:
             self._on_timer(event.name, now)
         elif kind is Reply:
@@ -289,12 +294,9 @@ class AgentMachine:
             if not self.collecting:
                 if self.stopped is not None:
                     break
-                if k in self.ticks and self.id not in self.ticks[k].live:
-                    self._resync(f"the world counts this agent out at tick {k}", now)
-                    self._start_up(now)
-                    break
-                if k not in self.ticks and any(j > k for j in self.ticks):
-                    self._resync(f"tick {k} never came", now)
+                why = self._out_of_run(k)
+                if why:
+                    self._resync(why, now)
                     self._start_up(now)
                     break
                 if k not in self.ticks or k not in self.meas:
@@ -308,6 +310,16 @@ class AgentMachine:
             self._close(k)
         if self.stopped is not None and not self.collecting and self.finish is None:
             self._end()
+
+    def _out_of_run(self, k: int) -> str:
+        """Why this agent is out of the run at tick ``k`` ("": it is not):
+        the world's tick k counts it out, or a later tick came and k never
+        did."""
+        if k in self.ticks and self.id not in self.ticks[k].live:
+            return f"the world counts this agent out at tick {k}"
+        if k not in self.ticks and any(j > k for j in self.ticks):
+            return f"tick {k} never came"
+        return ""
 
     def _on_arrival(self, event, now: float) -> bool:
         """A sample, as ``read`` made it: the world's tick, measurement or
@@ -614,6 +626,22 @@ class AgentMachine:
         elif kind == "alive" and who in self.ids:
             self._on_agent_token(who, nonce_of(key), up, now)
 
+    def _on_tokens(self, batch: tuple, up: bool, now: float) -> None:
+        """Many tokens at once (``TokenBatch``): the others' alive tokens
+        counted in one call, the world's and this id's one by one."""
+        shared = self.receiver.guard.shared
+        parse = lambda: parse_batch(self.keys, self.scn.places, batch)  # noqa: E731
+        places, nonces, others = parse() if shared is None else shared.once(batch, ("tokens", self.keys.root), parse)
+        for key in others:
+            self._on_token(key, up, now)
+        own = self.scn.index(self.id)
+        mine = places == own
+        if mine.any():
+            for j in np.flatnonzero(mine).tolist():
+                self._on_agent_token(self.id, nonces[j], up, now)
+            places = places[~mine]
+        self.alive.tokens(places, up)
+
     def _on_world_token(self, nonce_: str, up: bool, now: float) -> None:
         """The world's token came or went. Gone while this process was frozen
         past zenoh's lease: the world has dropped this agent from the run, so
@@ -638,13 +666,7 @@ class AgentMachine:
         nonce is smaller (an earlier start) and this one has not worked on a
         tick yet; one that works since tick 1 keeps the id (its estimate is
         the engine's, a late twin's is not)."""
-        was = self.alive_tokens.get(who, ())
-        held = tuple(n for n in was if n != nonce_) + ((nonce_,) if up else ())
-        if held:
-            self.alive_tokens[who] = held
-        else:
-            self.alive_tokens.pop(who, None)
-        (self.alive.add if held else self.alive.discard)(who)
+        self.alive.token(who, nonce_, up)
         if not (up and who == self.id and self.claimed and nonce_ != self.nonce):
             return
         if self._late():
@@ -683,8 +705,7 @@ class AgentMachine:
             self.phase = "claim"
             self._claim_qid = next(self._qids)
             self._out.append(AskTokens(self._claim_qid, self.keys.alive(self.id), CLAIM_S))
-        # ``alive`` holds ids of the scenario only: all of them once it is as large
-        if self.phase == "gather" and ((self.world_seen and (len(self.alive) == len(self.ids) or self.world_ticking))
+        if self.phase == "gather" and ((self.world_seen and (self.alive.complete or self.world_ticking))
                                        or self.stopped is not None):
             if self.world_ticking and self.est is None:
                 self._joining(self.newest)
@@ -732,12 +753,12 @@ class AgentMachine:
     def _others(self, nonces=()) -> set:
         """The nonces of other processes holding this agent's id: ``nonces``
         (an answer's) and the alive tokens of its id this one has seen."""
-        return (set(nonces) | set(self.alive_tokens.get(self.id, ()))) - {self.nonce}
+        return (set(nonces) | set(self.alive.mine)) - {self.nonce}
 
     def _peers_seen(self) -> bool:
         """The agents the world counts live at its newest tick are seen (so
         this agent's first message reaches them)."""
-        return not self.ticks or set(self.ticks[max(self.ticks)].live) - {self.id} <= self.alive
+        return not self.ticks or self.alive.has(set(self.ticks[max(self.ticks)].live) - {self.id})
 
     def _ready(self) -> None:
         """Declare a ready token: this agent joins at the first tick after
@@ -796,7 +817,7 @@ class AgentMachine:
                                 f"{t.comm_range:g}; this agent {mine_[0]}, {mine_[1]}, {mine_[2]:g}: start both "
                                 "with the same flags")
         start = self._start[1] if restart else None  # the world's answer (None: the prior)
-        est = AgentEstimator(self.scn, self.id, self.algorithm, t.ticks, t.seed,
+        est = AgentEstimator(self.scn, self.id, self.estimator, t.ticks, t.seed,
                              start=None if start is None else (start.x, start.P))
         if not self._worked:
             self._worked = True

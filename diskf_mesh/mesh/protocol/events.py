@@ -15,6 +15,10 @@ Events (what happened to the process):
 
     Sample(key, payload)      a sample on a key the process subscribes to
     Token(key, up)            a liveliness token appeared (up) or went
+    TokenBatch(keys, up)      the tokens of ``keys`` appeared (up) or went at
+                              one instant: ``Token(key, up)`` for each key, in
+                              order (a shell that delivers many tokens to many
+                              machines at once: the simulated network)
     Timer(name)               a timer the machine set (``SetTimer``) fired
     Query(qid, key, payload)  a query on a key this process answers
     Reply(qid, payload)       the answer to a query this process made
@@ -87,6 +91,12 @@ class Token:
     up: bool
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class TokenBatch:
+    keys: tuple
+    up: bool
+
+
 @dataclass(frozen=True, slots=True)
 class Timer:
     name: str
@@ -152,7 +162,7 @@ class Unreadable:
 
 
 Arrival = TickArrived | MeasurementArrived | StopArrived | MessageArrived | Unreadable
-Event = Sample | Token | Timer | Query | Reply | Woke | Tokens | Interrupt | Arrival
+Event = Sample | Token | TokenBatch | Timer | Query | Reply | Woke | Tokens | Interrupt | Arrival
 
 
 # -- effects ------------------------------------------------------------------

@@ -11,25 +11,25 @@ declarer's rules allow that message on that expression. ``Access(None)``
 (a run without credentials) allows everything.
 
 An identity that is no subject of the policy (no certificate of the run)
-may do nothing. Answers are remembered per (identity, message, key, flow).
+may do nothing. The expressions that allow one (identity, message, flow)
+are gathered once, as compiled matchers; answers are remembered per
+(identity, message, key, flow), ``MEMO`` of them (a run's puts repeat
+their keys every tick: every pair of linked agents' is one).
 
 May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
-from diskf_mesh.mesh.wire.keys import key_matches
+from diskf_mesh.mesh.wire.keys import matcher
 
-
-def _covers(rule: str, expr: str) -> bool:
-    """Whether the rule's key expression covers ``expr`` (a key, or an
-    expression whose wildcards the rule's own wildcards match chunk for chunk)."""
-    return rule == expr or key_matches(rule, expr)
+MEMO = 1 << 21
 
 
 class Access:
     def __init__(self, policy: dict | None):
         self.enabled = bool(policy and policy.get("enabled", True))
         self._rules = {}  # identity -> [(flows, messages, key expressions)] allowed
+        self._grants = {}  # (identity, message, flow) -> (the expressions allowing it, their matchers)
         self._memo = {}
         if not self.enabled:
             return
@@ -49,12 +49,19 @@ class Access:
             return True
         memo = (identity, message, key, flow)
         hit = self._memo.get(memo)
-        if hit is None:
-            hit = any(flow in flows and message in messages and any(_covers(e, key) for e in exprs)
-                      for flows, messages, exprs in self._rules.get(identity, ()))
-            if len(self._memo) > 200_000:
-                self._memo.clear()
-            self._memo[memo] = hit
+        if hit is not None:
+            return hit
+        grant = self._grants.get((identity, message, flow))
+        if grant is None:
+            exprs = tuple(dict.fromkeys(e for flows, messages, es in self._rules.get(identity, ())
+                                        if flow in flows and message in messages for e in es))
+            grant = self._grants[(identity, message, flow)] = (frozenset(exprs), tuple(map(matcher, exprs)))
+        # a rule covers a key, or an expression its own wildcards match chunk for chunk (or itself)
+        exprs, matchers = grant
+        hit = key in exprs or any(m(key) is not None for m in matchers)
+        if len(self._memo) >= MEMO:
+            self._memo.clear()
+        self._memo[memo] = hit
         return hit
 
     def put(self, sender: str | None, receiver: str | None, key: str) -> bool:

@@ -44,7 +44,10 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -157,7 +160,7 @@ class _Proc:
     """One incarnation of a process."""
 
     __slots__ = ("pid", "identity", "inc", "factory", "machine", "state", "connected", "backlog", "watches",
-                 "tokens", "timers", "counts", "paused_at", "pause_serial", "order", "name")
+                 "tokens", "timers", "counts", "paused_at", "pause_serial", "order", "name", "view")
 
     def __init__(self, pid, identity, inc, factory, order):
         self.pid, self.identity, self.inc, self.factory, self.order = pid, identity, inc, factory, order
@@ -170,6 +173,7 @@ class _Proc:
         self.tokens = []          # keys of its declared tokens
         self.timers = {}          # name -> serial of the timer set last
         self.counts = {}          # token key -> declarations visible to it (keys its watches match)
+        self.view = None          # the _View it shares (its counts are the view's), if any
         self.paused_at = 0.0
         self.pause_serial = 0
 
@@ -183,46 +187,123 @@ class _Proc:
 
 class _Routes:
     """Which subscriptions (queryables, watches) match a key: exact
-    expressions in a dict, wildcard ones as compiled matchers, answers kept
-    per key until the subscriptions change."""
+    expressions in a dict, wildcard ones as compiled matchers; the answer
+    kept per key, and per set of wildcard expressions a key matches, until
+    the subscriptions change. A subscriber is a process or a ``_View``.
+
+    An expression whose last chunk asks for one piece between two
+    delimiters (``.../$*_7_$*``, an agent's messages addressed to it) is
+    found by that piece: a key's last chunk is split once, not matched
+    against every such expression."""
 
     def __init__(self):
-        self.exact = {}       # expr -> [proc]
-        self.wild = {}        # expr -> (matcher, [proc])
+        self.exact = {}       # expr -> {proc: None}
+        self.wild = {}        # expr -> (matcher, {proc: None})
+        self.pieces = {}      # (head expr, delimiter) -> (matcher of the head, {piece: [expr]})
+        self.scan = {}        # the other wildcard expressions -> matcher
+        self.by_proc = {}     # proc -> its expressions
         self.memo = {}
+        self.by_match = {}    # (exact expr or None, wildcard exprs matched) -> answer
 
     def add(self, expr: str, proc) -> None:
         self.memo.clear()
+        self.by_match.clear()
         if "*" in expr:
-            self.wild.setdefault(expr, (matcher(expr), []))[1].append(proc)
+            fresh = expr not in self.wild
+            self.wild.setdefault(expr, (matcher(expr), {}))[1][proc] = None
+            piece = _piece(expr)
+            if fresh and piece is not None:
+                head, d, x = piece
+                self.pieces.setdefault((head, d), (matcher(head), {}))[1].setdefault(x, []).append(expr)
+            elif fresh:
+                self.scan[expr] = matcher(expr)
         else:
-            self.exact.setdefault(expr, []).append(proc)
+            self.exact.setdefault(expr, {})[proc] = None
+        self.by_proc.setdefault(proc, []).append(expr)
 
     def remove(self, proc) -> None:
-        self.memo.clear()
-        for e in list(self.exact):
-            self.exact[e] = [p for p in self.exact[e] if p is not proc]
-            if not self.exact[e]:
-                del self.exact[e]
-        for e in list(self.wild):
-            m, ps = self.wild[e]
-            ps = [p for p in ps if p is not proc]
-            if ps:
-                self.wild[e] = (m, ps)
-            else:
-                del self.wild[e]
+        exprs = self.by_proc.pop(proc, ())
+        if exprs:
+            self.memo.clear()
+            self.by_match.clear()
+        for e in exprs:
+            table = self.wild if "*" in e else self.exact
+            entry = table.get(e)
+            if entry is None:
+                continue
+            ps = entry[1] if table is self.wild else entry
+            ps.pop(proc, None)
+            if not ps:
+                del table[e]
+                self.scan.pop(e, None)
+                piece = _piece(e) if table is self.wild else None
+                if piece is not None:
+                    head, d, x = piece
+                    by_piece = self.pieces[(head, d)][1]
+                    by_piece[x].remove(e)
+                    if not by_piece[x]:
+                        del by_piece[x]
 
     def match(self, key: str) -> list:
         """[(proc, expr)] in a fixed order (processes by start order, then expressions)."""
         hit = self.memo.get(key)
         if hit is None:
-            hit = [(p, key) for p in self.exact.get(key, ())]
-            hit += [(p, e) for e, (m, ps) in self.wild.items() if m(key) for p in ps]
-            hit.sort(key=lambda pe: pe[0].order)
+            wild = tuple(e for e, m in self.scan.items() if m(key))
+            head, _, last = key.rpartition("/")
+            for (_, d), (m, by_piece) in self.pieces.items():
+                if by_piece and d in last and m(head):
+                    wild += tuple(dict.fromkeys(e for x in last.split(d)[1:-1] for e in by_piece.get(x, ())))
+            sig = (key if key in self.exact else None, wild)
+            hit = self.by_match.get(sig)
+            if hit is None:
+                hit = [(p, key) for p in self.exact.get(key, ())]
+                hit += [(p, e) for e in wild for p in self.wild[e][1]]
+                hit.sort(key=lambda pe: pe[0].order)
+                self.by_match[sig] = hit
             if len(self.memo) > 100_000:
                 self.memo.clear()
             self.memo[key] = hit
         return hit
+
+
+_PIECE = re.compile(r"^(?P<head>.*)/\$\*(?P<d>[^A-Za-z0-9/*$])(?P<x>[A-Za-z0-9]*)(?P=d)\$\*$")
+
+
+@functools.lru_cache(maxsize=1 << 16)
+def _piece(expr: str):
+    """(head, delimiter, piece) of an expression ``head/$*<d><piece><d>$*``
+    whose head has no ``**`` (None otherwise): it matches a key whose head
+    matches and whose last chunk has ``piece`` between two delimiters."""
+    hit = _PIECE.match(expr)
+    return None if hit is None or "**" in hit["head"] else (hit["head"], hit["d"], hit["x"])
+
+
+class _View:
+    """The token watches of processes that watch the same expressions and
+    are on the network (attached): what each sees of the tokens is the
+    same, so they share one count per key, and a token's coming or going
+    reaches them as one ``TokenBatch`` (a cast), not one event each."""
+
+    __slots__ = ("sig", "counts", "members", "joins", "order")
+
+    def __init__(self, sig: tuple, order: int):
+        self.sig = sig
+        self.counts = {}
+        self.members = {}     # proc -> the join serial it came in with
+        self.joins = 0
+        self.order = order    # where its casts go among the watchers of a key
+
+    def __repr__(self):
+        return f"view{self.sig}"
+
+
+class _Cast:
+    """Tokens that reach a view's members at one time, in one batch."""
+
+    __slots__ = ("view", "t", "up", "keys", "serial")
+
+    def __init__(self, view: _View, t: float, up: bool):
+        self.view, self.t, self.up, self.keys, self.serial = view, t, up, [], view.joins
 
 
 class SimNet:
@@ -230,10 +311,13 @@ class SimNet:
 
     def __init__(self, seed: int, link: Link = Link(), links: Callable[[str, str], Link | None] | None = None,
                  policy: dict | None = None, lease: Lease = Lease(), keep_lines: bool = False,
-                 max_time: float = 3600.0, max_events: int = 50_000_000):
+                 max_time: float = 3600.0, max_events: int = 50_000_000, views: bool = True):
         """``links(sender pid, receiver pid)``: a link other than ``link``
         (None: ``link``); ``policy``: the run's ``access_control``
-        (``credentials.access_control``; None: no access control)."""
+        (``credentials.access_control``; None: no access control).
+        ``views``: the machines that take ``TokenBatch`` (``batches_tokens``)
+        and watch the same tokens share one view of them (``_View``) where
+        every link has one constant delay; False: every process its own."""
         self.seed = int(seed)
         ss = np.random.SeedSequence(self.seed)
         net, boots = ss.spawn(2)
@@ -262,6 +346,11 @@ class SimNet:
         self.lost = 0
         self.lost_samples = []    # (receiver pid, payload): what the network lost, for the run's verdicts
         self._events = 0
+        self._casting = views and links is None and not link.jitter
+        self._views = {}          # watch expressions -> _View
+        self._open = None         # the _Cast that may still take tokens
+        self._holders = {}        # processes holding tokens (their order -> proc)
+        self._labels = {}         # id(TokenBatch) -> (it, the digest of its keys for the trace)
 
     # -- the run's processes and fault plan ---------------------------------
     def add(self, pid: str, factory: Factory, identity: str | None = None, at: float = 0.0) -> None:
@@ -271,15 +360,23 @@ class SimNet:
             raise ValueError(f"process {pid!r} is already in the run")
         self._factories[pid] = (pid if identity is None else identity, factory)
         self._coming += 1
-        self.sched.at(at, ("boot", pid))
+        self._at(at, ("boot", pid))
 
     def plan(self, faults) -> None:
         for f in faults:
             if f.at is not None:
                 self._coming += 1
-                self.sched.at(f.at, ("fault", f))
+                self._at(f.at, ("fault", f))
             else:
                 self._by_event.setdefault(int(f.after_event), []).append(f)
+
+    def _at(self, t: float, item) -> None:
+        """Schedule ``item``; an open cast takes no more tokens once something
+        else reaches one of its members at its time (each member's order stays)."""
+        c = self._open
+        if c is not None and max(t, self.sched.now) == c.t and (item[0] != "deliver" or item[1].view is c.view):
+            self._open = None
+        self.sched.at(t, item)
 
     # -- running --------------------------------------------------------------
     def run(self) -> Outcome:
@@ -332,6 +429,8 @@ class SimNet:
             self._query_timeout(item[1])
         elif what == "tokens-now":
             self._tokens_now(*item[1:])
+        elif what == "cast":
+            self._cast_out(item[1])
 
     def _deliver(self, proc: _Proc, event, local: bool = False, timer: int | None = None) -> None:
         """``local``: from the process itself (a timer, its own token, a
@@ -375,6 +474,8 @@ class SimNet:
             self.trace.add(t, who, f"woke {event.late!r}")
         elif isinstance(event, ev.Tokens):
             self.trace.add(t, who, f"tokens {event.qid}", " ".join(event.keys))
+        elif isinstance(event, ev.TokenBatch):
+            self.trace.add(t, who, "tokens+" if event.up else "tokens-", self._label(event))
         else:
             self.trace.add(t, who, type(event).__name__)
 
@@ -414,11 +515,11 @@ class SimNet:
         if f.kind == "pause" and proc.state == "up" and f.duration > 0:
             proc.state, proc.paused_at = "paused", now
             proc.pause_serial += 1
-            self.sched.at(now + f.duration, ("resume", proc, proc.pause_serial))
+            self._at(now + f.duration, ("resume", proc, proc.pause_serial))
             # the last keep-alive went out up to ``keepalive`` before the pause
             expiry = self.lease.lease - self.lease.keepalive * float(self.rng.random())
             if f.duration > expiry:
-                self.sched.at(now + expiry, ("expire", proc, proc.pause_serial))
+                self._at(now + expiry, ("expire", proc, proc.pause_serial))
         elif f.kind == "interrupt":
             self._deliver(proc, ev.Interrupt(f.why), True)
         elif f.kind == "crash" and proc.state in ("up", "paused"):
@@ -431,19 +532,28 @@ class SimNet:
         proc.state = state
         proc.timers.clear()
         proc.backlog.clear()
+        self._leave(proc)
         for routes in (self._subs, self._queryables, self._watches):
             routes.remove(proc)
         if not was_attached:
-            proc.tokens.clear()  # already invisible to the others
+            self._drop_tokens(proc)  # already invisible to the others
         elif lingering:
-            self.sched.at(self.sched.now + self.lease.lease, ("linger", proc))
+            self._at(self.sched.now + self.lease.lease, ("linger", proc))
         else:
             self._tokens_gone(proc)
 
     def _tokens_gone(self, proc: _Proc) -> None:
         for key in proc.tokens:
             self._token_to_all(proc, key, -1)
+        self._drop_tokens(proc)
+
+    def _drop_tokens(self, proc: _Proc) -> None:
         proc.tokens.clear()
+        self._holders.pop(proc.order, None)
+
+    def _owners(self):
+        """The processes holding tokens, in start order."""
+        return [self._holders[o] for o in sorted(self._holders)]
 
     def _resume(self, proc: _Proc, serial: int) -> None:
         if proc.state != "paused" or proc.pause_serial != serial:
@@ -452,7 +562,7 @@ class SimNet:
         proc.state = "up"
         backlog, proc.backlog = proc.backlog, []
         if not proc.connected:
-            self.sched.at(now + self.lease.reconnect, ("reconnect", proc))
+            self._at(now + self.lease.reconnect, ("reconnect", proc))
         if now - proc.paused_at > ev.FREEZE_S:  # as a shell: a shorter stop is a slow process
             self._handle(proc, ev.Woke(now - proc.paused_at))
         for event, timer in backlog:
@@ -469,6 +579,7 @@ class SimNet:
         if proc.state != "paused" or proc.pause_serial != serial or not proc.connected:
             return
         self.trace.add(self.sched.now, repr(proc), "lease expired")
+        self._leave(proc, own=True)
         self._session(proc, -1)
         proc.connected = False
 
@@ -487,8 +598,8 @@ class SimNet:
         after what had reached it before."""
         for key in proc.tokens:
             self._token_to_all(proc, key, delta, others_only=True)
-        for owner in self._all:
-            if owner is not proc and owner.tokens and self._visible(owner, proc, assume_attached=True):
+        for owner in self._owners():
+            if owner is not proc and self._visible(owner, proc, assume_attached=True):
                 for key in owner.tokens:
                     self._token_to(owner, proc, key, delta, local=delta < 0)
 
@@ -503,7 +614,7 @@ class SimNet:
             elif isinstance(e, ev.SetTimer):
                 self._timer_serial += 1
                 proc.timers[e.name] = self._timer_serial
-                self.sched.at(e.at, ("timer", proc, e.name, self._timer_serial))
+                self._at(e.at, ("timer", proc, e.name, self._timer_serial))
             elif isinstance(e, ev.CancelTimer):
                 proc.timers.pop(e.name, None)
             elif isinstance(e, ev.Subscribe):
@@ -518,10 +629,13 @@ class SimNet:
             elif isinstance(e, ev.DeclareToken):
                 if self._may(proc, "liveliness_token", e.key):
                     proc.tokens.append(e.key)
+                    self._holders[proc.order] = proc
                     self._own_token(proc, e.key, +1)
             elif isinstance(e, ev.DropToken):
                 if e.key in proc.tokens:
                     proc.tokens.remove(e.key)
+                    if not proc.tokens:
+                        self._holders.pop(proc.order, None)
                     self._own_token(proc, e.key, -1)
             elif isinstance(e, ev.AskTokens):
                 self._ask_tokens(proc, e)
@@ -579,7 +693,7 @@ class SimNet:
     def _send(self, a: _Proc, b: _Proc, event, faulty: bool = False) -> None:
         link = self._link(a, b)
         if a is b:
-            self.sched.at(self.sched.now, ("deliver", b, event, True))
+            self._at(self.sched.now, ("deliver", b, event, True))
             return
         if faulty and link.faults:
             rng = self.rng
@@ -590,9 +704,9 @@ class SimNet:
             copies = 2 if link.duplicate and rng.random() < link.duplicate else 1
             for _ in range(copies):
                 held = bool(link.reorder and rng.random() < link.reorder)
-                self.sched.at(self._arrival(a, b, link, held), ("deliver", b, event, False))
+                self._at(self._arrival(a, b, link, held), ("deliver", b, event, False))
             return
-        self.sched.at(self._arrival(a, b, link), ("deliver", b, event, False))
+        self._at(self._arrival(a, b, link), ("deliver", b, event, False))
 
     def _publish(self, proc: _Proc, key: str, payload: bytes) -> None:
         if not proc.connected:
@@ -615,18 +729,62 @@ class SimNet:
         m = matcher(expr)
         older = [mm for _, mm in proc.watches]
         proc.watches.append((expr, m))
-        self._watches.add(expr, proc)
+        if self._casting and getattr(proc.machine, "batches_tokens", False) and proc.attached \
+                and (proc.view is not None or not older):
+            self._join(proc)
+        else:
+            self._watches.add(expr, proc)
+        owners = self._owners()
         news = {}  # key -> a process holding it (its link carries the news)
-        for owner in self._all:
-            if owner.tokens and self._visible(owner, proc):
+        for owner in owners:
+            if self._visible(owner, proc):
                 for key in owner.tokens:
                     if m(key):
-                        if not any(mm(key) for mm in older):  # not counted so far
+                        if proc.view is None and not any(mm(key) for mm in older):  # not counted so far
                             proc.counts[key] = proc.counts.get(key, 0) + 1
                         news.setdefault(key, owner)
         for key, owner in news.items():
             if proc.counts.get(key, 0) > 0:
                 self._send(owner, proc, ev.Token(key, True))
+
+    def _join(self, proc: _Proc) -> None:
+        """``proc`` (on the network, its watches just made) shares the view of
+        whoever watches what it watches; the view's counts are what any of
+        them sees."""
+        self._leave(proc)
+        sig = tuple(e for e, _ in proc.watches)
+        view = self._views.get(sig)
+        if view is None:
+            view = self._views[sig] = _View(sig, proc.order)
+            ms = [m for _, m in proc.watches]
+            for owner in self._owners():
+                if owner is proc or owner.attached or (owner.state == "dead" and owner.connected):
+                    for key in owner.tokens:
+                        if any(m(key) for m in ms):
+                            view.counts[key] = view.counts.get(key, 0) + 1
+            for e in sig:
+                self._watches.add(e, view)
+        view.joins += 1
+        view.members[proc] = view.joins
+        proc.view, proc.counts = view, view.counts
+        if self._open is not None and self._open.view is view:
+            self._open = None
+
+    def _leave(self, proc: _Proc, own: bool = False) -> None:
+        """``proc`` no longer shares its view (it left the network, or its
+        watches change); ``own``: it keeps watching, with its own counts."""
+        view = proc.view
+        if view is None:
+            return
+        proc.view = None
+        del view.members[proc]
+        if own:
+            proc.counts = dict(view.counts)
+            for e, _ in proc.watches:
+                self._watches.add(e, proc)
+        if not view.members:
+            self._watches.remove(view)
+            del self._views[view.sig]
 
     def _visible(self, owner: _Proc, proc: _Proc, assume_attached: bool = False) -> bool:
         """Whether ``owner``'s tokens reach ``proc`` now (a crashed process's
@@ -641,11 +799,57 @@ class SimNet:
         for q, _ in self._watches.match(key):
             watchers[q] = watchers.get(q, 0) + 1
         for q, n in watchers.items():
-            if q is owner:
+            if type(q) is _View:
+                self._token_to_view(owner, q, key, delta, n, others_only)
+            elif q is owner:
                 if not others_only and q.state in ("up", "paused"):
                     self._token_to(owner, q, key, delta, n)
             elif q.attached:
                 self._token_to(owner, q, key, delta, n)
+
+    def _token_to_view(self, owner: _Proc, view: _View, key: str, delta: int, n: int, others_only: bool) -> None:
+        """As ``_token_to`` for every member of ``view``: one count, one cast;
+        an owner among them hears its own token at once too (its own session),
+        and again in the batch (a machine that batches tokens counts a
+        process's token once)."""
+        before = view.counts.get(key, 0)
+        after = max(0, before + delta)
+        view.counts[key] = after
+        if (before == 0) == (after == 0):
+            return
+        if owner.view is view and not others_only:
+            for _ in range(n):
+                self._at(self.sched.now, ("deliver", owner, ev.Token(key, after > 0), True))
+        t = self.sched.now + self.link.delay
+        for _ in range(n):
+            c = self._open
+            if c is None or c.view is not view or c.t != t or c.up != (after > 0):
+                c = _Cast(view, t, after > 0)
+                self._at(t, ("cast", c))
+                self._open = c
+            c.keys.append(key)
+
+    def _cast_out(self, c: _Cast) -> None:
+        """A cast arrives: one batch to every member of its view that was
+        there when it was sent."""
+        if self._open is c:
+            self._open = None
+        event = ev.TokenBatch(tuple(c.keys), c.up)
+        for q, joined in list(c.view.members.items()):
+            if joined <= c.serial:
+                self._deliver(q, event)
+
+    def _label(self, event: ev.TokenBatch) -> str:
+        """The digest of a batch's keys, computed once for all its receivers."""
+        hit = self._labels.get(id(event))
+        if hit is None or hit[0] is not event:
+            if len(self._labels) > 64:
+                self._labels.clear()
+            h = hashlib.blake2b(digest_size=16)
+            for key in event.keys:
+                h.update(key.encode() + b"\n")
+            hit = self._labels[id(event)] = (event, f"{len(event.keys)} {h.hexdigest()}")
+        return hit[1]
 
     def _token_to(self, owner: _Proc, q: _Proc, key: str, delta: int, watches: int | None = None,
                   local: bool = False) -> None:
@@ -661,7 +865,7 @@ class SimNet:
         if (before == 0) != (after == 0):
             for _ in range(watches):
                 if local:
-                    self.sched.at(self.sched.now, ("deliver", q, ev.Token(key, after > 0), True))
+                    self._at(self.sched.now, ("deliver", q, ev.Token(key, after > 0), True))
                 else:
                     self._send(owner, q, ev.Token(key, after > 0))
 
@@ -682,7 +886,7 @@ class SimNet:
             self._send(proc, q, ev.Query(nq, e.key, bytes(e.payload)))
         # no queryable: the answer "none" comes after a round trip
         wait = e.timeout if targets else 2 * self.link.delay
-        self.sched.at(self.sched.now + wait, ("query-timeout", nq))
+        self._at(self.sched.now + wait, ("query-timeout", nq))
 
     def _ask_tokens(self, proc: _Proc, e: ev.AskTokens) -> None:
         """A liveliness query: the tokens held when it reaches the others
@@ -691,16 +895,16 @@ class SimNet:
         query's timeout."""
         self.trace.add(self.sched.now, repr(proc), f"ask-tokens {e.qid}", e.key)
         if not (proc.connected and self._may(proc, "liveliness_query", e.key)):
-            self.sched.at(self.sched.now + e.timeout, ("deliver", proc, ev.Tokens(e.qid, ()), True))
+            self._at(self.sched.now + e.timeout, ("deliver", proc, ev.Tokens(e.qid, ()), True))
             return
-        self.sched.at(self.sched.now + self.link.delay, ("tokens-now", proc, e.qid, e.key, e.timeout))
+        self._at(self.sched.now + self.link.delay, ("tokens-now", proc, e.qid, e.key, e.timeout))
 
     def _tokens_now(self, proc: _Proc, qid: int, expr: str, timeout: float) -> None:
         m = matcher(expr)
-        keys = sorted({key for owner in self._all if owner.tokens and self._visible(owner, proc)
+        keys = sorted({key for owner in self._owners() if self._visible(owner, proc)
                        and (owner is proc or self._link(proc, owner).delay + self._link(owner, proc).delay <= timeout)
                        for key in owner.tokens if m(key)})
-        self.sched.at(self.sched.now + self.link.delay, ("deliver", proc, ev.Tokens(qid, tuple(keys)), True))
+        self._at(self.sched.now + self.link.delay, ("deliver", proc, ev.Tokens(qid, tuple(keys)), True))
 
     def _answer(self, proc: _Proc, e: ev.Answer) -> None:
         """The first answer goes back to the asker; later ones are dropped."""
