@@ -53,6 +53,7 @@ import argparse
 import os
 import sys
 
+from diskf_mesh import estimators
 from diskf_mesh.data.argtypes import seconds
 from diskf_mesh.mesh.protocol import clock as realtime
 from diskf_mesh.mesh.security import credentials
@@ -82,7 +83,8 @@ class Agent:
                  timing: AgentTiming = AgentTiming(), log: Log | None = None,
                  faults: FaultConfig | FaultModel | None = None, profile: Phases = NO_PHASES):
         try:
-            self.machine = AgentMachine(scn, agent_id, algorithm, keys, new_nonce(), timing, faults, log, profile)
+            self.machine = AgentMachine(scn, agent_id, estimators.get(algorithm), keys, new_nonce(), timing, faults,
+                                        log, profile)
         except ValueError as e:
             raise MeshError(str(e)) from None
         self.shell = Shell(self.machine, transport, profile)

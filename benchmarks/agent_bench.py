@@ -89,7 +89,7 @@ def one_round(spec: RunSpec, me: int, feed: list) -> dict:
     """Seconds in all of the shell's sample callbacks and in the estimator's two calls."""
     scn = spec.load(len(feed))
     keys = Keys(RUN)
-    agent = AgentMachine(scn, me, spec.algorithm, keys, "bench")
+    agent = AgentMachine(scn, me, algorithms.get(spec.algorithm), keys, "bench")
     sink = Sink()
     Shell(agent, sink, clock=lambda: 0.0).start()  # its subscriptions; the main loop is not needed
     ask, = [e for e in agent.handle(Token(keys.world("w"), True), 0.0) if isinstance(e, AskTokens)]

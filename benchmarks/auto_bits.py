@@ -1,4 +1,4 @@
-"""diskf-auto's outputs on many cases, saved or compared bit for bit.
+"""diskf-auto's (and diskf-r's) outputs on many cases, saved or compared bit for bit.
 
 A change meant to make ``diskf-auto`` faster must not move a bit of what it
 computes. This runs it on the engine over Table II (Scenario 1, all three
@@ -10,7 +10,10 @@ and one agent at a time as an agent process runs it
 (``mesh.protocol.estimator.lockstep``) on a few of them; then either saves
 every output (``--save FILE``, an ``.npz``) or compares them with a saved
 file (``--check FILE``) with ``np.array_equal`` and exits 1 on any
-difference, naming the cases that differ.
+difference, naming the cases that differ. ``diskf-r`` and the centre with
+its input model (``engine.centralized.run_centralized_persist``), which
+share its joint steps (``equations.replace_marginal``, ``input_to_state``),
+run on Table II and every eighth case.
 
     git archive BASE | tar -x -C /tmp/base
     PYTHONPATH=/tmp/base python benchmarks/auto_bits.py --save /tmp/auto.npz
@@ -26,6 +29,7 @@ from dataclasses import replace
 import numpy as np
 
 from diskf_mesh.data.scenario import load_scenario, simulate
+from diskf_mesh.engine.centralized import run_centralized_persist
 from diskf_mesh.studies.experiment import run_or_none
 from diskf_mesh.mesh.protocol.estimator import lockstep
 from diskf_mesh.studies import heldout
@@ -38,8 +42,8 @@ def with_settings(params, noise: bool, defence: bool):
     return replace(params, auto=replace(params.auto, noise=noise), defence=defence)
 
 
-def engine_outputs(tr, params) -> list:
-    est = run_or_none(tr, NAME, params)
+def engine_outputs(tr, params, name: str = NAME) -> list:
+    est = run_or_none(tr, name, params)
     return [np.array([np.nan])] if est is None else [est.x, est.P, est.d, est.d_valid]
 
 
@@ -51,6 +55,13 @@ def agent_outputs(scn, tr) -> list:
     return [np.array(xs), np.array(Ps), np.array(ds), np.array(dv)]
 
 
+def robust(label: str, scn, tr):
+    """diskf-r and the centre with its input model on one case."""
+    yield f"{label} diskf-r", engine_outputs(tr, scn.params, "diskf-r")
+    est = run_centralized_persist(tr, scn.params.robust)
+    yield f"{label} centre", [est.x, est.P, est.d, est.d_valid]
+
+
 def outputs(ticks: int):
     """Yields (label, [arrays]) for every case."""
     q = load_scenario("quadrants")
@@ -59,12 +70,15 @@ def outputs(ticks: int):
         tr = simulate(scn, range(20))
         for tag in ("", "noise+defence"):
             yield f"Table II {topology} {tag}", engine_outputs(tr, with_settings(scn.params, *SETTINGS[tag]))
+        yield from robust(f"Table II {topology}", scn, tr)
     for i, case in enumerate(heldout.cases()):
         scn, tr = case.simulate(range(2), ticks)
         for tag, (noise, defence) in SETTINGS.items():
             if tag and i % 4:
                 continue
             yield f"{case.label} {tag}", engine_outputs(tr, with_settings(scn.params, noise, defence))
+        if i % 8 == 0:
+            yield from robust(case.label, scn, tr)
         if i % 16 == 0 and len(scn.agents) <= 9:
             for tag in ("", "noise+defence"):
                 p = with_settings(scn.params, *SETTINGS[tag])

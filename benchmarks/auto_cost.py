@@ -7,6 +7,9 @@ load):
 engine S1  the batched engine (``engine.batch.run``) on Scenario 1,
            all-to-all, 20 seeds x 200 ticks x 4 agents
 engine S2  the same on Scenario 2 at range 120, 20 seeds x 200 ticks x 9 agents
+check      the engine on one seed of Scenario 2 (9 agents, 200 ticks), tick by tick
+           (``engine.batch.Stepper``, a batch of 9): what the mesh's world replays
+           each tick to check the agents' reports (``engine.verify.Online``)
 agent      one agent as an agent process runs it (``mesh.protocol.estimator.lockstep``:
            every agent of Scenario 2 a batch of one, local + fuse), 100 ticks
 
@@ -43,9 +46,12 @@ def main(argv=None) -> int:
     tr1, tr2 = simulate(s1, range(20)), simulate(s2, range(20))
     s3 = load_scenario("dynamic").with_overrides(steps=100)
     tr3 = simulate(s3, [0])
+    s4 = load_scenario("dynamic")
+    tr4 = simulate(s4, [0])
     runs = {
         "engine S1": (lambda name: engine.run(tr1, name, s1.params), tr1.has.size),
         "engine S2": (lambda name: engine.run(tr2, name, s2.params), tr2.has.size),
+        "check": (lambda name: engine.run(tr4, name, s4.params), tr4.has.size),
         "agent": (lambda name: sum(1 for _ in lockstep(s3, name, tr3)), tr3.has.size),
     }
     best = {}

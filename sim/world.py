@@ -506,8 +506,8 @@ def run(args: argparse.Namespace) -> int:
 
 def online_check(args, spec, scn: Scenario, trace: Trace, faults: FaultConfig, clock) -> OnlineCheck:
     """The world's check as the run goes (``OnlineCheck``) of a run."""
-    return OnlineCheck(trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=args.seed, faults=faults,
-                       deadline_s=realtime.agents_deadline(clock, args.collect_timeout))
+    return OnlineCheck(trace, estimators.get(spec.algorithm), scn.params, run_id=spec.run_id, seed=args.seed,
+                       faults=faults, deadline_s=realtime.agents_deadline(clock, args.collect_timeout))
 
 
 def _run(args, spec, scn: Scenario, started: str, signalled: list, checker) -> int:

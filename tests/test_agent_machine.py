@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from diskf_mesh import estimators
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch as engine
@@ -18,6 +19,7 @@ from diskf_mesh.mesh.wire.keys import Keys
 from diskf_mesh.mesh.wire.keys import key_matches
 
 RUN = "m"
+DISKF = estimators.get("diskf")
 K = 12
 SEED = 3
 
@@ -72,7 +74,7 @@ def started(scn, i, now=0.0, ticking=False, timing=AgentTiming(), faults=None):
     """Agent ``i``'s machine through its start-up: subscribed, id claimed,
     alive and ready tokens declared; returns (machine, effects so far)."""
     w = World(scn, None)
-    m = AgentMachine(scn, i, "diskf", Keys(RUN), f"n{i}", timing, faults)
+    m = AgentMachine(scn, i, DISKF, Keys(RUN), f"n{i}", timing, faults)
     out = m.start(now)
     assert {e.key for e in of(out, Subscribe)} == {m.keys.tick, m.keys.meas(i), m.keys.stop, m.keys.msg_to(i)}
     assert of(out, WatchTokens)
@@ -259,7 +261,7 @@ def test_a_rejoining_agent_asks_the_world_and_starts_from_its_answer(run):
     out = hand(m, Reply(ask.qid, wire.encode_start(RUN, me, J, 7, x, P, np.zeros(1), False)), 10.1)
     assert m.rejoins == [(J, 7)]
     msg, = of(out, Publish)                             # then its one message of tick J, nothing else
-    est = AgentEstimator(scn, me, "diskf", K, SEED, start=(x, P))  # ... from the answered estimate, bit for bit
+    est = AgentEstimator(scn, me, DISKF, K, SEED, start=(x, P))  # ... from the answered estimate, bit for bit
     j = w.ids.index(me)
     own = est.local(J, bool(trace.has[0, J - 1, j]), trace.y[0, J - 1, j, :est.p])
     assert msg.payload == wire.encode(RUN, me, J, own)
@@ -371,7 +373,7 @@ def test_a_process_that_sees_its_id_held_before_its_claim_is_answered_tells_the_
     scn, trace, _ = run
     w = World(scn, trace)
     me = w.ids[2]
-    m = AgentMachine(scn, me, "diskf", Keys(RUN), "n9")
+    m = AgentMachine(scn, me, DISKF, Keys(RUN), "n9")
     m.start(0.0)
     claim, = of(hand(m, Token(m.keys.world("w0"), True), 0.0), AskTokens)
     out = hand(m, w.tick(6, holders={}), 0.1)  # it names process "n3" as agent 3
@@ -384,7 +386,7 @@ def test_a_process_that_sees_its_id_held_before_its_claim_is_answered_tells_the_
 def test_another_process_with_this_id_makes_this_one_leave_with_2(run):
     scn, _, _ = run
     me = 1
-    m = AgentMachine(scn, me, "diskf", Keys(RUN), "n2")
+    m = AgentMachine(scn, me, DISKF, Keys(RUN), "n2")
     m.start(0.0)
     ask, = of(hand(m, Token(m.keys.world("w0"), True), 0.0), AskTokens)
     out = hand(m, Tokens(ask.qid, (m.keys.alive(me, "n1"),)), 0.5)
@@ -395,7 +397,7 @@ def test_another_process_with_this_id_makes_this_one_leave_with_2(run):
 
 def test_a_silent_world_ends_the_agent_at_its_timeout(run):
     scn, _, _ = run
-    m = AgentMachine(scn, 1, "diskf", Keys(RUN), "n1", AgentTiming(world_timeout=30.0))
+    m = AgentMachine(scn, 1, DISKF, Keys(RUN), "n1", AgentTiming(world_timeout=30.0))
     out = m.start(5.0)
     assert SetTimer("world", 35.0) in out
     fin, = hand(m, Timer("world"), 35.0)

@@ -11,6 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from diskf_mesh import estimators
 from diskf_mesh.mesh.process.checker import CheckFailed, CheckProcess
 from diskf_mesh.mesh.protocol import run_status
 from diskf_mesh.mesh.simulated import simrun
@@ -48,7 +49,7 @@ def test_a_check_answered_only_when_waited_for_cuts_the_liar_off_from_the_same_t
 def test_the_check_in_its_own_process_finds_what_the_check_in_the_world_finds(dynamic):
     scn, trace = dynamic
     rec = run(dynamic, online=False, start=FROM, offset=OFFSET).record  # the liar never cut off: it lies on
-    make = lambda: run_status.OnlineCheck(trace, "diskf", scn.params, run_id=RUN, seed=0)  # noqa: E731
+    make = lambda: run_status.OnlineCheck(trace, estimators.get("diskf"), scn.params, run_id=RUN, seed=0)  # noqa: E731
     here, there = make(), CheckProcess(make)
     try:
         found = []

@@ -321,6 +321,7 @@ class FedAgent:
     K = 30
 
     def __init__(self, k: int = 5):
+        from diskf_mesh.estimators import get
         from diskf_mesh.mesh.protocol.agent_machine import AgentMachine
         from diskf_mesh.mesh.protocol.estimator import lockstep
         from diskf_mesh.mesh.protocol.events import AskTokens, Token, Tokens
@@ -331,7 +332,7 @@ class FedAgent:
         self.ids = [a.id for a in scn.agents]
         self.me = self.ids[4]
         self.keys = Keys("fed")
-        self.agent = AgentMachine(scn, self.me, "diskf", self.keys, "n0")
+        self.agent = AgentMachine(scn, self.me, get("diskf"), self.keys, "n0")
         self.agent.start(0.0)
         ask, = [e for e in self.agent.handle(Token(self.keys.world("w"), True), 0.0) if isinstance(e, AskTokens)]
         self.agent.handle(Tokens(ask.qid, ()), 0.0)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from diskf_mesh.estimators import get
 from diskf_mesh.mesh.protocol.rejoin import in_range, most_certain
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.estimator import AgentEstimator
@@ -17,7 +18,7 @@ def test_takes_the_most_certain_linked_neighbour():
     reports = {1: report(1, 4.0), 2: report(2, 0.5, (7.0, 8.0)), 3: report(3, 2.0, (5.0, 6.0))}
     src = most_certain(reports, linked={1, 3})
     assert src == 3                                  # 2 is more certain but not linked
-    est = AgentEstimator(load_scenario("dynamic"), 5, "diskf", 50, 0, start=(reports[src].x, reports[src].P))
+    est = AgentEstimator(load_scenario("dynamic"), 5, get("diskf"), 50, 0, start=(reports[src].x, reports[src].P))
     assert est.state.x.shape == (1, 1, 2) and est.state.P.shape == (1, 1, 2, 2)
     np.testing.assert_array_equal(est.state.x[0, 0], [5.0, 6.0])
     np.testing.assert_array_equal(est.state.P[0, 0], 2.0 * np.eye(2))

@@ -201,12 +201,12 @@ def test_the_check_as_the_run_goes_judges_each_tick_as_the_end_of_run_check(dyna
 
     scn, trace = dynamic
     r = run(dynamic, online=False, start=FROM, offset=OFFSET, withhold=withhold)
-    check = OnlineCheck(trace, "diskf", scn.params, run_id=RUN, seed=0)
+    ev = r.status.evidence  # the end-of-run check, before the online one is watched
+    check = OnlineCheck(trace, estimators.get("diskf"), scn.params, run_id=RUN, seed=0)
     judged = []
     tick = verify.Judge.tick
     monkeypatch.setattr(verify.Judge, "tick", lambda judge, *a, **kw: judged.append(tick(judge, *a, **kw)) or judged[-1])
     named = [q for k in range(1, K + 1) for q in check.tick(r.record, k)]
-    ev = r.status.evidence
     assert sum(int(j.diverged.sum()) for j in judged) == ev.get("diverged", {}).get("agent_ticks", 0)
     assert sum(int(j.unverified.sum()) for j in judged) == ev["unverified"] > 0
     assert [(q["agent"], q["tick"]) for q in named] == ([(LIAR, FROM)] if withhold is None else [])

@@ -42,15 +42,16 @@ def claims_of(scn, trace, links=None, restarts=(), live=None):
     K, N = trace.has.shape[1:]
     ids = list(trace.sensors.ids)
     links = V.nominal_links(trace, K, live) if links is None else links
-    agents = {i: AgentEstimator(scn, i, ALG, K, SEED) for i in ids}
+    estimator = get_estimator(ALG)
+    agents = {i: AgentEstimator(scn, i, estimator, K, SEED) for i in ids}
     x, P, d = np.full((K, N, 2), np.nan), np.full((K, N, 2, 2), np.nan), np.full((K, N, 1), np.nan)
     dv, fd = np.zeros((K, N), bool), {}
-    exchanged = get_estimator(ALG).exchanged
+    exchanged = estimator.exchanged
     for k in range(1, K + 1):
         for r in restarts:
             if r.tick == k:
                 start = None if r.source is None else (x[k - 2, r.source], P[k - 2, r.source])  # None: the prior
-                agents[ids[r.agent]] = AgentEstimator(scn, ids[r.agent], ALG, K, SEED, start=start)
+                agents[ids[r.agent]] = AgentEstimator(scn, ids[r.agent], estimator, K, SEED, start=start)
         msgs = {i: agents[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :agents[i].p])
                 for j, i in enumerate(ids)}
         for j, i in enumerate(ids):

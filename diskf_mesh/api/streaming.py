@@ -207,7 +207,8 @@ class Agent:
         if agent_id not in self._internal:
             raise InputError("agent_id", f"{agent_id!r} is not an agent of {scn.name!r} "
                                          f"(ids {', '.join(map(str, self._internal))})")
-        self._agent = AgentEstimator(scn, self._internal[agent_id], name, self.ticks, int(seed), params)
+        self._agent = AgentEstimator(scn, self._internal[agent_id], _estimators.get(name), self.ticks, int(seed),
+                                     params)
         self.scenario, self.estimator, self.settings = scn, name, params
         self.id = agent_id
         self._tick = 0

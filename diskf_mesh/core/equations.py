@@ -450,7 +450,9 @@ def replace_marginal(a, Paa, b, Pab, Pbb, a_new, Paa_new):
     K = T(solve(Paa, Pab))               # Pab^T Paa^-1 (Paa symmetric)
     b_new = b + mv(K, a_new - a)
     Pab_new = np.matmul(Paa_new, T(K))
-    Pbb_new = sym(Pbb - np.matmul(K, Pab) + np.matmul(K, Pab_new))
+    nb = Pab.shape[-1]
+    both = np.matmul(K, np.concatenate([Pab, Pab_new], axis=-1))  # K Pab and K Pab' in one product
+    Pbb_new = sym(Pbb - both[..., :nb] + both[..., nb:])
     return b_new, Pab_new, Pbb_new
 
 

@@ -404,10 +404,15 @@ def pair_predict(A, C, e, S, F, q):
     """
     q = np.asarray(q, dtype=float)
     m = e.shape[-1] // 2
+    n = A.shape[-1]
     noise = np.zeros((2 * m, 2 * m))  # eta drives d_{k-1} only
     noise[:m, :m] = np.eye(m)
-    return mv(F, e), np.matmul(matmul_left(A, C), T(F)), sym(np.matmul(np.matmul(F, S), T(F))
-                                                           + q[..., None, None] * noise)
+    # A C and F S stacked, then one product with F^T for both
+    AC, FS = matmul_left(A, C), np.matmul(F, S)
+    batch = np.broadcast_shapes(AC.shape[:-2], FS.shape[:-2])
+    both = np.matmul(np.concatenate([np.broadcast_to(AC, batch + AC.shape[-2:]), np.broadcast_to(FS, batch + FS.shape[-2:])],
+                                    axis=-2), T(F))
+    return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + q[..., None, None] * noise)
 
 
 def default_bank(q_process: float, q_sensor: float, none: bool = True, walk: bool = True, zero_mean: bool = True,

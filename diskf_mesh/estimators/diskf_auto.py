@@ -173,9 +173,7 @@ class DISKFAuto(Estimator):
         v, Pv = eq.predict(x0, P0, A, self.model.Q)
         v_c, Pv_c, _ = im.affine_prior(own.x_pred, own.P_pred, x_c, P_c, v, Pv, B)
         e1, B, S1 = eq.replace_marginal(v, Pv, e1, B, S1, v_c, Pv_c)
-        zv, Zv = im.joint(v_c, Pv_c, e1, S1, B)
-        zv, Zv, relayed = self._relay(senders, nb, zv, Zv)
-        v, Pv, e1, S1, B = im.split(zv, Zv, n)
+        v, Pv, e1, S1, B, relayed = self._relay(senders, nb, v_c, Pv_c, e1, S1, B)
         x_s, P_s, C_s = eq.input_to_state(v, Pv, B, e1, S1, self.G_pair)
         # 4. the measurement: likelihoods and the joint update
         U_m, u_m = U[..., None, :, :], u[..., None, :]
@@ -193,7 +191,7 @@ class DISKFAuto(Estimator):
                        info=state.info, tick=state.tick)
         return st, Output(x, P, d, held)
 
-    def _relay(self, senders, nb, z, Z):
+    def _relay(self, senders, nb, v, Pv, e, S, B):
         """The neighbours' relayed inputs (their combined d, S) under each
         persistent first-order model (a2 = 0, rho = a1 > 0): the fast CI of
         the other neighbours' (rho d_j, rho^2 S_j + q I), then the fast CI of
@@ -201,28 +199,37 @@ class DISKFAuto(Estimator):
         model's marginal of d_{k-1} in the joint (v, d_{k-1}, d_{k-2}), the
         conditional of the rest kept (``input_models.replace_part``). The
         agent's own message is left out: its combined input mixes the models
-        this one is to stay apart from. z: (..., M, n + 2m), Z likewise; the
-        models are one more batch axis of the same functions."""
+        this one is to stay apart from. (v, Pv, e, S, B): each model's joint
+        as ``input_models.split`` gives it, (..., M, ...); the models are one
+        more batch axis of the same functions. Returns them with the
+        relaying models' replaced, and whether any was."""
         n, m = self.model.n, self.model.m
         js = self.relaying
-        if js.size == 0:
-            return z, Z, np.zeros(z.shape[:-2], dtype=bool)
+        others = nb.adj * ~nb.self_mask
+        if js.size == 0 or not (others * senders.d_valid[..., None, :]).any():  # no other sender relays an input
+            return v, Pv, e, S, B, np.zeros(v.shape[:-2], dtype=bool)
         rho, q = self.a1[js][:, None, None], self.q[js][:, None, None, None]       # (J, 1, 1), (J, 1, 1, 1)
-        others = (nb.adj * ~nb.self_mask)[..., None, :, :]                         # (..., 1, R, S)
+        others = others[..., None, :, :]                                           # (..., 1, R, S)
         d_n, S_n, has_n = eq.input_fusion(others, rho * senders.d[..., None, :, :],
                                           (rho * rho)[..., None] * senders.S[..., None, :, :, :] + q * identity(m),
                                           senders.d_valid[..., None, :])           # (..., J, R, ...)
         d_n, S_n, has_n = d_n.swapaxes(-3, -2), S_n.swapaxes(-4, -3), has_n.swapaxes(-2, -1)
-        zj, Zj = z[..., js, :], Z[..., js, :, :]                                   # (..., R, J, ...)
-        dj, Sj = zj[..., n:n + m], Zj[..., n:n + m, n:n + m]
+        zj, Zj = im.joint(v[..., js, :], Pv[..., js, :, :], e[..., js, :], S[..., js, :, :], B[..., js, :, :])
+        dj, Sj = zj[..., n:n + m], Zj[..., n:n + m, n:n + m]                       # (..., R, J, ...)
         pair = np.ones(has_n.shape + (1, 2))
         d_r, S_r, _ = eq.input_fusion(pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
                                       np.stack([np.ones_like(has_n), has_n], axis=-1))
         zr, Zr = im.replace_part(zj, Zj, np.arange(n, n + m), d_r[..., 0, :], S_r[..., 0, :, :])
-        z, Z = z.copy(), Z.copy()
-        z[..., js, :] = np.where(has_n[..., None], zr, zj)
-        Z[..., js, :, :] = np.where(has_n[..., None, None], Zr, Zj)
-        return z, Z, has_n.any(axis=-1)
+        parts = im.split(np.where(has_n[..., None], zr, zj), np.where(has_n[..., None, None], Zr, Zj), n)
+        out = []
+        for whole, part, vector in zip((v, Pv, e, S, B), parts, (True, False, True, False, False)):
+            whole = whole.copy()
+            if vector:
+                whole[..., js, :] = part
+            else:
+                whole[..., js, :, :] = part
+            out.append(whole)
+        return (*out, has_n.any(axis=-1))
 
 
 NOISE_PRIOR = 5.0    # I0 of (NL2) (``core.noise``): the prior r = 1 worth ten measured rows that resolve it

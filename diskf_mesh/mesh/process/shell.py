@@ -99,7 +99,11 @@ class Shell:
     def _on_sample(self, key: str, payload: bytes) -> None:
         """A sample, read by the machine (``machine.read``: an agent's is
         decoded there, once) into the event it handles."""
-        self._feed(self.machine.read(key, payload))
+        try:
+            event = self.machine.read(key, payload)
+        except BaseException as e:  # noqa: BLE001 - a callback must not swallow a failure
+            return self._fail(e)
+        self._feed(event)
 
     def _on_query(self, key: str, payload: bytes, reply) -> None:
         with self._cv:

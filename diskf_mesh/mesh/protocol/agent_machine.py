@@ -6,7 +6,7 @@ nothing else: no transport, no thread, no clock read. A shell
 ``mesh.simulated.simnet``) hands it one event at a time with the time ``now`` and
 carries out the effects it returns, in order::
 
-    m = AgentMachine(scn, agent_id, algorithm, keys, nonce)
+    m = AgentMachine(scn, agent_id, estimators.get(name), keys, nonce)
     effects = m.start(now)            # Subscribe, WatchTokens, SetTimer
     event = m.read(key, payload)      # a sample, decoded once at the edge (``mesh.protocol.intake``)
     effects = m.handle(event, now)    # Publish, DeclareToken, Ask, ..., Finish
@@ -83,11 +83,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diskf_mesh import estimators
 from diskf_mesh.core import exits
 from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.data.lies import Liars
 from diskf_mesh.data.scenario import Scenario
+from diskf_mesh.estimators.base import Estimator
 from diskf_mesh.mesh.protocol import clock as realtime
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.estimator import AgentEstimator, neighbours
@@ -126,7 +126,8 @@ class AgentTiming:
 
 class AgentMachine:
     """The protocol of agent ``agent_id`` of scenario ``scn`` in the run of
-    ``keys`` (module docstring).
+    ``keys`` (module docstring) with ``estimator``, the class
+    ``estimators.get`` resolved.
 
     ``nonce``: this process's token suffix (``keys.new_nonce()`` in a real
     process; any distinct, sortable string in a simulation). ``faults``: the
@@ -140,7 +141,7 @@ class AgentMachine:
 
     batches_tokens = True  # takes ``TokenBatch`` (the simulated network's casts of many tokens)
 
-    def __init__(self, scn: Scenario, agent_id: int, algorithm: str, keys: Keys, nonce: str,
+    def __init__(self, scn: Scenario, agent_id: int, estimator: type[Estimator], keys: Keys, nonce: str,
                  timing: AgentTiming = AgentTiming(), faults: FaultConfig | FaultModel | None = None,
                  log: Log | None = None, profile: Phases = NO_PHASES, shared: Shared | None = None):
         self.scn, self.keys, self.nonce, self.timing = scn, keys, nonce, timing
@@ -149,7 +150,8 @@ class AgentMachine:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} "
                              f"(ids {', '.join(map(str, self.ids))})")
         self.id = agent_id
-        self.algorithm = algorithm
+        self.estimator = estimator  # the class ``estimators.get`` resolved, once for the run
+        self.algorithm = estimator.name
         self.log = log or Log(f"agent {agent_id}")
         self.prof = profile
         n, m = scn.G.shape
@@ -159,11 +161,10 @@ class AgentMachine:
         # tick (the guard's window two); real time further, for an agent that fell behind
         self.lead = 1 if timing.clock is None else realtime.LEAD_TICKS
         self.kept = AHEAD_KEPT if timing.clock is None else realtime.LEAD_TICKS + 2
-        declared = estimators.get(algorithm)
-        self.exchanged = declared.exchanged  # what its messages carry (``Estimator.exchanged``)
+        self.exchanged = estimator.exchanged  # what its messages carry (``Estimator.exchanged``)
         self.liars = Liars(scn.lies, (agent_id,), n, scn.position_dims)  # this agent's lies, if it is a liar
         guard = Guard(GuardConfig(keys.run_id, agent_id, scn.id_set, n, m,
-                                  information_check=declared.information_check, exchanged=declared.exchanged,
+                                  information_check=estimator.information_check, exchanged=estimator.exchanged,
                                   **({} if timing.clock is None else {"max_lead": realtime.LEAD_TICKS})),
                       profile=profile, shared=shared)
         self.intake = Intake(keys, agent_id, self.p, len(self.ids), guard, profile)  # ``read``: the edge
@@ -293,12 +294,9 @@ class AgentMachine:
             if not self.collecting:
                 if self.stopped is not None:
                     break
-                if k in self.ticks and self.id not in self.ticks[k].live:
-                    self._resync(f"the world counts this agent out at tick {k}", now)
-                    self._start_up(now)
-                    break
-                if k not in self.ticks and any(j > k for j in self.ticks):
-                    self._resync(f"tick {k} never came", now)
+                why = self._out_of_run(k)
+                if why:
+                    self._resync(why, now)
                     self._start_up(now)
                     break
                 if k not in self.ticks or k not in self.meas:
@@ -312,6 +310,16 @@ class AgentMachine:
             self._close(k)
         if self.stopped is not None and not self.collecting and self.finish is None:
             self._end()
+
+    def _out_of_run(self, k: int) -> str:
+        """Why this agent is out of the run at tick ``k`` ("": it is not):
+        the world's tick k counts it out, or a later tick came and k never
+        did."""
+        if k in self.ticks and self.id not in self.ticks[k].live:
+            return f"the world counts this agent out at tick {k}"
+        if k not in self.ticks and any(j > k for j in self.ticks):
+            return f"tick {k} never came"
+        return ""
 
     def _on_arrival(self, event, now: float) -> bool:
         """A sample, as ``read`` made it: the world's tick, measurement or
@@ -809,7 +817,7 @@ class AgentMachine:
                                 f"{t.comm_range:g}; this agent {mine_[0]}, {mine_[1]}, {mine_[2]:g}: start both "
                                 "with the same flags")
         start = self._start[1] if restart else None  # the world's answer (None: the prior)
-        est = AgentEstimator(self.scn, self.id, self.algorithm, t.ticks, t.seed,
+        est = AgentEstimator(self.scn, self.id, self.estimator, t.ticks, t.seed,
                              start=None if start is None else (start.x, start.P))
         if not self._worked:
             self._worked = True

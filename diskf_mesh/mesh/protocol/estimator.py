@@ -16,17 +16,19 @@ from operator import attrgetter
 import numpy as np
 
 from diskf_mesh import estimators
+from diskf_mesh.estimators.base import Estimator
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.data.scenario import Scenario, links_for
 
 
 class AgentEstimator:
-    """Agent ``agent_id``'s estimator over a run of ``ticks`` ticks with
-    ``seed`` (its draws), from the prior, or from ``start`` = (x, P) with a
-    new observation window (a rejoin: ``mesh.protocol.rejoin``)."""
+    """Agent ``agent_id``'s ``estimator`` (the class ``estimators.get``
+    resolved) over a run of ``ticks`` ticks with ``seed`` (its draws), from
+    the prior, or from ``start`` = (x, P) with a new observation window (a
+    rejoin: ``mesh.protocol.rejoin``)."""
 
-    def __init__(self, scn: Scenario, agent_id: int, algorithm: str, ticks: int, seed: int, params=None,
-                 start=None):
+    def __init__(self, scn: Scenario, agent_id: int, estimator: type[Estimator], ticks: int, seed: int,
+                 params=None, start=None):
         self.ids = scn.ids
         if agent_id not in self.ids:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} (ids {', '.join(map(str, self.ids))})")
@@ -34,8 +36,7 @@ class AgentEstimator:
         self.index = self.ids.index(agent_id)
         self.scenario = scn
         self.sensors = scn.sensors().select([self.index])   # this agent's H, R only
-        self.algorithm = algorithm
-        self.alg = estimators.get(algorithm)(scn.model(ticks), self.sensors, params or scn.params)
+        self.alg = estimator(scn.model(ticks), self.sensors, params or scn.params)
         st = self.state = self.alg.init((1, 1))
         if start is not None:
             x, P = start
@@ -113,7 +114,8 @@ def lockstep(scn: Scenario, algorithm: str, trace, seed: int = 0):
     per tick; ``seed``: the run's seed (the estimator's draws)."""
     ids = [a.id for a in scn.agents]
     K = trace.has.shape[1]
-    agents = {i: AgentEstimator(scn, i, algorithm, K, seed) for i in ids}
+    estimator = estimators.get(algorithm)
+    agents = {i: AgentEstimator(scn, i, estimator, K, seed) for i in ids}
     for k in range(1, K + 1):
         msgs = {i: agents[i].local(k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :agents[i].p])
                 for j, i in enumerate(ids)}

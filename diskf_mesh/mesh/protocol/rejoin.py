@@ -14,7 +14,7 @@ of tick J - 1 to start from, and the world answers (``wire.encode_start``):
   smallest trace(P_bar), the most certain (``most_certain``). Within range,
   this is what a freshly started node could ask a neighbour for; it starts
   the agent where the network already is. The agent resets its observation
-  window (``AgentEstimator.start_from``).
+  window (``AgentEstimator``'s ``start``).
 * **its prior** (x0, P0), as a fresh agent at tick 1, when no linked agent
   reported tick J - 1 (it rejoined alone). In a moving-target scenario the
   prior is far from the truth and P0 does not say so: that agent's error

@@ -31,6 +31,7 @@ from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.engine import verify
 from diskf_mesh.engine.verify import Restart, RunClaims, RunStatus
+from diskf_mesh.estimators.base import Estimator
 from diskf_mesh.mesh.wire import codec as wire
 
 
@@ -125,15 +126,16 @@ class OnlineCheck:
     state: [{"agent", "tick", "why": "lied", "fused_by"}], ids as the
     record holds them. An agent whose state is unknown (a report of its
     did not come) is never cut off: an honest one whose report was lost
-    looks the same; what it changes is ``unverifiable`` at the end."""
+    looks the same; what it changes is ``unverifiable`` at the end.
+    ``estimator``: the run's, the class ``estimators.get`` resolved."""
 
-    def __init__(self, trace: Trace, algorithm: str, params, *, run_id: str, seed: int,
+    def __init__(self, trace: Trace, estimator: type[Estimator], params, *, run_id: str, seed: int,
                  faults: FaultConfig | None = None, deadline_s: float = math.inf):
         self.ids = list(trace.sensors.ids)
         self.trace, self.seed, self.deadline_s = trace, seed, deadline_s
         self.faults = faults if faults is not None and faults.active else None
-        self.online = verify.Online(trace, algorithm, params,
-                                    wire.engine_digests(run_id, self.ids, estimators.get(algorithm).exchanged))
+        self.online = verify.Online(trace, estimator.name, params,
+                                    wire.engine_digests(run_id, self.ids, estimator.exchanged))
         self.index = {i: j for j, i in enumerate(self.ids)}
 
     def submit(self, rec, k: int) -> None:

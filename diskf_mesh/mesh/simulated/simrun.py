@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 
 import msgpack
 
+from diskf_mesh import estimators
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.data.trace import Trace
@@ -155,10 +156,11 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
 
     shared = Shared() if batch else None  # a payload's decode and checks, once for all its receivers
+    estimator = estimators.get(algorithm)  # resolved once: every agent's and the world's online check
 
     def world(boot):
         first = boot.pid == WORLD and boot.incarnation == 0  # the observers watch the run's own world
-        online = OnlineCheck(trace, algorithm, scn.params, run_id=run_id, seed=seed, faults=faults,
+        online = OnlineCheck(trace, estimator, scn.params, run_id=run_id, seed=seed, faults=faults,
                              deadline_s=deadline_s) if plan.online else None
         return WorldMachine(scn, trace, algorithm, seed, keys, boot.nonce, plan.world_timing,
                             allow_missing=plan.allow_missing, verdicts=losses.relabel,
@@ -169,7 +171,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     def agent(i):
         def make(boot):
             who = f"agent {i}" + (f" ({boot.pid}#{boot.incarnation})" if boot.incarnation or "~" in boot.pid else "")
-            return AgentMachine(scn, i, algorithm, keys, boot.nonce, plan.agent_timing, faults=faults,
+            return AgentMachine(scn, i, estimator, keys, boot.nonce, plan.agent_timing, faults=faults,
                                 log=Log(who, stream), shared=shared)
         return make
 
