@@ -120,6 +120,15 @@ def _serve(make, conn, other, nice: int) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     os.nice(nice)
     try:
+        _check_each(make, conn)
+    except (EOFError, ConnectionError):  # the world closed its end, with what it had not read yet: it ended
+        return
+
+
+def _check_each(make, conn) -> None:
+    """Make the check, then check each tick as it comes; the pipe's end
+    raises (``EOFError``, ``ConnectionError``)."""
+    try:
         check = make()
     except Exception:  # noqa: BLE001 - the world raises it when it asks (its own setup fails the same way first)
         conn.send(("error", 0, traceback.format_exc(), time.process_time()))
@@ -129,10 +138,7 @@ def _serve(make, conn, other, nice: int) -> None:
     model = check.trace.model
     rec = WorldRecord(**RunReports.empty(K, N, model.n, model.m), live=np.zeros((K, N), dtype=bool))
     while True:
-        try:
-            k, x, P, d, d_valid, reported, fused, live, digests, rejoins, starts = conn.recv()
-        except EOFError:
-            return
+        k, x, P, d, d_valid, reported, fused, live, digests, rejoins, starts = conn.recv()
         t = k - 1
         rec.x[t], rec.P[t], rec.d[t], rec.d_valid[t], rec.reported[t], rec.fused[t] = x, P, d, d_valid, reported, fused
         if live is None:
