@@ -72,10 +72,14 @@ class CheckProcess:
             return
         t, N = k - 1, rec.reported.shape[1]
         digests = {(k, i): rec.digests[(k, i)] for i in range(N) if (k, i) in rec.digests}
-        live = None if getattr(rec, "live", None) is None else rec.live[t]
+        live = getattr(rec, "live", None)
+        # the tick's rows as raw bytes (its floats, then its flags), the rest as it is (mostly empty)
+        floats = b"".join((rec.x[t].tobytes(), rec.P[t].tobytes(), rec.d[t].tobytes()))
+        flags = b"".join((rec.d_valid[t].tobytes(), rec.reported[t].tobytes(), rec.fused[t].tobytes(),
+                          b"" if live is None else live[t].tobytes()))
         try:
-            self._conn.send((k, rec.x[t], rec.P[t], rec.d[t], rec.d_valid[t], rec.reported[t], rec.fused[t], live,
-                             digests, getattr(rec, "rejoins", {}), list(getattr(rec, "starts", ()))))
+            self._conn.send((k, floats, flags, digests, getattr(rec, "rejoins", None) or None,
+                             list(getattr(rec, "starts", ())) or None))
         except OSError:  # a broken pipe: the child is gone
             raise self._ended(k) from None
         self._sent = k
@@ -135,17 +139,20 @@ def _check_each(make, conn) -> None:
         return
     conn.send(("ready", 0, None, time.process_time()))
     B, K, N = check.trace.has.shape
-    model = check.trace.model
-    rec = WorldRecord(**RunReports.empty(K, N, model.n, model.m), live=np.zeros((K, N), dtype=bool))
+    n, m = check.trace.model.n, check.trace.model.m
+    rec = WorldRecord(**RunReports.empty(K, N, n, m), live=np.zeros((K, N), dtype=bool))
+    at = np.cumsum([0, N * n, N * n * n, N * m])  # where x, P, d lie in a tick's floats
     while True:
-        k, x, P, d, d_valid, reported, fused, live, digests, rejoins, starts = conn.recv()
-        t = k - 1
-        rec.x[t], rec.P[t], rec.d[t], rec.d_valid[t], rec.reported[t], rec.fused[t] = x, P, d, d_valid, reported, fused
-        if live is None:
-            rec.live = None
+        k, floats, flags, digests, rejoins, starts = conn.recv()
+        t, a, b = k - 1, np.frombuffer(floats, dtype=float), np.frombuffer(flags, dtype=bool)
+        rec.x[t], rec.P[t], rec.d[t] = (a[at[0]:at[1]].reshape(N, n), a[at[1]:at[2]].reshape(N, n, n),
+                                        a[at[2]:at[3]].reshape(N, m))
+        rec.d_valid[t], rec.reported[t], rec.fused[t] = b[:N], b[N:2 * N], b[2 * N:2 * N + N * N].reshape(N, N)
+        if b.size > 2 * N + N * N:
+            rec.live[t] = b[2 * N + N * N:]
         else:
-            rec.live[t] = live
-        rec.digests, rec.rejoins, rec.starts = digests, rejoins, starts
+            rec.live = None
+        rec.digests, rec.rejoins, rec.starts = digests, rejoins or {}, starts or []
         try:
             found = check.tick(rec, k)
         except Exception:  # noqa: BLE001 - the world raises it
