@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -281,6 +282,32 @@ def test_a_world_that_gives_up_at_start_up_ends_with_a_status(tmp_path):
     assert "Traceback" not in log and [ln for ln in log.splitlines() if ln.startswith("error:")] == [
         f"error: world: incomplete run: {row['ended_early']}: no tick ran (36 agent-ticks missing) "
         "(--allow-missing accepts it)"]
+
+
+def test_a_world_interrupted_before_tick_1_ends_with_a_status(tmp_path):
+    """The world stopped (SIGTERM) while it waits for its agents: its
+    results say incomplete, interrupted before tick 1, and it exits 3."""
+    spec = RunSpec(SCENARIO, "diskf", run_id=f"interrupt{os.getpid()}")
+    mesh = start_mesh(spec, 4, 0, tmp_path, world_extra=["--json", str(tmp_path / "r.json")])
+    host, port = mesh.world_endpoints[0].split("/", 1)[1].rsplit(":", 1)
+    try:
+        deadline = time.monotonic() + 60
+        while True:  # the world listens: its session is open, it waits for the agents
+            try:
+                socket.create_connection((host, int(port)), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "the world never listened"
+                time.sleep(0.1)
+        mesh.world.proc.send_signal(signal.SIGTERM)
+        rc = mesh.world.proc.wait(60)
+    finally:
+        mesh.stop_all()
+    row = json.loads((tmp_path / "r.json").read_text())["diskf"][SETTING]
+    assert rc == 3, mesh.world.last_error_line()
+    assert row["status"] == "incomplete" and row["ended_early"] == "interrupted (SIGTERM) before tick 1"
+    assert row["reason"].startswith(row["ended_early"]) and row["missing_fraction"] == 1.0
+    assert "Traceback" not in mesh.world.log.read_text()
 
 
 def test_a_late_agent_joins_a_run_that_started_without_it(tmp_path):
