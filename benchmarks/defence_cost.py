@@ -10,7 +10,7 @@ engine  CPU time of ``engine.batch.run`` on Scenario 2 and the 25-agent random
         geometric network, 8 seeds x 200 ticks, on and off taking turns, the
         best of ``--repeat`` kept, for diskf-auto and diskf-r
 
-    .venv/bin/python benchmarks/defence_cost.py [--seeds 1] [--repeat 3]
+    .venv/bin/python benchmarks/defence_cost.py [--seeds 1] [--repeat 3] [--only clean|engine]
 
 Prints one line per cell, then the count of cells bit-identical and beyond 2 %.
 """
@@ -65,9 +65,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=1, help="seeds 0..S-1 of every clean cell (default 1)")
     p.add_argument("--repeat", type=int, default=3, help="alternated timings of the engine (default 3)")
+    p.add_argument("--only", choices=("clean", "engine"), help="one of the two measurements (default: both)")
     args = p.parse_args(argv)
-    clean(list(range(args.seeds)))
-    engine(args.repeat)
+    if args.only != "engine":
+        clean(list(range(args.seeds)))
+    if args.only != "clean":
+        engine(args.repeat)
     return 0
 
 

@@ -115,3 +115,47 @@ def test_an_agent_process_screens_as_the_engine_does(dynamic):
     reported = r.record.reported
     assert np.array_equal(r.record.x[reported], run.x[0][reported])
     assert np.array_equal(eng.x[0, :20], run.x[0, :20])
+
+
+def test_a_tick_where_nothing_can_grow_is_decided_from_the_own_statistics():
+    """The screen's short way: no evidence, no floor failure and every
+    statistic against the receiver's own prediction within the allowance
+    means nothing changes; any one of them outside, and the whole screen runs."""
+    zero, no = np.zeros((1, 3)), np.zeros(2, dtype=bool)
+    small = np.array([1.0, 9.0])
+    assert rs.nothing_grows(zero, no, small, None, 9.0)
+    assert rs.nothing_grows(zero, no, small, np.array([0.0, 2.0]), 9.0)
+    assert not rs.nothing_grows(zero, no, np.array([1.0, 9.5]), None, 9.0)
+    assert not rs.nothing_grows(zero, no, small, np.array([0.0, 9.5]), 9.0)
+    assert not rs.nothing_grows(zero, np.array([False, True]), small, None, 9.0)
+    assert not rs.nothing_grows(np.array([[0.0, 1e-3, 0.0]]), no, small, None, 9.0)
+
+
+@pytest.mark.parametrize("name, agents, chosen, lie, ticks, gain", [
+    ("dynamic", None, (3,), ("offset", 500.0), 70, 0.8),
+    ("random-geometric", 25, 2, ("stale", 20.0), 56, None),
+])
+def test_the_studys_world_column_is_the_simulated_network_bit_for_bit(name, agents, chosen, lie, ticks, gain):
+    """``studies.resilience.with_world`` (the engine on the live sets the
+    world announces: a liar named at the first tick another agent receives
+    its lie, cut off two ticks later) gives the run on the simulated network
+    (``world_run``: the world's online check naming and quarantining it)
+    bit for bit: the same quarantines, the same honest errors; on Scenario 2
+    the honest errors are below ``gain`` times the screen's alone (a 500 m
+    offset: agent 8 fuses it while both are uncertain)."""
+    from diskf_mesh.data.lies import Lie
+    from diskf_mesh.studies import resilience as study
+
+    scn = load_scenario(name, agents=agents).with_overrides(steps=ticks)
+    trace = simulate(scn, [0])
+    liars = study.insiders(scn, trace, chosen)
+    scn = scn.with_overrides(params=_on(scn)).with_lies([Lie(i, *lie, start=study.START) for i in liars])
+    honest = [j for j, a in enumerate(scn.agents) if a.id not in liars]
+    e_sim, cuts_sim, status = study.world_run(scn, 0, honest)
+    e_eng, cuts_eng = study.with_world(scn, trace, scn.params, honest)
+    assert status == "diverged" and len(cuts_sim) == len(liars)
+    assert sorted(cuts_eng) == sorted(cuts_sim)
+    assert np.array_equal(e_eng, e_sim)
+    if gain is not None:
+        screen_only = batch.run(trace, "diskf-auto", scn.params, lies=scn.lies)
+        assert e_eng.mean() < gain * metrics.errors(trace, screen_only.agents(honest))[0].mean()

@@ -1,5 +1,8 @@
 """``diskf-mesh resilience``: what insiders' lies do to the honest agents of
-the default estimator, with the screen before fusion and without it.
+the default estimator: without the screen before fusion, with it alone (the
+engine), and with it and the world's check as the run goes (the world names
+a liar and quarantines it, as in ``up``: the engine on the live sets the
+world announces, the simulated network's run bit for bit).
 
 Scenario 2 and a 25-agent random geometric network (one and two insiders: its best-connected agents),
 each lie of docs/security.md's table (offsets 10 to 5,000 m, drifts, a
@@ -11,24 +14,21 @@ table.
 """
 from __future__ import annotations
 
-import sys
-
 from diskf_mesh.cli.study_options import add_study_command
 
 
 def resilience(cfg, out) -> str:
-    from tqdm import tqdm
-
+    from diskf_mesh.cli.progress import Progress
     from diskf_mesh.studies import resilience as study
 
-    command = f"diskf-mesh resilience --out {out} --seeds {cfg.seeds}" + (f" --steps {cfg.steps}" if cfg.steps else "")
-    with tqdm(total=len(study.SETTINGS) * len(study.LIES), desc="resilience", unit="lie", file=sys.stderr,
-              disable=cfg.quiet) as bar:
-        rows = study.measure(range(cfg.seeds), cfg.steps, progress=bar.update)
+    command = f"diskf-mesh resilience --out {out} --seeds {cfg.seeds}" + (f" --ticks {cfg.steps}" if cfg.steps else "")
+    with Progress("resilience", quiet=cfg.quiet and not cfg.lines, total=len(study.SETTINGS) * len(study.LIES),
+                  unit="cell") as progress:
+        rows = study.measure(range(cfg.seeds), cfg.steps, progress=lambda n: progress.step(n=n))
     table, fig, numbers = study.write(rows, out, command)
     missed = study.missing(rows)
     return (f"resilience -> {table}, {fig}, {numbers}: {len(rows) - len(missed)} of {len(rows)} cells within "
-            f"{study.TARGET}x the clean run's honest MAE with the screen")
+            f"{study.TARGET}x the clean run's honest MAE with the screen and the world's check")
 
 
 def register(subparsers) -> None:

@@ -77,6 +77,19 @@ class Neighbourhood:
         (|N_i| of the compensation gain), computed once per neighbourhood."""
         return self.adj.sum(axis=-1) - (self.adj * self.self_mask).sum(axis=-1)
 
+    @cached_property
+    def linked(self) -> np.ndarray:
+        """(..., R, S) the senders each receiver fuses besides itself."""
+        return (self.adj > 0) & ~self.self_mask
+
+    @cached_property
+    def linked_pairs(self) -> tuple:
+        """``core.resilience.linked_pairs`` of ``linked``, computed once per
+        neighbourhood."""
+        from diskf_mesh.core.resilience import linked_pairs
+
+        return linked_pairs(self.linked)
+
 
 @dataclass(frozen=True)
 class Output:

@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from diskf_mesh.core.linalg import eigvalsh, inv_spd, mv
+from diskf_mesh.core.linalg import eigvalsh, inv_spd, mv, not_pd
 
 GATE = 20.0       # the gate: a difference of more than 20 standard deviations (statistic 400)
 ALLOWANCE = 3.0   # the evidence grows by what a statistic exceeds 3 standard deviations (9)
@@ -71,13 +71,6 @@ def thresholds() -> tuple:
     the same in every dimension."""
     gate, allowance, limit = GATE * GATE, ALLOWANCE * ALLOWANCE, LIMIT * LIMIT
     return gate, allowance, limit, limit + RECOVERY * allowance
-
-
-def pairs(send: np.ndarray, recv: np.ndarray, core_ndim: int) -> tuple:
-    """(sender's value, receiver's value) broadcast to (..., R, S, *core):
-    ``send`` (..., S, *core), ``recv`` (..., R, *core)."""
-    axis = send.ndim - core_ndim - 1
-    return np.expand_dims(send, axis), np.expand_dims(recv, axis + 1)
 
 
 def reference(linked: np.ndarray, values: np.ndarray, own: np.ndarray, robust_from: int = 3) -> np.ndarray:
@@ -100,8 +93,28 @@ def reference(linked: np.ndarray, values: np.ndarray, own: np.ndarray, robust_fr
 def gate_statistics(x_send, P_send, x_refs, P_ref) -> list:
     """[(P,) (x_s - r)^T (P_s + P_r)^-1 (x_s - r) for each r of ``x_refs``]
     for P pairs: x_send (P, m), P_send (P, m, m), each of x_refs (P, m),
-    P_ref (P, m, m). One inverse per pair, element-wise sums."""
-    W = inv_spd(P_send + P_ref)
+    P_ref (P, m, m). For m of 1 and 2 the quadratic form is written out
+    (d^T adj(M) d / det M), else one inverse per pair; a sum that is not
+    positive definite raises LinAlgError, as ``inv_spd``."""
+    M = P_send + P_ref
+    m = M.shape[-1]
+    if m <= 2:
+        a = M[..., 0, 0]
+        if m == 1:
+            if (a <= 0).any():
+                raise not_pd()
+            return [(x_send - x_ref)[..., 0] ** 2 / a for x_ref in x_refs]
+        b, c = M[..., 1, 0], M[..., 1, 1]
+        det = a * c - b * b
+        if (a <= 0).any() or (det <= 0).any():
+            raise not_pd()
+        out = []
+        for x_ref in x_refs:
+            diff = x_send - x_ref
+            d0, d1 = diff[..., 0], diff[..., 1]
+            out.append((c * d0 * d0 - 2.0 * b * d0 * d1 + a * d1 * d1) / det)
+        return out
+    W = inv_spd(M)
     out = []
     for x_ref in x_refs:
         diff = x_send - x_ref
@@ -114,11 +127,19 @@ def gate_statistics(x_send, P_send, x_refs, P_ref) -> list:
 
 
 def linked_pairs(linked: np.ndarray) -> tuple:
-    """(sender index, receiver index) of the linked pairs of ``linked``
-    (..., R, S): the first into arrays (..., S, ...), the second into
-    (..., R, ...)."""
-    idx = np.nonzero(linked)
-    return idx[:-2] + (idx[-1],), idx[:-1]
+    """(flat index of each linked pair into ``linked`` (..., R, S), of its
+    sender into the (..., S) senders, of its receiver into the (..., R)
+    receivers): flat indices, for ``take``."""
+    R, S = linked.shape[-2:]
+    flat = np.flatnonzero(linked)
+    return flat, flat // (R * S) * S + flat % S, flat // S
+
+
+def take(a: np.ndarray, index: np.ndarray, core_ndim: int) -> np.ndarray:
+    """(P, *core) the entries ``index`` (flat, ``linked_pairs``) of ``a``
+    (..., *core)."""
+    core = a.shape[a.ndim - core_ndim:]
+    return a.reshape((-1,) + core).take(index, axis=0)
 
 
 def below_floor(P: np.ndarray, floor: np.ndarray) -> np.ndarray:
@@ -126,7 +147,23 @@ def below_floor(P: np.ndarray, floor: np.ndarray) -> np.ndarray:
     ``floor`` (n, n) allows: P - floor has an eigenvalue below zero (beyond
     round-off)."""
     scale = np.abs(P).max(axis=(-2, -1))
-    return eigvalsh(P - floor)[..., 0] < -RTOL * scale
+    D = P - floor
+    if D.shape[-1] == 2:  # the smaller eigenvalue alone, as ``eigvalsh`` computes it
+        p, q, r = D[..., 0, 0], D[..., 1, 0], D[..., 1, 1]
+        return 0.5 * (p + r) - np.hypot(0.5 * (p - r), q) < -RTOL * scale
+    return eigvalsh(D)[..., 0] < -RTOL * scale
+
+
+def nothing_grows(evidence, floor, q_own, qd_own, allowance: float) -> bool:
+    """Whether a tick's screen changes nothing, decided from the statistics
+    against the receivers' own predictions alone: no evidence yet, no
+    prediction below the floor, and every statistic against the receiver's
+    own prediction (state, and input where given) within the allowance. The
+    statistic that counts is the smaller of that and the one against the
+    median, so it too is within the allowance: no evidence grows, no gate
+    fails, no sender is cut (``accumulate`` leaves zeros at zero)."""
+    return (not floor.any() and not (q_own > allowance).any()
+            and (qd_own is None or not (qd_own > allowance).any()) and not evidence.any())
 
 
 def accumulate(evidence, statistic, failed, allowance: float, suspect: float):

@@ -363,32 +363,46 @@ class Estimator:
         it is close to the receiver's own prediction or, with three or more
         reporting, to their median."""
         adj = nb.adj
-        linked = (adj > 0) & ~nb.self_mask
+        linked = nb.linked
         evidence = state.evidence
         if evidence is None:
             evidence = np.zeros(state.x.shape[:-1] + (self.sensors.whole.N,))
         if not linked.any():
             return adj, evidence
         gate, allowance, limit, suspect = rs.thresholds()
-        before = rs.columns_of(evidence, nb.columns)
-        si, ri = rs.linked_pairs(linked)
-        median = rs.reference(adj > 0, senders.x_pred, own.x_pred)
-        q_own, q_med = rs.gate_statistics(senders.x_pred[si], senders.P_pred[si],
-                                          (own.x_pred[ri], median[ri]), own.P_pred[ri])
-        q = np.minimum(q_own, q_med)
-        failed = (q > gate) | rs.below_floor(senders.P_pred, self.model.Q)[si]
-        d_valid = senders.d_valid[si] & own.d_valid[ri]
+        flat, si, ri = nb.linked_pairs  # the linked pairs, as flat indices into senders and receivers
+        take = rs.take
+        floor = take(rs.below_floor(senders.P_pred, self.model.Q), si, 0)
+        P_send, P_own = take(senders.P_pred, si, 2), take(own.P_pred, ri, 2)
+        x_send = take(senders.x_pred, si, 1)
+        q_own, = rs.gate_statistics(x_send, P_send, (take(own.x_pred, ri, 1),), P_own)
+        d_valid = take(senders.d_valid, si, 0) & take(own.d_valid, ri, 0)
         if d_valid.any():  # the input estimates, where both sides have one
+            d_send, S_own = take(senders.d, si, 1), take(own.S, ri, 2)
+            S_send = np.where(d_valid[:, None, None], take(senders.S, si, 2), 1.0)
+            qd_own, = rs.gate_statistics(d_send, S_send, (take(own.d, ri, 1),), S_own)
+            qd_own = np.where(d_valid, qd_own, 0.0)
+        else:
+            qd_own = None
+        if rs.nothing_grows(evidence, floor, q_own, qd_own, allowance):
+            return adj, evidence  # the statistics against the medians are no larger: nothing changes
+        before = rs.columns_of(evidence, nb.columns)
+        median = rs.reference(adj > 0, senders.x_pred, own.x_pred)
+        q_med, = rs.gate_statistics(x_send, P_send, (take(median, ri, 1),), P_own)
+        q = np.minimum(q_own, q_med)
+        failed = (q > gate) | floor
+        if qd_own is not None:
             d_med = rs.reference((adj > 0) & np.expand_dims(senders.d_valid, -2), senders.d, own.d)
-            S_send = np.where(d_valid[:, None, None], senders.S[si], 1.0)
-            qd_own, qd_med = rs.gate_statistics(senders.d[si], S_send, (own.d[ri], d_med[ri]), own.S[ri])
+            qd_med, = rs.gate_statistics(d_send, S_send, (take(d_med, ri, 1),), S_own)
             qd = np.where(d_valid, np.minimum(qd_own, qd_med), 0.0)
             failed |= qd > gate
             q = np.maximum(q, qd)
-        step = np.zeros(linked.shape)
-        step[linked] = q
-        hit = np.zeros(linked.shape, dtype=bool)
-        hit[linked] = failed
+        step = np.zeros(linked.size)
+        step[flat] = q
+        step = step.reshape(linked.shape)
+        hit = np.zeros(linked.size, dtype=bool)
+        hit[flat] = failed
+        hit = hit.reshape(linked.shape)
         after = rs.accumulate(before, step, hit, allowance, suspect)
         evidence = rs.put_columns(evidence, nb.columns, after, linked)
         cut = linked & (after >= limit)
