@@ -7,7 +7,9 @@ fails, or on Ctrl-C, it stops every child it started and says which one
 failed and why (exit code, last line of its stderr; full logs in --logs);
 the world, stopped, still writes what it measured. With ``--allow-missing``
 an agent that fails does not end the run: the world accounts its missing
-ticks. An agent whose estimator diverges is not a failure of a process: it
+ticks. Nor does an agent that fails before the first tick: the world gives
+up on it after ``--startup-timeout`` (``incomplete``, exit 3, its reason
+first), or with ``--allow-missing`` starts without it. An agent whose estimator diverges is not a failure of a process: it
 tells the world and leaves (exit 3, ``exits.STOPPED``), the others run to
 the end, ``up`` prints its line and the run ends ``incomplete``, its missing
 ticks counted as "diverged".
@@ -19,7 +21,7 @@ agent-ticks are missing (0 within ``--allow-missing``: a warning line says
 what is missing); 4 a real-time run beyond ``--max-miss-rate``; 5 degraded
 (``--allow-degraded`` accepts it); 6 diverged (never accepted); 8
 unverifiable (only ``--accept-unverifiable`` accepts it); 1 when a child
-failed; 2 on bad input.
+failed once the run ticked; 2 on bad input.
 
 Every run is authenticated: ``up`` makes a fresh certificate authority and
 one certificate and key per process (``diskf_mesh.mesh.security.credentials``) in
@@ -241,9 +243,12 @@ class Launcher:
                  tolerate_agents: bool = False, services=(), zygote: "forks.Zygote | None" = None,
                  keys: dict | None = None):
         """``tolerate_agents``: an agent (or a service) that fails does not
-        end the run (the world counts its missing ticks); ``failed_agents``
-        lists them. The children that are this interpreter's ``python -m``
-        of a mesh command are forked by a zygote (``sim.zygote``; ``zygote``,
+        end the run (the world counts its missing ticks); nor does an agent
+        that fails before the world's first tick (the world gives up on it
+        after its ``--startup-timeout``, or starts without it: its status
+        says so); ``failed_agents`` lists them. The children that are this
+        interpreter's ``python -m`` of a mesh command are forked by a
+        zygote (``sim.zygote``; ``zygote``,
         one started already, or one started at the first such child).
         ``keys``: the run's identities by name (``credentials.issue``); a
         child gets those its ``identities`` name on its standard input."""
@@ -257,6 +262,7 @@ class Launcher:
         self.children = [*([world] if world is not None else []), *self.services, *agents]
         self.progress = progress
         self.first_tick = first_tick
+        self.ticked = False  # the world said it took tick 1
         self._lines = queue.SimpleQueue()
 
     def _spawn(self, child: Child, stdout) -> None:
@@ -343,8 +349,9 @@ class Launcher:
             parts = line.split()
             if len(parts) == 3 and parts[0] == "tick":
                 k = int(parts[1])
-                if k == 1 and self.first_tick is not None:
+                if not self.ticked and self.first_tick is not None:
                     self.first_tick()
+                self.ticked = True
                 if self.progress is not None:
                     self.progress(k, int(parts[2]))
 
@@ -352,7 +359,8 @@ class Launcher:
         """Until the world ends; returns its exit status, one of ``WORLD_VERDICTS``
         (a run with missing agent-ticks: the world wrote its results and its
         verdict). Raises ``ChildFailed`` on the first failure (any other
-        status of the world; an agent's, unless ``tolerate_agents``)."""
+        status of the world; an agent's once the world ticks, unless
+        ``tolerate_agents``)."""
         deadline = time.monotonic() + timeout
         while True:
             self._drain()
@@ -368,7 +376,7 @@ class Launcher:
                 # a service never ends by itself
                 if (rc or (rc is not None and a in self.services)) and not self._stopped(a) \
                         and a not in self.failed_agents:
-                    if not self.tolerate_agents:
+                    if not self.tolerate_agents and (self.ticked or a in self.services):
                         raise ChildFailed(a, rc)
                     self.failed_agents.append(a)
             if time.monotonic() > deadline:
@@ -687,16 +695,21 @@ def _run(args: argparse.Namespace, zygotes: list) -> int:
         return 130
     bar.close()
     t_end = time.monotonic()
-    bad = launcher.finish(timeout=5.0 if plan is None else 15.0)  # a shard ends once its agents have
-    for a in bad:
+    # a shard ends once its agents have; a world that gave up before its first tick (its status says why) did
+    # not wait for its agents to leave: they are stopped
+    bad = launcher.finish(timeout=(5.0 if plan is None else 15.0) if launcher.ticked else 0.0)
+    for a in bad if launcher.ticked else ():
         print(f"warning: {a.name} did not leave cleanly after the run: {a.last_error_line()}", file=sys.stderr)
     for a in launcher.stopped():
         print(a.last_error_line(), file=sys.stderr)  # "error: agent I: the estimator (...) diverged at tick K: ..."
     results = json.loads(out.read_text())
-    first = timing.get("first", t_end) - t0
-    print(f"{scn.name}: {len(ids)} agent processes{where} + world, {ticks} ticks, seed {args.seed}, run {spec.run_id}; "
-          f"first tick after {first:.2f} s ({timing.get('first', t_end) - began:.2f} s after up started), "
-          f"{ticks / max(t_end - timing.get('first', t0), 1e-9):.0f} ticks/s")
+    run_line = (f"{scn.name}: {len(ids)} agent processes{where} + world, {ticks} ticks, seed {args.seed}, "
+                f"run {spec.run_id}; ")
+    if "first" in timing:
+        print(run_line + f"first tick after {timing['first'] - t0:.2f} s ({timing['first'] - began:.2f} s after up "
+                         f"started), {ticks / max(t_end - timing['first'], 1e-9):.0f} ticks/s")
+    else:
+        print(run_line + f"no tick ran: the world ended after {t_end - t0:.2f} s")
     print(format_table(results))
     row = next(iter(next(iter(results.values())).values()))
     verdict(row, args)

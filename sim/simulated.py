@@ -104,10 +104,8 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     if r.log:
         sys.stderr.write(r.log)
     end = r.outcome.finishes.get("world")
-    if end is not None and (error := failure(end)) is not None and not r.record.ended_early:
+    if end is not None and (error := failure(end, r.record)) is not None:
         return run_failed(error, run, Log("world")), None
-    # a world that gave up before its first tick (no agent process for an id, ...) ends with a status:
-    # incomplete, the reason in the results (completeness's ended_early) and the exit status
     network = {"kind": "simulated", "delay_ms": args.net_delay_ms, "jitter_ms": args.net_jitter_ms,
                "loss": args.net_loss, "lost": r.outcome.lost, "seed": net_seed, "virtual_s": r.outcome.end, "events": r.outcome.events,
                "wall_s": wall, "digest": r.outcome.digest}

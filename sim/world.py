@@ -2,8 +2,9 @@
 
 It owns the ground truth (``scenario.simulate`` with ``--seed``) and the
 agents' motion. It waits until every agent of the scenario is ready (their
-liveliness tokens; it fails after ``--startup-timeout`` naming the missing
-ones), then runs the ticks in lockstep: for tick k it sends each live agent
+liveliness tokens; after ``--startup-timeout`` it gives up, naming the
+missing ones: the run ends ``incomplete``, its results written, exit 3;
+with ``--allow-missing`` it starts without them), then runs the ticks in lockstep: for tick k it sends each live agent
 its own measurement (or none) on that agent's key, broadcasts every agent's
 position and the live set, and waits for every live agent's fused estimate
 of tick k, or ``--tick-timeout`` seconds. A report of a past tick is counted
@@ -145,19 +146,21 @@ class World:
         """The whole run; ``allow_missing``: start without the agents not
         ready after ``--startup-timeout`` (they never joined)."""
         self.machine.allow_missing = allow_missing
-        error = failure(self.shell.run())
+        error = failure(self.shell.run(), self.machine.record)
         if error is not None:
             raise error
         return self.machine.record
 
 
-def failure(end) -> MeshError | None:
+def failure(end, rec: WorldRecord) -> MeshError | None:
     """The error of a world that could not go on (its ``Finish``'s code:
     ``DuplicateProcess`` when another world holds the run id), None when
-    the run ended."""
+    the run ended, or gave up with its reason in ``rec`` (``ended_early``:
+    the agents not ready after ``--startup-timeout``), a run that ends
+    with a status (``incomplete``) like any other."""
     if end.code == DUPLICATE:
         return DuplicateProcess(end.reason)
-    return MeshError(end.reason) if end.code else None
+    return MeshError(end.reason) if end.code and not rec.ended_early else None
 
 
 # --------------------------------------------------------------------------
@@ -195,7 +198,11 @@ def completeness(rec: WorldRecord) -> dict:
 
 
 def missing_line(c: dict) -> str:
-    """One line of what ``completeness`` found missing."""
+    """One line of what ``completeness`` found missing; a run that ended
+    before any tick ran (a start-up that failed): why, first."""
+    if c.get("ended_early") and c["missing_agent_ticks"] == c["agent_ticks"] \
+            and all(m["why"].keys() == {"not run"} for m in c["missing"].values()):
+        return f"{c['ended_early']}: no tick ran ({c['missing_agent_ticks']} agent-ticks missing)"
     agents = "; ".join(f"agent {i}: {m['ticks']} ({', '.join(f'{w} {n}' for w, n in m['why'].items())})"
                        for i, m in c["missing"].items())
     early = f"; the run ended early: {c['ended_early']}" if c.get("ended_early") else ""

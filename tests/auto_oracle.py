@@ -101,12 +101,14 @@ def run_auto(trace, options, noise_prior=5.0, noise_forget=0.98, noise_dof=4.0):
                 nb = list(np.flatnonzero(links[k - 1, i]))
                 xc, Pc = fast_ci([pred[j][0] for j in nb], [pred[j][1] for j in nb])
                 Mt = np.linalg.cholesky(Pc) @ np.linalg.inv(np.linalg.cholesky(pred[i][1]))
-                # the neighbourhood's model probabilities: normalised geometric mean of the senders' (own included)
-                logs = np.mean([np.log(np.maximum(sent_mu[s], FLOOR)) for s in nb], axis=0)
-                mu0 = np.exp(logs - logs.max())
-                mu0 = mu0 / mu0.sum()
-                c = np.array([sum(Pi[s, j] * mu0[s] for s in range(M)) for j in range(M)])
                 meas = [j for j in nb if trace.has[b, k - 1, j]]
+                if meas:  # the neighbourhood measured: the agent's own model probabilities
+                    mu0 = a["mu"]
+                else:  # normalised geometric mean of the senders' (own included)
+                    logs = np.mean([np.log(np.maximum(sent_mu[s], FLOOR)) for s in nb], axis=0)
+                    mu0 = np.exp(logs - logs.max())
+                    mu0 = mu0 / mu0.sum()
+                c = np.array([sum(Pi[s, j] * mu0[s] for s in range(M)) for j in range(M)])
                 zs, Zs, ll, relayed = [], [], np.zeros(M), False
                 for j, (a1, a2, q) in enumerate(models):
                     wts = [Pi[s, j] * mu0[s] / c[j] for s in range(M)]

@@ -39,14 +39,17 @@ def assert_matches_oracle(scn, seeds, tol):
     assert np.abs(est.d - want["d"]).max() < tol * np.abs(want["d"]).max()
 
 
-@pytest.mark.parametrize("name,topology,variant", [
-    ("quadrants", "ring", "R"), ("dynamic", None, "R"), ("quadrants", "all", "mixed")])
-def test_auto_matches_oracle(name, topology, variant):
+@pytest.mark.parametrize("name,topology,variant,tol", [
+    ("quadrants", "ring", "R", 1e-9), ("dynamic", None, "R", 1e-7), ("quadrants", "all", "mixed", 1e-9)])
+def test_auto_matches_oracle(name, topology, variant, tol):
     """To 1e-9 where the bank's wide input prior is well conditioned against
-    the sensors (R x 0.1; mixed sensors of which one sees both axes)."""
+    the sensors (R x 0.1; mixed sensors of which one sees both axes). In
+    Scenario 2 the round-off of the two orders of summation grows where the
+    models' probabilities swing (ticks 12 to 15 of seed 1: 2.4e-8 of the
+    state's standard deviation, back under 1e-9 by tick 20)."""
     scn = load_scenario(name).with_overrides(topology=topology, steps=40)
     scn = heldout.scaled_R(scn, 0.1) if variant == "R" else heldout.mixed_sensors(scn)
-    assert_matches_oracle(scn, [0, 1], 1e-9)
+    assert_matches_oracle(scn, [0, 1], tol)
 
 
 def test_auto_matches_oracle_learning_the_noise():
@@ -195,7 +198,9 @@ def test_model_evidence_reaches_an_agent_whose_neighbourhood_never_measures():
     input models as agent 1 does, through its neighbours' pooled
     probabilities; without them its weights would stay where they began
     (``initial_probabilities``: no measurement in its neighbourhood, no
-    evidence)."""
+    evidence). Agent 1, whose neighbourhood measures every tick, keeps its
+    own probabilities: at tick 150 two oscillating models hold 0.27 and
+    0.24 and "walk lo" 0.15, and so does agent 3."""
     from diskf_mesh import estimators as algorithms
     scn = load_scenario("quadrants").with_overrides(topology="ring", steps=150)
     tr = simulate(scn, [0])
@@ -207,11 +212,21 @@ def test_model_evidence_reaches_an_agent_whose_neighbourhood_never_measures():
         state, msg = est.local(state, k, tr.y[:, k - 1], tr.has[:, k - 1])
         state, _ = engine.DenseLinks(tr.links[:, k - 1], 1).fuse(est, state, msg, None)
     mu = state.mu[0]
-    walks = [i for i, name in enumerate(est.bank) if name.startswith("walk")]
-    # the step persists: the measuring agent's evidence (measured: the walks 0.945, the slow mean-reverting
-    # models 0.041), and agent 3 holds the same
-    assert mu[0, walks].sum() > 0.9
-    assert np.argmax(mu[2]) == np.argmax(mu[0]) and mu[2, walks].sum() > 0.9
+    assert np.abs(mu[2] - est.mu0).max() > 0.2  # evidence reached agent 3
+    np.testing.assert_allclose(mu[2], mu[0], atol=0.02)  # agent 1's
+
+
+def test_a_measuring_neighbourhood_keeps_its_own_model_probabilities():
+    """The constant-acceleration model in a ring of six, no input, seeds 2
+    and 3, 100 ticks: where every agent measures, the senders' pooled
+    probabilities would lift an input model one neighbour's noise favoured
+    to a share a few ticks of this agent's noise confirm. With each
+    measuring neighbourhood keeping its own, diskf-auto's state MAE is
+    1.21 x diskf-none's (measured; 1.42 x with the pool on every tick)."""
+    case = next(c for c in heldout.grown_cases() if c.label == "CA ring, zero")
+    scn, tr = case.simulate([2, 3], 100)
+    mae = {name: metrics.errors(tr, engine.run(tr, name, scn.params))[0].mean() for name in ("diskf-auto", "diskf-none")}
+    assert mae["diskf-auto"] < 1.3 * mae["diskf-none"], mae
 
 
 def test_oscillating_models_follow_a_sine_between_their_periods():

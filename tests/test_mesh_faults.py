@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -26,7 +27,7 @@ from diskf_mesh.mesh.process.zenoh_config import ZenohOptions
 from diskf_mesh.data.scenario import simulate
 from sim.launcher import free_port
 
-from mesh_helpers import Progress, assert_same, reference, start_mesh, up
+from mesh_helpers import Progress, assert_same, reference, spawn, start_mesh, up
 from message_factory import tick_view
 
 pytestmark = pytest.mark.mesh
@@ -172,6 +173,19 @@ def _wait_until_ready(run_id: str, n: int, timeout: float) -> None:
             time.sleep(0.2)
 
 
+def _agent_pid(run_id: str, i: int, timeout: float, every: float) -> int:
+    """The pid of agent ``i`` of run ``run_id`` once it is there (looking
+    every ``every`` seconds)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        pid = next((pid for pid, cmd in _pids_of(run_id)
+                    if "agents.agent" in cmd and cmd[cmd.index("--id") + 1] == str(i)), None)
+        if pid is not None:
+            return pid
+        time.sleep(every)
+    raise AssertionError(f"agent {i} never started")
+
+
 @pytest.mark.parametrize("allow", [None, "1"])
 def test_up_names_the_child_that_died(tmp_path, allow):
     """An agent killed under ``up``: without ``--allow-missing`` up stops every
@@ -187,13 +201,7 @@ def test_up_names_the_child_that_died(tmp_path, allow):
                                 *(["--allow-missing", allow] if allow else [])],  # test watches the tokens itself
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 30
-        victim = None
-        while victim is None and time.monotonic() < deadline:
-            victim = next((pid for pid, cmd in _pids_of(run_id)
-                           if "agents.agent" in cmd and cmd[cmd.index("--id") + 1] == "7"), None)
-            time.sleep(0.2)
-        assert victim is not None, "agent 7 never started"
+        victim = _agent_pid(run_id, 7, timeout=30, every=0.2)
         _wait_until_ready(run_id, 9, timeout=120)  # the run is about to start (a busy machine is slow to start)
         time.sleep(1)
         os.kill(victim, signal.SIGKILL)
@@ -214,6 +222,124 @@ def test_up_names_the_child_that_died(tmp_path, allow):
         assert "agent 7 failed (killed by signal 9)" in err and "stopped 10 processes" in err, err
     time.sleep(0.5)
     assert _pids_of(run_id) == [], "children left behind"
+
+
+@pytest.mark.parametrize("allow", [None, "0.5"])
+def test_up_an_agent_that_dies_before_it_is_ready(tmp_path, allow):
+    """An agent killed before it is ready (at its first sight): the run is
+    not a failed process but a start-up the world gives up on after
+    ``--startup-timeout``: incomplete, the world's reason first (as on the
+    simulated network), one error line, exit 3, no traceback; with
+    ``--allow-missing`` the world starts without it and up exits 0."""
+    run_id = f"upearly{os.getpid()}{'a' if allow else ''}"
+    up_proc = subprocess.Popen([sys.executable, "-m", "sim.launcher", "--scenario", SCENARIO, "--algorithm", "diskf",
+                                "--ticks", "4", "--run-id", run_id, "--quiet", "--startup-timeout", "3",
+                                "--json", str(tmp_path / "r.json"), "--logs", str(tmp_path / "logs"),
+                                *(["--allow-missing", allow] if allow else [])],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        os.kill(_agent_pid(run_id, 7, timeout=60, every=0.01), signal.SIGKILL)
+        _, err = up_proc.communicate(timeout=120)
+    finally:
+        if up_proc.poll() is None:
+            up_proc.kill()
+            up_proc.communicate(timeout=10)
+    row = json.loads((tmp_path / "r.json").read_text())["diskf"][SETTING]
+    assert row["status"] == "incomplete" and list(row["missing"]) == (["7"] if allow else ["1", "2", "3", "4", "5",
+                                                                                           "6", "7", "8", "9"])
+    errors = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    if allow:
+        assert up_proc.returncode == 0, err
+        assert row["missing"]["7"] == {"ticks": 4, "why": {"never joined": 4}} and errors == [], err
+    else:
+        assert up_proc.returncode == 3, err
+        assert row["reason"].startswith("after 3 s waiting for the agents: no agent process for id 7 ")
+        assert row["ended_early"] in row["reason"] and row["missing_fraction"] == 1.0
+        assert len(errors) == 1 and errors[0].startswith(f"error: incomplete run: {row['ended_early']}: "), err
+    assert "Traceback" not in err + (tmp_path / "logs" / "world.log").read_text()
+    time.sleep(0.5)
+    assert _pids_of(run_id) == [], "children left behind"
+
+
+def test_a_world_that_gives_up_at_start_up_ends_with_a_status(tmp_path):
+    """The world started by hand with agent 9 never there: after
+    ``--startup-timeout`` it gives up, and still writes its results and
+    estimates with a status (incomplete, its reason first) and exits 3."""
+    spec = RunSpec(SCENARIO, "diskf", run_id=f"giveup{os.getpid()}")
+    mesh = start_mesh(spec, 4, 0, tmp_path, world_extra=["--startup-timeout", "2", "--json", str(tmp_path / "r.json")])
+    mesh.agents = mesh.agents[:-1]
+    try:
+        mesh.start_agents()
+        rc = mesh.world.proc.wait(60)
+    finally:
+        mesh.stop_all()
+    row = json.loads((tmp_path / "r.json").read_text())["diskf"][SETTING]
+    est = json.loads((tmp_path / "est.json").read_text())
+    assert rc == 3, mesh.world.last_error_line()
+    assert row["status"] == est["status"] == "incomplete" and not np.array(est["reported"]).any()
+    assert row["reason"].startswith("after 2 s waiting for the agents: no agent process for id 9 (no liveliness token)")
+    log = mesh.world.log.read_text()
+    assert "Traceback" not in log and [ln for ln in log.splitlines() if ln.startswith("error:")] == [
+        f"error: world: incomplete run: {row['ended_early']}: no tick ran (36 agent-ticks missing) "
+        "(--allow-missing accepts it)"]
+
+
+def test_a_world_interrupted_before_tick_1_ends_with_a_status(tmp_path):
+    """The world stopped (SIGTERM) while it waits for its agents: its
+    results say incomplete, interrupted before tick 1, and it exits 3."""
+    spec = RunSpec(SCENARIO, "diskf", run_id=f"interrupt{os.getpid()}")
+    mesh = start_mesh(spec, 4, 0, tmp_path, world_extra=["--json", str(tmp_path / "r.json")])
+    host, port = mesh.world_endpoints[0].split("/", 1)[1].rsplit(":", 1)
+    try:
+        deadline = time.monotonic() + 60
+        while True:  # the world listens: its session is open, it waits for the agents
+            try:
+                socket.create_connection((host, int(port)), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "the world never listened"
+                time.sleep(0.1)
+        mesh.world.proc.send_signal(signal.SIGTERM)
+        rc = mesh.world.proc.wait(60)
+    finally:
+        mesh.stop_all()
+    row = json.loads((tmp_path / "r.json").read_text())["diskf"][SETTING]
+    assert rc == 3, mesh.world.last_error_line()
+    assert row["status"] == "incomplete" and row["ended_early"] == "interrupted (SIGTERM) before tick 1"
+    assert row["reason"].startswith(row["ended_early"]) and row["missing_fraction"] == 1.0
+    assert "Traceback" not in mesh.world.log.read_text()
+
+
+def test_a_late_agent_joins_a_run_that_started_without_it(tmp_path):
+    """``--allow-missing``: the world starts without agent 9 (not there after
+    ``--startup-timeout``); agent 9 started once the run goes joins it
+    (the world's answer to its start query), reports every tick from then
+    on, and the run checks out: incomplete (its ticks before), every
+    reported estimate the engine's, exit 0 within ``--allow-missing`` (and
+    ``--allow-degraded``: a neighbour may fuse the first message of the
+    agent that joins too late, as after any rejoin)."""
+    spec = RunSpec(SCENARIO, "diskf", run_id=f"latejoin{os.getpid()}")
+    mesh = start_mesh(spec, 300, 0, tmp_path, world_extra=["--progress", "lines", "--allow-missing", "0.9",
+                                                           "--allow-degraded", "--startup-timeout", "2"])
+    progress = Progress(mesh)
+    late = mesh.agents[-1]
+    mesh.agents = mesh.agents[:-1]
+    try:
+        mesh.start_agents()
+        progress.wait_for(1, 60)
+        mesh.agents.append(spawn(late))
+        rc = progress.follow(120)
+        rcs = [a.proc.wait(30) for a in mesh.agents]
+    finally:
+        mesh.stop_all()
+    est = json.loads((tmp_path / "est.json").read_text())
+    assert rc == 0 and rcs == [0] * 9, (mesh.world.last_error_line(), late.last_error_line())
+    reported = np.array(est["reported"])
+    ((joined,),) = est["rejoins"].values()
+    assert list(est["rejoins"]) == ["9"] and joined["tick"] > 1
+    assert reported[:, :-1].all() and not reported[:joined["tick"] - 1, -1].any() and reported[joined["tick"]:, -1].all()
+    assert est["status"] == "incomplete" and est["evidence"]["differing"] == 0
+    assert set(est["missing"]["9"]["why"]) <= {"never joined", "rejoining"}
 
 
 # --------------------------------------------------------------------------

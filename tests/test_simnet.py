@@ -376,11 +376,12 @@ def test_routes_find_addressed_subscriptions_as_a_scan_would():
 
     k, routes = Keys("r"), _Routes()
     procs = [P(i) for i in range(12)]
-    exprs = [(p, k.msg_to(p.order)) for p in procs] + [(procs[3], k.msgs), (procs[4], f"{k.root}/agent/*/msg/$*_1$*")]
+    exprs = [(p, k.msg_to(p.order)) for p in procs] + [(procs[3], k.msgs), (procs[4], f"{k.root}/agent/*/msg/$*_1$*"),
+                                                      (procs[6], k.msg_to(6)), (procs[7], k.report(1))]  # twice: twice
     for p, e in exprs:
         routes.add(e, p)
     routes.remove(procs[5])
-    for to in ([], [1], [3, 5, 11], [0, 10, 2], [1, 1], [12]):
+    for to in ([], [1], [3, 5, 11], [0, 10, 2], [1, 1], [12], [6]):
         for key in (k.msg(7, to=to), k.msg(7, to=to) + "x", k.report(1)):
             want = sorted((p.order, e) for p, e in exprs if p is not procs[5] and key_matches(e, key))
             assert sorted((p.order, e) for p, e in routes.match(key)) == want, key

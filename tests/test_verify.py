@@ -278,3 +278,18 @@ def test_a_run_stopped_early_is_replayed_to_its_last_report_only(run):
     assert st.evidence["missing_agent_ticks"] == 15 * trace.has.shape[2]
     claims.reported[:] = False
     assert check(trace, scn, claims).evidence["ticks_replayed"] == 0
+
+
+def test_allow_missing_never_accepts_a_run_with_no_agent_tick_reported():
+    """A world that gave up at its start reported nothing: no share of
+    missing agent-ticks accepts it (exit 3, not 0), and the line says why."""
+    from diskf_mesh.mesh.protocol.run_status import accept
+
+    st = V.RunStatus("incomplete", "after 30 s waiting for the agents: no agent process for id 4",
+                   {"agent_ticks": 90, "reported": 0, "missing_agent_ticks": 90, "missing_fraction": 1.0})
+    assert not st.accepted(allow_missing=1.0, allow_degraded=True)
+    code, level, line = accept(st, allow_missing=1.0)
+    assert (code, level) == (3, "error") and "nothing to accept" in line
+    some = V.RunStatus("incomplete", "agent 4 missing", {"agent_ticks": 90, "reported": 89, "missing_agent_ticks": 1,
+                                                       "missing_fraction": 1 / 90})
+    assert some.accepted(allow_missing=1.0) and accept(some, allow_missing=1.0)[0] == 0

@@ -410,8 +410,8 @@ def pair_predict(A, C, e, S, F, q):
     # A C and F S stacked, then one product with F^T for both
     AC, FS = matmul_left(A, C), np.matmul(F, S)
     batch = np.broadcast_shapes(AC.shape[:-2], FS.shape[:-2])
-    both = np.matmul(np.concatenate([np.broadcast_to(AC, batch + AC.shape[-2:]), np.broadcast_to(FS, batch + FS.shape[-2:])],
-                                    axis=-2), T(F))
+    stacked = np.concatenate([np.broadcast_to(a, batch + a.shape[-2:]) for a in (AC, FS)], axis=-2)
+    both = np.matmul(stacked, T(F))
     return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + q[..., None, None] * noise)
 
 

@@ -114,7 +114,8 @@ class RunStatus:
     def accepted(self, *, allow_missing: float = 0.0, allow_degraded: bool = False,
                  accept_unverifiable: bool = False) -> bool:
         """Whether the user accepted this status: exact and as planned always;
-        incomplete within ``allow_missing`` (a share of the agent-ticks);
+        incomplete within ``allow_missing`` (a share of the agent-ticks),
+        never a run with no agent-tick reported;
         degraded with ``allow_degraded``; unverifiable only with
         ``accept_unverifiable`` (and its missing agent-ticks as incomplete);
         diverged never."""
@@ -122,12 +123,21 @@ class RunStatus:
             return True
         if self.status == UNVERIFIABLE_STATUS:
             return accept_unverifiable and (
-                self.evidence.get("missing_fraction", 1.0) <= allow_missing or not self.evidence.get("missing_agent_ticks")
+                self._missing_within(allow_missing) or not self.evidence.get("missing_agent_ticks")
             ) and (allow_degraded or not self.degraded_beyond_missing)
         if self.status == INCOMPLETE_STATUS:
-            return (self.evidence.get("missing_fraction", 1.0) <= allow_missing
-                    and (allow_degraded or not self.degraded_beyond_missing))
+            return self._missing_within(allow_missing) and (allow_degraded or not self.degraded_beyond_missing)
         return self.status == DEGRADED_STATUS and allow_degraded
+
+    @property
+    def nothing_reported(self) -> bool:
+        """No agent-tick of the run was reported: there is no estimate to
+        accept, whatever share ``--allow-missing`` names."""
+        reported = self.evidence.get("reported")
+        return reported == 0 if reported is not None else self.evidence.get("missing_fraction", 1.0) >= 1.0
+
+    def _missing_within(self, allow_missing: float) -> bool:
+        return not self.nothing_reported and self.evidence.get("missing_fraction", 1.0) <= allow_missing
 
     @property
     def degraded_beyond_missing(self) -> int:

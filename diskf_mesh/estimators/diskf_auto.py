@@ -28,11 +28,17 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    update carries the weight, and so does every receiver's fusion and every
    model's likelihood: the bank compares input models under the noise the
    world shows, and the message is unchanged.
-2. fuse, mixing: the models' prior probabilities are the fused senders'
-   (the agent's own included) pooled by their normalised geometric mean
+2. fuse, mixing: on a tick whose neighbourhood measures nothing, the
+   models' prior probabilities are the fused senders' (the agent's own
+   included) pooled by their normalised geometric mean
    (``input_models.pool_probabilities``), so an agent whose neighbourhood
    has not measured lately weighs the models by its neighbours' evidence;
-   each model's prior is the mixture of the agent's last posteriors under
+   on a tick it measures, they are the agent's own: its posterior already
+   holds its neighbourhood's evidence, and the pool would lift a model
+   that one neighbour's noise briefly favoured to a share a few ticks of
+   noise at this agent then confirm (in a ring of constant-acceleration
+   agents with no input, the bank read stretches of noise as an input:
+   docs/estimators.md, "Where it is not"); each model's prior is the mixture of the agent's last posteriors under
    the models' Markov chain (``input_models.model_weights``, ``mix``; the
    spread between the posteriors' means counted at most as much as their
    own covariances, ``mix(bounded=True)``; a weight below ``PRUNE`` dropped,
@@ -162,8 +168,10 @@ class DISKFAuto(Estimator):
         U, u = nbr_sum(nb.adj, dY, 2), nbr_sum(nb.adj, dy, 1)
         ones = np.ones(senders.x_pred.shape[:-1], dtype=bool)
         x_c, P_c, _ = eq.input_fusion(nb.adj, senders.x_pred, senders.P_pred, ones)  # the CI prior
-        # 2. mixing
-        pooled = im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR)
+        # 2. mixing: the senders' model probabilities pooled where the neighbourhood measured nothing this tick,
+        # the agent's own where it did
+        informed = np.trace(U, axis1=-2, axis2=-1) > 0
+        pooled = np.where(informed[..., None], state.mu, im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR))
         c, w = im.model_weights(pooled, self.Pi, PRUNE)
         z0, Z0 = im.mix(w, state.z, state.Z, bounded=True)
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
@@ -186,7 +194,7 @@ class DISKFAuto(Estimator):
         zc, Zc = im.mix(mu[..., :, None], z, Z)
         x, P, e, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
         d, S = e[..., :m], S[..., :m, :m]
-        held = state.held | (np.trace(U, axis1=-2, axis2=-1) > 0) | relayed
+        held = state.held | informed | relayed
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=state.theta,
                        info=state.info, tick=state.tick)
         return st, Output(x, P, d, held)

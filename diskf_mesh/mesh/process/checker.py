@@ -124,6 +124,15 @@ def _serve(make, conn, other, nice: int) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     os.nice(nice)
     try:
+        _check_each(make, conn)
+    except (EOFError, ConnectionError):  # the world closed its end, with what it had not read yet: it ended
+        return
+
+
+def _check_each(make, conn) -> None:
+    """Make the check, then check each tick as it comes; the pipe's end
+    raises (``EOFError``, ``ConnectionError``)."""
+    try:
         check = make()
     except Exception:  # noqa: BLE001 - the world raises it when it asks (its own setup fails the same way first)
         conn.send(("error", 0, traceback.format_exc(), time.process_time()))
@@ -134,10 +143,7 @@ def _serve(make, conn, other, nice: int) -> None:
     rec = WorldRecord(**RunReports.empty(K, N, n, m), live=np.zeros((K, N), dtype=bool))
     at = np.cumsum([0, N * n, N * n * n, N * m])  # where x, P, d lie in a tick's floats
     while True:
-        try:
-            k, floats, flags, digests, rejoins, starts = conn.recv()
-        except EOFError:
-            return
+        k, floats, flags, digests, rejoins, starts = conn.recv()
         t, a, b = k - 1, np.frombuffer(floats, dtype=float), np.frombuffer(flags, dtype=bool)
         rec.x[t], rec.P[t], rec.d[t] = (a[at[0]:at[1]].reshape(N, n), a[at[1]:at[2]].reshape(N, n, n),
                                         a[at[2]:at[3]].reshape(N, m))

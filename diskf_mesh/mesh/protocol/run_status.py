@@ -240,6 +240,8 @@ def accept(status: RunStatus, *, allow_missing: float = 0.0, allow_degraded: boo
         return exits.OK, "warning", f"{s} run accepted ({how}): {status.reason}"
     if s != exits.INCOMPLETE_STATUS:
         hint = "--allow-degraded accepts it"
+    elif status.nothing_reported:
+        hint = "no agent-tick was reported: nothing to accept"
     elif status.degraded_beyond_missing:
         hint = (f"and {status.degraded_beyond_missing} agent-ticks degraded beyond the missing ones; "
                 "--allow-missing with --allow-degraded accepts it")

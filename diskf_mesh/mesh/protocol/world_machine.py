@@ -689,8 +689,8 @@ class WorldMachine:
         (self.alive.add if alive else self.alive.discard)(who)
         (self.ready.add if ready else self.ready.discard)(who)
         if self.k and self.phase == "ticking" and was_alive != alive:
-            self.log.info(f"tick {self.k}: agent {who} " + ("is back" if alive else "is gone (its liveliness "
-                                                                                     "token went)"))
+            came = "is here (it had not joined)" if self._why.get(who) == "never joined" else "is back"
+            self.log.info(f"tick {self.k}: agent {who} " + (came if alive else "is gone (its liveliness token went)"))
         if ready and not was_ready and self.k and not (self._paused and who in self._expect):
             self._joins_at[who] = self.k + 2  # its first tick: the reports of the one before are final by then
             self._why[who] = "rejoining"

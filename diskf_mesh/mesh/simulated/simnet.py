@@ -197,8 +197,8 @@ class _Routes:
     against every such expression."""
 
     def __init__(self):
-        self.exact = {}       # expr -> {proc: None}
-        self.wild = {}        # expr -> (matcher, {proc: None})
+        self.exact = {}       # expr -> {proc: how many times it declared it}
+        self.wild = {}        # expr -> (matcher, {proc: how many times})
         self.pieces = {}      # (head expr, delimiter) -> (matcher of the head, {piece: [expr]})
         self.scan = {}        # the other wildcard expressions -> matcher
         self.by_proc = {}     # proc -> its expressions
@@ -210,7 +210,8 @@ class _Routes:
         self.by_match.clear()
         if "*" in expr:
             fresh = expr not in self.wild
-            self.wild.setdefault(expr, (matcher(expr), {}))[1][proc] = None
+            ps = self.wild.setdefault(expr, (matcher(expr), {}))[1]
+            ps[proc] = ps.get(proc, 0) + 1
             piece = _piece(expr)
             if fresh and piece is not None:
                 head, d, x = piece
@@ -218,7 +219,8 @@ class _Routes:
             elif fresh:
                 self.scan[expr] = matcher(expr)
         else:
-            self.exact.setdefault(expr, {})[proc] = None
+            ps = self.exact.setdefault(expr, {})
+            ps[proc] = ps.get(proc, 0) + 1
         self.by_proc.setdefault(proc, []).append(expr)
 
     def remove(self, proc) -> None:
@@ -256,8 +258,8 @@ class _Routes:
             sig = (key if key in self.exact else None, wild)
             hit = self.by_match.get(sig)
             if hit is None:
-                hit = [(p, key) for p in self.exact.get(key, ())]
-                hit += [(p, e) for e in wild for p in self.wild[e][1]]
+                hit = [(p, key) for p, n in self.exact.get(key, {}).items() for _ in range(n)]
+                hit += [(p, e) for e in wild for p, n in self.wild[e][1].items() for _ in range(n)]
                 hit.sort(key=lambda pe: pe[0].order)
                 self.by_match[sig] = hit
             if len(self.memo) > 100_000:
