@@ -255,3 +255,15 @@ def test_cli_on_mutated_scenarios(case, tmp_path):
     assert p.returncode == 2, p.stderr
     assert p.stderr.count("\n") == 1 and p.stderr.startswith(f"error: {field}"), p.stderr
     assert p.stdout == "" and not out.exists()
+
+
+def test_a_generated_network_too_large_for_its_links_is_refused_before_the_ticks_are_known():
+    """The agent count alone bounds the generated layout's links; the ticks a
+    command runs (``--ticks``) are checked with the run, so a 6,500-agent
+    network the scenario's own 200 ticks would not fit still loads."""
+    from diskf_mesh.data.scenario import MEMORY_BOUND, load_scenario, simulation_bytes
+
+    assert simulation_bytes(6500, 200, 2, 2, 1) > MEMORY_BOUND >= simulation_bytes(6500, 1, 2, 2, 1)
+    assert load_scenario("random-geometric", agents=6500).N == 6500
+    with pytest.raises(InputError, match="10000 agents need about 4.6 GiB for their links alone"):
+        load_scenario("random-geometric", agents=10000)

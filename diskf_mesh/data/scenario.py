@@ -410,7 +410,10 @@ def _generate_agents(gen, n: int, agents: int | None, steps: int) -> tuple:
         raise InputError("generate", "generated agents see x, y or both: the state needs at least 2 dimensions")
     N = scalar(agents, "agents", int, low=1) if agents is not None else setting(gen, "agents", "generate", int, 100,
                                                                                low=1)
-    check_size(N, steps, n, 2, 1)  # before drawing N positions (m is not known here; 1 is the shipped one)
+    links = simulation_bytes(N, 1, n, 2, 1)  # before drawing N positions: the ticks a command runs come later
+    if links > MEMORY_BOUND:
+        raise InputError("size", f"{N} agents need about {links / 2**30:.1f} GiB for their links alone, over the "
+                                 f"bound of {MEMORY_BOUND / 2**30:g} GiB; use fewer agents")
     box = setting(gen, "box", "generate", float, 300.0, above=0.0)
     r = setting(gen, "R", "generate", float, 2.0, above=0.0)
     sense_range = setting(gen, "sense_range", "generate", float, 150.0, low=0.0, allow_inf=True)
