@@ -170,3 +170,14 @@ def test_a_late_agent_joins_a_run_that_started_without_it():
     assert np.delete(rep, 3, axis=1).all() and not rep[0, 3] and rep[-1, 3]
     (joined,) = r.record.rejoins[4]
     assert rep[joined["tick"] - 1:, 3].all() and not rep[:joined["tick"] - 1, 3].any()
+
+
+def test_a_late_start_within_the_startup_timeout_runs_exact():
+    """A late start and no other fault: agent 4 starts 20 s late, within the
+    world's 30 s start-up timeout; the world waits for it and the run is
+    exact, every agent-tick reported."""
+    from diskf_mesh.mesh.simulated.simrun import SimPlan, simulate_run
+
+    scn, trace = cases.world("random-geometric", 5, 30, 50067)
+    r = simulate_run(scn, trace, "diskf", 50067, plan=SimPlan(Link(0.5), late={4: 20.0}, max_time=900))
+    assert r.status.status == "exact" and r.record.reported.all()
