@@ -176,17 +176,25 @@ def main(argv=None) -> int:
     if unknown:
         ap.error(f"unknown entries {', '.join(unknown)}; choose from {', '.join(BY_KEY)}")
     doc = json.loads(JSON.read_text()) if JSON.exists() else {}
+    write(doc)
     for key in [] if a.render else keys:
         print(f"costs: {key}: {shown(BY_KEY[key].argv)}", file=sys.stderr, flush=True)
         doc[key] = measure(BY_KEY[key])
         print(f"costs: {key}: {summary(doc[key])}, load {doc[key]['load']}", file=sys.stderr, flush=True)
-        JSON.write_text(json.dumps(doc, indent=1) + "\n")  # each entry as soon as it is measured
+        write(doc)
+    return 0
+
+
+def write(doc: dict) -> None:
+    """costs.json, costs.md and every page's links, together: each entry as
+    soon as it is measured, so the pages agree with the file whenever a
+    measured command (the tests among them) reads them."""
+    JSON.write_text(json.dumps(doc, indent=1) + "\n")
     MARKDOWN.write_text(render(doc))
     for page in quoting():
         text = page.read_text()
         if relink(text, doc) != text:
             page.write_text(relink(text, doc))
-    return 0
 
 
 if __name__ == "__main__":
