@@ -34,6 +34,7 @@ import ctypes
 import gc
 import json
 import os
+import runpy
 import selectors
 import signal
 import socket
@@ -45,7 +46,7 @@ import time
 from diskf_mesh.mesh.security import credentials
 
 SPAWN_ENV = "DISKF_MESH_SPAWN"  # "exec": no zygote
-FORKED = {"sim.world": "world", "agents.agent": "agent", "sim.router": "router", "sim.host": "host"}
+FORKED = ("sim.world", "agents.agent", "sim.router", "sim.host")
 # not cryptography: only the launcher makes credentials; a child hands its PEMs to zenoh (~70 ms
 # less before the first fork)
 PRELOAD = ("sim.world", "agents.agent", "sim.router", "sim.host", "zenoh", "tqdm", "diskf_mesh.studies.experiment",
@@ -453,10 +454,10 @@ def serve(fd: int):
     return None
 
 
-def run_child(argv, cwd, fds, zygote: int, command) -> int:
+def run_child(argv, cwd, fds, zygote: int) -> int:
     """In a forked child: become the process ``argv`` stands for and run it
-    as ``python -m`` would, with ``command`` (the command line's ``main``);
-    returns its exit status."""
+    as ``python -m`` would (its module as ``__main__``, from the code the
+    zygote loaded); returns its exit status."""
     os.setsid()
     _prctl_deathsig(signal.SIGTERM)
     if os.getppid() != zygote:  # the zygote died before the line above
@@ -470,13 +471,18 @@ def run_child(argv, cwd, fds, zygote: int, command) -> int:
     set_title(argv)
     module, args = argv[2], argv[3:]
     sys.argv = [module, *args]
-    return command([FORKED[module], *args], modules=(module,))
+    try:
+        runpy.run_module(module, run_name="__main__", alter_sys=True)
+    except SystemExit as e:
+        if e.code is None or isinstance(e.code, int):
+            return e.code or 0
+        print(e.code, file=sys.stderr)
+        return 1
+    return 0
 
 
 if __name__ == "__main__":
     zygote_pid = os.getpid()
     job = serve(int(sys.argv[1]))
     if job is not None:  # a forked child
-        from diskf_mesh.cli import main as cli  # loaded already (PRELOAD)
-
-        sys.exit(run_child(*job, zygote_pid, cli.main))
+        sys.exit(run_child(*job, zygote_pid))

@@ -173,6 +173,10 @@ def _descendants(pid: int) -> dict:
     return {p: argv[p] for p in sorted(mine) if argv.get(p) and "sim.zygote" not in argv[p]}
 
 
+def _parent(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
 def _readable(pid: int) -> list:
     """(where, bytes) of what process ``pid`` has at hand: its command line,
     its environment and every open file that is not a socket or a pipe."""
@@ -228,17 +232,23 @@ def _identity_name(argv) -> str:
 def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path, network):
     proc = _up(tmp_path, "--ticks", "3000", "--network", network)  # running when stopped, short enough to check
     try:
-        n = 5 if network == "peers" else 6  # the world, four agents (and the router)
+        n = 6 if network == "peers" else 7  # the world and its check, four agents (and the router)
         kids = _wait_children(proc, n)
         assert len(kids) == n, kids
         assert any("sim.router" in argv for argv in kids.values()) is (network == "router")
+        checks = [pid for pid in kids if _parent(pid) in kids]  # the world's check, forked before its key came
+        assert len(checks) == 1 and kids[checks[0]] == kids[_parent(checks[0])], (checks, kids)
         for pid, argv in kids.items():
             assert argv[argv.index("--credentials") + 1] == "-"  # handed over in memory, not a path
             for where, data in _readable(pid):
                 assert KEY_MARK not in data, (argv[:3], where)
             assert os.readlink(f"/proc/{pid}/fd/0") == "/dev/null"  # the identity was read, and let go
-            # all a compromised child finds in its memory: one key, its own, and no other identity's certificate
+            # all a compromised child finds in its memory: one key, its own, and no other identity's certificate;
+            # the world's check: no key at all
             found = pems(pid)
+            if pid in checks:
+                assert usable_keys(found) == [] and certificates(found) == {}
+                continue
             certs = certificates(found)
             name = _identity_name(argv)
             assert usable_keys(found) == [public_key(certs[name])], name
@@ -258,8 +268,8 @@ def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path
 def test_kill_9_of_up_leaves_no_key_and_no_process(tmp_path):
     proc = _up(tmp_path, "--ticks", "3000")  # running when stopped, short enough for the end-of-run check
     try:
-        kids = _wait_children(proc, 5)
-        assert len(kids) == 5, kids
+        kids = _wait_children(proc, 6)  # the world and its check, four agents
+        assert len(kids) == 6, kids
         proc.send_signal(signal.SIGKILL)
         proc.communicate(timeout=10)
         deadline = time.monotonic() + 30.0  # the children get SIGTERM when up (or the zygote) dies

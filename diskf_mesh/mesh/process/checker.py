@@ -120,6 +120,9 @@ class CheckProcess:
 def _serve(make, conn, other, nice: int) -> None:
     """The child: check each tick sent, in order, until the pipe closes."""
     other.close()  # the world's end: when the world closes its own, recv ends here
+    null = os.open(os.devnull, os.O_RDONLY)  # the world's standard input, where its identity comes: not ours
+    os.dup2(null, 0)
+    os.close(null)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     os.nice(nice)
