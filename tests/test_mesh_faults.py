@@ -281,7 +281,7 @@ def test_a_world_that_gives_up_at_start_up_ends_with_a_status(tmp_path):
     log = mesh.world.log.read_text()
     assert "Traceback" not in log and [ln for ln in log.splitlines() if ln.startswith("error:")] == [
         f"error: world: incomplete run: {row['ended_early']}: no tick ran (36 agent-ticks missing) "
-        "(--allow-missing accepts it)"]
+        "(no agent-tick was reported: nothing to accept)"]
 
 
 def test_a_world_interrupted_before_tick_1_ends_with_a_status(tmp_path):
