@@ -38,7 +38,7 @@ def test_world_names_the_missing_agent(tmp_path):
         agent_rcs = [a.proc.wait(20) for a in mesh.agents]
     finally:
         mesh.stop_all()
-    assert rc == 1
+    assert rc == exits.INCOMPLETE  # a run that ends with a status: incomplete, the world's reason first
     assert time.monotonic() - t0 < 20
     last = mesh.world.last_error_line()
     assert "no agent process for id 4" in last and "after 3 s" in last, last
@@ -51,9 +51,11 @@ def _child(tmp_path, name, code) -> Child:
 
 
 def test_launcher_reports_the_failed_child_and_stops_the_rest(tmp_path):
-    world = _child(tmp_path, "world", "import time; time.sleep(60)")
+    """An agent that fails once the run ticked (the world said "tick 1";
+    before it, the world gives up on a missing agent itself)."""
+    world = _child(tmp_path, "world", "import time; print('tick 1 0.0', flush=True); time.sleep(60)")
     ok = _child(tmp_path, "agent 1", "import time; time.sleep(60)")
-    bad = _child(tmp_path, "agent 2", "import sys, time; time.sleep(0.3); "
+    bad = _child(tmp_path, "agent 2", "import sys, time; time.sleep(0.5); "
                                       "print('boom: no route to the world', file=sys.stderr); sys.exit(1)")
     launcher = Launcher(world, [ok, bad])
     launcher.start()
