@@ -3,6 +3,7 @@ command line's own parser, its Python example runs, and every link in it and
 in docs/ points to a file of the repository."""
 from __future__ import annotations
 
+import json
 import re
 import shlex
 import subprocess
@@ -76,3 +77,20 @@ def test_table_ii_is_the_reports():
 
     table = front_page_table(json.loads((ROOT / "docs" / "results.json").read_text())["table_ii"])
     assert table in README  # regenerate: diskf-mesh report --out docs, then this table into the README
+
+
+def test_the_demos_stated_error_is_the_runs(tmp_path):
+    """The demo's state MAE and the paper's DISKF's beside it, as the README
+    states them, are what the same run gives (the engine: a mesh run equals
+    it bit for bit)."""
+    said = re.search(r"state MAE (\d+\.\d+) \(the paper's DISKF on the same run, `--estimator diskf`: (\d+\.\d+)\)",
+                     " ".join(README.split()))
+    assert said is not None
+    out = tmp_path / "r.json"
+    done = subprocess.run([sys.executable, "-m", "diskf_mesh.cli.main", "experiment", "--scenario", "dynamic",
+                           "--ticks", "200", "--seeds", "1", "--estimators", "diskf-auto,diskf", "--json", str(out),
+                           "--quiet"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    got = json.loads(out.read_text())
+    assert f"{got['diskf-auto']['range=120']['mae_state']:.2f}" == said[1]
+    assert f"{got['diskf']['range=120']['mae_state']:.1f}" == said[2]
