@@ -133,8 +133,7 @@ class RunStatus:
     def nothing_reported(self) -> bool:
         """No agent-tick of the run was reported: there is no estimate to
         accept, whatever share ``--allow-missing`` names."""
-        reported = self.evidence.get("reported")
-        return reported == 0 if reported is not None else self.evidence.get("missing_fraction", 1.0) >= 1.0
+        return self.evidence.get("reported") == 0
 
     def _missing_within(self, allow_missing: float) -> bool:
         return not self.nothing_reported and self.evidence.get("missing_fraction", 1.0) <= allow_missing
