@@ -271,3 +271,15 @@ class Work:
 
 Effect = (Subscribe | WatchTokens | DeclareQueryable | Publish | DeclareToken | DropToken | SetTimer | CancelTimer
           | Ask | AskTokens | Answer | Finish | Work)
+
+
+def at_once(machine, event, now: float) -> list:
+    """``machine.handle(event, now)`` with every ``Work`` carried out at
+    once, as a process's shell does: the other effects, in order."""
+    out = []
+    for e in machine.handle(event, now):
+        if isinstance(e, Work):
+            out += at_once(machine, Worked(e, e.alone()), now)
+        else:
+            out.append(e)
+    return out
