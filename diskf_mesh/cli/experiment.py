@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         results = experiment.run_experiment(
             scn, settings, args.estimators, range(args.seeds), args.ticks, params,
             progress=lambda n: shown.step(f"runs of {args.seeds} seeds", n=n),
-            ticks=lambda name, k: shown.status(f"{experiment.LABELS.get(name, name)}: {k} ticks done",
+            ticks=lambda name, k: shown.status(f"{experiment.LABELS.get(name, name)}: tick {k} done",
                                                STATUS_EVERY_S))
     steps = args.ticks or scn.steps
     if args.json:
