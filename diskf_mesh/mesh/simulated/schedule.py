@@ -67,14 +67,12 @@ class Trace:
         (``digest``: ``payload_digest(payload)``, made once for a payload many receive)."""
         self.events += 1
         self.last = t
-        h = self._h
-        h.update(struct.pack("<d", t))
-        h.update(f"|{who}|{what}|{key}|".encode())
+        line = struct.pack("<d", t) + f"|{who}|{what}|{key}|".encode()
         if payload is not None:
             if digest is None:
                 digest = payload_digest(payload)
-            h.update(struct.pack("<q", len(payload)))
-            h.update(digest)
+            line += struct.pack("<q", len(payload)) + digest
+        self._h.update(line)
         if self.lines is not None:
             tail = "" if payload is None else f" {len(payload)}B {digest[:4].hex()}"
             self.lines.append(f"{t:.6f} {who} {what} {key}{tail}")
