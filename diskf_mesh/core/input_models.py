@@ -26,11 +26,12 @@ Every function is pure, with leading batch axes.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
 from diskf_mesh.core.equations import replace_marginal
-from diskf_mesh.core.linalg import T, inv_spd, matmul_left, matmul_shared, mv, nbr_sum, row_sum, solve, sym
+from diskf_mesh.core.linalg import T, identity, inv_spd, matmul_left, matmul_shared, mv, nbr_sum, row_sum, solve, sym
 
 INPUT_MODELS = ("walk", "mean-reverting", "none")
 
@@ -119,7 +120,11 @@ def information_loglik(x, P, Y, Ji, U, u):
     g = u - mv(U, x)
     quad = 2.0 * _dot(x, u) - _dot(x, mv(U, x)) + _dot(g, mv(Ji, g))
     # log det(I + P U) = log det(P (Y + U)) = -log det(Y) - log det(Ji)
-    logdet = -(np.linalg.slogdet(Y)[1] + np.linalg.slogdet(Ji)[1])
+    if Y.shape == Ji.shape:  # both in one call (each matrix's own, bit for bit)
+        logdet_Y, logdet_Ji = np.linalg.slogdet(np.stack([Y, Ji]))[1]
+    else:
+        logdet_Y, logdet_Ji = np.linalg.slogdet(Y)[1], np.linalg.slogdet(Ji)[1]
+    logdet = -(logdet_Y + logdet_Ji)
     return 0.5 * (quad - logdet)
 
 
@@ -407,9 +412,11 @@ def affine_prior(x_from, P_from, x_to, P_to, v, Pv, B):
     map that takes its agent's published prediction to the neighbourhood's
     CI prior: exact (the identity) where the two are equal (an isolated
     agent; all-to-all) and positive definite always."""
-    L_to = np.linalg.cholesky(P_to)
-    L_from = np.linalg.cholesky(P_from)
-    Mt = np.matmul(L_to, solve(L_from, np.broadcast_to(np.eye(L_from.shape[-1]), L_from.shape)))
+    if P_to.shape == P_from.shape:  # both factors in one call (each matrix's own, bit for bit)
+        L_to, L_from = np.linalg.cholesky(np.stack([P_to, P_from]))
+    else:
+        L_to, L_from = np.linalg.cholesky(P_to), np.linalg.cholesky(P_from)
+    Mt = np.matmul(L_to, solve(L_from, np.broadcast_to(identity(L_from.shape[-1]), L_from.shape)))
     Mt = Mt[..., None, :, :]  # over the models' axis
     v_new = x_to[..., None, :] + mv(Mt, v - x_from[..., None, :])
     return v_new, sym(matmul_shared(Mt, Pv, T(Mt))), matmul_shared(Mt, B)
@@ -468,14 +475,22 @@ def pair_predict(A, C, e, S, F, q):
     q = np.asarray(q, dtype=float)
     m = e.shape[-1] // 2
     n = A.shape[-1]
-    noise = np.zeros((2 * m, 2 * m))  # eta drives d_{k-1} only
-    noise[:m, :m] = np.eye(m)
+    noise = _first_block(m)  # eta drives d_{k-1} only
     # A C and F S stacked, then one product with F^T for both
     AC, FS = matmul_left(A, C), np.matmul(F, S)
     batch = np.broadcast_shapes(AC.shape[:-2], FS.shape[:-2])
     stacked = np.concatenate([np.broadcast_to(a, batch + a.shape[-2:]) for a in (AC, FS)], axis=-2)
     both = np.matmul(stacked, T(F))
     return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + q[..., None, None] * noise)
+
+
+@lru_cache(maxsize=None)
+def _first_block(m: int) -> np.ndarray:
+    """[[I, 0], [0, 0]] (m x m blocks), read-only: where (IM2)'s noise enters the pair."""
+    block = np.zeros((2 * m, 2 * m))
+    block[:m, :m] = np.eye(m)
+    block.flags.writeable = False
+    return block
 
 
 def default_bank(q_process: float, q_sensor: float, none: bool = True, walk: bool = True, zero_mean: bool = True,

@@ -174,7 +174,8 @@ class DISKFAuto(Estimator):
         # 2. mixing: the senders' model probabilities pooled where the neighbourhood measured nothing this tick,
         # the agent's own where it did
         informed = np.trace(U, axis1=-2, axis2=-1) > 0
-        pooled = np.where(informed[..., None], state.mu, im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR))
+        pooled = state.mu if informed.all() else np.where(
+            informed[..., None], state.mu, im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR))
         c, w = im.model_weights(pooled, self.Pi, PRUNE)
         z0, Z0 = im.mix(w, state.z, state.Z, bounded=True)
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
