@@ -239,17 +239,19 @@ def _padded(w, most: int):
     models i in order. ``rows``: each term's model i as a row of the models
     flattened over the batch; ``wk`` its weight; ``pad`` where a column has
     fewer than T terms (its weight 0; None if none has), which ``mix`` sets
-    to -0.0 (``_left_out``). None where T x columns exceeds ``most`` or a
-    column has no nonzero weight (``mix`` then adds slot after slot,
+    to -0.0 (``_left_out``). None where w holds more than ``most`` weights
+    or a column has no nonzero one (``mix`` then adds slot after slot,
     ``_terms``)."""
     batch, (M, J) = w.shape[:-2], w.shape[-2:]
+    if w.size > most:
+        return None
     wt = np.ascontiguousarray(w.swapaxes(-1, -2)).reshape(-1, M)       # column j of batch b: row b J + j
     f = np.flatnonzero(wt)                                              # column after column, i in order
     col, i = np.divmod(f, M)
     count = np.bincount(col, minlength=len(wt))
-    T = int(count.max())
-    if T * len(wt) > most or f.size < len(wt) or not count.all():
+    if not count.all():
         return None
+    T = int(count.max())
     t = np.arange(f.size) - (np.cumsum(count) - count)[col]             # the term's place in its column
     rows = np.zeros((T, len(wt)), dtype=np.intp)
     wk = np.zeros((T, len(wt)))
@@ -303,8 +305,9 @@ def _terms(w):
     return rows[order], wt.reshape(-1)[f][order], np.cumsum(np.bincount(t)).tolist(), back
 
 
-# the most terms (columns x the most terms in a column) ``mix`` lays out as many per column (``_padded``)
-PADDED_TERMS = 512
+# the most weights (batch x models x columns) for which ``mix`` lays out as many terms per column
+# (``_padded``): an agent's 21 x 21; on larger batches the slots are faster
+PADDED_TERMS = 1024
 # the largest (batch x models x columns x k x k) for which ``mix`` makes every term at once (an
 # agent's 21 x 21 models with k = 4 are 7,056) when no weight is 0
 ALL_TERMS_AT_ONCE = 1 << 16

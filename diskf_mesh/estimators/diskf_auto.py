@@ -69,7 +69,7 @@ from its neighbours' measurements and, through theirs, from further away.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -120,6 +120,7 @@ class DISKFAuto(Estimator):
         self.mu0 = im.initial_probabilities(self.a2)
         self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0)
         self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
+        self.whole_bank = tuple(self.bank) == im.BANK
         self.relaying = np.flatnonzero((self.a2 == 0.0) & (self.a1 != 0.0))  # persistent first-order models
         rho = self.a1[self.relaying][:, None, None]                                  # (J, 1, 1)
         self.relay_scales = rho, (rho * rho)[..., None], self.q[self.relaying][:, None, None, None] * identity(model.m)
@@ -159,9 +160,12 @@ class DISKFAuto(Estimator):
         st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
                        Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=theta, info=info,
                        tick=k)
-        w = np.zeros(state.mu.shape[:-1] + (len(im.BANK),))
-        w[..., self.slots] = state.mu
-        return st, replace(self.message(loc, state.d_hold, state.S_hold, state.held), w=w)
+        if self.whole_bank:  # the message's w is mu itself (a new array every tick, never changed)
+            w = state.mu
+        else:
+            w = np.zeros(state.mu.shape[:-1] + (len(im.BANK),))
+            w[..., self.slots] = state.mu
+        return st, Message(loc.x_pred, loc.P_pred, loc.x_upd, loc.P_upd, state.d_hold, state.S_hold, state.held, w)
 
     def fuse(self, state: AutoState, own: Message, senders: Message, nb: Neighbourhood):
         n, m = self.model.n, self.model.m
