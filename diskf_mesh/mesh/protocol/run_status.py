@@ -127,7 +127,11 @@ class OnlineCheck:
     record holds them. An agent whose state is unknown (a report of its
     did not come) is never cut off: an honest one whose report was lost
     looks the same; what it changes is ``unverifiable`` at the end.
-    ``estimator``: the run's, the class ``estimators.get`` resolved."""
+    ``estimator``: the run's, the class ``estimators.get`` resolved.
+    ``elsewhere``: False, it checks in the caller's thread (a check in
+    another process, ``mesh.process.checker``, says True)."""
+
+    elsewhere = False
 
     def __init__(self, trace: Trace, estimator: type[Estimator], params, *, run_id: str, seed: int,
                  faults: FaultConfig | None = None, deadline_s: float = math.inf):
