@@ -399,6 +399,7 @@ def _parse_agent(a, i: int, n: int) -> AgentSpec:
 MEMORY_BOUND = 2 * 2**30  # bytes a simulation (and its estimates) may ask for; above it is refused
 TICK_BYTES_MAX = 1 << 28  # working set one tick of an engine batch may take (256 MiB)
 TICK_BYTES_PER_SLOT = 12 * 8  # ~12 live float arrays of (receiver, sender slot, n, n)
+TICK_BYTES_PER_WEIGHT = 4 * 8  # and ~4 of (receiver, sender slot, model) where messages carry model weights
 GATHER_BYTES_PER_SLOT = 32  # the gathered layout's sender index, place, weight and flags per (receiver, sender slot)
 
 
