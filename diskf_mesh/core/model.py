@@ -185,9 +185,9 @@ class AutoOptions:
                octaves (``input_models.oscillating``: vibration, weaving)
     switch:    the models' Markov chain: 1 - switch to stay (0.001: a change of
                input model expected about once in 1,000 ticks)
-    noise:     each agent learns the scale of its own measurement noise
-               (``core.noise``) and weighs its measurement by it (off by
-               default: it reads a jump of the input as noise, docs/estimators.md)
+    noise:     each agent learns the scale of its own measurement noise,
+               above or below the stated R (``core.noise``), and weighs its
+               measurement by it
     """
 
     none: bool = True
@@ -195,7 +195,7 @@ class AutoOptions:
     zero_mean: bool = True
     oscillating: bool = True
     switch: float = 0.001
-    noise: bool = False
+    noise: bool = True
 
     def __post_init__(self):
         if not (self.none or self.walk or self.zero_mean or self.oscillating):
