@@ -42,6 +42,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 
 from diskf_mesh.mesh.security import credentials
 
@@ -471,6 +472,9 @@ def run_child(argv, cwd, fds, zygote: int) -> int:
     set_title(argv)
     module, args = argv[2], argv[3:]
     sys.argv = [module, *args]
+    # the zygote imported the module (PRELOAD): runpy runs it afresh as __main__, as ``python -m``
+    # does, and would warn of the imported copy on every child's stderr
+    warnings.filterwarnings("ignore", message=f"'{module}' found in sys.modules", category=RuntimeWarning)
     try:
         runpy.run_module(module, run_name="__main__", alter_sys=True)
     except SystemExit as e:

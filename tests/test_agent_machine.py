@@ -12,7 +12,7 @@ from diskf_mesh.engine import batch as engine
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.agent_machine import ASK_S, DUPLICATE_SAY_S, AgentMachine, AgentTiming
 from diskf_mesh.mesh.protocol.estimator import AgentEstimator, lockstep, neighbours
-from diskf_mesh.mesh.protocol.events import (Ask, AskTokens, DeclareToken, DropToken, Finish, MeasurementArrived,
+from diskf_mesh.mesh.protocol.events import (at_once, Ask, AskTokens, DeclareToken, DropToken, Finish, MeasurementArrived,
                                              MessageArrived, Publish, Reply, Sample, SetTimer, StopArrived, Subscribe,
                                              TickArrived, Timer, Token, Tokens, Unreadable, WatchTokens, Woke)
 from diskf_mesh.mesh.wire.keys import Keys
@@ -37,7 +37,7 @@ def of(effects, kind):
 
 def hand(m, event, now):
     """``event`` into ``m`` as a shell hands it: a sample read first (``AgentMachine.read``)."""
-    return m.handle(m.read(event.key, event.payload) if isinstance(event, Sample) else event, now)
+    return at_once(m, m.read(event.key, event.payload) if isinstance(event, Sample) else event, now)
 
 
 class World:
@@ -147,9 +147,9 @@ def test_a_sample_is_read_at_the_edge_into_the_typed_event_the_machine_handles(r
     assert type(msg) is MessageArrived and msg.sender == j and msg.message.tick == 1 and msg.problem is None
     bad = m.read(m.keys.tick, b"\xc1")
     assert type(bad) is Unreadable and bad.kind == "tick" and m.counters.rejected == {}
-    assert m.handle(bad, 0.0) == [] and m.counters.rejected == {bad.reason: 1}
-    assert m.handle(MeasurementArrived(meas.measurement), 0.1) == []
-    pub, = of(m.handle(TickArrived(tick.tick), 0.2), Publish)
+    assert at_once(m, bad, 0.0) == [] and m.counters.rejected == {bad.reason: 1}
+    assert at_once(m, MeasurementArrived(meas.measurement), 0.1) == []
+    pub, = of(at_once(m, TickArrived(tick.tick), 0.2), Publish)
     assert pub.payload == wire.encode(RUN, me, 1, msgs[1][me])
 
 

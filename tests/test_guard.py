@@ -14,6 +14,7 @@ from diskf_mesh.data.faults import FaultConfig, FaultModel
 from diskf_mesh.mesh.protocol.guard import REASONS, Guard
 from diskf_mesh.core.messages import Message
 from diskf_mesh.mesh.protocol.receive import Receiver
+from diskf_mesh.mesh.protocol.events import at_once
 from message_factory import tick_view
 
 
@@ -345,11 +346,11 @@ class FedAgent:
         assert self.agent.k == k and not self.agent.collecting
 
     def sample(self, key: str, payload: bytes) -> None:
-        self.agent.handle(self.agent.read(key, payload), 0.0)
+        at_once(self.agent, self.agent.read(key, payload), 0.0)
 
     def token(self, key: str, up: bool = True) -> None:
         from diskf_mesh.mesh.protocol.events import Token
-        self.agent.handle(Token(key, up), 0.0)
+        at_once(self.agent, Token(key, up), 0.0)
 
     def tick(self, t: int, **change) -> bytes:
         tick = wire.Tick("fed", t, self.K, 0, "diskf", self.scn.topology, self.scn.comm_range,

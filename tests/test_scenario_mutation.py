@@ -258,12 +258,22 @@ def test_cli_on_mutated_scenarios(case, tmp_path):
 
 
 def test_a_generated_network_too_large_for_its_links_is_refused_before_the_ticks_are_known():
-    """The agent count alone bounds the generated layout's links; the ticks a
-    command runs (``--ticks``) are checked with the run, so a 6,500-agent
-    network the scenario's own 200 ticks would not fit still loads."""
-    from diskf_mesh.data.scenario import MEMORY_BOUND, load_scenario, simulation_bytes
+    """The agent count alone bounds the generated layout's links, (N, N)
+    bools; the ticks and seeds a command runs are checked with the run,
+    against the largest neighbourhood where the worst case (every agent
+    hearing every other) would not fit: 10,000 agents load and 20 ticks of
+    one seed fit, 100 seeds do not."""
+    from diskf_mesh.data.scenario import MEMORY_BOUND, load_scenario, range_links, simulation_bytes
 
-    assert simulation_bytes(6500, 200, 2, 2, 1) > MEMORY_BOUND >= simulation_bytes(6500, 1, 2, 2, 1)
-    assert load_scenario("random-geometric", agents=6500).N == 6500
-    with pytest.raises(InputError, match="10000 agents need about 4.6 GiB for their links alone"):
-        load_scenario("random-geometric", agents=10000)
+    scn = load_scenario("random-geometric", agents=10000).with_overrides(steps=20)
+    D = scn.largest_neighbourhood(20)
+    assert 500 < D < 2000
+    assert simulation_bytes(10000, 20, 2, 2, 1) > MEMORY_BOUND >= simulation_bytes(10000, 20, 2, 2, 1, degree=D)
+    scn.check_size(1)
+    with pytest.raises(InputError, match="10000 agents x 20 ticks x 100 seeds need about"):
+        scn.check_size(100)
+    with pytest.raises(InputError, match="50000 agents need about 2.3 GiB for their links alone"):
+        load_scenario("random-geometric", agents=50000)
+    small = load_scenario("random-geometric", agents=500)
+    links = range_links(small.positions(1)[0], small.comm_range)
+    assert small.largest_neighbourhood(1) == links.sum(axis=-1).max()

@@ -27,10 +27,9 @@ def errors(trace, est):
 
 def summarize(e_state, e_in, nees, mask=None) -> dict:
     """Pooled metrics; ``mask`` (same shape) restricts to some agent-ticks."""
-    if mask is None:
-        mask = np.ones(e_state.shape, dtype=bool)
-    es = e_state[mask]
-    ei = e_in[mask]
+    pick = np.ravel if mask is None else (lambda a: a[mask])  # all of them: the same order, no copy
+    es = pick(e_state)
+    ei = pick(e_in)
     ei = ei[~np.isnan(ei)]
     nan = float("nan")
     return {
@@ -39,7 +38,7 @@ def summarize(e_state, e_in, nees, mask=None) -> dict:
         "mae_input": float(ei.mean()) if ei.size else nan,
         "rmse_input": float(np.sqrt((ei ** 2).mean())) if ei.size else nan,
         "input_coverage": float(ei.size / max(es.size, 1)),
-        "nees": float(nees[mask].mean()) if es.size else nan,
+        "nees": float(pick(nees).mean()) if es.size else nan,
     }
 
 
@@ -54,6 +53,23 @@ def per_seed(trace, est) -> dict:
 
 
 def per_seed_errors(e_state, e_in, nees) -> dict:
-    """``per_seed`` from the errors (``errors``)."""
-    rows = [summarize(e_state[b], e_in[b], nees[b]) for b in range(e_state.shape[0])]
-    return {k: np.array([r[k] for r in rows]) for k in METRIC_KEYS}
+    """``per_seed`` from the errors (``errors``): each seed's ``summarize``.
+
+    The state errors and NEES of a seed are a row of (B, K N), whose mean
+    over the row adds in the same order as the mean of the seed alone (the
+    same bits, one call for all seeds); the input errors, counted only where
+    they exist, go seed by seed."""
+    B = e_state.shape[0]
+    if B == 0 or e_state[0].size == 0:
+        return {k: np.zeros(B) if k == "input_coverage" else np.full(B, np.nan) for k in METRIC_KEYS}
+    es, nees = e_state.reshape(B, -1), nees.reshape(B, -1)
+    inputs = [ei[~np.isnan(ei)] for ei in e_in.reshape(B, -1)]
+    nan = float("nan")
+    return {
+        "mae_state": es.mean(axis=1),
+        "rmse_state": np.sqrt((es ** 2).mean(axis=1)),
+        "mae_input": np.array([ei.mean() if ei.size else nan for ei in inputs]),
+        "rmse_input": np.array([np.sqrt((ei ** 2).mean()) if ei.size else nan for ei in inputs]),
+        "input_coverage": np.array([ei.size / es.shape[1] for ei in inputs]),
+        "nees": nees.mean(axis=1),
+    }

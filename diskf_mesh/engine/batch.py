@@ -35,6 +35,7 @@ from diskf_mesh import estimators
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.data.lies import Liars
+from diskf_mesh.data.scenario import TICK_BYTES_MAX, TICK_BYTES_PER_SLOT, gathers
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.estimators import Params
 
@@ -86,41 +87,77 @@ class DenseLinks:
 
 
 class GatheredLinks:
-    """Each receiver a batch of one with its D senders gathered in id order."""
+    """Each receiver a batch of one with its D senders gathered in id order.
 
-    def __init__(self, links: np.ndarray, B: int):
+    Given ``slot_bytes``, a tick's working set per (seed, receiver, sender
+    slot), receivers fuse in blocks whose working set stays under
+    ``TICK_BYTES_MAX`` (all at once otherwise): a tick of a large network
+    (10,000 agents, D about 1,000) would hold its (B, N, D, n, n)
+    temporaries at once, several GB. Every receiver is a batch of one
+    whichever block holds it, so blocks give the same numbers."""
+
+    def __init__(self, links: np.ndarray, B: int, slot_bytes: int = 0):
         N = links.shape[-1]
         D = int(links.sum(axis=-1).max())
-        idx = np.argsort(~links, axis=-1, kind="stable")[..., :D]      # (b, N, D), neighbours first, in id order
+        idx = senders_in_order(links, D)                               # (b, N, D), neighbours first, in id order
         linked = np.take_along_axis(links, idx, axis=-1)
-        self.flat = (np.arange(B)[:, None, None] * N + idx).reshape(-1)  # into (B*N) rows
-        self.shape = (B, N, D)
+        self.flat = np.arange(B)[:, None, None] * N + idx               # (B, N, D) into (B*N) rows
         self.adj = np.broadcast_to(linked[..., None, :].astype(float), (B, N, 1, D))
         is_self = linked & (idx == np.arange(N)[:, None])
         self.self_mask = np.broadcast_to(is_self[..., None, :], (B, N, 1, D))
         self.columns = idx[..., None, :]  # each slot's sender among the run's agents
-        self.nb = Neighbourhood(self.adj, self.self_mask, columns=self.columns)
+        rows = N if not slot_bytes else int(np.clip(TICK_BYTES_MAX // (B * max(D, 1) * slot_bytes), 1, N))
+        self.blocks = [slice(start, min(start + rows, N)) for start in range(0, N, rows)]
+        self.nbs = [Neighbourhood(self.adj[:, b], self.self_mask[:, b], columns=self.columns[:, b])
+                    for b in self.blocks]
 
-    def gather(self, a: np.ndarray) -> np.ndarray:
-        """(B, N, ...) per sender -> (B, N, D, ...) per receiver and slot."""
+    def gather(self, a: np.ndarray, block: slice = slice(None)) -> np.ndarray:
+        """(B, N, ...) per sender -> (B, R, D, ...) per receiver of ``block`` and slot."""
         rows = a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:])
-        return np.take(rows, self.flat, axis=0).reshape(self.shape + a.shape[2:])
+        return np.take(rows, self.flat[:, block], axis=0)
 
     def fuse(self, est, state, msg: Message, draws, sent: Message | None = None):
         """``sent``: what the agents sent, if not ``msg`` (a liar's message,
         ``data.lies``); each receiver fuses its own true message."""
-        own = Message(**{f.name: getattr(msg, f.name)[:, :, None] for f in fields(Message)})
+        parts = [self._fuse_block(est, state, msg, draws, sent, b, nb) for b, nb in zip(self.blocks, self.nbs)]
+        if len(parts) == 1:
+            return parts[0]
+        states, outs = zip(*parts)
+        joined = lambda name, items: np.concatenate([getattr(i, name) for i in items], axis=1)  # noqa: E731
+        st = replace(states[0], **{f.name: joined(f.name, states) for f in fields(states[0])
+                                   if isinstance(getattr(states[0], f.name), np.ndarray)})
+        return st, Output(*(joined(f.name, outs) for f in fields(Output)))
+
+    def _fuse_block(self, est, state, msg: Message, draws, sent: Message | None, block: slice, nb: Neighbourhood):
+        own = Message(**{f.name: getattr(msg, f.name)[:, block, None] for f in fields(Message)})
         if sent is None:
-            senders = Message(**{f.name: self.gather(getattr(msg, f.name)) for f in fields(Message)})
+            senders = Message(**{f.name: self.gather(getattr(msg, f.name), block) for f in fields(Message)})
         else:
-            mine = self.self_mask[:, :, 0]
+            mine = self.self_mask[:, block, 0]
             senders = Message(**{f.name: np.where(mine.reshape(mine.shape + (1,) * (getattr(own, f.name).ndim - 3)),
-                                                  getattr(own, f.name), self.gather(getattr(sent, f.name)))
+                                                  getattr(own, f.name), self.gather(getattr(sent, f.name), block))
                                  for f in fields(Message)})
-        nb = self.nb if draws is None else Neighbourhood(self.adj, self.self_mask, draws[:, :, None], self.columns)
-        st, out = est.screened_fuse(per_receiver(state, lambda a: a[:, :, None]), own, senders, nb)
+        if draws is not None:
+            nb = Neighbourhood(nb.adj, nb.self_mask, draws[:, block, None], nb.columns)
+        st, out = est.screened_fuse(per_receiver(state, lambda a: a[:, block, None]), own, senders, nb)
         squeeze = lambda a: a[:, :, 0]  # noqa: E731
         return per_receiver(st, squeeze), Output(squeeze(out.x), squeeze(out.P), squeeze(out.d), squeeze(out.d_valid))
+
+
+SORT_PAIRS_PER_BLOCK = 1 << 22  # receiver-sender pairs ``senders_in_order`` sorts at once
+
+
+def senders_in_order(links: np.ndarray, D: int) -> np.ndarray:
+    """(..., N, D) each receiver's senders in id order, then (padding, where
+    it has fewer than D) the first agents it does not hear, in id order: a
+    stable sort of its row of ``links`` (..., N, N), a block of receivers at a
+    time (one sort of 10,000 x 10,000 links would take 800 MB of indices)."""
+    N = links.shape[-1]
+    out = np.empty(links.shape[:-1] + (D,), dtype=np.intp)
+    rows = max(1, SORT_PAIRS_PER_BLOCK // max(N, 1))
+    for start in range(0, N, rows):
+        out[..., start:start + rows, :] = np.argsort(~links[..., start:start + rows, :], axis=-1, kind="stable")[..., :D]
+    return out
 
 
 def per_receiver(state, fn):
@@ -130,17 +167,17 @@ def per_receiver(state, fn):
                              if isinstance(v := getattr(state, f.name), np.ndarray)})
 
 
-def choose_links(links: np.ndarray, B: int, mode: str = "auto"):
+def choose_links(links: np.ndarray, B: int, mode: str = "auto", slot_bytes: int = 0):
     """The neighbour representation for one tick's links ``(1 or B, N, N)``.
 
-    ``auto`` gathers when the network is large and sparse (N >= 32 and no
-    neighbourhood holds more than half of the agents)."""
+    ``auto`` gathers when the network is large and sparse
+    (``data.scenario.gathers``). ``slot_bytes``: see ``GatheredLinks``."""
     if mode not in NEIGHBOURS:
         raise ValueError(f"neighbours: must be one of {', '.join(NEIGHBOURS)}, got {mode!r}")
     N = links.shape[-1]
     if mode == "auto":
-        mode = "gather" if N >= 32 and 2 * int(links.sum(axis=-1).max()) <= N else "dense"
-    return GatheredLinks(links, B) if mode == "gather" else DenseLinks(links, B)
+        mode = "gather" if gathers(N, int(links.sum(axis=-1).max())) else "dense"
+    return GatheredLinks(links, B, slot_bytes) if mode == "gather" else DenseLinks(links, B)
 
 
 # --------------------------------------------------------------------------
@@ -238,7 +275,7 @@ class Stepper:
             if listen is not None:
                 listen(k, msg)
             if links is not None:
-                self.view = choose_links(links, self.B, self.neighbours)
+                self.view = choose_links(links, self.B, self.neighbours, TICK_BYTES_PER_SLOT * self.est.model.n ** 2)
             draws = None if self.draws is None else self.draws[:, k - 1]
             if self.liars is None:
                 self.state, out = self.view.fuse(est, self.state, msg, draws)
@@ -259,8 +296,6 @@ class Diverged(np.linalg.LinAlgError):
         self.tick = tick
 
 
-TICK_BYTES_MAX = 1 << 28  # working set one tick of a batch may take (256 MiB)
-TICK_BYTES_PER_SLOT = 12 * 8  # ~12 live float arrays of (receiver, sender slot, n, n)
 
 
 def seeds_per_chunk(trace: Trace) -> int:

@@ -156,6 +156,7 @@ def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Pa
     seeds = list(seeds)
     liars = {lie.agent for lie in scn.lies}
     honest = [j for j, a in enumerate(scn.agents) if a.id not in liars]
+    judged = (lambda est: est) if len(honest) == scn.N else (lambda est: est.agents(honest))
     rows = {}
     for p, idx in batches(scns, seeds, params):
         traces = [simulate(scns[i], seeds) for i in idx]
@@ -165,7 +166,7 @@ def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Pa
             except np.linalg.LinAlgError:  # diverged in one of them at least: each alone, to say which
                 ests = [run_or_none(t, name, p, scn.lies) for t in traces]
             for i, trace, est in zip(idx, traces, ests):
-                rows[name, i] = dict(DIVERGED) if est is None else summarize(trace, est.agents(honest))
+                rows[name, i] = dict(DIVERGED) if est is None else summarize(trace, judged(est))
                 if progress is not None:
                     progress(1)
     return {a: {st.label: rows[a, i] for i, st in enumerate(settings)} for a in names}

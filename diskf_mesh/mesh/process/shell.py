@@ -7,7 +7,9 @@ run as a process:
     one lock      every event is handed to the machine under ``_cv`` (a
                   condition on a re-entrant lock), one at a time, with the
                   monotonic time ``now``; the effects it returns are carried
-                  out right there, in order (a put, a token, a timer)
+                  out right there, in order (a put, a token, a timer; an
+                  estimator step, ``Work``, at once: its ``Worked`` goes
+                  back to the machine with the same ``now``)
     callbacks     the transport's threads (zenoh's network thread) call in
                   with samples (each read by the machine into its event,
                   ``machine.read``), token changes, queries and replies: the
@@ -40,7 +42,7 @@ import time
 
 from diskf_mesh.mesh.protocol.events import (FREEZE_S, Answer, Ask, AskTokens, CancelTimer, DeclareQueryable, DeclareToken,
                                     DropToken, Finish, Interrupt, Publish, Query, Reply, SetTimer, Subscribe,
-                                    Timer, Token, Tokens, WatchTokens, Woke)
+                                    Timer, Token, Tokens, WatchTokens, Woke, Work, Worked)
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.process.transport import Transport
 
@@ -72,7 +74,8 @@ class Shell:
     # -- events into the machine (lock held) -----------------------------------
     def _handle(self, event, now: float | None = None) -> None:
         if self._finish is None:
-            self._do(self.machine.handle(event, self.clock() if now is None else now))
+            now = self.clock() if now is None else now
+            self._do(self.machine.handle(event, now), now)
 
     def _feed(self, event) -> None:
         """A transport callback's event: first ``Woke`` if the main thread
@@ -114,9 +117,11 @@ class Shell:
         self._feed(Query(qid, key, payload))
 
     # -- effects out of the machine (lock held) ----------------------------------
-    def _do(self, effects) -> None:
+    def _do(self, effects, now: float) -> None:
         for e in effects:
-            if isinstance(e, Publish):
+            if isinstance(e, Work):
+                self._handle(Worked(e, e.alone()), now)
+            elif isinstance(e, Publish):
                 self.prof.begin()
                 self.transport.put(e.key, e.payload, express=e.express)
                 self.prof.end("publish")
@@ -155,7 +160,8 @@ class Shell:
     def start(self) -> None:
         """Start the machine: carry out its first effects (what it listens to)."""
         with self._cv:
-            self._do(self.machine.start(self.clock()))
+            now = self.clock()
+            self._do(self.machine.start(now), now)
 
     def run(self) -> Finish:
         """Start the machine and run it until its ``Finish``; a callback's

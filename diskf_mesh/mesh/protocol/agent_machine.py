@@ -26,22 +26,28 @@ differs only in when a tick is closed, ``mesh.protocol.clock``):
     and lets the neighbours' messages of k that came before it onto their
     links (``Receiver.release``).
  2. ``_open(k)``  once both are in: the local step
-    (``AgentEstimator.local``), ONE message (``wire.encode``), published on
-    a key addressed to the linked agents; the collection of tick k starts
-    (``SetTimer("collect")`` at its deadline).
+    (``AgentEstimator.local``, handed to the shell as ``Work``: its result
+    comes back as ``Worked`` to ``_opened``), ONE message (``wire.encode``),
+    published on a key addressed to the linked agents; the collection of
+    tick k starts (``SetTimer("collect")`` at its deadline).
  3. ``_on_msg``  each neighbour's message (decoded and its values checked
     at the edge: ``Guard.read``) goes through the receive path
     (``mesh.protocol.receive``: the guard's window, range gate, the link's faults, inbox); a copy
     the fault layer delays comes back at ``Timer("delay")``.
  4. ``_close(k)``  once every linked sender is accounted for (arrived,
     lost, refused), at the collect timer, when a later tick is already in,
-    or at the stop: fuse what came (``AgentEstimator.fuse``), report to the
+    or at the stop: fuse what came (``AgentEstimator.fuse``, as ``Work``;
+    ``_closed`` takes its result), report to the
     world (``wire.encode_report``: the fused estimate, the counters, who was
     fused and why the others were not, the digests of the messages fused and
     of its own as published; never a message itself).
 
 ``_step`` takes every step the state allows after every event, so a
 sample that completes a tick closes it (and may open the next) at once.
+A step handed out as ``Work`` is the last effect of its list: the machine
+takes no step until its ``Worked`` comes back, which a shell hands it
+before any other event (a process's shell at once, the simulated network
+once the steps of that instant have run together).
 
 Before its first tick (``_start_up``): wait for the world's token; claim the
 agent id (a liveliness query, ``AskTokens``: another process holding it
@@ -94,7 +100,7 @@ from diskf_mesh.mesh.protocol.estimator import AgentEstimator, neighbours
 from diskf_mesh.mesh.protocol.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt,
                                              MeasurementArrived, MessageArrived, Publish, Reply, Sample, SetTimer,
                                              StopArrived, Subscribe, TickArrived, Timer, Token, TokenBatch, Tokens,
-                                             Unreadable, WatchTokens, Woke)
+                                             Unreadable, WatchTokens, Woke, Work, Worked)
 from diskf_mesh.mesh.protocol.guard import Guard, GuardConfig
 from diskf_mesh.mesh.protocol.intake import Intake
 from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
@@ -214,6 +220,8 @@ class AgentMachine:
         self.k = 1                # the tick being worked on
         self.collecting = False   # tick k is open: own message out, neighbours' being collected
         self.own = None           # this agent's message of tick k while collecting
+        self._work = None         # the Work handed out, until its Worked comes back
+        self._closing = None      # (heard, rejected, fused, failed) of the tick being fused
         self.own_digest = b""     # ... the digest of its payload as published (in the report)
         self.deadline = math.inf  # end of the collection of tick k
         self.last_report = None   # (k, payload) of the last report sent
@@ -267,6 +275,14 @@ class AgentMachine:
                 self._on_confirm(event.keys, now)
             else:
                 self._on_claim(event.qid, event.keys, now)
+        elif kind is Worked:
+            if event.work is not self._work:
+                return out
+            self._work = None
+            if event.work.step == "local":
+                self._opened(self.k, event.result, now)
+            else:
+                self._closed(self.k, event.result, now)
         elif kind is Woke:
             if event.late > FREEZE_S:
                 self._woke_at = now
@@ -285,11 +301,11 @@ class AgentMachine:
         tick k once the world's tick and this agent's measurement are in,
         close it once the neighbours' messages are (or the collection ends
         otherwise); the end once the world said stop."""
-        if self.finish is not None or self.phase == "leaving":
+        if self.finish is not None or self.phase == "leaving" or self._work is not None:
             return
         if self.est is None:
             self._start_up(now)
-        while self.finish is None and self.est is not None:
+        while self.finish is None and self.est is not None and self._work is None:
             k = self.k
             if not self.collecting:
                 if self.stopped is not None:
@@ -301,9 +317,8 @@ class AgentMachine:
                     break
                 if k not in self.ticks or k not in self.meas:
                     break
-                self._open(k, now)
-                if self.finish is not None:  # its estimator diverged
-                    break
+                self._open(k)
+                break  # ``_opened`` steps on
             if not (self.receiver.all_accounted(k, self.linked[k]) or self.stopped is not None
                     or now >= self.deadline or any(j > k for j in self.ticks)):
                 break
@@ -445,18 +460,24 @@ class AgentMachine:
         self.log.once((kind, reason), f"rejected a {kind} message: {reason}" + (f" ({detail[:200]})" if detail else ""))
         return False
 
+    def _hand(self, step: str, *args) -> None:
+        """A step of the estimator for the shell to carry out (``Work``)."""
+        self._work = Work(self.est, step, args)
+        self._out.append(self._work)
+
     # -- 2. open: the local step, ONE message out ------------------------------
-    def _open(self, k: int, now: float) -> None:
-        prof = self.prof
+    def _open(self, k: int) -> None:
         mm = self.meas.pop(k)
         self.receiver.advance(k)
-        prof.begin()
-        try:
-            self.own = self.est.local(k, mm.has, mm.y)
-        except np.linalg.LinAlgError as e:
-            return self._diverged(k, f"its local step failed ({e})")
-        finally:
-            prof.end("local")
+        self.prof.begin()
+        self._hand("local", k, mm.has, mm.y)
+
+    def _opened(self, k: int, own, now: float) -> None:
+        prof = self.prof
+        prof.end("local")
+        if isinstance(own, np.linalg.LinAlgError):
+            return self._diverged(k, f"its local step failed ({own})")
+        self.own = own
         prof.begin()
         payload = wire.encode(self.keys.run_id, self.id, k, self.liars.message(k, self.own), self.exchanged)
         self.own_digest = wire.digest(payload)  # the report says what was sent, not the message itself
@@ -500,23 +521,26 @@ class AgentMachine:
 
     # -- 4. close: fuse, report ------------------------------------------------
     def _close(self, k: int) -> None:
-        prof = self.prof
         heard, rejected = self.receiver.accounted(k), self.receiver.refusals(k)
         fused = dict(self.receiver.take(k, self.linked[k]))
-        failed = False
-        prof.begin()
-        try:
-            out = self.est.fuse(k, self.own, fused)
-        except np.linalg.LinAlgError:  # well-formed messages that still break fusion: keep our own estimate
+        self._closing = (heard, rejected, fused, False)
+        self.prof.begin()
+        self._hand("fuse", k, self.own, fused)
+
+    def _closed(self, k: int, out, now: float) -> None:
+        prof = self.prof
+        prof.end("fuse")
+        heard, rejected, fused, failed = self._closing
+        if isinstance(out, np.linalg.LinAlgError):
+            if failed:
+                return self._diverged(k, f"its fusion failed even alone ({out})")
+            # well-formed messages that still break fusion: keep our own estimate
             self.counters.reject("fusion", len(fused))
             self.log.once("fusion", f"tick {k}: fusion failed; fused this agent's own message alone")
-            try:
-                out = self.est.fuse(k, self.own, {})
-            except np.linalg.LinAlgError as e:
-                return self._diverged(k, f"its fusion failed even alone ({e})")
-            failed = True
-        finally:
-            prof.end("fuse")
+            self._closing = (heard, rejected, fused, True)
+            prof.begin()
+            return self._hand("fuse", k, self.own, {})
+        self._closing = None
         problem = wire.report_problem(out.x[0, 0], out.P[0, 0], out.d[0, 0])
         if problem is not None:
             return self._diverged(k, f"its fused estimate would be refused ({problem[0]}: {problem[1]})")
@@ -870,6 +894,7 @@ class AgentMachine:
             return
         self.log.info(f"tick {self.k}: out of the run ({why}): rejoining")
         self.est, self.rejoining, self.join_after = None, True, None
+        self._work = self._closing = None
         self.phase, self._asked, self._start = "gather", None, None
         self.collecting, self.own, self.deadline = False, None, math.inf
         self.k = max(self.k, self.newest + 1)

@@ -1,5 +1,5 @@
 """One agent's share of ``engine.run``: the same estimator functions on a
-batch of one.
+batch of one, or on the agents of one tick together (``Steps``).
 
 The engine calls ``local`` and ``fuse`` on every agent at once with the full
 (N x N) link matrix; an agent process calls them on itself alone, shape
@@ -7,10 +7,18 @@ The engine calls ``local`` and ``fuse`` on every agent at once with the full
 included) in scenario order, and an all-ones adjacency over them. Neighbours
 that are not linked contribute exact zeros in the engine, so both compute the
 same numbers. No transport or timing here.
+
+An agent machine hands its steps to its shell (``Work``, its result back as
+``Worked``: ``mesh.protocol.events``). A process's shell carries out its one
+agent's at once (``Work.alone``); the simulated network's collects those due
+at one virtual instant and ``Steps.carry_out`` runs each step of one tick as
+one call over the agents, laid out as the engine lays out its agents (each
+receiver's senders in scenario order, zero weights elsewhere): the same
+bits as one by one (``tests/test_simnet_steps.py``).
 """
 from __future__ import annotations
 
-from dataclasses import fields, replace
+from dataclasses import dataclass, fields, replace
 from operator import attrgetter
 
 import numpy as np
@@ -34,7 +42,7 @@ class AgentEstimator:
             raise ValueError(f"agent {agent_id} is not in scenario {scn.name!r} (ids {', '.join(map(str, self.ids))})")
         self.agent_id = agent_id
         self.index = self.ids.index(agent_id)
-        self.scenario = scn
+        self.scenario, self.ticks = scn, ticks
         self.sensors = scn.sensors().select([self.index])   # this agent's H, R only
         self.alg = estimator(scn.model(ticks), self.sensors, params or scn.params)
         st = self.state = self.alg.init((1, 1))
@@ -124,3 +132,160 @@ def lockstep(scn: Scenario, algorithm: str, trace, seed: int = 0):
             heard = {o: msgs[o].take((0, 0)) for jj, o in enumerate(ids) if trace.links[0, k - 1, j, jj] and o != i}
             outputs[i] = agents[i].fuse(k, msgs[i], heard)
         yield k, msgs, outputs
+
+
+CELLS = 1 << 22  # receivers x senders of one batched fusion at most (its adjacency, 32 MB); more: in parts
+
+
+class Steps:
+    """Carries out the steps (``Work``) of many agents together: those of
+    one step, tick, estimator and run whose states have one layout run as
+    one call of the estimator's ``local`` or ``screened_fuse`` over them
+    (their sensors selected together, as the engine's), the others one by
+    one. A batch whose call raises, or whose messages are not all finite
+    (a zero weight times an infinity is not zero), runs one by one: each
+    agent's step then raises or not as alone. Keeps one estimator object
+    per set of agents stepped together."""
+
+    def __init__(self):
+        self._algs = {}  # (class, scenario, ticks, params, agent places) -> estimator over those agents
+
+    def carry_out(self, works: list) -> list:
+        """Each ``Work``'s result, in order (``Work.alone``'s)."""
+        results = [None] * len(works)
+        groups = {}
+        for i, w in enumerate(works):
+            groups.setdefault(_group(w), []).append(i)
+        for key, idx in groups.items():
+            if key is None or len(idx) == 1:
+                for i in idx:
+                    results[i] = works[i].alone()
+                continue
+            batch = [works[i] for i in idx]
+            try:
+                out = self._local(batch) if key[0] == "local" else self._fuse(batch)
+            except (np.linalg.LinAlgError, _NotFinite):
+                out = [w.alone() for w in batch]
+            for i, r in zip(idx, out):
+                results[i] = r
+        return results
+
+    def _alg(self, ests: list) -> Estimator:
+        e = ests[0]
+        places = tuple(x.index for x in ests)
+        key = (type(e.alg), id(e.scenario), e.ticks, id(e.alg.params), places)
+        alg = self._algs.get(key)
+        if alg is None:
+            if len(self._algs) > 64:
+                self._algs.clear()
+            alg = self._algs[key] = type(e.alg)(e.alg.model, e.scenario.sensors().select(list(places)), e.alg.params)
+        return alg
+
+    def _local(self, batch: list) -> list:
+        ests = [w.est for w in batch]
+        k = batch[0].args[0]
+        y = np.array([[e.sensors.pad(w.args[2], 0) if w.args[1] else np.zeros(e.sensors.H.shape[1])
+                       for e, w in zip(ests, batch)]])
+        has = np.array([[bool(w.args[1]) for w in batch]])
+        state, msg = self._alg(ests).local(_stack_states([e.state for e in ests]), k, y, has)
+        out = []
+        for b, e in enumerate(ests):
+            e.state = _state_of(state, b)
+            out.append(Message(*(a[:, b:b + 1] for a in _row(msg))))
+        return out
+
+    def _fuse(self, batch: list) -> list:
+        """``AgentEstimator.fuse`` of each, in parts of at most ``CELLS``
+        receiver-sender pairs."""
+        out, part, cells = [], [], 0
+        for w in batch:
+            cols = len(w.args[2]) + 1
+            if part and (len(part) + 1) * (cells + cols) > CELLS:
+                out += self._fuse_part(part)
+                part, cells = [], 0
+            part.append(w)
+            cells += cols
+        return out + self._fuse_part(part)
+
+    def _fuse_part(self, batch: list) -> list:
+        ests = [w.est for w in batch]
+        B, k = len(batch), batch[0].args[0]
+        scn = ests[0].scenario
+        column = {}   # id of a received message -> its column
+        rows, places, cells = [], [], []  # each column's fields and sender's place; (receiver, column) fused
+        owns = []
+        for b, w in enumerate(batch):
+            e, own, received = w.est, w.args[1], w.args[2]
+            owns.append(own)
+            for j, msg in received.items():
+                if j == e.agent_id:
+                    continue
+                c = column.get(id(msg))
+                if c is None:
+                    c = column[id(msg)] = len(rows)
+                    rows.append(_row(msg))
+                    places.append(scn.index(j))
+                cells.append((b, c))
+        own_cols = []
+        for b, e in enumerate(ests):  # each receiver's own message, as it fuses it (not as sent)
+            own_cols.append(len(rows))
+            rows.append(tuple(a[0, 0] for a in _row(owns[b])))
+            places.append(e.index)
+        order = np.argsort(np.array(places), kind="stable")  # scenario order, as each agent alone
+        where = np.empty(len(order), dtype=np.intp)
+        where[order] = np.arange(len(order))
+        columns = list(zip(*(rows[c] for c in order.tolist())))
+        senders = Message(*(np.array([c]) for c in columns))
+        if not all(np.isfinite(a).all() for a in columns):
+            raise _NotFinite
+        S = len(order)
+        adj, self_mask = np.zeros((1, B, S)), np.zeros((1, B, S), dtype=bool)
+        if cells:
+            r, c = np.array(cells).T
+            adj[0, r, where[c]] = 1.0
+        mine = where[np.array(own_cols)]
+        adj[0, np.arange(B), mine] = 1.0
+        self_mask[0, np.arange(B), mine] = True
+        alg = self._alg(ests)
+        draws = None if ests[0].draws is None else np.array([[e.draws[k - 1] for e in ests]])
+        place_of = np.broadcast_to(np.array(places)[order], (1, B, S)) if alg.defends else None
+        nb = Neighbourhood(adj, self_mask, draws, place_of)
+        own = Message(*(np.concatenate(f, axis=1) for f in zip(*(_row(o) for o in owns))))
+        state, out = alg.screened_fuse(_stack_states([e.state for e in ests]), own, senders, nb)
+        result = []
+        for b, e in enumerate(ests):
+            e.state = _state_of(state, b)
+            result.append(Output(*(a[:, b:b + 1] for a in (out.x, out.P, out.d, out.d_valid))))
+        return result
+
+
+class _NotFinite(Exception):
+    """A batch's message holds an infinity or a NaN: its steps run one by one."""
+
+
+def _group(w) -> tuple | None:
+    """What the works stepped together share: the step, the tick, the
+    estimator and its run, the layout of the state (None: alone)."""
+    e = w.est
+    if w.step not in ("local", "fuse") or not isinstance(e, AgentEstimator):
+        return None
+    layout = tuple((f.name, None if v is None else (v.shape, v.dtype.str) if isinstance(v, np.ndarray) else v)
+                   for f in fields(e.state) for v in (getattr(e.state, f.name),))
+    if any(isinstance(v, tuple) and v[0][:2] != (1, 1) for _, v in layout):
+        return None
+    return (w.step, w.args[0], type(e.alg), id(e.scenario), e.ticks, id(e.alg.params), e.draws is None,
+            type(e.state), layout)
+
+
+def _stack_states(states: list):
+    """States of single agents (1, 1, ...) as one (1, B, ...); every other
+    field (a tick) is the same in all (``_group``)."""
+    s0 = states[0]
+    return replace(s0, **{f.name: np.concatenate([getattr(s, f.name) for s in states], axis=1)
+                          for f in fields(s0) if isinstance(getattr(s0, f.name), np.ndarray)})
+
+
+def _state_of(state, b: int):
+    """Agent ``b``'s (1, 1, ...) share of a stacked state."""
+    return replace(state, **{f.name: getattr(state, f.name)[:, b:b + 1]
+                             for f in fields(state) if isinstance(getattr(state, f.name), np.ndarray)})

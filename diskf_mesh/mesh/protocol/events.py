@@ -29,6 +29,9 @@ Events (what happened to the process):
     Tokens(qid, keys)         the answer to ``AskTokens``: the keys of the
                               tokens the network holds now
     Interrupt(why)            the process was told to stop (a signal's name)
+    Worked(work, result)      the result of a ``Work`` (its step's value, or
+                              the ``numpy.linalg.LinAlgError`` it raised),
+                              before any other event
 
 A shell reads every ``Sample`` through its machine first,
 ``machine.read(key, payload)``: the world handles the sample as it is; an
@@ -64,6 +67,13 @@ Effects (what the process does):
     Answer(qid, payload)                     the reply to a Query event
     Finish(status, code, reason)             the process is done: its exit
                                              status and one line
+    Work(est, step, args)                    an estimator step, est.<step>(*args)
+                                             (``mesh.protocol.estimator``); the
+                                             last effect of its list: the machine
+                                             waits for its ``Worked``. A shell of
+                                             one process carries it out at once
+                                             (``Work.alone``); the simulated network
+                                             those of one instant together
 
 A machine reads nothing that differs between two runs of one seed: its
 token nonce and any randomness come in through its constructor, so the
@@ -74,6 +84,8 @@ May import: core, estimators, data, engine (the mesh layer).
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import numpy as np
 
 FREEZE_S = 2.0  # a process that runs again this late was not running (SIGSTOP, or starved): ``Woke``
 
@@ -131,6 +143,12 @@ class Interrupt:
     why: str
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class Worked:
+    work: "Work"
+    result: object            # the step's value, or the numpy.linalg.LinAlgError it raised
+
+
 # -- an agent's samples, decoded at its edge (``mesh.protocol.intake``) ----------
 @dataclass(frozen=True, slots=True)
 class TickArrived:
@@ -162,7 +180,7 @@ class Unreadable:
 
 
 Arrival = TickArrived | MeasurementArrived | StopArrived | MessageArrived | Unreadable
-Event = Sample | Token | TokenBatch | Timer | Query | Reply | Woke | Tokens | Interrupt | Arrival
+Event = Sample | Token | TokenBatch | Timer | Query | Reply | Woke | Tokens | Interrupt | Worked | Arrival
 
 
 # -- effects ------------------------------------------------------------------
@@ -237,5 +255,31 @@ class Finish:
     reason: str = ""
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class Work:
+    est: object               # an ``AgentEstimator``
+    step: str                 # "local" or "fuse"
+    args: tuple
+
+    def alone(self):
+        """The step's value, or the ``numpy.linalg.LinAlgError`` it raised."""
+        try:
+            return getattr(self.est, self.step)(*self.args)
+        except np.linalg.LinAlgError as e:
+            return e
+
+
 Effect = (Subscribe | WatchTokens | DeclareQueryable | Publish | DeclareToken | DropToken | SetTimer | CancelTimer
-          | Ask | AskTokens | Answer | Finish)
+          | Ask | AskTokens | Answer | Finish | Work)
+
+
+def at_once(machine, event, now: float) -> list:
+    """``machine.handle(event, now)`` with every ``Work`` carried out at
+    once, as a process's shell does: the other effects, in order."""
+    out = []
+    for e in machine.handle(event, now):
+        if isinstance(e, Work):
+            out += at_once(machine, Worked(e, e.alone()), now)
+        else:
+            out.append(e)
+    return out

@@ -41,6 +41,10 @@ class Schedule:
         self.now = t
         return t, item
 
+    def peek(self):
+        """The next (time, item) without taking it; None when nothing is left."""
+        return self._heap[0][::2] if self._heap else None
+
     def next_time(self) -> float:
         return self._heap[0][0] if self._heap else math.inf
 

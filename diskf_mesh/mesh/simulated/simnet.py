@@ -33,6 +33,14 @@ the n-th event of the run:
 
 A process that joins late is ``add``-ed with a later start time.
 
+An estimator step a machine hands out (``Work``) takes no virtual time. The
+network holds it and hands back its ``Worked`` before that machine's next
+event, before anything else that is not a delivery or a timer (a fault, a
+boot, a token's cast) and before the clock moves on; the steps held by then
+run together (``protocol.estimator.Steps``: one call per step and tick over
+the agents), or each alone with ``SimNet(batch_steps=False)``: one run,
+event for event, either way.
+
 Links are first in, first out between two processes (zenoh's reliable
 sessions); a reordered copy is held back ``Link.hold`` longer and may be
 overtaken. Loss, duplication and reordering act only on the samples whose
@@ -54,6 +62,7 @@ from typing import Any, Callable
 import numpy as np
 
 from diskf_mesh.mesh.protocol import events as ev
+from diskf_mesh.mesh.protocol.estimator import Steps
 from diskf_mesh.mesh.security.access import Access
 from diskf_mesh.mesh.wire.keys import matcher
 from diskf_mesh.mesh.simulated.schedule import Schedule, Trace
@@ -313,13 +322,16 @@ class SimNet:
 
     def __init__(self, seed: int, link: Link = Link(), links: Callable[[str, str], Link | None] | None = None,
                  policy: dict | None = None, lease: Lease = Lease(), keep_lines: bool = False,
-                 max_time: float = 3600.0, max_events: int = 50_000_000, views: bool = True):
+                 max_time: float = 3600.0, max_events: int = 50_000_000, views: bool = True,
+                 batch_steps: bool = True):
         """``links(sender pid, receiver pid)``: a link other than ``link``
         (None: ``link``); ``policy``: the run's ``access_control``
         (``credentials.access_control``; None: no access control).
         ``views``: the machines that take ``TokenBatch`` (``batches_tokens``)
         and watch the same tokens share one view of them (``_View``) where
-        every link has one constant delay; False: every process its own."""
+        every link has one constant delay; False: every process its own.
+        ``batch_steps``: the estimator steps held at one instant run
+        together (``Steps``); False: each alone."""
         self.seed = int(seed)
         ss = np.random.SeedSequence(self.seed)
         net, boots = ss.spawn(2)
@@ -353,6 +365,9 @@ class SimNet:
         self._open = None         # the _Cast that may still take tokens
         self._holders = {}        # processes holding tokens (their order -> proc)
         self._labels = {}         # id(TokenBatch) -> (it, the digest of its keys for the trace)
+        self._steps = Steps() if batch_steps else None
+        self._work = []           # (proc, Work) held at this instant, in the order they were handed out
+        self._working = set()     # the processes waiting for their Worked
 
     # -- the run's processes and fault plan ---------------------------------
     def add(self, pid: str, factory: Factory, identity: str | None = None, at: float = 0.0) -> None:
@@ -384,6 +399,8 @@ class SimNet:
     def run(self) -> Outcome:
         sched = self.sched
         while True:
+            if self._work and self._due():
+                self._carry_out()
             nxt = sched.pop()
             if nxt is None:
                 break
@@ -392,7 +409,10 @@ class SimNet:
                 break
             self._events += 1
             self._do(item)
-            for f in self._by_event.pop(self._events, ()):
+            faults = self._by_event.pop(self._events, ())
+            if faults and self._work:
+                self._carry_out()
+            for f in faults:
                 self._fault(f)
             if self._all_over():
                 break
@@ -400,6 +420,28 @@ class SimNet:
         return Outcome(self.seed, dict(self._finishes), {pid: p.machine for pid, p in self._procs.items()},
                        self.trace.last, self.trace.events, self.trace.digest, bounded, self.trace.lines,
                        dict(self.refused), self.lost, self.lost_samples)
+
+    def _due(self) -> bool:
+        """The held steps must run before the next item: it is later, it is
+        not a delivery or a timer, or it is for a process waiting for one."""
+        head = self.sched.peek()
+        if head is None or head[0] > self.sched.now:
+            return True
+        item = head[1]
+        return item[0] not in ("deliver", "timer") or item[1] in self._working
+
+    def _carry_out(self) -> None:
+        """Run the held steps (together, or each alone) and hand each machine
+        its ``Worked``, in the order they were handed out; the steps these
+        hand out in turn run next, at the same instant."""
+        while self._work:
+            work, self._work = self._work, []
+            works = [w for _, w in work]
+            results = self._steps.carry_out(works) if self._steps is not None else [w.alone() for w in works]
+            for (proc, w), result in zip(work, results):
+                self._working.discard(proc)
+                if proc.state == "up":
+                    self._handle(proc, ev.Worked(w, result))
 
     def _all_over(self) -> bool:
         return bool(self._procs) and not self._running and not self._coming
@@ -448,6 +490,8 @@ class SimNet:
         self._handle(proc, event)
 
     def _handle(self, proc: _Proc, event) -> None:
+        if proc in self._working:  # its step first (a backlog after a pause, a cast)
+            self._carry_out()
         now = self.sched.now
         self._log(proc, event)
         try:
@@ -645,6 +689,9 @@ class SimNet:
                 self._ask(proc, e)
             elif isinstance(e, ev.Answer):
                 self._answer(proc, e)
+            elif isinstance(e, ev.Work):
+                self._work.append((proc, e))
+                self._working.add(proc)
             elif isinstance(e, ev.Finish):
                 self._finishes[proc.pid] = e
                 self.trace.add(now, repr(proc), f"finish {e.status} {e.code}", e.reason)

@@ -143,14 +143,16 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     ``SimRun.log`` instead of stderr; ``progress(k)``, ``recorder``: the
     world's observers (``WorldMachine``). ``batch``: what the machines
     compute from one payload is computed once for all of them
-    (``mesh.protocol.shared``); False: each machine alone, as in a process
-    mesh (the same run, bit for bit)."""
+    (``mesh.protocol.shared``), and the agents' estimator steps of one
+    instant run as one call (``SimNet(batch_steps=)``); False: each machine
+    alone, as in a process mesh (the same run, event for event, bit for bit)."""
     keys = Keys(run_id)
     ids = tuple(a.id for a in scn.agents)
     stream = io.StringIO() if quiet else None
     policy = credentials.access_control(run_id, ids, observer=False, router=plan.router) if plan.secure else None
     net = SimNet(seed if net_seed is None else net_seed, link=plan.link, links=plan.links, policy=policy,
-                 lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time, views=plan.views)
+                 lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time, views=plan.views,
+                 batch_steps=batch)
     losses = NetworkLosses(net, ids)
 
     deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
