@@ -72,8 +72,8 @@ def test_learning_the_noise_is_what_wins(label, most):
     (case,) = [c for c in heldout.cases() if c.label == label]
     scn, tr = case.simulate(range(4), 200)
     seen = observed(tr)
-    stated = replace(scn.params, auto=replace(scn.params.auto, noise=False))
-    on = heldout.case_row(tr, "diskf-auto", scn.params, seen)  # the default: the noise learned
-    off = heldout.case_row(tr, "diskf-auto", stated, seen)
+    learning = replace(scn.params, auto=replace(scn.params.auto, noise=True))
+    on = heldout.case_row(tr, "diskf-auto", learning, seen)
+    off = heldout.case_row(tr, "diskf-auto", scn.params, seen)  # the default: the noise as stated
     assert on["mae_state"] < most * off["mae_state"]
     assert on["nees"] < 0.7 * off["nees"]

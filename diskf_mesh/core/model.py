@@ -187,7 +187,9 @@ class AutoOptions:
                input model expected about once in 1,000 ticks)
     noise:     each agent learns the scale of its own measurement noise,
                above or below the stated R (``core.noise``), and weighs its
-               measurement by it
+               measurement by it (off by default: it reads the part of a
+               fast input the bank does not predict as noise, and its NEES
+               falls under the band there, docs/estimators.md)
     """
 
     none: bool = True
@@ -195,7 +197,7 @@ class AutoOptions:
     zero_mean: bool = True
     oscillating: bool = True
     switch: float = 0.001
-    noise: bool = True
+    noise: bool = False
 
     def __post_init__(self):
         if not (self.none or self.walk or self.zero_mean or self.oscillating):

@@ -19,7 +19,7 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    (x^, P^, x~, P~, the combined fused input d, S) and the agent's model
    probabilities w (one float per model of ``input_models.BANK``, 0 for a
    model not in the bank). No H, R or y; one message per tick. Before
-   the update (``[estimator.auto] noise``, on by default) the agent learns
+   the update (``[estimator.auto] noise``, off by default) the agent learns
    how much noisier, or calmer, its own sensor is than stated
    (``core.noise``: a scale r of its R, one step of a stochastic
    approximation of the median of its normalised innovation per measured
