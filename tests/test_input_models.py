@@ -202,12 +202,43 @@ def test_companion_and_pair_predict_hand_worked():
     np.testing.assert_allclose(S1[:1, :1], S2)
 
 
-def test_replace_part_hand_worked():
-    """The second component's marginal replaced by (1, 1) in N(0, [[2, 1], [1, 2]]):
-    K = 1/2, the first becomes 0.5 with variance 2 - 0.5 + 0.25, covariance 0.5."""
-    z, Z = im.replace_part(np.zeros(2), np.array([[2.0, 1.0], [1.0, 2.0]]), [1], np.array([1.0]), np.array([[1.0]]))
-    np.testing.assert_allclose(z, [0.5, 1.0])
-    np.testing.assert_allclose(Z, [[1.75, 0.5], [0.5, 1.0]])
+def test_replace_input_hand_worked():
+    """d_{k-1}'s marginal replaced by (1, 1) in the joint (v, d_{k-1}, d_{k-2}) ~
+    N(0, [[2, 1, 0], [1, 2, 0], [0, 0, 1]]): K = (1/2, 0), v becomes 0.5 with
+    variance 2 - 0.5 + 0.25 and covariance 0.5 with d_{k-1}; d_{k-2} is untouched."""
+    v, Pv, e, S, B = im.replace_input(np.zeros(1), np.array([[2.0]]), np.zeros(2), np.array([[2.0, 0.0], [0.0, 1.0]]),
+                                      np.array([[1.0, 0.0]]), np.array([1.0]), np.array([[1.0]]))
+    np.testing.assert_allclose(v, [0.5])
+    np.testing.assert_allclose(Pv, [[1.75]])
+    np.testing.assert_allclose(e, [1.0, 0.0])
+    np.testing.assert_allclose(S, [[1.0, 0.0], [0.0, 1.0]])
+    np.testing.assert_allclose(B, [[0.5, 0.0]])
+
+
+def test_replace_input_is_the_conditional_kept():
+    """Against the joint formula on a random (v, d_{k-1}, d_{k-2}) with n = 2,
+    m = 2: the new marginal of d_{k-1}, and p(v, d_{k-2} | d_{k-1}) unchanged."""
+    rng = np.random.default_rng(3)
+    n, m = 2, 2
+    L = rng.normal(size=(n + 2 * m, n + 2 * m))
+    Z = L @ L.T + np.eye(n + 2 * m)
+    z = rng.normal(size=n + 2 * m)
+    Ls = rng.normal(size=(m, m))
+    d_new, S_new = rng.normal(size=m), Ls @ Ls.T + np.eye(m)
+    x, P, e, S, C = im.split(z, Z, n)
+    v2, Pv2, e2, S2, B2 = im.replace_input(x, P, e, S, C, d_new, S_new)
+    a, rest = np.arange(n, n + m), np.r_[np.arange(n), np.arange(n + m, n + 2 * m)]
+    K = Z[np.ix_(rest, a)] @ np.linalg.inv(Z[np.ix_(a, a)])
+    want = np.empty(n + 2 * m)
+    want[a], want[rest] = d_new, z[rest] + K @ (d_new - z[a])
+    W = np.empty_like(Z)
+    W[np.ix_(a, a)] = S_new
+    W[np.ix_(rest, a)] = K @ S_new
+    W[np.ix_(a, rest)] = (K @ S_new).T
+    W[np.ix_(rest, rest)] = Z[np.ix_(rest, rest)] - K @ Z[np.ix_(a, rest)] + K @ S_new @ K.T
+    got_z, got_Z = im.joint(v2, Pv2, e2, S2, B2)
+    np.testing.assert_allclose(got_z, want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(got_Z, W, rtol=1e-12, atol=1e-12)
 
 
 def test_initial_probabilities_and_chain_by_shares():
@@ -256,6 +287,34 @@ def test_mix_gives_the_same_bits_for_any_batch_shape(bounded, monkeypatch):
     monkeypatch.setattr(im, "ALL_TERMS_AT_ONCE", 0)                              # every batch one model at a time
     for got, want in zip(im.mix(w[:1], z[:1], Z[:1], bounded=bounded), agents[0]):
         assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("bounded", [False, True])
+def test_mix_gives_the_same_bytes_on_every_path(bounded, monkeypatch):
+    """A few columns (an agent's: as many terms each, a pruned weight's terms
+    -0.0) and many (the engine's: slot after slot) give the same bytes,
+    signs of zero included (a model with no input holds exact zeros, of
+    either sign)."""
+    rng = np.random.default_rng(17)
+    B, M, k = 3, 21, 4
+    w = rng.dirichlet(np.ones(M), size=(B, M)).transpose(0, 2, 1)
+    keep = rng.random((B, M, M)) < rng.choice([0.1, 0.3, 1.0], size=(B, 1, M))
+    keep[:, 0, :] |= ~keep.any(axis=1)
+    w = np.where(keep, w, 0.0)
+    w = w / w.sum(axis=1, keepdims=True)
+    z = rng.normal(size=(B, M, k))
+    z[:, :, 2:] = rng.choice([0.0, -0.0], size=(B, M, 2))                     # exact zeros, both signs
+    L = rng.normal(size=(B, M, k, k))
+    Z = L @ np.swapaxes(L, -1, -2) + 1e-3 * np.eye(k)
+    Z[:, :, 3, :] = Z[:, :, :, 3] = -0.0
+    assert im._padded(w[:1], im.PADDED_TERMS) is not None                       # an agent's columns: padded
+    agents = [im.mix(w[b:b + 1], z[b:b + 1], Z[b:b + 1], bounded=bounded) for b in range(B)]
+    engine = im.mix(w, z, Z, bounded=bounded)
+    monkeypatch.setattr(im, "PADDED_TERMS", 0)                                   # slot after slot
+    for b in range(B):
+        slots = im.mix(w[b:b + 1], z[b:b + 1], Z[b:b + 1], bounded=bounded)
+        for got, by_slots, in_engine in zip(agents[b], slots, engine):
+            assert got.tobytes() == by_slots.tobytes() == in_engine[b:b + 1].tobytes()
 
 
 @pytest.mark.parametrize("bounded", [False, True])

@@ -149,3 +149,24 @@ def test_the_process_mesh_shows_lines_off_a_terminal_and_a_bar_on_one(tmp_path):
     seen = _on_a_terminal(argv, tmp_path)
     assert "up: 100%" in seen and "20/20 [" in seen and "\r" in seen, seen[-500:]
     assert "up: [" not in seen  # the bar, not the lines
+
+
+def test_experiment_shows_how_far_a_long_run_is(capsys, monkeypatch):
+    """Off a terminal, a run's ticks as lines (at most one every
+    ``STATUS_EVERY_S``, here every tick), between the lines of the runs."""
+    from cli_helpers import run_cli
+    from diskf_mesh.cli import experiment as command
+
+    monkeypatch.setattr(command, "STATUS_EVERY_S", 0.0)
+    code, _, err = run_cli(["experiment", "--scenario", "random-geometric", "--agents", "40", "--ticks", "3",
+                            "--seeds", "1", "--estimators", "diskf,kcf"], capsys)
+    lines = err.splitlines()
+    assert code == 0
+    assert lines[1:] == ["experiment: DISKF: tick 1 done", "experiment: DISKF: tick 2 done",
+                         "experiment: DISKF: tick 3 done", "experiment: [1/2] runs of 1 seeds",
+                         "experiment: KCF: tick 1 done", "experiment: KCF: tick 2 done",
+                         "experiment: KCF: tick 3 done", "experiment: [2/2] runs of 1 seeds"], err
+    monkeypatch.setattr(command, "STATUS_EVERY_S", 3600.0)
+    code, _, err = run_cli(["experiment", "--scenario", "random-geometric", "--agents", "40", "--ticks", "3",
+                            "--seeds", "1", "--estimators", "diskf,kcf"], capsys)
+    assert code == 0 and " done" not in err

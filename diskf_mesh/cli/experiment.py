@@ -31,6 +31,7 @@ from diskf_mesh.cli.options import (
 from diskf_mesh.cli.progress import Progress
 
 DEFAULT_TOPOLOGIES = ("all", "ring", "none")
+STATUS_EVERY_S = 10.0  # a run's ticks are shown at most this often (a run of 10,000 agents takes minutes)
 
 
 def topology_list(text: str) -> list[str]:
@@ -80,9 +81,11 @@ def run(args: argparse.Namespace) -> int:
     with Progress("experiment", args.quiet, total=runs, unit="run") as shown:
         shown.note(f"{runs} runs ({len(args.estimators)} estimators x {len(settings)} settings), "
                    f"{args.seeds} seeds x {args.ticks or scn.steps} ticks each")
-        results = experiment.run_experiment(scn, settings, args.estimators, range(args.seeds), args.ticks,
-                                            params, progress=lambda n: shown.step(f"runs of {args.seeds} seeds",
-                                                                                  n=n))
+        results = experiment.run_experiment(
+            scn, settings, args.estimators, range(args.seeds), args.ticks, params,
+            progress=lambda n: shown.step(f"runs of {args.seeds} seeds", n=n),
+            ticks=lambda name, k: shown.status(f"{experiment.LABELS.get(name, name)}: tick {k} done",
+                                               STATUS_EVERY_S))
     steps = args.ticks or scn.steps
     if args.json:
         prov = provenance.record(scenario=scn, seeds=range(args.seeds), ticks=steps, estimator=args.estimators,

@@ -4,6 +4,7 @@ nothing with ``--quiet``."""
 from __future__ import annotations
 
 import sys
+import time
 
 
 class Progress:
@@ -15,6 +16,7 @@ class Progress:
         self.lines = not quiet and not sys.stderr.isatty()
         self.bars = not quiet and not self.lines
         self._bar = None
+        self._said = time.monotonic()  # when ``status`` last showed something (or the start)
 
     def _shown(self):
         if self.bars and self._bar is None:
@@ -40,6 +42,19 @@ class Progress:
         elif self.lines:
             took = f": {seconds:.1f} s" if seconds is not None else ""
             print(f"{self.command}: [{self.done}/{self.total}] {title}{took}", file=sys.stderr, flush=True)
+
+    def status(self, text: str, every: float = 10.0) -> None:
+        """How far the current stage is (``text``), at most once every
+        ``every`` seconds (the first ``every`` seconds after the start): the
+        bar's postfix on a terminal, else a line."""
+        now = time.monotonic()
+        if not (self.bars or self.lines) or now - self._said < every:
+            return
+        self._said = now
+        if self.bars:
+            self._shown().set_postfix_str(text[:40])
+        else:
+            print(f"{self.command}: {text}", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         if self._bar is not None:

@@ -173,8 +173,7 @@ def input_fusion(adj, d, S, valid):
         both = nbr_sum(Wn, np.concatenate([Si[..., 0], mv(Si, d)], axis=-1), 1)
         info, vec = both[..., :1, None], both[..., 1:]
     else:
-        info = nbr_sum(Wn, Si, 2)
-        vec = nbr_sum(Wn, mv(Si, d), 1)
+        info, vec = nbr_sum_pair(Wn, Si, mv(Si, d))
     # Where no sender is valid, every weight is 0, so vec = 0, and the
     # identity placeholder's inverse is exactly I: d_bar = 0 and S_bar = I.
     S_bar = inv_spd(np.where(has[..., None, None], info, identity(m)))

@@ -26,11 +26,12 @@ Every function is pure, with leading batch axes.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
 from diskf_mesh.core.equations import replace_marginal
-from diskf_mesh.core.linalg import T, inv_spd, matmul_left, matmul_shared, mv, nbr_sum, row_sum, solve, sym
+from diskf_mesh.core.linalg import T, identity, inv_spd, matmul_left, matmul_shared, mv, nbr_sum, row_sum, solve, sym
 
 INPUT_MODELS = ("walk", "mean-reverting", "none")
 
@@ -119,7 +120,11 @@ def information_loglik(x, P, Y, Ji, U, u):
     g = u - mv(U, x)
     quad = 2.0 * _dot(x, u) - _dot(x, mv(U, x)) + _dot(g, mv(Ji, g))
     # log det(I + P U) = log det(P (Y + U)) = -log det(Y) - log det(Ji)
-    logdet = -(np.linalg.slogdet(Y)[1] + np.linalg.slogdet(Ji)[1])
+    if Y.shape == Ji.shape:  # both in one call (each matrix's own, bit for bit)
+        logdet_Y, logdet_Ji = np.linalg.slogdet(np.stack([Y, Ji]))[1]
+    else:
+        logdet_Y, logdet_Ji = np.linalg.slogdet(Y)[1], np.linalg.slogdet(Ji)[1]
+    logdet = -(logdet_Y + logdet_Ji)
     return 0.5 * (quad - logdet)
 
 
@@ -182,6 +187,20 @@ def mix(w, z, Z, bounded=False):
         wij = w[..., :, :, None, None]
         within = _ordered_sum(Z[..., :, None, :, :] * wij, -4)                  # (..., J, k, k)
         spread = _ordered_sum((dz[..., :, None] * dz[..., None, :]) * wij, -4)
+    elif (padded := _padded(w, PADDED_TERMS)) is not None:  # a few columns: as many terms each
+        batch, J = w.shape[:-2], w.shape[-1]
+        rows, wk, pad = padded                                                     # (T, columns)
+        zk = np.broadcast_to(z, batch + z.shape[-2:]).reshape(-1, k)[rows]          # (T, columns, k)
+        Zk = np.broadcast_to(Z, batch + Z.shape[-3:]).reshape(-1, k, k)[rows]      # (T, columns, k, k)
+        mean = _sum_first(_left_out(wk[..., None] * zk, pad, 1))
+        dz = zk - mean
+        both = np.empty(Zk.shape[:2] + (2, k, k))                                  # within's terms, spread's
+        wt = wk[..., None, None]
+        np.multiply(Zk, wt, out=both[:, :, 0])
+        np.multiply(dz[..., :, None] * dz[..., None, :], wt, out=both[:, :, 1])
+        sums = _sum_first(_left_out(both, pad, 3))
+        mean = mean.reshape(batch + (J, k))
+        within, spread = (sums[:, i].reshape(batch + (J, k, k)) for i in (0, 1))
     else:  # the terms of nonzero weight only, slot after slot (``_terms``)
         batch, J = w.shape[:-2], w.shape[-1]
         rows, wk, ends, back = _terms(w)
@@ -213,6 +232,55 @@ def mix(w, z, Z, bounded=False):
     return mean, sym(within + spread)
 
 
+def _padded(w, most: int):
+    """The nonzero weights of w (..., M, J), column by column, as many per
+    column as the column with the most holds: (rows, wk, pad), each
+    (T, columns), term t of every column (every (batch, j)) in row t, the
+    models i in order. ``rows``: each term's model i as a row of the models
+    flattened over the batch; ``wk`` its weight; ``pad`` where a column has
+    fewer than T terms (its weight 0; None if none has), which ``mix`` sets
+    to -0.0 (``_left_out``). None where w holds more than ``most`` weights
+    or a column has no nonzero one (``mix`` then adds slot after slot,
+    ``_terms``)."""
+    batch, (M, J) = w.shape[:-2], w.shape[-2:]
+    if w.size > most:
+        return None
+    wt = np.ascontiguousarray(w.swapaxes(-1, -2)).reshape(-1, M)       # column j of batch b: row b J + j
+    f = np.flatnonzero(wt)                                              # column after column, i in order
+    col, i = np.divmod(f, M)
+    count = np.bincount(col, minlength=len(wt))
+    if not count.all():
+        return None
+    T = int(count.max())
+    t = np.arange(f.size) - (np.cumsum(count) - count)[col]             # the term's place in its column
+    rows = np.zeros((T, len(wt)), dtype=np.intp)
+    wk = np.zeros((T, len(wt)))
+    rows[t, col] = (col // J) * M + i
+    wk[t, col] = wt.ravel()[f]
+    pad = None if f.size == T * len(wt) else np.arange(T)[:, None] >= count
+    return rows, wk, pad
+
+
+def _left_out(terms, pad, core: int):
+    """``terms`` (T, columns, *core) with those of ``pad`` (T, columns; None
+    for none) set to -0.0, in place: x + (-0.0) is x for every x, so
+    ``_sum_first`` then adds the nonzero weights' terms alone, bit for bit
+    (0 z would be +0.0 or -0.0, or NaN where z is not finite)."""
+    if pad is not None:
+        np.copyto(terms, -0.0, where=pad[(...,) + (None,) * core])
+    return terms
+
+
+def _sum_first(terms):
+    """The sum over the first axis, term after term in order."""
+    if len(terms) == 1:
+        return terms[0]
+    out = terms[0] + terms[1]
+    for term in terms[2:]:
+        out += term
+    return out
+
+
 def _terms(w):
     """The nonzero weights of w (..., M, J), column by column, laid out for
     ``mix``: (rows, wk, ends, back). The columns (every (batch, j)) are
@@ -237,6 +305,9 @@ def _terms(w):
     return rows[order], wt.reshape(-1)[f][order], np.cumsum(np.bincount(t)).tolist(), back
 
 
+# the most weights (batch x models x columns) for which ``mix`` lays out as many terms per column
+# (``_padded``): an agent's 21 x 21; on larger batches the slots are faster
+PADDED_TERMS = 1024
 # the largest (batch x models x columns x k x k) for which ``mix`` makes every term at once (an
 # agent's 21 x 21 models with k = 4 are 7,056) when no weight is 0
 ALL_TERMS_AT_ONCE = 1 << 16
@@ -316,24 +387,24 @@ def split(z, Z, n: int):
     return z[..., :n], Z[..., :n, :n], z[..., n:], Z[..., n:, n:], Z[..., :n, n:]
 
 
-def replace_part(z, Z, part, a_new, Paa_new):
-    """The joint Gaussian (z, Z) with the marginal of its components
-    ``part`` (indices) replaced by (a_new, Paa_new), the conditional of the
-    other components given them kept: ``equations.replace_marginal`` on any
-    split of one vector. z: (..., k); Z: (..., k, k); a_new: (..., len(part))."""
-    taken = set(np.ravel(part).tolist())
-    rest = np.array([i for i in range(z.shape[-1]) if i not in taken], dtype=np.intp)
-    part = np.asarray(part)
-    b, Pab, Pbb = replace_marginal(z[..., part], Z[..., part[:, None], part], z[..., rest],
-                                   Z[..., part[:, None], rest], Z[..., rest[:, None], rest], a_new, Paa_new)
-    z_new = np.empty_like(z)
-    z_new[..., part], z_new[..., rest] = a_new, b
-    Z_new = np.empty_like(Z)
-    Z_new[..., part[:, None], part] = Paa_new
-    Z_new[..., part[:, None], rest] = Pab
-    Z_new[..., rest[:, None], part] = T(Pab)
-    Z_new[..., rest[:, None], rest] = Pbb
-    return z_new, Z_new
+def replace_input(v, Pv, e, S, B, d_new, S_new):
+    """The joint Gaussian of (v, e), e = (d_{k-1}, d_{k-2}) (``split``'s
+    parts: v, Pv, e, S and B = cov(v, e)), with the marginal of d_{k-1}
+    replaced by (d_new, S_new), the conditional of (v, d_{k-2}) given it
+    kept: ``equations.replace_marginal`` with a = d_{k-1} and b = (v, d_{k-2}).
+    Returns (v, Pv, e, S, B) as given."""
+    n, m = v.shape[-1], d_new.shape[-1]
+    Bt = T(B)
+    b = np.concatenate([v, e[..., m:]], axis=-1)
+    Pab = np.concatenate([Bt[..., :m, :], S[..., :m, m:]], axis=-1)                  # (m, n + m)
+    Pbb = np.concatenate([np.concatenate([Pv, B[..., :, m:]], axis=-1),
+                          np.concatenate([Bt[..., m:, :], S[..., m:, m:]], axis=-1)], axis=-2)
+    b, Pab, Pbb = replace_marginal(e[..., :m], S[..., :m, :m], b, Pab, Pbb, d_new, S_new)
+    e = np.concatenate([d_new, b[..., n:]], axis=-1)
+    S = np.concatenate([np.concatenate([S_new, Pab[..., n:]], axis=-1),
+                        np.concatenate([T(Pab[..., n:]), Pbb[..., n:, n:]], axis=-1)], axis=-2)
+    B = np.concatenate([T(Pab[..., :n]), Pbb[..., :n, n:]], axis=-1)
+    return b[..., :n], Pbb[..., :n, :n], e, S, B
 
 
 def affine_prior(x_from, P_from, x_to, P_to, v, Pv, B):
@@ -344,9 +415,11 @@ def affine_prior(x_from, P_from, x_to, P_to, v, Pv, B):
     map that takes its agent's published prediction to the neighbourhood's
     CI prior: exact (the identity) where the two are equal (an isolated
     agent; all-to-all) and positive definite always."""
-    L_to = np.linalg.cholesky(P_to)
-    L_from = np.linalg.cholesky(P_from)
-    Mt = np.matmul(L_to, solve(L_from, np.broadcast_to(np.eye(L_from.shape[-1]), L_from.shape)))
+    if P_to.shape == P_from.shape:  # both factors in one call (each matrix's own, bit for bit)
+        L_to, L_from = np.linalg.cholesky(np.stack([P_to, P_from]))
+    else:
+        L_to, L_from = np.linalg.cholesky(P_to), np.linalg.cholesky(P_from)
+    Mt = np.matmul(L_to, solve(L_from, np.broadcast_to(identity(L_from.shape[-1]), L_from.shape)))
     Mt = Mt[..., None, :, :]  # over the models' axis
     v_new = x_to[..., None, :] + mv(Mt, v - x_from[..., None, :])
     return v_new, sym(matmul_shared(Mt, Pv, T(Mt))), matmul_shared(Mt, B)
@@ -405,14 +478,22 @@ def pair_predict(A, C, e, S, F, q):
     q = np.asarray(q, dtype=float)
     m = e.shape[-1] // 2
     n = A.shape[-1]
-    noise = np.zeros((2 * m, 2 * m))  # eta drives d_{k-1} only
-    noise[:m, :m] = np.eye(m)
+    noise = _first_block(m)  # eta drives d_{k-1} only
     # A C and F S stacked, then one product with F^T for both
     AC, FS = matmul_left(A, C), np.matmul(F, S)
     batch = np.broadcast_shapes(AC.shape[:-2], FS.shape[:-2])
     stacked = np.concatenate([np.broadcast_to(a, batch + a.shape[-2:]) for a in (AC, FS)], axis=-2)
     both = np.matmul(stacked, T(F))
     return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + q[..., None, None] * noise)
+
+
+@lru_cache(maxsize=None)
+def _first_block(m: int) -> np.ndarray:
+    """[[I, 0], [0, 0]] (m x m blocks), read-only: where (IM2)'s noise enters the pair."""
+    block = np.zeros((2 * m, 2 * m))
+    block[:m, :m] = np.eye(m)
+    block.flags.writeable = False
+    return block
 
 
 def default_bank(q_process: float, q_sensor: float, none: bool = True, walk: bool = True, zero_mean: bool = True,

@@ -69,7 +69,7 @@ from its neighbours' measurements and, through theirs, from further away.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.stats
@@ -120,7 +120,11 @@ class DISKFAuto(Estimator):
         self.mu0 = im.initial_probabilities(self.a2)
         self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0)
         self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
+        self.whole_bank = tuple(self.bank) == im.BANK
         self.relaying = np.flatnonzero((self.a2 == 0.0) & (self.a1 != 0.0))  # persistent first-order models
+        rho = self.a1[self.relaying][:, None, None]                                  # (J, 1, 1)
+        self.relay_scales = rho, (rho * rho)[..., None], self.q[self.relaying][:, None, None, None] * identity(model.m)
+        self.relay_pair = np.ones((1, 2))  # the fast CI of a model's own d_{k-1} with its neighbours' relayed one
         self.prior = 100.0 * float(self.q.max()) if self.q.max() > 0 else 1.0
         # the input into the state reads the pair's first half: x = v + G d_{k-1}
         self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
@@ -155,9 +159,12 @@ class DISKFAuto(Estimator):
             loc = Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji)
         st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
                        Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=theta, tick=k)
-        w = np.zeros(state.mu.shape[:-1] + (len(im.BANK),))
-        w[..., self.slots] = state.mu
-        return st, replace(self.message(loc, state.d_hold, state.S_hold, state.held), w=w)
+        if self.whole_bank:  # the message's w is mu itself (a new array every tick, never changed)
+            w = state.mu
+        else:
+            w = np.zeros(state.mu.shape[:-1] + (len(im.BANK),))
+            w[..., self.slots] = state.mu
+        return st, Message(loc.x_pred, loc.P_pred, loc.x_upd, loc.P_upd, state.d_hold, state.S_hold, state.held, w)
 
     def fuse(self, state: AutoState, own: Message, senders: Message, nb: Neighbourhood):
         n, m = self.model.n, self.model.m
@@ -170,7 +177,8 @@ class DISKFAuto(Estimator):
         # 2. mixing: the senders' model probabilities pooled where the neighbourhood measured nothing this tick,
         # the agent's own where it did
         informed = np.trace(U, axis1=-2, axis2=-1) > 0
-        pooled = np.where(informed[..., None], state.mu, im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR))
+        pooled = state.mu if informed.all() else np.where(
+            informed[..., None], state.mu, im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR))
         c, w = im.model_weights(pooled, self.Pi, PRUNE)
         z0, Z0 = im.mix(w, state.z, state.Z, bounded=True)
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
@@ -204,39 +212,35 @@ class DISKFAuto(Estimator):
         the other neighbours' (rho d_j, rho^2 S_j + q I), then the fast CI of
         that with the model's own prediction of d_{k-1}, replaces the
         model's marginal of d_{k-1} in the joint (v, d_{k-1}, d_{k-2}), the
-        conditional of the rest kept (``input_models.replace_part``). The
+        conditional of the rest kept (``input_models.replace_input``). The
         agent's own message is left out: its combined input mixes the models
         this one is to stay apart from. (v, Pv, e, S, B): each model's joint
         as ``input_models.split`` gives it, (..., M, ...); the models are one
         more batch axis of the same functions. Returns them with the
-        relaying models' replaced, and whether any was."""
-        n, m = self.model.n, self.model.m
+        relaying models' replaced (in place: the arrays are this tick's
+        own), and whether any was."""
+        m = self.model.m
         js = self.relaying
         others = nb.adj * ~nb.self_mask
         if js.size == 0 or not (others * senders.d_valid[..., None, :]).any():  # no other sender relays an input
             return v, Pv, e, S, B, np.zeros(v.shape[:-2], dtype=bool)
-        rho, q = self.a1[js][:, None, None], self.q[js][:, None, None, None]       # (J, 1, 1), (J, 1, 1, 1)
-        others = others[..., None, :, :]                                           # (..., 1, R, S)
-        d_n, S_n, has_n = eq.input_fusion(others, rho * senders.d[..., None, :, :],
-                                          (rho * rho)[..., None] * senders.S[..., None, :, :, :] + q * identity(m),
+        rho, rho2, qI = self.relay_scales
+        d_n, S_n, has_n = eq.input_fusion(others[..., None, :, :], rho * senders.d[..., None, :, :],
+                                          rho2 * senders.S[..., None, :, :, :] + qI,
                                           senders.d_valid[..., None, :])           # (..., J, R, ...)
         d_n, S_n, has_n = d_n.swapaxes(-3, -2), S_n.swapaxes(-4, -3), has_n.swapaxes(-2, -1)
-        zj, Zj = im.joint(v[..., js, :], Pv[..., js, :, :], e[..., js, :], S[..., js, :, :], B[..., js, :, :])
-        dj, Sj = zj[..., n:n + m], Zj[..., n:n + m, n:n + m]                       # (..., R, J, ...)
-        pair = np.ones(has_n.shape + (1, 2))
-        d_r, S_r, _ = eq.input_fusion(pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
+        parts = v[..., js, :], Pv[..., js, :, :], e[..., js, :], S[..., js, :, :], B[..., js, :, :]
+        dj, Sj = parts[2][..., :m], parts[3][..., :m, :m]                           # (..., R, J, ...)
+        d_r, S_r, _ = eq.input_fusion(self.relay_pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
                                       np.stack([np.ones_like(has_n), has_n], axis=-1))
-        zr, Zr = im.replace_part(zj, Zj, np.arange(n, n + m), d_r[..., 0, :], S_r[..., 0, :, :])
-        parts = im.split(np.where(has_n[..., None], zr, zj), np.where(has_n[..., None, None], Zr, Zj), n)
-        out = []
-        for whole, part, vector in zip((v, Pv, e, S, B), parts, (True, False, True, False, False)):
-            whole = whole.copy()
-            if vector:
-                whole[..., js, :] = part
-            else:
-                whole[..., js, :, :] = part
-            out.append(whole)
-        return (*out, has_n.any(axis=-1))
+        new = im.replace_input(*parts, d_r[..., 0, :], S_r[..., 0, :, :])
+        some = not has_n.all()
+        for whole, old, part in zip((v, Pv, e, S, B), parts, new):
+            core = (slice(None),) * (part.ndim - has_n.ndim)
+            if some:
+                part = np.where(has_n[(...,) + (None,) * len(core)], part, old)
+            whole[(..., js) + core] = part
+        return v, Pv, e, S, B, has_n.any(axis=-1)
 
 
 NOISE_STEP = 0.1  # step of (NL1) (``core.noise``): the most a measured tick moves log r

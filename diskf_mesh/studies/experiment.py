@@ -140,7 +140,7 @@ def batches(scns, seeds, params: Params | None = None):
 
 
 def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Params | None = None,
-                   progress=None) -> dict:
+                   progress=None, ticks=None) -> dict:
     """{estimator: {setting label: {metric: value}}} over all settings, for
     the estimators ``names``. With lies (``Scenario.lies``) the liars send
     them and the metrics cover the honest agents.
@@ -148,7 +148,9 @@ def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Pa
     Settings of one estimator run as one batch where they can (``batches``,
     ``engine.run_many``), so the per-tick overhead is paid once; the numbers
     are those of separate runs. ``progress``, if given, is called with 1
-    after every (setting, estimator)."""
+    after every (setting, estimator); ``ticks``, if given, with (estimator,
+    ticks done) as each of its runs goes (a large network's run may take
+    minutes)."""
     settings = list(settings)
     scns = [st.apply(scn, steps) for st in settings]
     for s in scns:  # before a list of the seeds is made
@@ -162,7 +164,8 @@ def run_experiment(scn: Scenario, settings, names, seeds, steps=None, params: Pa
         traces = [simulate(scns[i], seeds) for i in idx]
         for name in names:
             try:
-                ests = [None if diverged(e) else e for e in engine.run_many(traces, name, p, lies=scn.lies)]
+                going = None if ticks is None else (lambda k, name=name: ticks(name, k))
+                ests = [None if diverged(e) else e for e in engine.run_many(traces, name, p, going, lies=scn.lies)]
             except np.linalg.LinAlgError:  # diverged in one of them at least: each alone, to say which
                 ests = [run_or_none(t, name, p, scn.lies) for t in traces]
             for i, trace, est in zip(idx, traces, ests):
