@@ -68,6 +68,7 @@ from diskf_mesh.mesh.wire.keys import matcher
 from diskf_mesh.mesh.simulated.schedule import Schedule, Trace, payload_digest
 
 NO_LOSS = "**"
+SUMS_KEPT = 1 << 13  # payload digests kept for the trace (a few ticks' samples; one evicted is made again)
 
 
 @dataclass(frozen=True)
@@ -766,7 +767,7 @@ class SimNet:
         event = ev.Sample(key, bytes(payload))
         digest = payload_digest(event.payload)
         self.trace.add(self.sched.now, repr(proc), "put", key, event.payload, digest)
-        if len(self._sums) > 1 << 16:
+        if len(self._sums) > SUMS_KEPT:
             self._sums.clear()
         self._sums[id(event)] = (event, digest)
         access = self.access
