@@ -72,7 +72,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.stats
 
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core import input_models as im
@@ -129,7 +128,7 @@ class DISKFAuto(Estimator):
         # the input into the state reads the pair's first half: x = v + G d_{k-1}
         self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
         self.learn = o.noise
-        self.median = scipy.stats.chi2.median(sensors.p)  # (N,) m_p of (NL1)
+        self.median = chi2_median(sensors.p)  # (N,) m_p of (NL1)
 
     def init(self, batch: tuple) -> AutoState:
         s = super().init(batch)
@@ -246,3 +245,27 @@ class DISKFAuto(Estimator):
 NOISE_STEP = 0.1  # step of (NL1) (``core.noise``): the most a measured tick moves log r
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
 PRUNE = 1e-3  # mixing weights below it are dropped (``input_models.model_weights``)
+
+
+# the median of a chi-square of p = 1..16 degrees of freedom, scipy.stats.chi2.median's values to the last bit
+# (tests/test_auto.py): importing scipy.stats takes 0.6 s of CPU, scipy.special 0.2 s, and every command
+# imports this module
+CHI2_MEDIANS = np.array([
+    0.454936423119572, 1.386294361119891, 2.3659738843753377, 3.3566939800333224,
+    4.351460191095526, 5.348120627447118, 6.345811195521515, 7.344121497701794,
+    8.342832692252955, 9.34181776559197, 10.340998074391827, 11.34032237742414,
+    12.339755882563905, 13.33927414909954, 14.338859510956645, 15.338498885001608,
+])
+
+
+def chi2_median(p: np.ndarray) -> np.ndarray:
+    """The median of a chi-square of ``p`` degrees of freedom, as
+    ``scipy.stats.chi2.median`` computes it (2 P^-1(p/2, 1/2), the inverse of
+    the regularised lower incomplete gamma function): from ``CHI2_MEDIANS``
+    up to 16 rows, from ``scipy.special`` (imported only then) beyond."""
+    p = np.asarray(p)
+    if p.size and 1 <= p.min() and p.max() <= len(CHI2_MEDIANS):
+        return CHI2_MEDIANS[p - 1]
+    from scipy.special import gammaincinv
+
+    return 2 * gammaincinv(p / 2, 0.5)
