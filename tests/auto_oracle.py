@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
+import scipy.stats
 
 from robust_oracle import _replace, fast_ci, scales
 
@@ -37,23 +38,22 @@ def bank(qp, qs, none=True, walk=True, zero_mean=True, oscillating=True):
     return out
 
 
-def noise_scale(theta, info, x, P, H, R, y, info0, f, dof):
+def noise_scale(theta, x, P, H, R, y, step):
     """One measured tick of the measurement noise scale r = exp(theta)
-    (``core.noise``) written out on the sensor's own rows: the Student-t
-    weight of the measurement and one Fisher scoring step of
-    log N(y - H x; 0, H P H^T + r R) in theta. Returns (theta, info, w)."""
+    (``core.noise``) written out on the sensor's own rows: theta moves by
+    step * sqrt(tr(S^-1 r R) / p) up where the normalised innovation lies
+    above the chi-square median of p degrees of freedom, down where below,
+    within [log 0.01, log 1000]."""
     r = np.exp(theta)
     S = H @ P @ H.T + r * R
     e = y - H @ x
-    Si = np.linalg.inv(S)
-    w = min(1.0, (dof + len(y)) / (dof + e @ Si @ e))
-    score = 0.5 * r * (w * e @ Si @ R @ Si @ e - np.trace(Si @ R))
-    fisher = 0.5 * r * r * np.trace(Si @ R @ Si @ R)
-    info = f * info + (1 - f) * info0 + fisher
-    return float(np.clip(theta + score / info, 0.0, np.log(1e3))), info, w
+    nis = e @ np.linalg.solve(S, e)
+    share = min(1.0, r * np.trace(np.linalg.solve(S, R)) / len(y))
+    sign = 1.0 if nis > scipy.stats.chi2.median(len(y)) else -1.0
+    return float(np.clip(theta + step * np.sqrt(share) * sign, np.log(0.01), np.log(1e3)))
 
 
-def run_auto(trace, options, noise_prior=5.0, noise_forget=0.98, noise_dof=4.0):
+def run_auto(trace, options, noise_step=0.1):
     model, sensors = trace.model, trace.sensors
     B, K, N = trace.has.shape
     n, m = model.n, model.m
@@ -79,20 +79,19 @@ def run_auto(trace, options, noise_prior=5.0, noise_forget=0.98, noise_dof=4.0):
         Z0 = scipy.linalg.block_diag(model.P0, prior * np.eye(2 * m))
         agents = [dict(x=z0[:n].copy(), P=Z0[:n, :n].copy(), d=np.zeros(m), S=prior * np.eye(m), held=False,
                        mu=mu_first.copy(), z=[z0.copy() for _ in range(M)], Z=[Z0.copy() for _ in range(M)],
-                       theta=0.0, info=noise_prior)
+                       theta=0.0)
                   for _ in range(N)]
         links = trace.links[min(b, trace.links.shape[0] - 1)]
         for k in range(1, K + 1):
             A = model.A_at(k)
             pred = [(A @ a["x"], A @ a["P"] @ A.T + Q) for a in agents]
-            scale = np.ones(N)  # each agent's weight 1 / (r w) of its own R, learned from its own measurement
+            scale = np.ones(N)  # each agent's weight 1 / r of its own R, learned from its own measurement
             for i, a in enumerate(agents):
                 if options.noise and trace.has[b, k - 1, i]:
                     xi = pred[i][0] + (G @ a["d"] if a["held"] else 0.0)
-                    a["theta"], a["info"], w = noise_scale(a["theta"], a["info"], xi, pred[i][1], Hs[i], Rs[i],
-                                                           trace.y[b, k - 1, i, : sensors.p[i]], noise_prior,
-                                                           noise_forget, noise_dof)
-                    scale[i] = np.exp(a["theta"]) / w
+                    a["theta"] = noise_scale(a["theta"], xi, pred[i][1], Hs[i], Rs[i],
+                                             trace.y[b, k - 1, i, : sensors.p[i]], noise_step)
+                    scale[i] = np.exp(a["theta"])
             sent = [(a["d"].copy(), a["S"].copy(), a["held"]) for a in agents]
             sent_mu = [a["mu"].copy() for a in agents]
             new = []
@@ -153,7 +152,7 @@ def run_auto(trace, options, noise_prior=5.0, noise_forget=0.98, noise_dof=4.0):
                 Z = sum(mu[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
                 held = a["held"] or bool(meas) or relayed
                 new.append(dict(x=z[:n], P=Z[:n, :n], d=z[n:n + m], S=Z[n:n + m, n:n + m], held=held, mu=mu, z=zs,
-                                Z=Zs, theta=a["theta"], info=a["info"]))
+                                Z=Zs, theta=a["theta"]))
             agents = new
             for i, a in enumerate(agents):
                 out["x"][b, k - 1, i], out["P"][b, k - 1, i] = a["x"], a["P"]

@@ -46,6 +46,39 @@ def test_a_check_answered_only_when_waited_for_cuts_the_liar_off_from_the_same_t
     assert late.status.to_json() == at_once.status.to_json()
 
 
+
+class ElsewhereCheck(LateCheck):
+    """A ``LateCheck`` that says it runs elsewhere (as ``CheckProcess``):
+    the world hands it each final tick at once, with no timer."""
+
+    elsewhere = True
+    submitted = []  # (tick, every live agent's report of it in, tick + 1 opened yet)
+
+    def submit(self, rec, k):
+        ElsewhereCheck.submitted.append((k, bool(rec.reported[k - 1][rec.live[k - 1]].all()),
+                                         k < len(rec.live) and bool(rec.live[k].any())))
+
+
+def test_a_check_elsewhere_is_handed_each_final_tick_at_once_and_cuts_the_liar_off_from_the_same_tick(
+        dynamic, monkeypatch):
+    at_once = run(dynamic, start=FROM, offset=OFFSET)
+    monkeypatch.setattr(simrun, "OnlineCheck", ElsewhereCheck)
+    monkeypatch.setattr(ElsewhereCheck, "submitted", [])
+    monkeypatch.setattr(LateCheck, "asked_early", 0)
+    late = run(dynamic, start=FROM, offset=OFFSET)
+    first = {}
+    for k, whole, next_open in ElsewhereCheck.submitted:
+        first.setdefault(k, (whole, next_open))
+    assert list(first) == list(range(1, late.record.reported.shape[0] + 1))
+    assert all(whole for whole, _ in first.values())  # handed over once its reports are final ...
+    assert not any(next_open for _, next_open in first.values())  # ... and at once: before the next tick opens
+    assert LateCheck.asked_early == 0  # no timer asks before the world must know
+    assert late.record.quarantined == at_once.record.quarantined and len(late.record.quarantined) == 1
+    for a, b in ((late.record.live, at_once.record.live), (late.record.x, at_once.record.x),
+                 (late.record.fused, at_once.record.fused)):
+        np.testing.assert_array_equal(a, b)
+    assert late.status.to_json() == at_once.status.to_json()
+
 def test_the_check_in_its_own_process_finds_what_the_check_in_the_world_finds(dynamic):
     scn, trace = dynamic
     rec = run(dynamic, online=False, start=FROM, offset=OFFSET).record  # the liar never cut off: it lies on

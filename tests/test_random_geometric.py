@@ -82,7 +82,7 @@ def test_receivers_fused_in_blocks_give_the_same_bits(monkeypatch):
         whole = engine.run(trace, name, params, lies=lies)
         for rows in (1, 7):
             monkeypatch.setattr(engine, "slot_bytes", lambda n, msg: 1)
-            monkeypatch.setattr(engine, "TICK_BYTES_MAX", rows * D)  # one seed at a time too
+            monkeypatch.setattr(engine, "BLOCK_BYTES_MAX", rows * 2 * D)  # both seeds in each block
             blocks = engine.run(trace, name, params, lies=lies)
             monkeypatch.undo()
             for a, b in zip(whole.__dict__.values(), blocks.__dict__.values()):

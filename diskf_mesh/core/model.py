@@ -185,9 +185,11 @@ class AutoOptions:
                octaves (``input_models.oscillating``: vibration, weaving)
     switch:    the models' Markov chain: 1 - switch to stay (0.001: a change of
                input model expected about once in 1,000 ticks)
-    noise:     each agent learns the scale of its own measurement noise
-               (``core.noise``) and weighs its measurement by it (off by
-               default: it reads a jump of the input as noise, docs/estimators.md)
+    noise:     each agent learns the scale of its own measurement noise,
+               above or below the stated R (``core.noise``), and weighs its
+               measurement by it (off by default: it reads the part of a
+               fast input the bank does not predict as noise, and its NEES
+               falls under the band there, docs/estimators.md)
     """
 
     none: bool = True

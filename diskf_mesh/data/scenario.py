@@ -398,6 +398,10 @@ def _parse_agent(a, i: int, n: int) -> AgentSpec:
 
 MEMORY_BOUND = 2 * 2**30  # bytes a simulation (and its estimates) may ask for; above it is refused
 TICK_BYTES_MAX = 1 << 28  # working set one tick of an engine batch may take (256 MiB)
+# working set of one block of receivers a gathered tick fuses at once (32 MiB): larger blocks' arrays are past
+# what the allocator keeps for reuse (glibc's mmap threshold, 32 MiB at most) and are faulted in afresh at every
+# call (a tick of 10,000 random-geometric agents spent 45 % of its CPU in the kernel with 256 MiB blocks)
+BLOCK_BYTES_MAX = 1 << 25
 TICK_BYTES_PER_SLOT = 12 * 8  # ~12 live float arrays of (receiver, sender slot, n, n)
 TICK_BYTES_PER_WEIGHT = 4 * 8  # and ~4 of (receiver, sender slot, model) where messages carry model weights
 GATHER_BYTES_PER_SLOT = 32  # the gathered layout's sender index, place, weight and flags per (receiver, sender slot)
@@ -420,7 +424,7 @@ def simulation_bytes(N: int, K: int, n: int, p: int, m: int, seeds: int = 1, mov
     largest neighbourhood (N, the worst case, when not known): gathered
     (``gathers``), ``GATHER_BYTES_PER_SLOT`` per receiver and sender slot and
     a tick's working set, which receivers fused in blocks keep under
-    ``TICK_BYTES_MAX``; dense, an (N, N) float adjacency and the working set
+    ``BLOCK_BYTES_MAX``; dense, an (N, N) float adjacency and the working set
     of every pair (``TICK_BYTES_PER_SLOT`` n^2 each). Measured: an engine run
     of 10,000 random-geometric agents (D = 970) for 20 ticks peaks at 592
     MiB of resident memory, where this says 690 MiB."""
@@ -428,7 +432,7 @@ def simulation_bytes(N: int, K: int, n: int, p: int, m: int, seeds: int = 1, mov
     D = N if degree is None else min(int(degree), N)
     links = N * N * (K if moving_links else 1)
     if gathers(N, D):
-        links += GATHER_BYTES_PER_SLOT * N * D + min(TICK_BYTES_PER_SLOT * n * n * N * D, TICK_BYTES_MAX)
+        links += GATHER_BYTES_PER_SLOT * N * D + min(TICK_BYTES_PER_SLOT * n * n * N * D, BLOCK_BYTES_MAX)
     else:
         links += 8 * N * N + TICK_BYTES_PER_SLOT * n * n * N * N
     return seeds * K * N * per_agent_tick + K * N * 16 + links

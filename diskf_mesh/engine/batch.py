@@ -35,7 +35,8 @@ from diskf_mesh import estimators
 from diskf_mesh.core.errors import InputError
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.data.lies import Liars
-from diskf_mesh.data.scenario import TICK_BYTES_MAX, TICK_BYTES_PER_SLOT, TICK_BYTES_PER_WEIGHT, gathers
+from diskf_mesh.data.scenario import (
+    BLOCK_BYTES_MAX, TICK_BYTES_MAX, TICK_BYTES_PER_SLOT, TICK_BYTES_PER_WEIGHT, gathers)
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.estimators import Params
 
@@ -91,10 +92,11 @@ class GatheredLinks:
 
     Given ``slot_bytes``, a tick's working set per (seed, receiver, sender
     slot), receivers fuse in blocks whose working set stays under
-    ``TICK_BYTES_MAX`` (all at once otherwise): a tick of a large network
+    ``BLOCK_BYTES_MAX`` (all at once otherwise): a tick of a large network
     (10,000 agents, D about 1,000) would hold its (B, N, D, n, n)
-    temporaries at once, several GB. Every receiver is a batch of one
-    whichever block holds it, so blocks give the same numbers."""
+    temporaries at once, several GB, and blocks small enough for the
+    allocator to reuse their arrays run faster. Every receiver is a batch of
+    one whichever block holds it, so blocks give the same numbers."""
 
     def __init__(self, links: np.ndarray, B: int, slot_bytes: int = 0):
         N = links.shape[-1]
@@ -106,7 +108,7 @@ class GatheredLinks:
         is_self = linked & (idx == np.arange(N)[:, None])
         self.self_mask = np.broadcast_to(is_self[..., None, :], (B, N, 1, D))
         self.columns = idx[..., None, :]  # each slot's sender among the run's agents
-        rows = N if not slot_bytes else int(np.clip(TICK_BYTES_MAX // (B * max(D, 1) * slot_bytes), 1, N))
+        rows = N if not slot_bytes else int(np.clip(BLOCK_BYTES_MAX // (B * max(D, 1) * slot_bytes), 1, N))
         self.blocks = [slice(start, min(start + rows, N)) for start in range(0, N, rows)]
         self.nbs = [Neighbourhood(self.adj[:, b], self.self_mask[:, b], columns=self.columns[:, b])
                     for b in self.blocks]

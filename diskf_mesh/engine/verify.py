@@ -391,6 +391,7 @@ class Online:
         self.judge = Judge(N)
         self.links = None
         self.ended = 0
+        self.diagonal = (np.arange(N), np.arange(N))
 
     def tick(self, k: int, claims: RunClaims, planned: np.ndarray) -> Judged | None:
         """Tick k's ``Judged``, or None after the engine's replay diverged."""
@@ -399,14 +400,15 @@ class Online:
         reported = claims.reported[k - 1]
         N = reported.shape[0]
         links = np.array(claims.fused[k - 1], dtype=bool)
-        links[~reported] = planned[~reported]
-        links[np.arange(N), np.arange(N)] = True
+        if not reported.all():
+            links[~reported] = planned[~reported]
+        links[self.diagonal] = True
         mine = [(key[1], v) for key, v in claims.digests.items() if key[0] == k]
         if mine:  # every (receiver, sender, digest) of the tick at once
-            rows = np.repeat([r for r, _ in mine], [len(ss) for _, (ss, _) in mine])
-            cols = np.concatenate([ss for _, (ss, _) in mine]).astype(np.intp)
+            rows = [r for r, (ss, _) in mine for _ in range(len(ss))]
+            cols = [int(s) for _, (ss, _) in mine for s in ss]
             said = np.concatenate([gs for _, (_, gs) in mine])
-        senders = np.unique(cols).tolist() if mine else []
+        senders = sorted(set(cols)) if mine else []
         engine = np.zeros(N, dtype=np.uint64)
 
         def listen(_, msg):

@@ -20,11 +20,11 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    probabilities w (one float per model of ``input_models.BANK``, 0 for a
    model not in the bank). No H, R or y; one message per tick. Before
    the update (``[estimator.auto] noise``, off by default) the agent learns
-   how much noisier its own sensor is than stated (``core.noise``: a scale
-   r >= 1 of its R, one step of recursive Fisher scoring per measured
+   how much noisier, or calmer, its own sensor is than stated
+   (``core.noise``: a scale r of its R, one step of a stochastic
+   approximation of the median of its normalised innovation per measured
    tick, the measurement scored against its state predicted with the input
-   it last fused) and weighs this tick's measurement by w / r (w <= 1 the
-   Student-t weight: a burst is one tick's, not the sensor's). Its local
+   it last fused) and weighs this tick's measurement by 1 / r. Its local
    update carries the weight, and so does every receiver's fusion and every
    model's likelihood: the bank compares input models under the noise the
    world shows, and the message is unchanged.
@@ -72,6 +72,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.stats
 
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core import input_models as im
@@ -94,7 +95,6 @@ class AutoState(State):
     S_hold: np.ndarray | None = None  # (..., m, m)
     held: np.ndarray | None = None    # (...,) an input estimate exists
     theta: np.ndarray | None = None   # (...,) log r, the own measurement noise scale (``core.noise``; 0 as stated)
-    info: np.ndarray | None = None    # (...,) the information gathered on theta
     tick: int = 0
 
 
@@ -129,6 +129,7 @@ class DISKFAuto(Estimator):
         # the input into the state reads the pair's first half: x = v + G d_{k-1}
         self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
         self.learn = o.noise
+        self.median = scipy.stats.chi2.median(sensors.p)  # (N,) m_p of (NL1)
 
     def init(self, batch: tuple) -> AutoState:
         s = super().init(batch)
@@ -138,11 +139,10 @@ class DISKFAuto(Estimator):
         return AutoState(s.x, s.P, s.since, mu=np.broadcast_to(self.mu0, batch + (M,)).copy(),
                          z=np.repeat(z[..., None, :], M, axis=-2), Z=np.repeat(Z[..., None, :, :], M, axis=-3),
                          d_hold=np.zeros(batch + (m,)), S_hold=S0[..., :m, :m].copy(),
-                         held=np.zeros(batch, dtype=bool), theta=np.zeros(batch),
-                         info=np.full(batch, NOISE_PRIOR))
+                         held=np.zeros(batch, dtype=bool), theta=np.zeros(batch))
 
     def local(self, state: AutoState, k: int, y, has):
-        theta, info = state.theta, state.info
+        theta = state.theta
         if not self.learn:
             loc = self.local_kf(state, k, y, has)
         else:  # the own sensor's noise scale learned first (``core.noise``), its information scaled by 1 / r
@@ -150,16 +150,15 @@ class DISKFAuto(Estimator):
             U, u = eq.measurement_information(self.sensor_info, y, has)
             G, held = self.model.G, state.held
             x_in = x_pred + np.where(held[..., None], mv(G, state.d_hold), 0.0)  # predicted with the fused input
-            theta, info, w = noise.learn(theta, info, x_in, P_pred, y, self.sensors.H, self.sensors.R, self.sensors.p,
-                                         has, NOISE_PRIOR, NOISE_FORGET, NOISE_DOF)
-            scale = w / np.exp(theta)
+            theta = noise.track(theta, x_in, P_pred, y, self.sensors.H, self.sensors.R, self.sensors.p, has,
+                                self.median, NOISE_STEP)
+            scale = np.exp(-theta)
             U, u = U * scale[..., None, None], u * scale[..., None]
             Y, Ji = eq.information_pair(P_pred, U)
             x_upd, P_upd = eq.local_update(x_pred, P_pred, Y, Ji, u, has)
             loc = Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji)
         st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
-                       Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=theta, info=info,
-                       tick=k)
+                       Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=theta, tick=k)
         if self.whole_bank:  # the message's w is mu itself (a new array every tick, never changed)
             w = state.mu
         else:
@@ -204,7 +203,7 @@ class DISKFAuto(Estimator):
         d, S = e[..., :m], S[..., :m, :m]
         held = state.held | informed | relayed
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=state.theta,
-                       info=state.info, tick=state.tick)
+                       tick=state.tick)
         return st, Output(x, P, d, held)
 
     def _relay(self, senders, nb, v, Pv, e, S, B):
@@ -244,8 +243,6 @@ class DISKFAuto(Estimator):
         return v, Pv, e, S, B, has_n.any(axis=-1)
 
 
-NOISE_PRIOR = 5.0    # I0 of (NL2) (``core.noise``): the prior r = 1 worth ten measured rows that resolve it
-NOISE_FORGET = 0.98  # f of (NL2): the scale's memory, about 50 measured ticks
-NOISE_DOF = 4.0      # dof of (NL1): the Student-t measurement's degrees of freedom
+NOISE_STEP = 0.1  # step of (NL1) (``core.noise``): the most a measured tick moves log r
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
 PRUNE = 1e-3  # mixing weights below it are dropped (``input_models.model_weights``)

@@ -48,6 +48,8 @@ class CheckProcess:
     child process; ``make()`` makes its ``OnlineCheck`` there. ``cpu_s``:
     the child's CPU seconds so far (as of its latest finding)."""
 
+    elsewhere = True  # the world hands each tick over when it is final, and asks for the finding later
+
     def __init__(self, make, nice: int = NICE):
         ctx = multiprocessing.get_context("fork")
         self._conn, theirs = ctx.Pipe()

@@ -269,23 +269,30 @@ def _group(w) -> tuple | None:
     e = w.est
     if w.step not in ("local", "fuse") or not isinstance(e, AgentEstimator):
         return None
-    layout = tuple((f.name, None if v is None else (v.shape, v.dtype.str) if isinstance(v, np.ndarray) else v)
-                   for f in fields(e.state) for v in (getattr(e.state, f.name),))
-    if any(isinstance(v, tuple) and v[0][:2] != (1, 1) for _, v in layout):
-        return None
+    layout = []
+    for v in vars(e.state).values():
+        if isinstance(v, np.ndarray):
+            if v.shape[:2] != (1, 1):
+                return None
+            layout.append((v.shape, v.dtype.char))
+        else:
+            layout.append(v)
     return (w.step, w.args[0], type(e.alg), id(e.scenario), e.ticks, id(e.alg.params), e.draws is None,
-            type(e.state), layout)
+            type(e.state), tuple(layout))
 
 
 def _stack_states(states: list):
     """States of single agents (1, 1, ...) as one (1, B, ...); every other
     field (a tick) is the same in all (``_group``)."""
     s0 = states[0]
-    return replace(s0, **{f.name: np.concatenate([getattr(s, f.name) for s in states], axis=1)
-                          for f in fields(s0) if isinstance(getattr(s0, f.name), np.ndarray)})
+    return replace(s0, **{name: np.concatenate([vars(s)[name] for s in states], axis=1)
+                          for name, v in vars(s0).items() if isinstance(v, np.ndarray)})
 
 
 def _state_of(state, b: int):
-    """Agent ``b``'s (1, 1, ...) share of a stacked state."""
-    return replace(state, **{f.name: getattr(state, f.name)[:, b:b + 1]
-                             for f in fields(state) if isinstance(getattr(state, f.name), np.ndarray)})
+    """Agent ``b``'s (1, 1, ...) share of a stacked state: its fields as
+    they are but the arrays (a frozen dataclass's ``__dict__`` filled as
+    ``replace`` would, without its per-call look at the fields)."""
+    out = object.__new__(type(state))
+    vars(out).update({name: v[:, b:b + 1] if isinstance(v, np.ndarray) else v for name, v in vars(state).items()})
+    return out

@@ -127,7 +127,11 @@ class OnlineCheck:
     record holds them. An agent whose state is unknown (a report of its
     did not come) is never cut off: an honest one whose report was lost
     looks the same; what it changes is ``unverifiable`` at the end.
-    ``estimator``: the run's, the class ``estimators.get`` resolved."""
+    ``estimator``: the run's, the class ``estimators.get`` resolved.
+    ``elsewhere``: False, it checks in the caller's thread (a check in
+    another process, ``mesh.process.checker``, says True)."""
+
+    elsewhere = False
 
     def __init__(self, trace: Trace, estimator: type[Estimator], params, *, run_id: str, seed: int,
                  faults: FaultConfig | None = None, deadline_s: float = math.inf):
@@ -155,13 +159,16 @@ class OnlineCheck:
         planned = verify.nominal_links(self.trace, k, live[None], first_tick=k)
         if self.faults is not None:
             planned = verify.planned_links(planned, self.ids, self.faults, self.seed, self.deadline_s, first_tick=k)
+        said = [(i, d) for i in range(N) if (d := rec.digests.get((k, i)))]
         digests = {}
-        for i in range(N):
-            said = rec.digests.get((k, i))
-            if said:
-                digests[(k, i)] = (np.array(said[0], dtype=np.intp), verify.digest_values(said[1]))
-        restarts = tuple(r for r in restarts_of(getattr(rec, "rejoins", {}), getattr(rec, "starts", ()), self.index)
-                         if r.tick == k)
+        if said:  # every digest of the tick as one array, each receiver's a slice of it
+            values, at = verify.digest_values([g for _, (_, gs) in said for g in gs]), 0
+            for i, (senders, _) in said:
+                digests[(k, i)] = (senders, values[at:at + len(senders)])
+                at += len(senders)
+        rejoins = getattr(rec, "rejoins", None)
+        restarts = tuple(r for r in restarts_of(rejoins, getattr(rec, "starts", ()), self.index)
+                         if r.tick == k) if rejoins else ()
         claims = RunClaims(rec.x, rec.P, rec.d, rec.d_valid, rec.reported, rec.fused, None, restarts, digests)
         judged = self.online.tick(k, claims, planned[0])
         if judged is None:

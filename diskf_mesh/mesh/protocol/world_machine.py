@@ -56,7 +56,8 @@ A run, in the order of this module:
                (``mesh.protocol.run_status.OnlineCheck``) replays it on the
                engine; an agent it proves lied is cut off: no later tick
                counts it live (``WorldRecord.quarantined``). A check that
-               runs elsewhere (``mesh.process.checker``) may answer later:
+               runs elsewhere (``mesh.process.checker``) is handed tick k
+               as tick k + 1 opens, with no timer, and may answer later:
                in lockstep the world waits for it only before tick k + 2
                opens, which cuts a liar off from the same tick.
 
@@ -877,10 +878,14 @@ class WorldMachine:
     def _check_later(self, k: int) -> None:
         """Tick k's reports are final: check it once the effects of this
         event are out (timer ``check`` at once), so the next tick's
-        messages go first; at the latest before tick k + 2 opens."""
+        messages go first; at the latest before tick k + 2 opens. A check
+        that runs elsewhere (``online.elsewhere``) needs no timer: the next
+        tick's opening hands it tick k (``_check_ticks``), and no second
+        thread of the world wakes each tick only to hand it over."""
         if self.online is not None:
             self._unchecked.append(k)
-            self._set_timer("check", self._now)
+            if not getattr(self.online, "elsewhere", False):
+                self._set_timer("check", self._now)
 
     def _check_ticks(self, upto: float = math.inf, wait: bool = True) -> None:
         """Check the final ticks up to ``upto``, in order. An online check

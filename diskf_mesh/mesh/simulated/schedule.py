@@ -61,19 +61,27 @@ class Trace:
         self.events = 0
         self.last = 0.0  # time of the last event
 
-    def add(self, t: float, who: str, what: str, key: str = "", payload: bytes | None = None) -> None:
+    def add(self, t: float, who: str, what: str, key: str = "", payload: bytes | None = None,
+            digest: bytes | None = None) -> None:
+        """One event; a payload is folded in as its length and its digest
+        (``digest``: ``payload_digest(payload)``, made once for a payload many receive)."""
         self.events += 1
         self.last = t
-        h = self._h
-        h.update(struct.pack("<d", t))
-        h.update(f"|{who}|{what}|{key}|".encode())
+        line = struct.pack("<d", t) + f"|{who}|{what}|{key}|".encode()
         if payload is not None:
-            h.update(struct.pack("<q", len(payload)))
-            h.update(payload)
+            if digest is None:
+                digest = payload_digest(payload)
+            line += struct.pack("<q", len(payload)) + digest
+        self._h.update(line)
         if self.lines is not None:
-            tail = "" if payload is None else f" {len(payload)}B {hashlib.blake2b(payload, digest_size=4).hexdigest()}"
+            tail = "" if payload is None else f" {len(payload)}B {digest[:4].hex()}"
             self.lines.append(f"{t:.6f} {who} {what} {key}{tail}")
 
     @property
     def digest(self) -> str:
         return self._h.hexdigest()
+
+
+def payload_digest(payload: bytes) -> bytes:
+    """What a trace folds in for a payload (16 bytes)."""
+    return hashlib.blake2b(payload, digest_size=16).digest()

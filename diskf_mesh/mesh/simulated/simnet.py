@@ -65,9 +65,10 @@ from diskf_mesh.mesh.protocol import events as ev
 from diskf_mesh.mesh.protocol.estimator import Steps
 from diskf_mesh.mesh.security.access import Access
 from diskf_mesh.mesh.wire.keys import matcher
-from diskf_mesh.mesh.simulated.schedule import Schedule, Trace
+from diskf_mesh.mesh.simulated.schedule import Schedule, Trace, payload_digest
 
 NO_LOSS = "**"
+SUMS_KEPT = 1 << 13  # payload digests kept for the trace (a few ticks' samples; one evicted is made again)
 
 
 @dataclass(frozen=True)
@@ -365,6 +366,7 @@ class SimNet:
         self._open = None         # the _Cast that may still take tokens
         self._holders = {}        # processes holding tokens (their order -> proc)
         self._labels = {}         # id(TokenBatch) -> (it, the digest of its keys for the trace)
+        self._sums = {}           # id(Sample) -> (it, its payload's digest for the trace), while in flight
         self._steps = Steps() if batch_steps else None
         self._work = []           # (proc, Work) held at this instant, in the order they were handed out
         self._working = set()     # the processes waiting for their Worked
@@ -507,7 +509,9 @@ class SimNet:
         t = self.sched.now
         who = proc.name
         if isinstance(event, ev.Sample):
-            self.trace.add(t, who, "sample", event.key, event.payload)
+            hit = self._sums.get(id(event))
+            self.trace.add(t, who, "sample", event.key, event.payload,
+                           hit[1] if hit is not None and hit[0] is event else None)
         elif isinstance(event, ev.Token):
             self.trace.add(t, who, "token+" if event.up else "token-", event.key)
         elif isinstance(event, ev.Timer):
@@ -760,9 +764,13 @@ class SimNet:
     def _publish(self, proc: _Proc, key: str, payload: bytes) -> None:
         if not proc.connected:
             return
-        self.trace.add(self.sched.now, repr(proc), "put", key, payload)
-        access = self.access
         event = ev.Sample(key, bytes(payload))
+        digest = payload_digest(event.payload)
+        self.trace.add(self.sched.now, repr(proc), "put", key, event.payload, digest)
+        if len(self._sums) > SUMS_KEPT:
+            self._sums.clear()
+        self._sums[id(event)] = (event, digest)
+        access = self.access
         for q, _expr in self._subs.match(key):
             if q is proc or not q.attached:
                 continue
