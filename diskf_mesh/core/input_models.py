@@ -117,8 +117,9 @@ def information_loglik(x, P, Y, Ji, U, u):
     u = H^T R^-1 y; 0 where nothing is measured (U = 0, u = 0).
     ``Y`` = P^-1 and ``Ji`` = (P^-1 + U)^-1 (``equations.information_pair``).
     """
-    g = u - mv(U, x)
-    quad = 2.0 * _dot(x, u) - _dot(x, mv(U, x)) + _dot(g, mv(Ji, g))
+    Ux = mv(U, x)
+    g = u - Ux
+    quad = 2.0 * _dot(x, u) - _dot(x, Ux) + _dot(g, mv(Ji, g))
     # log det(I + P U) = log det(P (Y + U)) = -log det(Y) - log det(Ji)
     if Y.shape == Ji.shape:  # both in one call (each matrix's own, bit for bit)
         logdet_Y, logdet_Ji = np.linalg.slogdet(np.stack([Y, Ji]))[1]

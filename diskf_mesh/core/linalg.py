@@ -113,10 +113,10 @@ def matmul_shared(L: np.ndarray, X: np.ndarray, R: np.ndarray | None = None) -> 
     product per L for all M of them ([X_1 ... X_M] side by side, then
     stacked), bit for bit np.matmul's (``tests/test_linalg_fast.py``;
     products with a single row or column are np.matmul's, as in
-    ``matmul_left``)."""
+    ``matmul_left``, and one agent's, faster in one call)."""
     batch, (M, k, c) = X.shape[:-3], X.shape[-3:]
     r = L.shape[-2]
-    if 1 in (r, k, c) or (R is not None and R.shape[-1] == 1):
+    if 1 in (r, k, c) or (R is not None and R.shape[-1] == 1) or math.prod(batch) == 1:  # one agent: one call
         LX = np.matmul(L, X)
         return LX if R is None else np.matmul(LX, R)
     side = np.ascontiguousarray(np.swapaxes(X, -3, -2)).reshape(batch + (k, M * c))  # (..., k, M c)
