@@ -76,11 +76,12 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
     from diskf_mesh.mesh.wire.keys import Keys
     from diskf_mesh.mesh.protocol.log import Log
     from diskf_mesh.mesh.simulated.simnet import Link
-    from diskf_mesh.mesh.simulated.simrun import SimPlan, simulate_run
+    from diskf_mesh.mesh.simulated.simrun import SimPlan, check_size, simulate_run
     from diskf_mesh.studies.experiment import format_table
     from sim.world import failure, finish_run, run_failed, run_timings, setup_run
 
     K, N = scn.steps, len(scn.agents)
+    check_size(scn)
     stages = Stages(K, quiet=args.quiet)
     stages.say(f"{scn.name}: {N} agents + world, {K} ticks, {spec.algorithm}: drawing the scenario's seed {args.seed}")
     run = setup_run(args, spec, scn, provenance.now())

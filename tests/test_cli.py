@@ -337,6 +337,20 @@ def test_generated_agent_count_over_the_memory_bound(tmp_path, capsys):
     assert time.monotonic() - t0 < 5
 
 
+def test_a_simulated_network_over_its_memory_bound_is_refused(tmp_path, capsys):
+    """10,000 random-geometric agents fit the engine's bound (``experiment``
+    runs them) but not the simulated network's: ``up --network simulated``
+    refuses them in one line, exit 2, before anything is written; 2,000
+    agents, whose run peaks near 2 GB, pass the check."""
+    from diskf_mesh.data.scenario import load_scenario
+    from diskf_mesh.mesh.simulated.simrun import check_size
+
+    out_path = tmp_path / "results.json"
+    assert_rejected(["up", "--network", "simulated", "--quiet", "--scenario", "random-geometric", "--agents", "10000",
+                     "--ticks", "20", "--json", out_path], "size", out_path, capsys)
+    check_size(load_scenario("random-geometric", agents=2000).with_overrides(steps=20))
+
+
 def test_too_many_seeds_refused_before_allocating(tmp_path, capsys):
     out_path = tmp_path / "results.json"
     assert_rejected(["experiment", "--quiet", "--seeds", "100000000", "--json", out_path], "size", out_path, capsys)

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import msgpack
 
 from diskf_mesh import estimators
+from diskf_mesh.core.errors import InputError
 from diskf_mesh.data.faults import FaultConfig
 from diskf_mesh.data.scenario import Scenario
 from diskf_mesh.data.trace import Trace
@@ -44,6 +45,35 @@ from diskf_mesh.mesh.simulated.simnet import Lease, Link, Outcome, SimNet
 from diskf_mesh.mesh.protocol.world_machine import WorldMachine, WorldTiming
 
 WORLD = "world"
+# Resident memory of a simulated run: a base, per agent (its machine, estimator, views) and per link
+# (a sender in an agent's largest neighbourhood: its window, roster entry, delivery state). Fitted on
+# random-geometric runs of 20 ticks (100, 1,000 and 2,000 agents: 72, 654 and 2,155 MB peak RSS,
+# docs/simnet.md); an over-estimate, as every agent is counted with the largest neighbourhood.
+SIM_BYTES_BASE = 64 * 2**20
+SIM_BYTES_PER_AGENT = 160 * 2**10
+SIM_BYTES_PER_LINK = 4300
+SIM_MEMORY_BOUND = 4 * 2**30  # above it a simulated run is refused before it starts
+
+
+def simulated_bytes(N: int, degree: int) -> int:
+    """About the peak resident memory of a simulated run of ``N`` agents
+    whose largest neighbourhood is ``degree`` agents."""
+    return SIM_BYTES_BASE + N * SIM_BYTES_PER_AGENT + N * min(degree, N) * SIM_BYTES_PER_LINK
+
+
+def check_size(scn: Scenario) -> None:
+    """``InputError`` when a simulated run of ``scn`` would need more than
+    ``SIM_MEMORY_BOUND`` bytes (``simulated_bytes``); the engine's own bound
+    (``Scenario.check_size``) is checked where the trace is drawn."""
+    N = len(scn.agents)
+    if simulated_bytes(N, N) <= SIM_MEMORY_BOUND:
+        return
+    degree = scn.largest_neighbourhood(scn.steps)
+    need = simulated_bytes(N, degree)
+    if need > SIM_MEMORY_BOUND:
+        raise InputError("size", f"a simulated run of {N} agents (up to {degree} in one neighbourhood) needs about "
+                                 f"{need / 2**30:.1f} GiB, over the simulated network's bound of "
+                                 f"{SIM_MEMORY_BOUND / 2**30:g} GiB; use fewer agents, or the engine (experiment)")
 
 
 def agent_pid(agent_id, twin: int = 0) -> str:
