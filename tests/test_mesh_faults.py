@@ -4,6 +4,7 @@ network. Every run completes (or ends as it must), the message counters add up,
 and the estimates are those of the in-process engine on what was delivered."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -186,6 +187,18 @@ def _agent_pid(run_id: str, i: int, timeout: float, every: float) -> int:
     raise AssertionError(f"agent {i} never started")
 
 
+@contextlib.contextmanager
+def _killed_at_the_end(proc):
+    """``proc`` (an ``up``) killed and reaped if it is still running when
+    the block ends, however it ends."""
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+
+
 @pytest.mark.parametrize("allow", [None, "1"])
 def test_up_names_the_child_that_died(tmp_path, allow):
     """An agent killed under ``up``: without ``--allow-missing`` up stops every
@@ -200,16 +213,12 @@ def test_up_names_the_child_that_died(tmp_path, allow):
                                 "--logs", str(tmp_path / "logs"), "--latency-ms", "25", "--insecure",  # plain: the
                                 *(["--allow-missing", allow] if allow else [])],  # test watches the tokens itself
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
+    with _killed_at_the_end(up_proc):
         victim = _agent_pid(run_id, 7, timeout=30, every=0.2)
         _wait_until_ready(run_id, 9, timeout=120)  # the run is about to start (a busy machine is slow to start)
         time.sleep(1)
         os.kill(victim, signal.SIGKILL)
         _, err = up_proc.communicate(timeout=150)
-    finally:
-        if up_proc.poll() is None:
-            up_proc.kill()
-            up_proc.communicate(timeout=10)
     row = json.loads((tmp_path / "r.json").read_text())["diskf"][SETTING]
     assert row["complete"] is False and "7" in row["missing"]
     if allow:
@@ -237,13 +246,9 @@ def test_up_an_agent_that_dies_before_it_is_ready(tmp_path, allow):
                                 "--json", str(tmp_path / "r.json"), "--logs", str(tmp_path / "logs"),
                                 *(["--allow-missing", allow] if allow else [])],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
+    with _killed_at_the_end(up_proc):
         os.kill(_agent_pid(run_id, 7, timeout=60, every=0.01), signal.SIGKILL)
         _, err = up_proc.communicate(timeout=120)
-    finally:
-        if up_proc.poll() is None:
-            up_proc.kill()
-            up_proc.communicate(timeout=10)
     row = json.loads((tmp_path / "r.json").read_text())["diskf"][SETTING]
     assert row["status"] == "incomplete" and list(row["missing"]) == (["7"] if allow else ["1", "2", "3", "4", "5",
                                                                                            "6", "7", "8", "9"])
