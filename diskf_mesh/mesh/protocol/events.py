@@ -82,6 +82,12 @@ Effects (what the process does):
                                              one process carries it out at once
                                              (``Work.alone``); the simulated network
                                              those of one instant together
+    HandOver(check, record, tick)            the world's final reports of a tick
+                                             to a check that runs elsewhere
+                                             (``check.submit(record, tick)``),
+                                             after the effects before it: the
+                                             check's process, woken, may take a
+                                             core, and the tick's puts go first
 
 A machine reads nothing that differs between two runs of one seed: its
 token nonce and any randomness come in through its constructor, so the
@@ -282,8 +288,18 @@ class Work:
             return e
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class HandOver:
+    check: object             # a check that runs elsewhere (``mesh.process.checker.CheckProcess``)
+    record: object            # the world's record (``WorldRecord``)
+    tick: int
+
+    def carry_out(self) -> None:
+        self.check.submit(self.record, self.tick)
+
+
 Effect = (Subscribe | WatchTokens | DeclareQueryable | Publish | DeclareToken | DropToken | SetTimer | CancelTimer
-          | Ask | AskTokens | Answer | Finish | Work)
+          | Ask | AskTokens | Answer | Finish | Work | HandOver)
 
 
 def at_once(machine, event, now: float) -> list:

@@ -748,6 +748,8 @@ class SimNet:
                 self._ask(proc, e)
             elif isinstance(e, ev.Answer):
                 self._answer(proc, e)
+            elif isinstance(e, ev.HandOver):
+                e.carry_out()
             elif isinstance(e, ev.Work):
                 self._work.append((proc, e))
                 self._working.add(proc)
