@@ -19,6 +19,14 @@ Events (what happened to the process):
                               one instant: ``Token(key, up)`` for each key, in
                               order (a shell that delivers many tokens to many
                               machines at once: the simulated network)
+    Arrivals(events)          samples that reached the process at one instant,
+                              each as ``read`` made it, in order: each one
+                              handled alone, in turn (a shell that delivers
+                              many samples to many machines at once: the
+                              simulated network). A machine that hands out
+                              ``Work`` on one of them takes the rest once its
+                              ``Worked`` is in, as it would take the next
+                              samples; ``waiting`` says how many it holds
     Timer(name)               a timer the machine set (``SetTimer``) fired
     Query(qid, key, payload)  a query on a key this process answers
     Reply(qid, payload)       the answer to a query this process made
@@ -113,6 +121,11 @@ class Token:
 class TokenBatch:
     keys: tuple
     up: bool
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Arrivals:
+    events: tuple
 
 
 @dataclass(frozen=True, slots=True)
