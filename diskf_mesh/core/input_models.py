@@ -187,51 +187,66 @@ def mix(w, z, Z, bounded=False):
         dz = z[..., :, None, :] - mean[..., None, :, :]                        # (..., M, J, k)
         wij = w[..., :, :, None, None]
         within = _ordered_sum(Z[..., :, None, :, :] * wij, -4)                  # (..., J, k, k)
-        spread = _ordered_sum((dz[..., :, None] * dz[..., None, :]) * wij, -4)
+        spread = _ordered_sum(_outer(dz) * wij, -4)
     elif (padded := _padded(w, PADDED_TERMS)) is not None:  # a few columns: as many terms each
         batch, J = w.shape[:-2], w.shape[-1]
         rows, wk, pad = padded                                                     # (T, columns)
-        zk = np.broadcast_to(z, batch + z.shape[-2:]).reshape(-1, k)[rows]          # (T, columns, k)
-        Zk = np.broadcast_to(Z, batch + Z.shape[-3:]).reshape(-1, k, k)[rows]      # (T, columns, k, k)
+        zk = np.take(_over(z, batch, 2).reshape(-1, k), rows, axis=0)                             # (T, columns, k)
+        Zk = np.take(_over(Z, batch, 3).reshape(-1, k, k), rows, axis=0)                          # (T, columns, k, k)
         mean = _sum_first(_left_out(wk[..., None] * zk, pad, 1))
         dz = zk - mean
         both = np.empty(Zk.shape[:2] + (2, k, k))                                  # within's terms, spread's
         wt = wk[..., None, None]
         np.multiply(Zk, wt, out=both[:, :, 0])
-        np.multiply(dz[..., :, None] * dz[..., None, :], wt, out=both[:, :, 1])
+        np.multiply(_outer(dz), wt, out=both[:, :, 1])
         sums = _sum_first(_left_out(both, pad, 3))
         mean = mean.reshape(batch + (J, k))
         within, spread = (sums[:, i].reshape(batch + (J, k, k)) for i in (0, 1))
     else:  # the terms of nonzero weight only, slot after slot (``_terms``)
         batch, J = w.shape[:-2], w.shape[-1]
         rows, wk, ends, back = _terms(w)
-        zk = np.broadcast_to(z, batch + z.shape[-2:]).reshape(-1, k)[rows]          # (terms, k)
-        Zk = np.broadcast_to(Z, batch + Z.shape[-3:]).reshape(-1, k, k)[rows]      # (terms, k, k)
+        zk = np.take(_over(z, batch, 2).reshape(-1, k), rows, axis=0)                             # (terms, k)
+        Zk = np.take(_over(Z, batch, 3).reshape(-1, k, k), rows, axis=0)                          # (terms, k, k)
         slots = list(zip([0] + ends[:-1], ends))                                   # slot t: terms start:end
-        mean = wk[:, None] * zk                                                    # every term's, then summed
+        mean = wk[:ends[0], None] * zk[:ends[0]]
         for start, end in slots[1:]:  # slot t adds to the end - start columns that have a t-th term
-            mean[:end - start] += mean[start:end]
-        mean = mean[:ends[0]]
-        column = np.concatenate([np.arange(end - start) for start, end in slots])  # each term's column
-        dz = zk - mean[column]
-        both = np.empty(Zk.shape[:1] + (2, k, k))                                  # within's terms, spread's
-        wt = wk[:, None, None]
-        np.multiply(Zk, wt, out=both[:, 0])
-        np.multiply(dz[:, :, None] * dz[:, None, :], wt, out=both[:, 1])
-        for start, end in slots[1:]:
-            both[:end - start] += both[start:end]
-        sums = both[:ends[0]]
+            mean[:end - start] += wk[start:end, None] * zk[start:end]
+        within = spread = None
+        for start, end in slots:
+            wt = wk[start:end, None, None]
+            dz = zk[start:end] - mean[:end - start]
+            a, b = Zk[start:end] * wt, _outer(dz) * wt
+            if within is None:
+                within, spread = a, b
+            else:
+                within[:end - start] += a
+                spread[:end - start] += b
         if len(back) > ends[0]:  # columns of no nonzero weight (``model_weights`` leaves none): zeros
             pad = len(back) - ends[0]
-            mean, sums = (np.concatenate([a, np.zeros((pad,) + a.shape[1:])]) for a in (mean, sums))
-        mean = mean[back].reshape(batch + (J, k))
-        sums = sums[back]
-        within, spread = (sums[:, i].reshape(batch + (J, k, k)) for i in (0, 1))
+            mean, within, spread = (np.concatenate([a, np.zeros((pad,) + a.shape[1:])]) for a in (mean, within, spread))
+        mean = np.take(mean, back, axis=0).reshape(batch + (J, k))
+        within, spread = (np.take(s, back, axis=0).reshape(batch + (J, k, k)) for s in (within, spread))
     if bounded:
         tw, ts = _trace(within), _trace(spread)
         over = ts > tw
         spread = spread * np.where(over, tw / np.where(over, ts, 1.0), 1.0)[..., None, None]
     return mean, sym(within + spread)
+
+
+def _over(a, batch: tuple, core: int):
+    """``a`` broadcast to ``batch`` + its ``core`` trailing axes (itself
+    where it has that shape: ``np.broadcast_to`` costs a few us a call)."""
+    shape = batch + a.shape[a.ndim - core:]
+    return a if a.shape == shape else np.broadcast_to(a, shape)
+
+
+def _outer(dz):
+    """dz_i dz_j for every (i, j) of the last axis of dz (..., k): (..., k, k),
+    each the one product dz[..., :, None] * dz[..., None, :] makes, from two
+    contiguous (..., k k) operands (broadcasting k-long rows runs numpy's
+    inner loop k entries at a time: 2-3x slower on a stack of 4-vectors)."""
+    k = dz.shape[-1]
+    return dz.repeat(k, axis=-1).reshape(dz.shape + (k,)) * dz[..., None, :].repeat(k, axis=-2)
 
 
 def _padded(w, most: int):
@@ -297,7 +312,7 @@ def _terms(w):
     count = nonzero.sum(axis=1)
     by = np.argsort(-count, kind="stable")
     count = count[by]
-    f = np.flatnonzero(nonzero[by])                                     # column after column, i in order
+    f = np.flatnonzero(np.take(nonzero, by, axis=0))                    # column after column, i in order
     col, i = np.divmod(f, M)
     t = np.arange(f.size) - (np.cumsum(count) - count)[col]             # the term's slot
     order = np.argsort(t.astype(np.int16), kind="stable")              # slot after slot, columns in order
@@ -486,8 +501,8 @@ def pair_predict(A, C, e, S, F, q):
     noise = _first_block(m)  # eta drives d_{k-1} only
     # A C and F S stacked, then one product with F^T for both
     AC, FS = matmul_left(A, C), np.matmul(F, S)
-    batch = np.broadcast_shapes(AC.shape[:-2], FS.shape[:-2])
-    stacked = np.concatenate([np.broadcast_to(a, batch + a.shape[-2:]) for a in (AC, FS)], axis=-2)
+    batch = AC.shape[:-2] if AC.shape[:-2] == FS.shape[:-2] else np.broadcast_shapes(AC.shape[:-2], FS.shape[:-2])
+    stacked = np.concatenate([_over(AC, batch, 2), _over(FS, batch, 2)], axis=-2)
     both = np.matmul(stacked, np.ascontiguousarray(F.swapaxes(-1, -2)))  # F^T contiguous: numpy's faster layout
     return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + q[..., None, None] * noise)
 
