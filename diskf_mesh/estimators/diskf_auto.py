@@ -59,7 +59,10 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    messages) by the joint Kalman update.
 4. fuse, weights: each model's likelihood of the neighbourhood's
    measurement, from U and u alone (``information_loglik``), updates the
-   model probabilities; the output is the mixture's mean and covariance.
+   model probabilities; the output is the mixture's mean and covariance
+   over the models of probability ``PRUNE`` or more
+   (``input_models.output_weights``): a model held at the floor whose
+   covariance is orders of magnitude larger does not widen it.
 
 With one first-order model in the bank it is ``diskf-r`` with that input
 model. Evidence accumulates over ticks in the model probabilities (the
@@ -197,7 +200,7 @@ class DISKFAuto(Estimator):
         e_k, C_k, S_k = eq.replace_marginal(x_s, P_s, e1, C_s, S1, x_k, P_k)
         mu = im.update_probabilities(c, loglik, FLOOR)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
-        zc, Zc = im.mix(mu[..., :, None], z, Z)
+        zc, Zc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z, Z)
         x, P, e, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
         d, S = e[..., :m], S[..., :m, :m]
         held = state.held | informed | relayed
@@ -244,7 +247,7 @@ class DISKFAuto(Estimator):
 
 NOISE_STEP = 0.1  # step of (NL1) (``core.noise``): the most a measured tick moves log r
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
-PRUNE = 1e-3  # mixing weights below it are dropped (``input_models.model_weights``)
+PRUNE = 1e-3  # mixing and output weights below it are dropped (``input_models.model_weights``, ``output_weights``)
 
 
 # the median of a chi-square of p = 1..16 degrees of freedom, scipy.stats.chi2.median's values to the last bit
