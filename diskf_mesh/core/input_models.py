@@ -233,6 +233,12 @@ def mix(w, z, Z, bounded=False):
     return mean, sym(within + spread)
 
 
+def mixture_mean(c, x):
+    """sum_j c_j x_j over the models' axis, in order (the same bits for any
+    batch shape). c: (..., M); x: (..., M, k). Returns (..., k)."""
+    return _ordered_sum(c[..., :, None] * x, -2)
+
+
 def _padded(w, most: int):
     """The nonzero weights of w (..., M, J), column by column, as many per
     column as the column with the most holds: (rows, wk, pad), each
