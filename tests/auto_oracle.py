@@ -150,8 +150,10 @@ def run_auto(trace, options, noise_step=0.2):
                 mu = c * np.exp(ll - ll.max())
                 mu = np.maximum(mu / mu.sum(), FLOOR)
                 mu = mu / mu.sum()
-                z = sum(mu[j] * zs[j] for j in range(M))
-                Z = sum(mu[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
+                kept = np.where(mu < PRUNE, 0.0, mu)  # the output: the models of probability PRUNE or more
+                kept = kept / kept.sum()
+                z = sum(kept[j] * zs[j] for j in range(M))
+                Z = sum(kept[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
                 held = a["held"] or bool(meas) or relayed
                 theta, last = a["theta"], a["last"]
                 if options.noise and trace.has[b, k - 1, i]:  # scored against the bank's predicted mean

@@ -169,13 +169,13 @@ def world(scenario: str, N: int, K: int, seed: int):
     return scn, simulate(scn, [seed])
 
 
-def run(case: Case, keep_lines: bool = False, batch: bool = True, views: bool = True):
+def run(case: Case, keep_lines: bool = False, batch: bool = True, views: bool = True, arrivals: bool = True):
     scn, trace = world(case.scenario, case.agents, case.ticks, case.seed)
     pairs = dict(case.links)
     plan = SimPlan(case.link, links=(lambda a, b: pairs.get((a, b))) if pairs else None,
                    faults=case.faults, twins=case.twins, late=dict(case.late), lease=case.lease,
                    world_timing=case.world_timing, agent_timing=case.agent_timing, max_time=case.bound,
-                   views=views)
+                   views=views, arrivals=arrivals)
     return simulate_run(scn, trace, case.algorithm, case.seed, plan=plan, faults=case.injected,
                         keep_lines=keep_lines, batch=batch)
 

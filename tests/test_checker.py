@@ -13,7 +13,7 @@ import pytest
 
 from diskf_mesh import estimators
 from diskf_mesh.mesh.process.checker import CheckFailed, CheckProcess
-from diskf_mesh.mesh.protocol import run_status
+from diskf_mesh.mesh.protocol import events, run_status, world_machine
 from diskf_mesh.mesh.simulated import simrun
 from test_simnet_liars import FROM, LIAR, OFFSET, RUN, dynamic, run  # noqa: F401 - the fixture
 
@@ -49,29 +49,45 @@ def test_a_check_answered_only_when_waited_for_cuts_the_liar_off_from_the_same_t
 
 class ElsewhereCheck(LateCheck):
     """A ``LateCheck`` that says it runs elsewhere (as ``CheckProcess``):
-    the world hands it each final tick at once, with no timer."""
+    the world hands it each final tick (``HandOver``), with no timer."""
 
     elsewhere = True
-    submitted = []  # (tick, every live agent's report of it in, tick + 1 opened yet)
+    submitted = []  # (tick, every live agent's report of it in, tick + 1 opened yet, a report of tick + 1 in yet)
 
     def submit(self, rec, k):
+        after = k < len(rec.live)
         ElsewhereCheck.submitted.append((k, bool(rec.reported[k - 1][rec.live[k - 1]].all()),
-                                         k < len(rec.live) and bool(rec.live[k].any())))
+                                         after and bool(rec.live[k].any()), after and bool(rec.reported[k].any())))
 
 
-def test_a_check_elsewhere_is_handed_each_final_tick_at_once_and_cuts_the_liar_off_from_the_same_tick(
+def test_a_check_elsewhere_is_handed_each_final_tick_after_the_next_ticks_puts_and_cuts_the_liar_off_from_the_same_tick(
         dynamic, monkeypatch):
     at_once = run(dynamic, start=FROM, offset=OFFSET)
     monkeypatch.setattr(simrun, "OnlineCheck", ElsewhereCheck)
     monkeypatch.setattr(ElsewhereCheck, "submitted", [])
     monkeypatch.setattr(LateCheck, "asked_early", 0)
+    effects = []  # the kinds of each event's effects that hand a tick over, in order
+    handle = world_machine.WorldMachine.handle
+
+    def watched(self, event, now):
+        out = handle(self, event, now)
+        if any(isinstance(e, events.HandOver) for e in out):
+            effects.append([type(e).__name__ for e in out])
+        return out
+
+    monkeypatch.setattr(world_machine.WorldMachine, "handle", watched)
     late = run(dynamic, start=FROM, offset=OFFSET)
     first = {}
-    for k, whole, next_open in ElsewhereCheck.submitted:
-        first.setdefault(k, (whole, next_open))
-    assert list(first) == list(range(1, late.record.reported.shape[0] + 1))
-    assert all(whole for whole, _ in first.values())  # handed over once its reports are final ...
-    assert not any(next_open for _, next_open in first.values())  # ... and at once: before the next tick opens
+    for k, whole, next_open, next_reported in ElsewhereCheck.submitted:
+        first.setdefault(k, (whole, next_open, next_reported))
+    K = late.record.reported.shape[0]
+    assert list(first) == list(range(1, K + 1))
+    assert all(whole for whole, _, _ in first.values())  # handed over once its reports are final ...
+    # ... in the event that made them so, after the next tick opened and before any of its reports came
+    assert all(next_open and not next_reported for k, (_, next_open, next_reported) in first.items() if k < K)
+    assert len(effects) >= K - 1
+    for kinds in effects:  # the last effects of their event: the next tick's puts go out first
+        assert "Publish" in kinds and kinds.index("HandOver") > max(i for i, e in enumerate(kinds) if e == "Publish")
     assert LateCheck.asked_early == 0  # no timer asks before the world must know
     assert late.record.quarantined == at_once.record.quarantined and len(late.record.quarantined) == 1
     for a, b in ((late.record.live, at_once.record.live), (late.record.x, at_once.record.x),

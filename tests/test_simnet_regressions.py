@@ -1,7 +1,8 @@
 """Schedules of the simulated network that once broke an invariant, each
 with what it found; every one must keep the invariants now. They were found
-with every watcher of a token hearing it as its own event (``views=False``),
-and their faults after the n-th event count those events: they replay so."""
+with every watcher of a token hearing it as its own event (``views=False``)
+and every sample as its own event (``arrivals=False``), and their faults
+after the n-th event count those events: they replay so."""
 from __future__ import annotations
 
 import numpy as np
@@ -92,7 +93,7 @@ FOUND = [
 
 @pytest.mark.parametrize("case", FOUND)
 def test_found_schedules_keep_the_invariants(case):
-    cases.check(case, cases.run(case, views=False))
+    cases.check(case, cases.run(case, views=False, arrivals=False))
 
 
 # a process test (a second agent 5 started while the run goes) left with exit 2 but the world never counted
@@ -105,7 +106,7 @@ TWIN_LEAVES = [p for p in FOUND if p.id in ("sweep-196-twins-unheard-by-each-oth
 
 @pytest.mark.parametrize("case", TWIN_LEAVES)
 def test_a_twin_that_leaves_is_counted_by_the_world(case):
-    r = cases.run(case, views=False)
+    r = cases.run(case, views=False, arrivals=False)
     (who, _), = case.twins
     left = [pid for pid, end in r.outcome.finishes.items() if "~" in pid and end.code == 2]
     assert left == [cases.agent_pid(who, 1)]
@@ -129,7 +130,7 @@ NO_STATUS = [50067, 50084, 50108, 50130, 50171, 50175, 50176, 50195, 50210, 5022
 @pytest.mark.parametrize("seed", NO_STATUS)
 def test_sweep_seeds_that_ended_with_no_status(seed):
     case = cases.from_seed(seed)
-    r = cases.run(case, views=False)
+    r = cases.run(case, views=False, arrivals=False)
     cases.check(case, r)
     assert r.status.status == "incomplete" and not r.record.reported.any()
     assert r.status.reason.startswith(r.world.finish.reason), (r.status.reason, r.world.finish)
@@ -143,7 +144,7 @@ def test_a_late_start_past_the_startup_timeout():
 
     case = cases.from_seed(50067)
     assert case.late == ((4, 60.01),) and not case.faults and case.injected is None
-    r = cases.run(case, views=False)
+    r = cases.run(case, views=False, arrivals=False)
     assert r.status.status == "incomplete"
     assert r.status.reason.startswith("after 30 s waiting for the agents: no agent process for id 4")
     scn, trace = cases.world(case.scenario, case.agents, case.ticks, case.seed)

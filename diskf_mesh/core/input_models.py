@@ -161,6 +161,21 @@ def model_weights(mu, Pi, prune=0.0):
     return c, w
 
 
+def output_weights(mu, prune: float):
+    """The weights of the bank's output mixture: the model probabilities
+    mu (..., M) with those below ``prune`` set to 0, renormalised, as
+    ``model_weights`` prunes the mixing weights. The output is then the
+    mixture of the models that hold the probability: a model at 10^-5 whose
+    covariance is a hundred to a thousand times the others' (a zero-mean
+    input at the sensor's scale, in a run without input) would otherwise
+    widen the output covariance in the directions the measurements pin
+    down least (the acceleration of the constant-acceleration model), and
+    the NEES falls under its band (docs/estimators.md). The largest
+    probability (1/M or more) is always kept."""
+    kept = np.where(mu < prune, 0.0, mu)
+    return kept / _sum_last(kept)[..., None]
+
+
 def mix(w, z, Z, bounded=False):
     """Gaussian mixture moments: for every column j of the weights w
     (..., M, J), the mean sum_i w_ij z_i and covariance

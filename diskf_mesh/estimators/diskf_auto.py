@@ -56,7 +56,10 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    messages) by the joint Kalman update.
 4. fuse, weights: each model's likelihood of the neighbourhood's
    measurement, from U and u alone (``information_loglik``), updates the
-   model probabilities; the output is the mixture's mean and covariance.
+   model probabilities; the output is the mixture's mean and covariance
+   over the models of probability ``PRUNE`` or more
+   (``input_models.output_weights``): a model held at the floor whose
+   covariance is orders of magnitude larger does not widen it.
 5. fuse, noise (``[estimator.auto] noise``): on a tick the agent measured,
    it learns how much noisier, or calmer, its own sensor is than stated
    (``core.noise``: a scale r of its R, one step of a stochastic
@@ -206,7 +209,7 @@ class DISKFAuto(Estimator):
             theta, last = noise.track(theta, last, im.mixture_mean(c, x_s), own.P_pred, state.y, self.sensors.H,
                                       self.sensors.R, self.sensors.p, state.has, self.median, NOISE_STEP)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
-        zc, Zc = im.mix(mu[..., :, None], z, Z)
+        zc, Zc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z, Z)
         x, P, e, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
         d, S = e[..., :m], S[..., :m, :m]
         held = state.held | informed | relayed
@@ -253,7 +256,7 @@ class DISKFAuto(Estimator):
 
 NOISE_STEP = 0.2  # step of (NL1) (``core.noise``): the most a measured tick moves log r
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
-PRUNE = 1e-3  # mixing weights below it are dropped (``input_models.model_weights``)
+PRUNE = 1e-3  # mixing and output weights below it are dropped (``input_models.model_weights``, ``output_weights``)
 
 
 # the median of a chi-square of p = 1..16 degrees of freedom, scipy.stats.chi2.median's values to the last bit

@@ -41,7 +41,7 @@ import threading
 import time
 
 from diskf_mesh.mesh.protocol.events import (FREEZE_S, Answer, Ask, AskTokens, CancelTimer, DeclareQueryable, DeclareToken,
-                                    DropToken, Finish, Interrupt, Publish, Query, Reply, SetTimer, Subscribe,
+                                    DropToken, Finish, HandOver, Interrupt, Publish, Query, Reply, SetTimer, Subscribe,
                                     Timer, Token, Tokens, WatchTokens, Woke, Work, Worked)
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.process.transport import Transport
@@ -146,6 +146,8 @@ class Shell:
             elif isinstance(e, (AskTokens, DeclareToken, DropToken)):  # the main thread, off the lock
                 self._asks.append(e)
                 self._cv.notify_all()
+            elif isinstance(e, HandOver):
+                e.carry_out()
             elif isinstance(e, Finish):
                 self._finish = e
                 self._cv.notify_all()

@@ -82,6 +82,7 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import math
@@ -97,7 +98,7 @@ from diskf_mesh.estimators.base import Estimator
 from diskf_mesh.mesh.protocol import clock as realtime
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.estimator import AgentEstimator, neighbours
-from diskf_mesh.mesh.protocol.events import (FREEZE_S, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt,
+from diskf_mesh.mesh.protocol.events import (FREEZE_S, Arrivals, Ask, AskTokens, DeclareToken, DropToken, Finish, Interrupt,
                                              MeasurementArrived, MessageArrived, Publish, Reply, Sample, SetTimer,
                                              StopArrived, Subscribe, TickArrived, Timer, Token, TokenBatch, Tokens,
                                              Unreadable, WatchTokens, Woke, Work, Worked)
@@ -146,6 +147,7 @@ class AgentMachine:
     worked on so far."""
 
     batches_tokens = True  # takes ``TokenBatch`` (the simulated network's casts of many tokens)
+    batches_arrivals = True  # takes ``Arrivals`` (the simulated network's samples of one instant)
 
     def __init__(self, scn: Scenario, agent_id: int, estimator: type[Estimator], keys: Keys, nonce: str,
                  timing: AgentTiming = AgentTiming(), faults: FaultConfig | FaultModel | None = None,
@@ -221,6 +223,7 @@ class AgentMachine:
         self.collecting = False   # tick k is open: own message out, neighbours' being collected
         self.own = None           # this agent's message of tick k while collecting
         self._work = None         # the Work handed out, until its Worked comes back
+        self._waiting = collections.deque()  # arrivals of an ``Arrivals`` not taken yet (a Work came first)
         self._closing = None      # (heard, rejected, fused, failed) of the tick being fused
         self.own_digest = b""     # ... the digest of its payload as published (in the report)
         self.deadline = math.inf  # end of the collection of tick k
@@ -251,6 +254,11 @@ class AgentMachine:
         takes (``mesh.protocol.intake``: decoded once, at the edge)."""
         return self.intake.read(key, payload)
 
+    def read_all(self, samples) -> tuple:
+        """``read`` of each of ``samples`` (``Sample`` events), in order:
+        what ``Arrivals`` carries."""
+        return self.intake.read_all(samples)
+
     def handle(self, event, now: float) -> list:
         """Take in one event at ``now`` (a sample as ``read`` made it);
         returns the effects, in order."""
@@ -261,6 +269,10 @@ class AgentMachine:
         if kind in ARRIVALS:
             if self._on_arrival(event, now):
                 self._step(now)
+            return out
+        if kind is Arrivals:
+            self._waiting.extend(event.events)
+            self._take_arrivals(now)
             return out
         if kind is Token:
             self._on_token(event.key, event.up, now)
@@ -291,7 +303,34 @@ class AgentMachine:
             self._finish("interrupted", FAILED, f"stopped by {event.why}")
             return out
         self._step(now)
+        if self._waiting:
+            self._take_arrivals(now)
         return out
+
+    @property
+    def waiting(self) -> int:
+        """Arrivals of an ``Arrivals`` event not taken yet: a step handed
+        out as ``Work`` on an earlier one holds them until its ``Worked``
+        (or the process finished: they never will be)."""
+        return len(self._waiting)
+
+    def _take_arrivals(self, now: float) -> None:
+        """Take the waiting arrivals in order, each as ``handle`` takes one
+        alone, until a step is handed out as ``Work`` or the agent finishes."""
+        waiting = self._waiting
+        while waiting and self._work is None and self.finish is None:
+            if self._collecting(now) and self.receiver.on_messages(waiting, self.linked, now):
+                self._step(now)  # it closes the tick if the last message taken was the last one missing
+            elif self._on_arrival(waiting.popleft(), now):
+                self._step(now)
+
+    def _collecting(self, now: float) -> bool:
+        """Whether tick k is open and nothing but its neighbours' messages
+        would close it now: a step after each of them changes nothing until
+        the last one missing is in, so a run of them may be taken in one
+        call (``Receiver.on_messages``) and stepped after."""
+        return (self.collecting and self.est is not None and self.stopped is None and now < self.deadline
+                and self.receiver.tick == self.k and self.phase != "leaving" and not any(j > self.k for j in self.ticks))
 
     # ======================================================================
     # one tick, in order: the world's tick and measurement, open, collect, close

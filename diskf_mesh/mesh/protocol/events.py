@@ -19,6 +19,14 @@ Events (what happened to the process):
                               one instant: ``Token(key, up)`` for each key, in
                               order (a shell that delivers many tokens to many
                               machines at once: the simulated network)
+    Arrivals(events)          samples that reached the process at one instant,
+                              each as ``read`` made it, in order: each one
+                              handled alone, in turn (a shell that delivers
+                              many samples to many machines at once: the
+                              simulated network). A machine that hands out
+                              ``Work`` on one of them takes the rest once its
+                              ``Worked`` is in, as it would take the next
+                              samples; ``waiting`` says how many it holds
     Timer(name)               a timer the machine set (``SetTimer``) fired
     Query(qid, key, payload)  a query on a key this process answers
     Reply(qid, payload)       the answer to a query this process made
@@ -74,6 +82,12 @@ Effects (what the process does):
                                              one process carries it out at once
                                              (``Work.alone``); the simulated network
                                              those of one instant together
+    HandOver(check, record, tick)            the world's final reports of a tick
+                                             to a check that runs elsewhere
+                                             (``check.submit(record, tick)``),
+                                             after the effects before it: the
+                                             check's process, woken, may take a
+                                             core, and the tick's puts go first
 
 A machine reads nothing that differs between two runs of one seed: its
 token nonce and any randomness come in through its constructor, so the
@@ -107,6 +121,11 @@ class Token:
 class TokenBatch:
     keys: tuple
     up: bool
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Arrivals:
+    events: tuple
 
 
 @dataclass(frozen=True, slots=True)
@@ -269,8 +288,18 @@ class Work:
             return e
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class HandOver:
+    check: object             # a check that runs elsewhere (``mesh.process.checker.CheckProcess``)
+    record: object            # the world's record (``WorldRecord``)
+    tick: int
+
+    def carry_out(self) -> None:
+        self.check.submit(self.record, self.tick)
+
+
 Effect = (Subscribe | WatchTokens | DeclareQueryable | Publish | DeclareToken | DropToken | SetTimer | CancelTimer
-          | Ask | AskTokens | Answer | Finish | Work)
+          | Ask | AskTokens | Answer | Finish | Work | HandOver)
 
 
 def at_once(machine, event, now: float) -> list:

@@ -208,6 +208,11 @@ class Guard:
             return self._reject(sender, *reason, wm.tick if inside and reason[0] != ERROR else None)
         return wm
 
+    def read_how(self) -> int:
+        """The ``Shared.how`` of what ``read`` depends on besides the payload
+        and the key (with ``shared`` only)."""
+        return self._shared_how(self.config)
+
     def _shared_how(self, c: GuardConfig) -> int:
         """What a payload's decode and checks depend on besides the payload
         and its sender: this run's shapes and limits (not the receiver's

@@ -22,7 +22,8 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
-from diskf_mesh.mesh.protocol.events import MeasurementArrived, Sample, StopArrived, TickArrived, Unreadable
+from diskf_mesh.mesh.protocol.events import (MeasurementArrived, MessageArrived, Sample, StopArrived, TickArrived,
+                                             Unreadable)
 from diskf_mesh.mesh.protocol.guard import Guard
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.wire import codec as wire
@@ -62,6 +63,29 @@ class Intake:
             return Unreadable(kind, e.reason, e.detail)
         finally:
             self.prof.end("decode")
+
+    def read_all(self, samples) -> tuple:
+        """``read`` of each of ``samples`` (``Sample`` events), in order. A
+        neighbour's message reads the same at every receiver that shares
+        this guard's ``shared`` (its sender, decode and checks: ``Guard.read``;
+        the receiver's own id is ignored by ``Guard.judge`` before its decode
+        is looked at), so its event is made once per ``Sample`` for all of
+        them."""
+        shared = self.guard.shared
+        if shared is None:
+            return tuple([self.read(s.key, s.payload) for s in samples])
+        memo = shared.reads(self.guard.read_how())
+        out = []
+        for s in samples:
+            hit = memo.get(id(s))
+            if hit is None or hit[0] is not s:
+                e = self.read(s.key, s.payload)
+                if type(e) is MessageArrived and e.sender != self.me:
+                    shared.remember(memo, s, e)
+                out.append(e)
+            else:
+                out.append(hit[1])
+        return tuple(out)
 
     def _tick(self, payload: bytes):
         """The world's tick, decoded once per payload (with ``shared``: for every receiver)."""

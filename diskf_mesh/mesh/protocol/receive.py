@@ -165,6 +165,41 @@ class Receiver:
         self._link(wm, now)
         return True
 
+    def on_messages(self, arrivals, links, now: float = 0.0) -> int:
+        """Take from the front of the deque ``arrivals`` the messages that
+        ``on_message`` would each put straight into the inbox, held for
+        fusion at the current tick, in one call: decoded and passing their
+        checks, of the current tick, from distinct linked senders not heard
+        at that tick yet, with no fault model on the link; how many (0: the
+        first one is not such a message, or the inbox would not hold a
+        message of that tick now). Counted and held as ``on_message``
+        counts and holds each one."""
+        tick = self.tick
+        linked = links.get(tick)
+        if self.faults is not None or linked is None or not self.guard.in_window(tick, tick) \
+                or not self.inbox.open(tick, now):
+            return 0
+        seen = self.inbox.seen(tick)
+        me, taken = self.me, {}
+        for a in arrivals:
+            if type(a) is not MessageArrived:
+                break
+            wm, s = a.message, a.sender
+            if type(wm) is not wire.WireMessage or a.problem is not None or wm.tick != tick or s == me \
+                    or s not in linked or s in seen or s in taken:
+                break
+            taken[s] = wm
+        n = len(taken)
+        for _ in range(n):
+            arrivals.popleft()
+        if n:
+            c = self.counters
+            c.sent += n
+            c.received += n
+            self.inbox.hold(tick, {s: wm.message for s, wm in taken.items()})
+            self._digests.setdefault(tick, {}).update({s: wm.digest for s, wm in taken.items()})
+        return n
+
     def release(self, tick: int, linked, now: float = 0.0) -> None:
         """The world's tick ``tick`` is in (at ``now``): what waited for it
         goes on a link (a sender in ``linked``) or is out of range."""
@@ -336,12 +371,28 @@ class Inbox:
             c.duplicate += 1
             return "duplicate"
         seen.add(sender)
-        if self._closed or tick <= self._closed_through or (
-                self._due and tick in self._due and now > self._due[tick]):
+        if not self.open(tick, now):
             c.late += 1
             return "late"
         self._held.setdefault(tick, {})[sender] = message
         return "held"
+
+    def open(self, tick: int, now: float) -> bool:
+        """Whether a copy of ``tick`` arriving at ``now`` from a sender not
+        seen at ``tick`` is held (``offer``), not late."""
+        return not (self._closed or tick <= self._closed_through or (
+            self._due and tick in self._due and now > self._due[tick]))
+
+    def seen(self, tick: int):
+        """The senders of ``tick`` arrived so far (read-only, not copied)."""
+        return self._seen.get(tick, _NONE)
+
+    def hold(self, tick: int, messages: dict) -> None:
+        """``offer`` of every {sender: message} of ``tick``, each the first
+        copy of its sender, while ``tick`` is ``open``: all held."""
+        self.counters.arrived += len(messages)
+        self._seen.setdefault(tick, set()).update(messages)
+        self._held.setdefault(tick, {}).update(messages)
 
     def take(self, tick: int, linked) -> list:
         """[(sender, message)] of ``tick`` from ``linked`` senders, by sender id."""

@@ -1,5 +1,5 @@
-"""What the receivers of one payload may share: its decode, and the checks
-that depend on the payload alone.
+"""What the receivers of one payload may share: its decode, the checks
+that depend on the payload alone, and the event a sample reads as.
 
 Over zenoh each agent process decodes what it receives. On the simulated
 network (``mesh.simulated``) one published payload reaches many machines in
@@ -29,6 +29,20 @@ class Shared:
         self.keep = keep
         self._memo: dict = {}
         self._hows: dict = {}
+        self._reads: dict = {}
+
+    def reads(self, how: int) -> dict:
+        """The events read from samples under ``how`` (``remember``): {id(sample): (sample, event)}."""
+        memo = self._reads.get(how)
+        if memo is None:
+            memo = self._reads[how] = {}
+        return memo
+
+    def remember(self, memo: dict, sample, event) -> None:
+        """``event`` is what ``sample`` reads as (the newest ``keep`` kept)."""
+        if len(memo) >= self.keep:
+            del memo[next(iter(memo))]
+        memo[id(sample)] = (sample, event)
 
     def how(self, what: tuple) -> int:
         """A small int for ``what`` (a tuple of settings, hashed once here)."""

@@ -57,9 +57,11 @@ A run, in the order of this module:
                engine; an agent it proves lied is cut off: no later tick
                counts it live (``WorldRecord.quarantined``). A check that
                runs elsewhere (``mesh.process.checker``) is handed tick k
-               as tick k + 1 opens, with no timer, and may answer later:
-               in lockstep the world waits for it only before tick k + 2
-               opens, which cuts a liar off from the same tick.
+               (``HandOver``, the last effect of the event that made it
+               final: after tick k + 1's puts), with no timer, and may
+               answer later: in lockstep the world waits for it only
+               before tick k + 2 opens, which cuts a liar off from the
+               same tick.
 
 Observers (the recorder, the progress callback, the profile, the log) are
 called as the run goes; they never feed back into the machine.
@@ -81,7 +83,7 @@ from diskf_mesh.mesh.protocol import rejoin
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.protocol.estimator import neighbours
 from diskf_mesh.mesh.protocol.events import (FREEZE_S, AskTokens, Answer, CancelTimer, DeclareQueryable, DeclareToken, Finish,
-                                    Interrupt, Publish, Query, Sample, SetTimer, Subscribe, Timer, Token, Tokens,
+                                    HandOver, Interrupt, Publish, Query, Sample, SetTimer, Subscribe, Timer, Token, Tokens,
                                     WatchTokens, Woke)
 from diskf_mesh.mesh.wire.keys import Keys, nonce as nonce_of
 from diskf_mesh.mesh.protocol.log import Log
@@ -168,6 +170,7 @@ class WorldMachine:
         self.online, self.verdicts = online, verdicts
         self._quarantined = {}         # id -> the online check's finding that cut it off
         self._unchecked = []           # ticks whose reports are final, not checked yet (timer "check")
+        self._handed = 0               # the last tick handed to a check that runs elsewhere (``HandOver``)
         self._now = 0.0                # the time of the event being handled
         self.keys, self.nonce, self.timing = keys, nonce, timing
         self.allow_missing = allow_missing
@@ -261,6 +264,7 @@ class WorldMachine:
         elif isinstance(event, Interrupt):
             self._interrupt(event.why, now)
         self._check(now)
+        self._hand_over()
         out, self._out = self._out, []
         return out
 
@@ -879,22 +883,35 @@ class WorldMachine:
         """Tick k's reports are final: check it once the effects of this
         event are out (timer ``check`` at once), so the next tick's
         messages go first; at the latest before tick k + 2 opens. A check
-        that runs elsewhere (``online.elsewhere``) needs no timer: the next
-        tick's opening hands it tick k (``_check_ticks``), and no second
+        that runs elsewhere (``online.elsewhere``) needs no timer: this
+        event's last effect hands it tick k (``_hand_over``), and no second
         thread of the world wakes each tick only to hand it over."""
         if self.online is not None:
             self._unchecked.append(k)
             if not getattr(self.online, "elsewhere", False):
                 self._set_timer("check", self._now)
 
+    def _hand_over(self) -> None:
+        """A check that runs elsewhere gets each final tick not handed over
+        yet, as the last effects of the event (``HandOver``): the next
+        tick's puts go out before its process wakes."""
+        if self._unchecked and self._unchecked[-1] > self._handed and getattr(self.online, "elsewhere", False):
+            for k in self._unchecked:
+                if k > self._handed:
+                    self._emit(HandOver(self.online, self.record, k))
+            self._handed = self._unchecked[-1]
+
     def _check_ticks(self, upto: float = math.inf, wait: bool = True) -> None:
-        """Check the final ticks up to ``upto``, in order. An online check
+        """Check the final ticks up to ``upto``, in order (each handed to
+        the check first, if ``HandOver`` has not yet). An online check
         that runs elsewhere (``online.result`` None: not done yet) is only
         waited for with ``wait``: the timer ``check`` of a lockstep tick
         waits for none while the next tick is open, since its finding
         counts from the same tick on when it is taken at that tick's end
         (``_open_tick`` waits) as when it is taken at once."""
         for k in self._unchecked:
+            if k > upto:
+                break
             self.online.submit(self.record, k)
         while self._unchecked and self._unchecked[0] <= upto:
             if not self._check_tick(self._unchecked[0], wait):

@@ -170,7 +170,7 @@ class _Proc:
     """One incarnation of a process."""
 
     __slots__ = ("pid", "identity", "inc", "factory", "machine", "state", "connected", "backlog", "watches",
-                 "tokens", "timers", "counts", "paused_at", "pause_serial", "order", "name", "view")
+                 "tokens", "timers", "counts", "paused_at", "pause_serial", "order", "name", "view", "arriving")
 
     def __init__(self, pid, identity, inc, factory, order):
         self.pid, self.identity, self.inc, self.factory, self.order = pid, identity, inc, factory, order
@@ -186,6 +186,7 @@ class _Proc:
         self.view = None          # the _View it shares (its counts are the view's), if any
         self.paused_at = 0.0
         self.pause_serial = 0
+        self.arriving = ()        # the samples of the last Arrivals it was handed
 
     @property
     def attached(self) -> bool:
@@ -318,13 +319,35 @@ class _Cast:
         self.view, self.t, self.up, self.keys, self.serial = view, t, up, [], view.joins
 
 
+class _Fan:
+    """Samples that arrive at one time, sent one after another with nothing
+    else due at that time scheduled between them: what reaches one
+    receiver goes to it as one batch (``Arrivals``), the receivers in the
+    order they were first sent to, each one's samples in the order sent."""
+
+    __slots__ = ("t", "sends")
+
+    def __init__(self, t: float):
+        self.t, self.sends = t, []  # (receivers, Sample, its tag in the trace), in the order sent
+
+
+class _Batch:
+    """A receiver's samples of one ``_Fan``, in order, until it handles
+    them, with their tags in the trace (key and payload digest)."""
+
+    __slots__ = ("samples", "tags")
+
+    def __init__(self, samples: list, tags: list):
+        self.samples, self.tags = samples, tags
+
+
 class SimNet:
     """The world and agents of a run as machines on one virtual network."""
 
     def __init__(self, seed: int, link: Link = Link(), links: Callable[[str, str], Link | None] | None = None,
                  policy: dict | None = None, lease: Lease = Lease(), keep_lines: bool = False,
                  max_time: float = 3600.0, max_events: int = 50_000_000, views: bool = True,
-                 batch_steps: bool = True):
+                 batch_steps: bool = True, arrivals: bool = True):
         """``links(sender pid, receiver pid)``: a link other than ``link``
         (None: ``link``); ``policy``: the run's ``access_control``
         (``credentials.access_control``; None: no access control).
@@ -332,7 +355,10 @@ class SimNet:
         and watch the same tokens share one view of them (``_View``) where
         every link has one constant delay; False: every process its own.
         ``batch_steps``: the estimator steps held at one instant run
-        together (``Steps``); False: each alone."""
+        together (``Steps``); False: each alone. ``arrivals``: the samples
+        that reach a machine taking ``Arrivals`` (``batches_arrivals``) at
+        one instant come as one such event (``_Fan``); False: one event
+        each."""
         self.seed = int(seed)
         ss = np.random.SeedSequence(self.seed)
         net, boots = ss.spawn(2)
@@ -370,6 +396,9 @@ class SimNet:
         self._steps = Steps() if batch_steps else None
         self._work = []           # (proc, Work) held at this instant, in the order they were handed out
         self._working = set()     # the processes waiting for their Worked
+        self._fans = arrivals
+        self._fan = None          # the _Fan that may still take samples
+        self._put_memo = {}       # (sender identity, key) -> (the routes' match, [receivers the rules let it reach])
 
     # -- the run's processes and fault plan ---------------------------------
     def add(self, pid: str, factory: Factory, identity: str | None = None, at: float = 0.0) -> None:
@@ -393,8 +422,12 @@ class SimNet:
         """Schedule ``item``; an open cast takes no more tokens once something
         else reaches one of its members at its time (each member's order stays)."""
         c = self._open
-        if c is not None and max(t, self.sched.now) == c.t and (item[0] != "deliver" or item[1].view is c.view):
+        if c is not None and max(t, self.sched.now) == c.t and item[0] != "fan" and (
+                item[0] != "deliver" or item[1].view is c.view):
             self._open = None
+        f = self._fan
+        if f is not None and max(t, self.sched.now) == f.t:
+            self._fan = None
         self.sched.at(t, item)
 
     # -- running --------------------------------------------------------------
@@ -430,7 +463,7 @@ class SimNet:
         if head is None or head[0] > self.sched.now:
             return True
         item = head[1]
-        return item[0] not in ("deliver", "timer") or item[1] in self._working
+        return item[0] not in ("deliver", "timer", "fan") or item[1] in self._working
 
     def _carry_out(self) -> None:
         """Run the held steps (together, or each alone) and hand each machine
@@ -477,6 +510,8 @@ class SimNet:
             self._tokens_now(*item[1:])
         elif what == "cast":
             self._cast_out(item[1])
+        elif what == "fan":
+            self._fan_out(item[1])
 
     def _deliver(self, proc: _Proc, event, local: bool = False, timer: int | None = None) -> None:
         """``local``: from the process itself (a timer, its own token, a
@@ -486,10 +521,16 @@ class SimNet:
             return
         if proc.state != "up" or not (local or proc.connected):
             if isinstance(event, ev.Sample):
-                self.lost += 1
-                self.lost_samples.append((proc.pid, event.payload))
+                self._lose(proc, (event,))
+            elif type(event) is _Batch:
+                self._lose(proc, event.samples)
             return
         self._handle(proc, event)
+
+    def _lose(self, proc: _Proc, samples) -> None:
+        """``samples`` sent to ``proc`` never reach its machine."""
+        self.lost += len(samples)
+        self.lost_samples.extend((proc.pid, e.payload) for e in samples)
 
     def _handle(self, proc: _Proc, event) -> None:
         if proc in self._working:  # its step first (a backlog after a pause, a cast)
@@ -498,7 +539,13 @@ class SimNet:
         self._log(proc, event)
         try:
             machine = proc.machine
-            effects = machine.handle(machine.read(event.key, event.payload) if type(event) is ev.Sample else event, now)
+            kind = type(event)
+            if kind is ev.Sample:
+                event = machine.read(event.key, event.payload)
+            elif kind is _Batch:
+                proc.arriving = event.samples
+                event = ev.Arrivals(machine.read_all(event.samples))
+            effects = machine.handle(event, now)
         except Exception as e:
             raise SimError(f"seed {self.seed}: {proc!r} raised {type(e).__name__} at t={now:.6f} on "
                            f"{_describe(event)} (event {self._events}; SimNet(seed={self.seed}) with the same "
@@ -509,9 +556,7 @@ class SimNet:
         t = self.sched.now
         who = proc.name
         if isinstance(event, ev.Sample):
-            hit = self._sums.get(id(event))
-            self.trace.add(t, who, "sample", event.key, event.payload,
-                           hit[1] if hit is not None and hit[0] is event else None)
+            self.trace.add(t, who, "sample", event.key, event.payload, self._sum(event))
         elif isinstance(event, ev.Token):
             self.trace.add(t, who, "token+" if event.up else "token-", event.key)
         elif isinstance(event, ev.Timer):
@@ -526,8 +571,15 @@ class SimNet:
             self.trace.add(t, who, f"tokens {event.qid}", " ".join(event.keys))
         elif isinstance(event, ev.TokenBatch):
             self.trace.add(t, who, "tokens+" if event.up else "tokens-", self._label(event))
+        elif type(event) is _Batch:
+            self.trace.add(t, who, f"samples {len(event.samples)}", "", b"".join(event.tags))
         else:
             self.trace.add(t, who, type(event).__name__)
+
+    def _sum(self, event: ev.Sample) -> bytes:
+        """The digest of a sample's payload, made once for all its receivers."""
+        hit = self._sums.get(id(event))
+        return hit[1] if hit is not None and hit[0] is event else payload_digest(event.payload)
 
     # -- processes --------------------------------------------------------------
     def _boot(self, pid: str) -> None:
@@ -580,6 +632,9 @@ class SimNet:
         was_attached = proc.attached
         self._running -= 1
         proc.state = state
+        left = getattr(proc.machine, "waiting", 0)
+        if left:  # the rest of its last Arrivals never reached it
+            self._lose(proc, proc.arriving[-left:])
         proc.timers.clear()
         proc.backlog.clear()
         self._leave(proc)
@@ -693,6 +748,8 @@ class SimNet:
                 self._ask(proc, e)
             elif isinstance(e, ev.Answer):
                 self._answer(proc, e)
+            elif isinstance(e, ev.HandOver):
+                e.carry_out()
             elif isinstance(e, ev.Work):
                 self._work.append((proc, e))
                 self._working.add(proc)
@@ -757,9 +814,47 @@ class SimNet:
             copies = 2 if link.duplicate and rng.random() < link.duplicate else 1
             for _ in range(copies):
                 held = bool(link.reorder and rng.random() < link.reorder)
-                self._at(self._arrival(a, b, link, held), ("deliver", b, event, False))
+                self._reach(self._arrival(a, b, link, held), [b], event)
             return
-        self._at(self._arrival(a, b, link), ("deliver", b, event, False))
+        self._reach(self._arrival(a, b, link), [b], event)
+
+    def _reach(self, t: float, receivers: list, event) -> None:
+        """``event`` reaches each of ``receivers`` at ``t``: a sample in the
+        open ``_Fan`` of that time (a new one if there is none)."""
+        if not (self._fans and type(event) is ev.Sample):
+            for b in receivers:
+                self._at(t, ("deliver", b, event, False))
+            return
+        f = self._fan
+        if f is None or f.t != t:
+            f = _Fan(t)
+            self._at(t, ("fan", f))
+            self._fan = f
+        c = self._open
+        if c is not None and c.t == t and any(b.view is c.view for b in receivers):
+            self._open = None  # the cast's members have this sample first
+        f.sends.append((receivers, event, self._sum(event) + event.key.encode()))
+
+    def _fan_out(self, f: _Fan) -> None:
+        """A fan's samples arrive: each receiver's as one batch, if its
+        machine takes ``Arrivals``; one by one otherwise."""
+        if self._fan is f:
+            self._fan = None
+        by = {}
+        for receivers, event, tag in f.sends:
+            for b in receivers:
+                got = by.get(b)
+                if got is None:
+                    by[b] = ([event], [tag])
+                else:
+                    got[0].append(event)
+                    got[1].append(tag)
+        for b, (samples, tags) in by.items():
+            if len(samples) > 1 and getattr(b.machine, "batches_arrivals", False):
+                self._deliver(b, _Batch(samples, tags))
+            else:
+                for e in samples:
+                    self._deliver(b, e)
 
     def _publish(self, proc: _Proc, key: str, payload: bytes) -> None:
         if not proc.connected:
@@ -770,8 +865,25 @@ class SimNet:
         if len(self._sums) > SUMS_KEPT:
             self._sums.clear()
         self._sums[id(event)] = (event, digest)
+        hit = self._subs.match(key)
+        if self._links is None and not self.link.faults and not self.link.jitter:  # one link for all: at once
+            memo = self._put_memo.get((proc.identity, key))
+            if memo is None or memo[0] is not hit:
+                if len(self._put_memo) > 100_000:
+                    self._put_memo.clear()
+                access = self.access
+                may = [access.put(proc.identity, q.identity, key) if access.enabled else True for q, _ in hit]
+                memo = self._put_memo[(proc.identity, key)] = (hit, [q for (q, _), ok in zip(hit, may) if ok],
+                                                                [q for (q, _), ok in zip(hit, may) if not ok])
+            refused = sum(1 for q in memo[2] if q is not proc and q.attached)
+            if refused:
+                self.refused["put"] = self.refused.get("put", 0) + refused
+            receivers = [q for q in memo[1] if q is not proc and q.attached]
+            if receivers:
+                self._reach(self._arrival(proc, proc, self.link), receivers, event)
+            return
         access = self.access
-        for q, _expr in self._subs.match(key):
+        for q, _expr in hit:
             if q is proc or not q.attached:
                 continue
             if access.enabled and not access.put(proc.identity, q.identity, key):

@@ -100,6 +100,7 @@ class SimPlan:
     max_time: float = 3600.0
     online: bool = True              # the world checks each tick as its reports come (and cuts off a liar)
     views: bool = True               # the agents share views of the tokens (``SimNet(views=)``; False: one each)
+    arrivals: bool = True            # an agent's samples of one instant come as one event (``SimNet(arrivals=)``)
 
 
 class NetworkLosses:
@@ -182,7 +183,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     policy = credentials.access_control(run_id, ids, observer=False, router=plan.router) if plan.secure else None
     net = SimNet(seed if net_seed is None else net_seed, link=plan.link, links=plan.links, policy=policy,
                  lease=plan.lease, keep_lines=keep_lines, max_time=plan.max_time, views=plan.views,
-                 batch_steps=batch)
+                 batch_steps=batch, arrivals=plan.arrivals)
     losses = NetworkLosses(net, ids)
 
     deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
