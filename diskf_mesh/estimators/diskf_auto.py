@@ -200,9 +200,10 @@ class DISKFAuto(Estimator):
         e_k, C_k, S_k = eq.replace_marginal(x_s, P_s, e1, C_s, S1, x_k, P_k)
         mu = im.update_probabilities(c, loglik, FLOOR)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
-        zc, Zc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z, Z)
-        x, P, e, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
-        d, S = e[..., :m], S[..., :m, :m]
+        # the output: the mixture of (x, d_{k-1}) alone (each entry of a mixture its own sums: the same bits as
+        # the whole joint's)
+        zc, Zc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z[..., :n + m], Z[..., :n + m, :n + m])
+        x, P, d, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
         held = state.held | informed | relayed
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=state.theta,
                        tick=state.tick)
@@ -227,14 +228,14 @@ class DISKFAuto(Estimator):
         if js.size == 0 or not (others * senders.d_valid[..., None, :]).any():  # no other sender relays an input
             return v, Pv, e, S, B, np.zeros(v.shape[:-2], dtype=bool)
         rho, rho2, qI = self.relay_scales
-        d_n, S_n, has_n = eq.input_fusion(others[..., None, :, :], rho * senders.d[..., None, :, :],
-                                          rho2 * senders.S[..., None, :, :, :] + qI,
-                                          senders.d_valid[..., None, :])           # (..., J, R, ...)
+        fusion = eq.input_fusion_scalar if m == 1 else eq.input_fusion  # the same bits
+        d_n, S_n, has_n = fusion(others[..., None, :, :], rho * senders.d[..., None, :, :],
+                                 rho2 * senders.S[..., None, :, :, :] + qI, senders.d_valid[..., None, :])  # (..., J, R, ...)
         d_n, S_n, has_n = d_n.swapaxes(-3, -2), S_n.swapaxes(-4, -3), has_n.swapaxes(-2, -1)
-        parts = v[..., js, :], Pv[..., js, :, :], e[..., js, :], S[..., js, :, :], B[..., js, :, :]
+        parts = tuple(np.take(a, js, axis=axis) for a, axis in ((v, -2), (Pv, -3), (e, -2), (S, -3), (B, -3)))
         dj, Sj = parts[2][..., :m], parts[3][..., :m, :m]                           # (..., R, J, ...)
-        d_r, S_r, _ = eq.input_fusion(self.relay_pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
-                                      np.stack([np.ones_like(has_n), has_n], axis=-1))
+        d_r, S_r, _ = fusion(self.relay_pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
+                             np.stack([np.ones_like(has_n), has_n], axis=-1))
         new = im.replace_input(*parts, d_r[..., 0, :], S_r[..., 0, :, :])
         some = not has_n.all()
         for whole, old, part in zip((v, Pv, e, S, B), parts, new):
