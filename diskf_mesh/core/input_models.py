@@ -248,6 +248,12 @@ def mix(w, z, Z, bounded=False):
     return mean, sym(np.add(within, spread, out=within))  # in place: both are this call's own arrays
 
 
+def mixture_mean(c, x):
+    """sum_j c_j x_j over the models' axis, in order (the same bits for any
+    batch shape). c: (..., M); x: (..., M, k). Returns (..., k)."""
+    return _ordered_sum(c[..., :, None] * x, -2)
+
+
 def _over(a, batch: tuple, core: int):
     """``a`` broadcast to ``batch`` + its ``core`` trailing axes (itself
     where it has that shape: ``np.broadcast_to`` costs a few us a call)."""
