@@ -148,12 +148,14 @@ def run_auto(trace, options, noise_step=0.1):
                 mu = c * np.exp(ll - ll.max())
                 mu = np.maximum(mu / mu.sum(), FLOOR)
                 mu = mu / mu.sum()
-                kept = np.where(mu < PRUNE, 0.0, mu)  # the output: the models of probability PRUNE or more
+                kept = np.where(mu < PRUNE, 0.0, mu)  # the state's output: the models of probability PRUNE or more
                 kept = kept / kept.sum()
                 z = sum(kept[j] * zs[j] for j in range(M))
                 Z = sum(kept[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
+                zd = sum(mu[j] * zs[j] for j in range(M))  # the input's: every model
+                Zd = sum(mu[j] * (Zs[j] + np.outer(zs[j] - zd, zs[j] - zd)) for j in range(M))
                 held = a["held"] or bool(meas) or relayed
-                new.append(dict(x=z[:n], P=Z[:n, :n], d=z[n:n + m], S=Z[n:n + m, n:n + m], held=held, mu=mu, z=zs,
+                new.append(dict(x=z[:n], P=Z[:n, :n], d=zd[n:n + m], S=Zd[n:n + m, n:n + m], held=held, mu=mu, z=zs,
                                 Z=Zs, theta=a["theta"]))
             agents = new
             for i, a in enumerate(agents):

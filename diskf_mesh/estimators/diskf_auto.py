@@ -59,10 +59,12 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    messages) by the joint Kalman update.
 4. fuse, weights: each model's likelihood of the neighbourhood's
    measurement, from U and u alone (``information_loglik``), updates the
-   model probabilities; the output is the mixture's mean and covariance
-   over the models of probability ``PRUNE`` or more
-   (``input_models.output_weights``): a model held at the floor whose
-   covariance is orders of magnitude larger does not widen it.
+   model probabilities; the output is the mixture's mean and covariance,
+   the state's over the models of probability ``PRUNE`` or more
+   (``input_models.output_weights``: a model held at the floor whose
+   covariance is orders of magnitude larger does not widen it), the
+   input's over every model (the zero-input model alone would claim an
+   input known exactly, S = 0, which no message may carry).
 
 With one first-order model in the bank it is ``diskf-r`` with that input
 model. Evidence accumulates over ticks in the model probabilities (the
@@ -200,10 +202,12 @@ class DISKFAuto(Estimator):
         e_k, C_k, S_k = eq.replace_marginal(x_s, P_s, e1, C_s, S1, x_k, P_k)
         mu = im.update_probabilities(c, loglik, FLOOR)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
-        # the output: the mixture of (x, d_{k-1}) alone (each entry of a mixture its own sums: the same bits as
-        # the whole joint's)
-        zc, Zc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z[..., :n + m], Z[..., :n + m, :n + m])
-        x, P, d, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
+        # the output (each entry of a mixture its own sums: the same bits as the whole joint's): the state's
+        # mixture over the models of probability PRUNE or more; the input's over every model, so that it never
+        # claims the zero-input model's certainty (S = 0) when that model alone holds the probability
+        xc, Pc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z[..., :n], Z[..., :n, :n])
+        dc, Sc = im.mix(mu[..., :, None], z[..., n:n + m], Z[..., n:n + m, n:n + m])
+        x, P, d, S = xc[..., 0, :], Pc[..., 0, :, :], dc[..., 0, :], Sc[..., 0, :, :]
         held = state.held | informed | relayed
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=state.theta,
                        tick=state.tick)
