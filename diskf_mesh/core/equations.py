@@ -187,7 +187,8 @@ def input_fusion_scalar(adj, d, S, valid):
     same operations on the same numbers as its sums (``linalg.nbr_sum``, each
     receiver's total built from zero adding the senders in order), so the
     same bits, in a few element-wise operations per sender instead of its
-    stacked sums (for a handful of senders: ``diskf-auto``'s relayed inputs).
+    stacked sums (faster on two senders: ``diskf-auto``'s fast CI of a
+    model's own input and its neighbours' relayed one).
     adj: (..., R, S); d: (..., S, 1); S: (..., S, 1, 1); valid: (..., S).
     Raises numpy.linalg.LinAlgError where an S is not positive, as
     ``linalg.inv_spd``."""
@@ -479,7 +480,9 @@ def replace_marginal(a, Paa, b, Pab, Pbb, a_new, Paa_new):
     Pab_new = np.matmul(Paa_new, T(K))
     nb = Pab.shape[-1]
     both = np.matmul(K, np.concatenate([Pab, Pab_new], axis=-1))  # K Pab and K Pab' in one product
-    Pbb_new = sym(Pbb - both[..., :nb] + both[..., nb:])
+    Pbb_new = Pbb - both[..., :nb]
+    Pbb_new += both[..., nb:]            # in place: (Pbb - K Pab) + K Pab', one array fewer
+    Pbb_new = sym(Pbb_new)
     return b_new, Pab_new, Pbb_new
 
 
@@ -498,7 +501,10 @@ def input_to_state(v, Pv, B, d, S, G):
     GS = matmul_left(G, S)
     GB = matmul_left(G, T(B))
     x = v + mv(G, d)
-    P = sym(Pv + GB + T(GB) + matmul_right(GS, T(G)))
+    P = Pv + GB
+    P += T(GB)                           # in place, the sum's order kept: ((Pv + G B^T) + B G^T) + G S G^T
+    P += matmul_right(GS, T(G))
+    P = sym(P)
     return x, P, B + GS
 
 
