@@ -48,10 +48,16 @@ def engine_outputs(tr, params, name: str = NAME) -> list:
 
 
 def agent_outputs(scn, tr) -> list:
+    """One agent at a time; a run that fails (a covariance not positive
+    definite) is [NaN], as ``engine_outputs`` gives it, so that it compares
+    equal only to a run that failed too."""
     xs, Ps, ds, dv = [], [], [], []
-    for _, _, outs in lockstep(scn, NAME, tr):
-        for o in outs.values():
-            xs.append(o.x), Ps.append(o.P), ds.append(o.d), dv.append(o.d_valid)
+    try:
+        for _, _, outs in lockstep(scn, NAME, tr):
+            for o in outs.values():
+                xs.append(o.x), Ps.append(o.P), ds.append(o.d), dv.append(o.d_valid)
+    except np.linalg.LinAlgError:
+        return [np.array([np.nan])]
     return [np.array(xs), np.array(Ps), np.array(ds), np.array(dv)]
 
 

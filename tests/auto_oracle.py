@@ -38,22 +38,28 @@ def bank(qp, qs, none=True, walk=True, zero_mean=True, oscillating=True):
     return out
 
 
-def noise_scale(theta, x, P, H, R, y, step):
+def noise_scale(theta, last, x, P, H, R, y, step):
     """One measured tick of the measurement noise scale r = exp(theta)
-    (``core.noise``) written out on the sensor's own rows: theta moves by
-    step * sqrt(tr(S^-1 r R) / p) up where the normalised innovation lies
-    above the chi-square median of p degrees of freedom, down where below,
-    within [log 0.01, log 1000]."""
+    (``core.noise``) written out on the sensor's own rows: with the
+    innovation e = y - H x, S = H P H^T + r R and ``last`` = (e_l, S_l,
+    seen) of the last measured tick, theta moves by step * sqrt(tr(S^-1 r R)
+    / p) up where (e - e_l)^T (S + S_l)^-1 (e - e_l) lies above the
+    chi-square median of p degrees of freedom, down where below, within
+    [log 0.01, log 1000], if an earlier tick was measured. Returns (theta,
+    (e, S, True))."""
+    e_l, S_l, seen = last
     r = np.exp(theta)
     S = H @ P @ H.T + r * R
     e = y - H @ x
-    nis = e @ np.linalg.solve(S, e)
+    nis = (e - e_l) @ np.linalg.solve(S + S_l, e - e_l)
     share = min(1.0, r * np.trace(np.linalg.solve(S, R)) / len(y))
     sign = 1.0 if nis > scipy.stats.chi2.median(len(y)) else -1.0
-    return float(np.clip(theta + step * np.sqrt(share) * sign, np.log(0.01), np.log(1e3)))
+    if seen:
+        theta = float(np.clip(theta + step * np.sqrt(share) * sign, np.log(0.01), np.log(1e3)))
+    return theta, (e, S, True)
 
 
-def run_auto(trace, options, noise_step=0.1):
+def run_auto(trace, options, noise_step=0.2):
     model, sensors = trace.model, trace.sensors
     B, K, N = trace.has.shape
     n, m = model.n, model.m
@@ -79,19 +85,14 @@ def run_auto(trace, options, noise_step=0.1):
         Z0 = scipy.linalg.block_diag(model.P0, prior * np.eye(2 * m))
         agents = [dict(x=z0[:n].copy(), P=Z0[:n, :n].copy(), d=np.zeros(m), S=prior * np.eye(m), held=False,
                        mu=mu_first.copy(), z=[z0.copy() for _ in range(M)], Z=[Z0.copy() for _ in range(M)],
-                       theta=0.0)
-                  for _ in range(N)]
+                       theta=0.0, last=(np.zeros(sensors.p[i]), np.eye(sensors.p[i]), False))
+                  for i in range(N)]
         links = trace.links[min(b, trace.links.shape[0] - 1)]
         for k in range(1, K + 1):
             A = model.A_at(k)
             pred = [(A @ a["x"], A @ a["P"] @ A.T + Q) for a in agents]
-            scale = np.ones(N)  # each agent's weight 1 / r of its own R, learned from its own measurement
-            for i, a in enumerate(agents):
-                if options.noise and trace.has[b, k - 1, i]:
-                    xi = pred[i][0] + (G @ a["d"] if a["held"] else 0.0)
-                    a["theta"] = noise_scale(a["theta"], xi, pred[i][1], Hs[i], Rs[i],
-                                             trace.y[b, k - 1, i, : sensors.p[i]], noise_step)
-                    scale[i] = np.exp(a["theta"])
+            # each agent's weight 1 / r of its own R, learned by its last measured tick
+            scale = np.array([np.exp(a["theta"]) if options.noise else 1.0 for a in agents])
             sent = [(a["d"].copy(), a["S"].copy(), a["held"]) for a in agents]
             sent_mu = [a["mu"].copy() for a in agents]
             new = []
@@ -108,7 +109,7 @@ def run_auto(trace, options, noise_step=0.1):
                     mu0 = np.exp(logs - logs.max())
                     mu0 = mu0 / mu0.sum()
                 c = np.array([sum(Pi[s, j] * mu0[s] for s in range(M)) for j in range(M)])
-                zs, Zs, ll, relayed = [], [], np.zeros(M), False
+                zs, Zs, ll, relayed, priors = [], [], np.zeros(M), False, []
                 for j, (a1, a2, q) in enumerate(models):
                     wts = [Pi[s, j] * mu0[s] / c[j] for s in range(M)]
                     kept = [w if w >= PRUNE else 0.0 for w in wts]  # small weights dropped, the column renormalised
@@ -132,6 +133,7 @@ def run_auto(trace, options, noise_step=0.1):
                         w, W = _replace(w, W, idd, dr, Sr)
                         relayed = True
                     za, Pa = Tx @ w, Tx @ W @ Tx.T
+                    priors.append(za[:n])
                     if meas:
                         H = np.hstack([np.vstack([Hs[s] for s in meas]),
                                        np.zeros((sum(sensors.p[s] for s in meas), 2 * m))])
@@ -148,13 +150,20 @@ def run_auto(trace, options, noise_step=0.1):
                 mu = c * np.exp(ll - ll.max())
                 mu = np.maximum(mu / mu.sum(), FLOOR)
                 mu = mu / mu.sum()
-                kept = np.where(mu < PRUNE, 0.0, mu)  # the output: the models of probability PRUNE or more
+                kept = np.where(mu < PRUNE, 0.0, mu)  # the state's output: the models of probability PRUNE or more
                 kept = kept / kept.sum()
                 z = sum(kept[j] * zs[j] for j in range(M))
                 Z = sum(kept[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
+                zd = sum(mu[j] * zs[j] for j in range(M))  # the input's: every model
+                Zd = sum(mu[j] * (Zs[j] + np.outer(zs[j] - zd, zs[j] - zd)) for j in range(M))
                 held = a["held"] or bool(meas) or relayed
-                new.append(dict(x=z[:n], P=Z[:n, :n], d=z[n:n + m], S=Z[n:n + m, n:n + m], held=held, mu=mu, z=zs,
-                                Z=Zs, theta=a["theta"]))
+                theta, last = a["theta"], a["last"]
+                if options.noise and trace.has[b, k - 1, i]:  # scored against the bank's predicted mean
+                    x_m = sum(c[j] * priors[j] for j in range(M))
+                    theta, last = noise_scale(theta, last, x_m, pred[i][1], Hs[i], Rs[i],
+                                              trace.y[b, k - 1, i, : sensors.p[i]], noise_step)
+                new.append(dict(x=z[:n], P=Z[:n, :n], d=zd[n:n + m], S=Zd[n:n + m, n:n + m], held=held, mu=mu, z=zs,
+                                Z=Zs, theta=theta, last=last))
             agents = new
             for i, a in enumerate(agents):
                 out["x"][b, k - 1, i], out["P"][b, k - 1, i] = a["x"], a["P"]

@@ -13,7 +13,10 @@ import pytest
 
 from diskf_mesh import estimators
 from diskf_mesh.mesh.process.checker import CheckFailed, CheckProcess
+from diskf_mesh.mesh.process import checker
 from diskf_mesh.mesh.protocol import events, run_status, world_machine
+from diskf_mesh.mesh.protocol.reports import RunReports
+from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.simulated import simrun
 from test_simnet_liars import FROM, LIAR, OFFSET, RUN, dynamic, run  # noqa: F401 - the fixture
 
@@ -116,14 +119,13 @@ def fake(seconds: float):
     """A check of 3 ticks of 2 agents that takes ``seconds`` a tick and finds
     the tick."""
     trace = SimpleNamespace(has=np.zeros((1, 3, 2), dtype=bool), model=SimpleNamespace(n=2, m=1))
-    return SimpleNamespace(trace=trace, tick=lambda rec, k: time.sleep(seconds) or [k])
+    return SimpleNamespace(trace=trace, tick=lambda rec, k, said: time.sleep(seconds) or [k])
 
 
 def record(K=3, N=2):
-    return SimpleNamespace(x=np.zeros((K, N, 2)), P=np.zeros((K, N, 2, 2)), d=np.zeros((K, N, 1)),
-                           d_valid=np.zeros((K, N), dtype=bool), reported=np.ones((K, N), dtype=bool),
-                           fused=np.zeros((K, N, N), dtype=bool), live=np.ones((K, N), dtype=bool), digests={},
-                           rejoins={}, starts=[])
+    rec = world_machine.WorldRecord(**RunReports.empty(K, N, 2, 1), live=np.ones((K, N), dtype=bool))
+    rec.reported[:] = True
+    return rec
 
 
 def test_a_finding_not_in_yet_is_none_unless_waited_for_and_the_process_ends_with_the_world():
@@ -145,12 +147,16 @@ def test_a_check_that_fails_in_its_process_fails_in_the_world():
     def broken():
         raise ZeroDivisionError("the replay")
 
-    check = CheckProcess(broken)
-    try:
-        with pytest.raises(CheckFailed, match="ZeroDivisionError: the replay"):
-            check.result(record(), 1)
-    finally:
-        check.close()
+    for gone in (False, True):  # asked at once, or after the child ended (the pipe broken before the world reads)
+        check = CheckProcess(broken)
+        try:
+            if gone:
+                check._proc.join(10)
+                assert check._proc.exitcode == 0
+            with pytest.raises(CheckFailed, match="ZeroDivisionError: the replay"):
+                check.result(record(), 1)
+        finally:
+            check.close()
 
     check = CheckProcess(lambda: fake(0.0))
     try:
@@ -159,3 +165,43 @@ def test_a_check_that_fails_in_its_process_fails_in_the_world():
             check.result(record(), 1)
     finally:
         check.close()
+
+
+@pytest.mark.parametrize("live", [True, False])
+def test_a_tick_handed_over_as_bytes_arrives_as_the_worlds_rows_and_digests(live):
+    """``tick_bytes`` read by ``read_tick`` (the world's side and the check
+    process's): tick k's rows of every array, bit for bit (NaN where no
+    report), its digests as ``tick_digests`` gives them, the rejoins and
+    starting states; the other ticks untouched."""
+    K, N, n, m, k = 4, 5, 3, 2, 3
+    rng = np.random.default_rng(7)
+    rec = world_machine.WorldRecord(**RunReports.empty(K, N, n, m), live=rng.random((K, N)) < 0.7 if live else None)
+    rec.x[:] = rng.standard_normal(rec.x.shape)
+    rec.P[:] = rng.standard_normal(rec.P.shape)
+    rec.d[:] = rng.standard_normal(rec.d.shape)
+    rec.x[k - 1, 2] = np.nan
+    for a in (rec.d_valid, rec.reported, rec.fused):
+        a[:] = rng.random(a.shape) < 0.5
+    for i, senders in ((0, (1, 4)), (3, (0,)), (4, (2, 1, 3))):
+        rec.digests[(k, i)] = (senders, tuple(wire.digest(bytes([i, s])) for s in senders))
+    rec.digests[(k - 1, 1)] = ((0,), (wire.digest(b"another tick"),))
+    rec.rejoins = {2: [{"tick": k, "source": 1}]}
+    rec.starts = [wire.Start("r", 2, k, 1, np.ones(n), np.eye(n), np.zeros(m), True)]
+    there = world_machine.WorldRecord(**RunReports.empty(K, N, n, m), live=np.zeros((K, N), dtype=bool))
+    got, said = checker.read_tick(checker.tick_bytes(rec, k), there)
+    assert got == k
+    for name in ("x", "P", "d", "d_valid", "reported", "fused") + (("live",) if live else ()):
+        np.testing.assert_array_equal(getattr(there, name)[k - 1], getattr(rec, name)[k - 1])
+        assert getattr(there, name)[k - 1].dtype == getattr(rec, name).dtype
+        others = np.arange(K) != k - 1
+        assert np.isnan(getattr(there, name)[others]).all() if name in ("x", "P", "d") else not getattr(there, name)[others].any()
+    assert (there.live is None) == (not live)
+    for a, b in zip(said, rec.tick_digests(k)):
+        np.testing.assert_array_equal(a, b)
+        assert a.dtype == b.dtype
+    assert [a.tolist() for a in said[:2]] == [[0, 0, 3, 4, 4, 4], [1, 4, 0, 2, 1, 3]]
+    assert there.rejoins == rec.rejoins and len(there.starts) == 1 and there.starts[0].agent == 2
+    np.testing.assert_array_equal(there.starts[0].P, np.eye(n))
+    rec.rejoins, rec.starts = {}, []
+    checker.read_tick(checker.tick_bytes(rec, k), there)
+    assert there.rejoins == {} and there.starts == []

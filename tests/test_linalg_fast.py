@@ -9,6 +9,7 @@ from diskf_mesh.engine import batch as engine
 from diskf_mesh.core.linalg import (
     FEW,
     T,
+    cholesky,
     congruence,
     congruence_const,
     congruence_each,
@@ -167,6 +168,27 @@ def test_stacked_helpers_equal_one_at_a_time():
         G, Xs = rng.standard_normal((2, m)), [rng.standard_normal((6, 4, 2, 2)) for _ in range(3)]
         for got, X in zip(congruence_each(G, *Xs), Xs):
             np.testing.assert_array_equal(got, congruence(G, X))
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_cholesky_closed_form_is_lapacks_bits(n):
+    """1x1 and 2x2 in closed form, a stack or a few at a time: LAPACK's own
+    factor bit for bit (reading the lower triangle only), and its errors."""
+    rng = np.random.default_rng(60 + n)
+    a = random_spd(rng, (300,), n, cond=1e8)
+    a[:, 0, -1] += 1.0  # the upper triangle is not read
+    want = np.linalg.cholesky(a)
+    np.testing.assert_array_equal(cholesky(a), want)
+    for i in range(0, 300, 7):
+        np.testing.assert_array_equal(cholesky(a[i:i + 3]), want[i:i + 3])
+    for bad in (-np.eye(n), np.diag(np.r_[1.0, -1.0, 1.0][:n]) if n > 1 else np.zeros((1, 1))):
+        for count in (1, 20):
+            with pytest.raises(np.linalg.LinAlgError):
+                cholesky(np.repeat(bad[None], count, axis=0))
+    nan = np.eye(n)[None].repeat(20, axis=0)
+    nan[3, 0, 0] = np.nan
+    assert np.array_equal(np.isnan(cholesky(nan)), np.isnan(np.linalg.cholesky(nan)))
+    assert np.array_equal(np.isnan(cholesky(nan[3:4])), np.isnan(np.linalg.cholesky(nan[3:4])))
 
 
 @pytest.mark.parametrize("n", [1, 2])

@@ -159,3 +159,19 @@ def test_the_studys_world_column_is_the_simulated_network_bit_for_bit(name, agen
     if gain is not None:
         screen_only = batch.run(trace, "diskf-auto", scn.params, lies=scn.lies)
         assert e_eng.mean() < gain * metrics.errors(trace, screen_only.agents(honest))[0].mean()
+
+
+def test_inputs_both_sides_are_certain_of_are_gated_without_raising():
+    eye, zero = np.eye(2), np.zeros((2, 2))
+    d_send = np.array([[0.0, 0.0], [0.0, 1.0], [3.0, 0.0], [3.0, 0.5]])
+    S_send = np.array([zero, zero, np.diag([0.0, 1.0]), eye])
+    S_own = np.array([zero, zero, np.diag([0.0, 1.0]), zero])
+    valid = np.array([True, True, True, False])
+    q, = rs.input_gate_statistics(d_send, S_send, (np.zeros((4, 2)),), S_own, valid)
+    assert q[0] == 0.0              # both certain of the same input
+    assert q[1] == np.inf           # both certain, and they differ
+    assert q[2] == np.inf           # they differ along the direction neither has variance in
+    assert q[3] == 0.0              # not valid: no statistic
+    q, = rs.input_gate_statistics(np.array([[0.0, 2.0]]), S_send[2:3], (np.zeros((1, 2)),), S_own[2:3], valid[:1])
+    assert q[0] == pytest.approx(2.0)   # 4 / (1 + 1) along the direction with variance
+

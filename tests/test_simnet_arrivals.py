@@ -17,7 +17,7 @@ import simnet_cases as cases
 from diskf_mesh import estimators
 from diskf_mesh.core.messages import Message
 from diskf_mesh.data.faults import FaultConfig
-from diskf_mesh.mesh.protocol.events import MessageArrived
+from diskf_mesh.mesh.protocol.events import MessageArrived, TickArrived
 from diskf_mesh.mesh.protocol.guard import Guard, GuardConfig
 from diskf_mesh.mesh.protocol.receive import Receiver
 from diskf_mesh.mesh.simulated.simnet import Fault, Link
@@ -90,6 +90,10 @@ def test_messages_taken_together_are_counted_and_held_as_each_alone():
     assert [(s, x.x_pred.tobytes()) for s, x in together.take(tick, links[tick])] == \
         [(s, x.x_pred.tobytes()) for s, x in alone.take(tick, links[tick])]
     assert together.digests(tick) == alone.digests(tick)
+    other = Receiver(Guard(config))
+    other.advance(tick)
+    waiting = collections.deque([queue[0], TickArrived(None), queue[1]])  # a world's sample ends the run taken
+    assert other.on_messages(waiting, links, 1.0) == 1 and len(waiting) == 2
 
 
 def _message(n, m, sender):

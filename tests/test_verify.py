@@ -293,3 +293,25 @@ def test_allow_missing_never_accepts_a_run_with_no_agent_tick_reported():
     some = V.RunStatus("incomplete", "agent 4 missing", {"agent_ticks": 90, "reported": 89, "missing_agent_ticks": 1,
                                                        "missing_fraction": 1 / 90})
     assert some.accepted(allow_missing=1.0) and accept(some, allow_missing=1.0)[0] == 0
+
+
+@pytest.mark.parametrize("algorithm", ["diskf", "diskf-auto"])
+def test_the_engines_digests_are_the_digests_of_the_messages_the_agents_encode(run, algorithm):
+    """``wire.engine_digests`` (every sender of a tick at once, the fields
+    that do not change packed once) hashes the bytes ``encode`` puts on the
+    wire, at ticks of every msgpack integer width and either ``d_valid``."""
+    from diskf_mesh.engine import batch
+
+    scn, trace = run
+    exchanged = get_estimator(algorithm).exchanged
+    ids = list(trace.sensors.ids)
+    step = batch.Stepper(trace.model, trace.sensors, algorithm, scn.params, trace.seeds[:1], TICKS)
+    msgs = []
+    step.step(trace.y[:1, 0], trace.has[:1, 0], trace.links[:1, 0], lambda k, msg: msgs.append(msg))
+    msg = msgs[0]
+    flipped = replace(msg, d_valid=~np.asarray(msg.d_valid))
+    digests = wire.engine_digests(RUN, ids, exchanged)
+    for k in (1, 127, 128, 255, 256, 65535, 65536, 2 ** 32 + 1):
+        for m, senders in ((msg, list(range(len(ids)))), (flipped, [4, 0, 7])):
+            assert digests(k, senders, m) == [wire.message_digest(RUN, ids[s], k, m.take((slice(0, 1), slice(s, s + 1))),
+                                                                  exchanged) for s in senders], (k, senders)

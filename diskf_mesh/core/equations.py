@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from diskf_mesh.core.small import not_pd
 from diskf_mesh.core.linalg import (
     T,
     congruence,
@@ -179,6 +180,34 @@ def input_fusion(adj, d, S, valid):
     S_bar = inv_spd(np.where(has[..., None, None], info, identity(m)))
     d_bar = mv(S_bar, vec)
     return d_bar, S_bar, has
+
+
+def input_fusion_scalar(adj, d, S, valid):
+    """``input_fusion`` of a scalar input (m = 1), sender after sender: the
+    same operations on the same numbers as its sums (``linalg.nbr_sum``, each
+    receiver's total built from zero adding the senders in order), so the
+    same bits, in a few element-wise operations per sender instead of its
+    stacked sums (faster on two senders: ``diskf-auto``'s fast CI of a
+    model's own input and its neighbours' relayed one).
+    adj: (..., R, S); d: (..., S, 1); S: (..., S, 1, 1); valid: (..., S).
+    Raises numpy.linalg.LinAlgError where an S is not positive, as
+    ``linalg.inv_spd``."""
+    s = S[..., 0, 0]
+    if s.size and np.fmin.reduce(s, axis=None) <= 0:  # fmin skips NaN (it propagates)
+        raise not_pd()
+    Si = 1.0 / s                                            # (..., S): 1 / tr S_j is S_j^-1
+    W = adj * (Si * valid)[..., None, :]                    # (..., R, S)
+    Wi, Wd = Si[..., None, :], (Si * d[..., 0])[..., None, :]
+    tot = 0.0 + W[..., 0]
+    for j in range(1, W.shape[-1]):
+        tot = tot + W[..., j]
+    has = tot > 0
+    Wn = W / np.where(has, tot, 1.0)[..., None]
+    info, vec = 0.0 + Wn[..., 0] * Wi[..., 0], 0.0 + Wn[..., 0] * Wd[..., 0]
+    for j in range(1, W.shape[-1]):
+        info, vec = info + Wn[..., j] * Wi[..., j], vec + Wn[..., j] * Wd[..., j]
+    S_bar = 1.0 / np.where(has, info, 1.0)
+    return (S_bar * vec)[..., None], S_bar[..., None, None], has
 
 
 # --------------------------------------------------------------------------
@@ -451,7 +480,9 @@ def replace_marginal(a, Paa, b, Pab, Pbb, a_new, Paa_new):
     Pab_new = np.matmul(Paa_new, T(K))
     nb = Pab.shape[-1]
     both = np.matmul(K, np.concatenate([Pab, Pab_new], axis=-1))  # K Pab and K Pab' in one product
-    Pbb_new = sym(Pbb - both[..., :nb] + both[..., nb:])
+    Pbb_new = Pbb - both[..., :nb]
+    Pbb_new += both[..., nb:]            # in place: (Pbb - K Pab) + K Pab', one array fewer
+    Pbb_new = sym(Pbb_new)
     return b_new, Pab_new, Pbb_new
 
 
@@ -470,7 +501,10 @@ def input_to_state(v, Pv, B, d, S, G):
     GS = matmul_left(G, S)
     GB = matmul_left(G, T(B))
     x = v + mv(G, d)
-    P = sym(Pv + GB + T(GB) + matmul_right(GS, T(G)))
+    P = Pv + GB
+    P += T(GB)                           # in place, the sum's order kept: ((Pv + G B^T) + B G^T) + G S G^T
+    P += matmul_right(GS, T(G))
+    P = sym(P)
     return x, P, B + GS
 
 

@@ -23,7 +23,7 @@ from functools import lru_cache
 import numpy as np
 
 from diskf_mesh.core.small import (
-    FEW, array, few, inv_2_few, inv_spd_2_few, mv_2x2_few, mv_one, not_pd, sym_2_few)
+    FEW, array, cholesky_2_few, few, inv_2_few, inv_spd_2_few, mv_2x2_few, mv_one, not_pd, sym_2_few)
 
 
 def T(a: np.ndarray) -> np.ndarray:
@@ -193,6 +193,35 @@ def _inv_spd_2(a: np.ndarray) -> np.ndarray:
     np.divide(q, np.negative(det), out=out[:, 1])
     out[:, 2] = out[:, 1]
     np.divide(p, det, out=out[:, 3])
+    return out.reshape(a.shape)
+
+
+def cholesky(a: np.ndarray) -> np.ndarray:
+    """Stacked ``np.linalg.cholesky(a)`` (the lower factor L, A = L L^T, only
+    the lower triangle read), 1x1 and 2x2 in closed form with LAPACK's own
+    operations (its unblocked ``potf2``: l00 = sqrt(a00), l10 = a10 (1 / l00),
+    l11 = sqrt(a11 - l10 l10)), so the same bits (``tests/test_linalg_fast.py``)
+    without its per-matrix call. Raises numpy.linalg.LinAlgError where a
+    pivot is not positive (a NaN propagates, as there)."""
+    n = a.shape[-1]
+    if n == 1:
+        if a.size and np.fmin.reduce(a, axis=None) <= 0:  # fmin skips NaN (it propagates)
+            raise not_pd()
+        return np.sqrt(a)
+    if n != 2:
+        return np.linalg.cholesky(a)
+    if few(a, 4):
+        return cholesky_2_few(a)
+    flat = a.reshape(-1, 4)
+    if flat.size and np.fmin.reduce(flat[:, 0], axis=None) <= 0:  # fmin skips NaN (it propagates)
+        raise not_pd()
+    out = np.zeros(flat.shape)  # column by column, as ``_inv_spd_2``
+    l00 = np.sqrt(flat[:, 0], out=out[:, 0])
+    l10 = np.multiply(flat[:, 2], 1.0 / l00, out=out[:, 2])
+    pivot = flat[:, 3] - l10 * l10
+    if flat.size and np.fmin.reduce(pivot, axis=None) <= 0:
+        raise not_pd()
+    np.sqrt(pivot, out=out[:, 3])
     return out.reshape(a.shape)
 
 

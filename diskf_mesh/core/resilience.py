@@ -126,6 +126,57 @@ def gate_statistics(x_send, P_send, x_refs, P_ref) -> list:
     return out
 
 
+def input_gate_statistics(d_send, S_send, d_refs, S_ref, valid) -> list:
+    """``gate_statistics`` of the input estimates of P pairs, 0 where a pair
+    is not ``valid`` (P,) (either side has no input estimate; its
+    covariances may hold anything there). Where both sides are certain of
+    their input in some direction (S_send + S_ref not positive definite: a
+    bank whose output mixture holds only its zero-input model reports d = 0
+    with S = 0), the statistic is the limit of the quadratic form as the
+    covariance vanishes there: infinite if the two estimates differ in a
+    direction of no variance, else the form over the other directions
+    (``certain_statistic``)."""
+    eye = np.eye(S_send.shape[-1])
+    M = S_send + S_ref
+    certain = valid & ~positive_definite(M)
+    use = (valid & ~certain)[:, None, None]
+    qs = gate_statistics(d_send, np.where(use, S_send, eye), d_refs, np.where(use, S_ref, 0.0))
+    out = []
+    for q, d_ref in zip(qs, d_refs):
+        if certain.any():
+            q = q.copy()
+            q[certain] = certain_statistic(d_send[certain] - d_ref[certain], M[certain])
+        out.append(np.where(valid, q, 0.0))
+    return out
+
+
+def certain_statistic(diff: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """diff^T M^+ diff (P,) for positive semidefinite M (P, m, m) that are
+    singular, infinite where diff (P, m) has a component along a direction
+    of M's null space (an eigenvalue at or below 1e-12 of its largest)
+    beyond 1e-9 of its length."""
+    w, V = np.linalg.eigh(M)
+    c = np.einsum("...ji,...j->...i", V, diff)
+    null = w <= 1e-12 * np.maximum(w[..., -1:], 0.0)
+    scale = np.sqrt((diff * diff).sum(axis=-1, keepdims=True))
+    outside = (null & (np.abs(c) > 1e-9 * scale)).any(axis=-1)
+    q = np.where(null, 0.0, c * c / np.where(null, 1.0, w)).sum(axis=-1)
+    return np.where(outside, np.inf, q)
+
+
+def positive_definite(M: np.ndarray) -> np.ndarray:
+    """(...,) whether each symmetric M (..., m, m) is positive definite:
+    Sylvester's leading minors for m of 1 and 2, else the smallest
+    eigenvalue."""
+    m = M.shape[-1]
+    a = M[..., 0, 0]
+    if m == 1:
+        return a > 0
+    if m == 2:
+        return (a > 0) & (a * M[..., 1, 1] - M[..., 1, 0] * M[..., 1, 0] > 0)
+    return np.linalg.eigvalsh(M)[..., 0] > 0
+
+
 def linked_pairs(linked: np.ndarray) -> tuple:
     """(flat index of each linked pair into ``linked`` (..., R, S), of its
     sender into the (..., S) senders, of its receiver into the (..., R)

@@ -78,6 +78,24 @@ def inv_spd_2_few(a: np.ndarray) -> np.ndarray:
     return array(out, a.shape)
 
 
+def cholesky_2_few(a: np.ndarray) -> np.ndarray:
+    """``linalg.cholesky`` of a few 2 x 2 matrices in Python floats, the same
+    operations (l00 = sqrt(a00), l10 = a10 (1 / l00), l11 = sqrt(a11 - l10 l10);
+    the lower triangle read). A comparison with NaN is False, so a NaN
+    propagates instead of raising."""
+    out = []
+    for p, _, q, r in a.reshape(-1, 4).tolist():
+        if p <= 0:  # False for NaN
+            raise not_pd()
+        l00 = math.sqrt(p)
+        l10 = q * (1.0 / l00)
+        pivot = r - l10 * l10
+        if pivot <= 0:
+            raise not_pd()
+        out += (l00, 0.0, l10, math.sqrt(pivot))
+    return array(out, a.shape)
+
+
 def inv_2_few(a: np.ndarray) -> np.ndarray:
     """The closed-form inverse of ``solve`` for a few 2 x 2 matrices, in
     Python floats with the same operations: [[d, -b], [-c, a]] entry by

@@ -299,10 +299,10 @@ def compare(r, cx, cP, cd, cdv, x, P, d, dv, largest: bool = True) -> tuple:
     reported, ``cx``, ``cP``, ``cd``, ``cdv``) against the engine's; without
     ``largest`` the largest differences are not computed (None)."""
     both = cdv & dv
+    bad = r & ((x != cx).any(-1) | (P != cP).any((-1, -2)) | (dv != cdv) | (both & (d != cd).any(-1)))
+    if not largest:
+        return bad, None
     with np.errstate(invalid="ignore"):
-        bad = r & ((x != cx).any(-1) | (P != cP).any((-1, -2)) | (dv != cdv) | (both & (d != cd).any(-1)))
-        if not largest:
-            return bad, None
         dx = np.abs(x - cx).max(-1)
         dP = np.abs(P - cP).max((-1, -2))
         dd = np.where(both, np.abs(d - cd).max(-1), 0.0)
@@ -327,6 +327,8 @@ class Judged:
         """The agents this tick proves lied: senders of forged messages, and
         agents whose own estimate differs though every message they fused
         was the engine's."""
+        if not (self.diverged.any() or self.forged.any()):
+            return []
         own = self.diverged & ~self.forged.any(-1)
         return sorted(set(np.flatnonzero(self.forged.any(0)).tolist()) | set(np.flatnonzero(own).tolist()))
 
@@ -355,8 +357,14 @@ class Judge:
         (it differs from the engine's message's) (N, N) [receiver, sender];
         ``restarted``: the agents re-initialised at k."""
         unknown = self.unknown
-        unknown[list(restarted)] = False
-        self.withheld[list(restarted)] = 0
+        if len(restarted):
+            unknown[list(restarted)] = False
+            self.withheld[list(restarted)] = 0
+        if not unknown.any() and not wrong.any() and reported.all() and not bad.any():  # all known and reproduced
+            none = np.zeros_like(reported)
+            self.withheld[:] = 0
+            self.unknown = none.copy()
+            return Judged(none, np.zeros_like(wrong), none.copy(), np.zeros_like(wrong))
         if unknown.any() or wrong.any():
             fused = fused & self.off
             forged = fused & wrong & ~unknown[None, :]   # a known sender's message the engine does not reproduce
@@ -376,9 +384,10 @@ class Online:
     """The check as a run goes: ``replay`` and ``Judge`` one tick at a time,
     each tick once its reports are final (the mesh's world), so an agent
     that lies is named at the tick an honest agent fused its lie, not at the
-    run's end. ``tick(k, claims, planned)``: ``claims`` the run's claims so
-    far (at least tick k's and its digests), ``planned`` (N, N) tick k's
-    planned links (an agent-tick without a report: its row). The same
+    run's end. ``tick(k, claims, planned, said)``: ``claims`` the run's
+    claims so far (at least tick k's), ``planned`` tick k's planned links
+    (an agent-tick without a report: its row), ``said`` the digests its
+    reports gave. The same
     numbers as ``verify``'s replay, bit for bit: the same engine step
     (``batch.Stepper``) on the same links, restarts and digests. Once the
     engine's own replay diverges (``ended``: that tick) nothing more is
@@ -393,45 +402,46 @@ class Online:
         self.ended = 0
         self.diagonal = (np.arange(N), np.arange(N))
 
-    def tick(self, k: int, claims: RunClaims, planned: np.ndarray) -> Judged | None:
-        """Tick k's ``Judged``, or None after the engine's replay diverged."""
+    def tick(self, k: int, claims: RunClaims, planned, said: tuple) -> Judged | None:
+        """Tick k's ``Judged``, or None after the engine's replay diverged.
+        ``planned``: a function that makes tick k's planned links (N, N),
+        called only if some report of tick k did not come; ``said``: the
+        digests reported of tick k's fused messages, three (J,) arrays:
+        receivers, senders, digests (``digest_values``)."""
         if self.ended or k != self.step.k + 1:
             return None
         reported = claims.reported[k - 1]
         N = reported.shape[0]
         links = np.array(claims.fused[k - 1], dtype=bool)
         if not reported.all():
-            links[~reported] = planned[~reported]
+            links[~reported] = planned()[~reported]
         links[self.diagonal] = True
-        mine = [(key[1], v) for key, v in claims.digests.items() if key[0] == k]
-        if mine:  # every (receiver, sender, digest) of the tick at once
-            rows = [r for r, (ss, _) in mine for _ in range(len(ss))]
-            cols = [int(s) for _, (ss, _) in mine for s in ss]
-            said = np.concatenate([gs for _, (_, gs) in mine])
-        senders = sorted(set(cols)) if mine else []
+        rows, cols, values = said
+        checked = self.message_digest is not None and len(cols) > 0
+        senders = np.unique(cols) if checked else None
         engine = np.zeros(N, dtype=np.uint64)
 
         def listen(_, msg):
-            if self.message_digest is not None and senders:
-                engine[senders] = [digest_value(g) for g in self.message_digest(k, senders, msg)]
+            engine[senders] = digest_values(self.message_digest(k, senders, msg))
 
         restarts = [r for r in claims.restarts if r.tick == k]
         if restarts:
             self.step.state = restart_at(k, restarts, claims, self.step.est, self.step.state)
-        changed = self.links is None or not np.array_equal(links, self.links)
+        changed = self.links is None or bool((links != self.links).any())
         self.links = links
         tr = self.trace
         try:
-            out = self.step.step(tr.y[:1, k - 1], tr.has[:1, k - 1], links[None] if changed else None, listen)
+            out = self.step.step(tr.y[:1, k - 1], tr.has[:1, k - 1], links[None] if changed else None,
+                                 listen if checked else None)
         except batch.Diverged:
             self.ended = k
             return None
         bad, _ = compare(reported, claims.x[k - 1], claims.P[k - 1], claims.d[k - 1], claims.d_valid[k - 1],
                          out.x[0], out.P[0], out.d[0], out.d_valid[0], largest=False)
         has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)
-        if self.message_digest is not None and mine:
+        if checked:
             has[rows, cols] = True
-            wrong[rows, cols] = engine[cols] != said
+            wrong[rows, cols] = engine[cols] != values
         return self.judge.tick(k, reported, bad, claims.fused[k - 1], has, wrong, [r.agent for r in restarts])
 
 

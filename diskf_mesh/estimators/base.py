@@ -378,10 +378,8 @@ class Estimator:
         q_own, = rs.gate_statistics(x_send, P_send, (take(own.x_pred, ri, 1),), P_own)
         d_valid = take(senders.d_valid, si, 0) & take(own.d_valid, ri, 0)
         if d_valid.any():  # the input estimates, where both sides have one
-            d_send, S_own = take(senders.d, si, 1), take(own.S, ri, 2)
-            S_send = np.where(d_valid[:, None, None], take(senders.S, si, 2), 1.0)
-            qd_own, = rs.gate_statistics(d_send, S_send, (take(own.d, ri, 1),), S_own)
-            qd_own = np.where(d_valid, qd_own, 0.0)
+            d_send, S_send, S_own = take(senders.d, si, 1), take(senders.S, si, 2), take(own.S, ri, 2)
+            qd_own, = rs.input_gate_statistics(d_send, S_send, (take(own.d, ri, 1),), S_own, d_valid)
         else:
             qd_own = None
         if rs.nothing_grows(evidence, floor, q_own, qd_own, allowance):
@@ -393,8 +391,8 @@ class Estimator:
         failed = (q > gate) | floor
         if qd_own is not None:
             d_med = rs.reference((adj > 0) & np.expand_dims(senders.d_valid, -2), senders.d, own.d)
-            qd_med, = rs.gate_statistics(d_send, S_send, (take(d_med, ri, 1),), S_own)
-            qd = np.where(d_valid, np.minimum(qd_own, qd_med), 0.0)
+            qd_med, = rs.input_gate_statistics(d_send, S_send, (take(d_med, ri, 1),), S_own, d_valid)
+            qd = np.minimum(qd_own, qd_med)
             failed |= qd > gate
             q = np.maximum(q, qd)
         step = np.zeros(linked.size)

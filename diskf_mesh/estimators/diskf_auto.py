@@ -18,16 +18,13 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    update of the agent's *combined* estimate; the message is diskf-r's
    (x^, P^, x~, P~, the combined fused input d, S) and the agent's model
    probabilities w (one float per model of ``input_models.BANK``, 0 for a
-   model not in the bank). No H, R or y; one message per tick. Before
-   the update (``[estimator.auto] noise``, off by default) the agent learns
-   how much noisier, or calmer, its own sensor is than stated
-   (``core.noise``: a scale r of its R, one step of a stochastic
-   approximation of the median of its normalised innovation per measured
-   tick, the measurement scored against its state predicted with the input
-   it last fused) and weighs this tick's measurement by 1 / r. Its local
-   update carries the weight, and so does every receiver's fusion and every
-   model's likelihood: the bank compares input models under the noise the
-   world shows, and the message is unchanged.
+   model not in the bank). No H, R or y; one message per tick. With
+   ``[estimator.auto] noise`` (off by default) the agent weighs this tick's
+   measurement by 1 / r, the scale of its own R it learned by the last tick
+   it measured (step 5): its local update carries the weight, and so does
+   every receiver's fusion and every model's likelihood; the bank compares
+   input models under the noise the world shows, and the message is
+   unchanged.
 2. fuse, mixing: on a tick whose neighbourhood measures nothing, the
    models' prior probabilities are the fused senders' (the agent's own
    included) pooled by their normalised geometric mean
@@ -59,10 +56,24 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    messages) by the joint Kalman update.
 4. fuse, weights: each model's likelihood of the neighbourhood's
    measurement, from U and u alone (``information_loglik``), updates the
-   model probabilities; the output is the mixture's mean and covariance
-   over the models of probability ``PRUNE`` or more
-   (``input_models.output_weights``): a model held at the floor whose
-   covariance is orders of magnitude larger does not widen it.
+   model probabilities; the output is the mixture's mean and covariance,
+   the state's over the models of probability ``PRUNE`` or more
+   (``input_models.output_weights``: a model held at the floor whose
+   covariance is orders of magnitude larger does not widen it), the
+   input's over every model (the zero-input model alone would claim an
+   input known exactly, S = 0, which no message may carry).
+5. fuse, noise (``[estimator.auto] noise``): on a tick the agent measured,
+   it learns how much noisier, or calmer, its own sensor is than stated
+   (``core.noise``: a scale r of its R, one step of a stochastic
+   approximation of the median of the difference between this tick's
+   normalised innovation and that of the last tick it measured). The
+   measurement is scored against the mean the bank predicted for the tick
+   (step 3's, the models mixed by their predicted probabilities, their
+   predictions of the input included: the part of a fast input the bank
+   predicts is not read as noise) with the covariance of the agent's own
+   prediction (the input's uncertainty left out: the models that would
+   take noise for an input do not hide it). r weighs the next tick's
+   measurement.
 
 With one first-order model in the bank it is ``diskf-r`` with that input
 model. Evidence accumulates over ticks in the model probabilities (the
@@ -79,7 +90,7 @@ import numpy as np
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core import input_models as im
 from diskf_mesh.core import noise
-from diskf_mesh.core.linalg import identity, mv, nbr_sum
+from diskf_mesh.core.linalg import identity, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.estimators.base import DEFENCE, EXCHANGED, Estimator, Exchanged, Local, Setting, State, run_scales
@@ -97,6 +108,9 @@ class AutoState(State):
     S_hold: np.ndarray | None = None  # (..., m, m)
     held: np.ndarray | None = None    # (...,) an input estimate exists
     theta: np.ndarray | None = None   # (...,) log r, the own measurement noise scale (``core.noise``; 0 as stated)
+    last: tuple | None = None         # the innovation of the last measured tick (``noise.track``'s ``last``)
+    y: np.ndarray | None = None       # this tick's own measurement, held from the local step to the fusion
+    has: np.ndarray | None = None
     tick: int = 0
 
 
@@ -141,26 +155,19 @@ class DISKFAuto(Estimator):
         return AutoState(s.x, s.P, s.since, mu=np.broadcast_to(self.mu0, batch + (M,)).copy(),
                          z=np.repeat(z[..., None, :], M, axis=-2), Z=np.repeat(Z[..., None, :, :], M, axis=-3),
                          d_hold=np.zeros(batch + (m,)), S_hold=S0[..., :m, :m].copy(),
-                         held=np.zeros(batch, dtype=bool), theta=np.zeros(batch))
+                         held=np.zeros(batch, dtype=bool), theta=np.zeros(batch),
+                         last=noise.first_innovation(batch, self.sensors.H.shape[-2]) if self.learn else None)
 
     def local(self, state: AutoState, k: int, y, has):
-        theta = state.theta
-        if not self.learn:
-            loc = self.local_kf(state, k, y, has)
-        else:  # the own sensor's noise scale learned first (``core.noise``), its information scaled by 1 / r
-            x_pred, P_pred = eq.predict(state.x, state.P, self.model.A_at(k), self.model.Q)
-            U, u = eq.measurement_information(self.sensor_info, y, has)
-            G, held = self.model.G, state.held
-            x_in = x_pred + np.where(held[..., None], mv(G, state.d_hold), 0.0)  # predicted with the fused input
-            theta = noise.track(theta, x_in, P_pred, y, self.sensors.H, self.sensors.R, self.sensors.p, has,
-                                self.median, NOISE_STEP)
-            scale = np.exp(-theta)
-            U, u = U * scale[..., None, None], u * scale[..., None]
-            Y, Ji = eq.information_pair(P_pred, U)
-            x_upd, P_upd = eq.local_update(x_pred, P_pred, Y, Ji, u, has)
-            loc = Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji)
+        loc = self.local_kf(state, k, y, has)
+        if self.learn:  # the own measurement weighed by 1 / r (``core.noise``)
+            scale = np.exp(-state.theta)
+            U, u = loc.U * scale[..., None, None], loc.u * scale[..., None]
+            Y, Ji = eq.information_pair(loc.P_pred, U)
+            loc = Local(loc.x_pred, loc.P_pred, U, u, *eq.local_update(loc.x_pred, loc.P_pred, Y, Ji, u, has), Y, Ji)
         st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
-                       Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=theta, tick=k)
+                       Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=state.theta,
+                       last=state.last, y=y if self.learn else None, has=has if self.learn else None, tick=k)
         if self.whole_bank:  # the message's w is mu itself (a new array every tick, never changed)
             w = state.mu
         else:
@@ -199,12 +206,19 @@ class DISKFAuto(Estimator):
         x_k, P_k = eq.local_update(x_s, P_s, Y, Ji, u_m)
         e_k, C_k, S_k = eq.replace_marginal(x_s, P_s, e1, C_s, S1, x_k, P_k)
         mu = im.update_probabilities(c, loglik, FLOOR)
+        theta, last = state.theta, state.last
+        if self.learn:  # 5. the own sensor's noise scale, scored against the bank's predicted mean
+            theta, last = noise.track(theta, last, im.mixture_mean(c, x_s), own.P_pred, state.y, self.sensors.H,
+                                      self.sensors.R, self.sensors.p, state.has, self.median, NOISE_STEP)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
-        zc, Zc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z, Z)
-        x, P, e, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
-        d, S = e[..., :m], S[..., :m, :m]
+        # the output (each entry of a mixture its own sums: the same bits as the whole joint's): the state's
+        # mixture over the models of probability PRUNE or more; the input's over every model, so that it never
+        # claims the zero-input model's certainty (S = 0) when that model alone holds the probability
+        xc, Pc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z[..., :n], Z[..., :n, :n])
+        dc, Sc = im.mix(mu[..., :, None], z[..., n:n + m], Z[..., n:n + m, n:n + m])
+        x, P, d, S = xc[..., 0, :], Pc[..., 0, :, :], dc[..., 0, :], Sc[..., 0, :, :]
         held = state.held | informed | relayed
-        st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=state.theta,
+        st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=theta, last=last,
                        tick=state.tick)
         return st, Output(x, P, d, held)
 
@@ -231,10 +245,11 @@ class DISKFAuto(Estimator):
                                           rho2 * senders.S[..., None, :, :, :] + qI,
                                           senders.d_valid[..., None, :])           # (..., J, R, ...)
         d_n, S_n, has_n = d_n.swapaxes(-3, -2), S_n.swapaxes(-4, -3), has_n.swapaxes(-2, -1)
-        parts = v[..., js, :], Pv[..., js, :, :], e[..., js, :], S[..., js, :, :], B[..., js, :, :]
+        parts = tuple(np.take(a, js, axis=axis) for a, axis in ((v, -2), (Pv, -3), (e, -2), (S, -3), (B, -3)))
         dj, Sj = parts[2][..., :m], parts[3][..., :m, :m]                           # (..., R, J, ...)
-        d_r, S_r, _ = eq.input_fusion(self.relay_pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
-                                      np.stack([np.ones_like(has_n), has_n], axis=-1))
+        pair = eq.input_fusion_scalar if m == 1 else eq.input_fusion  # the same bits, faster on two senders
+        d_r, S_r, _ = pair(self.relay_pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
+                           np.stack([np.ones_like(has_n), has_n], axis=-1))
         new = im.replace_input(*parts, d_r[..., 0, :], S_r[..., 0, :, :])
         some = not has_n.all()
         for whole, old, part in zip((v, Pv, e, S, B), parts, new):
@@ -245,7 +260,7 @@ class DISKFAuto(Estimator):
         return v, Pv, e, S, B, has_n.any(axis=-1)
 
 
-NOISE_STEP = 0.1  # step of (NL1) (``core.noise``): the most a measured tick moves log r
+NOISE_STEP = 0.2  # step of (NL1) (``core.noise``): the most a measured tick moves log r
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
 PRUNE = 1e-3  # mixing and output weights below it are dropped (``input_models.model_weights``, ``output_weights``)
 

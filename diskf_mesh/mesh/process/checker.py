@@ -2,8 +2,9 @@
 
 ``CheckProcess`` has the interface of ``mesh.protocol.run_status.OnlineCheck``
 that ``WorldMachine`` calls (``submit``, ``result``): ``submit(rec, k)``
-sends tick k's reports (its rows of the record, the digests, rejoins and
-starting states) down a pipe to a child process, forked before the world's
+sends tick k's reports (its rows of the record and its digests as raw
+bytes, and the rejoins and starting states when the run has any:
+``tick_bytes``) down a pipe to a child process, forked before the world's
 credentials are read, that holds its own ``OnlineCheck`` (made by
 ``make()``, the same engine replay on the same trace) and runs it there;
 ``result(rec, k, wait)`` hands back its finding, None while it is not done
@@ -26,7 +27,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import pickle
 import signal
+import struct
 import time
 import traceback
 
@@ -37,6 +40,9 @@ from diskf_mesh.mesh.protocol.reports import RunReports
 
 NICE = 5       # steps of niceness below the world (os.nice)
 JOIN_S = 2.0   # at the end, for the child to leave before it is terminated
+HEADER = struct.Struct("<qqq")    # a tick handed over: the tick, its digests, what it holds (``tick_bytes``)
+ANSWER = struct.Struct("<bqd")    # the child's answer: its kind, the tick, the child's CPU seconds; then its body
+READY, FOUND, ERROR = 0, 1, 2     # the kinds: the check is made; a tick's finding (pickled, none if empty); a traceback
 
 
 class CheckFailed(RuntimeError):
@@ -72,16 +78,8 @@ class CheckProcess:
         """Tick k's reports are final: send them (once)."""
         if k <= self._sent:
             return
-        t, N = k - 1, rec.reported.shape[1]
-        digests = {(k, i): rec.digests[(k, i)] for i in range(N) if (k, i) in rec.digests}
-        live = getattr(rec, "live", None)
-        # the tick's rows as raw bytes (its floats, then its flags), the rest as it is (mostly empty)
-        floats = b"".join((rec.x[t].tobytes(), rec.P[t].tobytes(), rec.d[t].tobytes()))
-        flags = b"".join((rec.d_valid[t].tobytes(), rec.reported[t].tobytes(), rec.fused[t].tobytes(),
-                          b"" if live is None else live[t].tobytes()))
         try:
-            self._conn.send((k, floats, flags, digests, getattr(rec, "rejoins", None) or None,
-                             list(getattr(rec, "starts", ())) or None))
+            self._conn.send_bytes(tick_bytes(rec, k))
         except OSError:  # a broken pipe: the child is gone
             raise self._ended(k) from None
         self._sent = k
@@ -94,18 +92,28 @@ class CheckProcess:
             if not wait and not self._conn.poll():
                 return None
             try:
-                kind, tick, value, self.cpu_s = self._conn.recv()
+                data = self._conn.recv_bytes()
             except (EOFError, OSError):  # the child is gone
                 raise self._ended(k) from None
-            if kind == "error":
-                raise CheckFailed(f"the online check failed at tick {tick}:\n{value}")
-            if kind == "ready":
+            kind, tick, self.cpu_s = ANSWER.unpack_from(data)
+            if kind == ERROR:
+                raise _failed(tick, data)
+            if kind == READY:
                 self._ready_cpu_s = self.cpu_s
                 continue
-            self._found[tick] = value
+            self._found[tick] = pickle.loads(data[ANSWER.size:]) if len(data) > ANSWER.size else []
         return self._found.pop(k)
 
     def _ended(self, k: int) -> CheckFailed:
+        """The child is gone: its error if it sent one before it ended
+        (the pipe may break before the world reads it), else how it ended."""
+        try:
+            while self._conn.poll():
+                data = self._conn.recv_bytes()
+                if ANSWER.unpack_from(data)[0] == ERROR:
+                    return _failed(ANSWER.unpack_from(data)[1], data)
+        except (EOFError, OSError):
+            pass
         self._proc.join(JOIN_S)
         return CheckFailed(f"the online check's process ended (exit status {self._proc.exitcode}) before tick {k} "
                            "was checked")
@@ -134,33 +142,69 @@ def _serve(make, conn, other, nice: int) -> None:
         return
 
 
+def _failed(k: int, data: bytes) -> CheckFailed:
+    """The child's ``ERROR`` answer about tick k as the world raises it."""
+    return CheckFailed(f"the online check failed at tick {k}:\n{data[ANSWER.size:].decode()}")
+
+
+def _answer(conn, kind: int, k: int, body: bytes = b"") -> None:
+    conn.send_bytes(ANSWER.pack(kind, k, time.process_time()) + body)
+
+
 def _check_each(make, conn) -> None:
     """Make the check, then check each tick as it comes; the pipe's end
     raises (``EOFError``, ``ConnectionError``)."""
     try:
         check = make()
     except Exception:  # noqa: BLE001 - the world raises it when it asks (its own setup fails the same way first)
-        conn.send(("error", 0, traceback.format_exc(), time.process_time()))
+        _answer(conn, ERROR, 0, traceback.format_exc().encode())
         return
-    conn.send(("ready", 0, None, time.process_time()))
+    _answer(conn, READY, 0)
     B, K, N = check.trace.has.shape
-    n, m = check.trace.model.n, check.trace.model.m
-    rec = WorldRecord(**RunReports.empty(K, N, n, m), live=np.zeros((K, N), dtype=bool))
-    at = np.cumsum([0, N * n, N * n * n, N * m])  # where x, P, d lie in a tick's floats
+    rec = WorldRecord(**RunReports.empty(K, N, check.trace.model.n, check.trace.model.m),
+                      live=np.zeros((K, N), dtype=bool))
     while True:
-        k, floats, flags, digests, rejoins, starts = conn.recv()
-        t, a, b = k - 1, np.frombuffer(floats, dtype=float), np.frombuffer(flags, dtype=bool)
-        rec.x[t], rec.P[t], rec.d[t] = (a[at[0]:at[1]].reshape(N, n), a[at[1]:at[2]].reshape(N, n, n),
-                                        a[at[2]:at[3]].reshape(N, m))
-        rec.d_valid[t], rec.reported[t], rec.fused[t] = b[:N], b[N:2 * N], b[2 * N:2 * N + N * N].reshape(N, N)
-        if b.size > 2 * N + N * N:
-            rec.live[t] = b[2 * N + N * N:]
-        else:
-            rec.live = None
-        rec.digests, rec.rejoins, rec.starts = digests, rejoins or {}, starts or []
+        k, said = read_tick(conn.recv_bytes(), rec)
         try:
-            found = check.tick(rec, k)
+            found = check.tick(rec, k, said)
         except Exception:  # noqa: BLE001 - the world raises it
-            conn.send(("error", k, traceback.format_exc(), time.process_time()))
+            _answer(conn, ERROR, k, traceback.format_exc().encode())
             return
-        conn.send(("found", k, found, time.process_time()))
+        _answer(conn, FOUND, k, pickle.dumps(found) if found else b"")
+
+
+def tick_bytes(rec, k: int) -> bytes:
+    """Tick k of the world's record ``rec`` as the check's process reads it
+    (``read_tick``): ``HEADER`` (the tick, how many digests, what follows),
+    the tick's rows of x, P and d, of d_valid, reported, fused and live
+    (when ``rec`` holds it), its digests (``tick_digests``) and, when the
+    run has any, the rejoins and starting states pickled."""
+    t = k - 1
+    live = getattr(rec, "live", None)
+    rows, cols, values = rec.tick_digests(k)
+    rejoins, starts = getattr(rec, "rejoins", None), list(getattr(rec, "starts", ()))
+    extra = pickle.dumps((rejoins, starts)) if rejoins or starts else b""
+    return b"".join((HEADER.pack(k, len(rows), (live is not None) | (bool(extra) << 1)), rec.x[t].tobytes(),
+                     rec.P[t].tobytes(), rec.d[t].tobytes(), rec.d_valid[t].tobytes(), rec.reported[t].tobytes(),
+                     rec.fused[t].tobytes(), b"" if live is None else live[t].tobytes(), rows.tobytes(),
+                     cols.tobytes(), values.tobytes(), extra))
+
+
+def read_tick(data: bytes, rec) -> tuple:
+    """``tick_bytes`` written into ``rec`` (a record of the run's shape):
+    (the tick, its digests as ``tick_digests`` gives them)."""
+    k, J, has = HEADER.unpack_from(data)
+    t, at = k - 1, HEADER.size
+    for name in ("x", "P", "d", "d_valid", "reported", "fused") + (("live",) if has & 1 else ()):
+        row = getattr(rec, name)[t]
+        size = row.nbytes
+        row[...] = np.frombuffer(data, dtype=row.dtype, count=row.size, offset=at).reshape(row.shape)
+        at += size
+    if not has & 1:
+        rec.live = None
+    said = []
+    for dtype in (np.intp, np.intp, np.uint64):
+        said.append(np.frombuffer(data, dtype=dtype, count=J, offset=at))
+        at += J * said[-1].itemsize
+    rec.rejoins, rec.starts = pickle.loads(data[at:]) if has & 2 else ({}, [])
+    return k, tuple(said)

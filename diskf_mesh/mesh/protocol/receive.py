@@ -182,9 +182,11 @@ class Receiver:
         seen = self.inbox.seen(tick)
         me, taken = self.me, {}
         for a in arrivals:
+            if type(a) is not MessageArrived:
+                break
             wm, s = a.message, a.sender
-            if type(a) is not MessageArrived or type(wm) is not wire.WireMessage or a.problem is not None \
-                    or wm.tick != tick or s == me or s not in linked or s in seen or s in taken:
+            if type(wm) is not wire.WireMessage or a.problem is not None or wm.tick != tick or s == me \
+                    or s not in linked or s in seen or s in taken:
                 break
             taken[s] = wm
         n = len(taken)

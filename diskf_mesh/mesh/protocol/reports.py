@@ -57,6 +57,19 @@ class RunReports:
         return {key: (np.array(senders, dtype=np.intp), digest_values(gs))
                 for key, (senders, gs) in self.digests.items()}
 
+    def tick_digests(self, k: int) -> tuple:
+        """Tick k's ``digests`` as three (J,) arrays, receivers in order:
+        receivers, senders (intp) and digests (uint64, as
+        ``claimed_digests``): ``engine.verify.Online``'s ``said``."""
+        rows, cols, gs = [], [], []
+        for i in range(self.reported.shape[1]):
+            got = self.digests.get((k, i))
+            if got:
+                rows += [i] * len(got[0])
+                cols += got[0]
+                gs += got[1]
+        return np.array(rows, dtype=np.intp), np.array(cols, dtype=np.intp), digest_values(gs)
+
     def estimates(self, fill: bool = False) -> Estimates:
         """The reports as an engine ``Estimates`` batch of one; with ``fill``
         the agent-ticks without a report hold x = 0, P = I, d = 0 (for

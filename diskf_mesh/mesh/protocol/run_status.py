@@ -153,28 +153,28 @@ class OnlineCheck:
         says None while it is not done, unless ``wait``)."""
         return self.tick(rec, k)
 
-    def tick(self, rec, k: int) -> list:
-        N = len(self.ids)
-        live = rec.live[k - 1] if getattr(rec, "live", None) is not None else np.ones(N, dtype=bool)
-        planned = verify.nominal_links(self.trace, k, live[None], first_tick=k)
-        if self.faults is not None:
-            planned = verify.planned_links(planned, self.ids, self.faults, self.seed, self.deadline_s, first_tick=k)
-        said = [(i, d) for i in range(N) if (d := rec.digests.get((k, i)))]
-        digests = {}
-        if said:  # every digest of the tick as one array, each receiver's a slice of it
-            values, at = verify.digest_values([g for _, (_, gs) in said for g in gs]), 0
-            for i, (senders, _) in said:
-                digests[(k, i)] = (senders, values[at:at + len(senders)])
-                at += len(senders)
+    def tick(self, rec, k: int, said: tuple | None = None) -> list:
+        """Tick k checked (the class's docstring); ``said``: its digests as
+        ``rec.tick_digests(k)`` gives them (None: taken from ``rec``)."""
         rejoins = getattr(rec, "rejoins", None)
         restarts = tuple(r for r in restarts_of(rejoins, getattr(rec, "starts", ()), self.index)
                          if r.tick == k) if rejoins else ()
-        claims = RunClaims(rec.x, rec.P, rec.d, rec.d_valid, rec.reported, rec.fused, None, restarts, digests)
-        judged = self.online.tick(k, claims, planned[0])
+        claims = RunClaims(rec.x, rec.P, rec.d, rec.d_valid, rec.reported, rec.fused, None, restarts)
+        judged = self.online.tick(k, claims, lambda: self.planned(rec, k),
+                                  rec.tick_digests(k) if said is None else said)
         if judged is None:
             return []
         return [{"agent": self.ids[s], "tick": k, "why": "lied",
                  "fused_by": [self.ids[r] for r in np.flatnonzero(judged.forged[:, s])]} for s in judged.liars()]
+
+    def planned(self, rec, k: int) -> np.ndarray:
+        """(N, N) tick k's planned links: the range links between the agents
+        ``rec`` says it counted live, after the run's link faults."""
+        live = rec.live[k - 1] if getattr(rec, "live", None) is not None else np.ones(len(self.ids), dtype=bool)
+        planned = verify.nominal_links(self.trace, k, live[None], first_tick=k)
+        if self.faults is not None:
+            planned = verify.planned_links(planned, self.ids, self.faults, self.seed, self.deadline_s, first_tick=k)
+        return planned[0]
 
 
 def quarantine_evidence(rec, names) -> tuple:

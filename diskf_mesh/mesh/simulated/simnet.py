@@ -714,46 +714,47 @@ class SimNet:
         for e in effects:
             if proc.state in ("dead", "done"):
                 return
-            if isinstance(e, ev.Publish):
+            kind = type(e)
+            if kind is ev.Publish:
                 self._publish(proc, e.key, e.payload)
-            elif isinstance(e, ev.SetTimer):
+            elif kind is ev.SetTimer:
                 self._timer_serial += 1
                 proc.timers[e.name] = self._timer_serial
                 self._at(e.at, ("timer", proc, e.name, self._timer_serial))
-            elif isinstance(e, ev.CancelTimer):
+            elif kind is ev.CancelTimer:
                 proc.timers.pop(e.name, None)
-            elif isinstance(e, ev.Subscribe):
+            elif kind is ev.Subscribe:
                 if self._may(proc, "declare_subscriber", e.key):
                     self._subs.add(e.key, proc)
-            elif isinstance(e, ev.WatchTokens):
+            elif kind is ev.WatchTokens:
                 if self._may(proc, "declare_liveliness_subscriber", e.key):
                     self._watch(proc, e.key)
-            elif isinstance(e, ev.DeclareQueryable):
+            elif kind is ev.DeclareQueryable:
                 if self._may(proc, "declare_queryable", e.key):
                     self._queryables.add(e.key, proc)
-            elif isinstance(e, ev.DeclareToken):
+            elif kind is ev.DeclareToken:
                 if self._may(proc, "liveliness_token", e.key):
                     proc.tokens.append(e.key)
                     self._holders[proc.order] = proc
                     self._own_token(proc, e.key, +1)
-            elif isinstance(e, ev.DropToken):
+            elif kind is ev.DropToken:
                 if e.key in proc.tokens:
                     proc.tokens.remove(e.key)
                     if not proc.tokens:
                         self._holders.pop(proc.order, None)
                     self._own_token(proc, e.key, -1)
-            elif isinstance(e, ev.AskTokens):
+            elif kind is ev.AskTokens:
                 self._ask_tokens(proc, e)
-            elif isinstance(e, ev.Ask):
+            elif kind is ev.Ask:
                 self._ask(proc, e)
-            elif isinstance(e, ev.Answer):
+            elif kind is ev.Answer:
                 self._answer(proc, e)
-            elif isinstance(e, ev.HandOver):
+            elif kind is ev.HandOver:
                 e.carry_out()
-            elif isinstance(e, ev.Work):
+            elif kind is ev.Work:
                 self._work.append((proc, e))
                 self._working.add(proc)
-            elif isinstance(e, ev.Finish):
+            elif kind is ev.Finish:
                 self._finishes[proc.pid] = e
                 self.trace.add(now, repr(proc), f"finish {e.status} {e.code}", e.reason)
                 self._end(proc, "done")

@@ -185,19 +185,39 @@ def engine_digests(run_id: str, ids, exchanged: tuple = EXCHANGED):
     """``engine.verify``'s ``message_digests`` for a run: (tick, senders'
     indices in ``ids``, the engine's Message of the tick, batch (1, N, ...))
     -> the ``message_digest`` of each sender's message, every sender's
-    floats laid out at once as ``encode`` lays out one's."""
+    floats laid out at once as ``encode`` lays out one's. The bytes hashed
+    are ``_message``'s: its map's fields packed one by one, those that do
+    not change within a run (the sender's, the sizes) packed once."""
     ids = list(ids)
     _, _, ((fn, an), (fm, am)) = _codec(exchanged, None, None)
+    pack = msgpack.Packer(use_bin_type=True).pack
+    heads = [b"".join((msgpack.Packer().pack_map_header(10), pack("v"), pack(SCHEMA), pack("k"), pack("msg"),
+                       pack("run"), pack(run_id), pack("s"), pack(int(i)), pack("t"))) for i in ids]
+    flags = (pack("dv") + pack(False), pack("dv") + pack(True))
+    middles = {}  # (n, m, float bytes) -> the fields between the tick and the floats
 
     def digests(k: int, senders, msg: Message) -> list:
         senders = np.asarray(senders, dtype=np.intp)
         n, m = int(np.shape(getattr(msg, fn))[an]), int(np.shape(getattr(msg, fm))[am])
-        rows = np.concatenate([np.asarray(getattr(msg, f.name), dtype=DTYPE)[0, senders].reshape(len(senders), -1)
-                               for f in exchanged], axis=1)
+        arrays = [np.asarray(getattr(msg, f.name), dtype=DTYPE)[0] for f in exchanged]
+        N = arrays[0].shape[0]
+        rows = np.concatenate([a.reshape(N, -1) for a in arrays], axis=1)[senders]
+        size = (n, m, rows.shape[1] * 8)
+        middle = middles.get(size)
+        if middle is None:
+            middle = middles[size] = (b"".join((pack("n"), pack(n), pack("m"), pack(m), pack("dt"), pack(DTYPE))),
+                                      pack("a") + _bin_header(pack, size[2]))
+        tick, (sizes, floats) = pack(int(k)), middle
         dv = np.asarray(msg.d_valid)[0, senders].tolist()
-        return [digest(_message(run_id, ids[s], k, n, m, v, row.tobytes()))
+        return [digest(b"".join((heads[s], tick, sizes, flags[v], floats, row.tobytes())))
                 for s, v, row in zip(senders.tolist(), dv, rows)]
     return digests
+
+
+def _bin_header(pack, size: int) -> bytes:
+    """The header ``pack`` writes before ``size`` bytes."""
+    whole = pack(bytes(size))
+    return whole[:len(whole) - size]
 
 
 def encode_report(run_id: str, sender: int, tick: int, x, P, d, d_valid, counters=None, fused=(),
