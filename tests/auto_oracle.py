@@ -150,17 +150,19 @@ def run_auto(trace, options, noise_step=0.2):
                 mu = c * np.exp(ll - ll.max())
                 mu = np.maximum(mu / mu.sum(), FLOOR)
                 mu = mu / mu.sum()
-                kept = np.where(mu < PRUNE, 0.0, mu)  # the output: the models of probability PRUNE or more
+                kept = np.where(mu < PRUNE, 0.0, mu)  # the state's output: the models of probability PRUNE or more
                 kept = kept / kept.sum()
                 z = sum(kept[j] * zs[j] for j in range(M))
                 Z = sum(kept[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
+                zd = sum(mu[j] * zs[j] for j in range(M))  # the input's: every model
+                Zd = sum(mu[j] * (Zs[j] + np.outer(zs[j] - zd, zs[j] - zd)) for j in range(M))
                 held = a["held"] or bool(meas) or relayed
                 theta, last = a["theta"], a["last"]
                 if options.noise and trace.has[b, k - 1, i]:  # scored against the bank's predicted mean
                     x_m = sum(c[j] * priors[j] for j in range(M))
                     theta, last = noise_scale(theta, last, x_m, pred[i][1], Hs[i], Rs[i],
                                               trace.y[b, k - 1, i, : sensors.p[i]], noise_step)
-                new.append(dict(x=z[:n], P=Z[:n, :n], d=z[n:n + m], S=Z[n:n + m, n:n + m], held=held, mu=mu, z=zs,
+                new.append(dict(x=z[:n], P=Z[:n, :n], d=zd[n:n + m], S=Zd[n:n + m, n:n + m], held=held, mu=mu, z=zs,
                                 Z=Zs, theta=theta, last=last))
             agents = new
             for i, a in enumerate(agents):

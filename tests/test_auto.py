@@ -19,6 +19,7 @@ from diskf_mesh.engine import batch as engine
 from diskf_mesh.estimators import NAMES
 from diskf_mesh.mesh.protocol.estimator import lockstep
 from diskf_mesh.studies import heldout
+from diskf_mesh.mesh.simulated.simrun import simulate_run
 
 sys.path.insert(0, str(Path(__file__).parent))
 import auto_oracle  # noqa: E402
@@ -276,3 +277,15 @@ def test_the_output_leaves_out_the_models_under_the_prune():
     nees = {name: metrics.errors(tr, engine.run(tr, name, scn.params))[2][seen].mean()
             for name in ("diskf-auto", "diskf-none")}
     assert abs(nees["diskf-auto"] / nees["diskf-none"] - 1) < 0.05, nees
+
+
+def test_no_message_claims_an_input_known_exactly():
+    """The constant-velocity model in a ring with no input: from tick 8 the
+    zero-input model alone holds the output's probability. Its input
+    covariance is 0, which the receivers' guard rejects (not positive
+    definite): the input's output mixture keeps every model, and the
+    simulated run fuses every link and equals the engine."""
+    case = next(c for c in heldout.cases() if c.label == "CV ring, zero")
+    scn, tr = case.simulate([0], 20)
+    run = simulate_run(scn, tr, "diskf-auto", 0)
+    assert run.status.status == "exact", run.status.reason

@@ -175,11 +175,3 @@ def test_inputs_both_sides_are_certain_of_are_gated_without_raising():
     q, = rs.input_gate_statistics(np.array([[0.0, 2.0]]), S_send[2:3], (np.zeros((1, 2)),), S_own[2:3], valid[:1])
     assert q[0] == pytest.approx(2.0)   # 4 / (1 + 1) along the direction with variance
 
-
-def test_a_bank_certain_of_a_zero_input_runs_with_the_screen_on():
-    from diskf_mesh.studies import heldout
-    case = next(c for c in heldout.cases() if c.label == "CV ring, zero")
-    scn, tr = case.simulate(range(1), 15)
-    params = dataclasses.replace(scn.params, defence=True)
-    est = batch.run(tr, "diskf-auto", params)   # its output held d = 0, S = 0 from tick 9
-    assert np.isfinite(est.x).all()

@@ -56,10 +56,12 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    messages) by the joint Kalman update.
 4. fuse, weights: each model's likelihood of the neighbourhood's
    measurement, from U and u alone (``information_loglik``), updates the
-   model probabilities; the output is the mixture's mean and covariance
-   over the models of probability ``PRUNE`` or more
-   (``input_models.output_weights``): a model held at the floor whose
-   covariance is orders of magnitude larger does not widen it.
+   model probabilities; the output is the mixture's mean and covariance,
+   the state's over the models of probability ``PRUNE`` or more
+   (``input_models.output_weights``: a model held at the floor whose
+   covariance is orders of magnitude larger does not widen it), the
+   input's over every model (the zero-input model alone would claim an
+   input known exactly, S = 0, which no message may carry).
 5. fuse, noise (``[estimator.auto] noise``): on a tick the agent measured,
    it learns how much noisier, or calmer, its own sensor is than stated
    (``core.noise``: a scale r of its R, one step of a stochastic
@@ -209,10 +211,12 @@ class DISKFAuto(Estimator):
             theta, last = noise.track(theta, last, im.mixture_mean(c, x_s), own.P_pred, state.y, self.sensors.H,
                                       self.sensors.R, self.sensors.p, state.has, self.median, NOISE_STEP)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
-        # the output: the mixture of (x, d_{k-1}) alone (each entry of a mixture its own sums: the same bits as
-        # the whole joint's)
-        zc, Zc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z[..., :n + m], Z[..., :n + m, :n + m])
-        x, P, d, S, _ = im.split(zc[..., 0, :], Zc[..., 0, :, :], n)
+        # the output (each entry of a mixture its own sums: the same bits as the whole joint's): the state's
+        # mixture over the models of probability PRUNE or more; the input's over every model, so that it never
+        # claims the zero-input model's certainty (S = 0) when that model alone holds the probability
+        xc, Pc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z[..., :n], Z[..., :n, :n])
+        dc, Sc = im.mix(mu[..., :, None], z[..., n:n + m], Z[..., n:n + m, n:n + m])
+        x, P, d, S = xc[..., 0, :], Pc[..., 0, :, :], dc[..., 0, :], Sc[..., 0, :, :]
         held = state.held | informed | relayed
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=theta, last=last,
                        tick=state.tick)

@@ -97,7 +97,7 @@ class CheckProcess:
                 raise self._ended(k) from None
             kind, tick, self.cpu_s = ANSWER.unpack_from(data)
             if kind == ERROR:
-                raise CheckFailed(f"the online check failed at tick {tick}:\n{data[ANSWER.size:].decode()}")
+                raise _failed(tick, data)
             if kind == READY:
                 self._ready_cpu_s = self.cpu_s
                 continue
@@ -105,6 +105,15 @@ class CheckProcess:
         return self._found.pop(k)
 
     def _ended(self, k: int) -> CheckFailed:
+        """The child is gone: its error if it sent one before it ended
+        (the pipe may break before the world reads it), else how it ended."""
+        try:
+            while self._conn.poll():
+                data = self._conn.recv_bytes()
+                if ANSWER.unpack_from(data)[0] == ERROR:
+                    return _failed(ANSWER.unpack_from(data)[1], data)
+        except (EOFError, OSError):
+            pass
         self._proc.join(JOIN_S)
         return CheckFailed(f"the online check's process ended (exit status {self._proc.exitcode}) before tick {k} "
                            "was checked")
@@ -131,6 +140,11 @@ def _serve(make, conn, other, nice: int) -> None:
         _check_each(make, conn)
     except (EOFError, ConnectionError):  # the world closed its end, with what it had not read yet: it ended
         return
+
+
+def _failed(k: int, data: bytes) -> CheckFailed:
+    """The child's ``ERROR`` answer about tick k as the world raises it."""
+    return CheckFailed(f"the online check failed at tick {k}:\n{data[ANSWER.size:].decode()}")
 
 
 def _answer(conn, kind: int, k: int, body: bytes = b"") -> None:
