@@ -75,7 +75,7 @@ def test_auto_matches_oracle_isolated_shipped():
     assert_matches_oracle(scn, [0], 1e-7)
 
 
-@pytest.mark.parametrize("neighbours,noise", [("dense", False), ("gather", False), ("dense", True)])
+@pytest.mark.parametrize("neighbours,noise", [("dense", False), ("gather", False), ("dense", True), ("gather", True)])
 def test_auto_agents_alone_equal_engine(neighbours, noise):
     """Every agent a batch of one (as in an agent process): the engine's bits."""
     scn = load_scenario("dynamic").with_overrides(steps=40)

@@ -108,9 +108,17 @@ class AutoState(State):
     S_hold: np.ndarray | None = None  # (..., m, m)
     held: np.ndarray | None = None    # (...,) an input estimate exists
     theta: np.ndarray | None = None   # (...,) log r, the own measurement noise scale (``core.noise``; 0 as stated)
-    last: tuple | None = None         # the innovation of the last measured tick (``noise.track``'s ``last``)
-    y: np.ndarray | None = None       # this tick's own measurement, held from the local step to the fusion
+    e_last: np.ndarray | None = None  # (..., p_max) the innovation of the last measured tick (``noise.track``)
+    S_last: np.ndarray | None = None  # (..., p_max, p_max) its covariance
+    seen: np.ndarray | None = None    # (...,) a tick was measured
+    # this tick's own measurement and sensor (H, R, rows, chi-square median), held from the local step to the
+    # fusion, each with the agents' batch axes (so that a receiver fused apart is given its own)
+    y: np.ndarray | None = None
     has: np.ndarray | None = None
+    H: np.ndarray | None = None
+    R: np.ndarray | None = None
+    p: np.ndarray | None = None
+    median: np.ndarray | None = None
     tick: int = 0
 
 
@@ -156,7 +164,8 @@ class DISKFAuto(Estimator):
                          z=np.repeat(z[..., None, :], M, axis=-2), Z=np.repeat(Z[..., None, :, :], M, axis=-3),
                          d_hold=np.zeros(batch + (m,)), S_hold=S0[..., :m, :m].copy(),
                          held=np.zeros(batch, dtype=bool), theta=np.zeros(batch),
-                         last=noise.first_innovation(batch, self.sensors.H.shape[-2]) if self.learn else None)
+                         **(dict(zip(("e_last", "S_last", "seen"),
+                                     noise.first_innovation(batch, self.sensors.H.shape[-2]))) if self.learn else {}))
 
     def local(self, state: AutoState, k: int, y, has):
         loc = self.local_kf(state, k, y, has)
@@ -165,9 +174,15 @@ class DISKFAuto(Estimator):
             U, u = loc.U * scale[..., None, None], loc.u * scale[..., None]
             Y, Ji = eq.information_pair(loc.P_pred, U)
             loc = Local(loc.x_pred, loc.P_pred, U, u, *eq.local_update(loc.x_pred, loc.P_pred, Y, Ji, u, has), Y, Ji)
+        own = {}
+        if self.learn:
+            batch, sn = has.shape, self.sensors
+            own = dict(y=y, has=has, H=np.broadcast_to(sn.H, batch + sn.H.shape[-2:]),
+                       R=np.broadcast_to(sn.R, batch + sn.R.shape[-2:]), p=np.broadcast_to(sn.p, batch),
+                       median=np.broadcast_to(self.median, batch))
         st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
                        Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=state.theta,
-                       last=state.last, y=y if self.learn else None, has=has if self.learn else None, tick=k)
+                       e_last=state.e_last, S_last=state.S_last, seen=state.seen, tick=k, **own)
         if self.whole_bank:  # the message's w is mu itself (a new array every tick, never changed)
             w = state.mu
         else:
@@ -206,10 +221,10 @@ class DISKFAuto(Estimator):
         x_k, P_k = eq.local_update(x_s, P_s, Y, Ji, u_m)
         e_k, C_k, S_k = eq.replace_marginal(x_s, P_s, e1, C_s, S1, x_k, P_k)
         mu = im.update_probabilities(c, loglik, FLOOR)
-        theta, last = state.theta, state.last
+        theta, last = state.theta, (state.e_last, state.S_last, state.seen)
         if self.learn:  # 5. the own sensor's noise scale, scored against the bank's predicted mean
-            theta, last = noise.track(theta, last, im.mixture_mean(c, x_s), own.P_pred, state.y, self.sensors.H,
-                                      self.sensors.R, self.sensors.p, state.has, self.median, NOISE_STEP)
+            theta, last = noise.track(theta, last, im.mixture_mean(c, x_s), own.P_pred, state.y, state.H, state.R,
+                                      state.p, state.has, state.median, NOISE_STEP)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
         # the output (each entry of a mixture its own sums: the same bits as the whole joint's): the state's
         # mixture over the models of probability PRUNE or more; the input's over every model, so that it never
@@ -218,8 +233,8 @@ class DISKFAuto(Estimator):
         dc, Sc = im.mix(mu[..., :, None], z[..., n:n + m], Z[..., n:n + m, n:n + m])
         x, P, d, S = xc[..., 0, :], Pc[..., 0, :, :], dc[..., 0, :], Sc[..., 0, :, :]
         held = state.held | informed | relayed
-        st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=theta, last=last,
-                       tick=state.tick)
+        st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=theta,
+                       e_last=last[0], S_last=last[1], seen=last[2], tick=state.tick)
         return st, Output(x, P, d, held)
 
     def _relay(self, senders, nb, v, Pv, e, S, B):
