@@ -228,7 +228,7 @@ def test_the_memory_estimate_is_within_twice_a_measured_peak(tmp_path):
     process's whole peak, start-up included). The run is started by a small
     interpreter that reports its child's peak: Linux counts the memory of
     the process that executes a command in the command's peak (the test
-    process's own, hundreds of MB deep in a test session)."""
+    process's own, hundreds of MB after many tests in one pytest run)."""
     from diskf_mesh.mesh.simulated.simrun import simulated_bytes
     run = ["-m", "diskf_mesh.cli.main", "up", "--network", "simulated", "--scenario", "random-geometric",
            "--agents", "200", "--ticks", "5", "--quiet"]
