@@ -16,6 +16,7 @@ end). Link faults are not here: they act in each agent's receive path
 from __future__ import annotations
 
 import collections
+import ctypes
 import os
 import threading
 import time
@@ -131,6 +132,7 @@ class ZenohTransport(Transport):
             raise MeshError(f"cannot open a zenoh session: {e}") from None
         self._publishers = collections.OrderedDict()  # key -> publisher, least recently used first
         self._entities = []
+        self._kept = set()  # ids of zenoh's threads whose Python thread state is kept (``_keep_thread_state``)
 
     def put(self, key, payload, express=True):
         pub = self._publishers.get(key)
@@ -145,12 +147,30 @@ class ZenohTransport(Transport):
             self._publishers.move_to_end(key)
         pub.put(payload)
 
-    def _direct(self, fn):
+    def _direct(self, fn, drop=None):
         """Run ``fn`` on zenoh's own network thread, not on an extra Python
         thread per subscriber: one thread hop less per sample, which is most
         of a small message's cost. A callback may ``put`` (never to its own
         session: publishers reach other sessions only)."""
-        return self._zenoh.handlers.Callback(fn, indirect=False)
+        keep = self._keep_thread_state
+
+        def run(arg):
+            keep()
+            fn(arg)
+        return self._zenoh.handlers.Callback(run, drop, indirect=False)
+
+    def _keep_thread_state(self) -> None:
+        """Keep the Python thread state of the zenoh thread running this
+        callback for the next one. Zenoh's threads are not Python's: each
+        call into Python makes a thread state and deletes it on return
+        (``PyGILState_Ensure`` and ``Release``), so every sample paid for a
+        new one and its frame stack (fresh memory: most of a mesh process's
+        page faults). One ``Ensure`` more, never released, keeps it; the GIL
+        is held here, so it only counts."""
+        ident = threading.get_ident()
+        if ident not in self._kept:
+            self._kept.add(ident)
+            ctypes.pythonapi.PyGILState_Ensure()
 
     def subscribe(self, key_expr, on_sample):
         def cb(sample):
@@ -201,8 +221,7 @@ class ZenohTransport(Transport):
             if reply.ok is not None:
                 once(reply.ok.payload.to_bytes())
 
-        self._session.get(key, self._zenoh.handlers.Callback(cb, lambda: once(None), indirect=False),
-                          payload=payload, timeout=timeout)
+        self._session.get(key, self._direct(cb, lambda: once(None)), payload=payload, timeout=timeout)
 
     def close(self):
         if self._session.is_closed():
