@@ -34,8 +34,8 @@ once), then sends that tick again (agents that had reported it send their
 report again). If none comes back the run ends early.
 
 As the run goes the world checks each tick once its reports are in
-(``mesh.protocol.run_status.OnlineCheck``; in lockstep in a process of its
-own beside the world, ``mesh.process.checker``) and cuts off an agent it
+(``mesh.protocol.run_status.OnlineCheck``; in lockstep in a thread of its
+own beside the world's callbacks, ``mesh.process.checker``) and cuts off an agent it
 proves lied: the ticks leave it out of the live set. At the end it checks the
 whole run (``checked_status``, ``diskf_mesh.engine.verify``): the engine
 replays it from what each agent
@@ -94,7 +94,7 @@ from diskf_mesh.mesh.process import zenoh_config
 from diskf_mesh.mesh.wire.keys import Keys, new_nonce
 from diskf_mesh.mesh.protocol.log import Log
 from diskf_mesh.mesh.protocol.profile import NO_PHASES, WORLD_PHASES, Phases
-from diskf_mesh.mesh.process.checker import CheckProcess
+from diskf_mesh.mesh.process.checker import CheckThread
 from diskf_mesh.mesh.process.shell import Shell
 from diskf_mesh.mesh.protocol.world_machine import DUPLICATE, WorldMachine, WorldRecord, WorldTiming
 from diskf_mesh.mesh.process.transport import DuplicateProcess, MeshError, Transport, ZenohTransport
@@ -500,15 +500,7 @@ def run(args: argparse.Namespace) -> int:
     started = provenance.now()
     spec = runspec.from_args(args)
     scn = spec.load(args.ticks)
-    # lockstep: the check as the run goes in a process of its own, forked before the credentials are read
-    checker = CheckProcess(lambda: online_check(args, spec, scn, simulate(scn, [args.seed]),
-                                                faults_from_args(args, scn.faults), None)
-                           ) if realtime.from_args(args) is None else None
-    try:
-        return _run(args, spec, scn, started, signalled, checker)
-    finally:
-        if checker is not None:
-            checker.close()
+    return _run(args, spec, scn, started, signalled)
 
 
 def online_check(args, spec, scn: Scenario, trace: Trace, faults: FaultConfig, clock) -> OnlineCheck:
@@ -517,7 +509,7 @@ def online_check(args, spec, scn: Scenario, trace: Trace, faults: FaultConfig, c
                        faults=faults, deadline_s=realtime.agents_deadline(clock, args.collect_timeout))
 
 
-def _run(args, spec, scn: Scenario, started: str, signalled: list, checker) -> int:
+def _run(args, spec, scn: Scenario, started: str, signalled: list) -> int:
     from tqdm import tqdm
 
     from diskf_mesh.studies.experiment import format_table
@@ -547,7 +539,9 @@ def _run(args, spec, scn: Scenario, started: str, signalled: list, checker) -> i
         bar.update(1)
 
     prof = Phases(WORLD_PHASES, "world") if args.profile else NO_PHASES
-    online = checker if checker is not None else online_check(args, spec, scn, run.trace, run.faults, run.clock)
+    make = lambda: online_check(args, spec, scn, run.trace, run.faults, run.clock)  # noqa: E731
+    # lockstep: the check as the run goes in a thread of its own; real time: on the world's timer
+    online = CheckThread(make, prof) if run.clock is None else make()
     try:
         with ZenohTransport(zenoh, hold_ms=HOLD_MS) as transport:
             world = World(scn, run.trace, spec.algorithm, args.seed, Keys(spec.run_id), transport,
@@ -558,9 +552,9 @@ def _run(args, spec, scn: Scenario, started: str, signalled: list, checker) -> i
         return run_failed(e, run, log)
     finally:
         bar.close()
+        if isinstance(online, CheckThread):
+            online.close()
         if prof:
-            if checker is not None:
-                prof.add_cpu("check", checker.ticking_cpu_s)
             prof.write(args.profile, "world")
     code, results = finish_run(args, run, rec, world.done, args.json, log=log)
     if args.progress != "lines":

@@ -1,10 +1,8 @@
-"""The world's check as the run goes, answered late or in a process of its
-own (``mesh.process.checker.CheckProcess``): the same findings, the liar cut
+"""The world's check as the run goes, answered late or in a thread of its
+own (``mesh.process.checker.CheckThread``): the same findings, the liar cut
 off from the same tick, a failure of the check raised in the world."""
 from __future__ import annotations
 
-import os
-import signal
 import time
 from types import SimpleNamespace
 
@@ -12,7 +10,7 @@ import numpy as np
 import pytest
 
 from diskf_mesh import estimators
-from diskf_mesh.mesh.process.checker import CheckFailed, CheckProcess
+from diskf_mesh.mesh.process.checker import CheckFailed, CheckThread
 from diskf_mesh.mesh.process import checker
 from diskf_mesh.mesh.protocol import events, run_status, world_machine
 from diskf_mesh.mesh.protocol.reports import RunReports
@@ -25,7 +23,7 @@ assert dynamic
 
 class LateCheck(run_status.OnlineCheck):
     """An ``OnlineCheck`` whose finding is only there when the world waits
-    for it (as a check in another process still busy)."""
+    for it (as a check in a thread of its own still busy)."""
 
     asked_early = 0
 
@@ -50,24 +48,24 @@ def test_a_check_answered_only_when_waited_for_cuts_the_liar_off_from_the_same_t
 
 
 
-class ElsewhereCheck(LateCheck):
-    """A ``LateCheck`` that says it runs elsewhere (as ``CheckProcess``):
-    the world hands it each final tick (``HandOver``), with no timer."""
+class HandedOverCheck(LateCheck):
+    """A ``LateCheck`` the world hands ticks over to (as ``CheckThread``):
+    each final tick comes with ``HandOver``, with no timer."""
 
-    elsewhere = True
+    handed_over = True
     submitted = []  # (tick, every live agent's report of it in, tick + 1 opened yet, a report of tick + 1 in yet)
 
     def submit(self, rec, k):
         after = k < len(rec.live)
-        ElsewhereCheck.submitted.append((k, bool(rec.reported[k - 1][rec.live[k - 1]].all()),
+        HandedOverCheck.submitted.append((k, bool(rec.reported[k - 1][rec.live[k - 1]].all()),
                                          after and bool(rec.live[k].any()), after and bool(rec.reported[k].any())))
 
 
-def test_a_check_elsewhere_is_handed_each_final_tick_after_the_next_ticks_puts_and_cuts_the_liar_off_from_the_same_tick(
+def test_a_check_that_takes_ticks_is_handed_each_final_tick_after_the_next_ticks_puts_and_cuts_the_liar_off_from_the_same_tick(
         dynamic, monkeypatch):
     at_once = run(dynamic, start=FROM, offset=OFFSET)
-    monkeypatch.setattr(simrun, "OnlineCheck", ElsewhereCheck)
-    monkeypatch.setattr(ElsewhereCheck, "submitted", [])
+    monkeypatch.setattr(simrun, "OnlineCheck", HandedOverCheck)
+    monkeypatch.setattr(HandedOverCheck, "submitted", [])
     monkeypatch.setattr(LateCheck, "asked_early", 0)
     effects = []  # the kinds of each event's effects that hand a tick over, in order
     handle = world_machine.WorldMachine.handle
@@ -81,7 +79,7 @@ def test_a_check_elsewhere_is_handed_each_final_tick_after_the_next_ticks_puts_a
     monkeypatch.setattr(world_machine.WorldMachine, "handle", watched)
     late = run(dynamic, start=FROM, offset=OFFSET)
     first = {}
-    for k, whole, next_open, next_reported in ElsewhereCheck.submitted:
+    for k, whole, next_open, next_reported in HandedOverCheck.submitted:
         first.setdefault(k, (whole, next_open, next_reported))
     K = late.record.reported.shape[0]
     assert list(first) == list(range(1, K + 1))
@@ -98,11 +96,11 @@ def test_a_check_elsewhere_is_handed_each_final_tick_after_the_next_ticks_puts_a
         np.testing.assert_array_equal(a, b)
     assert late.status.to_json() == at_once.status.to_json()
 
-def test_the_check_in_its_own_process_finds_what_the_check_in_the_world_finds(dynamic):
+def test_the_check_in_its_own_thread_finds_what_the_check_on_the_worlds_timer_finds(dynamic):
     scn, trace = dynamic
     rec = run(dynamic, online=False, start=FROM, offset=OFFSET).record  # the liar never cut off: it lies on
     make = lambda: run_status.OnlineCheck(trace, estimators.get("diskf"), scn.params, run_id=RUN, seed=0)  # noqa: E731
-    here, there = make(), CheckProcess(make)
+    here, there = make(), CheckThread(make)
     try:
         found = []
         for k in range(1, rec.reported.shape[0] + 1):
@@ -110,7 +108,6 @@ def test_the_check_in_its_own_process_finds_what_the_check_in_the_world_finds(dy
             found.append(there.result(rec, k))
             assert found[-1] == here.tick(rec, k), k
         assert [q["tick"] for f in found for q in f][0] == FROM and {q["agent"] for f in found for q in f} == {LIAR}
-        assert there.ticking_cpu_s > 0
     finally:
         there.close()
 
@@ -128,49 +125,37 @@ def record(K=3, N=2):
     return rec
 
 
-def test_a_finding_not_in_yet_is_none_unless_waited_for_and_the_process_ends_with_the_world():
-    check = CheckProcess(lambda: fake(0.5))
+def test_a_finding_not_in_yet_is_none_unless_waited_for_and_the_thread_ends_with_close():
+    check = CheckThread(lambda: fake(0.5))
     rec = record()
     try:
         check.submit(rec, 1)
         assert check.result(rec, 1, wait=False) is None
         assert check.result(rec, 1) == [1]
-        os.kill(check._proc.pid, signal.SIGINT)  # a Ctrl-C reaches the world, which ends the run
         assert check.result(rec, 2) == [2]  # submitted when asked
-        assert check._proc.is_alive()
     finally:
         check.close()
-    assert not check._proc.is_alive() and check._proc.exitcode == 0
+    assert not check._thread.is_alive()
 
 
-def test_a_check_that_fails_in_its_process_fails_in_the_world():
+def test_a_check_that_fails_in_its_thread_fails_in_the_world():
     def broken():
         raise ZeroDivisionError("the replay")
 
-    for gone in (False, True):  # asked at once, or after the child ended (the pipe broken before the world reads)
-        check = CheckProcess(broken)
+    for made in (False, True):  # the check cannot be made, or its replay fails
+        check = CheckThread(broken if not made else lambda: SimpleNamespace(
+            trace=fake(0).trace, tick=lambda rec, k, said: 1 / 0))
         try:
-            if gone:
-                check._proc.join(10)
-                assert check._proc.exitcode == 0
-            with pytest.raises(CheckFailed, match="ZeroDivisionError: the replay"):
+            with pytest.raises(CheckFailed, match="ZeroDivisionError"):
                 check.result(record(), 1)
         finally:
             check.close()
 
-    check = CheckProcess(lambda: fake(0.0))
-    try:
-        os.kill(check._proc.pid, signal.SIGKILL)
-        with pytest.raises(CheckFailed, match="ended .* before tick 1 was checked"):
-            check.result(record(), 1)
-    finally:
-        check.close()
-
 
 @pytest.mark.parametrize("live", [True, False])
 def test_a_tick_handed_over_as_bytes_arrives_as_the_worlds_rows_and_digests(live):
-    """``tick_bytes`` read by ``read_tick`` (the world's side and the check
-    process's): tick k's rows of every array, bit for bit (NaN where no
+    """``tick_bytes`` read by ``read_tick`` (the world's side and the check's
+    thread): tick k's rows of every array, bit for bit (NaN where no
     report), its digests as ``tick_digests`` gives them, the rejoins and
     starting states; the other ticks untouched."""
     K, N, n, m, k = 4, 5, 3, 2, 3

@@ -3,7 +3,7 @@
     transport      Transport: zenoh sessions (the tests have an in-process bus of their own)
     zenoh_config   session settings (TLS, access control, endpoints)
     shell          runs a machine over a Transport on the wall clock (one lock, timers, Woke)
-    checker        the world's check as the run goes, in a process of its own
+    checker        the world's check as the run goes, in a thread of its own
     stopping       how a mesh process stops on a signal
     runspec        one run's settings as command lines (launcher, compose)
 

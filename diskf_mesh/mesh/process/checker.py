@@ -1,180 +1,117 @@
-"""The world's check as the run goes, in a process of its own beside the world.
+"""The world's check as the run goes, in a thread of its own beside the world's callbacks.
 
-``CheckProcess`` has the interface of ``mesh.protocol.run_status.OnlineCheck``
+``CheckThread`` has the interface of ``mesh.protocol.run_status.OnlineCheck``
 that ``WorldMachine`` calls (``submit``, ``result``): ``submit(rec, k)``
-sends tick k's reports (its rows of the record and its digests as raw
-bytes, and the rejoins and starting states when the run has any:
-``tick_bytes``) down a pipe to a child process, forked before the world's
-credentials are read, that holds its own ``OnlineCheck`` (made by
-``make()``, the same engine replay on the same trace) and runs it there;
+takes a copy of tick k's reports (its rows of the record and its digests as
+raw bytes, and the rejoins and starting states when the run has any:
+``tick_bytes``) and queues it for a thread that holds its own
+``OnlineCheck`` (made by ``make()`` there, the same engine replay on the
+same trace) and its own record of what it was handed (``read_tick``);
 ``result(rec, k, wait)`` hands back its finding, None while it is not done
 unless ``wait``. The findings, and the tick each counts from, are the same
-as a check in the world's own thread (``WorldMachine._check_ticks``); what
-changes is where the CPU goes: the world's thread hands the next tick's
-reports over while the child replays the last one, and the child runs
-``NICE`` steps below the world, so the agents, whose work holds up the tick,
-go first on a busy machine and the replay fills the time the cores would
-idle.
+as a check on the world's timer (``WorldMachine._check_ticks``); what
+changes is who waits: the world hands tick k over as the last effect of the
+event that made it final, after tick k + 1's puts, and the thread replays it
+while the agents work on tick k + 1, so the world's callbacks take the next
+tick's reports meanwhile (between the thread's GIL slices) and the world
+waits only before tick k + 2 opens. The copy is made under the world's lock,
+so the thread reads nothing the callbacks write.
 
-The child ignores SIGINT (a Ctrl-C reaches the world, which ends the run)
-and ends when the pipe closes (the world ended, however it ended). An
-exception in the child is raised in the world as ``CheckFailed`` with the
-child's traceback.
+The thread's work counts in the world's "check" phase (``--profile``). An
+exception in it is raised in the world as ``CheckFailed`` with its
+traceback when the world next asks.
 
 May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
-import multiprocessing
-import os
 import pickle
-import signal
+import queue
 import struct
-import time
+import threading
 import traceback
 
 import numpy as np
 
-from diskf_mesh.mesh.protocol.world_machine import WorldRecord
+from diskf_mesh.mesh.protocol.profile import NO_PHASES, Phases
 from diskf_mesh.mesh.protocol.reports import RunReports
+from diskf_mesh.mesh.protocol.world_machine import WorldRecord
 
-NICE = 5       # steps of niceness below the world (os.nice)
-JOIN_S = 2.0   # at the end, for the child to leave before it is terminated
+JOIN_S = 2.0   # at the end, for the thread to finish the tick it is on
 HEADER = struct.Struct("<qqq")    # a tick handed over: the tick, its digests, what it holds (``tick_bytes``)
-ANSWER = struct.Struct("<bqd")    # the child's answer: its kind, the tick, the child's CPU seconds; then its body
-READY, FOUND, ERROR = 0, 1, 2     # the kinds: the check is made; a tick's finding (pickled, none if empty); a traceback
 
 
 class CheckFailed(RuntimeError):
-    """The check's process failed (its traceback), or ended early."""
+    """The check's thread failed (its traceback)."""
 
 
-class CheckProcess:
+class CheckThread:
     """``OnlineCheck``'s ``submit`` and ``result`` (module docstring) in a
-    child process; ``make()`` makes its ``OnlineCheck`` there. ``cpu_s``:
-    the child's CPU seconds so far (as of its latest finding)."""
+    thread of the world's process; ``make()`` makes its ``OnlineCheck``
+    there; ``profile``: the world's ``Phases`` (the replay counts as
+    "check")."""
 
-    elsewhere = True  # the world hands each tick over when it is final, and asks for the finding later
+    handed_over = True  # the world hands each tick over when it is final, and asks for the finding later
 
-    def __init__(self, make, nice: int = NICE):
-        ctx = multiprocessing.get_context("fork")
-        self._conn, theirs = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(make, theirs, self._conn, nice), daemon=True,
-                                 name="online-check")
-        self._proc.start()
-        theirs.close()
-        self._sent = 0      # the last tick sent
-        self._found = {}    # tick -> finding, not asked for yet
-        self.cpu_s = 0.0    # the child's CPU seconds, as of its latest message
-        self._ready_cpu_s = None  # ... once its check was made (before the first tick)
-
-    @property
-    def ticking_cpu_s(self) -> float:
-        """The child's CPU seconds since its check was made: the replay of
-        the ticks it checked."""
-        return self.cpu_s - (self._ready_cpu_s or 0.0)
+    def __init__(self, make, profile: Phases = NO_PHASES):
+        self._ticks = queue.SimpleQueue()  # tick_bytes of each tick handed over; None: the end
+        self._cv = threading.Condition()
+        self._found = {}     # tick -> finding, not asked for yet
+        self._error = None   # the thread's traceback, if it failed
+        self._sent = 0       # the last tick handed over
+        self._prof = profile
+        self._thread = threading.Thread(target=self._serve, args=(make,), daemon=True, name="online-check")
+        self._thread.start()
 
     def submit(self, rec, k: int) -> None:
-        """Tick k's reports are final: send them (once)."""
-        if k <= self._sent:
-            return
-        try:
-            self._conn.send_bytes(tick_bytes(rec, k))
-        except OSError:  # a broken pipe: the child is gone
-            raise self._ended(k) from None
-        self._sent = k
+        """Tick k's reports are final: hand a copy of them over (once)."""
+        if k > self._sent:
+            self._ticks.put(tick_bytes(rec, k))
+            self._sent = k
 
     def result(self, rec, k: int, wait: bool = True) -> list | None:
         """Tick k's finding (``OnlineCheck.tick``), None if it is not in yet
         and not ``wait``."""
         self.submit(rec, k)
-        while k not in self._found:
-            if not wait and not self._conn.poll():
-                return None
-            try:
-                data = self._conn.recv_bytes()
-            except (EOFError, OSError):  # the child is gone
-                raise self._ended(k) from None
-            kind, tick, self.cpu_s = ANSWER.unpack_from(data)
-            if kind == ERROR:
-                raise _failed(tick, data)
-            if kind == READY:
-                self._ready_cpu_s = self.cpu_s
-                continue
-            self._found[tick] = pickle.loads(data[ANSWER.size:]) if len(data) > ANSWER.size else []
-        return self._found.pop(k)
-
-    def _ended(self, k: int) -> CheckFailed:
-        """The child is gone: its error if it sent one before it ended
-        (the pipe may break before the world reads it), else how it ended."""
-        try:
-            while self._conn.poll():
-                data = self._conn.recv_bytes()
-                if ANSWER.unpack_from(data)[0] == ERROR:
-                    return _failed(ANSWER.unpack_from(data)[1], data)
-        except (EOFError, OSError):
-            pass
-        self._proc.join(JOIN_S)
-        return CheckFailed(f"the online check's process ended (exit status {self._proc.exitcode}) before tick {k} "
-                           "was checked")
+        with self._cv:
+            while k not in self._found:
+                if self._error is not None:
+                    raise CheckFailed(f"the online check failed at tick {k}:\n{self._error}")
+                if not wait:
+                    return None
+                self._cv.wait()
+            return self._found.pop(k)
 
     def close(self) -> None:
-        """End the child: close the pipe, wait ``JOIN_S`` for it to leave."""
-        self._conn.close()
-        self._proc.join(JOIN_S)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join()
+        """End the thread: it leaves after the tick it is on (at most ``JOIN_S``)."""
+        self._ticks.put(None)
+        self._thread.join(JOIN_S)
 
-
-def _serve(make, conn, other, nice: int) -> None:
-    """The child: check each tick sent, in order, until the pipe closes."""
-    other.close()  # the world's end: when the world closes its own, recv ends here
-    null = os.open(os.devnull, os.O_RDONLY)  # the world's standard input, where its identity comes: not ours
-    os.dup2(null, 0)
-    os.close(null)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    os.nice(nice)
-    try:
-        _check_each(make, conn)
-    except (EOFError, ConnectionError):  # the world closed its end, with what it had not read yet: it ended
-        return
-
-
-def _failed(k: int, data: bytes) -> CheckFailed:
-    """The child's ``ERROR`` answer about tick k as the world raises it."""
-    return CheckFailed(f"the online check failed at tick {k}:\n{data[ANSWER.size:].decode()}")
-
-
-def _answer(conn, kind: int, k: int, body: bytes = b"") -> None:
-    conn.send_bytes(ANSWER.pack(kind, k, time.process_time()) + body)
-
-
-def _check_each(make, conn) -> None:
-    """Make the check, then check each tick as it comes; the pipe's end
-    raises (``EOFError``, ``ConnectionError``)."""
-    try:
-        check = make()
-    except Exception:  # noqa: BLE001 - the world raises it when it asks (its own setup fails the same way first)
-        _answer(conn, ERROR, 0, traceback.format_exc().encode())
-        return
-    _answer(conn, READY, 0)
-    B, K, N = check.trace.has.shape
-    rec = WorldRecord(**RunReports.empty(K, N, check.trace.model.n, check.trace.model.m),
-                      live=np.zeros((K, N), dtype=bool))
-    while True:
-        k, said = read_tick(conn.recv_bytes(), rec)
+    def _serve(self, make) -> None:
+        """The thread: make the check, then check each tick handed over, in order."""
         try:
-            found = check.tick(rec, k, said)
-        except Exception:  # noqa: BLE001 - the world raises it
-            _answer(conn, ERROR, k, traceback.format_exc().encode())
-            return
-        _answer(conn, FOUND, k, pickle.dumps(found) if found else b"")
+            check = make()
+            B, K, N = check.trace.has.shape
+            rec = WorldRecord(**RunReports.empty(K, N, check.trace.model.n, check.trace.model.m),
+                              live=np.zeros((K, N), dtype=bool))
+            while (data := self._ticks.get()) is not None:
+                self._prof.begin()
+                try:
+                    k, said = read_tick(data, rec)
+                    found = check.tick(rec, k, said)
+                finally:
+                    self._prof.end("check")
+                with self._cv:
+                    self._found[k] = found
+                    self._cv.notify_all()
+        except Exception:  # noqa: BLE001 - the world raises it when it asks
+            with self._cv:
+                self._error = traceback.format_exc()
+                self._cv.notify_all()
 
 
 def tick_bytes(rec, k: int) -> bytes:
-    """Tick k of the world's record ``rec`` as the check's process reads it
+    """Tick k of the world's record ``rec`` as the check's thread reads it
     (``read_tick``): ``HEADER`` (the tick, how many digests, what follows),
     the tick's rows of x, P and d, of d_valid, reported, fused and live
     (when ``rec`` holds it), its digests (``tick_digests``) and, when the

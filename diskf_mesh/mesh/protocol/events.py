@@ -83,11 +83,12 @@ Effects (what the process does):
                                              (``Work.alone``); the simulated network
                                              those of one instant together
     HandOver(check, record, tick)            the world's final reports of a tick
-                                             to a check that runs elsewhere
+                                             to a check it hands ticks over to
                                              (``check.submit(record, tick)``),
                                              after the effects before it: the
-                                             check's process, woken, may take a
-                                             core, and the tick's puts go first
+                                             check's thread, woken, takes turns
+                                             with this one, and the tick's puts
+                                             go first
 
 A machine reads nothing that differs between two runs of one seed: its
 token nonce and any randomness come in through its constructor, so the
@@ -290,7 +291,7 @@ class Work:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class HandOver:
-    check: object             # a check that runs elsewhere (``mesh.process.checker.CheckProcess``)
+    check: object             # a check the world hands ticks over to (``mesh.process.checker.CheckThread``)
     record: object            # the world's record (``WorldRecord``)
     tick: int
 

@@ -111,17 +111,6 @@ class Phases:
             self._elapsed = now - self._t0
             self._process = self._process_cpu() - self._p0
 
-    def add_cpu(self, phase: str, seconds: float) -> None:
-        """CPU another process spent on this one's ``phase`` while it was
-        measured (the world's check in a process of its own,
-        ``mesh.process.checker``): counted in the phase and in the
-        process's CPU."""
-        if self._elapsed is None:
-            self.stop()
-        with self._lock:
-            self.cpu[phase] += seconds
-            self._process += seconds
-
     def summary(self) -> dict:
         """Seconds per phase over the whole measurement, and per tick."""
         if self._elapsed is None:

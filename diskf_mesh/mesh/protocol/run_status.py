@@ -128,10 +128,11 @@ class OnlineCheck:
     did not come) is never cut off: an honest one whose report was lost
     looks the same; what it changes is ``unverifiable`` at the end.
     ``estimator``: the run's, the class ``estimators.get`` resolved.
-    ``elsewhere``: False, it checks in the caller's thread (a check in
-    another process, ``mesh.process.checker``, says True)."""
+    ``handed_over``: False, the world checks each tick on its timer, in
+    its own thread (a check in a thread of its own,
+    ``mesh.process.checker``, says True: the world hands it each tick)."""
 
-    elsewhere = False
+    handed_over = False
 
     def __init__(self, trace: Trace, estimator: type[Estimator], params, *, run_id: str, seed: int,
                  faults: FaultConfig | None = None, deadline_s: float = math.inf):
@@ -145,12 +146,12 @@ class OnlineCheck:
     def submit(self, rec, k: int) -> None:
         """Tick k's reports in ``rec`` are final (the world's machine says
         so before it asks ``result``): nothing to do here, where ``result``
-        checks at once; a check in another process starts on them
+        checks at once; a check in a thread of its own starts on them
         (``mesh.process.checker``)."""
 
     def result(self, rec, k: int, wait: bool = True) -> list:
-        """``tick(rec, k)``: always done here (a check in another process
-        says None while it is not done, unless ``wait``)."""
+        """``tick(rec, k)``: always done here (a check in a thread of its
+        own says None while it is not done, unless ``wait``)."""
         return self.tick(rec, k)
 
     def tick(self, rec, k: int, said: tuple | None = None) -> list:

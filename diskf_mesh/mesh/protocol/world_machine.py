@@ -55,8 +55,8 @@ A run, in the order of this module:
                before tick k + 2 opens at the latest) ``online``
                (``mesh.protocol.run_status.OnlineCheck``) replays it on the
                engine; an agent it proves lied is cut off: no later tick
-               counts it live (``WorldRecord.quarantined``). A check that
-               runs elsewhere (``mesh.process.checker``) is handed tick k
+               counts it live (``WorldRecord.quarantined``). A check in a
+               thread of its own (``mesh.process.checker``) is handed tick k
                (``HandOver``, the last effect of the event that made it
                final: after tick k + 1's puts), with no timer, and may
                answer later: in lockstep the world waits for it only
@@ -170,7 +170,7 @@ class WorldMachine:
         self.online, self.verdicts = online, verdicts
         self._quarantined = {}         # id -> the online check's finding that cut it off
         self._unchecked = []           # ticks whose reports are final, not checked yet (timer "check")
-        self._handed = 0               # the last tick handed to a check that runs elsewhere (``HandOver``)
+        self._handed = 0               # the last tick handed to a check that takes ticks (``HandOver``)
         self._now = 0.0                # the time of the event being handled
         self.keys, self.nonce, self.timing = keys, nonce, timing
         self.allow_missing = allow_missing
@@ -883,19 +883,20 @@ class WorldMachine:
         """Tick k's reports are final: check it once the effects of this
         event are out (timer ``check`` at once), so the next tick's
         messages go first; at the latest before tick k + 2 opens. A check
-        that runs elsewhere (``online.elsewhere``) needs no timer: this
-        event's last effect hands it tick k (``_hand_over``), and no second
-        thread of the world wakes each tick only to hand it over."""
+        the world hands ticks over to (``online.handed_over``) needs no
+        timer: this event's last effect hands it tick k (``_hand_over``),
+        and the world's main thread does not wake each tick only to hand it
+        over."""
         if self.online is not None:
             self._unchecked.append(k)
-            if not getattr(self.online, "elsewhere", False):
+            if not getattr(self.online, "handed_over", False):
                 self._set_timer("check", self._now)
 
     def _hand_over(self) -> None:
-        """A check that runs elsewhere gets each final tick not handed over
-        yet, as the last effects of the event (``HandOver``): the next
-        tick's puts go out before its process wakes."""
-        if self._unchecked and self._unchecked[-1] > self._handed and getattr(self.online, "elsewhere", False):
+        """A check the world hands ticks over to gets each final tick not
+        handed over yet, as the last effects of the event (``HandOver``):
+        the next tick's puts go out before its thread wakes."""
+        if self._unchecked and self._unchecked[-1] > self._handed and getattr(self.online, "handed_over", False):
             for k in self._unchecked:
                 if k > self._handed:
                     self._emit(HandOver(self.online, self.record, k))
@@ -904,7 +905,7 @@ class WorldMachine:
     def _check_ticks(self, upto: float = math.inf, wait: bool = True) -> None:
         """Check the final ticks up to ``upto``, in order (each handed to
         the check first, if ``HandOver`` has not yet). An online check
-        that runs elsewhere (``online.result`` None: not done yet) is only
+        the world hands ticks over to (``online.result`` None: not done yet) is only
         waited for with ``wait``: the timer ``check`` of a lockstep tick
         waits for none while the next tick is open, since its finding
         counts from the same tick on when it is taken at that tick's end
