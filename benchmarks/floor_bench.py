@@ -11,7 +11,8 @@ scouting; above ``sim.launcher.PEERS_UP_TO`` agents
 its client), over TLS with mutual authentication and the run's access control
 from fresh credentials of the run (``diskf_mesh.mesh.security.credentials``, one
 identity per process, as ``up`` makes them), the world's batching time
-limit (``sim.world.HOLD_MS``), zenoh's rx runtime of one thread, and the
+limit (``sim.world.HOLD_MS``), zenoh's rx runtime of one thread, the callbacks'
+thread states kept (``transport.direct_callback``), and the
 project's key layout (``diskf_mesh.mesh.wire.keys``), so the access control
 checks the same keys. With ``--insecure`` both the floor and the project
 run plain zenoh (``up --insecure``). They exchange per tick exactly the
@@ -128,6 +129,7 @@ def publisher(zenoh, session, cache: dict, key: str, express: bool = True):
 # the bare agent
 # --------------------------------------------------------------------------
 def agent_main(args) -> int:
+    from diskf_mesh.mesh.process.transport import direct_callback
     from diskf_mesh.mesh.security import credentials
     from diskf_mesh.mesh.wire.keys import Keys, new_nonce
 
@@ -191,7 +193,8 @@ def agent_main(args) -> int:
             if not ready_declared and {str(i) for i in ids} | {"world"} <= seen:
                 ready_declared.append(s.liveliness().declare_token(keys.ready(me, nonce)))
 
-    direct = lambda fn: zenoh.handlers.Callback(fn, indirect=False)  # noqa: E731
+    kept = set()
+    direct = lambda fn: direct_callback(zenoh, fn, kept)  # noqa: E731
     subs = [s.declare_subscriber(keys.tick, direct(on_tick)),
             s.declare_subscriber(keys.meas(me), direct(on_meas)),
             s.declare_subscriber(keys.msg_to(me), direct(on_msg)),
@@ -211,6 +214,7 @@ def agent_main(args) -> int:
 # the bare world
 # --------------------------------------------------------------------------
 def world_main(args) -> int:
+    from diskf_mesh.mesh.process.transport import direct_callback
     from diskf_mesh.mesh.security import credentials
     from diskf_mesh.mesh.wire.keys import Keys, new_nonce
 
@@ -251,7 +255,8 @@ def world_main(args) -> int:
             ready.add(keys.parse(str(sample.key_expr))[1])
             cv.notify_all()
 
-    direct = lambda fn: zenoh.handlers.Callback(fn, indirect=False)  # noqa: E731
+    kept = set()
+    direct = lambda fn: direct_callback(zenoh, fn, kept)  # noqa: E731
     subs = [s.declare_subscriber(f"{keys.root}/agent/*/report", direct(on_report)),
             s.liveliness().declare_subscriber(keys.ready("*"), direct(on_ready), history=True)]
     token = s.liveliness().declare_token(keys.world(new_nonce()))

@@ -132,7 +132,7 @@ class ZenohTransport(Transport):
             raise MeshError(f"cannot open a zenoh session: {e}") from None
         self._publishers = collections.OrderedDict()  # key -> publisher, least recently used first
         self._entities = []
-        self._kept = set()  # ids of zenoh's threads whose Python thread state is kept (``_keep_thread_state``)
+        self._kept = set()  # ids of zenoh's threads whose Python thread state is kept (``keep_thread_state``)
 
     def put(self, key, payload, express=True):
         pub = self._publishers.get(key)
@@ -148,29 +148,8 @@ class ZenohTransport(Transport):
         pub.put(payload)
 
     def _direct(self, fn, drop=None):
-        """Run ``fn`` on zenoh's own network thread, not on an extra Python
-        thread per subscriber: one thread hop less per sample, which is most
-        of a small message's cost. A callback may ``put`` (never to its own
-        session: publishers reach other sessions only)."""
-        keep = self._keep_thread_state
-
-        def run(arg):
-            keep()
-            fn(arg)
-        return self._zenoh.handlers.Callback(run, drop, indirect=False)
-
-    def _keep_thread_state(self) -> None:
-        """Keep the Python thread state of the zenoh thread running this
-        callback for the next one. Zenoh's threads are not Python's: each
-        call into Python makes a thread state and deletes it on return
-        (``PyGILState_Ensure`` and ``Release``), so every sample paid for a
-        new one and its frame stack (fresh memory: most of a mesh process's
-        page faults). One ``Ensure`` more, never released, keeps it; the GIL
-        is held here, so it only counts."""
-        ident = threading.get_ident()
-        if ident not in self._kept:
-            self._kept.add(ident)
-            ctypes.pythonapi.PyGILState_Ensure()
+        """``direct_callback`` of ``fn`` (and ``drop``) for this session."""
+        return direct_callback(self._zenoh, fn, self._kept, drop)
 
     def subscribe(self, key_expr, on_sample):
         def cb(sample):
@@ -232,6 +211,34 @@ class ZenohTransport(Transport):
             except Exception:  # already gone with the session: nothing to release
                 pass
         self._session.close()
+
+
+def direct_callback(zenoh, fn, kept: set, drop=None):
+    """A zenoh callback that runs ``fn`` on zenoh's own network thread, not
+    on an extra Python thread per subscriber: one thread hop less per
+    sample, which is most of a small message's cost. A callback may ``put``
+    (never to its own session: publishers reach other sessions only). Each
+    thread's Python state is kept from callback to callback
+    (``keep_thread_state``; ``kept``: the threads kept so far)."""
+    def run(arg):
+        keep_thread_state(kept)
+        fn(arg)
+    return zenoh.handlers.Callback(run, drop, indirect=False)
+
+
+def keep_thread_state(kept: set) -> None:
+    """Keep the Python thread state of the thread running this (a zenoh
+    thread, in a callback) for its next call into Python. Zenoh's threads
+    are not Python's: each call into Python makes a thread state and
+    deletes it on return (``PyGILState_Ensure`` and ``Release``), so every
+    sample paid for a new one and its frame stack (fresh memory: most of a
+    mesh process's page faults). One ``Ensure`` more, never released, keeps
+    it; the GIL is held here, so it only counts. ``kept``: the ids of the
+    threads already kept (one ``Ensure`` each)."""
+    ident = threading.get_ident()
+    if ident not in kept:
+        kept.add(ident)
+        ctypes.pythonapi.PyGILState_Ensure()
 
 
 class _Once:
