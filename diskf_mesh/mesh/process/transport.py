@@ -148,7 +148,7 @@ class ZenohTransport(Transport):
         pub.put(payload)
 
     def _direct(self, fn, drop=None):
-        """``direct_callback`` of ``fn`` (and ``drop``) for this session."""
+        """``direct_callback`` of ``fn`` (and ``drop``) for this transport."""
         return direct_callback(self._zenoh, fn, self._kept, drop)
 
     def subscribe(self, key_expr, on_sample):
