@@ -232,23 +232,18 @@ def _identity_name(argv) -> str:
 def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path, network):
     proc = _up(tmp_path, "--ticks", "3000", "--network", network)  # running when stopped, short enough to check
     try:
-        n = 6 if network == "peers" else 7  # the world and its check, four agents (and the router)
+        n = 5 if network == "peers" else 6  # the world, four agents (and the router)
         kids = _wait_children(proc, n)
         assert len(kids) == n, kids
         assert any("sim.router" in argv for argv in kids.values()) is (network == "router")
-        checks = [pid for pid in kids if _parent(pid) in kids]  # the world's check, forked before its key came
-        assert len(checks) == 1 and kids[checks[0]] == kids[_parent(checks[0])], (checks, kids)
+        assert not [pid for pid in kids if _parent(pid) in kids], kids  # no child forks one of its own
         for pid, argv in kids.items():
             assert argv[argv.index("--credentials") + 1] == "-"  # handed over in memory, not a path
             for where, data in _readable(pid):
                 assert KEY_MARK not in data, (argv[:3], where)
             assert os.readlink(f"/proc/{pid}/fd/0") == "/dev/null"  # the identity was read, and let go
-            # all a compromised child finds in its memory: one key, its own, and no other identity's certificate;
-            # the world's check: no key at all
+            # all a compromised child finds in its memory: one key, its own, and no other identity's certificate
             found = pems(pid)
-            if pid in checks:
-                assert usable_keys(found) == [] and certificates(found) == {}
-                continue
             certs = certificates(found)
             name = _identity_name(argv)
             assert usable_keys(found) == [public_key(certs[name])], name
@@ -268,8 +263,8 @@ def test_no_child_of_up_can_read_another_identity_and_no_key_is_on_disk(tmp_path
 def test_kill_9_of_up_leaves_no_key_and_no_process(tmp_path):
     proc = _up(tmp_path, "--ticks", "3000")  # running when stopped, short enough for the end-of-run check
     try:
-        kids = _wait_children(proc, 6)  # the world and its check, four agents
-        assert len(kids) == 6, kids
+        kids = _wait_children(proc, 5)  # the world, four agents
+        assert len(kids) == 5, kids
         proc.send_signal(signal.SIGKILL)
         proc.communicate(timeout=10)
         deadline = time.monotonic() + 30.0  # the children get SIGTERM when up (or the zygote) dies
