@@ -2,11 +2,10 @@
 
 ``CheckThread`` has the interface of ``mesh.protocol.run_status.OnlineCheck``
 that ``WorldMachine`` calls (``submit``, ``result``): ``submit(rec, k)``
-takes a copy of tick k's reports (its rows of the record and its digests as
-raw bytes, and the rejoins and starting states when the run has any:
-``tick_bytes``) and queues it for a thread that holds its own
+takes a copy of tick k's reports (its rows of the record, its digests, the
+rejoins and starting states: ``tick_copy``) and queues it for a thread that holds its own
 ``OnlineCheck`` (made by ``make()`` there, the same engine replay on the
-same trace) and its own record of what it was handed (``read_tick``);
+same trace) and its own record of what it was handed (``take_tick``);
 ``result(rec, k, wait)`` hands back its finding, None while it is not done
 unless ``wait``. The findings, and the tick each counts from, are the same
 as a check on the world's timer (``WorldMachine._check_ticks``); what
@@ -25,9 +24,8 @@ May import: core, estimators, data, engine (the mesh layer).
 """
 from __future__ import annotations
 
-import pickle
+import copy
 import queue
-import struct
 import threading
 import traceback
 
@@ -38,7 +36,6 @@ from diskf_mesh.mesh.protocol.reports import RunReports
 from diskf_mesh.mesh.protocol.world_machine import WorldRecord
 
 JOIN_S = 2.0   # at the end, for the thread to finish the tick it is on
-HEADER = struct.Struct("<qqq")    # a tick handed over: the tick, its digests, what it holds (``tick_bytes``)
 
 
 class CheckFailed(RuntimeError):
@@ -54,7 +51,7 @@ class CheckThread:
     handed_over = True  # the world hands each tick over when it is final, and asks for the finding later
 
     def __init__(self, make, profile: Phases = NO_PHASES):
-        self._ticks = queue.SimpleQueue()  # tick_bytes of each tick handed over; None: the end
+        self._ticks = queue.SimpleQueue()  # tick_copy of each tick handed over; None: the end
         self._cv = threading.Condition()
         self._found = {}     # tick -> finding, not asked for yet
         self._error = None   # the thread's traceback, if it failed
@@ -66,7 +63,7 @@ class CheckThread:
     def submit(self, rec, k: int) -> None:
         """Tick k's reports are final: hand a copy of them over (once)."""
         if k > self._sent:
-            self._ticks.put(tick_bytes(rec, k))
+            self._ticks.put(tick_copy(rec, k))
             self._sent = k
 
     def result(self, rec, k: int, wait: bool = True) -> list | None:
@@ -94,10 +91,10 @@ class CheckThread:
             B, K, N = check.trace.has.shape
             rec = WorldRecord(**RunReports.empty(K, N, check.trace.model.n, check.trace.model.m),
                               live=np.zeros((K, N), dtype=bool))
-            while (data := self._ticks.get()) is not None:
+            while (tick := self._ticks.get()) is not None:
                 self._prof.begin()
                 try:
-                    k, said = read_tick(data, rec)
+                    k, said = take_tick(tick, rec)
                     found = check.tick(rec, k, said)
                 finally:
                     self._prof.end("check")
@@ -110,38 +107,30 @@ class CheckThread:
                 self._cv.notify_all()
 
 
-def tick_bytes(rec, k: int) -> bytes:
-    """Tick k of the world's record ``rec`` as the check's thread reads it
-    (``read_tick``): ``HEADER`` (the tick, how many digests, what follows),
-    the tick's rows of x, P and d, of d_valid, reported, fused and live
-    (when ``rec`` holds it), its digests (``tick_digests``) and, when the
-    run has any, the rejoins and starting states pickled."""
-    t = k - 1
-    live = getattr(rec, "live", None)
-    rows, cols, values = rec.tick_digests(k)
-    rejoins, starts = getattr(rec, "rejoins", None), list(getattr(rec, "starts", ()))
-    extra = pickle.dumps((rejoins, starts)) if rejoins or starts else b""
-    return b"".join((HEADER.pack(k, len(rows), (live is not None) | (bool(extra) << 1)), rec.x[t].tobytes(),
-                     rec.P[t].tobytes(), rec.d[t].tobytes(), rec.d_valid[t].tobytes(), rec.reported[t].tobytes(),
-                     rec.fused[t].tobytes(), b"" if live is None else live[t].tobytes(), rows.tobytes(),
-                     cols.tobytes(), values.tobytes(), extra))
+ROWS = ("x", "P", "d", "d_valid", "reported", "fused")  # the record's arrays of a tick that the check reads
 
 
-def read_tick(data: bytes, rec) -> tuple:
-    """``tick_bytes`` written into ``rec`` (a record of the run's shape):
-    (the tick, its digests as ``tick_digests`` gives them)."""
-    k, J, has = HEADER.unpack_from(data)
-    t, at = k - 1, HEADER.size
-    for name in ("x", "P", "d", "d_valid", "reported", "fused") + (("live",) if has & 1 else ()):
-        row = getattr(rec, name)[t]
-        size = row.nbytes
-        row[...] = np.frombuffer(data, dtype=row.dtype, count=row.size, offset=at).reshape(row.shape)
-        at += size
-    if not has & 1:
+def tick_copy(rec, k: int) -> tuple:
+    """A copy of tick k of the world's record ``rec`` for the check's thread
+    (``take_tick``): (k, its rows of ``ROWS``, its row of live or None where
+    ``rec`` holds no live sets, its digests as ``tick_digests`` gives them,
+    the rejoins and the starting states). Taken under the world's lock, so
+    the thread reads nothing the callbacks write later."""
+    t, live = k - 1, getattr(rec, "live", None)
+    return (k, {name: getattr(rec, name)[t].copy() for name in ROWS}, None if live is None else live[t].copy(),
+            rec.tick_digests(k), copy.deepcopy(getattr(rec, "rejoins", None) or {}),
+            list(getattr(rec, "starts", ())))
+
+
+def take_tick(tick: tuple, rec) -> tuple:
+    """``tick_copy``'s tick written into ``rec`` (a record of the run's
+    shape): (the tick, its digests as ``tick_digests`` gives them)."""
+    k, rows, live, said, rejoins, starts = tick
+    for name, row in rows.items():
+        getattr(rec, name)[k - 1] = row
+    if live is None:
         rec.live = None
-    said = []
-    for dtype in (np.intp, np.intp, np.uint64):
-        said.append(np.frombuffer(data, dtype=dtype, count=J, offset=at))
-        at += J * said[-1].itemsize
-    rec.rejoins, rec.starts = pickle.loads(data[at:]) if has & 2 else ({}, [])
-    return k, tuple(said)
+    else:
+        rec.live[k - 1] = live
+    rec.rejoins, rec.starts = rejoins, starts
+    return k, said

@@ -217,7 +217,7 @@ def direct_callback(zenoh, fn, kept: set, drop=None):
     """A zenoh callback that runs ``fn`` on zenoh's own network thread, not
     on an extra Python thread per subscriber: one thread hop less per
     sample, which is most of a small message's cost. A callback may ``put``
-    (never to its own session: publishers reach other sessions only). Each
+    (never to its own process: a publisher reaches the other processes only). Each
     thread's Python state is kept from callback to callback
     (``keep_thread_state``; ``kept``: the threads kept so far)."""
     def run(arg):
