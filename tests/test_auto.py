@@ -217,6 +217,33 @@ def test_model_evidence_reaches_an_agent_whose_neighbourhood_never_measures():
     np.testing.assert_allclose(mu[2], mu[0], atol=0.02)  # agent 1's
 
 
+def test_a_silent_neighbourhood_is_neither_updated_nor_weighed(monkeypatch):
+    """Scenario 2 at range 120: on a tick where some agents' neighbourhoods
+    measured nothing (most of the ticks there), step 4 leaves those agents'
+    model predictions as they are, bit for bit, and gives them no evidence
+    (log-likelihood 0); the agents whose neighbourhood measured get the same
+    bits as when every agent of the batch is updated."""
+    from diskf_mesh.estimators import diskf_auto
+    seen = []
+    measure = diskf_auto.measure
+
+    def keep(*args):
+        if not args[-1].all() and args[-1].any() and not seen:
+            seen.append(args)
+        return measure(*args)
+
+    monkeypatch.setattr(diskf_auto, "measure", keep)
+    scn = load_scenario("dynamic").with_overrides(comm_range=120, steps=30)
+    engine.run(simulate(scn, [0]), "diskf-auto", scn.params)
+    x_s, P_s, e1, C_s, S1, U, u, informed = seen[0]
+    got = measure(x_s, P_s, e1, C_s, S1, U, u, informed)
+    every = measure(x_s, P_s, e1, C_s, S1, U, u, np.ones_like(informed))
+    for g, prior, whole in zip(got, (x_s, P_s, e1, C_s, S1, np.zeros(x_s.shape[:-1])), every):
+        np.testing.assert_array_equal(g[~informed], prior[~informed])
+        np.testing.assert_array_equal(g[informed], whole[informed])
+    assert informed.any() and not informed.all()
+
+
 def test_a_measuring_neighbourhood_keeps_its_own_model_probabilities():
     """The constant-acceleration model in a ring of six, no input, seeds 2
     and 3, 100 ticks: where every agent measures, the senders' pooled

@@ -60,7 +60,9 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    (``input_models.output_weights``: a model held at the floor whose
    covariance is orders of magnitude larger does not widen it), the
    input's over every model (the zero-input model alone would claim an
-   input known exactly, S = 0, which no message may carry).
+   input known exactly, S = 0, which no message may carry). Where the
+   neighbourhood measured nothing, step 3's prediction is the posterior,
+   bit for bit, and no model gains evidence (``measure``).
 5. fuse, noise (``[estimator.auto] noise``): on a tick the agent measured,
    it learns how much noisier, or calmer, its own sensor is than stated
    (``core.noise``: a scale r of its R, one step of a stochastic
@@ -208,11 +210,7 @@ class DISKFAuto(Estimator):
         e1, B, S1 = eq.replace_marginal(v, Pv, e1, B, S1, v_c, Pv_c)
         x_s, P_s, C_s = eq.input_to_state(v_c, Pv_c, B, e1, S1, self.G_pair)
         # 4. the measurement: likelihoods and the joint update
-        U_m, u_m = U[..., None, :, :], u[..., None, :]
-        Y, Ji = eq.information_pair(P_s, U_m)
-        loglik = im.information_loglik(x_s, P_s, Y, Ji, U_m, u_m)
-        x_k, P_k = eq.local_update(x_s, P_s, Y, Ji, u_m)
-        e_k, C_k, S_k = eq.replace_marginal(x_s, P_s, e1, C_s, S1, x_k, P_k)
+        x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed)
         mu = im.update_probabilities(c, loglik, FLOOR)
         theta, last = state.theta, (state.e_last, state.S_last, state.seen)
         if self.learn:  # 5. the own sensor's noise scale, scored against the bank's predicted mean
@@ -229,6 +227,35 @@ class DISKFAuto(Estimator):
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=theta,
                        e_last=last[0], S_last=last[1], seen=last[2], tick=state.tick)
         return st, Output(x, P, d, held)
+
+
+def measure(x_s, P_s, e1, C_s, S1, U, u, informed):
+    """Step 4 on the agents whose neighbourhood measured (``informed``): each
+    model's joint Kalman update of (x, e) by the neighbourhood's information
+    (U, u) and its log-likelihood (``information_loglik``). Where nothing
+    was measured the update is the prediction, bit for bit, and the
+    log-likelihood 0 (no evidence for any model), so those agents' rows are
+    neither computed nor rounded. Returns (x, P, e, C, S, loglik)."""
+    blank = np.zeros(x_s.shape[:-1])
+    if not informed.any():
+        return x_s, P_s, e1, C_s, S1, blank
+    every = bool(informed.all())
+    prior = (x_s, P_s, e1, C_s, S1)
+    xs, Ps, e, C, S = prior if every else (a[informed] for a in prior)
+    U_m, u_m = (U, u) if every else (U[informed], u[informed])
+    U_m, u_m = U_m[..., None, :, :], u_m[..., None, :]
+    Y, Ji = eq.information_pair(Ps, U_m)
+    loglik = im.information_loglik(xs, Ps, Y, Ji, U_m, u_m)
+    x_k, P_k = eq.local_update(xs, Ps, Y, Ji, u_m)
+    post = (x_k, P_k) + eq.replace_marginal(xs, Ps, e, C, S, x_k, P_k) + (loglik,)
+    if every:
+        return post
+    out = []
+    for whole, part in zip(prior + (blank,), post):
+        whole = whole.copy()
+        whole[informed] = part
+        out.append(whole)
+    return tuple(out)
 
 
 NOISE_STEP = 0.2  # step of (NL1) (``core.noise``): the most a measured tick moves log r
