@@ -279,6 +279,34 @@ def test_mix_gives_the_same_bytes_on_every_path(bounded, monkeypatch):
 
 
 @pytest.mark.parametrize("bounded", [False, True])
+def test_an_output_mixture_with_zero_weights_gives_the_same_bytes_at_once(bounded, monkeypatch):
+    """An agent's output mixture (one column, some weights pruned to 0):
+    every term at once, the zero weights' terms -0.0, gives the bytes of the
+    padded terms and of the slots, signs of zero included."""
+    rng = np.random.default_rng(23)
+    M, k = 21, 4
+    mu = rng.dirichlet(np.full(M, 0.2), size=(5, 1)).transpose(0, 2, 1)         # (5, M, 1)
+    w = np.where(mu < 1e-2, 0.0, mu)
+    w[:, 0] += (w.sum(axis=1) == 0)
+    w = w / w.sum(axis=1, keepdims=True)
+    z = rng.normal(size=(5, M, k))
+    z[:, :, 2] = rng.choice([0.0, -0.0], size=(5, M))
+    z[:, :, 3] = np.where(w[..., 0] == 0, 0.0, -0.0)                            # a weight of 0 adds no +0.0
+    L = rng.normal(size=(5, M, k, k))
+    Z = L @ np.swapaxes(L, -1, -2) + 1e-3 * np.eye(k)
+    Z[:, :, 3, :] = Z[:, :, :, 3] = -0.0
+    assert (w == 0).any() and w[:1].size * k * k <= im.ZEROS_AT_ONCE
+    at_once = [im.mix(w[b:b + 1], z[b:b + 1], Z[b:b + 1], bounded=bounded) for b in range(5)]
+    monkeypatch.setattr(im, "ZEROS_AT_ONCE", 0)                                  # padded terms
+    padded = [im.mix(w[b:b + 1], z[b:b + 1], Z[b:b + 1], bounded=bounded) for b in range(5)]
+    monkeypatch.setattr(im, "PADDED_TERMS", 0)                                   # slot after slot
+    slots = im.mix(w, z, Z, bounded=bounded)
+    for b in range(5):
+        for one, pad, many in zip(at_once[b], padded[b], slots):
+            assert one.tobytes() == pad.tobytes() == many[b:b + 1].tobytes()
+
+
+@pytest.mark.parametrize("bounded", [False, True])
 def test_mix_leaves_out_zero_weights_with_the_same_bits(bounded):
     """Pruned weights (0) add nothing: a batch whose columns hold 1 to M
     nonzero weights mixes, column by column, the bits of the same column

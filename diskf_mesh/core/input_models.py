@@ -194,14 +194,16 @@ def mix(w, z, Z, bounded=False):
     covariance is no longer positive definite). Where the models disagree by
     less than their own uncertainty the mixture is the exact one."""
     k = z.shape[-1]
-    if w.size * k * k <= ALL_TERMS_AT_ONCE and w.all():
+    if w.size * k * k <= (ALL_TERMS_AT_ONCE if w.all() else ZEROS_AT_ONCE):
         # every term at once (model axis i before the column axis j), then summed over i in order
-        # (``add.accumulate`` adds one term after the other, as the slots below do)
-        mean = _ordered_sum(w[..., :, :, None] * z[..., :, None, :], -3)      # (..., J, k)
+        # (``add.accumulate`` adds one term after the other, as the slots below do); the terms of weight 0
+        # set to -0.0, which leaves every sum as the nonzero terms alone make it (``_left_out``)
+        pad = None if w.all() else w == 0                                      # (..., M, J)
+        mean = _ordered_sum(_left_out(w[..., :, :, None] * z[..., :, None, :], pad, 1), -3)  # (..., J, k)
         dz = z[..., :, None, :] - mean[..., None, :, :]                        # (..., M, J, k)
         wij = w[..., :, :, None, None]
-        within = _ordered_sum(Z[..., :, None, :, :] * wij, -4)                  # (..., J, k, k)
-        spread = _ordered_sum(_outer(dz) * wij, -4)
+        within = _ordered_sum(_left_out(Z[..., :, None, :, :] * wij, pad, 2), -4)  # (..., J, k, k)
+        spread = _ordered_sum(_left_out(_outer(dz) * wij, pad, 2), -4)
     elif (padded := _padded(w, PADDED_TERMS)) is not None:  # a few columns: as many terms each
         batch, J = w.shape[:-2], w.shape[-1]
         rows, wk, pad = padded                                                     # (T, columns)
@@ -355,8 +357,10 @@ OUTER_CONTIGUOUS = 256
 # (``_padded``): an agent's 21 x 21; on larger batches the slots are faster
 PADDED_TERMS = 1024
 # the largest (batch x models x columns x k x k) for which ``mix`` makes every term at once (an
-# agent's 21 x 21 models with k = 4 are 7,056) when no weight is 0
+# agent's 21 x 21 models with k = 4 are 7,056) when no weight is 0, and when some are (an agent's output
+# mixture of 21 models, k = 4: 336; its 21 x 21 mixing, 7,056 and more, is faster term by term)
 ALL_TERMS_AT_ONCE = 1 << 16
+ZEROS_AT_ONCE = 1 << 11
 
 
 def _ordered_sum(terms, axis: int):
