@@ -287,10 +287,14 @@ class Estimator:
         P = np.broadcast_to(self.model.P0, batch + (n, n)).astype(float).copy()
         return State(x, P, np.zeros(batch, dtype=np.int64))
 
-    def local_kf(self, state: State, k: int, y, has) -> Local:
-        """Prediction (info_kf_prediction0) and local update (info_kf_update0)."""
+    def local_kf(self, state: State, k: int, y, has, weight=None) -> Local:
+        """Prediction (info_kf_prediction0) and local update (info_kf_update0);
+        ``weight`` (...,), if given, multiplies the measurement's information
+        (a measurement noise taken as R / weight)."""
         x_pred, P_pred = eq.predict(state.x, state.P, self.model.A_at(k), self.model.Q)
         U, u = eq.measurement_information(self.sensor_info, y, has)
+        if weight is not None:
+            U, u = U * weight[..., None, None], u * weight[..., None]
         Y, Ji = eq.information_pair(P_pred, U)
         x_upd, P_upd = eq.local_update(x_pred, P_pred, Y, Ji, u, has)
         return Local(x_pred, P_pred, U, u, x_upd, P_upd, Y, Ji)

@@ -94,7 +94,7 @@ from diskf_mesh.core import noise
 from diskf_mesh.core.linalg import nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
-from diskf_mesh.estimators.base import DEFENCE, EXCHANGED, Estimator, Exchanged, Local, Setting, State, run_scales
+from diskf_mesh.estimators.base import DEFENCE, EXCHANGED, Estimator, Exchanged, Setting, State, run_scales
 
 AUTO = Setting("auto", AutoOptions(), "the input models diskf-auto weighs and its chain (model.AutoOptions), "
                "the [estimator.auto] table")
@@ -165,12 +165,8 @@ class DISKFAuto(Estimator):
                                      noise.first_innovation(batch, self.sensors.H.shape[-2]))) if self.learn else {}))
 
     def local(self, state: AutoState, k: int, y, has):
-        loc = self.local_kf(state, k, y, has)
-        if self.learn:  # the own measurement weighed by 1 / r (``core.noise``)
-            scale = np.exp(-state.theta)
-            U, u = loc.U * scale[..., None, None], loc.u * scale[..., None]
-            Y, Ji = eq.information_pair(loc.P_pred, U)
-            loc = Local(loc.x_pred, loc.P_pred, U, u, *eq.local_update(loc.x_pred, loc.P_pred, Y, Ji, u, has), Y, Ji)
+        # with the noise learned, the own measurement weighed by 1 / r (``core.noise``)
+        loc = self.local_kf(state, k, y, has, np.exp(-state.theta) if self.learn else None)
         own = {}
         if self.learn:
             batch, sn = has.shape, self.sensors
