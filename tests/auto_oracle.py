@@ -73,7 +73,7 @@ def run_auto(trace, options, noise_step=0.2):
         [[1.0 - options.switch if i == j else options.switch * mu_first[j] / (1.0 - mu_first[i]) for j in range(M)]
          for i in range(M)])
     prior = 100.0 * max(q for _, _, q in models)
-    iv = np.arange(n)
+    iv, idd = np.arange(n), np.arange(n, n + m)
     Tx = np.eye(n + 2 * m)
     Tx[:n, n:n + m] = G
     out = dict(x=np.zeros((B, K, N, n)), P=np.zeros((B, K, N, n, n)), d=np.zeros((B, K, N, m)),
@@ -109,7 +109,7 @@ def run_auto(trace, options, noise_step=0.2):
                     mu0 = np.exp(logs - logs.max())
                     mu0 = mu0 / mu0.sum()
                 c = np.array([sum(Pi[s, j] * mu0[s] for s in range(M)) for j in range(M)])
-                zs, Zs, ll, priors = [], [], np.zeros(M), []
+                zs, Zs, ll, relayed, priors = [], [], np.zeros(M), False, []
                 for j, (a1, a2, q) in enumerate(models):
                     wts = [Pi[s, j] * mu0[s] / c[j] for s in range(M)]
                     kept = [w if w >= PRUNE else 0.0 for w in wts]  # small weights dropped, the column renormalised
@@ -125,6 +125,13 @@ def run_auto(trace, options, noise_step=0.2):
                     w = Tv @ zm
                     W = Tv @ Zm @ Tv.T + scipy.linalg.block_diag(Q, q * np.eye(m), np.zeros((m, m)))
                     w, W = _replace(w, W, iv, xc + Mt @ (w[iv] - pred[i][0]), Mt @ W[np.ix_(iv, iv)] @ Mt.T)
+                    others = [s for s in nb if s != i and sent[s][2]]
+                    if a2 == 0 and a1 > 0 and others:
+                        dn, Sn = fast_ci([a1 * sent[s][0] for s in others],
+                                         [a1 * a1 * sent[s][1] + q * np.eye(m) for s in others])
+                        dr, Sr = fast_ci([w[idd], dn], [W[np.ix_(idd, idd)], Sn])
+                        w, W = _replace(w, W, idd, dr, Sr)
+                        relayed = True
                     za, Pa = Tx @ w, Tx @ W @ Tx.T
                     priors.append(za[:n])
                     if meas:
@@ -149,7 +156,7 @@ def run_auto(trace, options, noise_step=0.2):
                 Z = sum(kept[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
                 zd = sum(mu[j] * zs[j] for j in range(M))  # the input's: every model
                 Zd = sum(mu[j] * (Zs[j] + np.outer(zs[j] - zd, zs[j] - zd)) for j in range(M))
-                held = a["held"] or bool(meas)
+                held = a["held"] or bool(meas) or relayed
                 theta, last = a["theta"], a["last"]
                 if options.noise and trace.has[b, k - 1, i]:  # scored against the bank's predicted mean
                     x_m = sum(c[j] * priors[j] for j in range(M))

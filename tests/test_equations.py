@@ -125,6 +125,26 @@ def test_input_fusion_with_nothing_valid():
     assert not has[0] and d_bar[0, 0] == 0.0
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_scalar_input_fusion_is_input_fusions_bits(seed):
+    """input_fusion_scalar (m = 1, sender after sender) gives input_fusion's
+    bytes, signs of zero included: any leading axes, receivers broadcast
+    against the senders' models, zero weights, invalid and -0.0 inputs,
+    receivers with nothing to fuse; and its error where an S is not positive."""
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        lead, R, senders = tuple(rng.integers(1, 4, rng.integers(0, 3))), rng.integers(1, 5), rng.integers(1, 10)
+        adj = (rng.random(lead[:1] + (1, R, senders)) < 0.6).astype(float)   # broadcast over the models' axis
+        d = rng.standard_normal(lead[:1] + (3, senders, 1)) * 10.0 ** rng.uniform(-5, 5, (senders, 1))
+        d[rng.random(d.shape) < 0.1] = -0.0
+        S = 10.0 ** rng.uniform(-6, 6, lead[:1] + (3, senders, 1, 1))
+        valid = rng.random(lead[:1] + (1, senders)) < 0.7
+        for want, got in zip(eq.input_fusion(adj, d, S, valid), eq.input_fusion_scalar(adj, d, S, valid)):
+            assert want.shape == got.shape and want.tobytes() == got.tobytes()
+    with pytest.raises(np.linalg.LinAlgError):
+        eq.input_fusion_scalar(np.ones((1, 2)), np.ones((2, 1)), np.array([[[1.0]], [[0.0]]]), np.ones(2, bool))
+
+
 spd_strategy = hnp.arrays(np.float64, (3, 3), elements=st.floats(-3, 3))
 
 

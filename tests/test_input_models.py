@@ -202,6 +202,45 @@ def test_companion_and_pair_predict_hand_worked():
     np.testing.assert_allclose(S1[:1, :1], S2)
 
 
+def test_replace_input_hand_worked():
+    """d_{k-1}'s marginal replaced by (1, 1) in the joint (v, d_{k-1}, d_{k-2}) ~
+    N(0, [[2, 1, 0], [1, 2, 0], [0, 0, 1]]): K = (1/2, 0), v becomes 0.5 with
+    variance 2 - 0.5 + 0.25 and covariance 0.5 with d_{k-1}; d_{k-2} is untouched."""
+    v, Pv, e, S, B = im.replace_input(np.zeros(1), np.array([[2.0]]), np.zeros(2), np.array([[2.0, 0.0], [0.0, 1.0]]),
+                                      np.array([[1.0, 0.0]]), np.array([1.0]), np.array([[1.0]]))
+    np.testing.assert_allclose(v, [0.5])
+    np.testing.assert_allclose(Pv, [[1.75]])
+    np.testing.assert_allclose(e, [1.0, 0.0])
+    np.testing.assert_allclose(S, [[1.0, 0.0], [0.0, 1.0]])
+    np.testing.assert_allclose(B, [[0.5, 0.0]])
+
+
+def test_replace_input_is_the_conditional_kept():
+    """Against the joint formula on a random (v, d_{k-1}, d_{k-2}) with n = 2,
+    m = 2: the new marginal of d_{k-1}, and p(v, d_{k-2} | d_{k-1}) unchanged."""
+    rng = np.random.default_rng(3)
+    n, m = 2, 2
+    L = rng.normal(size=(n + 2 * m, n + 2 * m))
+    Z = L @ L.T + np.eye(n + 2 * m)
+    z = rng.normal(size=n + 2 * m)
+    Ls = rng.normal(size=(m, m))
+    d_new, S_new = rng.normal(size=m), Ls @ Ls.T + np.eye(m)
+    x, P, e, S, C = im.split(z, Z, n)
+    v2, Pv2, e2, S2, B2 = im.replace_input(x, P, e, S, C, d_new, S_new)
+    a, rest = np.arange(n, n + m), np.r_[np.arange(n), np.arange(n + m, n + 2 * m)]
+    K = Z[np.ix_(rest, a)] @ np.linalg.inv(Z[np.ix_(a, a)])
+    want = np.empty(n + 2 * m)
+    want[a], want[rest] = d_new, z[rest] + K @ (d_new - z[a])
+    W = np.empty_like(Z)
+    W[np.ix_(a, a)] = S_new
+    W[np.ix_(rest, a)] = K @ S_new
+    W[np.ix_(a, rest)] = (K @ S_new).T
+    W[np.ix_(rest, rest)] = Z[np.ix_(rest, rest)] - K @ Z[np.ix_(a, rest)] + K @ S_new @ K.T
+    got_z, got_Z = im.joint(v2, Pv2, e2, S2, B2)
+    np.testing.assert_allclose(got_z, want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(got_Z, W, rtol=1e-12, atol=1e-12)
+
+
 def test_initial_probabilities_and_chain_by_shares():
     """Two first-order models and three oscillating ones: the oscillating share
     one model's probability; a switch moves by those shares."""

@@ -182,6 +182,34 @@ def input_fusion(adj, d, S, valid):
     return d_bar, S_bar, has
 
 
+def input_fusion_scalar(adj, d, S, valid):
+    """``input_fusion`` of a scalar input (m = 1), sender after sender: the
+    same operations on the same numbers as its sums (``linalg.nbr_sum``, each
+    receiver's total built from zero adding the senders in order), so the
+    same bits, in a few element-wise operations per sender instead of its
+    stacked sums (faster on two senders: ``diskf-auto``'s fast CI of a
+    model's own input and its neighbours' relayed one).
+    adj: (..., R, S); d: (..., S, 1); S: (..., S, 1, 1); valid: (..., S).
+    Raises numpy.linalg.LinAlgError where an S is not positive, as
+    ``linalg.inv_spd``."""
+    s = S[..., 0, 0]
+    if s.size and np.fmin.reduce(s, axis=None) <= 0:  # fmin skips NaN (it propagates)
+        raise not_pd()
+    Si = 1.0 / s                                            # (..., S): 1 / tr S_j is S_j^-1
+    W = adj * (Si * valid)[..., None, :]                    # (..., R, S)
+    Wi, Wd = Si[..., None, :], (Si * d[..., 0])[..., None, :]
+    tot = 0.0 + W[..., 0]
+    for j in range(1, W.shape[-1]):
+        tot = tot + W[..., j]
+    has = tot > 0
+    Wn = W / np.where(has, tot, 1.0)[..., None]
+    info, vec = 0.0 + Wn[..., 0] * Wi[..., 0], 0.0 + Wn[..., 0] * Wd[..., 0]
+    for j in range(1, W.shape[-1]):
+        info, vec = info + Wn[..., j] * Wi[..., j], vec + Wn[..., j] * Wd[..., j]
+    S_bar = 1.0 / np.where(has, info, 1.0)
+    return (S_bar * vec)[..., None], S_bar[..., None, None], has
+
+
 # --------------------------------------------------------------------------
 # Step 4: state fusion by information-filter decomposition
 # --------------------------------------------------------------------------

@@ -30,6 +30,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from diskf_mesh.core.equations import replace_marginal
 from diskf_mesh.core.linalg import T, cholesky, identity, inv_spd, matmul_left, matmul_shared, mv, nbr_sum, row_sum, solve, sym
 
 INPUT_MODELS = ("walk", "mean-reverting", "none")
@@ -435,6 +436,26 @@ def joint(x, P, d, S, C):
 def split(z, Z, n: int):
     """The inverse of ``joint``: (x, P, d, S, C)."""
     return z[..., :n], Z[..., :n, :n], z[..., n:], Z[..., n:, n:], Z[..., :n, n:]
+
+
+def replace_input(v, Pv, e, S, B, d_new, S_new):
+    """The joint Gaussian of (v, e), e = (d_{k-1}, d_{k-2}) (``split``'s
+    parts: v, Pv, e, S and B = cov(v, e)), with the marginal of d_{k-1}
+    replaced by (d_new, S_new), the conditional of (v, d_{k-2}) given it
+    kept: ``equations.replace_marginal`` with a = d_{k-1} and b = (v, d_{k-2}).
+    Returns (v, Pv, e, S, B) as given."""
+    n, m = v.shape[-1], d_new.shape[-1]
+    Bt = T(B)
+    b = np.concatenate([v, e[..., m:]], axis=-1)
+    Pab = np.concatenate([Bt[..., :m, :], S[..., :m, m:]], axis=-1)                  # (m, n + m)
+    Pbb = np.concatenate([np.concatenate([Pv, B[..., :, m:]], axis=-1),
+                          np.concatenate([Bt[..., m:, :], S[..., m:, m:]], axis=-1)], axis=-2)
+    b, Pab, Pbb = replace_marginal(e[..., :m], S[..., :m, :m], b, Pab, Pbb, d_new, S_new)
+    e = np.concatenate([d_new, b[..., n:]], axis=-1)
+    S = np.concatenate([np.concatenate([S_new, Pab[..., n:]], axis=-1),
+                        np.concatenate([T(Pab[..., n:]), Pbb[..., n:, n:]], axis=-1)], axis=-2)
+    B = np.concatenate([T(Pab[..., :n]), Pbb[..., :n, n:]], axis=-1)
+    return b[..., :n], Pbb[..., :n, :n], e, S, B
 
 
 def affine_prior(x_from, P_from, x_to, P_to, v, Pv, B):

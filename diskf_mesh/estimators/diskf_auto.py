@@ -49,7 +49,8 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    reached by the affine map that takes the agent's published prediction
    to it (``affine_prior``: the identity where the agent is alone or every
    agent fused the same), the conditional of the input kept
-   (``equations.replace_marginal``); the input into the
+   (``equations.replace_marginal``); the neighbours' relayed inputs for a
+   persistent first-order model (a2 = 0, rho = a1 > 0); the input into the
    state, x = v + G d_{k-1} (``equations.input_to_state``); the
    neighbourhood's stacked measurement information (exact from the
    messages) by the joint Kalman update.
@@ -91,7 +92,7 @@ import numpy as np
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core import input_models as im
 from diskf_mesh.core import noise
-from diskf_mesh.core.linalg import nbr_sum
+from diskf_mesh.core.linalg import identity, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.estimators.base import DEFENCE, EXCHANGED, Estimator, Exchanged, Setting, State, run_scales
@@ -146,6 +147,10 @@ class DISKFAuto(Estimator):
         self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0)
         self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
         self.whole_bank = tuple(self.bank) == im.BANK
+        self.relaying = np.flatnonzero((self.a2 == 0.0) & (self.a1 != 0.0))  # persistent first-order models
+        rho = self.a1[self.relaying][:, None, None]                                  # (J, 1, 1)
+        self.relay_scales = rho, (rho * rho)[..., None], self.q[self.relaying][:, None, None, None] * identity(model.m)
+        self.relay_pair = np.ones((1, 2))  # the fast CI of a model's own d_{k-1} with its neighbours' relayed one
         self.prior = 100.0 * float(self.q.max()) if self.q.max() > 0 else 1.0
         # the input into the state reads the pair's first half: x = v + G d_{k-1}
         self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
@@ -199,12 +204,14 @@ class DISKFAuto(Estimator):
         c, w = im.model_weights(pooled, self.Pi, PRUNE)
         z0, Z0 = im.mix(w, state.z, state.Z, bounded=True)
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
-        # 3. per model: predict (the input pair e = (d_{k-1}, d_{k-2})), the CI prior, the input into the state
+        # 3. per model: predict (the input pair e = (d_{k-1}, d_{k-2})), the CI prior, the relayed inputs,
+        # the input into the state
         e1, B, S1 = im.pair_predict(A, C0, e0, S0, self.F, self.q)
         v, Pv = eq.predict(x0, P0, A, self.model.Q)
         v_c, Pv_c, _ = im.affine_prior(own.x_pred, own.P_pred, x_c, P_c, v, Pv, B)
         e1, B, S1 = eq.replace_marginal(v, Pv, e1, B, S1, v_c, Pv_c)
-        x_s, P_s, C_s = eq.input_to_state(v_c, Pv_c, B, e1, S1, self.G_pair)
+        v, Pv, e1, S1, B, relayed = self._relay(senders, nb, v_c, Pv_c, e1, S1, B)
+        x_s, P_s, C_s = eq.input_to_state(v, Pv, B, e1, S1, self.G_pair)
         # 4. the measurement: likelihoods and the joint update
         x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed)
         mu = im.update_probabilities(c, loglik, FLOOR)
@@ -219,10 +226,47 @@ class DISKFAuto(Estimator):
         xc, Pc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z[..., :n], Z[..., :n, :n])
         dc, Sc = im.mix(mu[..., :, None], z[..., n:n + m], Z[..., n:n + m, n:n + m])
         x, P, d, S = xc[..., 0, :], Pc[..., 0, :, :], dc[..., 0, :], Sc[..., 0, :, :]
-        held = state.held | informed
+        held = state.held | informed | relayed
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=theta,
                        e_last=last[0], S_last=last[1], seen=last[2], tick=state.tick)
         return st, Output(x, P, d, held)
+
+    def _relay(self, senders, nb, v, Pv, e, S, B):
+        """The neighbours' relayed inputs (their combined d, S) under each
+        persistent first-order model (a2 = 0, rho = a1 > 0): the fast CI of
+        the other neighbours' (rho d_j, rho^2 S_j + q I), then the fast CI of
+        that with the model's own prediction of d_{k-1}, replaces the
+        model's marginal of d_{k-1} in the joint (v, d_{k-1}, d_{k-2}), the
+        conditional of the rest kept (``input_models.replace_input``). The
+        agent's own message is left out: its combined input mixes the models
+        this one is to stay apart from. (v, Pv, e, S, B): each model's joint
+        as ``input_models.split`` gives it, (..., M, ...); the models are one
+        more batch axis of the same functions. Returns them with the
+        relaying models' replaced (in place: the arrays are this tick's
+        own), and whether any was."""
+        m = self.model.m
+        js = self.relaying
+        others = nb.adj * ~nb.self_mask
+        if js.size == 0 or not (others * senders.d_valid[..., None, :]).any():  # no other sender relays an input
+            return v, Pv, e, S, B, np.zeros(v.shape[:-2], dtype=bool)
+        rho, rho2, qI = self.relay_scales
+        d_n, S_n, has_n = eq.input_fusion(others[..., None, :, :], rho * senders.d[..., None, :, :],
+                                          rho2 * senders.S[..., None, :, :, :] + qI,
+                                          senders.d_valid[..., None, :])           # (..., J, R, ...)
+        d_n, S_n, has_n = d_n.swapaxes(-3, -2), S_n.swapaxes(-4, -3), has_n.swapaxes(-2, -1)
+        parts = tuple(np.take(a, js, axis=axis) for a, axis in ((v, -2), (Pv, -3), (e, -2), (S, -3), (B, -3)))
+        dj, Sj = parts[2][..., :m], parts[3][..., :m, :m]                           # (..., R, J, ...)
+        pair = eq.input_fusion_scalar if m == 1 else eq.input_fusion  # the same bits, faster on two senders
+        d_r, S_r, _ = pair(self.relay_pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
+                           np.stack([np.ones_like(has_n), has_n], axis=-1))
+        new = im.replace_input(*parts, d_r[..., 0, :], S_r[..., 0, :, :])
+        some = not has_n.all()
+        for whole, old, part in zip((v, Pv, e, S, B), parts, new):
+            core = (slice(None),) * (part.ndim - has_n.ndim)
+            if some:
+                part = np.where(has_n[(...,) + (None,) * len(core)], part, old)
+            whole[(..., js) + core] = part
+        return v, Pv, e, S, B, has_n.any(axis=-1)
 
 
 def measure(x_s, P_s, e1, C_s, S1, U, u, informed):
