@@ -175,3 +175,27 @@ def test_inputs_both_sides_are_certain_of_are_gated_without_raising():
     q, = rs.input_gate_statistics(np.array([[0.0, 2.0]]), S_send[2:3], (np.zeros((1, 2)),), S_own[2:3], valid[:1])
     assert q[0] == pytest.approx(2.0)   # 4 / (1 + 1) along the direction with variance
 
+
+
+def test_positive_definite_is_the_test_the_inverse_raises_on():
+    """3 x 3 sums of rank 2 (an input of m = 3 certain in one direction),
+    at the edge of positive definiteness: ``positive_definite`` says of each
+    what ``inv_spd`` does (its smallest eigenvalue can come out positive
+    where the Cholesky factor does not exist), so the input gate takes the
+    certain-direction branch there instead of raising."""
+    from diskf_mesh.core.linalg import inv_spd
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(200, 3, 2))
+    M = v @ np.swapaxes(v, -1, -2) + rng.choice([0.0, 1e-17, 1e-16], size=(200, 1, 1)) * np.eye(3)
+    factors = []
+    for one in M:
+        try:
+            inv_spd(one[None])
+            factors.append(True)
+        except np.linalg.LinAlgError:
+            factors.append(False)
+    assert 0 < sum(factors) < len(factors)
+    np.testing.assert_array_equal(rs.positive_definite(M), factors)
+    zero = np.zeros((200, 3))
+    q, = rs.input_gate_statistics(zero, 0.5 * M, (zero,), 0.5 * M, np.ones(200, dtype=bool))
+    assert (q == 0.0).all()

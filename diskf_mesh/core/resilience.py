@@ -163,16 +163,30 @@ def certain_statistic(diff: np.ndarray, M: np.ndarray) -> np.ndarray:
 
 
 def positive_definite(M: np.ndarray) -> np.ndarray:
-    """(...,) whether each symmetric M (..., m, m) is positive definite:
-    Sylvester's leading minors for m of 1 and 2 (what ``gate_statistics``
-    raises on), else the smallest eigenvalue."""
+    """(...,) whether each symmetric M (..., m, m) is positive definite, by
+    the test ``gate_statistics`` raises on: Sylvester's leading minors for m
+    of 1 and 2, else whether the Cholesky factor ``inv_spd`` takes exists
+    (the lower triangle read)."""
     m = M.shape[-1]
     a = M[..., 0, 0]
     if m == 1:
         return a > 0
     if m == 2:
         return (a > 0) & (a * M[..., 1, 1] - M[..., 1, 0] * M[..., 1, 0] > 0)
-    return np.linalg.eigvalsh(M)[..., 0] > 0
+    finite = np.isfinite(M).all(axis=(-2, -1))  # LAPACK lets a NaN through
+    try:
+        np.linalg.cholesky(M)
+        return finite
+    except np.linalg.LinAlgError:  # which ones, one at a time
+        return finite & np.array([_factors(one) for one in M.reshape((-1, m, m))]).reshape(M.shape[:-2])
+
+
+def _factors(M: np.ndarray) -> bool:
+    try:
+        np.linalg.cholesky(M)
+        return True
+    except np.linalg.LinAlgError:
+        return False
 
 
 def linked_pairs(linked: np.ndarray) -> tuple:
