@@ -16,7 +16,8 @@ tick's reports meanwhile (between the thread's GIL slices) and the world
 waits only before tick k + 2 opens. The copy is made under the world's lock,
 so the thread reads nothing the callbacks write.
 
-The thread's work counts in the world's "check" phase (``--profile``). An
+The thread's work counts in the world's "check" phase (``--profile``: its
+CPU time, its wall time overlapping the world's), the world's waiting for it in "wait-check". An
 exception in it is raised in the world as ``CheckFailed`` with its
 traceback when the world next asks.
 
@@ -92,7 +93,7 @@ class CheckThread:
             rec = WorldRecord(**RunReports.empty(K, N, check.trace.model.n, check.trace.model.m),
                               live=np.zeros((K, N), dtype=bool))
             while (tick := self._ticks.get()) is not None:
-                self._prof.begin()
+                self._prof.begin(beside=True)
                 try:
                     k, said = take_tick(tick, rec)
                     found = check.tick(rec, k, said)

@@ -35,7 +35,11 @@ Agent phases (``AGENT_PHASES``)::
     publish          handing them to zenoh (``put``)
     other            the rest of the callbacks: routing, range gate, inbox
 
-World phases (``WORLD_PHASES``): wait-reports, decode, check (the online check), encode, publish, other.
+World phases (``WORLD_PHASES``): wait-reports, decode, check (the online check), wait-check (the world
+blocked on the check's thread), encode, publish, other. The check's thread works beside the world's
+callbacks: its spans are ``begin(beside=True)``, which count their CPU time in their phase and no wall
+time (it overlaps the world's own), so the wall column still adds up to the process's wall time and the
+world's waiting for the check is its own phase.
 """
 from __future__ import annotations
 
@@ -45,7 +49,7 @@ import time
 from pathlib import Path
 
 AGENT_PHASES = ("wait-world", "wait-neighbours", "decode", "guard", "local", "fuse", "encode", "publish", "other")
-WORLD_PHASES = ("wait-reports", "decode", "check", "encode", "publish", "other")
+WORLD_PHASES = ("wait-reports", "decode", "check", "wait-check", "encode", "publish", "other")
 FORMAT = "diskf-mesh-profile/2"
 
 
@@ -71,27 +75,30 @@ class Phases:
             self._p0 = self._process_cpu()
             self._elapsed = self._process = None
 
-    def begin(self) -> None:
-        """A span of work starts on this thread (close it with ``end``)."""
+    def begin(self, beside: bool = False) -> None:
+        """A span of work starts on this thread (close it with ``end``);
+        ``beside``: on a thread that works beside the process's own (its
+        CPU time counts, its wall time overlaps theirs and does not)."""
         stack = self._local.__dict__.setdefault("stack", [])
         now = self._wall()
-        if not stack:
+        if not stack and not beside:
             with self._lock:
                 if not self._active:
                     self.wall[self.waiting] += now - self._idle_since
                 self._active += 1
-        stack.append([now, self._cpu(), 0.0, 0.0])
+        stack.append([now, self._cpu(), 0.0, 0.0, beside])
 
     def end(self, phase: str = "other") -> None:
         """The innermost open span of this thread ends; it was ``phase``."""
         stack = self._local.stack
-        w0, c0, nested_w, nested_c = stack.pop()
+        w0, c0, nested_w, nested_c, beside = stack.pop()
         now = self._wall()
         w, c = now - w0, self._cpu() - c0
         with self._lock:
-            self.wall[phase] += w - nested_w
+            if not beside:
+                self.wall[phase] += w - nested_w
             self.cpu[phase] += c - nested_c
-            if not stack:
+            if not stack and not beside:
                 self._active -= 1
                 if not self._active:
                     self._idle_since = now
@@ -144,7 +151,7 @@ class _NoPhases:
     def start(self) -> None:
         pass
 
-    def begin(self) -> None:
+    def begin(self, beside: bool = False) -> None:
         pass
 
     def end(self, phase: str = "other") -> None:
