@@ -15,7 +15,8 @@ measures both the same way:
   (an agent waits for the world's tick, then for its neighbours).
 
 So the phases add up to the process's wall time between ``start()`` and
-``stop()``. ``process_cpu`` (``time.process_time``) covers every thread,
+``stop()``, but for spans of two threads at once (two of zenoh's callback
+threads), whose overlap counts in both. ``process_cpu`` (``time.process_time``) covers every thread,
 zenoh's own (Rust) work included: the difference to the spans' CPU is what
 zenoh and the kernel spend outside Python.
 
