@@ -188,7 +188,7 @@ def quarantine_evidence(rec, names) -> tuple:
     for q in rec.quarantined:
         j = index[q["agent"]]
         fused_by = [{"tick": t + 1, "agent": names[r]} for t in range(q["tick"] - 1, min(q["from"] - 1, len(rec.fused)))
-                    for r in np.flatnonzero(rec.fused[t, :, j]).tolist() if r != j]
+                    for r in np.flatnonzero(rec.fused[t][:, j]).tolist() if r != j]
         out.append({"agent": names[j], "why": q["why"], "named_at": q["tick"], "from": q["from"],
                     "fused_by": fused_by})
     line = "; ".join(

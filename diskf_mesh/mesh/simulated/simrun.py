@@ -190,7 +190,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
 
     deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
 
-    shared = Shared() if batch else None  # a payload's decode and checks, once for all its receivers
+    shared = Shared(agents=len(ids)) if batch else None  # a payload's decode and checks, once for all its receivers
     estimator = estimators.get(algorithm)  # resolved once: every agent's and the world's online check
 
     def world(boot):
