@@ -381,7 +381,6 @@ class Judge:
     unknown from then on."""
 
     def __init__(self, N: int):
-        self.off = ~np.eye(N, dtype=bool)
         self.unknown = np.zeros(N, dtype=bool)
         self.withheld = np.zeros(N, dtype=int)  # the tick of the missing report that made the state unknown (0: none)
 
@@ -400,18 +399,26 @@ class Judge:
             self.unknown = none.copy()
             return Judged(none, np.zeros_like(wrong), none.copy(), np.zeros_like(wrong))
         if unknown.any() or wrong.any():
-            fused = fused & self.off
+            fused = _off_diagonal(fused)
             forged = fused & wrong & ~unknown[None, :]   # a known sender's message the engine does not reproduce
             doubtful = fused & unknown[None, :] & (~has | wrong)
             tainted = unknown | doubtful.any(-1)
             div = reported & (forged.any(-1) | (bad & ~tainted))
         else:  # every state and message known: any difference is a divergence
-            forged, div, doubtful = wrong & self.off, reported & bad, np.zeros_like(wrong)
+            forged, div, doubtful = _off_diagonal(wrong), reported & bad, np.zeros_like(wrong)
         unver = reported & ~div & bad
         self.withheld = np.where(~reported, np.where(self.withheld > 0, self.withheld, k),
                                  np.where(unver & unknown, self.withheld, 0))
         self.unknown = ~reported | (div & bad) | unver
         return Judged(div, forged, unver, doubtful)
+
+
+def _off_diagonal(a: np.ndarray) -> np.ndarray:
+    """A copy of the (N, N) ``a`` without its diagonal (no (N, N) mask kept
+    for it: 100 MB at 10,000 agents)."""
+    out = np.array(a, dtype=bool)
+    np.fill_diagonal(out, False)
+    return out
 
 
 class Online:

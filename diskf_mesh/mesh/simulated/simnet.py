@@ -554,6 +554,8 @@ class SimNet:
             raise SimError(f"seed {self.seed}: {proc!r} raised {type(e).__name__} at t={now:.6f} on "
                            f"{_describe(event)} (event {self._events}; SimNet(seed={self.seed}) with the same "
                            f"plan replays it)") from e
+        if kind is _Batch and not getattr(machine, "waiting", 0):
+            proc.arriving = ()  # all taken: nothing of it to lose
         self._apply(proc, effects or ())
 
     def _log(self, proc, event) -> None:

@@ -230,6 +230,9 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     worlds = [pid for pid in out.machines if pid == WORLD or pid.startswith(WORLD + "~")]
     stayed = lambda p: getattr(out.finishes.get(p), "status", None) != "duplicate"  # noqa: E731
     pid = max(worlds, key=lambda p: (int(out.machines[p].record.reported.sum()), stayed(p), p == WORLD))
+    for p in worlds:  # the run is over: its status replays it whole (``SimRun.status``), not from these
+        if getattr(out.machines[p], "online", None) is not None:
+            out.machines[p].online.close()
     return SimRun(out, out.machines[pid], pid in out.finishes, stream.getvalue() if stream is not None else "",
                   scn, trace, algorithm, seed, faults, run_id, deadline_s)
 
