@@ -275,13 +275,13 @@ def restart_at(k: int, restarts, claims: RunClaims, est, state):
     return state
 
 
-def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.ndarray | None = None,
+def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.ndarray | TickLinks | None = None,
            message_digest=None, wanted=None) -> tuple:
     """The engine on ticks 1..K of ``trace`` with exactly the fused sets of
     ``claims`` (an agent-tick without a report: ``planned``'s row; a
-    (K, N, N) array, a ``TickLinks`` or None: the nominal links), a tick
-    at a time, each
-    ``Restart`` applied at its tick. Returns (Estimates, digests): with
+    (K, N, N) array, a ``TickLinks`` or None: the nominal links), their
+    links made a tick at a time, each ``Restart`` applied at its tick.
+    Returns (Estimates, digests): with
     ``message_digest(k, sender indices, the tick's Message batch) -> [bytes]``,
     the digest of every engine message (k, sender) in ``wanted`` (a set;
     None: none), as ``digest_value``s."""
