@@ -339,9 +339,9 @@ def test_generated_agent_count_over_the_memory_bound(tmp_path, capsys):
 
 def test_a_simulated_network_over_its_memory_bound_is_refused(tmp_path, capsys):
     """12,000 random-geometric agents fit the engine's bound (``experiment``
-    runs them) but not the simulated network's (about 5.3 GiB): ``up
+    runs them) but not the simulated network's (about 5.5 GiB): ``up
     --network simulated`` refuses them in one line, exit 2, before anything
-    is written; 10,000 agents x 20 ticks (about 3.9 GiB) pass the check."""
+    is written; 10,000 agents x 20 ticks (about 4.1 GiB) pass the check."""
     from diskf_mesh.data.scenario import load_scenario
     from diskf_mesh.mesh.simulated.simrun import check_size
 
