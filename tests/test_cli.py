@@ -338,17 +338,17 @@ def test_generated_agent_count_over_the_memory_bound(tmp_path, capsys):
 
 
 def test_a_simulated_network_over_its_memory_bound_is_refused(tmp_path, capsys):
-    """10,000 random-geometric agents fit the engine's bound (``experiment``
-    runs them) but not the simulated network's: ``up --network simulated``
-    refuses them in one line, exit 2, before anything is written; 2,000
-    agents, whose run peaks near 2 GB, pass the check."""
+    """12,000 random-geometric agents fit the engine's bound (``experiment``
+    runs them) but not the simulated network's (about 5.5 GiB): ``up
+    --network simulated`` refuses them in one line, exit 2, before anything
+    is written; 10,000 agents x 20 ticks (about 4.1 GiB) pass the check."""
     from diskf_mesh.data.scenario import load_scenario
     from diskf_mesh.mesh.simulated.simrun import check_size
 
     out_path = tmp_path / "results.json"
-    assert_rejected(["up", "--network", "simulated", "--quiet", "--scenario", "random-geometric", "--agents", "10000",
+    assert_rejected(["up", "--network", "simulated", "--quiet", "--scenario", "random-geometric", "--agents", "12000",
                      "--ticks", "20", "--json", out_path], "size", out_path, capsys)
-    check_size(load_scenario("random-geometric", agents=2000).with_overrides(steps=20))
+    check_size(load_scenario("random-geometric", agents=10000).with_overrides(steps=20))
 
 
 def test_too_many_seeds_refused_before_allocating(tmp_path, capsys):

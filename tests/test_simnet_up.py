@@ -241,5 +241,5 @@ def test_the_memory_estimate_is_within_twice_a_measured_peak(tmp_path):
     assert out[0] == "0"
     peak = int(out[1]) * 1024
     scn = load_scenario("random-geometric", agents=200).with_overrides(steps=5)
-    estimate = simulated_bytes(200, scn.largest_neighbourhood(scn.steps))
+    estimate = simulated_bytes(200, scn.largest_neighbourhood(scn.steps), scn.steps)
     assert peak / 2 <= estimate <= 2 * peak, (estimate / 2**20, peak / 2**20)

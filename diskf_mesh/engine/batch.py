@@ -217,13 +217,14 @@ def run(trace: Trace, estimator: str, params: Params | None = None, progress=Non
 
 
 def run_batch(trace: Trace, estimator: str, params: Params | None = None, progress=None,
-              neighbours: str = "auto", restart=None, listen=None, lies=()) -> Estimates:
+              neighbours: str = "auto", restart=None, listen=None, lies=(), links_at=None) -> Estimates:
     """``run`` on all seeds of ``trace`` as one batch. ``restart(k, est,
     state) -> state``, if given, may replace agents' states before tick k's
     local step (a restarted agent, ``engine.verify``); ``listen(k, msg)`` is
     handed every tick's (true) messages. With ``lies`` every receiver is a
     batch of one (``gather``), so that each fuses its own true message and
-    the others' as they were sent."""
+    the others' as they were sent. ``links_at(k)``: tick k's links (1 or B,
+    N, N), made a tick at a time, instead of the trace's."""
     B, K, N = trace.has.shape
     n, m = trace.model.n, trace.model.m
     steps = Stepper(trace.model, trace.sensors, estimator, params, trace.seeds, K, neighbours,
@@ -234,11 +235,17 @@ def run_batch(trace: Trace, estimator: str, params: Params | None = None, progre
     ds = np.empty((K, B, N, m))
     dv = np.empty((K, B, N), dtype=bool)
     y, has = np.moveaxis(trace.y, 1, 0), np.moveaxis(trace.has, 1, 0)
-    changed = link_changes(trace.links)
+    changed = link_changes(trace.links) if links_at is None else None
+    last = None
     for k in range(1, K + 1):
         if restart is not None:
             steps.state = restart(k, steps.est, steps.state)
-        out = steps.step(y[k - 1], has[k - 1], trace.links[:, k - 1] if changed[k - 1] else None, listen)
+        if links_at is None:
+            links = trace.links[:, k - 1] if changed[k - 1] else None
+        else:  # as ``link_changes`` says of an array: None where a tick's links are the tick before's
+            links = links_at(k)
+            links, last = (None, last) if last is not None and np.array_equal(links, last) else (links, links)
+        out = steps.step(y[k - 1], has[k - 1], links, listen)
         xs[k - 1], Ps[k - 1], ds[k - 1], dv[k - 1] = out.x, out.P, out.d, out.d_valid
         if progress is not None:
             progress(k)

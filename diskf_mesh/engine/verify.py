@@ -61,6 +61,7 @@ from diskf_mesh.data.faults import FaultConfig, delivered_links
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.engine import batch
 from diskf_mesh.engine.batch import Estimates
+from diskf_mesh.engine.fused import digest_value, digest_values, first_digests, tick_digests
 
 LISTED = 20  # agent-ticks listed by name in the evidence (the counts cover all)
 
@@ -168,7 +169,7 @@ def first_claims(claims: RunClaims, K: int) -> RunClaims:
     cut = lambda a: None if a is None else a[:K]  # noqa: E731
     return RunClaims(claims.x[:K], claims.P[:K], claims.d[:K], claims.d_valid[:K], claims.reported[:K],
                      claims.fused[:K], cut(claims.live), tuple(r for r in claims.restarts if r.tick <= K),
-                     {key: v for key, v in claims.digests.items() if key[0] <= K},
+                     first_digests(claims.digests, K),
                      {key: v for key, v in claims.verdicts.items() if key[0] <= K}, cut(claims.why))
 
 
@@ -192,6 +193,40 @@ def announced(trace: Trace, live: np.ndarray) -> Trace:
     return first_ticks(trace, K).with_links(nominal_links(trace, K, live)[None])
 
 
+class TickLinks:
+    """(K, N, N) bool links of ticks 1..K read a tick at a time: ``at(t)``
+    is tick t + 1's (N, N), from ``array`` or, without one, the range links
+    between the agents ``live`` at the tick (``nominal_links`` of ``trace``)
+    made when asked: never all K ticks at once (10,000 agents over 20 ticks
+    would take 2 GB for each such array)."""
+
+    def __init__(self, K: int, trace: Trace | None = None, live: np.ndarray | None = None,
+                 array: np.ndarray | None = None):
+        self.K, self.trace, self.live, self.array = K, trace, live, array
+
+    def at(self, t: int) -> np.ndarray:
+        if self.array is not None:
+            return self.array[t]
+        return nominal_links(self.trace, t + 1, None if self.live is None else self.live[t:t + 1], first_tick=t + 1)[0]
+
+    def cut(self, K: int) -> "TickLinks":
+        """Ticks 1..K only."""
+        return TickLinks(K, self.trace, None if self.live is None else self.live[:K],
+                         None if self.array is None else self.array[:K])
+
+    def off_diagonal(self) -> int:
+        """How many links the K ticks hold between two agents."""
+        return sum(int(a.sum()) - int(a.diagonal().sum()) for a in map(self.at, range(self.K)))
+
+
+def tick_links(links, K: int, trace: Trace, live: np.ndarray | None) -> TickLinks:
+    """``links`` (a (K, N, N) array, a ``TickLinks``, or None: the nominal
+    links of ``trace`` between the agents ``live``) as a ``TickLinks``."""
+    if isinstance(links, TickLinks):
+        return links
+    return TickLinks(K, trace, live) if links is None else TickLinks(K, array=np.asarray(links, dtype=bool))
+
+
 def planned_links(nominal: np.ndarray, ids, faults: FaultConfig | None, seed: int,
                   deadline_s: float = np.inf, first_tick: int = 1) -> np.ndarray:
     """The nominal links (of ticks ``first_tick``...) after the injected
@@ -206,16 +241,6 @@ def planned_links(nominal: np.ndarray, ids, faults: FaultConfig | None, seed: in
 # --------------------------------------------------------------------------
 # the replay
 # --------------------------------------------------------------------------
-def digest_value(digest: bytes) -> int:
-    """An 8-byte message digest as the unsigned integer claims hold."""
-    return int.from_bytes(bytes(digest)[:8], "little")
-
-
-def digest_values(digests) -> np.ndarray:
-    """Several 8-byte digests as a (J,) uint64 array."""
-    return np.frombuffer(b"".join(bytes(g)[:8] for g in digests), dtype="<u8").astype(np.uint64)
-
-
 def restarted(est, state, agent: int, x=None, P=None):
     """``state`` with ``agent``'s slot as a fresh agent's (``est.init``),
     its fused estimate set to (x, P) and its observation window reset when
@@ -250,20 +275,29 @@ def restart_at(k: int, restarts, claims: RunClaims, est, state):
     return state
 
 
-def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.ndarray | None = None,
+def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.ndarray | TickLinks | None = None,
            message_digest=None, wanted=None) -> tuple:
     """The engine on ticks 1..K of ``trace`` with exactly the fused sets of
-    ``claims`` (an agent-tick without a report: ``planned``'s row), each
-    ``Restart`` applied at its tick. Returns (Estimates, digests): with
+    ``claims`` (an agent-tick without a report: ``planned``'s row; a
+    (K, N, N) array, a ``TickLinks`` or None: the nominal links), their
+    links made a tick at a time, each ``Restart`` applied at its tick.
+    Returns (Estimates, digests): with
     ``message_digest(k, sender indices, the tick's Message batch) -> [bytes]``,
     the digest of every engine message (k, sender) in ``wanted`` (a set;
     None: none), as ``digest_value``s."""
     K, N = claims.reported.shape
     tr = first_ticks(trace, K)
-    planned = nominal_links(tr, K, claims.live) if planned is None else planned
-    links = np.array(claims.fused, dtype=bool)
-    links[~claims.reported] = planned[~claims.reported]
-    links[:, np.arange(N), np.arange(N)] = True
+    planned = tick_links(planned, K, tr, claims.live)
+    diagonal = np.arange(N), np.arange(N)
+
+    def links_at(k):  # tick k's (1, N, N): what each agent fused, the planned row where it did not report
+        links = np.array(claims.fused[k - 1], dtype=bool)
+        missing = ~claims.reported[k - 1]
+        if missing.any():
+            links[missing] = planned.at(k - 1)[missing]
+        links[diagonal] = True
+        return links[None]
+
     by_tick = {}
     for r in claims.restarts:
         by_tick.setdefault(int(r.tick), []).append(r)
@@ -282,8 +316,8 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
             for s, g in zip(senders, message_digest(k, senders, msg)):
                 digests[(k, s)] = digest_value(g)
 
-    est = batch.run_batch(tr.with_links(links[None]), algorithm, params, restart=restart if by_tick else None,
-                          listen=listen if need else None)
+    est = batch.run_batch(tr, algorithm, params, restart=restart if by_tick else None,
+                          listen=listen if need else None, links_at=links_at)
     return est, digests
 
 
@@ -347,7 +381,6 @@ class Judge:
     unknown from then on."""
 
     def __init__(self, N: int):
-        self.off = ~np.eye(N, dtype=bool)
         self.unknown = np.zeros(N, dtype=bool)
         self.withheld = np.zeros(N, dtype=int)  # the tick of the missing report that made the state unknown (0: none)
 
@@ -366,18 +399,26 @@ class Judge:
             self.unknown = none.copy()
             return Judged(none, np.zeros_like(wrong), none.copy(), np.zeros_like(wrong))
         if unknown.any() or wrong.any():
-            fused = fused & self.off
+            fused = _off_diagonal(fused)
             forged = fused & wrong & ~unknown[None, :]   # a known sender's message the engine does not reproduce
             doubtful = fused & unknown[None, :] & (~has | wrong)
             tainted = unknown | doubtful.any(-1)
             div = reported & (forged.any(-1) | (bad & ~tainted))
         else:  # every state and message known: any difference is a divergence
-            forged, div, doubtful = wrong & self.off, reported & bad, np.zeros_like(wrong)
+            forged, div, doubtful = _off_diagonal(wrong), reported & bad, np.zeros_like(wrong)
         unver = reported & ~div & bad
         self.withheld = np.where(~reported, np.where(self.withheld > 0, self.withheld, k),
                                  np.where(unver & unknown, self.withheld, 0))
         self.unknown = ~reported | (div & bad) | unver
         return Judged(div, forged, unver, doubtful)
+
+
+def _off_diagonal(a: np.ndarray) -> np.ndarray:
+    """A copy of the (N, N) ``a`` without its diagonal (no (N, N) mask kept
+    for it: 100 MB at 10,000 agents)."""
+    out = np.array(a, dtype=bool)
+    np.fill_diagonal(out, False)
+    return out
 
 
 class Online:
@@ -468,11 +509,11 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
     missing = ~whole.reported
     if K == 0:
         return _nothing_replayed(whole, f"no report came: {K_all * N} agent-ticks missing")
-    nominal = nominal_links(trace, K, claims.live)
-    planned = nominal if planned is None else np.asarray(planned, dtype=bool)
+    nominal = TickLinks(K, trace, claims.live)
+    planned = nominal if planned is None else tick_links(planned, K, trace, claims.live)
     wanted = None
     if message_digest is not None:
-        wanted = {(k, int(s)) for (k, _), (senders, _) in claims.digests.items() for s in senders}
+        wanted = {(k, int(s)) for k in range(1, K + 1) for s in np.unique(tick_digests(claims.digests, k)[1])}
     try:
         est, engine_digests = replay(trace, algorithm, params, claims, planned, message_digest, wanted)
         ended = None
@@ -483,13 +524,10 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
         if K == 0:
             return _nothing_replayed(whole, f"the engine's replay diverged at tick 1 ({e}): nothing verified",
                                      replay_ended=ended)
-        claims, planned, nominal = first_claims(claims, K), planned[:K], nominal[:K]
+        claims, planned, nominal = first_claims(claims, K), planned.cut(K), nominal.cut(K)
         wanted = None if wanted is None else {(k, s) for k, s in wanted if k <= K}
         est, engine_digests = replay(trace, algorithm, params, claims, planned, message_digest, wanted)
     bad, gap = differing(claims, est)
-    by_tick = {}
-    for (k, r), (senders, digests) in claims.digests.items():
-        by_tick.setdefault(k, []).append((r, senders, digests))
     restarts = {}
     for r in claims.restarts:
         restarts.setdefault(int(r.tick), []).append(int(r.agent))
@@ -499,9 +537,9 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
         has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)  # [receiver, sender]
         if engine_digests:
             engine = np.array([engine_digests.get((k, s), 0) for s in range(N)], dtype=np.uint64)
-            for r, senders, digests in by_tick.get(k, ()):
-                has[r, senders] = True
-                wrong[r, senders] = engine[senders] != digests
+            rows, cols, said = tick_digests(claims.digests, k)
+            has[rows, cols] = True
+            wrong[rows, cols] = engine[cols] != said
         withheld = judge.withheld.copy()
         j = judge.tick(k, claims.reported[k - 1], bad[k - 1], claims.fused[k - 1], has, wrong, restarts.get(k, ()))
         for r in np.flatnonzero(j.diverged).tolist():
@@ -614,7 +652,7 @@ def _unverifiable(found: list, name) -> tuple:
                 + (f", fusing agent {', '.join(str(name(s)) for s in senders)}'s message" if senders else ""))
 
 
-def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name) -> dict:
+def _shortfall(claims: RunClaims, planned: TickLinks, nominal: TickLinks, name) -> dict:
     """The reported agent-ticks whose fused set is not the planned one:
     fewer (``degraded``, with the agents' reasons; ``beyond_missing``: those
     lacking a sender that reported the tick) or others (``unplanned``).
@@ -625,7 +663,7 @@ def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name
     listed, extra = [], []
     short_n = messages = more_n = beyond = 0
     for k0 in range(K):
-        plan = planned[k0]
+        plan = planned.at(k0)
         differ = claims.fused[k0] ^ plan
         differ[diagonal, diagonal] = False
         differ &= claims.reported[k0][:, None]
@@ -647,8 +685,8 @@ def _shortfall(claims: RunClaims, planned: np.ndarray, nominal: np.ndarray, name
             more_n += 1
             if len(extra) < LISTED:
                 extra.append({"tick": k0 + 1, "agent": name(j), "senders": [name(s) for s in np.flatnonzero(more[j])]})
-    links = int(nominal.sum()) - int(nominal[:, diagonal, diagonal].sum())
-    planned_out = 0 if planned is nominal else links - (int(planned.sum()) - int(planned[:, diagonal, diagonal].sum()))
+    links = nominal.off_diagonal()
+    planned_out = 0 if planned is nominal else links - planned.off_diagonal()
     return {"degraded": {"agent_ticks": short_n, "messages": messages, "why": dict(sorted(why.items())),
                          "beyond_missing": beyond, "listed": listed},
             "unplanned": {"agent_ticks": more_n, "listed": extra},

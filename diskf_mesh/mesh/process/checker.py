@@ -90,7 +90,7 @@ class CheckThread:
         try:
             check = make()
             B, K, N = check.trace.has.shape
-            rec = WorldRecord(**RunReports.empty(K, N, check.trace.model.n, check.trace.model.m),
+            rec = WorldRecord(**RunReports.empty(K, N, check.trace.model.n, check.trace.model.m, sparse=True),
                               live=np.zeros((K, N), dtype=bool))
             while (tick := self._ticks.get()) is not None:
                 self._prof.begin(beside=True)

@@ -230,6 +230,7 @@ class AgentMachine:
         self.last_report = None   # (k, payload) of the last report sent
         self._delay_at = math.inf  # when the delay timer is set for (inf: not set)
         self._near_key, self._near_ids = None, frozenset()  # ``_near``: the last positions and their answer
+        self._linked_key, self._linked_ids = (None, None), frozenset()  # ``_live_near``: likewise
         self.finish: Finish | None = None
 
     @property
@@ -437,7 +438,7 @@ class AgentMachine:
             for old in [j for j in self.tick_at if j not in self.ticks]:
                 del self.tick_at[old]
         # not live at a tick (joining later): linked to no one, nothing to fuse
-        self.linked[t.tick] = (self._near(t.positions) & set(t.live)) - {self.id} if self.id in t.live else set()
+        self.linked[t.tick] = self._live_near(t) if self.id in t.live else frozenset()
         if self.id not in t.live and self.est is None:
             self._joining(t.tick)
         self.receiver.release(t.tick, self.linked[t.tick], now)
@@ -448,13 +449,26 @@ class AgentMachine:
                 del self.linked[old]
         return True
 
+    def _live_near(self, t: wire.Tick) -> frozenset:
+        """The live agents of tick ``t`` in range of this agent (not itself);
+        the last answer again (the same set, shared by the ticks) while the
+        positions and the live set are those of the tick before."""
+        near = self._near(t.positions)
+        if near is not self._linked_key[0] or t.live != self._linked_key[1]:
+            live = near & set(t.live)
+            self._linked_key, self._linked_ids = (near, t.live), near if len(live) == len(near) else live
+        return self._linked_ids
+
     def _near(self, positions) -> frozenset:
-        """The ids in range of this agent (itself included) at ``positions``
+        """The ids in range of this agent (not itself) at ``positions``
         (``mesh.protocol.estimator.neighbours``); the last answer again while the
-        positions are those of the tick before (static agents)."""
-        key = positions.tobytes()
-        if key != self._near_key:
-            self._near_key, self._near_ids = key, frozenset(neighbours(self.scn, self.id, positions))
+        positions are those of the tick before (static agents). The positions
+        are kept as the array the tick came with (the same one for every
+        agent that read the tick), not as a copy per agent."""
+        last = self._near_key
+        if last is None or (positions is not last and not np.array_equal(positions, last)):
+            self._near_key = positions
+            self._near_ids = frozenset(neighbours(self.scn, self.id, positions)) - {self.id}
         return self._near_ids
 
     def _tick_problem(self, t: wire.Tick):
@@ -560,7 +574,7 @@ class AgentMachine:
 
     # -- 4. close: fuse, report ------------------------------------------------
     def _close(self, k: int) -> None:
-        heard, rejected = self.receiver.accounted(k), self.receiver.refusals(k)
+        heard, rejected = self.receiver.dropped(k), self.receiver.refusals(k)
         fused = dict(self.receiver.take(k, self.linked[k]))
         self._closing = (heard, rejected, fused, False)
         self.prof.begin()

@@ -79,7 +79,9 @@ Bounded: a (sender, tick) is remembered (to tell a duplicate) only for
 ``keep`` ticks behind the last tick taken; the receiver's guard refuses
 anything older before it gets here, and anything further ahead than its
 window, so what waits for its tick is one message per scenario agent and
-tick of the window.
+tick of the window. A taken tick remembers who came as the linked set it was
+taken with (the agent's, shared from tick to tick) and the few linked senders
+that did not come or the few others that did: nothing per sender heard.
 
 Counts go to a ``Counters`` (arrived, duplicate, fused, late, unlinked; the
 receiver counts what waited for a tick and never went on a link). No lock
@@ -118,7 +120,7 @@ class Receiver:
         self._events = itertools.count()
         self._lost: dict = {}          # tick -> senders whose message of that tick the link dropped
         self._refused: dict = {}       # tick -> {sender: reason} whose message of that tick was rejected
-        self._digests: dict = {}       # tick -> {sender: digest of the copy held for fusion}
+        self._taken = (0, (), ())      # (tick, senders, their messages' digests) of the last ``take``
         self.tick = 0                  # the agent's current tick, for the guard's window (``advance``)
 
     def advance(self, tick: int) -> None:
@@ -179,14 +181,14 @@ class Receiver:
         if self.faults is not None or linked is None or not self.guard.in_window(tick, tick) \
                 or not self.inbox.open(tick, now):
             return 0
-        seen = self.inbox.seen(tick)
+        held, also = self.inbox.held(tick), self.inbox.also(tick)
         me, taken = self.me, {}
         for a in arrivals:
             if type(a) is not MessageArrived:
                 break
             wm, s = a.message, a.sender
             if type(wm) is not wire.WireMessage or a.problem is not None or wm.tick != tick or s == me \
-                    or s not in linked or s in seen or s in taken:
+                    or s not in linked or s in held or s in also or s in taken:
                 break
             taken[s] = wm
         n = len(taken)
@@ -196,8 +198,7 @@ class Receiver:
             c = self.counters
             c.sent += n
             c.received += n
-            self.inbox.hold(tick, {s: wm.message for s, wm in taken.items()})
-            self._digests.setdefault(tick, {}).update({s: wm.digest for s, wm in taken.items()})
+            self.inbox.hold(tick, taken)
         return n
 
     def release(self, tick: int, linked, now: float = 0.0) -> None:
@@ -257,13 +258,21 @@ class Receiver:
         if not self._copies_left[event]:
             del self._copies_left[event]
             self._heard.discard(event)
-        if self.inbox.offer(wm.sender, wm.tick, wm.message, now) == "held":
-            self._digests.setdefault(wm.tick, {})[wm.sender] = wm.digest
+        self.inbox.offer(wm.sender, wm.tick, wm, now)
 
     @property
     def in_flight(self) -> int:
         """Messages sent on a link of which no copy has arrived yet."""
         return sum(1 for e in self._copies_left if e not in self._heard)
+
+    def dropped(self, tick: int) -> set:
+        """Senders of ``tick`` accounted for without a message held: the
+        (simulated) link dropped it, or it came and was rejected. Of the
+        senders linked at ``tick`` and not fused, those ``accounted`` for
+        are these (every linked sender held is fused), so a closed tick's
+        verdicts need only them, never a copy of every sender heard."""
+        lost, refused = self._lost.get(tick), self._refused.get(tick)
+        return set(lost or ()) | set(refused or ())
 
     def accounted(self, tick: int) -> set:
         """Senders of ``tick`` that need no more waiting for: their message
@@ -299,16 +308,16 @@ class Receiver:
         for book in (self._lost, self._refused):
             for t in [t for t in book if t <= tick]:
                 del book[t]
-        return self.inbox.take(tick, linked)
+        taken = self.inbox.take(tick, linked)
+        self._taken = (tick, tuple(s for s, _ in taken), tuple(wm.digest for _, wm in taken))
+        return [(s, wm.message) for s, wm in taken]
 
     def digests(self, tick: int) -> dict:
-        """{sender: ``wire.WireMessage.digest``} of the copies of ``tick`` held
-        for fusion (after ``take``: what was fused); forgets ``tick`` and
-        every earlier one."""
-        out = self._digests.pop(tick, {})
-        for t in [t for t in self._digests if t < tick]:
-            del self._digests[t]
-        return out
+        """{sender: ``wire.WireMessage.digest``} of the copies fused at
+        ``tick`` (the last ``take``; empty for another tick); forgets them."""
+        t, senders, digests = self._taken
+        self._taken = (0, (), ())
+        return dict(zip(senders, digests)) if t == tick else {}
 
     def snapshot(self, cap: int | None = None) -> dict:
         """The counters with the gauges (in flight, pending) filled in, flat
@@ -333,8 +342,9 @@ class Inbox:
     def __init__(self, counters: Counters | None = None, keep: int | None = None):
         self.counters = counters if counters is not None else Counters()
         self.keep = keep             # ticks behind the last taken whose arrivals are remembered (None: all)
-        self._seen: dict = {}        # tick -> senders arrived so far
         self._held: dict = {}        # tick -> {sender: message}
+        self._also: dict = {}        # tick -> senders arrived and not held (late; or held, then never fused)
+        self._taken: dict = {}       # tick -> (linked, those linked not held) at its ``take``
         self._closed_through = 0     # ticks <= this were fused
         self._closed = False         # the run is over: everything is late
         self._due: dict = {}         # tick -> deadline (real time): a copy after it is late
@@ -366,16 +376,25 @@ class Inbox:
         "duplicate" or "late"."""
         c = self.counters
         c.arrived += 1
-        seen = self._seen.setdefault(tick, set())
-        if sender in seen:
+        if self.arrived(tick, sender):
             c.duplicate += 1
             return "duplicate"
-        seen.add(sender)
         if not self.open(tick, now):
             c.late += 1
+            self._also.setdefault(tick, set()).add(sender)
             return "late"
         self._held.setdefault(tick, {})[sender] = message
         return "held"
+
+    def arrived(self, tick: int, sender) -> bool:
+        """Whether a copy of ``sender``'s message of ``tick`` arrived before
+        (remembered ``keep`` ticks behind the last taken). A taken tick
+        remembers its linked senders as the set it was taken with and those
+        of them not held, not as a set of every sender that came."""
+        if sender in self._held.get(tick, _NONE) or sender in self._also.get(tick, _NONE):
+            return True
+        taken = self._taken.get(tick)
+        return taken is not None and sender in taken[0] and sender not in taken[1]
 
     def open(self, tick: int, now: float) -> bool:
         """Whether a copy of ``tick`` arriving at ``now`` from a sender not
@@ -383,33 +402,46 @@ class Inbox:
         return not (self._closed or tick <= self._closed_through or (
             self._due and tick in self._due and now > self._due[tick]))
 
-    def seen(self, tick: int):
-        """The senders of ``tick`` arrived so far (read-only, not copied)."""
-        return self._seen.get(tick, _NONE)
+    def also(self, tick: int):
+        """The senders of ``tick`` that arrived and are not held (read-only,
+        not copied): with ``held``, every sender of an open tick arrived so
+        far."""
+        return self._also.get(tick, _NONE)
 
     def hold(self, tick: int, messages: dict) -> None:
         """``offer`` of every {sender: message} of ``tick``, each the first
         copy of its sender, while ``tick`` is ``open``: all held."""
         self.counters.arrived += len(messages)
-        self._seen.setdefault(tick, set()).update(messages)
         self._held.setdefault(tick, {}).update(messages)
+
+    def _unheld(self, tick: int, senders) -> None:
+        """``senders`` of ``tick`` are no longer held: remembered as arrived."""
+        if senders:
+            self._also.setdefault(tick, set()).update(senders)
 
     def take(self, tick: int, linked) -> list:
         """[(sender, message)] of ``tick`` from ``linked`` senders, by sender id."""
         c = self.counters
         for t in [t for t in self._held if t < tick]:  # skipped ticks: never fused
-            c.late += len(self._held.pop(t))
+            held = self._held.pop(t)
+            c.late += len(held)
+            self._unheld(t, held)
         held = self._held.pop(tick, {})
-        linked = set(linked)
+        linked = frozenset(linked)
         out = sorted((s, msg) for s, msg in held.items() if s in linked) if held else []
         c.fused += len(out)
         c.unlinked += len(held) - len(out)
+        if len(out) < len(held):
+            self._unheld(tick, [s for s in held if s not in linked])
+        if tick not in self._taken:  # taken again (nothing held then): what came the first time stays
+            self._taken[tick] = (linked, {s for s in linked if s not in held} if len(out) < len(linked) else _NONE)
         self._closed_through = max(self._closed_through, tick)
         for t in [t for t in self._due if t <= tick]:
             del self._due[t]
         if self.keep is not None:
-            for t in [t for t in self._seen if t < tick - self.keep]:
-                del self._seen[t]
+            for book in (self._also, self._taken):
+                for t in [t for t in book if t < tick - self.keep]:
+                    del book[t]
         return out
 
     def senders(self, tick: int) -> set:
@@ -426,5 +458,7 @@ class Inbox:
 
     def close(self) -> None:
         self.counters.late += sum(len(h) for h in self._held.values())
+        for t, held in self._held.items():
+            self._unheld(t, held)
         self._held.clear()
         self._closed = True

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from diskf_mesh.engine.batch import Estimates
-from diskf_mesh.engine.verify import digest_values
+from diskf_mesh.engine.fused import FusedDigests, FusedSets, digest_values, tick_digests
 
 
 @dataclass
@@ -24,36 +24,40 @@ class RunReports:
     d: np.ndarray               # (K, N, m) its fused input (NaN where it has none)
     d_valid: np.ndarray         # (K, N) bool
     reported: np.ndarray        # (K, N) bool: the report of tick k came
-    fused: np.ndarray           # (K, N, N) bool [tick - 1, receiver, sender]: what the receiver fused
+    fused: np.ndarray | FusedSets  # (K, N, N) bool [tick - 1, receiver, sender]: what the receiver fused
     digests: dict = field(default_factory=dict)   # (tick, receiver) -> (senders, their 8-byte digests), as reported
-    # (tuples of indices and bytes; ``claimed_digests`` turns them into the arrays verify holds)
+    # (tuples of indices and bytes, or ``fused``'s ``FusedDigests``; ``claimed_digests`` gives the arrays verify holds)
     verdicts: dict = field(default_factory=dict)  # (tick, receiver) -> ((sender, why not fused), ...)
 
     @staticmethod
-    def empty(K: int, N: int, n: int, m: int) -> dict:
-        """The fields of a run with no report yet, for a subclass's constructor."""
+    def empty(K: int, N: int, n: int, m: int, sparse: bool = False) -> dict:
+        """The fields of a run with no report yet, for a subclass's constructor;
+        ``sparse``: who fused whom and the digests as a ``FusedSets`` (memory
+        with the messages fused, not K N^2), else a dense bool and a dict."""
+        fused = FusedSets(K, N) if sparse else np.zeros((K, N, N), dtype=bool)
         return dict(x=np.full((K, N, n), np.nan), P=np.full((K, N, n, n), np.nan), d=np.full((K, N, m), np.nan),
                     d_valid=np.zeros((K, N), dtype=bool), reported=np.zeros((K, N), dtype=bool),
-                    fused=np.zeros((K, N, N), dtype=bool))
+                    fused=fused, digests=fused.digests if sparse else {})
 
     def note_fused(self, tick: int, i: int, fused, not_fused, digests, index) -> None:
         """Receiver ``i``'s report of ``tick``: the senders it fused (ids;
         ``index`` maps an id to its place on the agent axis, unknown ids are
         skipped), why the others were not, and the digests of what it fused
         (one per sender of ``fused``, or none)."""
-        row = self.fused[tick - 1, i]
         at = [(n, index[s]) for n, s in enumerate(fused) if s in index]
-        for _, j in at:
-            row[j] = True
+        senders = [j for _, j in at]
+        self.fused[tick - 1, i, senders] = True
         if digests and at:
-            self.digests[(tick, i)] = (tuple(j for _, j in at), tuple(digests[n] for n, _ in at))
+            self.digests[(tick, i)] = (tuple(senders), tuple(digests[n] for n, _ in at))
         said = tuple((index[s], str(v)) for s, v in not_fused if s in index)
         if said:
             self.verdicts[(tick, i)] = said
 
-    def claimed_digests(self) -> dict:
+    def claimed_digests(self):
         """``digests`` as the engine's claims hold them (``verify.RunClaims``):
         (tick, receiver) -> (sender indices (J,) intp, digests (J,) uint64)."""
+        if isinstance(self.digests, FusedDigests):
+            return self.digests
         return {key: (np.array(senders, dtype=np.intp), digest_values(gs))
                 for key, (senders, gs) in self.digests.items()}
 
@@ -61,14 +65,7 @@ class RunReports:
         """Tick k's ``digests`` as three (J,) arrays, receivers in order:
         receivers, senders (intp) and digests (uint64, as
         ``claimed_digests``): ``engine.verify.Online``'s ``said``."""
-        rows, cols, gs = [], [], []
-        for i in range(self.reported.shape[1]):
-            got = self.digests.get((k, i))
-            if got:
-                rows += [i] * len(got[0])
-                cols += got[0]
-                gs += got[1]
-        return np.array(rows, dtype=np.intp), np.array(cols, dtype=np.intp), digest_values(gs)
+        return tick_digests(self.digests, k)
 
     def estimates(self, fill: bool = False) -> Estimates:
         """The reports as an engine ``Estimates`` batch of one; with ``fill``

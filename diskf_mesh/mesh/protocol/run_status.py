@@ -168,6 +168,11 @@ class OnlineCheck:
         return [{"agent": self.ids[s], "tick": k, "why": "lied",
                  "fused_by": [self.ids[r] for r in np.flatnonzero(judged.forged[:, s])]} for s in judged.liars()]
 
+    def close(self) -> None:
+        """The run is over: the replay's state (its agents, its links, 100 MB
+        each at 10,000 agents) is let go; no tick is checked after."""
+        self.online = None
+
     def planned(self, rec, k: int) -> np.ndarray:
         """(N, N) tick k's planned links: the range links between the agents
         ``rec`` says it counted live, after the run's link faults."""
@@ -188,7 +193,7 @@ def quarantine_evidence(rec, names) -> tuple:
     for q in rec.quarantined:
         j = index[q["agent"]]
         fused_by = [{"tick": t + 1, "agent": names[r]} for t in range(q["tick"] - 1, min(q["from"] - 1, len(rec.fused)))
-                    for r in np.flatnonzero(rec.fused[t, :, j]).tolist() if r != j]
+                    for r in np.flatnonzero(rec.fused[t][:, j]).tolist() if r != j]
         out.append({"agent": names[j], "why": q["why"], "named_at": q["tick"], "from": q["from"],
                     "fused_by": fused_by})
     line = "; ".join(

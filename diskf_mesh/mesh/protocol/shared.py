@@ -13,7 +13,9 @@ A payload is the same bytes object for every receiver of a publication,
 so its hash is computed once. ``how`` names everything else the result
 depends on (the decoder's arguments, the guard's limits); a rejection is
 kept as the ``wire.Rejected`` it raised and handed back, not raised. The
-newest ``keep`` results are kept.
+newest ``keep`` results are kept: enough for a tick's messages, else a
+message evicted before its last receivers read it is decoded again for
+each of them, and each holds its own decode until the tick is fused.
 """
 from __future__ import annotations
 
@@ -21,12 +23,16 @@ from typing import Callable
 
 from diskf_mesh.mesh.wire import codec as wire
 
-KEEP = 4096   # results kept: a payload's receivers all get it within a tick; one evicted early is computed again
+KEEP = 4096   # results kept (at least): a payload's receivers all get it within a tick; one evicted early is
+# computed again, and its receivers each hold their own result
+PER_AGENT = 2  # ... and two per agent of the run: the messages of a tick (one per agent) all stay until read
 
 
 class Shared:
-    def __init__(self, keep: int = KEEP):
-        self.keep = keep
+    def __init__(self, keep: int | None = None, agents: int = 0):
+        """``keep`` results (default ``KEEP``), at least ``PER_AGENT`` per
+        agent of a run of ``agents``."""
+        self.keep = max(KEEP if keep is None else keep, PER_AGENT * agents)
         self._memo: dict = {}
         self._hows: dict = {}
         self._reads: dict = {}

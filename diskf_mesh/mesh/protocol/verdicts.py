@@ -27,9 +27,10 @@ class TickVerdicts:
 
     def of_tick(self, k: int, linked, heard, rejected, fused, fusion_failed: bool = False) -> tuple:
         """(fused ids, ((sender, verdict), ...)) of tick k. ``linked``: the
-        senders linked at k; ``heard``: ``Receiver.accounted(k)`` taken just
-        before the inbox was emptied (arrived, dropped by the link or
-        refused); ``rejected``: ``Receiver.refusals(k)``, {sender: the guard's
+        senders linked at k; ``heard``: the senders accounted for at k but
+        not fused, or a superset (``Receiver.dropped(k)``: dropped by the
+        link or refused; ``Receiver.accounted(k)``: arrived too), taken just
+        before the inbox was emptied; ``rejected``: ``Receiver.refusals(k)``, {sender: the guard's
         reason}; ``fused``: the senders whose messages were handed to fusion."""
         fused = sorted(fused)
         out = []

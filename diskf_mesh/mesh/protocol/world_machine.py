@@ -183,8 +183,9 @@ class WorldMachine:
         K, N = trace.has.shape[1:]
         self.K = K
         n, m = trace.model.n, trace.model.m
-        self.record = WorldRecord(**RunReports.empty(K, N, n, m), ids=self.ids, why=np.full((K, N), "", dtype=object),
-                                  live=np.zeros((K, N), dtype=bool), labels=scn.labels,
+        self.record = WorldRecord(**RunReports.empty(K, N, n, m, sparse=True), ids=self.ids,
+                                  why=np.full((K, N), "", dtype=object), live=np.zeros((K, N), dtype=bool),
+                                  labels=scn.labels,
                                   deadlines=None if self.clock is None else Deadlines())
         self.phase = "new"             # new, claim, startup, late-ready, ticking, leaving, finished
         self.finish: Finish | None = None

@@ -215,6 +215,7 @@ class _Routes:
         self.by_proc = {}     # proc -> its expressions
         self.memo = {}
         self.by_match = {}    # (exact expr or None, wildcard exprs matched) -> answer
+        self.pairs = {}       # (proc, expr) -> that tuple: every answer holding it shares one
 
     def add(self, expr: str, proc) -> None:
         self.memo.clear()
@@ -236,6 +237,8 @@ class _Routes:
 
     def remove(self, proc) -> None:
         exprs = self.by_proc.pop(proc, ())
+        for e in exprs:
+            self.pairs.pop((proc, e), None)
         if exprs:
             self.memo.clear()
             self.by_match.clear()
@@ -269,8 +272,9 @@ class _Routes:
             sig = (key if key in self.exact else None, wild)
             hit = self.by_match.get(sig)
             if hit is None:
-                hit = [(p, key) for p, n in self.exact.get(key, {}).items() for _ in range(n)]
-                hit += [(p, e) for e in wild for p, n in self.wild[e][1].items() for _ in range(n)]
+                pair = lambda pe: self.pairs.setdefault(pe, pe)  # noqa: E731
+                hit = [pair((p, key)) for p, n in self.exact.get(key, {}).items() for _ in range(n)]
+                hit += [pair((p, e)) for e in wild for p, n in self.wild[e][1].items() for _ in range(n)]
                 hit.sort(key=lambda pe: pe[0].order)
                 self.by_match[sig] = hit
             if len(self.memo) > 100_000:
@@ -550,6 +554,8 @@ class SimNet:
             raise SimError(f"seed {self.seed}: {proc!r} raised {type(e).__name__} at t={now:.6f} on "
                            f"{_describe(event)} (event {self._events}; SimNet(seed={self.seed}) with the same "
                            f"plan replays it)") from e
+        if kind is _Batch and not getattr(machine, "waiting", 0):
+            proc.arriving = ()  # all taken: nothing of it to lose
         self._apply(proc, effects or ())
 
     def _log(self, proc, event) -> None:

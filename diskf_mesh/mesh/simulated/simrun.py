@@ -45,33 +45,43 @@ from diskf_mesh.mesh.simulated.simnet import Lease, Link, Outcome, SimNet
 from diskf_mesh.mesh.protocol.world_machine import WorldMachine, WorldTiming
 
 WORLD = "world"
-# Resident memory of a simulated run: a base, per agent (its machine, estimator, views) and per link
-# (a sender in an agent's largest neighbourhood: its window, roster entry, delivery state). Fitted on
-# random-geometric runs of 20 ticks (100, 1,000 and 2,000 agents: 72, 654 and 2,155 MB peak RSS,
-# docs/simnet.md); an over-estimate, as every agent is counted with the largest neighbourhood (the
-# samples of an instant delivered together: 85 and 692 MiB estimated against 74 and 563 MiB measured at
-# 100 and 1,000 agents; tests/test_simnet_up.py holds it within twice a measured peak).
+# Resident memory of a simulated run: a base; per agent (its machine, estimator, views); per link (a sender
+# in an agent's largest neighbourhood: its inbox entry, roster of deliveries, the routes' and the access
+# rules' answers); per pair of agents (each agent's roster of tokens, two bytes, and the check's (N, N) arrays
+# of a tick, a byte each: links, what was fused, digests said and wrong); and per message fused, the world's
+# record (two bytes: ``engine.fused.FusedSets``) and what the process's peak gains a tick (about 25 MiB a
+# tick at 10,000 agents). Fitted on random-geometric runs (peak RSS of 72, 95, 246 and 399 MiB at 100,
+# 200, 1,000 and 2,000 agents x 20 ticks, 80 MiB at 200 x 5, 3,712 MiB at 10,000 x 2, 3,920 MiB over the
+# first 10 ticks of 10,000 x 20; docs/simnet.md), rounded up (tests/test_simnet_up.py holds it within twice
+# a measured peak). Every agent is counted with the largest neighbourhood (970 at 10,000 agents, 755 on
+# average): 4.1 GiB for 10,000 agents x 20 ticks.
 SIM_BYTES_BASE = 64 * 2**20
-SIM_BYTES_PER_AGENT = 160 * 2**10
-SIM_BYTES_PER_LINK = 4300
-SIM_MEMORY_BOUND = 4 * 2**30  # above it a simulated run is refused before it starts
+SIM_BYTES_PER_AGENT = 150 * 2**10
+SIM_BYTES_PER_LINK = 64
+SIM_BYTES_PER_PAIR = 16
+SIM_BYTES_PER_FUSED = 3
+# above it a simulated run is refused before it starts: 5 GiB, so that 10,000 random-geometric agents x 20
+# ticks run (about 4.1 GiB: 3,920 MiB measured over their first 10 ticks); 12,000 (5.5 GiB) are refused
+SIM_MEMORY_BOUND = 5 * 2**30
 
 
-def simulated_bytes(N: int, degree: int) -> int:
+def simulated_bytes(N: int, degree: int, ticks: int = 0) -> int:
     """About the peak resident memory of a simulated run of ``N`` agents
-    whose largest neighbourhood is ``degree`` agents."""
-    return SIM_BYTES_BASE + N * SIM_BYTES_PER_AGENT + N * min(degree, N) * SIM_BYTES_PER_LINK
+    whose largest neighbourhood is ``degree`` agents, over ``ticks`` ticks."""
+    links = N * min(degree, N)
+    return (SIM_BYTES_BASE + N * SIM_BYTES_PER_AGENT + links * SIM_BYTES_PER_LINK + N * N * SIM_BYTES_PER_PAIR
+            + links * ticks * SIM_BYTES_PER_FUSED)
 
 
 def check_size(scn: Scenario) -> None:
     """``InputError`` when a simulated run of ``scn`` would need more than
     ``SIM_MEMORY_BOUND`` bytes (``simulated_bytes``); the engine's own bound
     (``Scenario.check_size``) is checked where the trace is drawn."""
-    N = len(scn.agents)
-    if simulated_bytes(N, N) <= SIM_MEMORY_BOUND:
+    N, K = len(scn.agents), scn.steps
+    if simulated_bytes(N, N, K) <= SIM_MEMORY_BOUND:
         return
     degree = scn.largest_neighbourhood(scn.steps)
-    need = simulated_bytes(N, degree)
+    need = simulated_bytes(N, degree, K)
     if need > SIM_MEMORY_BOUND:
         raise InputError("size", f"a simulated run of {N} agents (up to {degree} in one neighbourhood) needs about "
                                  f"{need / 2**30:.1f} GiB, over the simulated network's bound of "
@@ -190,7 +200,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
 
     deadline_s = realtime.agents_deadline(plan.agent_timing.clock, plan.agent_timing.collect_timeout)
 
-    shared = Shared() if batch else None  # a payload's decode and checks, once for all its receivers
+    shared = Shared(agents=len(ids)) if batch else None  # a payload's decode and checks, once for all its receivers
     estimator = estimators.get(algorithm)  # resolved once: every agent's and the world's online check
 
     def world(boot):
@@ -230,6 +240,9 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     worlds = [pid for pid in out.machines if pid == WORLD or pid.startswith(WORLD + "~")]
     stayed = lambda p: getattr(out.finishes.get(p), "status", None) != "duplicate"  # noqa: E731
     pid = max(worlds, key=lambda p: (int(out.machines[p].record.reported.sum()), stayed(p), p == WORLD))
+    for p in worlds:  # the run is over: its status replays it whole (``SimRun.status``), not from these
+        if getattr(out.machines[p], "online", None) is not None:
+            out.machines[p].online.close()
     return SimRun(out, out.machines[pid], pid in out.finishes, stream.getvalue() if stream is not None else "",
                   scn, trace, algorithm, seed, faults, run_id, deadline_s)
 
