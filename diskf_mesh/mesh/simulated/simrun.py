@@ -51,17 +51,17 @@ WORLD = "world"
 # of a tick, a byte each: links, what was fused, digests said and wrong); and per message fused, the world's
 # record (two bytes: ``engine.fused.FusedSets``) and what the process's peak gains a tick (about 25 MiB a
 # tick at 10,000 agents). Fitted on random-geometric runs (peak RSS of 72, 95, 246 and 399 MiB at 100,
-# 200, 1,000 and 2,000 agents x 20 ticks, 80 MiB at 200 x 5, 3,712 MiB at 10,000 x 2, 3,920 MiB over the
-# first 10 ticks of 10,000 x 20; docs/simnet.md), rounded up (tests/test_simnet_up.py holds it within twice
-# a measured peak). Every agent is counted with the largest neighbourhood (970 at 10,000 agents, 755 on
-# average): 4.1 GiB for 10,000 agents x 20 ticks.
+# 200, 1,000 and 2,000 agents x 20 ticks, 80 MiB at 200 x 5, 3,712 MiB at 10,000 x 2 and 4,199 MiB at
+# 10,000 x 20; docs/simnet.md), rounded up (tests/test_simnet_up.py holds it within twice a measured
+# peak). Every agent is counted with the largest neighbourhood (970 at 10,000 agents, 755 on average):
+# 4.1 GiB for 10,000 agents x 20 ticks.
 SIM_BYTES_BASE = 64 * 2**20
 SIM_BYTES_PER_AGENT = 150 * 2**10
 SIM_BYTES_PER_LINK = 64
 SIM_BYTES_PER_PAIR = 16
 SIM_BYTES_PER_FUSED = 3
 # above it a simulated run is refused before it starts: 5 GiB, so that 10,000 random-geometric agents x 20
-# ticks run (about 4.1 GiB: 3,920 MiB measured over their first 10 ticks); 12,000 (5.5 GiB) are refused
+# ticks run (about 4.1 GiB: 4,199 MiB measured); 12,000 (5.5 GiB) are refused
 SIM_MEMORY_BOUND = 5 * 2**30
 
 
