@@ -281,13 +281,7 @@ class Receiver:
         the deadline with the same messages fused, so a loop may stop as soon
         as every expected sender is accounted for: a lossy run is then as
         fast as a clean one, and a poisoned neighbour costs no timeout."""
-        heard = self.inbox.senders(tick)
-        lost, refused = self._lost.get(tick), self._refused.get(tick)
-        if lost:
-            heard |= lost
-        if refused:
-            heard |= refused.keys()
-        return heard
+        return self.inbox.senders(tick) | self.dropped(tick)
 
     def all_accounted(self, tick: int, senders) -> bool:
         """Whether every one of ``senders`` is ``accounted`` for at ``tick``
