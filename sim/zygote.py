@@ -44,6 +44,7 @@ import threading
 import time
 import warnings
 
+from diskf_mesh.cli import BLAS_ENV
 from diskf_mesh.mesh.security import credentials
 
 SPAWN_ENV = "DISKF_MESH_SPAWN"  # "exec": no zygote
@@ -52,8 +53,6 @@ FORKED = ("sim.world", "agents.agent", "sim.router", "sim.host")
 # less before the first fork)
 PRELOAD = ("sim.world", "agents.agent", "sim.router", "sim.host", "zenoh", "tqdm", "diskf_mesh.studies.experiment",
            "diskf_mesh.cli.main")
-# one BLAS thread: the zygote must fork as a single thread (and the agents' matrices are small)
-BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 TITLE_SPACE = 4096  # bytes of command line a child can show
 MAX_MESSAGE = 1 << 20
 START_TIMEOUT_S = 120.0  # for the zygote's imports (a loaded machine is slow)
