@@ -84,24 +84,29 @@ def test_a_command_loads_its_own_module_alone(tmp_path):
 
 
 THREADS = """
-import os
-from diskf_mesh.cli import main
+import os, sys
+import %s
 print(len(os.listdir('/proc/self/task')), os.environ['OPENBLAS_NUM_THREADS'])
 """
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/task")
-def test_the_command_line_runs_on_one_blas_thread_unless_told_otherwise(tmp_path):
-    """numpy loaded by the command line starts no BLAS thread beside the
-    main one (its matrices are small: a second thread costs CPU and does no
+@pytest.mark.parametrize("module", ["diskf_mesh.cli.main", "sim.world", "agents.agent"])
+def test_the_command_line_runs_on_one_blas_thread_unless_told_otherwise(tmp_path, module):
+    """numpy loaded by the command line, or by a process of a run started
+    as ``python -m`` (a container's), starts no BLAS thread beside the main
+    one (its matrices are small: a second thread costs CPU and does no
     work); a caller's own setting is kept."""
     import os
 
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
                                                             "MKL_NUM_THREADS")}
-    done = subprocess.run([sys.executable, "-c", THREADS], capture_output=True, text=True, cwd=tmp_path, env=env,
+    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+    probe = THREADS % module
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path, env=env,
                           timeout=120)
     assert done.stdout.split() == ["1", "1"], done.stderr
-    done = subprocess.run([sys.executable, "-c", THREADS], capture_output=True, text=True, cwd=tmp_path,
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path,
                           env={**env, "OPENBLAS_NUM_THREADS": "2"}, timeout=120)
     assert done.stdout.split()[1] == "2", done.stderr

@@ -18,7 +18,8 @@ installed here, the first module of the command line to load.
 
 Every command and every process of a run uses one BLAS thread
 (``BLAS_ENV``, set here before numpy loads, unless the environment says
-otherwise): the estimators' matrices are a few rows each, their sums over
+otherwise; ``sim`` and ``agents`` import this module first, for a process
+started as ``python -m sim.world`` or ``agents.agent``): the estimators' matrices are a few rows each, their sums over
 senders are numpy's own loops (``core.linalg.nbr_sum``), and a second
 BLAS thread does none of the work while its start and its spinning cost
 CPU (0.06 s of the 0.56 s of the paper's Table II as one command, on two
