@@ -18,20 +18,21 @@ installed here, the first module of the command line to load.
 
 Every command and every process of a run uses one BLAS thread
 (``BLAS_ENV``, set here before numpy loads, unless the environment says
-otherwise; ``sim`` and ``agents`` import this module first, for a process
-started as ``python -m sim.world`` or ``agents.agent``): the estimators' matrices are a few rows each, their sums over
-senders are numpy's own loops (``core.linalg.nbr_sum``), and a second
-BLAS thread does none of the work while its start and its spinning cost
-CPU (0.06 s of the 0.56 s of the paper's Table II as one command, on two
-AMD EPYC cores). The results are the same bits either way.
+otherwise; ``sim`` and ``agents`` import this module first, so a process
+started as ``python -m sim.world`` or ``agents.agent`` does too): the
+estimators' matrices are a few rows each and their sums over senders are
+numpy's own loops (``core.linalg.nbr_sum``), so a second BLAS thread does
+none of the work, while its start and its spinning cost CPU
+(docs/performance.md, Table II as one command). The results are the same
+bits either way.
 
 May import: every layer of diskf_mesh.
 """
 import os
 import sys
 
-# one BLAS thread: for the command line (where the caller sets none) and for the zygote, which must fork as a
-# single thread (``sim.zygote``)
+# one BLAS thread: for the command line and the processes of a run (where the caller sets none), and for the
+# zygote, which must fork as a single thread (``sim.zygote``)
 BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 APPS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "_apps")
 
