@@ -72,6 +72,14 @@ def run_auto(trace, options, noise_step=0.2):
     Pi = np.ones((1, 1)) if M == 1 else np.array(
         [[1.0 - options.switch if i == j else options.switch * mu_first[j] / (1.0 - mu_first[i]) for j in range(M)]
          for i in range(M)])
+    # a random walk also moves to each walk of a smaller scale with options.hand_down, each row renormalised
+    walks = [i for i, (a1, a2, _) in enumerate(models) if a1 == 1.0 and a2 == 0.0]
+    if M > 1 and options.hand_down > 0:
+        for i in walks:
+            for j in walks:
+                if models[j][2] < models[i][2]:
+                    Pi[i, j] += options.hand_down
+        Pi = Pi / Pi.sum(axis=1, keepdims=True)
     prior = 100.0 * max(q for _, _, q in models)
     iv, idd = np.arange(n), np.arange(n, n + m)
     Tx = np.eye(n + 2 * m)

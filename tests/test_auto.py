@@ -94,10 +94,13 @@ def test_auto_settings_from_a_scenario():
                      "A": [[1, 0], [0, 1]]},
            "agents": [{"H": [[1.0, 0.0]], "R": [[2.0]]}], "estimator": {"auto": {"switch": 0.02, "none": False}}}
     assert parse_scenario(raw).params.auto == AutoOptions(switch=0.02, none=False)
+    raw["estimator"]["auto"] = {"hand_down": 0}
+    assert parse_scenario(raw).params.auto == AutoOptions(hand_down=0.0)
     for bad, field in (({"switch": 0.0}, "estimator.auto.switch"), ({"switch": 1}, "estimator.auto.switch"),
                        ({"none": False, "walk": False, "zero_mean": False, "oscillating": False},
                         "estimator.auto"),
-                       ({"walk": 1}, "estimator.auto.walk")):
+                       ({"walk": 1}, "estimator.auto.walk"), ({"hand_down": 1.0}, "estimator.auto.hand_down"),
+                       ({"hand_down": -0.1}, "estimator.auto.hand_down")):
         raw["estimator"]["auto"] = bad
         with pytest.raises(InputError) as e:
             parse_scenario(raw)
@@ -316,3 +319,20 @@ def test_no_message_claims_an_input_known_exactly():
     scn, tr = case.simulate([0], 20)
     run = simulate_run(scn, tr, "diskf-auto", 0)
     assert run.status.status == "exact", run.status.reason
+
+
+def test_a_walk_that_learned_a_step_hands_its_level_to_the_smaller_walks():
+    """Scenario 1, isolated agents, the step, seeds 0..3 (200 ticks): with
+    the walks handing down (``AutoOptions.hand_down``) the state MAE is
+    under 0.8 of the bank's without it, and under diskf-r's (measured:
+    26.9, against 37.6 without and diskf-r's 32.4). Without it "walk lo"
+    learns the step's level alone, slowly, and the bank holds the larger
+    walks' noisier estimates and a zero-mean model for a hundred ticks."""
+    case = next(c for c in heldout.cases() if c.label == "S1 none, step")
+    scn, tr = case.simulate([0, 1, 2, 3], None)
+    mae = {hd: float(np.mean(metrics.errors(tr, engine.run(tr, "diskf-auto", replace(
+        scn.params, auto=AutoOptions(hand_down=hd))))[0])) for hd in (AutoOptions().hand_down, 0.0)}
+    walk_r = float(np.mean(metrics.errors(tr, engine.run(tr, "diskf-r", scn.params))[0]))
+    assert AutoOptions().hand_down > 0
+    assert mae[AutoOptions().hand_down] < 0.8 * mae[0.0], mae
+    assert mae[AutoOptions().hand_down] < walk_r, (mae, walk_r)

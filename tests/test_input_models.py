@@ -378,3 +378,24 @@ def test_mix_leaves_out_zero_weights_with_the_same_bits(bounded):
                 spread = spread * (np.trace(within) / np.trace(spread))
             assert np.array_equal(m, mean[b, j])
             assert np.array_equal(0.5 * ((within + spread) + (within + spread).T), cov[b, j])
+
+
+def test_a_random_walk_hands_down_to_the_walks_of_smaller_scale():
+    """``hand_down``: each walk (a1 = 1, a2 = 0) moves to each walk of a
+    smaller q with the added rate, never up, and no other model moves more
+    than the chain's switch; every row still sums to 1."""
+    names, a1, a2, q = im.default_bank(0.01, 1.0)
+    walks = {n: names.index(n) for n in ("walk lo", "walk mid", "walk hi")}
+    down = im.hand_down(a1, a2, q, 0.001)
+    lo, mid, hi = walks["walk lo"], walks["walk mid"], walks["walk hi"]
+    assert down[hi, mid] == down[hi, lo] == down[mid, lo] == 0.001
+    assert down.sum() == 3 * 0.001  # hi -> mid, hi -> lo, mid -> lo; nothing up, nothing else
+    mu0 = im.initial_probabilities(a2)
+    plain, handed = im.transition_matrix(len(names), 0.001, mu0), im.transition_matrix(len(names), 0.001, mu0, down)
+    np.testing.assert_allclose(handed.sum(axis=1), 1.0, rtol=0, atol=1e-15)
+    assert handed[hi, lo] > 5 * plain[hi, lo] and handed[mid, lo] > 5 * plain[mid, lo]
+    assert handed[lo, mid] <= plain[lo, mid] and handed[lo, hi] <= plain[lo, hi]
+    others = [i for i in range(len(names)) if i not in walks.values()]
+    np.testing.assert_allclose(handed[others], plain[others], rtol=1e-12, atol=0)
+    assert im.hand_down(a1, a2, q, 0.0) is None
+    assert im.hand_down(a1[:2], a2[:2], q[:2], 0.001) is None  # "none" and one walk: no smaller walk

@@ -411,18 +411,46 @@ def _sum_last(a):
     return out
 
 
-def transition_matrix(M: int, switch: float, prior=None) -> np.ndarray:
+def transition_matrix(M: int, switch: float, prior=None, down=None) -> np.ndarray:
     """The models' Markov chain: stay with probability 1 - ``switch``, move
     to another model j with switch prior_j / (1 - prior_i), the models'
     initial probabilities (``initial_probabilities``) renormalised over the
     others; a uniform prior (the default) moves to each with
-    switch / (M - 1)."""
+    switch / (M - 1). ``down`` (M, M): moves added to those (``hand_down``),
+    each row then renormalised."""
     if M == 1:
         return np.ones((1, 1))
     prior = np.full(M, 1.0 / M) if prior is None else np.asarray(prior, dtype=float)
     Pi = switch * prior[None, :] / (1.0 - prior[:, None])
     np.fill_diagonal(Pi, 1.0 - switch)
+    if down is not None:
+        Pi = Pi + down
+        Pi /= Pi.sum(axis=1, keepdims=True)
     return Pi
+
+
+def hand_down(a1, a2, q, rate: float):
+    """(M, M): ``rate`` from each random walk of the bank (a1 = 1, a2 = 0)
+    to each walk of a smaller scale q, 0 elsewhere; None where ``rate`` is 0
+    or no walk has a smaller one (``transition_matrix``'s ``down``).
+
+    Why: the mixing leaves out the weights under ``PRUNE`` of
+    ``diskf-auto``, and the chain's own ``switch`` gives a move between two
+    models about 10⁻⁴, so each walk otherwise learns a new level alone. A
+    walk of small scale learns it slowly (its input moves little from tick
+    to tick), and where measurements are few the bank holds the larger
+    scales (noisier estimates), or a zero-mean model, for a hundred ticks
+    after a step (docs/estimators.md, rare measurement). With ``rate``
+    added, a walk of larger scale that holds the probability reaches the
+    smaller ones' priors through the mixing, so they take up the level it
+    learned; a walk of small scale that holds it gives the larger ones no
+    more than the chain's switch."""
+    a1, a2, q = np.asarray(a1), np.asarray(a2), np.asarray(q)
+    walk = (a1 == 1.0) & (a2 == 0.0)
+    down = walk[:, None] & walk[None, :] & (q[None, :] < q[:, None])
+    if rate <= 0.0 or not down.any():
+        return None
+    return rate * down
 
 
 def joint(x, P, d, S, C):

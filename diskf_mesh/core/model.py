@@ -185,6 +185,10 @@ class AutoOptions:
                octaves (``input_models.oscillating``: vibration, weaving)
     switch:    the models' Markov chain: 1 - switch to stay (0.001: a change of
                input model expected about once in 1,000 ticks)
+    hand_down: the chain's added chance per tick that a random walk moves to
+               each walk of a smaller scale (``input_models.hand_down``): a
+               persistent input learned at a larger scale reaches the
+               smaller ones through the mixing (0 <= hand_down < 1)
     noise:     each agent learns the scale of its own measurement noise,
                above or below the stated R (``core.noise``), and weighs its
                measurement by it (off by default: with poor sensors and no
@@ -197,6 +201,7 @@ class AutoOptions:
     zero_mean: bool = True
     oscillating: bool = True
     switch: float = 0.001
+    hand_down: float = 0.001
     noise: bool = False
 
     def __post_init__(self):
@@ -204,3 +209,5 @@ class AutoOptions:
             raise ValueError("auto: at least one of none, walk, zero_mean, oscillating must be true")
         if isinstance(self.switch, bool) or not np.isfinite(self.switch) or not 0 < self.switch < 1:
             raise ValueError(f"auto.switch: must be a number between 0 and 1 (exclusive), got {self.switch!r}")
+        if isinstance(self.hand_down, bool) or not np.isfinite(self.hand_down) or not 0 <= self.hand_down < 1:
+            raise ValueError(f"auto.hand_down: must be a number from 0 to 1 (1 excluded), got {self.hand_down!r}")

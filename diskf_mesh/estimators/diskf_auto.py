@@ -144,7 +144,8 @@ class DISKFAuto(Estimator):
                                                               o.oscillating)
         self.F = im.companion(self.a1, self.a2, model.m)  # (M, 2m, 2m): (IM2) on the pair (d_{k-1}, d_{k-2})
         self.mu0 = im.initial_probabilities(self.a2)
-        self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0)
+        self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0,
+                                       im.hand_down(self.a1, self.a2, self.q, o.hand_down))
         self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
         self.whole_bank = tuple(self.bank) == im.BANK
         self.relaying = np.flatnonzero((self.a2 == 0.0) & (self.a1 != 0.0))  # persistent first-order models
