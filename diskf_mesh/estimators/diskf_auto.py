@@ -44,6 +44,10 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    one model's probability before any evidence, and a change of model
    moves to them by that share (``initial_probabilities``,
    ``transition_matrix``): which period an oscillation has is one question.
+   A random walk also moves to each walk of a smaller scale with
+   ``[estimator.auto] hand_down`` a tick (``input_models.hand_down``), so
+   that a level a walk of larger scale learned reaches the smaller walks
+   through the mixing (isolated agents with a step, docs/estimators.md).
 3. fuse, per model: the input model's prediction of the pair
    (``pair_predict``); the neighbourhood's CI prior (as ``diskf-r``)
    reached by the affine map that takes the agent's published prediction

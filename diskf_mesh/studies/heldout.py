@@ -677,7 +677,11 @@ HEADER = (
     "with the step; Scenario 2 at range 120 with the step). That the state's output mixture leaves out the "
     "models whose probability is under the mixing's prune, 10⁻³ (`input_models.output_weights`; the input's "
     "mixes every model), was chosen on seeds 0..9 of the twelve constant-acceleration cases and checked on "
-    "seeds 0..9 of the 148 cases before the grown families.")
+    "seeds 0..9 of the 148 cases before the grown families. The random walks' hand-down (`[estimator.auto] "
+    "hand_down`, `input_models.hand_down`: each walk moves to each walk of a smaller scale with 0.001 a tick) was "
+    "chosen on seeds 0..19: 0.003 both ways and 0.001 downwards on the 235 cases, and 0.001, 0.003 and 0.01 "
+    "downwards on three (Scenario 1 isolated with the step and with the constant 5, rare measurement all-to-all "
+    "with the step); the seeds no constant was chosen on are 20..39 (docs/estimators.md gives both).")
 
 
 def markdown(doc: dict, header: bool = True) -> str:
