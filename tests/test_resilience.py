@@ -4,6 +4,7 @@ untouched, and the runs where it is what wins."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -78,18 +79,24 @@ def test_a_clean_run_is_the_undefended_run_bit_for_bit(dynamic):
 
 
 @pytest.mark.parametrize("text, undefended, defended", [
-    ("agent=3,kind=shrink,size=20,from=50", 50.0, 1.3),    # measured 264x and 1.09x (seeds 0-3)
+    ("agent=3,kind=shrink,size=20,from=50", 50.0, 1.3),    # measured: diverges (tick 141, seeds 0-1) and 1.09x
     ("agent=3,kind=offset,size=5000,from=50", 50.0, 1.3),  # 134x and 1.06x
 ])
 def test_the_screen_is_what_keeps_honest_agents_right(dynamic, text, undefended, defended):
     """Scenario 2, one insider: the honest agents' error against the clean
-    run's, without the screen and with it."""
+    run's, without the screen and with it. Without it the error grows
+    beyond ``undefended`` times the clean run's, or the honest agents'
+    covariances diverge (an unbounded error: the engine's ``Diverged``)."""
     scn, trace = dynamic
     lies = scn.with_lies([parse_text(text)]).lies
     clean = _honest_mae(trace, batch.run(trace, "diskf-auto", scn.params), scn, 3)
-    off = batch.run(trace, "diskf-auto", dataclasses.replace(scn.params, defence=False), lies=lies)
+    try:
+        off = _honest_mae(trace, batch.run(trace, "diskf-auto", dataclasses.replace(scn.params, defence=False),
+                                           lies=lies), scn, 3)
+    except batch.Diverged:
+        off = math.inf
     on = batch.run(trace, "diskf-auto", _on(scn), lies=lies)
-    assert _honest_mae(trace, off, scn, 3) > undefended * clean
+    assert off > undefended * clean
     assert _honest_mae(trace, on, scn, 3) < defended * clean
 
 
