@@ -174,14 +174,13 @@ def positive_definite(M: np.ndarray) -> np.ndarray:
     if m == 2:
         return (a > 0) & (a * M[..., 1, 1] - M[..., 1, 0] * M[..., 1, 0] > 0)
     finite = np.isfinite(M).all(axis=(-2, -1))  # LAPACK lets a NaN through
-    try:
-        np.linalg.cholesky(M)
+    if _factors(M):  # every one at once; else which ones, one at a time
         return finite
-    except np.linalg.LinAlgError:  # which ones, one at a time
-        return finite & np.array([_factors(one) for one in M.reshape((-1, m, m))]).reshape(M.shape[:-2])
+    return finite & np.array([_factors(one) for one in M.reshape((-1, m, m))]).reshape(M.shape[:-2])
 
 
 def _factors(M: np.ndarray) -> bool:
+    """Whether ``np.linalg.cholesky`` factors M (every matrix of a stack)."""
     try:
         np.linalg.cholesky(M)
         return True
