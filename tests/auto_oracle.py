@@ -18,6 +18,7 @@ from robust_oracle import _replace, fast_ci, scales
 
 FLOOR = 1e-6
 PRUNE = 1e-3
+BLIND = 1e-3
 
 
 def bank(qp, qs, none=True, walk=True, zero_mean=True, oscillating=True):
@@ -66,6 +67,9 @@ def run_auto(trace, options, noise_step=0.2):
     G, Q = model.G, model.Q
     models = bank(*scales(model, sensors), options.none, options.walk, options.zero_mean, options.oscillating)
     M = len(models)
+    # one bank per input channel: filter j of bank c moves channel c by model j, every other channel by its
+    # bank's most probable model; a bank the measurements told nothing follows the informed banks
+    NB = m if getattr(options, "per_channel", True) and m > 1 else 1
     # before any evidence the oscillating models share one model's probability; a switch moves by those shares
     share = np.array([1.0 / sum(a2 != 0 for _, a2, _ in models) if a2 != 0 else 1.0 for _, a2, _ in models])
     mu_first = share / share.sum()
@@ -92,7 +96,8 @@ def run_auto(trace, options, noise_step=0.2):
         z0 = np.concatenate([model.x0.astype(float), np.zeros(2 * m)])
         Z0 = scipy.linalg.block_diag(model.P0, prior * np.eye(2 * m))
         agents = [dict(x=z0[:n].copy(), P=Z0[:n, :n].copy(), d=np.zeros(m), S=prior * np.eye(m), held=False,
-                       mu=mu_first.copy(), z=[z0.copy() for _ in range(M)], Z=[Z0.copy() for _ in range(M)],
+                       mu=np.tile(mu_first, (NB, 1)), z=[z0.copy() for _ in range(NB * M)],
+                       Z=[Z0.copy() for _ in range(NB * M)],
                        theta=0.0, last=(np.zeros(sensors.p[i]), np.eye(sensors.p[i]), False))
                   for i in range(N)]
         links = trace.links[min(b, trace.links.shape[0] - 1)]
@@ -102,7 +107,7 @@ def run_auto(trace, options, noise_step=0.2):
             # each agent's weight 1 / r of its own R, learned by its last measured tick
             scale = np.array([np.exp(a["theta"]) if options.noise else 1.0 for a in agents])
             sent = [(a["d"].copy(), a["S"].copy(), a["held"]) for a in agents]
-            sent_mu = [a["mu"].copy() for a in agents]
+            sent_mu = [a["mu"].mean(axis=0) for a in agents]  # the banks' mean
             new = []
             for i in range(N):
                 a = agents[i]
@@ -112,29 +117,34 @@ def run_auto(trace, options, noise_step=0.2):
                 meas = [j for j in nb if trace.has[b, k - 1, j]]
                 if meas:  # the neighbourhood measured: the agent's own model probabilities
                     mu0 = a["mu"]
-                else:  # normalised geometric mean of the senders' (own included)
+                else:  # normalised geometric mean of the senders' (own included), for every bank
                     logs = np.mean([np.log(np.maximum(sent_mu[s], FLOOR)) for s in nb], axis=0)
                     mu0 = np.exp(logs - logs.max())
-                    mu0 = mu0 / mu0.sum()
-                c = np.array([sum(Pi[s, j] * mu0[s] for s in range(M)) for j in range(M)])
-                zs, Zs, ll, relayed, priors = [], [], np.zeros(M), False, []
-                for j, (a1, a2, q) in enumerate(models):
-                    wts = [Pi[s, j] * mu0[s] / c[j] for s in range(M)]
+                    mu0 = np.tile(mu0 / mu0.sum(), (NB, 1))
+                top = [int(np.argmax(mu0[cb])) for cb in range(NB)]
+                c = np.array([[sum(Pi[s, j] * mu0[cb, s] for s in range(M)) for j in range(M)] for cb in range(NB)])
+                zs, Zs, ll, relayed, priors = [], [], np.zeros((NB, M)), False, []
+                for cb, (j, (a1, a2, q)) in ((cb, jm) for cb in range(NB) for jm in enumerate(models)):
+                    wts = [Pi[s, j] * mu0[cb, s] / c[cb, j] for s in range(M)]
                     kept = [w if w >= PRUNE else 0.0 for w in wts]  # small weights dropped, the column renormalised
                     total = sum(kept)
                     wts = [w / total for w in kept]
-                    zm = sum(w * a["z"][s] for w, s in zip(wts, range(M)))
-                    within = sum(w * a["Z"][s] for w, s in zip(wts, range(M)))
-                    spread = sum(w * np.outer(a["z"][s] - zm, a["z"][s] - zm) for w, s in zip(wts, range(M)))
+                    zm = sum(w * a["z"][cb * M + s] for w, s in zip(wts, range(M)))
+                    within = sum(w * a["Z"][cb * M + s] for w, s in zip(wts, range(M)))
+                    spread = sum(w * np.outer(a["z"][cb * M + s] - zm, a["z"][cb * M + s] - zm)
+                                 for w, s in zip(wts, range(M)))
                     tw, ts = np.trace(within), np.trace(spread)
                     Zm = within + (spread * (tw / ts) if ts > tw else spread)
-                    F = np.block([[a1 * np.eye(m), a2 * np.eye(m)], [np.eye(m), np.zeros((m, m))]])
+                    # each channel's model: j for this bank's channel, the most probable for the others
+                    per = [models[j] if NB == 1 or ch == cb else models[top[ch]] for ch in range(m)]
+                    F = np.block([[np.diag([p[0] for p in per]), np.diag([p[1] for p in per])],
+                                  [np.eye(m), np.zeros((m, m))]])
                     Tv = scipy.linalg.block_diag(A, F)
                     w = Tv @ zm
-                    W = Tv @ Zm @ Tv.T + scipy.linalg.block_diag(Q, q * np.eye(m), np.zeros((m, m)))
+                    W = Tv @ Zm @ Tv.T + scipy.linalg.block_diag(Q, np.diag([p[2] for p in per]), np.zeros((m, m)))
                     w, W = _replace(w, W, iv, xc + Mt @ (w[iv] - pred[i][0]), Mt @ W[np.ix_(iv, iv)] @ Mt.T)
                     others = [s for s in nb if s != i and sent[s][2]]
-                    if a2 == 0 and a1 > 0 and others:
+                    if NB == 1 and a2 == 0 and a1 > 0 and others:
                         dn, Sn = fast_ci([a1 * sent[s][0] for s in others],
                                          [a1 * a1 * sent[s][1] + q * np.eye(m) for s in others])
                         dr, Sr = fast_ci([w[idd], dn], [W[np.ix_(idd, idd)], Sn])
@@ -149,25 +159,29 @@ def run_auto(trace, options, noise_step=0.2):
                         y = np.concatenate([trace.y[b, k - 1, s, : sensors.p[s]] for s in meas])
                         Sg = H @ Pa @ H.T + R
                         r = y - H @ za
-                        ll[j] = -0.5 * (r @ np.linalg.solve(Sg, r) + np.linalg.slogdet(Sg)[1])
+                        ll[cb, j] = -0.5 * (r @ np.linalg.solve(Sg, r) + np.linalg.slogdet(Sg)[1])
                         L = Pa @ H.T @ np.linalg.inv(Sg)
                         IL = np.eye(n + 2 * m) - L @ H
                         za, Pa = za + L @ r, IL @ Pa @ IL.T + L @ R @ L.T
                     zs.append(za)
                     Zs.append(Pa)
-                mu = c * np.exp(ll - ll.max())
-                mu = np.maximum(mu / mu.sum(), FLOOR)
-                mu = mu / mu.sum()
+                mu = c * np.exp(ll - ll.max(axis=1, keepdims=True))
+                mu = np.maximum(mu / mu.sum(axis=1, keepdims=True), FLOOR)
+                mu = mu / mu.sum(axis=1, keepdims=True)
+                told = ll.max(axis=1) - ll.min(axis=1) >= BLIND
+                if NB > 1 and told.any() and not told.all():
+                    mu[~told] = mu[told].mean(axis=0)
                 kept = np.where(mu < PRUNE, 0.0, mu)  # the state's output: the models of probability PRUNE or more
-                kept = kept / kept.sum()
-                z = sum(kept[j] * zs[j] for j in range(M))
-                Z = sum(kept[j] * (Zs[j] + np.outer(zs[j] - z, zs[j] - z)) for j in range(M))
-                zd = sum(mu[j] * zs[j] for j in range(M))  # the input's: every model
-                Zd = sum(mu[j] * (Zs[j] + np.outer(zs[j] - zd, zs[j] - zd)) for j in range(M))
+                kept = (kept / kept.sum(axis=1, keepdims=True)).reshape(-1) / NB
+                every = mu.reshape(-1) / NB
+                z = sum(kept[f] * zs[f] for f in range(NB * M))
+                Z = sum(kept[f] * (Zs[f] + np.outer(zs[f] - z, zs[f] - z)) for f in range(NB * M))
+                zd = sum(every[f] * zs[f] for f in range(NB * M))  # the input's: every model
+                Zd = sum(every[f] * (Zs[f] + np.outer(zs[f] - zd, zs[f] - zd)) for f in range(NB * M))
                 held = a["held"] or bool(meas) or relayed
                 theta, last = a["theta"], a["last"]
                 if options.noise and trace.has[b, k - 1, i]:  # scored against the bank's predicted mean
-                    x_m = sum(c[j] * priors[j] for j in range(M))
+                    x_m = sum(cf * p for cf, p in zip(c.reshape(-1) / NB, priors))
                     theta, last = noise_scale(theta, last, x_m, pred[i][1], Hs[i], Rs[i],
                                               trace.y[b, k - 1, i, : sensors.p[i]], noise_step)
                 new.append(dict(x=z[:n], P=Z[:n, :n], d=zd[n:n + m], S=Zd[n:n + m, n:n + m], held=held, mu=mu, z=zs,

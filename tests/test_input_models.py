@@ -399,3 +399,35 @@ def test_a_random_walk_hands_down_to_the_walks_of_smaller_scale():
     np.testing.assert_allclose(handed[others], plain[others], rtol=1e-12, atol=0)
     assert im.hand_down(a1, a2, q, 0.0) is None
     assert im.hand_down(a1[:2], a2[:2], q[:2], 0.001) is None  # "none" and one walk: no smaller walk
+
+
+def test_a_bank_per_channel_varies_its_own_channel_and_holds_the_others_at_their_best():
+    """``channel_models``: filter j of bank c moves channel c by model j and
+    every other channel by that channel's most probable model; where every
+    channel's model is the same the filter is ``companion``'s and
+    ``pair_predict``'s one model for all channels, bit for bit."""
+    names, a1, a2, q = im.default_bank(0.01, 1.0)
+    M, m = len(names), 2
+    top = np.array([[names.index("walk lo"), names.index("oscillating 8")]])   # one agent's best per channel
+    F, noise = im.channel_models(a1, a2, q, top)
+    assert F.shape == noise.shape == (1, m * M, 2 * m, 2 * m)
+    for c in range(m):
+        for j in range(M):
+            f = F[0, c * M + j]
+            model = [top[0, k] if k != c else j for k in range(m)]
+            np.testing.assert_array_equal(np.diag(f[:m, :m]), a1[model])
+            np.testing.assert_array_equal(np.diag(f[:m, m:]), a2[model])
+            np.testing.assert_array_equal(np.diag(noise[0, c * M + j][:m, :m]), q[model])
+            np.testing.assert_array_equal(f[m:, :m], np.eye(m))
+    same = im.channel_models(a1, a2, q, np.array([[3, 3]]))
+    j = 3  # bank 0's filter of model 3, with channel 1 at model 3 too
+    np.testing.assert_array_equal(same[0][0, j], im.companion(a1, a2, m)[j])
+    rng = np.random.default_rng(7)
+    C, e = rng.normal(size=(4, 2 * m)), rng.normal(size=2 * m)
+    L = rng.normal(size=(2 * m, 2 * m))
+    S = L @ L.T + np.eye(2 * m)
+    A = np.eye(4) + 0.1 * rng.normal(size=(4, 4))
+    one = im.pair_predict(A, C, e, S, im.companion(a1, a2, m)[j], q[j])
+    per = im.pair_predict(A, C, e, S, same[0][0, j], 0.0, same[1][0, j])
+    for a, b in zip(one, per):
+        np.testing.assert_array_equal(a, b)

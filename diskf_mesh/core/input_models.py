@@ -539,7 +539,7 @@ def companion(a1, a2, m: int) -> np.ndarray:
     return F
 
 
-def pair_predict(A, C, e, S, F, q):
+def pair_predict(A, C, e, S, F, q, noise=None):
     """The joint prediction of (v_k, e_{k-1}), e = (d_{k-1}, d_{k-2}), under
     (IM2): with the fused (x_bar, e_bar) of tick k-1, joint error covariance
     [[P_bar, C], [C^T, S]], the errors of v = A x_bar and of F e_bar are
@@ -552,18 +552,70 @@ def pair_predict(A, C, e, S, F, q):
     (``input_predict`` on the pair; with a2 = 0 its first block is
     ``input_predict``'s). A: (n, n); C: (..., n, 2m); e: (..., 2m);
     S: (..., 2m, 2m); F: (..., 2m, 2m) (``companion``); q: broadcasting
-    against the batch. Returns (F e, A C F^T, F S F^T + q on the first block).
+    against the batch. Returns (F e, A C F^T, F S F^T + q on the first block);
+    with ``noise`` (..., 2m, 2m), F S F^T + noise instead (a model per
+    channel, ``channel_models``; q is then not read).
     """
     q = np.asarray(q, dtype=float)
     m = e.shape[-1] // 2
     n = A.shape[-1]
-    noise = _first_block(m)  # eta drives d_{k-1} only
+    noise, noise_e = _first_block(m), noise  # eta drives d_{k-1} only
     # A C and F S stacked, then one product with F^T for both
     AC, FS = matmul_left(A, C), np.matmul(F, S)
     batch = AC.shape[:-2] if AC.shape[:-2] == FS.shape[:-2] else np.broadcast_shapes(AC.shape[:-2], FS.shape[:-2])
     stacked = np.concatenate([_over(AC, batch, 2), _over(FS, batch, 2)], axis=-2)
     both = np.matmul(stacked, np.ascontiguousarray(F.swapaxes(-1, -2)))  # F^T contiguous: numpy's faster layout
+    if noise_e is not None:
+        return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + noise_e)
     return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + q[..., None, None] * noise)
+
+
+def channel_models(a1, a2, q, top):
+    """(F, noise): the transition of the input pair and its noise for the
+    filters of one bank per input channel (``diskf-auto``'s
+    ``per_channel``): filter j of bank c holds channel c under model j of
+    the bank (a1, a2, q: (M,)) and every other channel c' under model
+    top_c', its bank's most probable one. top: (..., m) model indices.
+    Returns F and noise, each (..., m M, 2m, 2m), filter j of bank c at
+    c M + j: (IM2) channel by channel, F = [[diag(a1), diag(a2)], [I, 0]]
+    and diag(q) on the first block (``companion`` and ``pair_predict``'s
+    one model for every channel are the case of equal models)."""
+    m, M = top.shape[-1], len(a1)
+    f = np.arange(m * M)
+    chan, model = f // M, f % M
+    which = np.repeat(top[..., None, :], m * M, axis=-2)                # (..., m M, m) each channel's model
+    which[..., f, chan] = model
+    a1c, a2c, qc = a1[which], a2[which], q[which]                        # (..., m M, m)
+    eye = np.eye(m)
+    F = np.zeros(which.shape[:-1] + (2 * m, 2 * m))
+    F[..., :m, :m] = a1c[..., :, None] * eye
+    F[..., :m, m:] = a2c[..., :, None] * eye
+    F[..., m:, :m] = eye
+    noise = np.zeros_like(F)
+    noise[..., :m, :m] = qc[..., :, None] * eye
+    return F, noise
+
+
+def follow_informed(mu, loglik, blind: float):
+    """Banks per input channel (``channel_models``) where this tick told
+    some of them which model fits and not others: each bank whose models'
+    log-likelihoods differ by less than ``blind`` (the measurements do not
+    reach its channel: an agent that measures one axis of a two-axis
+    target) takes the mean of the informed banks' probabilities, so a
+    channel nobody measures is taken to be of the kind the measured ones
+    are; left to its prior it would weigh the larger input models, whose
+    covariances on an unmeasured axis grow without bound. mu, loglik:
+    (..., B, M). Returns mu (the same array where no bank is blind or
+    every bank is)."""
+    spread = loglik.max(axis=-1) - loglik.min(axis=-1)                  # (..., B)
+    blind_bank = spread < blind
+    informed = ~blind_bank
+    some = blind_bank.any(axis=-1) & informed.any(axis=-1)              # (...,)
+    if not some.any():
+        return mu
+    count = np.maximum(_sum_last(informed.astype(float)), 1.0)                # rows of no informed bank: unused
+    shared = _sum_last(np.swapaxes(mu * informed[..., None], -1, -2)) / count[..., None]
+    return np.where((blind_bank & some[..., None])[..., None], shared[..., None, :], mu)
 
 
 @lru_cache(maxsize=None)

@@ -189,6 +189,10 @@ class AutoOptions:
                each walk of a smaller scale (``input_models.hand_down``): a
                persistent input learned at a larger scale reaches the
                smaller ones through the mixing (0 <= hand_down < 1)
+    per_channel: with m > 1 input channels, one bank per channel, so that
+               each channel has its own model probabilities (a step on one,
+               an oscillation on another); off: the channels share one
+               bank's models
     noise:     each agent learns the scale of its own measurement noise,
                above or below the stated R (``core.noise``), and weighs its
                measurement by it (off by default: with poor sensors and no
@@ -203,6 +207,7 @@ class AutoOptions:
     switch: float = 0.001
     hand_down: float = 0.001
     noise: bool = False
+    per_channel: bool = True
 
     def __post_init__(self):
         if not (self.none or self.walk or self.zero_mean or self.oscillating):

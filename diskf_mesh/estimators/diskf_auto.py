@@ -107,9 +107,9 @@ AUTO = Setting("auto", AutoOptions(), "the input models diskf-auto weighs and it
 
 @dataclass(frozen=True)
 class AutoState(State):
-    mu: np.ndarray | None = None      # (..., M) model probabilities
-    z: np.ndarray | None = None       # (..., M, n + m) each model's joint (x, d) posterior
-    Z: np.ndarray | None = None       # (..., M, n + m, n + m)
+    mu: np.ndarray | None = None      # (..., B, M) model probabilities, per bank (B: one per channel, or one)
+    z: np.ndarray | None = None       # (..., B M, n + 2m) each filter's joint (x, e) posterior, bank after bank
+    Z: np.ndarray | None = None       # (..., B M, n + 2m, n + 2m)
     d_hold: np.ndarray | None = None  # (..., m) the combined input (the message's d)
     S_hold: np.ndarray | None = None  # (..., m, m)
     held: np.ndarray | None = None    # (...,) an input estimate exists
@@ -147,12 +147,17 @@ class DISKFAuto(Estimator):
         self.bank, self.a1, self.a2, self.q = im.default_bank(q_process, q_sensor, o.none, o.walk, o.zero_mean,
                                                               o.oscillating)
         self.F = im.companion(self.a1, self.a2, model.m)  # (M, 2m, 2m): (IM2) on the pair (d_{k-1}, d_{k-2})
+        # one bank per input channel (``per_channel``, m > 1): filter j of bank c holds channel c under model j
+        # and every other channel under its bank's most probable model (``channel_models``)
+        self.banks = model.m if o.per_channel else 1
         self.mu0 = im.initial_probabilities(self.a2)
         self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0,
                                        im.hand_down(self.a1, self.a2, self.q, o.hand_down))
         self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
         self.whole_bank = tuple(self.bank) == im.BANK
         self.relaying = np.flatnonzero((self.a2 == 0.0) & (self.a1 != 0.0))  # persistent first-order models
+        if self.banks > 1:  # a neighbour's combined input mixes every channel's models: relayed with one bank only
+            self.relaying = self.relaying[:0]
         rho = self.a1[self.relaying][:, None, None]                                  # (J, 1, 1)
         self.relay_scales = rho, (rho * rho)[..., None], self.q[self.relaying][:, None, None, None] * identity(model.m)
         self.relay_pair = np.ones((1, 2))  # the fast CI of a model's own d_{k-1} with its neighbours' relayed one
@@ -164,11 +169,11 @@ class DISKFAuto(Estimator):
 
     def init(self, batch: tuple) -> AutoState:
         s = super().init(batch)
-        n, m, M = self.model.n, self.model.m, len(self.bank)
+        n, m, M, B = self.model.n, self.model.m, len(self.bank), self.banks
         S0 = np.broadcast_to(self.prior * np.eye(2 * m), batch + (2 * m, 2 * m)).copy()
         z, Z = im.joint(s.x, s.P, np.zeros(batch + (2 * m,)), S0, np.zeros(batch + (n, 2 * m)))
-        return AutoState(s.x, s.P, s.since, mu=np.broadcast_to(self.mu0, batch + (M,)).copy(),
-                         z=np.repeat(z[..., None, :], M, axis=-2), Z=np.repeat(Z[..., None, :, :], M, axis=-3),
+        return AutoState(s.x, s.P, s.since, mu=np.broadcast_to(self.mu0, batch + (B, M)).copy(),
+                         z=np.repeat(z[..., None, :], B * M, axis=-2), Z=np.repeat(Z[..., None, :, :], B * M, axis=-3),
                          d_hold=np.zeros(batch + (m,)), S_hold=S0[..., :m, :m].copy(),
                          held=np.zeros(batch, dtype=bool), theta=np.zeros(batch),
                          **(dict(zip(("e_last", "S_last", "seen"),
@@ -186,11 +191,14 @@ class DISKFAuto(Estimator):
         st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
                        Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=state.theta,
                        e_last=state.e_last, S_last=state.S_last, seen=state.seen, tick=k, **own)
-        if self.whole_bank:  # the message's w is mu itself (a new array every tick, never changed)
-            w = state.mu
+        # the message's w: the bank's probabilities (a new array every tick, never changed), the banks' mean
+        # with one per channel
+        mu = state.mu[..., 0, :] if self.banks == 1 else state.mu.mean(axis=-2)
+        if self.whole_bank:
+            w = mu
         else:
-            w = np.zeros(state.mu.shape[:-1] + (len(im.BANK),))
-            w[..., self.slots] = state.mu
+            w = np.zeros(mu.shape[:-1] + (len(im.BANK),))
+            w[..., self.slots] = mu
         return st, Message(loc.x_pred, loc.P_pred, loc.x_upd, loc.P_upd, state.d_hold, state.S_hold, state.held, w)
 
     def fuse(self, state: AutoState, own: Message, senders: Message, nb: Neighbourhood):
@@ -205,13 +213,19 @@ class DISKFAuto(Estimator):
         # the agent's own where it did
         informed = np.trace(U, axis1=-2, axis2=-1) > 0
         pooled = state.mu if informed.all() else np.where(
-            informed[..., None], state.mu, im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR))
-        c, w = im.model_weights(pooled, self.Pi, PRUNE)
-        z0, Z0 = im.mix(w, state.z, state.Z, bounded=True)
+            informed[..., None, None], state.mu,
+            im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR)[..., None, :])
+        c, w = im.model_weights(pooled, self.Pi, PRUNE)                               # per bank
+        z0, Z0 = (im.mix(w, *self._banked(state.z, state.Z), bounded=True))
+        z0, Z0 = self._flat(z0, Z0)
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
         # 3. per model: predict (the input pair e = (d_{k-1}, d_{k-2})), the CI prior, the relayed inputs,
         # the input into the state
-        e1, B, S1 = im.pair_predict(A, C0, e0, S0, self.F, self.q)
+        if self.banks == 1:
+            e1, B, S1 = im.pair_predict(A, C0, e0, S0, self.F, self.q)
+        else:
+            F, noise_e = im.channel_models(self.a1, self.a2, self.q, pooled.argmax(axis=-1))
+            e1, B, S1 = im.pair_predict(A, C0, e0, S0, F, 0.0, noise_e)
         v, Pv = eq.predict(x0, P0, A, self.model.Q)
         v_c, Pv_c, _ = im.affine_prior(own.x_pred, own.P_pred, x_c, P_c, v, Pv, B)
         e1, B, S1 = eq.replace_marginal(v, Pv, e1, B, S1, v_c, Pv_c)
@@ -219,22 +233,40 @@ class DISKFAuto(Estimator):
         x_s, P_s, C_s = eq.input_to_state(v, Pv, B, e1, S1, self.G_pair)
         # 4. the measurement: likelihoods and the joint update
         x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed)
-        mu = im.update_probabilities(c, loglik, FLOOR)
+        mu = im.update_probabilities(c, loglik.reshape(c.shape), FLOOR)
+        if self.banks > 1:
+            mu = im.follow_informed(mu, loglik.reshape(c.shape), BLIND)
         theta, last = state.theta, (state.e_last, state.S_last, state.seen)
         if self.learn:  # 5. the own sensor's noise scale, scored against the bank's predicted mean
-            theta, last = noise.track(theta, last, im.mixture_mean(c, x_s), own.P_pred, state.y, state.H, state.R,
+            theta, last = noise.track(theta, last, im.mixture_mean(self._over_banks(c), x_s), own.P_pred, state.y,
+                                      state.H, state.R,
                                       state.p, state.has, state.median, NOISE_STEP)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
         # the output (each entry of a mixture its own sums: the same bits as the whole joint's): the state's
         # mixture over the models of probability PRUNE or more; the input's over every model, so that it never
         # claims the zero-input model's certainty (S = 0) when that model alone holds the probability
-        xc, Pc = im.mix(im.output_weights(mu, PRUNE)[..., :, None], z[..., :n], Z[..., :n, :n])
-        dc, Sc = im.mix(mu[..., :, None], z[..., n:n + m], Z[..., n:n + m, n:n + m])
+        xc, Pc = im.mix(self._over_banks(im.output_weights(mu, PRUNE))[..., :, None], z[..., :n], Z[..., :n, :n])
+        dc, Sc = im.mix(self._over_banks(mu)[..., :, None], z[..., n:n + m], Z[..., n:n + m, n:n + m])
         x, P, d, S = xc[..., 0, :], Pc[..., 0, :, :], dc[..., 0, :], Sc[..., 0, :, :]
         held = state.held | informed | relayed
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=theta,
                        e_last=last[0], S_last=last[1], seen=last[2], tick=state.tick)
         return st, Output(x, P, d, held)
+
+    def _banked(self, z, Z):
+        """The filters' joints (..., B M, ...) as (..., B, M, ...)."""
+        M = len(self.bank)
+        return z.reshape(z.shape[:-2] + (self.banks, M) + z.shape[-1:]), \
+            Z.reshape(Z.shape[:-3] + (self.banks, M) + Z.shape[-2:])
+
+    def _flat(self, z, Z):
+        """The inverse of ``_banked``."""
+        return z.reshape(z.shape[:-3] + (-1,) + z.shape[-1:]), Z.reshape(Z.shape[:-4] + (-1,) + Z.shape[-2:])
+
+    def _over_banks(self, w):
+        """Per-bank weights (..., B, M) as one mixture over every filter
+        (..., B M): each bank's weights the same share 1 / B."""
+        return w[..., 0, :] if self.banks == 1 else w.reshape(w.shape[:-2] + (-1,)) / self.banks
 
     def _relay(self, senders, nb, v, Pv, e, S, B):
         """The neighbours' relayed inputs (their combined d, S) under each
@@ -304,6 +336,7 @@ def measure(x_s, P_s, e1, C_s, S1, U, u, informed):
 
 
 NOISE_STEP = 0.2  # step of (NL1) (``core.noise``): the most a measured tick moves log r
+BLIND = 1e-3  # a bank whose models' log-likelihoods this tick differ by less learned nothing (``follow_informed``)
 FLOOR = 1e-6  # the smallest model probability (``input_models.update_probabilities``)
 PRUNE = 1e-3  # mixing and output weights below it are dropped (``input_models.model_weights``, ``output_weights``)
 
