@@ -681,7 +681,12 @@ HEADER = (
     "hand_down`, `input_models.hand_down`: each walk moves to each walk of a smaller scale with 0.001 a tick) was "
     "chosen on seeds 0..19: 0.003 both ways and 0.001 downwards on the 235 cases, and 0.001, 0.003 and 0.01 "
     "downwards on three (Scenario 1 isolated with the step and with the constant 5, rare measurement all-to-all "
-    "with the step); the seeds no constant was chosen on are 20..39 (docs/estimators.md gives both).")
+    "with the step); the seeds no constant was chosen on are 20..39 (docs/estimators.md gives both). A bank "
+    "per input channel (`[estimator.auto] per_channel`, on; the models of the other channels held at their "
+    "banks' most probable, a bank the tick told less than 10⁻³ of log-likelihood following the informed "
+    "banks) was chosen on seeds 0..19 of the two-channel, constant-velocity and constant-acceleration cases "
+    "(against one shared bank, and against the banks' probabilities pooled half with each other's); the seeds "
+    "no choice was made on are 20..39.")
 
 
 def markdown(doc: dict, header: bool = True) -> str:
