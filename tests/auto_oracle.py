@@ -150,6 +150,13 @@ def run_auto(trace, options, noise_step=0.2):
                         dr, Sr = fast_ci([w[idd], dn], [W[np.ix_(idd, idd)], Sn])
                         w, W = _replace(w, W, idd, dr, Sr)
                         relayed = True
+                    elif NB > 1 and a2 == 0 and a1 > 0 and others:  # this bank's channel alone
+                        ic = np.array([n + cb])
+                        dn, Sn = fast_ci([a1 * sent[s][0][cb:cb + 1] for s in others],
+                                         [a1 * a1 * sent[s][1][cb:cb + 1, cb:cb + 1] + q * np.eye(1) for s in others])
+                        dr, Sr = fast_ci([w[ic], dn], [W[np.ix_(ic, ic)], Sn])
+                        w, W = _replace(w, W, ic, dr, Sr)
+                        relayed = True
                     za, Pa = Tx @ w, Tx @ W @ Tx.T
                     priors.append(za[:n])
                     if meas:

@@ -81,6 +81,17 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    take noise for an input do not hide it). r weighs the next tick's
    measurement.
 
+With m > 1 input channels (``[estimator.auto] per_channel``, on) each
+channel has a bank of its own: m banks of the same models, filter j of
+bank c moving channel c by model j and every other channel by its own
+bank's most probable model (``input_models.channel_models``); steps 2 and
+4 run per bank (its mixing, its probabilities from its own filters'
+likelihoods), a bank this tick told nothing follows the informed ones
+(``input_models.follow_informed``), the output mixes every filter with
+each bank's weights a share 1 / m, the message carries the banks' mean
+probabilities, and a bank's relaying models take the neighbours' relayed
+inputs on their own channel alone.
+
 With one first-order model in the bank it is ``diskf-r`` with that input
 model. Evidence accumulates over ticks in the model probabilities (the
 chain's ``switch`` probability keeps them from locking) and spreads through
@@ -156,10 +167,10 @@ class DISKFAuto(Estimator):
         self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
         self.whole_bank = tuple(self.bank) == im.BANK
         self.relaying = np.flatnonzero((self.a2 == 0.0) & (self.a1 != 0.0))  # persistent first-order models
-        if self.banks > 1:  # a neighbour's combined input mixes every channel's models: relayed with one bank only
-            self.relaying = self.relaying[:0]
         rho = self.a1[self.relaying][:, None, None]                                  # (J, 1, 1)
-        self.relay_scales = rho, (rho * rho)[..., None], self.q[self.relaying][:, None, None, None] * identity(model.m)
+        # the relayed input: every channel with one bank, the bank's own channel with one per channel
+        width = model.m if self.banks == 1 else 1
+        self.relay_scales = rho, (rho * rho)[..., None], self.q[self.relaying][:, None, None, None] * identity(width)
         self.relay_pair = np.ones((1, 2))  # the fast CI of a model's own d_{k-1} with its neighbours' relayed one
         self.prior = 100.0 * float(self.q.max()) if self.q.max() > 0 else 1.0
         # the input into the state reads the pair's first half: x = v + G d_{k-1}
@@ -269,6 +280,18 @@ class DISKFAuto(Estimator):
         return w[..., 0, :] if self.banks == 1 else w.reshape(w.shape[:-2] + (-1,)) / self.banks
 
     def _relay(self, senders, nb, v, Pv, e, S, B):
+        """The neighbours' relayed inputs (``_relay_bank``) for the one
+        bank, or for each bank per channel its own channel's. Returns (v,
+        Pv, e, S, B) and whether any was relayed."""
+        if self.banks == 1:
+            return self._relay_bank(senders, nb, v, Pv, e, S, B, self.relaying, None)
+        relayed = None
+        for c in range(self.banks):
+            v, Pv, e, S, B, got = self._relay_bank(senders, nb, v, Pv, e, S, B, c * len(self.bank) + self.relaying, c)
+            relayed = got if relayed is None else relayed | got
+        return v, Pv, e, S, B, relayed
+
+    def _relay_bank(self, senders, nb, v, Pv, e, S, B, js, channel):
         """The neighbours' relayed inputs (their combined d, S) under each
         persistent first-order model (a2 = 0, rho = a1 > 0): the fast CI of
         the other neighbours' (rho d_j, rho^2 S_j + q I), then the fast CI of
@@ -280,23 +303,37 @@ class DISKFAuto(Estimator):
         as ``input_models.split`` gives it, (..., M, ...); the models are one
         more batch axis of the same functions. Returns them with the
         relaying models' replaced (in place: the arrays are this tick's
-        own), and whether any was."""
+        own), and whether any was. ``js``: the relaying models' filters;
+        ``channel``: with a bank per channel, the one channel the relay
+        replaces (its d_{k-1} moved to the pair's front for
+        ``replace_input``, then back), the senders' combined input read on
+        it; None: every channel."""
         m = self.model.m
-        js = self.relaying
+        d_s, S_s = senders.d, senders.S
+        if channel is not None:
+            m = 1
+            d_s, S_s = d_s[..., channel:channel + 1], S_s[..., channel:channel + 1, channel:channel + 1]
+            order = np.r_[channel, np.delete(np.arange(e.shape[-1]), channel)]   # the channel's d_{k-1} first
+            back = np.argsort(order)
         others = nb.adj * ~nb.self_mask
         if js.size == 0 or not (others * senders.d_valid[..., None, :]).any():  # no other sender relays an input
             return v, Pv, e, S, B, np.zeros(v.shape[:-2], dtype=bool)
         rho, rho2, qI = self.relay_scales
-        d_n, S_n, has_n = eq.input_fusion(others[..., None, :, :], rho * senders.d[..., None, :, :],
-                                          rho2 * senders.S[..., None, :, :, :] + qI,
+        d_n, S_n, has_n = eq.input_fusion(others[..., None, :, :], rho * d_s[..., None, :, :],
+                                          rho2 * S_s[..., None, :, :, :] + qI,
                                           senders.d_valid[..., None, :])           # (..., J, R, ...)
         d_n, S_n, has_n = d_n.swapaxes(-3, -2), S_n.swapaxes(-4, -3), has_n.swapaxes(-2, -1)
         parts = tuple(np.take(a, js, axis=axis) for a, axis in ((v, -2), (Pv, -3), (e, -2), (S, -3), (B, -3)))
+        if channel is not None:
+            parts = parts[:2] + (parts[2][..., order], parts[3][..., order, :][..., order], parts[4][..., order])
         dj, Sj = parts[2][..., :m], parts[3][..., :m, :m]                           # (..., R, J, ...)
         pair = eq.input_fusion_scalar if m == 1 else eq.input_fusion  # the same bits, faster on two senders
         d_r, S_r, _ = pair(self.relay_pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
                            np.stack([np.ones_like(has_n), has_n], axis=-1))
         new = im.replace_input(*parts, d_r[..., 0, :], S_r[..., 0, :, :])
+        if channel is not None:
+            new = new[:2] + (new[2][..., back], new[3][..., back, :][..., back], new[4][..., back])
+            parts = parts[:2] + (parts[2][..., back], parts[3][..., back, :][..., back], parts[4][..., back])
         some = not has_n.all()
         for whole, old, part in zip((v, Pv, e, S, B), parts, new):
             core = (slice(None),) * (part.ndim - has_n.ndim)

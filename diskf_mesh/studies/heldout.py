@@ -684,8 +684,9 @@ HEADER = (
     "with the step); the seeds no constant was chosen on are 20..39 (docs/estimators.md gives both). A bank "
     "per input channel (`[estimator.auto] per_channel`, on; the models of the other channels held at their "
     "banks' most probable, a bank the tick told less than 10⁻³ of log-likelihood following the informed "
-    "banks) was chosen on seeds 0..19 of the two-channel, constant-velocity and constant-acceleration cases "
-    "(against one shared bank, and against the banks' probabilities pooled half with each other's); the seeds "
+    "banks, the relayed inputs on each bank's own channel) was chosen on seeds 0..19 of the two-channel, "
+    "constant-velocity and constant-acceleration cases (against one shared bank, the relay left out, and the "
+    "banks' probabilities pooled half with each other's); the seeds "
     "no choice was made on are 20..39.")
 
 
