@@ -361,9 +361,10 @@ def test_each_input_channel_has_its_own_models():
 
 def test_banks_per_channel_run_exact_on_the_simulated_network():
     """Two input channels in a ring, 30 ticks: the agents' banks per
-    channel, each agent sending the banks' mean probabilities, give on the
+    channel, each agent sending the banks' mean probabilities (a vector
+    that sums to 1, as every receiver's guard checks), give on the
     simulated network what the engine computes, bit for bit."""
-    case = next(c for c in heldout.selected(None) if c.label == "m=2 ring, step | white")
+    case = next(c for c in heldout.selected(None) if c.label == "m=2 ring, step | sine fast")
     scn, tr = case.simulate([0], 30)
     run = simulate_run(scn, tr, "diskf-auto", 0)
     assert run.status.status == "exact", run.status.reason
@@ -404,3 +405,17 @@ def test_a_bank_nobody_informs_follows_the_informed_ones(monkeypatch):
     assert abs(mae() / shared - 1) < 0.01, (mae(), shared)
     monkeypatch.setattr(im, "follow_informed", lambda mu, loglik, blind: mu)
     assert mae() > 5 * shared
+
+
+def test_banks_per_channel_agents_alone_equal_engine():
+    """Two input channels in a ring, every agent a batch of one (as in an
+    agent process): the engine's bits, so no step of the banks per channel
+    reads across the agents of a batch."""
+    case = next(c for c in heldout.selected(None) if c.label == "m=2 ring, step | sine fast")
+    scn, tr = case.simulate([0], 30)
+    ref = engine.run(tr, "diskf-auto", scn.params)
+    for k, _, outs in lockstep(scn, "diskf-auto", tr):
+        for j, a in enumerate(scn.agents):
+            assert np.array_equal(outs[a.id].x[0, 0], ref.x[0, k - 1, j])
+            assert np.array_equal(outs[a.id].P[0, 0], ref.P[0, k - 1, j])
+            assert np.array_equal(outs[a.id].d[0, 0], ref.d[0, k - 1, j])
