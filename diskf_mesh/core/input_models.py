@@ -526,15 +526,18 @@ def oscillating(period, radius=RADIUS):
     return 2.0 * radius * np.cos(2.0 * np.pi / period), np.full(period.shape, -radius * radius)
 
 
-def companion(a1, a2, m: int) -> np.ndarray:
+def companion(a1, a2, m: int, per_channel: bool = False) -> np.ndarray:
     """The transition of (IM2) on the input pair e_{k-1} = (d_{k-1}, d_{k-2}):
-    F = [[a1 I, a2 I], [I, 0]] (m x m blocks). a1, a2: (...,). Returns
-    (..., 2m, 2m)."""
+    F = [[a1 I, a2 I], [I, 0]] (m x m blocks). a1, a2: (...,), one model
+    for every channel; with ``per_channel`` (..., m), channel i's own,
+    F = [[diag(a1), diag(a2)], [I, 0]]. Returns (..., 2m, 2m)."""
     a1, a2 = np.asarray(a1, dtype=float), np.asarray(a2, dtype=float)
+    if not per_channel:
+        a1, a2 = (np.broadcast_to(a[..., None], a.shape + (m,)) for a in (a1, a2))
     eye = np.eye(m)
-    F = np.zeros(a1.shape + (2 * m, 2 * m))
-    F[..., :m, :m] = a1[..., None, None] * eye
-    F[..., :m, m:] = a2[..., None, None] * eye
+    F = np.zeros(a1.shape[:-1] + (2 * m, 2 * m))
+    F[..., :m, :m] = a1[..., :, None] * eye
+    F[..., :m, m:] = a2[..., :, None] * eye
     F[..., m:, :m] = eye
     return F
 
@@ -559,15 +562,13 @@ def pair_predict(A, C, e, S, F, q, noise=None):
     q = np.asarray(q, dtype=float)
     m = e.shape[-1] // 2
     n = A.shape[-1]
-    noise, noise_e = _first_block(m), noise  # eta drives d_{k-1} only
+    first = _first_block(m)  # eta drives d_{k-1} only
     # A C and F S stacked, then one product with F^T for both
     AC, FS = matmul_left(A, C), np.matmul(F, S)
     batch = AC.shape[:-2] if AC.shape[:-2] == FS.shape[:-2] else np.broadcast_shapes(AC.shape[:-2], FS.shape[:-2])
     stacked = np.concatenate([_over(AC, batch, 2), _over(FS, batch, 2)], axis=-2)
     both = np.matmul(stacked, np.ascontiguousarray(F.swapaxes(-1, -2)))  # F^T contiguous: numpy's faster layout
-    if noise_e is not None:
-        return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + noise_e)
-    return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + q[..., None, None] * noise)
+    return mv(F, e), both[..., :n, :], sym(both[..., n:, :] + (q[..., None, None] * first if noise is None else noise))
 
 
 def channel_models(a1, a2, q, top):
@@ -585,14 +586,9 @@ def channel_models(a1, a2, q, top):
     chan, model = f // M, f % M
     which = np.repeat(top[..., None, :], m * M, axis=-2)                # (..., m M, m) each channel's model
     which[..., f, chan] = model
-    a1c, a2c, qc = a1[which], a2[which], q[which]                        # (..., m M, m)
-    eye = np.eye(m)
-    F = np.zeros(which.shape[:-1] + (2 * m, 2 * m))
-    F[..., :m, :m] = a1c[..., :, None] * eye
-    F[..., :m, m:] = a2c[..., :, None] * eye
-    F[..., m:, :m] = eye
+    F = companion(a1[which], a2[which], m, per_channel=True)
     noise = np.zeros_like(F)
-    noise[..., :m, :m] = qc[..., :, None] * eye
+    noise[..., :m, :m] = q[which][..., :, None] * np.eye(m)
     return F, noise
 
 
@@ -614,7 +610,7 @@ def follow_informed(mu, loglik, blind: float):
     if not some.any():
         return mu
     count = np.maximum(_sum_last(informed.astype(float)), 1.0)                # rows of no informed bank: unused
-    shared = _sum_last(np.swapaxes(mu * informed[..., None], -1, -2)) / count[..., None]
+    shared = _ordered_sum(mu * informed[..., None], -2) / count[..., None]
     return np.where((blind_bank & some[..., None])[..., None], shared[..., None, :], mu)
 
 

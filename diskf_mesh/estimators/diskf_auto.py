@@ -227,8 +227,7 @@ class DISKFAuto(Estimator):
             informed[..., None, None], state.mu,
             im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR)[..., None, :])
         c, w = im.model_weights(pooled, self.Pi, PRUNE)                               # per bank
-        z0, Z0 = (im.mix(w, *self._banked(state.z, state.Z), bounded=True))
-        z0, Z0 = self._flat(z0, Z0)
+        z0, Z0 = self._flat(*im.mix(w, *self._banked(state.z, state.Z), bounded=True))
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
         # 3. per model: predict (the input pair e = (d_{k-1}, d_{k-2})), the CI prior, the relayed inputs,
         # the input into the state
@@ -250,8 +249,7 @@ class DISKFAuto(Estimator):
         theta, last = state.theta, (state.e_last, state.S_last, state.seen)
         if self.learn:  # 5. the own sensor's noise scale, scored against the bank's predicted mean
             theta, last = noise.track(theta, last, im.mixture_mean(self._over_banks(c), x_s), own.P_pred, state.y,
-                                      state.H, state.R,
-                                      state.p, state.has, state.median, NOISE_STEP)
+                                      state.H, state.R, state.p, state.has, state.median, NOISE_STEP)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
         # the output (each entry of a mixture its own sums: the same bits as the whole joint's): the state's
         # mixture over the models of probability PRUNE or more; the input's over every model, so that it never
@@ -324,16 +322,14 @@ class DISKFAuto(Estimator):
                                           senders.d_valid[..., None, :])           # (..., J, R, ...)
         d_n, S_n, has_n = d_n.swapaxes(-3, -2), S_n.swapaxes(-4, -3), has_n.swapaxes(-2, -1)
         parts = tuple(np.take(a, js, axis=axis) for a, axis in ((v, -2), (Pv, -3), (e, -2), (S, -3), (B, -3)))
-        if channel is not None:
-            parts = parts[:2] + (parts[2][..., order], parts[3][..., order, :][..., order], parts[4][..., order])
-        dj, Sj = parts[2][..., :m], parts[3][..., :m, :m]                           # (..., R, J, ...)
+        moved = parts if channel is None else _reorder(parts, order)
+        dj, Sj = moved[2][..., :m], moved[3][..., :m, :m]                           # (..., R, J, ...)
         pair = eq.input_fusion_scalar if m == 1 else eq.input_fusion  # the same bits, faster on two senders
         d_r, S_r, _ = pair(self.relay_pair, np.stack([dj, d_n], axis=-2), np.stack([Sj, S_n], axis=-3),
                            np.stack([np.ones_like(has_n), has_n], axis=-1))
-        new = im.replace_input(*parts, d_r[..., 0, :], S_r[..., 0, :, :])
+        new = im.replace_input(*moved, d_r[..., 0, :], S_r[..., 0, :, :])
         if channel is not None:
-            new = new[:2] + (new[2][..., back], new[3][..., back, :][..., back], new[4][..., back])
-            parts = parts[:2] + (parts[2][..., back], parts[3][..., back, :][..., back], parts[4][..., back])
+            new = _reorder(new, back)
         some = not has_n.all()
         for whole, old, part in zip((v, Pv, e, S, B), parts, new):
             core = (slice(None),) * (part.ndim - has_n.ndim)
@@ -341,6 +337,13 @@ class DISKFAuto(Estimator):
                 part = np.where(has_n[(...,) + (None,) * len(core)], part, old)
             whole[(..., js) + core] = part
         return v, Pv, e, S, B, has_n.any(axis=-1)
+
+
+def _reorder(parts, order):
+    """(v, Pv, e, S, B) with the input pair's entries (e's, S's rows and
+    columns, B's columns) in ``order``."""
+    v, Pv, e, S, B = parts
+    return v, Pv, e[..., order], S[..., order, :][..., order], B[..., order]
 
 
 def measure(x_s, P_s, e1, C_s, S1, U, u, informed):
