@@ -12,6 +12,10 @@ check      the engine on one seed of Scenario 2 (9 agents, 200 ticks), tick by t
            each tick to check the agents' reports (``engine.verify.Online``)
 agent      one agent as an agent process runs it (``mesh.protocol.estimator.lockstep``:
            every agent of Scenario 2 a batch of one, local + fuse), 100 ticks
+2 channels the engine on two input channels of different kinds (the held-out case
+           "m=2 all, step | sine fast": G = I, all-to-all, 20 seeds x 200 ticks x 4
+           agents), where ``diskf-auto`` runs a bank per channel; a last line gives
+           it with one bank for both channels (``[estimator.auto] per_channel = false``)
 
     .venv/bin/python benchmarks/auto_cost.py [--repeat 3]
 
@@ -24,9 +28,13 @@ from __future__ import annotations
 import argparse
 import time
 
+from dataclasses import replace
+
+from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.data.scenario import load_scenario, simulate
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.mesh.protocol.estimator import lockstep
+from diskf_mesh.studies import heldout
 
 NAMES = ("diskf", "diskf-r", "diskf-auto")
 
@@ -48,22 +56,29 @@ def main(argv=None) -> int:
     tr3 = simulate(s3, [0])
     s4 = load_scenario("dynamic")
     tr4 = simulate(s4, [0])
+    s5, tr5 = next(c for c in heldout.selected(None) if c.label == "m=2 all, step | sine fast").simulate(range(20), None)
+    one_bank = replace(s5.params, auto=AutoOptions(per_channel=False))
     runs = {
         "engine S1": (lambda name: engine.run(tr1, name, s1.params), tr1.has.size),
         "engine S2": (lambda name: engine.run(tr2, name, s2.params), tr2.has.size),
         "check": (lambda name: engine.run(tr4, name, s4.params), tr4.has.size),
         "agent": (lambda name: sum(1 for _ in lockstep(s3, name, tr3)), tr3.has.size),
+        "2 channels": (lambda name: engine.run(tr5, name, s5.params), tr5.has.size),
     }
     best = {}
     for _ in range(a.repeat):
         for what, (run, steps) in runs.items():
             for name in NAMES:
                 best[what, name] = min(best.get((what, name), float("inf")), cpu(lambda: run(name)) / steps)
+        shared = cpu(lambda: engine.run(tr5, "diskf-auto", one_bank)) / tr5.has.size
+        best["one bank"] = min(best.get("one bank", float("inf")), shared)
     head = "".join(f" {what + ' us':>14} {'x diskf':>8}" for what in runs)
     print(f"{'estimator':<12}{head}")
     for name in NAMES:
         cells = "".join(f" {1e6 * best[w, name]:>14.2f} {best[w, name] / best[w, 'diskf']:>8.1f}" for w in runs)
         print(f"{name:<12}{cells}")
+    print(f"2 channels, diskf-auto with one bank: {1e6 * best['one bank']:.2f} us, "
+          f"{best['one bank'] / best['2 channels', 'diskf']:.1f} x diskf")
     return 0
 
 
