@@ -80,11 +80,15 @@ def test_auto_matches_oracle_isolated_shipped():
     assert_matches_oracle(scn, [0], 1e-7)
 
 
-@pytest.mark.parametrize("neighbours,noise", [("dense", False), ("gather", False), ("dense", True), ("gather", True)])
-def test_auto_agents_alone_equal_engine(neighbours, noise):
-    """Every agent a batch of one (as in an agent process): the engine's bits."""
+@pytest.mark.parametrize("neighbours,auto", [("dense", {}), ("gather", {}), ("dense", {"noise": True}),
+                                             ("gather", {"noise": True}), ("dense", {"noise_level": 10.0})],
+                         ids=["dense", "gather", "dense, noise", "gather, noise", "dense, noise_level"])
+def test_auto_agents_alone_equal_engine(neighbours, auto):
+    """Every agent a batch of one (as in an agent process): the engine's
+    bits; with ``noise_level`` too (the own measurement at each level is
+    read from each agent's own message, not across the batch)."""
     scn = load_scenario("dynamic").with_overrides(steps=40)
-    scn = replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, noise=noise)))
+    scn = replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, **auto)))
     tr = simulate(scn, [0])
     ref = engine.run(tr, "diskf-auto", scn.params, neighbours=neighbours)
     for k, _, outs in lockstep(scn, "diskf-auto", tr):
@@ -417,3 +421,57 @@ def test_banks_per_channel_agents_alone_equal_engine():
             assert np.array_equal(outs[a.id].x[0, 0], ref.x[0, k - 1, j])
             assert np.array_equal(outs[a.id].P[0, 0], ref.P[0, k - 1, j])
             assert np.array_equal(outs[a.id].d[0, 0], ref.d[0, k - 1, j])
+
+
+def _at_level(scn, level: float):
+    """``scn`` with ``[estimator.auto] noise_level = level``."""
+    return replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, noise_level=level)))
+
+
+def test_a_noise_level_in_the_bank_tells_a_noisy_sensor_from_an_input():
+    """Isolated agents whose sensors are 10 times noisier than their R
+    says, no input, seeds 0..3: with three of the bank's models also under
+    10 R (``noise_level``) the state MAE is about half of the bank's
+    without them, which takes the noise for a zero-mean input; the agents
+    weigh their measurements by 1/10 by the end."""
+    case = next(c for c in heldout.selected(None) if c.label == "true R×10 S1 none, zero")
+    scn, tr = case.simulate([0, 1, 2, 3], None)
+    err = {lv: np.mean(metrics.errors(tr, engine.run(tr, "diskf-auto", _at_level(scn, lv).params))[0])
+           for lv in (0.0, 10.0)}
+    assert err[10.0] < 0.6 * err[0.0], err
+
+
+def test_a_noise_level_runs_exact_on_the_simulated_network():
+    """A ring whose sensors are 10 times noisier than stated, 30 ticks,
+    with ``noise_level``: the messages carry the probabilities of the
+    models at the stated noise alone (a vector that sums to 1, as every
+    receiver's guard checks), and the simulated network gives the engine's
+    bits."""
+    case = next(c for c in heldout.selected(None) if c.label == "true R×10 S1 ring, step")
+    scn, tr = case.simulate([0], 30)
+    run = simulate_run(_at_level(scn, 10.0), tr, "diskf-auto", 0)
+    assert run.status.status == "exact", run.status.reason
+
+
+def test_a_noise_level_setting():
+    raw = {"model": {"G": [[1.0], [1.0]], "Q": [[0.2, 0], [0, 0.2]], "x0": [0, 0], "P0": [[1, 0], [0, 1]],
+                     "A": [[1, 0], [0, 1]]},
+           "agents": [{"H": [[1.0, 0.0]], "R": [[2.0]]}], "estimator": {"auto": {"noise_level": 10}}}
+    assert parse_scenario(raw).params.auto == AutoOptions(noise_level=10.0)
+    for bad in ({"noise_level": 1}, {"noise_level": -2}, {"noise_level": 10, "noise": True}):
+        raw["estimator"]["auto"] = bad
+        with pytest.raises(InputError) as e:
+            parse_scenario(raw)
+        assert e.value.field == "estimator.auto.noise_level"
+    two = dict(raw, model=dict(raw["model"], G=[[1.0, 0.0], [0.0, 1.0]]))  # two channels: a bank each
+    two["estimator"] = {"auto": {"noise_level": 10}}
+    with pytest.raises(InputError) as e:
+        parse_scenario(two)
+    assert e.value.field == "estimator.auto.noise_level"
+    two["estimator"] = {"auto": {"noise_level": 10, "per_channel": False}}
+    assert parse_scenario(two).params.auto.noise_level == 10.0
+    bank = im.at_noise_level(("none", "walk lo", "walk mid", "walk hi"), np.array([0.0, 1, 1, 1]), np.zeros(4),
+                             np.array([0.0, 1, 2, 3]), 10.0)
+    assert bank[0][4:] == ("none x10", "walk lo x10", "walk mid x10")
+    np.testing.assert_array_equal(bank[4], [1, 1, 1, 1, 10, 10, 10])
+    np.testing.assert_allclose(im.initial_probabilities(bank[2], bank[4]), [0.2, 0.2, 0.2, 0.2] + [0.2 / 3] * 3)

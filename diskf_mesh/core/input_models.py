@@ -119,7 +119,7 @@ def information_loglik(x, P, Y, Ji, U, u):
     """
     Ux = mv(U, x)
     g = u - Ux
-    quad = 2.0 * _dot(x, u) - _dot(x, Ux) + _dot(g, mv(Ji, g))
+    quad = 2.0 * dot(x, u) - dot(x, Ux) + dot(g, mv(Ji, g))
     # log det(I + P U) = log det(P (Y + U)) = -log det(Y) - log det(Ji)
     if Y.shape == Ji.shape:  # both in one call (each matrix's own, bit for bit)
         logdet_Y, logdet_Ji = np.linalg.slogdet(np.stack([Y, Ji]))[1]
@@ -129,7 +129,7 @@ def information_loglik(x, P, Y, Ji, U, u):
     return 0.5 * (quad - logdet)
 
 
-def _dot(a, b):
+def dot(a, b):
     """Sum over the last axis, entry by entry in order (the same bits for
     any batch shape)."""
     out = a[..., 0] * b[..., 0]
@@ -173,7 +173,7 @@ def output_weights(mu, prune: float):
     the NEES falls under its band (docs/estimators.md). The largest
     probability (1/M or more) is always kept."""
     kept = np.where(mu < prune, 0.0, mu)
-    return kept / _sum_last(kept)[..., None]
+    return kept / sum_last(kept)[..., None]
 
 
 def mix(w, z, Z, bounded=False):
@@ -394,12 +394,12 @@ def update_probabilities(c, loglik, floor: float):
     c, loglik: (..., M)."""
     top = loglik.max(axis=-1, keepdims=True)
     mu = c * np.exp(loglik - top)
-    mu = mu / _sum_last(mu)[..., None]
+    mu = mu / sum_last(mu)[..., None]
     mu = np.maximum(mu, floor)
-    return mu / _sum_last(mu)[..., None]
+    return mu / sum_last(mu)[..., None]
 
 
-def _sum_last(a):
+def sum_last(a):
     """The sum over the last axis, entry after entry in order: a few rows
     (an agent's) in one ``add.accumulate``, many one column at a time (the
     same adds)."""
@@ -429,7 +429,7 @@ def transition_matrix(M: int, switch: float, prior=None, down=None) -> np.ndarra
     return Pi
 
 
-def hand_down(a1, a2, q, rate: float):
+def hand_down(a1, a2, q, rate: float, r=None):
     """(M, M): ``rate`` from each random walk of the bank (a1 = 1, a2 = 0)
     to each walk of a smaller scale q, 0 elsewhere; None where ``rate`` is 0
     or no walk has a smaller one (``transition_matrix``'s ``down``).
@@ -444,10 +444,14 @@ def hand_down(a1, a2, q, rate: float):
     added, a walk of larger scale that holds the probability reaches the
     smaller ones' priors through the mixing, so they take up the level it
     learned; a walk of small scale that holds it gives the larger ones no
-    more than the chain's switch."""
+    more than the chain's switch. ``r`` (M,): each model's noise level
+    (``at_noise_level``); a walk hands down to the walks of its own level
+    only."""
     a1, a2, q = np.asarray(a1), np.asarray(a2), np.asarray(q)
     walk = (a1 == 1.0) & (a2 == 0.0)
     down = walk[:, None] & walk[None, :] & (q[None, :] < q[:, None])
+    if r is not None:
+        down &= np.asarray(r)[:, None] == np.asarray(r)[None, :]
     if rate <= 0.0 or not down.any():
         return None
     return rate * down
@@ -609,7 +613,7 @@ def follow_informed(mu, loglik, blind: float):
     some = blind_bank.any(axis=-1) & informed.any(axis=-1)              # (...,)
     if not some.any():
         return mu
-    count = np.maximum(_sum_last(informed.astype(float)), 1.0)                # rows of no informed bank: unused
+    count = np.maximum(sum_last(informed.astype(float)), 1.0)                # rows of no informed bank: unused
     shared = _ordered_sum(mu * informed[..., None], -2) / count[..., None]
     return np.where((blind_bank & some[..., None])[..., None], shared[..., None, :], mu)
 
@@ -665,13 +669,37 @@ def stationary_gain(a1, a2) -> float:
     return float((1.0 - a2) / ((1.0 + a2) * ((1.0 - a2) ** 2 - a1 ** 2)))
 
 
-def initial_probabilities(a2) -> np.ndarray:
+def initial_probabilities(a2, r=None) -> np.ndarray:
     """The models' probabilities before any evidence: every first-order
     model (a2 = 0) one share, the oscillating models one share together
-    (the period of an input that oscillates is one question, not thirteen)."""
+    (the period of an input that oscillates is one question, not thirteen),
+    and the models at a noise level other than the stated one (``r`` != 1,
+    ``at_noise_level``) one share together (whether the sensor is noisier
+    than stated is one question too)."""
     osc = np.asarray(a2) != 0
-    w = np.where(osc, 1.0 / max(int(osc.sum()), 1), 1.0)
+    noisy = np.zeros(osc.shape, dtype=bool) if r is None else np.asarray(r) != 1.0
+    w = np.where(osc, 1.0 / max(int(osc.sum()), 1), np.where(noisy, 1.0 / max(int(noisy.sum()), 1), 1.0))
     return w / w.sum()
+
+
+NOISY = ("none", "walk lo", "walk mid")  # the models ``at_noise_level`` repeats
+
+
+def at_noise_level(names, a1, a2, q, level: float):
+    """The bank with its models of ``NOISY`` once more under measurement
+    noise ``level`` R (``[estimator.auto] noise_level``): (names, a1, a2, q,
+    r), r (M,) each model's noise level (1: as stated). A sensor noisier
+    than stated is then a model the bank weighs by its evidence, beside an
+    input: no input or a slow one under a noisy sensor, against a fast
+    zero-mean input under the stated noise, each with a filter of its own,
+    so that the one whose predictions fit the measurements over the ticks
+    wins (a learner of one scale scores the measurements against the
+    prediction of models that took the noise for an input, or an input for
+    the noise)."""
+    extra = [i for i, name in enumerate(names) if name in NOISY]
+    r = np.concatenate([np.ones(len(names)), np.full(len(extra), float(level))])
+    return (tuple(names) + tuple(f"{names[i]} x{level:g}" for i in extra), np.r_[a1, a1[extra]],
+            np.r_[a2, a2[extra]], np.r_[q, q[extra]], r)
 
 
 OSCILLATING = tuple(f"oscillating {p:.3g}" for p in PERIODS)
@@ -694,4 +722,4 @@ def pool_probabilities(adj, w, floor: float):
     ``linalg.nbr_sum``'s (the same bits for any batch shape)."""
     lm = nbr_sum(adj, np.log(np.maximum(w, floor)), 1) / row_sum(adj)[..., None]
     mu = np.exp(lm - lm.max(axis=-1, keepdims=True))
-    return mu / _sum_last(mu)[..., None]
+    return mu / sum_last(mu)[..., None]

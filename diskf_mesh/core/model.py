@@ -193,6 +193,11 @@ class AutoOptions:
                each channel has its own model probabilities (a step on one,
                an oscillation on another); off: the channels share one
                bank's models
+    noise_level: the bank also holds its models without input and its two
+               smaller random walks under the agent's own measurement noise
+               noise_level x R (``input_models.at_noise_level``; 0: not; one
+               bank only: m = 1 or per_channel off); the agent weighs its
+               measurement by the level its bank holds most probable
     noise:     each agent learns the scale of its own measurement noise,
                above or below the stated R (``core.noise``), and weighs its
                measurement by it (off by default: with poor sensors and no
@@ -208,6 +213,7 @@ class AutoOptions:
     hand_down: float = 0.001
     noise: bool = False
     per_channel: bool = True
+    noise_level: float = 0.0
 
     def __post_init__(self):
         if not (self.none or self.walk or self.zero_mean or self.oscillating):
@@ -216,3 +222,9 @@ class AutoOptions:
             raise ValueError(f"auto.switch: must be a number between 0 and 1 (exclusive), got {self.switch!r}")
         if isinstance(self.hand_down, bool) or not np.isfinite(self.hand_down) or not 0 <= self.hand_down < 1:
             raise ValueError(f"auto.hand_down: must be a number from 0 to 1 (1 excluded), got {self.hand_down!r}")
+        if isinstance(self.noise_level, bool) or not np.isfinite(self.noise_level) or self.noise_level < 0 \
+                or self.noise_level == 1:
+            raise ValueError(f"auto.noise_level: must be 0 (none) or a positive number other than 1, "
+                             f"got {self.noise_level!r}")
+        if self.noise_level and self.noise:
+            raise ValueError("auto.noise_level: give either noise_level or noise = true, not both")

@@ -81,6 +81,20 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    take noise for an input do not hide it). r weighs the next tick's
    measurement.
 
+With ``[estimator.auto] noise_level`` (0, off, by default) the bank also
+holds its models without input and its two smaller random walks under the
+agent's own measurement noise noise_level x R
+(``input_models.at_noise_level``): each such filter fuses the agent's own
+measurement at that level (its information U_own / r, the rest of the
+neighbourhood's as the senders published it), and its likelihood adds the
+level's part of the own measurement's, -y^T R^-1 y / 2r - p log(r) / 2;
+the agent weighs its next measurement by the level its models hold more
+than half of the probability of (``theta``). A sensor noisier than stated
+is then one more model, weighed by its evidence beside an input. The
+message carries the probabilities of the models at the stated noise,
+renormalised: a sensor's noise is its own, and a receiver pools those
+alone. One bank only (m = 1, or per_channel off).
+
 With m > 1 input channels (``[estimator.auto] per_channel``, on) each
 channel has a bank of its own: m banks of the same models, filter j of
 bank c moving channel c by model j and every other channel by its own
@@ -107,7 +121,7 @@ import numpy as np
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core import input_models as im
 from diskf_mesh.core import noise
-from diskf_mesh.core.linalg import identity, nbr_sum
+from diskf_mesh.core.linalg import identity, nbr_sum, solve
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.estimators.base import DEFENCE, EXCHANGED, Estimator, Exchanged, Setting, State, run_scales
@@ -157,14 +171,20 @@ class DISKFAuto(Estimator):
         q_process, q_sensor = run_scales(model, sensors)
         self.bank, self.a1, self.a2, self.q = im.default_bank(q_process, q_sensor, o.none, o.walk, o.zero_mean,
                                                               o.oscillating)
+        self.r = np.ones(len(self.bank))  # each model's measurement noise level (``noise_level``; 1: as stated)
+        if o.noise_level:
+            self.bank, self.a1, self.a2, self.q, self.r = im.at_noise_level(self.bank, self.a1, self.a2, self.q,
+                                                                            o.noise_level)
+        self.stated = self.r == 1.0
         self.F = im.companion(self.a1, self.a2, model.m)  # (M, 2m, 2m): (IM2) on the pair (d_{k-1}, d_{k-2})
         # one bank per input channel (``per_channel``, m > 1): filter j of bank c holds channel c under model j
         # and every other channel under its bank's most probable model (``channel_models``)
         self.banks = model.m if o.per_channel else 1
-        self.mu0 = im.initial_probabilities(self.a2)
+        self.mu0 = im.initial_probabilities(self.a2, self.r)
         self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0,
-                                       im.hand_down(self.a1, self.a2, self.q, o.hand_down))
-        self.slots = np.array([im.BANK.index(name) for name in self.bank])  # each model's place in a message's w
+                                       im.hand_down(self.a1, self.a2, self.q, o.hand_down, self.r))
+        # each model's place in a message's w (the models at the stated noise; a level is the agent's own)
+        self.slots = np.array([im.BANK.index(name) for name, r in zip(self.bank, self.r) if r == 1.0])
         self.whole_bank = tuple(self.bank) == im.BANK
         self.relaying = np.flatnonzero((self.a2 == 0.0) & (self.a1 != 0.0))  # persistent first-order models
         rho = self.a1[self.relaying][:, None, None]                                  # (J, 1, 1)
@@ -176,7 +196,19 @@ class DISKFAuto(Estimator):
         # the input into the state reads the pair's first half: x = v + G d_{k-1}
         self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
         self.learn = o.noise
+        self.levels = bool(o.noise_level)
+        self.keep_own = self.learn or self.levels  # the own measurement held from the local step to the fusion
         self.median = chi2_median(sensors.p)  # (N,) m_p of (NL1)
+
+    @classmethod
+    def refuse(cls, params, model, sensors):
+        """``noise_level`` with a bank per input channel: the level is the
+        own sensor's, one question for every channel, which one bank asks."""
+        o = params.auto
+        if o.noise_level and o.per_channel and model.m > 1:
+            return "estimator.auto.noise_level", (f"needs one bank: {model.m} input channels have one each "
+                                                  "(per_channel = false shares one)")
+        return None
 
     def init(self, batch: tuple) -> AutoState:
         s = super().init(batch)
@@ -192,9 +224,9 @@ class DISKFAuto(Estimator):
 
     def local(self, state: AutoState, k: int, y, has):
         # with the noise learned, the own measurement weighed by 1 / r (``core.noise``)
-        loc = self.local_kf(state, k, y, has, np.exp(-state.theta) if self.learn else None)
+        loc = self.local_kf(state, k, y, has, np.exp(-state.theta) if self.keep_own else None)
         own = {}
-        if self.learn:
+        if self.keep_own:
             batch, sn = has.shape, self.sensors
             own = dict(y=y, has=has, H=np.broadcast_to(sn.H, batch + sn.H.shape[-2:]),
                        R=np.broadcast_to(sn.R, batch + sn.R.shape[-2:]), p=np.broadcast_to(sn.p, batch),
@@ -205,6 +237,8 @@ class DISKFAuto(Estimator):
         # the message's w: the bank's probabilities (a new array every tick, never changed), the banks' mean
         # with one per channel
         mu = state.mu[..., 0, :] if self.banks == 1 else state.mu.mean(axis=-2)
+        if self.levels:  # the models at the stated noise, renormalised
+            mu = mu[..., self.stated] / im.sum_last(mu[..., self.stated])[..., None]
         if self.whole_bank:
             w = mu
         else:
@@ -223,9 +257,8 @@ class DISKFAuto(Estimator):
         # 2. mixing: the senders' model probabilities pooled where the neighbourhood measured nothing this tick,
         # the agent's own where it did
         informed = np.trace(U, axis1=-2, axis2=-1) > 0
-        pooled = state.mu if informed.all() else np.where(
-            informed[..., None, None], state.mu,
-            im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR)[..., None, :])
+        pooled = state.mu if informed.all() else np.where(informed[..., None, None], state.mu,
+                                                          self._pool(state.mu, senders, nb))
         c, w = im.model_weights(pooled, self.Pi, PRUNE)                               # per bank
         z0, Z0 = self._flat(*im.mix(w, *self._banked(state.z, state.Z), bounded=True))
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
@@ -242,12 +275,21 @@ class DISKFAuto(Estimator):
         v, Pv, e1, S1, B, relayed = self._relay(senders, nb, v_c, Pv_c, e1, S1, B)
         x_s, P_s, C_s = eq.input_to_state(v, Pv, B, e1, S1, self.G_pair)
         # 4. the measurement: likelihoods and the joint update
-        x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed)
+        if self.levels:  # the neighbourhood's information with the own measurement's at each model's level
+            own_at = nb.adj * nb.self_mask
+            U, u, own_ll = self._own_at_levels(state, nbr_sum(own_at, dY, 2), nbr_sum(own_at, dy, 1), U, u)
+            x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=True)
+            loglik = loglik + np.where((state.has & informed)[..., None], own_ll, 0.0)
+        else:
+            x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed)
         mu = im.update_probabilities(c, loglik.reshape(c.shape), FLOOR)
         if self.banks > 1:
             mu = im.follow_informed(mu, loglik.reshape(c.shape), BLIND)
         theta, last = state.theta, (state.e_last, state.S_last, state.seen)
-        if self.learn:  # 5. the own sensor's noise scale, scored against the bank's predicted mean
+        if self.levels:  # the next measurement weighed by the level the bank holds most probable
+            theta = np.where(im.sum_last(np.where(self.stated, mu[..., 0, :], 0.0)) >= 0.5, 0.0,
+                             float(np.log(self.params.auto.noise_level)))
+        elif self.learn:  # 5. the own sensor's noise scale, scored against the bank's predicted mean
             theta, last = noise.track(theta, last, im.mixture_mean(self._over_banks(c), x_s), own.P_pred, state.y,
                                       state.H, state.R, state.p, state.has, state.median, NOISE_STEP)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
@@ -261,6 +303,35 @@ class DISKFAuto(Estimator):
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=theta,
                        e_last=last[0], S_last=last[1], seen=last[2], tick=state.tick)
         return st, Output(x, P, d, held)
+
+    def _pool(self, mu, senders, nb):
+        """The senders' probabilities of the models at the stated noise,
+        pooled (``input_models.pool_probabilities``), for a receiver whose
+        neighbourhood measured nothing: they take the share the receiver's
+        own probabilities give those models, and the models at another
+        noise level keep the receiver's own (a sensor's noise is its own).
+        Returns (..., 1, M)."""
+        pooled = im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR)[..., None, :]
+        if not self.levels:
+            return pooled
+        out = mu.copy()
+        out[..., self.stated] = pooled * im.sum_last(mu[..., self.stated])[..., None]
+        return out
+
+    def _own_at_levels(self, state, U_own, u_own, U, u):
+        """The neighbourhood's measurement information (U, u) with the
+        agent's own part (U_own, u_own, weighed by 1 / r as its message
+        published it) at each model's level instead: (U, u) per model,
+        (..., M, n, n) and (..., M, n), and the part of each model's
+        log-likelihood that its level adds to ``information_loglik``'s,
+        -y^T R^-1 y / (2 r_j) - p log(r_j) / 2 (the own measurement's
+        c(y, r_j R); the neighbours' cancels between the models)."""
+        scale = np.exp(state.theta)[..., None] / self.r - 1.0                    # (..., M)
+        U_m = U[..., None, :, :] + scale[..., None, None] * U_own[..., None, :, :]
+        u_m = u[..., None, :] + scale[..., None] * u_own[..., None, :]
+        yRy = im.dot(state.y, solve(state.R, state.y[..., None])[..., 0])
+        own_ll = -0.5 * yRy[..., None] / self.r - 0.5 * state.p[..., None] * np.log(self.r)
+        return U_m, u_m, own_ll
 
     def _banked(self, z, Z):
         """The filters' joints (..., B M, ...) as (..., B, M, ...)."""
@@ -346,13 +417,15 @@ def _reorder(parts, order):
     return v, Pv, e[..., order], S[..., order, :][..., order], B[..., order]
 
 
-def measure(x_s, P_s, e1, C_s, S1, U, u, informed):
+def measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=False):
     """Step 4 on the agents whose neighbourhood measured (``informed``): each
     model's joint Kalman update of (x, e) by the neighbourhood's information
     (U, u) and its log-likelihood (``information_loglik``). Where nothing
     was measured the update is the prediction, bit for bit, and the
     log-likelihood 0 (no evidence for any model), so those agents' rows are
-    neither computed nor rounded. Returns (x, P, e, C, S, loglik)."""
+    neither computed nor rounded. ``per_model``: U (..., M, n, n) and u
+    (..., M, n) each model's own (``noise_level``). Returns (x, P, e, C, S,
+    loglik)."""
     blank = np.zeros(x_s.shape[:-1])
     if not informed.any():
         return x_s, P_s, e1, C_s, S1, blank
@@ -360,7 +433,8 @@ def measure(x_s, P_s, e1, C_s, S1, U, u, informed):
     prior = (x_s, P_s, e1, C_s, S1)
     xs, Ps, e, C, S = prior if every else (a[informed] for a in prior)
     U_m, u_m = (U, u) if every else (U[informed], u[informed])
-    U_m, u_m = U_m[..., None, :, :], u_m[..., None, :]
+    if not per_model:
+        U_m, u_m = U_m[..., None, :, :], u_m[..., None, :]
     Y, Ji = eq.information_pair(Ps, U_m)
     loglik = im.information_loglik(xs, Ps, Y, Ji, U_m, u_m)
     x_k, P_k = eq.local_update(xs, Ps, Y, Ji, u_m)

@@ -78,6 +78,7 @@ from diskf_mesh.data.inputs import parse_input
 from diskf_mesh.data.scenario import Scenario, load_scenario, parse_scenario, simulate
 from diskf_mesh.data.trace import Trace
 from diskf_mesh.engine import batch as engine
+from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.estimators import Params
 from diskf_mesh.studies import experiment
 from diskf_mesh.studies.suite import observed, rotation
@@ -530,12 +531,14 @@ def selected(select=None) -> list[Case]:
 
 
 def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True, bank=False,
-        first: int = 0, jobs: int = 1) -> dict:
+        first: int = 0, jobs: int = 1, noise_level: float = 0.0) -> dict:
     """The whole suite (or the cases ``selected(select)``) on seeds
     ``first`` .. ``first + seeds - 1``; ``names``: only these estimators;
     ``bank``: each result also holds ``run_bank``'s ``bank``; ``jobs``:
-    the cases in that many processes (the same rows, in the same order)."""
-    all_cases = selected(select)
+    the cases in that many processes (the same rows, in the same order);
+    ``noise_level``: ``at_noise_level``'s, set on every case of one input
+    channel (``with_noise_level``)."""
+    all_cases = [with_noise_level(c, noise_level) for c in selected(select)]
     t0 = time.monotonic()
     work = [(c, seeds, steps, names, first, bank) for c in all_cases]
 
@@ -558,6 +561,17 @@ def run(seeds: int = 20, steps: int | None = None, names=None, select=None, prog
         with process_pool(min(jobs, len(work))) as pool:
             results = [shown(i, r) for i, r in enumerate(pool.map(_case_job, work), 1)]
     return document(results, seeds, steps, first)
+
+
+def with_noise_level(case: Case, level: float) -> Case:
+    """``case`` with ``[estimator.auto] noise_level`` set to ``level`` where
+    it has one input channel (the level needs one bank); itself where the
+    level is 0 or it has more."""
+    scn = case.scenario
+    if not level or scn.G.shape[1] > 1:
+        return case
+    return replace(case, scenario=replace(scn, params=replace(scn.params, auto=replace(scn.params.auto,
+                                                                                       noise_level=level))))
 
 
 def _case_job(job: tuple) -> dict:
@@ -795,6 +809,8 @@ def main(argv=None) -> int:
     ap.add_argument("--bank", action="store_true",
                     help="also run each model of diskf-auto's bank alone; print, per case diskf-auto misses by more "
                          "than 10 %%, the best of them")
+    ap.add_argument("--noise-level", type=float, default=0.0, metavar="X",
+                    help="run diskf-auto with [estimator.auto] noise_level = X on every case of one input channel")
     ap.add_argument("--by-silence", metavar="CASE", default=None,
                     help="only this case (its label): the state MAE of diskf-auto and of each bank model alone, by "
                          "ticks since the agent's own last measurement")
@@ -840,7 +856,14 @@ def main(argv=None) -> int:
         return 0
     if a.figure:
         choice_figure(a.figure)
-    doc = run(a.seeds, a.ticks, names=names, select=a.select, bank=a.bank, first=a.first_seed, jobs=a.jobs)
+    if a.noise_level:
+        try:
+            AutoOptions(noise_level=a.noise_level)
+        except ValueError as e:
+            print(f"error: --noise-level: {str(e).partition(': ')[2]}", file=sys.stderr)
+            return 2
+    doc = run(a.seeds, a.ticks, names=names, select=a.select, bank=a.bank, first=a.first_seed, jobs=a.jobs,
+              noise_level=a.noise_level)
     if old is not None:
         doc = merge(doc, old)
     if a.json:
