@@ -428,17 +428,20 @@ def _at_level(scn, level: float):
     return replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, noise_level=level)))
 
 
-def test_a_noise_level_in_the_bank_tells_a_noisy_sensor_from_an_input():
-    """Isolated agents whose sensors are 10 times noisier than their R
-    says, no input, seeds 0..3: with three of the bank's models also under
-    10 R (``noise_level``) the state MAE is about half of the bank's
-    without them, which takes the noise for a zero-mean input; the agents
-    weigh their measurements by 1/10 by the end."""
-    case = next(c for c in heldout.selected(None) if c.label == "true R×10 S1 none, zero")
+def test_a_noise_level_in_the_bank_tells_noisy_sensors_from_an_input():
+    """All-to-all, every sensor 10 times noisier than its R says, no input,
+    seeds 0..3: with three of the bank's models also under 10 R at every
+    sensor (``noise_level``) the state MAE is under half of the bank's
+    without them, which takes the noise for a zero-mean input. The level's
+    filters fuse the whole neighbourhood's information at 10 R and weigh
+    the measurements' energy (``information_energy``); a level for the own
+    sensor alone stays near the bank's error here, the neighbours'
+    information published under the stated noise outweighing it."""
+    case = next(c for c in heldout.selected(None) if c.label == "true R×10 S1 all, zero")
     scn, tr = case.simulate([0, 1, 2, 3], None)
     err = {lv: np.mean(metrics.errors(tr, engine.run(tr, "diskf-auto", _at_level(scn, lv).params))[0])
            for lv in (0.0, 10.0)}
-    assert err[10.0] < 0.6 * err[0.0], err
+    assert err[10.0] < 0.5 * err[0.0], err
 
 
 def test_a_noise_level_runs_exact_on_the_simulated_network():

@@ -431,3 +431,26 @@ def test_a_bank_per_channel_varies_its_own_channel_and_holds_the_others_at_their
     per = im.pair_predict(A, C, e, S, same[0][0, j], 0.0, same[1][0, j])
     for a, b in zip(one, per):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_measurement_energy_from_its_information_alone():
+    """``information_energy``: y^T R^-1 y and the rows from U = H^T R^-1 H and
+    u = H^T R^-1 y where H has full row rank (batched, each sender its
+    own); where it has more rows than the state, the energy of what H sees
+    (the generalised least-squares estimate's); 0 and 0 where nothing was
+    measured."""
+    rng = np.random.default_rng(3)
+    H = rng.normal(size=(5, 2, 4))
+    R = np.array([np.diag(rng.uniform(0.5, 3.0, 2)) for _ in range(5)])
+    y = 100.0 * rng.normal(size=(5, 2))
+    Ri = np.linalg.inv(R)
+    U, u = np.swapaxes(H, -1, -2) @ Ri @ H, (np.swapaxes(H, -1, -2) @ Ri @ y[..., None])[..., 0]
+    E, k = im.information_energy(U, u)
+    np.testing.assert_allclose(E, np.einsum("bi,bij,bj->b", y, Ri, y), rtol=1e-9)
+    np.testing.assert_array_equal(k, 2.0)
+    tall = rng.normal(size=(3, 2))  # three rows of a two-state model
+    y3 = rng.normal(size=3)
+    E3, k3 = im.information_energy(tall.T @ tall, tall.T @ y3)
+    fit = tall @ np.linalg.lstsq(tall, y3, rcond=None)[0]
+    assert k3 == 2.0 and np.isclose(E3, fit @ fit)
+    assert im.information_energy(np.zeros((4, 4)), np.zeros(4)) == (0.0, 0.0)

@@ -102,6 +102,21 @@ def default_scales(q_process: float, q_sensor: float):
     return float(np.sqrt(q_process * q_sensor)), 1e4 * max(q_process, q_sensor)
 
 
+def information_energy(U, u, rtol: float = 1e-9):
+    """(E, k): a measurement's energy y^T R^-1 y and its rank, from its
+    information U = H^T R^-1 H, u = H^T R^-1 y alone: E = u^T U^+ u over the
+    eigenvalues of U above ``rtol`` times its largest, k their count. Where
+    H has full row rank (p <= n) that is y^T R^-1 y exactly; otherwise the
+    energy and rank of the measurement's projection on what H sees (the
+    same statistic for every model the likelihood compares). U: (..., n,
+    n); u: (..., n). Returns (...,), (...,); 0 and 0 where U = 0."""
+    lam, V = np.linalg.eigh(U)
+    kept = lam > rtol * np.max(lam, axis=-1, keepdims=True)
+    proj = np.einsum("...ji,...j->...i", V, u)
+    E = np.sum(np.where(kept, proj * proj / np.where(kept, lam, 1.0), 0.0), axis=-1)
+    return E, np.sum(kept, axis=-1).astype(float)
+
+
 def information_loglik(x, P, Y, Ji, U, u):
     """The log-likelihood of the neighbourhood's measurement given the prior
     N(x, P), up to a term the same for every prior (for the model weights
@@ -119,7 +134,7 @@ def information_loglik(x, P, Y, Ji, U, u):
     """
     Ux = mv(U, x)
     g = u - Ux
-    quad = 2.0 * dot(x, u) - dot(x, Ux) + dot(g, mv(Ji, g))
+    quad = 2.0 * _dot(x, u) - _dot(x, Ux) + _dot(g, mv(Ji, g))
     # log det(I + P U) = log det(P (Y + U)) = -log det(Y) - log det(Ji)
     if Y.shape == Ji.shape:  # both in one call (each matrix's own, bit for bit)
         logdet_Y, logdet_Ji = np.linalg.slogdet(np.stack([Y, Ji]))[1]
@@ -129,7 +144,7 @@ def information_loglik(x, P, Y, Ji, U, u):
     return 0.5 * (quad - logdet)
 
 
-def dot(a, b):
+def _dot(a, b):
     """Sum over the last axis, entry by entry in order (the same bits for
     any batch shape)."""
     out = a[..., 0] * b[..., 0]
@@ -688,9 +703,9 @@ NOISY = ("none", "walk lo", "walk mid")  # the models ``at_noise_level`` repeats
 def at_noise_level(names, a1, a2, q, level: float):
     """The bank with its models of ``NOISY`` once more under measurement
     noise ``level`` R (``[estimator.auto] noise_level``): (names, a1, a2, q,
-    r), r (M,) each model's noise level (1: as stated). A sensor noisier
-    than stated is then a model the bank weighs by its evidence, beside an
-    input: no input or a slow one under a noisy sensor, against a fast
+    r), r (M,) each model's noise level (1: as stated). Sensors noisier
+    than stated are then a model the bank weighs by its evidence, beside an
+    input: no input or a slow one under noisy sensors, against a fast
     zero-mean input under the stated noise, each with a filter of its own,
     so that the one whose predictions fit the measurements over the ticks
     wins (a learner of one scale scores the measurements against the

@@ -194,10 +194,10 @@ class AutoOptions:
                an oscillation on another); off: the channels share one
                bank's models
     noise_level: the bank also holds its models without input and its two
-               smaller random walks under the agent's own measurement noise
-               noise_level x R (``input_models.at_noise_level``; 0: not; one
-               bank only: m = 1 or per_channel off); the agent weighs its
-               measurement by the level its bank holds most probable
+               smaller random walks under measurement noise noise_level x R
+               at every sensor of the neighbourhood
+               (``input_models.at_noise_level``; 0: not; one bank only: m = 1
+               or per_channel off)
     noise:     each agent learns the scale of its own measurement noise,
                above or below the stated R (``core.noise``), and weighs its
                measurement by it (off by default: with poor sensors and no

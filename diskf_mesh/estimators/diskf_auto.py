@@ -82,18 +82,19 @@ each carries the input pair e = (d_{k-1}, d_{k-2}) beside the state:
    measurement.
 
 With ``[estimator.auto] noise_level`` (0, off, by default) the bank also
-holds its models without input and its two smaller random walks under the
-agent's own measurement noise noise_level x R
-(``input_models.at_noise_level``): each such filter fuses the agent's own
-measurement at that level (its information U_own / r, the rest of the
-neighbourhood's as the senders published it), and its likelihood adds the
-level's part of the own measurement's, -y^T R^-1 y / 2r - p log(r) / 2;
-the agent weighs its next measurement by the level its models hold more
-than half of the probability of (``theta``). A sensor noisier than stated
-is then one more model, weighed by its evidence beside an input. The
-message carries the probabilities of the models at the stated noise,
-renormalised: a sensor's noise is its own, and a receiver pools those
-alone. One bank only (m = 1, or per_channel off).
+holds its models without input and its two smaller random walks under
+measurement noise noise_level x R at every sensor of the neighbourhood
+(``input_models.at_noise_level``): each such filter fuses the
+neighbourhood's information at that level, (U / r, u / r), and its
+likelihood adds the level's part of the measurements', -E / 2r - k log(r)
+/ 2, E and k the senders' measurement energies y^T R^-1 y and ranks summed,
+which each sender's published information gives
+(``input_models.information_energy``: nothing is added to the message).
+Noisy sensors are then one more model, weighed by their evidence beside an
+input. The message carries the probabilities of the models at the stated
+noise, renormalised (its 21 slots); a receiver pools those alone and keeps
+its own for the models at the level. One bank only (m = 1, or per_channel
+off).
 
 With m > 1 input channels (``[estimator.auto] per_channel``, on) each
 channel has a bank of its own: m banks of the same models, filter j of
@@ -121,7 +122,7 @@ import numpy as np
 from diskf_mesh.core import equations as eq
 from diskf_mesh.core import input_models as im
 from diskf_mesh.core import noise
-from diskf_mesh.core.linalg import identity, nbr_sum, solve
+from diskf_mesh.core.linalg import identity, nbr_sum
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.estimators.base import DEFENCE, EXCHANGED, Estimator, Exchanged, Setting, State, run_scales
@@ -197,7 +198,6 @@ class DISKFAuto(Estimator):
         self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
         self.learn = o.noise
         self.levels = bool(o.noise_level)
-        self.keep_own = self.learn or self.levels  # the own measurement held from the local step to the fusion
         self.median = chi2_median(sensors.p)  # (N,) m_p of (NL1)
 
     @classmethod
@@ -224,9 +224,9 @@ class DISKFAuto(Estimator):
 
     def local(self, state: AutoState, k: int, y, has):
         # with the noise learned, the own measurement weighed by 1 / r (``core.noise``)
-        loc = self.local_kf(state, k, y, has, np.exp(-state.theta) if self.keep_own else None)
+        loc = self.local_kf(state, k, y, has, np.exp(-state.theta) if self.learn else None)
         own = {}
-        if self.keep_own:
+        if self.learn:
             batch, sn = has.shape, self.sensors
             own = dict(y=y, has=has, H=np.broadcast_to(sn.H, batch + sn.H.shape[-2:]),
                        R=np.broadcast_to(sn.R, batch + sn.R.shape[-2:]), p=np.broadcast_to(sn.p, batch),
@@ -275,21 +275,17 @@ class DISKFAuto(Estimator):
         v, Pv, e1, S1, B, relayed = self._relay(senders, nb, v_c, Pv_c, e1, S1, B)
         x_s, P_s, C_s = eq.input_to_state(v, Pv, B, e1, S1, self.G_pair)
         # 4. the measurement: likelihoods and the joint update
-        if self.levels:  # the neighbourhood's information with the own measurement's at each model's level
-            own_at = nb.adj * nb.self_mask
-            U, u, own_ll = self._own_at_levels(state, nbr_sum(own_at, dY, 2), nbr_sum(own_at, dy, 1), U, u)
+        if self.levels:  # the neighbourhood's information under each model's noise level
+            U, u, level_ll = self._at_levels(dY, dy, nb, U, u)
             x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=True)
-            loglik = loglik + np.where((state.has & informed)[..., None], own_ll, 0.0)
+            loglik = loglik + np.where(informed[..., None], level_ll, 0.0)
         else:
             x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed)
         mu = im.update_probabilities(c, loglik.reshape(c.shape), FLOOR)
         if self.banks > 1:
             mu = im.follow_informed(mu, loglik.reshape(c.shape), BLIND)
         theta, last = state.theta, (state.e_last, state.S_last, state.seen)
-        if self.levels:  # the next measurement weighed by the level the bank holds most probable
-            theta = np.where(im.sum_last(np.where(self.stated, mu[..., 0, :], 0.0)) >= 0.5, 0.0,
-                             float(np.log(self.params.auto.noise_level)))
-        elif self.learn:  # 5. the own sensor's noise scale, scored against the bank's predicted mean
+        if self.learn:  # 5. the own sensor's noise scale, scored against the bank's predicted mean
             theta, last = noise.track(theta, last, im.mixture_mean(self._over_banks(c), x_s), own.P_pred, state.y,
                                       state.H, state.R, state.p, state.has, state.median, NOISE_STEP)
         z, Z = im.joint(x_k, P_k, e_k, S_k, C_k)
@@ -309,7 +305,8 @@ class DISKFAuto(Estimator):
         pooled (``input_models.pool_probabilities``), for a receiver whose
         neighbourhood measured nothing: they take the share the receiver's
         own probabilities give those models, and the models at another
-        noise level keep the receiver's own (a sensor's noise is its own).
+        noise level keep the receiver's own (the message carries the
+        stated models' alone).
         Returns (..., 1, M)."""
         pooled = im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR)[..., None, :]
         if not self.levels:
@@ -318,20 +315,17 @@ class DISKFAuto(Estimator):
         out[..., self.stated] = pooled * im.sum_last(mu[..., self.stated])[..., None]
         return out
 
-    def _own_at_levels(self, state, U_own, u_own, U, u):
-        """The neighbourhood's measurement information (U, u) with the
-        agent's own part (U_own, u_own, weighed by 1 / r as its message
-        published it) at each model's level instead: (U, u) per model,
-        (..., M, n, n) and (..., M, n), and the part of each model's
-        log-likelihood that its level adds to ``information_loglik``'s,
-        -y^T R^-1 y / (2 r_j) - p log(r_j) / 2 (the own measurement's
-        c(y, r_j R); the neighbours' cancels between the models)."""
-        scale = np.exp(state.theta)[..., None] / self.r - 1.0                    # (..., M)
-        U_m = U[..., None, :, :] + scale[..., None, None] * U_own[..., None, :, :]
-        u_m = u[..., None, :] + scale[..., None] * u_own[..., None, :]
-        yRy = im.dot(state.y, solve(state.R, state.y[..., None])[..., 0])
-        own_ll = -0.5 * yRy[..., None] / self.r - 0.5 * state.p[..., None] * np.log(self.r)
-        return U_m, u_m, own_ll
+    def _at_levels(self, dY, dy, nb, U, u):
+        """The neighbourhood's measurement information (U, u) under each
+        model's noise level r_j (every sensor's noise r_j R): (U / r_j, u /
+        r_j) per model, (..., M, n, n) and (..., M, n), and the part of each
+        model's log-likelihood its level adds to ``information_loglik``'s,
+        -E / (2 r_j) - k log(r_j) / 2, E and k the senders' measurement
+        energies and ranks summed (``input_models.information_energy``)."""
+        energy, rank = im.information_energy(dY, dy)
+        E, k = (nbr_sum(nb.adj, a[..., None], 1)[..., 0] for a in (energy, rank))
+        return (U[..., None, :, :] / self.r[:, None, None], u[..., None, :] / self.r[:, None],
+                -0.5 * E[..., None] / self.r - 0.5 * k[..., None] * np.log(self.r))
 
     def _banked(self, z, Z):
         """The filters' joints (..., B M, ...) as (..., B, M, ...)."""
