@@ -17,6 +17,10 @@ agent      one agent as an agent process runs it (``mesh.protocol.estimator.lock
            agents), where ``diskf-auto`` runs a bank per channel; a last line gives
            it with one bank for both channels (``[estimator.auto] per_channel = false``)
 
+A last line gives ``diskf-auto`` with ``[estimator.auto] noise_level = 10``
+(three more filters, ``input_models.at_noise_level``) on engine S1, engine S2
+and one agent, against ``diskf-auto`` without it.
+
     .venv/bin/python benchmarks/auto_cost.py [--repeat 3]
 
 Prints microseconds per (seed, agent, tick) and the ratio to diskf. The
@@ -58,6 +62,13 @@ def main(argv=None) -> int:
     tr4 = simulate(s4, [0])
     s5, tr5 = next(c for c in heldout.selected(None) if c.label == "m=2 all, step | sine fast").simulate(range(20), None)
     one_bank = replace(s5.params, auto=AutoOptions(per_channel=False))
+    def at_level(scn):
+        return replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, noise_level=10.0)))
+
+    l1, l2, l3 = at_level(s1), at_level(s2), at_level(s3)
+    level = {"engine S1": lambda: engine.run(tr1, "diskf-auto", l1.params),
+             "engine S2": lambda: engine.run(tr2, "diskf-auto", l2.params),
+             "agent": lambda: sum(1 for _ in lockstep(l3, "diskf-auto", tr3))}
     runs = {
         "engine S1": (lambda name: engine.run(tr1, name, s1.params), tr1.has.size),
         "engine S2": (lambda name: engine.run(tr2, name, s2.params), tr2.has.size),
@@ -72,6 +83,8 @@ def main(argv=None) -> int:
                 best[what, name] = min(best.get((what, name), float("inf")), cpu(lambda: run(name)) / steps)
         shared = cpu(lambda: engine.run(tr5, "diskf-auto", one_bank)) / tr5.has.size
         best["one bank"] = min(best.get("one bank", float("inf")), shared)
+        for what, run in level.items():
+            best["level", what] = min(best.get(("level", what), float("inf")), cpu(run) / runs[what][1])
     head = "".join(f" {what + ' us':>14} {'x diskf':>8}" for what in runs)
     print(f"{'estimator':<12}{head}")
     for name in NAMES:
@@ -79,6 +92,9 @@ def main(argv=None) -> int:
         print(f"{name:<12}{cells}")
     print(f"2 channels, diskf-auto with one bank: {1e6 * best['one bank']:.2f} us, "
           f"{best['one bank'] / best['2 channels', 'diskf']:.1f} x diskf")
+    print("diskf-auto with noise_level = 10: " + ", ".join(
+        f"{what} {1e6 * best['level', what]:.2f} us ({best['level', what] / best[what, 'diskf']:.1f} x diskf, "
+        f"{best['level', what] / best[what, 'diskf-auto']:.2f} x diskf-auto)" for what in level))
     return 0
 
 
