@@ -168,6 +168,33 @@ def test_information_contribution_recovers_measurement_information():
     np.testing.assert_allclose(dy, u, atol=1e-12)
 
 
+def test_round_off_in_a_neighbourhoods_information_is_cut_where_it_breaks_the_update():
+    """A prediction of variance 10^9 on axes nobody measures, and a summed
+    information U whose differences of inverses left -2e-5 there (as
+    measured on isolated constant-acceleration agents): P^-1 + U has no
+    Cholesky factor. ``information_pair_psd`` replaces that matrix's U by
+    its nearest positive-semidefinite one, and only that matrix's: its
+    neighbour in the batch gets ``information_pair``'s bits."""
+    rng = np.random.default_rng(3)
+    Q, _ = np.linalg.qr(rng.normal(size=(4, 4)))
+    P = np.stack([np.diag([0.5, 0.04, 3e9, 2e5]), Q @ np.diag([1.0, 2.0, 3.0, 4.0]) @ Q.T])
+    U = np.zeros((2, 4, 4))
+    U[:, 0, 0] = 1.0
+    U[0, 2, 2], U[0, 3, 3] = -6e-10, -2e-5  # round-off of P~^-1 - P^^-1
+    U[1, 3, 3] = -1e-12  # round-off the update survives: left as it is
+    with pytest.raises(np.linalg.LinAlgError):
+        eq.information_pair(P, U)
+    Y, Ji, Uc = eq.information_pair_psd(P, U)
+    np.testing.assert_array_equal(Uc[0], np.diag([1.0, 0.0, 0.0, 0.0]))
+    np.testing.assert_array_equal(Uc[1], U[1])
+    Y1, Ji1 = eq.information_pair(P[1:], U[1:])
+    np.testing.assert_array_equal(Ji[1], Ji1[0])
+    np.linalg.cholesky(Ji)  # raises where not positive definite
+    P[0, 2, 2] = -1.0  # a prediction without a factor: the filter diverged, and that still raises
+    with pytest.raises(np.linalg.LinAlgError):
+        eq.information_pair_psd(P, U)
+
+
 def test_state_fusion_by_hand():
     # own prior P^ = 2I, x^* = (0, 0); neighbours add diag(0.5, 0) with u = (1.5, 0)
     # and diag(0, 0.5) with u = (0, 1):  P_bar^-1 = 0.5 I + diag(.5, .5) = I

@@ -25,6 +25,7 @@ from diskf_mesh.core.linalg import (
     congruence_const,
     congruence_each,
     eigvalsh,
+    factorable,
     identity,
     inv_spd,
     matmul_left,
@@ -33,6 +34,7 @@ from diskf_mesh.core.linalg import (
     nbr_sum,
     nbr_sum_pair,
     pair_sum,
+    psd_part,
     row_sum,
     solve,
     sum_order,
@@ -102,6 +104,26 @@ def information_pair(P_pred: np.ndarray, U: np.ndarray):
     ``local_update`` and ``input_estimate``."""
     Y = inv_spd(P_pred)
     return Y, inv_spd(Y + U)
+
+
+def information_pair_psd(P_pred: np.ndarray, U: np.ndarray):
+    """``information_pair`` for a neighbourhood's information U summed from
+    messages: U = sum_j (P~_j^-1 - P^_j^-1) is positive semidefinite, but
+    where a prediction's covariance is 10^9 or more on an axis nobody
+    measures, the differences of inverses leave round-off of 10^-5 there,
+    and Y + U can lose its Cholesky factor. Only then, and only for those
+    matrices (each tried alone, so the choice never depends on the batch),
+    U is replaced by its nearest positive-semidefinite matrix
+    (``linalg.psd_part``). A prediction without a factor still raises.
+    Returns (Y, Ji, U), U broadcast to Y's shape where it was replaced."""
+    try:
+        return information_pair(P_pred, U) + (U,)
+    except np.linalg.LinAlgError:
+        Y = inv_spd(P_pred)
+        U = np.broadcast_to(U, Y.shape).copy()
+        bad = ~factorable(Y + U)
+        U[bad] = psd_part(U[bad])
+        return Y, inv_spd(Y + U), U
 
 
 def input_estimate(x_pred, Y, Ji, U, u, G, allowed=None, rank_rtol: float = 1e-9):

@@ -156,6 +156,29 @@ def inv_spd(a: np.ndarray) -> np.ndarray:
     return inv_spd_cholesky(a)
 
 
+def factorable(a: np.ndarray) -> np.ndarray:
+    """(...,) True where a stack's matrix has a Cholesky factor, each matrix
+    tried alone as ``inv_spd`` tries it (on a stack it raises if any one
+    fails), so the answer for a matrix never depends on its batch."""
+    n = a.shape[-1]
+    flat = a.reshape(-1, n, n)
+    ok = np.ones(len(flat), dtype=bool)
+    for i in range(len(flat)):
+        try:
+            inv_spd(flat[i:i + 1])
+        except np.linalg.LinAlgError:
+            ok[i] = False
+    return ok.reshape(a.shape[:-2])
+
+
+def psd_part(a: np.ndarray) -> np.ndarray:
+    """The nearest positive-semidefinite matrix to each symmetric matrix of
+    a stack in the Frobenius norm (Higham 1988): V max(L, 0) V^T from its
+    eigendecomposition V L V^T."""
+    lam, V = np.linalg.eigh(a)
+    return sym(np.matmul(V * np.maximum(lam, 0.0)[..., None, :], T(V)))
+
+
 def inv_spd_cholesky(a: np.ndarray) -> np.ndarray:
     """The general path of ``inv_spd``, for any size: Cholesky, then L^-T L^-1."""
     L = np.linalg.cholesky(a)

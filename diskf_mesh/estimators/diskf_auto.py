@@ -429,7 +429,7 @@ def measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=False):
     U_m, u_m = (U, u) if every else (U[informed], u[informed])
     if not per_model:
         U_m, u_m = U_m[..., None, :, :], u_m[..., None, :]
-    Y, Ji = eq.information_pair(Ps, U_m)
+    Y, Ji, U_m = eq.information_pair_psd(Ps, U_m)
     loglik = im.information_loglik(xs, Ps, Y, Ji, U_m, u_m)
     x_k, P_k = eq.local_update(xs, Ps, Y, Ji, u_m)
     post = (x_k, P_k) + eq.replace_marginal(xs, Ps, e, C, S, x_k, P_k) + (loglik,)
