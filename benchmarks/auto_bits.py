@@ -39,7 +39,7 @@ SETTINGS = {"": (False, False), "noise": (True, False), "defence": (False, True)
 
 
 def with_settings(params, noise: bool, defence: bool):
-    return replace(params, auto=replace(params.auto, noise=noise), defence=defence)
+    return replace(params.with_setting("auto", noise=noise), defence=defence)
 
 
 def engine_outputs(tr, params, name: str = NAME) -> list:

@@ -63,7 +63,7 @@ def main(argv=None) -> int:
     s5, tr5 = next(c for c in heldout.selected(None) if c.label == "m=2 all, step | sine fast").simulate(range(20), None)
     one_bank = replace(s5.params, auto=AutoOptions(per_channel=False))
     def at_level(scn):
-        return replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, noise_level=10.0)))
+        return scn.with_overrides(params=scn.params.with_setting("auto", noise_level=10.0))
 
     l1, l2, l3 = at_level(s1), at_level(s2), at_level(s3)
     level = {"engine S1": lambda: engine.run(tr1, "diskf-auto", l1.params),

@@ -17,7 +17,6 @@ the best and the NEES inside the chi-square band of the suite.
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 
 from diskf_mesh import estimators as algorithms
 from diskf_mesh.data.scenario import load_scenario, simulate
@@ -49,7 +48,7 @@ def main(argv=None) -> int:
             tr = simulate(scn, seeds)
             seen = observed(tr)
             rows = {name: heldout.case_row(tr, name, scn.params, seen) for name in algorithms.NAMES}
-            plain = replace(scn.params, auto=replace(scn.params.auto, oscillating=False))
+            plain = scn.params.with_setting("auto", oscillating=False)
             without = heldout.case_row(tr, heldout.AUTO, plain, seen)["mae_state"]
             best_mae, best = min((v["mae_state"], k) for k, v in rows.items() if not v["diverged"])
             auto = rows[heldout.AUTO]

@@ -16,6 +16,7 @@ from diskf_mesh.core.errors import InputError
 from diskf_mesh.core.model import AutoOptions, RobustOptions
 from diskf_mesh.data import metrics
 from diskf_mesh.data.scenario import load_scenario, parse_scenario, simulate
+from diskf_mesh.data.trace import load_trace
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.estimators import NAMES
 from diskf_mesh.mesh.protocol.estimator import lockstep
@@ -63,7 +64,7 @@ def test_auto_matches_oracle_learning_the_noise():
     is 10 times what the sensors are told: the oracle learns each agent's
     scale in gain form on the sensor's own rows."""
     scn = heldout.scaled_R(load_scenario("quadrants").with_overrides(topology="ring", steps=40), 0.1)
-    scn = replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, noise=True)))
+    scn = scn.with_overrides(params=scn.params.with_setting("auto", noise=True))
     _, tr = heldout.Case("x", "x", scn, heldout.World(R=10.0)).simulate([0, 1])
     want = auto_oracle.run_auto(tr, scn.params.auto)
     est = engine.run(tr, "diskf-auto", scn.params)
@@ -88,7 +89,7 @@ def test_auto_agents_alone_equal_engine(neighbours, auto):
     bits; with ``noise_level`` too (the own measurement at each level is
     read from each agent's own message, not across the batch)."""
     scn = load_scenario("dynamic").with_overrides(steps=40)
-    scn = replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, **auto)))
+    scn = scn.with_overrides(params=scn.params.with_setting("auto", **auto))
     tr = simulate(scn, [0])
     ref = engine.run(tr, "diskf-auto", scn.params, neighbours=neighbours)
     for k, _, outs in lockstep(scn, "diskf-auto", tr):
@@ -155,8 +156,8 @@ def test_no_estimator_diverges(label):
 
 def test_round_off_on_an_axis_nobody_measures_does_not_stop_the_run():
     """Isolated constant-acceleration agents measuring x alone, a slow
-    ramp on both input channels, seed 38 as simulated in the batch of seeds
-    20-39 (its truth's round-off is the batch's): by tick 34 a bank
+    ramp on both input channels, the trace of seed 38 that stopped (saved:
+    its truth's round-off decides): by tick 34 a bank
     filter's variance on the unmeasured axes passes 10^9, and the
     information its agent published carries round-off of -2e-5 there. The
     joint update lost its Cholesky factor and the run stopped as diverged;
@@ -165,9 +166,7 @@ def test_round_off_on_an_axis_nobody_measures_does_not_stop_the_run():
     definite, and every agent alone (as in an agent process) computes the
     engine's bits."""
     case, = [c for c in heldout.cases() if c.label == "CA none, steps 0.01"]
-    tr = simulate(case.scenario, range(20, 40))  # its 200 ticks: a shorter horizon rounds the truth otherwise
-    tr = replace(tr, **{f: getattr(tr, f)[18:19, :40] for f in ("y", "has", "truth_x", "truth_d")},
-                 links=tr.links[:, :40], positions=tr.positions[:40], seeds=(38,))
+    tr = load_trace(Path(__file__).parent / "data" / "ca_round_off.json")  # ticks 1-40 of that truth
     est = engine.run(tr, "diskf-auto", case.scenario.params)
     assert np.isfinite(est.x).all() and np.isfinite(est.P).all()
     np.linalg.cholesky(est.P)
@@ -313,7 +312,7 @@ def test_oscillating_models_follow_a_sine_between_their_periods():
     auto = mae("diskf-auto", scn.params)
     others = {name: mae(name, scn.params) for name in NAMES if name != "diskf-auto"}
     others["diskf-auto without oscillating"] = mae(
-        "diskf-auto", replace(scn.params, auto=replace(scn.params.auto, oscillating=False)))
+        "diskf-auto", scn.params.with_setting("auto", oscillating=False))
     assert all(auto < 0.5 * v for v in others.values()), (auto, others)
 
 
@@ -447,11 +446,6 @@ def test_banks_per_channel_agents_alone_equal_engine():
             assert np.array_equal(outs[a.id].d[0, 0], ref.d[0, k - 1, j])
 
 
-def _at_level(scn, level: float):
-    """``scn`` with ``[estimator.auto] noise_level = level``."""
-    return replace(scn, params=replace(scn.params, auto=replace(scn.params.auto, noise_level=level)))
-
-
 def test_a_noise_level_in_the_bank_tells_noisy_sensors_from_an_input():
     """All-to-all, every sensor 10 times noisier than its R says, no input,
     seeds 0..3: with three of the bank's models also under 10 R at every
@@ -463,7 +457,7 @@ def test_a_noise_level_in_the_bank_tells_noisy_sensors_from_an_input():
     information published under the stated noise outweighing it."""
     case = next(c for c in heldout.selected(None) if c.label == "true R×10 S1 all, zero")
     scn, tr = case.simulate([0, 1, 2, 3], None)
-    err = {lv: np.mean(metrics.errors(tr, engine.run(tr, "diskf-auto", _at_level(scn, lv).params))[0])
+    err = {lv: np.mean(metrics.errors(tr, engine.run(tr, "diskf-auto", scn.params.with_setting("auto", noise_level=lv)))[0])
            for lv in (0.0, 10.0)}
     assert err[10.0] < 0.5 * err[0.0], err
 
@@ -476,7 +470,7 @@ def test_a_noise_level_runs_exact_on_the_simulated_network():
     bits."""
     case = next(c for c in heldout.selected(None) if c.label == "true R×10 S1 ring, step")
     scn, tr = case.simulate([0], 30)
-    run = simulate_run(_at_level(scn, 10.0), tr, "diskf-auto", 0)
+    run = simulate_run(scn.with_overrides(params=scn.params.with_setting("auto", noise_level=10.0)), tr, "diskf-auto", 0)
     assert run.status.status == "exact", run.status.reason
 
 

@@ -6,7 +6,6 @@ families where it is what wins (red with ``[estimator.auto] noise =
 false``), and a fast input's NEES it keeps near its own."""
 from __future__ import annotations
 
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -121,5 +120,5 @@ def learning_and_not(label):
     (case,) = [c for c in heldout.cases() if c.label == label]
     scn, tr = case.simulate(range(4), 200)
     seen = observed(tr)
-    learning = replace(scn.params, auto=replace(scn.params.auto, noise=True))
+    learning = scn.params.with_setting("auto", noise=True)
     return heldout.case_row(tr, "diskf-auto", learning, seen), heldout.case_row(tr, "diskf-auto", scn.params, seen)

@@ -18,7 +18,7 @@ May import: core.
 from __future__ import annotations
 
 import warnings
-from dataclasses import field, make_dataclass
+from dataclasses import field, make_dataclass, replace
 from importlib.metadata import entry_points
 
 from diskf_mesh.estimators.base import EXCHANGED, Estimator, Exchanged, Setting, State, check_exchanged
@@ -84,9 +84,15 @@ def _check(self) -> None:
         s.check(getattr(self, s.name))
 
 
+def _with_setting(self, name: str, **fields):
+    """These parameters with fields of the setting ``name`` (a table, such
+    as ``auto``) changed: ``params.with_setting("auto", noise_level=10.0)``."""
+    return replace(self, **{name: replace(getattr(self, name), **fields)})
+
+
 Params = make_dataclass(
     "Params", [(s.name, s.type | None if s.optional else s.type, field(default=s.default)) for s in SETTINGS.values()],
-    frozen=True, namespace={"__post_init__": _check, "__module__": __name__})
+    frozen=True, namespace={"__post_init__": _check, "with_setting": _with_setting, "__module__": __name__})
 Params.__doc__ = "The estimators' parameters (a scenario's [estimator] table), one field per Setting:\n\n" + "\n".join(
     f"    {s.name}: {s.doc} (default {s.default!r}; {', '.join(c.name for c in REGISTRY.values() if s in c.settings)})"
     for s in SETTINGS.values())

@@ -184,7 +184,7 @@ class DISKFAuto(Estimator):
         self.mu0 = im.initial_probabilities(self.a2, self.r)
         self.Pi = im.transition_matrix(len(self.bank), o.switch, self.mu0,
                                        im.hand_down(self.a1, self.a2, self.q, o.hand_down, self.r))
-        # each model's place in a message's w (the models at the stated noise; a level is the agent's own)
+        # each model's place in a message's w (the models at the stated noise; the models at a level are not sent)
         self.slots = np.array([im.BANK.index(name) for name, r in zip(self.bank, self.r) if r == 1.0])
         self.whole_bank = tuple(self.bank) == im.BANK
         self.relaying = np.flatnonzero((self.a2 == 0.0) & (self.a1 != 0.0))  # persistent first-order models
@@ -202,8 +202,9 @@ class DISKFAuto(Estimator):
 
     @classmethod
     def refuse(cls, params, model, sensors):
-        """``noise_level`` with a bank per input channel: the level is the
-        own sensor's, one question for every channel, which one bank asks."""
+        """``noise_level`` with a bank per input channel: the level is one
+        question for every sensor of the neighbourhood and every channel,
+        which one bank asks."""
         o = params.auto
         if o.noise_level and o.per_channel and model.m > 1:
             return "estimator.auto.noise_level", (f"needs one bank: {model.m} input channels have one each "

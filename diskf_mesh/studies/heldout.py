@@ -570,8 +570,7 @@ def with_noise_level(case: Case, level: float) -> Case:
     scn = case.scenario
     if not level or scn.G.shape[1] > 1:
         return case
-    return replace(case, scenario=replace(scn, params=replace(scn.params, auto=replace(scn.params.auto,
-                                                                                       noise_level=level))))
+    return replace(case, scenario=scn.with_overrides(params=scn.params.with_setting("auto", noise_level=level)))
 
 
 def _case_job(job: tuple) -> dict:
