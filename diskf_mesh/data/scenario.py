@@ -544,7 +544,9 @@ def links_for(scn: Scenario, positions: np.ndarray) -> np.ndarray:
 def simulate(scn: Scenario, seeds, steps: int | None = None) -> Trace:
     """Ground truth, measurements and links for every seed: a ``Trace`` with
     a leading seed axis. Seed s draws its process and measurement noise from
-    ``numpy.random.default_rng(s)``."""
+    ``numpy.random.default_rng(s)``, and each seed's products are its own
+    (BLAS rounds a stack of rows otherwise than one row), so a seed's trace
+    is the same bits whichever seeds are simulated beside it."""
     K = int(steps or scn.steps)
     scn.check_size(len(seeds) if isinstance(seeds, (list, tuple, range)) else int(np.size(seeds)), K)
     seeds = tuple(int(s) for s in np.atleast_1d(seeds))
@@ -562,13 +564,16 @@ def simulate(scn: Scenario, seeds, steps: int | None = None) -> Trace:
         V[b] = np.einsum("iab,kib->kia", Lr, rng.standard_normal((K, N, pmax)))
     d = np.stack([scn.inputs(K, s) for s in seeds])  # (B, K, m)
     x = np.empty((B, K, n))
-    prev = np.broadcast_to(model.x0, (B, n))
-    for k in range(1, K + 1):
-        prev = prev @ model.A_at(k).T + d[:, k - 1] @ model.G.T + W[:, k - 1]
-        x[:, k - 1] = prev
+    y = np.empty((B, K, N, pmax))
+    A = [model.A_at(k) for k in range(1, K + 1)]
+    for b in range(B):
+        prev = model.x0[None]
+        for k in range(K):
+            prev = prev @ A[k].T + d[b:b + 1, k] @ model.G.T + W[b:b + 1, k]
+            x[b, k] = prev[0]
+        y[b] = np.einsum("ipn,bkn->bkip", sensors.H, x[b:b + 1])[0] + V[b]
     positions = scn.positions(K)
     has = sensing(scn, x[..., list(scn.position_dims)], positions)
-    y = np.einsum("ipn,bkn->bkip", sensors.H, x) + V
     valid_rows = np.arange(pmax)[None, :] < sensors.p[:, None]  # (N, p)
     y = np.where(valid_rows & has[..., None], y, 0.0)
     links = links_for(scn, positions)[None]
