@@ -4,6 +4,7 @@ and its targets' arithmetic (the full suite is a script:
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -79,6 +80,16 @@ def test_targets_arithmetic():
     assert (t["family_within_1pct"], t["auto_within_10pct"], t["auto_nees_in_band"]) == (1, 1, 2)
     assert t["misses"]["family"] == ["b"] and t["misses"]["auto"] == ["b"]
     assert (t["lost_runs"], t["misses"]["lost"]) == (0, [])
+    assert (t["auto_diverged"], t["misses"]["diverged"]) == (0, [])
+    # a diskf-auto run that diverged misses both of its targets, by name, and is counted
+    results.append(dict(case="c", n=2, rows={"diskf": row(1.0), "diskf-auto": dict(row(math.nan), diverged=True),
+                                             "kcf": row(1.0)}))
+    t = heldout.targets(results, 20)
+    assert (t["auto_within_10pct"], t["auto_nees_in_band"], t["auto_nees_cases"]) == (1, 2, 3)
+    assert t["misses"]["auto"] == ["b", "c"] and t["misses"]["nees"] == ["c"]
+    assert (t["auto_diverged"], t["diverged_runs"], t["misses"]["diverged"]) == (1, 1, ["c: diskf-auto"])
+    assert "| runs of `diskf-auto` whose covariance diverged (0) | 1 |" in heldout.markdown(
+        dict(seeds=20, steps=None, results=results, targets=t))
 
 
 def test_error_ratio_is_the_largest_error_over_the_targets_reach(monkeypatch):
