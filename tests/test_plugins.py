@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from diskf_mesh import estimators
+from diskf_mesh.core.model import AutoOptions
 from diskf_mesh.engine.batch import Estimates
 from diskf_mesh.estimators.base import Estimator, Setting
 from diskf_mesh.estimators.diskf import WINDOW
@@ -138,3 +139,14 @@ def test_register_refuses_what_would_be_ambiguous():
         estimators.register(type("Bad", (_Named,), {"name": "x-bad", "settings": (Setting("w", -1, "", low=0),)}),
                             reg, settings)
     assert "x-test" not in estimators.REGISTRY  # copies: the process's registry is unchanged
+
+
+def test_one_tables_fields_changed_the_rest_kept():
+    """``Params.with_setting``: the named fields of one table changed, every
+    other field and table as it was, and the settings' checks run."""
+    base = estimators.Params(window=3, auto=AutoOptions(hand_down=0.01))
+    p = base.with_setting("auto", noise_level=10.0, switch=0.01)
+    assert (p.auto.noise_level, p.auto.switch, p.auto.hand_down) == (10.0, 0.01, 0.01)
+    assert p.window == 3 and p.robust == base.robust and base.auto.noise_level == 0.0
+    with pytest.raises(ValueError, match="noise_level"):
+        base.with_setting("auto", noise_level=1.0)
