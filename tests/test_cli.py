@@ -20,6 +20,8 @@ from cli_helpers import run_cli, simulated_doc, write
 from diskf_mesh.cli import main as cli
 from diskf_mesh import estimators as algorithms
 from diskf_mesh.data.metrics import METRIC_KEYS
+from diskf_mesh.data.scenario import load_scenario
+from diskf_mesh.studies import experiment
 
 DOC = simulated_doc()
 
@@ -225,6 +227,24 @@ def test_experiment_subset_and_range(tmp_path, capsys):
     results = json.loads(out_path.read_text())
     assert list(results) == ["diskf", "kcf", "provenance"]
     assert list(results["diskf"]) == ["none", "range=250"]
+
+
+def test_experiment_from_a_first_seed(tmp_path, capsys):
+    """``--first-seed 3 --seeds 2`` runs seeds 3 and 4: its provenance and
+    header name them, and its rows are ``run_experiment``'s on them, not
+    those of seeds 0 and 1."""
+    rows = {}
+    for first in (0, 3):
+        out_path = tmp_path / f"from{first}.json"
+        code, out, _ = run_cli(["experiment", "--estimators", "diskf-auto", "--topology", "ring", "--seeds", "2",
+                                "--first-seed", str(first), "--ticks", "30", "--json", out_path], capsys)
+        assert code == 0
+        rows[first] = json.loads(out_path.read_text())
+    assert rows[3]["provenance"]["seeds"] == [3, 4] and "2 seeds (3..4) x 30 ticks" in out
+    scn = load_scenario("quadrants")
+    want = experiment.run_experiment(scn, experiment.settings_for(["ring"], None), ["diskf-auto"], range(3, 5), 30)
+    assert rows[3]["diskf-auto"]["ring"]["mae_state"] == want["diskf-auto"]["ring"]["mae_state"]
+    assert rows[3]["diskf-auto"]["ring"]["mae_state"] != rows[0]["diskf-auto"]["ring"]["mae_state"]
 
 
 def test_replay_writes_estimates(tmp_path, capsys):

@@ -1,6 +1,8 @@
 """``diskf-mesh experiment``: the paper's Table II on a scenario.
 
-Runs every estimator on seeds 0..S-1 for every topology (default: a
+Runs every estimator on seeds 0..S-1 (or F..F+S-1 with ``--first-seed F``;
+a seed's figures are the same bits whichever seeds run beside it) for every
+topology (default: a
 range-gated scenario's own range, e.g. dynamic at 120, as up and simulate
 run it; any other scenario on the paper's all, ring, none), prints a table
 shaped like Table II and optionally writes the numbers as JSON
@@ -27,6 +29,7 @@ from diskf_mesh.cli.options import (
     human_stream,
     positive_int,
     save_json,
+    seed_value,
 )
 from diskf_mesh.cli.progress import Progress
 
@@ -60,6 +63,9 @@ def register(subparsers) -> None:
                         "or the scenario is range-gated, e.g. dynamic at its own range; else all,ring,none)")
     add_estimator_choice(p, many=True)
     p.add_argument("--seeds", type=positive_int, default=20, metavar="S", help="run seeds 0..S-1 (default 20)")
+    p.add_argument("--first-seed", type=seed_value, default=0, metavar="F",
+                   help="run seeds F..F+S-1 instead: a seed's figures are the same whichever seeds run beside it "
+                        "(default 0)")
     add_estimator_options(p)
     lies.add_arguments(p)
     p.add_argument("--json", metavar="OUT", help="also write the results as JSON (- for standard output)")
@@ -78,21 +84,23 @@ def run(args: argparse.Namespace) -> int:
     for st in settings:  # fail on a bad override before the long run
         st.apply(scn, args.ticks)
     runs = len(settings) * len(args.estimators)
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
     with Progress("experiment", args.quiet, total=runs, unit="run") as shown:
         shown.note(f"{runs} runs ({len(args.estimators)} estimators x {len(settings)} settings), "
                    f"{args.seeds} seeds x {args.ticks or scn.steps} ticks each")
         results = experiment.run_experiment(
-            scn, settings, args.estimators, range(args.seeds), args.ticks, params,
+            scn, settings, args.estimators, seeds, args.ticks, params,
             progress=lambda n: shown.step(f"runs of {args.seeds} seeds", n=n),
             ticks=lambda name, k: shown.status(f"{experiment.LABELS.get(name, name)}: tick {k} done",
                                                STATUS_EVERY_S))
     steps = args.ticks or scn.steps
     if args.json:
-        prov = provenance.record(scenario=scn, seeds=range(args.seeds), ticks=steps, estimator=args.estimators,
+        prov = provenance.record(scenario=scn, seeds=seeds, ticks=steps, estimator=args.estimators,
                                  settings=params, faults=scn.faults, status="done", started=started, argv=args.argv)
         save_json(args.json, provenance.attach(results, prov), "json")
     text = human_stream(args.json)
-    print(f"Scenario {scn.name}: {args.seeds} seeds x {steps} ticks, {scn.N} agents"
+    named = f" ({seeds.start}..{seeds.stop - 1})" if seeds.start else ""
+    print(f"Scenario {scn.name}: {args.seeds} seeds{named} x {steps} ticks, {scn.N} agents"
           + ("; * marks the best value of each row" if len(args.estimators) > 1 else ""), file=text)
     print(experiment.format_table(results), file=text)
     for name, rows in results.items():
