@@ -82,8 +82,10 @@ def test_auto_matches_oracle_isolated_shipped():
 
 
 @pytest.mark.parametrize("neighbours,auto", [("dense", {}), ("gather", {}), ("dense", {"noise": True}),
-                                             ("gather", {"noise": True}), ("dense", {"noise_level": 10.0})],
-                         ids=["dense", "gather", "dense, noise", "gather, noise", "dense, noise_level"])
+                                             ("gather", {"noise": True}), ("dense", {"noise_level": 10.0}),
+                                             ("gather", {"evidence_dof": 4.0})],
+                         ids=["dense", "gather", "dense, noise", "gather, noise", "dense, noise_level",
+                              "gather, evidence_dof"])
 def test_auto_agents_alone_equal_engine(neighbours, auto):
     """Every agent a batch of one (as in an agent process): the engine's
     bits; with ``noise_level`` too (the own measurement at each level is
@@ -265,10 +267,10 @@ def test_a_silent_neighbourhood_is_neither_updated_nor_weighed(monkeypatch):
     seen = []
     measure = diskf_auto.measure
 
-    def keep(*args):
+    def keep(*args, **kw):
         if not args[-1].all() and args[-1].any() and not seen:
             seen.append(args)
-        return measure(*args)
+        return measure(*args, **kw)
 
     monkeypatch.setattr(diskf_auto, "measure", keep)
     scn = load_scenario("dynamic").with_overrides(comm_range=120, steps=30)
@@ -496,3 +498,50 @@ def test_a_noise_level_setting():
     assert bank[0][4:] == ("none x10", "walk lo x10", "walk mid x10")
     np.testing.assert_array_equal(bank[4], [1, 1, 1, 1, 10, 10, 10])
     np.testing.assert_allclose(im.initial_probabilities(bank[2], bank[4]), [0.2, 0.2, 0.2, 0.2] + [0.2 / 3] * 3)
+
+
+def test_a_students_evidence_keeps_bursts_from_reading_as_an_input():
+    """All-to-all, no input, every sensor in bursts 30 times noisier than
+    its R for 10 ticks (about one in 50 per agent), seeds 0..3: with the
+    models' evidence read as a Student-t of 4 degrees of freedom
+    (``evidence_dof``) a burst moves the model probabilities by the log of
+    its innovations' size, not by its square, and the state MAE is under
+    0.8 of the Gaussian evidence's (2.50 against 3.46), which takes the
+    bursts for an input."""
+    case = next(c for c in heldout.selected(None) if c.label == "bursts S1 all, zero")
+    scn, tr = case.simulate([0, 1, 2, 3], None)
+    err = {nu: np.mean(metrics.errors(tr, engine.run(tr, "diskf-auto", scn.params.with_setting("auto", evidence_dof=nu)))[0])
+           for nu in (0.0, 4.0)}
+    assert err[4.0] < 0.8 * err[0.0], err
+
+
+def test_a_students_evidence_by_hand():
+    """``information_loglik`` with ``heavy``: -(nu + k)/2 log(1 + E/nu) -
+    log det(H P H^T + R)/2 up to a constant, E the innovation's
+    Mahalanobis energy, for two priors of one 2-row measurement (the
+    constant cancels in their difference)."""
+    rng = np.random.default_rng(5)
+    H, R, y = rng.normal(size=(2, 3)), np.diag([0.5, 2.0]), rng.normal(size=2)
+    Ri = np.linalg.inv(R)
+    U, u = H.T @ Ri @ H, H.T @ Ri @ y
+    out = []
+    for x, P in ((rng.normal(size=3), np.eye(3)), (rng.normal(size=3), np.diag([3.0, 1.0, 0.2]))):
+        S = H @ P @ H.T + R
+        e = y - H @ x
+        E = e @ np.linalg.solve(S, e)
+        want = -0.5 * (4.0 + 2) * np.log1p(E / 4.0) - 0.5 * np.linalg.slogdet(S)[1]
+        Y = np.linalg.inv(P)
+        got = im.information_loglik(x, P, Y, np.linalg.inv(Y + U), U, u, (y @ Ri @ y, 2.0, 4.0))
+        out.append((want, got))
+    (w0, g0), (w1, g1) = out
+    assert g1 - g0 == pytest.approx(w1 - w0, rel=1e-9)
+    E_y, k = im.information_energy(U, u)
+    assert (E_y, k) == (pytest.approx(y @ Ri @ y, rel=1e-9), 2.0)
+
+
+def test_a_students_evidence_setting():
+    assert AutoOptions(evidence_dof=4).evidence_dof == 4
+    for bad in ({"evidence_dof": -1.0}, {"evidence_dof": float("inf")}, {"evidence_dof": True},
+                {"evidence_dof": 4.0, "noise_level": 10.0}):
+        with pytest.raises(ValueError, match="auto.evidence_dof"):
+            AutoOptions(**bad)

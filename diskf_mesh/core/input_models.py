@@ -117,7 +117,7 @@ def information_energy(U, u, rtol: float = 1e-9):
     return E, np.sum(kept, axis=-1).astype(float)
 
 
-def information_loglik(x, P, Y, Ji, U, u):
+def information_loglik(x, P, Y, Ji, U, u, heavy=None):
     """The log-likelihood of the neighbourhood's measurement given the prior
     N(x, P), up to a term the same for every prior (for the model weights
     of ``diskf-auto``), from the measurement information alone:
@@ -131,6 +131,17 @@ def information_loglik(x, P, Y, Ji, U, u):
     log det R. No H, R or y is needed, only U = H^T R^-1 H and
     u = H^T R^-1 y; 0 where nothing is measured (U = 0, u = 0).
     ``Y`` = P^-1 and ``Ji`` = (P^-1 + U)^-1 (``equations.information_pair``).
+
+    ``heavy`` = (E_y, k, nu): the Student-t of nu degrees of freedom with
+    the same scale instead, E_y = y^T R^-1 y and k the measurement's
+    energy and rank (``information_energy``, summed over the senders):
+
+        log t(y; H x, H P H^T + R, nu) = c(k, nu) - (nu + k)/2 log(1 + E / nu)
+                                         - log det(I + P U) / 2,
+        E = E_y - (2 x^T u - x^T U x + g^T (P^-1 + U)^-1 g)
+
+    E the innovation's Mahalanobis energy; c(k, nu) collects log det R
+    and the gamma functions, the same for every prior.
     """
     Ux = mv(U, x)
     g = u - Ux
@@ -141,7 +152,11 @@ def information_loglik(x, P, Y, Ji, U, u):
     else:
         logdet_Y, logdet_Ji = np.linalg.slogdet(Y)[1], np.linalg.slogdet(Ji)[1]
     logdet = -(logdet_Y + logdet_Ji)
-    return 0.5 * (quad - logdet)
+    if heavy is None:
+        return 0.5 * (quad - logdet)
+    energy, rank, nu = heavy
+    E = np.maximum(energy - quad, 0.0)  # >= 0 but for round-off
+    return -0.5 * ((nu + rank) * np.log1p(E / nu) + logdet)
 
 
 def _dot(a, b):

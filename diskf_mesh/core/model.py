@@ -198,6 +198,12 @@ class AutoOptions:
                at every sensor of the neighbourhood
                (``input_models.at_noise_level``; 0: not; one bank only: m = 1
                or per_channel off)
+    evidence_dof: the models' evidence of a tick read as a Student-t of
+               evidence_dof degrees of freedom instead of a Gaussian
+               (``input_models.information_loglik``): an innovation far
+               beyond every model's spread (a burst, a sensor noisier than
+               its R) moves the probabilities by the log of its size, not
+               its square (0: Gaussian; not with noise_level)
     noise:     each agent learns the scale of its own measurement noise,
                above or below the stated R (``core.noise``), and weighs its
                measurement by it (off by default: with poor sensors and no
@@ -214,6 +220,7 @@ class AutoOptions:
     noise: bool = False
     per_channel: bool = True
     noise_level: float = 0.0
+    evidence_dof: float = 0.0
 
     def __post_init__(self):
         if not (self.none or self.walk or self.zero_mean or self.oscillating):
@@ -228,3 +235,7 @@ class AutoOptions:
                              f"got {self.noise_level!r}")
         if self.noise_level and self.noise:
             raise ValueError("auto.noise_level: give either noise_level or noise = true, not both")
+        if isinstance(self.evidence_dof, bool) or not np.isfinite(self.evidence_dof) or self.evidence_dof < 0:
+            raise ValueError(f"auto.evidence_dof: must be 0 (Gaussian) or a positive number, got {self.evidence_dof!r}")
+        if self.evidence_dof and self.noise_level:
+            raise ValueError("auto.evidence_dof: give either evidence_dof or noise_level, not both")

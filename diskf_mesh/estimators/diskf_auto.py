@@ -198,6 +198,7 @@ class DISKFAuto(Estimator):
         self.G_pair = np.concatenate([model.G, np.zeros_like(model.G)], axis=-1)
         self.learn = o.noise
         self.levels = bool(o.noise_level)
+        self.dof = float(o.evidence_dof)  # 0: Gaussian evidence
         self.median = chi2_median(sensors.p)  # (N,) m_p of (NL1)
 
     @classmethod
@@ -280,8 +281,9 @@ class DISKFAuto(Estimator):
             U, u, level_ll = self._at_levels(dY, dy, nb, U, u)
             x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=True)
             loglik = loglik + np.where(informed[..., None], level_ll, 0.0)
-        else:
-            x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed)
+        else:  # with evidence_dof, a Student-t's evidence from the senders' measurement energies
+            heavy = None if not self.dof else (*self._energies(dY, dy, nb), self.dof)
+            x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed, heavy=heavy)
         mu = im.update_probabilities(c, loglik.reshape(c.shape), FLOOR)
         if self.banks > 1:
             mu = im.follow_informed(mu, loglik.reshape(c.shape), BLIND)
@@ -323,10 +325,17 @@ class DISKFAuto(Estimator):
         model's log-likelihood its level adds to ``information_loglik``'s,
         -E / (2 r_j) - k log(r_j) / 2, E and k the senders' measurement
         energies and ranks summed (``input_models.information_energy``)."""
-        energy, rank = im.information_energy(dY, dy)
-        E, k = (nbr_sum(nb.adj, a[..., None], 1)[..., 0] for a in (energy, rank))
+        E, k = self._energies(dY, dy, nb)
         return (U[..., None, :, :] / self.r[:, None, None], u[..., None, :] / self.r[:, None],
                 -0.5 * E[..., None] / self.r - 0.5 * k[..., None] * np.log(self.r))
+
+    @staticmethod
+    def _energies(dY, dy, nb):
+        """(E, k) of every receiver: its senders' measurement energies
+        y^T R^-1 y and ranks (``input_models.information_energy``) summed
+        over its neighbourhood, (...,) each."""
+        energy, rank = im.information_energy(dY, dy)
+        return tuple(nbr_sum(nb.adj, a[..., None], 1)[..., 0] for a in (energy, rank))
 
     def _banked(self, z, Z):
         """The filters' joints (..., B M, ...) as (..., B, M, ...)."""
@@ -412,15 +421,16 @@ def _reorder(parts, order):
     return v, Pv, e[..., order], S[..., order, :][..., order], B[..., order]
 
 
-def measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=False):
+def measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=False, heavy=None):
     """Step 4 on the agents whose neighbourhood measured (``informed``): each
     model's joint Kalman update of (x, e) by the neighbourhood's information
     (U, u) and its log-likelihood (``information_loglik``). Where nothing
     was measured the update is the prediction, bit for bit, and the
     log-likelihood 0 (no evidence for any model), so those agents' rows are
     neither computed nor rounded. ``per_model``: U (..., M, n, n) and u
-    (..., M, n) each model's own (``noise_level``). Returns (x, P, e, C, S,
-    loglik)."""
+    (..., M, n) each model's own (``noise_level``). ``heavy`` = (E, k, nu):
+    a Student-t's evidence (``information_loglik``), E and k (...,) per
+    agent. Returns (x, P, e, C, S, loglik)."""
     blank = np.zeros(x_s.shape[:-1])
     if not informed.any():
         return x_s, P_s, e1, C_s, S1, blank
@@ -431,7 +441,12 @@ def measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=False):
     if not per_model:
         U_m, u_m = U_m[..., None, :, :], u_m[..., None, :]
     Y, Ji, U_m = eq.information_pair_psd(Ps, U_m)
-    loglik = im.information_loglik(xs, Ps, Y, Ji, U_m, u_m)
+    if heavy is not None:
+        E, k, nu = heavy
+        if not every:
+            E, k = E[informed], k[informed]
+        heavy = (E[..., None], k[..., None], nu)  # the same for every model
+    loglik = im.information_loglik(xs, Ps, Y, Ji, U_m, u_m, heavy)
     x_k, P_k = eq.local_update(xs, Ps, Y, Ji, u_m)
     post = (x_k, P_k) + eq.replace_marginal(xs, Ps, e, C, S, x_k, P_k) + (loglik,)
     if every:

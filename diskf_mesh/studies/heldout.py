@@ -539,14 +539,14 @@ def selected(select=None) -> list[Case]:
 
 
 def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True, bank=False,
-        first: int = 0, jobs: int = 1, noise_level: float = 0.0) -> dict:
+        first: int = 0, jobs: int = 1, noise_level: float = 0.0, evidence_dof: float = 0.0) -> dict:
     """The whole suite (or the cases ``selected(select)``) on seeds
     ``first`` .. ``first + seeds - 1``; ``names``: only these estimators;
     ``bank``: each result also holds ``run_bank``'s ``bank``; ``jobs``:
     the cases in that many processes (the same rows, in the same order);
-    ``noise_level``: ``at_noise_level``'s, set on every case of one input
-    channel (``with_noise_level``)."""
-    all_cases = [with_noise_level(c, noise_level) for c in selected(select)]
+    ``noise_level``, ``evidence_dof``: ``[estimator.auto]``'s, set on every
+    case (``with_auto``; 0: as the case has it)."""
+    all_cases = [with_auto(c, noise_level=noise_level, evidence_dof=evidence_dof) for c in selected(select)]
     t0 = time.monotonic()
     work = [(c, seeds, steps, names, first, bank) for c in all_cases]
 
@@ -571,14 +571,15 @@ def run(seeds: int = 20, steps: int | None = None, names=None, select=None, prog
     return document(results, seeds, steps, first)
 
 
-def with_noise_level(case: Case, level: float) -> Case:
-    """``case`` with ``[estimator.auto] noise_level`` set to ``level`` where
-    it has one input channel (the level needs one bank); itself where the
-    level is 0 or it has more."""
+def with_auto(case: Case, **fields) -> Case:
+    """``case`` with the ``[estimator.auto]`` fields given and not 0 set;
+    ``noise_level`` only where it has one input channel (the level needs
+    one bank)."""
     scn = case.scenario
-    if not level or scn.G.shape[1] > 1:
+    fields = {k: v for k, v in fields.items() if v and not (k == "noise_level" and scn.G.shape[1] > 1)}
+    if not fields:
         return case
-    return replace(case, scenario=scn.with_overrides(params=scn.params.with_setting("auto", noise_level=level)))
+    return replace(case, scenario=scn.with_overrides(params=scn.params.with_setting("auto", **fields)))
 
 
 def _case_job(job: tuple) -> dict:
@@ -819,6 +820,8 @@ def main(argv=None) -> int:
                          "than 10 %%, the best of them")
     ap.add_argument("--noise-level", type=float, default=0.0, metavar="X",
                     help="run diskf-auto with [estimator.auto] noise_level = X on every case of one input channel")
+    ap.add_argument("--evidence-dof", type=float, default=0.0, metavar="NU",
+                    help="run diskf-auto with [estimator.auto] evidence_dof = NU (a Student-t's evidence) on every case")
     ap.add_argument("--by-silence", metavar="CASE", default=None,
                     help="only this case (its label): the state MAE of diskf-auto and of each bank model alone, by "
                          "ticks since the agent's own last measurement")
@@ -864,14 +867,14 @@ def main(argv=None) -> int:
         return 0
     if a.figure:
         choice_figure(a.figure)
-    if a.noise_level:
-        try:
-            AutoOptions(noise_level=a.noise_level)
-        except ValueError as e:
-            print(f"error: --noise-level: {str(e).partition(': ')[2]}", file=sys.stderr)
-            return 2
+    try:
+        AutoOptions(noise_level=a.noise_level, evidence_dof=a.evidence_dof)
+    except ValueError as e:  # "auto.<field>: <message>": named by its flag
+        field, _, msg = str(e).partition(": ")
+        print(f"error: --{field.rpartition('.')[2].replace('_', '-')}: {msg}", file=sys.stderr)
+        return 2
     doc = run(a.seeds, a.ticks, names=names, select=a.select, bank=a.bank, first=a.first_seed, jobs=a.jobs,
-              noise_level=a.noise_level)
+              noise_level=a.noise_level, evidence_dof=a.evidence_dof)
     if old is not None:
         doc = merge(doc, old)
     if a.json:
