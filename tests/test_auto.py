@@ -457,11 +457,17 @@ def test_a_noise_level_in_the_bank_tells_noisy_sensors_from_an_input():
     the measurements' energy (``information_energy``); a level for the own
     sensor alone stays near the bank's error here, the neighbours'
     information published under the stated noise outweighing it."""
-    case = next(c for c in heldout.selected(None) if c.label == "true R×10 S1 all, zero")
-    scn, tr = case.simulate([0, 1, 2, 3], None)
-    err = {lv: np.mean(metrics.errors(tr, engine.run(tr, "diskf-auto", scn.params.with_setting("auto", noise_level=lv)))[0])
-           for lv in (0.0, 10.0)}
+    err = _state_mae("true R×10 S1 all, zero", "noise_level", (0.0, 10.0))
     assert err[10.0] < 0.5 * err[0.0], err
+
+
+def _state_mae(label: str, field: str, values) -> dict:
+    """{value: diskf-auto's state MAE} on seeds 0..3 of the held-out case
+    ``label`` with ``[estimator.auto] field`` at each value."""
+    case = next(c for c in heldout.selected(None) if c.label == label)
+    scn, tr = case.simulate([0, 1, 2, 3], None)
+    return {v: np.mean(metrics.errors(tr, engine.run(tr, "diskf-auto", scn.params.with_setting("auto", **{field: v})))[0])
+            for v in values}
 
 
 def test_a_noise_level_runs_exact_on_the_simulated_network():
@@ -508,10 +514,7 @@ def test_a_students_evidence_keeps_bursts_from_reading_as_an_input():
     its innovations' size, not by its square, and the state MAE is under
     0.8 of the Gaussian evidence's (2.50 against 3.46), which takes the
     bursts for an input."""
-    case = next(c for c in heldout.selected(None) if c.label == "bursts S1 all, zero")
-    scn, tr = case.simulate([0, 1, 2, 3], None)
-    err = {nu: np.mean(metrics.errors(tr, engine.run(tr, "diskf-auto", scn.params.with_setting("auto", evidence_dof=nu)))[0])
-           for nu in (0.0, 4.0)}
+    err = _state_mae("bursts S1 all, zero", "evidence_dof", (0.0, 4.0))
     assert err[4.0] < 0.8 * err[0.0], err
 
 
