@@ -34,7 +34,9 @@ def lockstep_both(scn, trace, name, steps, start=None):
     """Every agent twice, alone and together, tick by tick over ``trace``:
     yields (alone's outputs, together's outputs) per tick, with each
     receiver fusing the message objects it received (one object per
-    sender, shared by its receivers, as the simulated network decodes it)."""
+    sender, shared by its receivers, as the simulated network decodes it;
+    every third receiver's also holding its own, which it fuses as its
+    own, not as received)."""
     ids = list(scn.ids)
     est = estimators.get(name)
     alone = {i: AgentEstimator(scn, i, est, K, SEED, start=start) for i in ids}
@@ -47,7 +49,7 @@ def lockstep_both(scn, trace, name, steps, start=None):
         for i in ids:
             assert _fields(own_a[i]) == _fields(own_t[i]), (name, k, i)
         sent = {i: own_t[i].take((0, 0)) for i in ids}
-        heard = {i: {o: sent[o] for jj, o in enumerate(ids) if trace.links[0, k - 1, j, jj] and o != i}
+        heard = {i: {o: sent[o] for jj, o in enumerate(ids) if trace.links[0, k - 1, j, jj] and (o != i or j % 3 == 0)}
                  for j, i in enumerate(ids)}
         outs_a = [alone[i].fuse(k, own_a[i], heard[i]) for i in ids]
         outs_t = steps.carry_out([Work(together[i], "fuse", (k, own_t[i], heard[i])) for i in ids])

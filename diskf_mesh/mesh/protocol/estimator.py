@@ -211,21 +211,27 @@ class Steps:
         ests = [w.est for w in batch]
         B, k = len(batch), batch[0].args[0]
         scn = ests[0].scenario
-        column = {}   # id of a received message -> its column
-        rows, places, cells = [], [], []  # each column's fields and sender's place; (receiver, column) fused
-        owns = []
-        for b, w in enumerate(batch):
-            e, own, received = w.est, w.args[1], w.args[2]
-            owns.append(own)
-            for j, msg in received.items():
-                if j == e.agent_id:
-                    continue
-                c = column.get(id(msg))
-                if c is None:
-                    c = column[id(msg)] = len(rows)
-                    rows.append(_row(msg))
-                    places.append(scn.index(j))
-                cells.append((b, c))
+        owns = [w.args[1] for w in batch]
+        # every (receiver, received message) pair but a receiver's own: one column per message object, in
+        # the order first received, at its sender's place (arrays, not a Python step per delivery)
+        senders, msgs, counts = [], [], []
+        for w in batch:
+            received = w.args[2]
+            senders += received
+            msgs += received.values()
+            counts.append(len(received))
+        at = np.fromiter(map(scn.places.__getitem__, senders), dtype=np.intp, count=len(senders))
+        recv = np.repeat(np.arange(B), counts)
+        keep = np.flatnonzero(at != np.array([e.index for e in ests], dtype=np.intp)[recv])
+        objects = np.fromiter(map(id, msgs), dtype=np.int64, count=len(msgs))[keep]
+        _, first, inverse = np.unique(objects, return_index=True, return_inverse=True)
+        by_first = np.argsort(first, kind="stable")
+        rank = np.empty_like(by_first)
+        rank[by_first] = np.arange(len(by_first))
+        heads = keep[first[by_first]]
+        rows = [_row(msgs[i]) for i in heads.tolist()]
+        places = at[heads].tolist()
+        cells = (recv[keep], rank[inverse.reshape(-1)])
         own_cols = []
         for b, e in enumerate(ests):  # each receiver's own message, as it fuses it (not as sent)
             own_cols.append(len(rows))
@@ -234,15 +240,14 @@ class Steps:
         order = np.argsort(np.array(places), kind="stable")  # scenario order, as each agent alone
         where = np.empty(len(order), dtype=np.intp)
         where[order] = np.arange(len(order))
-        columns = list(zip(*(rows[c] for c in order.tolist())))
-        senders = Message(*(np.array([c]) for c in columns))
+        columns = [np.array([c]) for c in zip(*(rows[c] for c in order.tolist()))]
         if not all(np.isfinite(a).all() for a in columns):
             raise _NotFinite
+        senders = Message(*columns)
         S = len(order)
         adj, self_mask = np.zeros((1, B, S)), np.zeros((1, B, S), dtype=bool)
-        if cells:
-            r, c = np.array(cells).T
-            adj[0, r, where[c]] = 1.0
+        if len(cells[0]):
+            adj[0, cells[0], where[cells[1]]] = 1.0
         mine = where[np.array(own_cols)]
         adj[0, np.arange(B), mine] = 1.0
         self_mask[0, np.arange(B), mine] = True
