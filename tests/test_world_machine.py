@@ -357,3 +357,24 @@ def test_a_flood_of_start_queries_keeps_one_owed_and_one_start_per_answer(run):
     for qid in range(1001, 1101):  # answered at once, kept once
         w.handle(Query(qid, keys.start(a), wire.encode_join(RUN, a, 3)), 3.0)
     assert len(w.record.starts) == 1 and w.record.starts[0].tick == 3
+
+
+@pytest.mark.parametrize("sparse", [True, False])
+def test_a_report_naming_an_agent_not_in_the_run_is_recorded_without_it(sparse):
+    """A report's fused list with an id the run does not have: the record
+    holds the known senders, each with its own digest, and nothing of the
+    unknown one."""
+    from diskf_mesh.mesh.protocol.reports import RunReports
+
+    rec = RunReports(**RunReports.empty(2, 3, 4, 2, sparse=sparse))
+    index = {10: 0, 11: 1, 12: 2}
+    rec.note_fused(1, 0, (11, 99, 12), ((98, "late"), (12, "stale")), (b"a" * 8, b"b" * 8, b"c" * 8), index)
+    assert np.asarray(rec.fused[0])[0].tolist() == [False, True, True]
+    senders, digests = rec.claimed_digests()[(1, 0)]
+    assert senders.tolist() == [1, 2]
+    assert digests.tolist() == wire_values([b"a" * 8, b"c" * 8])
+    assert rec.verdicts[(1, 0)] == ((2, "stale"),)
+
+
+def wire_values(gs):
+    return [int.from_bytes(g, "little") for g in gs]

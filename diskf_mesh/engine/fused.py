@@ -37,7 +37,14 @@ def digest_value(digest: bytes) -> int:
 
 def digest_values(digests) -> np.ndarray:
     """Several 8-byte digests as a (J,) uint64 array."""
+    if not isinstance(digests, (list, tuple)):
+        digests = list(digests)
+    if set(map(len, digests)) <= _EIGHT:  # each 8 bytes already (a report's): joined as they are
+        return np.frombuffer(b"".join(digests), dtype="<u8").astype(np.uint64)
     return np.frombuffer(b"".join(bytes(g)[:8] for g in digests), dtype="<u8").astype(np.uint64)
+
+
+_EIGHT = frozenset((8,))
 
 
 class FusedSets:

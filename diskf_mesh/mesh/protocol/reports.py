@@ -44,11 +44,14 @@ class RunReports:
         ``index`` maps an id to its place on the agent axis, unknown ids are
         skipped), why the others were not, and the digests of what it fused
         (one per sender of ``fused``, or none)."""
-        at = [(n, index[s]) for n, s in enumerate(fused) if s in index]
-        senders = [j for _, j in at]
+        senders = list(map(index.get, fused))
+        if None in senders:  # unknown ids skipped, with their digests
+            kept = [n for n, j in enumerate(senders) if j is not None]
+            senders = [senders[n] for n in kept]
+            digests = [digests[n] for n in kept] if digests else digests
         self.fused[tick - 1, i, senders] = True
-        if digests and at:
-            self.digests[(tick, i)] = (tuple(senders), tuple(digests[n] for n, _ in at))
+        if digests and senders:
+            self.digests[(tick, i)] = (tuple(senders), tuple(digests))
         said = tuple((index[s], str(v)) for s, v in not_fused if s in index)
         if said:
             self.verdicts[(tick, i)] = said

@@ -304,6 +304,8 @@ def _ints(xs) -> bool:
 
 
 _INT = frozenset((int,))
+_BYTES = frozenset((bytes,))
+_DIGEST_LEN = frozenset((DIGEST_BYTES,))
 
 
 def _field(doc: dict, key: str, kind):
@@ -646,8 +648,8 @@ def decode_report(data, *, run_id: str | None = None, sender: int | None = None,
     if not isinstance(sent, bytes) or len(sent) not in (0, DIGEST_BYTES):
         raise Rejected("schema", f"field 'od' is not a {DIGEST_BYTES}-byte digest")
     fd = doc.get("fd", [])
-    if not isinstance(fd, list) or len(fd) not in (0, len(f)) or not all(
-            isinstance(g, bytes) and len(g) == DIGEST_BYTES for g in fd):
+    if not isinstance(fd, list) or len(fd) not in (0, len(f)) or not (
+            set(map(type, fd)) <= _BYTES and set(map(len, fd)) <= _DIGEST_LEN):
         raise Rejected("schema", f"field 'fd' is not one {DIGEST_BYTES}-byte digest per sender of 'f'")
     rj = doc.get("rj")
     if rj is not None and not (isinstance(rj, list) and len(rj) == 2 and _ints(rj)

@@ -196,7 +196,7 @@ def nonce(key: str) -> str:
 
 def address(ids) -> str:
     """The address chunk of a message key: ``_3_7_`` for ids 3 and 7, ``_`` for none."""
-    return "_" + "".join(f"{int(i)}_" for i in sorted(ids))
+    return "_" + "".join(map("{}_".format, map(int, sorted(ids))))
 
 
 _ADDRESS = re.compile(r"^_(?:\d+_)*$")
