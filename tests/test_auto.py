@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import replace
+from types import SimpleNamespace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from diskf_mesh.data.scenario import load_scenario, parse_scenario, simulate
 from diskf_mesh.data.trace import load_trace
 from diskf_mesh.engine import batch as engine
 from diskf_mesh.estimators import NAMES
+from diskf_mesh.estimators.diskf_auto import DISKFAuto
 from diskf_mesh.mesh.protocol.estimator import lockstep
 from diskf_mesh.studies import heldout
 from diskf_mesh.mesh.simulated.simrun import simulate_run
@@ -83,9 +85,10 @@ def test_auto_matches_oracle_isolated_shipped():
 
 @pytest.mark.parametrize("neighbours,auto", [("dense", {}), ("gather", {}), ("dense", {"noise": True}),
                                              ("gather", {"noise": True}), ("dense", {"noise_level": 10.0}),
-                                             ("gather", {"evidence_dof": 4.0})],
+                                             ("gather", {"evidence_dof": 4.0}),
+                                             ("gather", {"noise_level": 10.0, "evidence_dof": 4.0})],
                          ids=["dense", "gather", "dense, noise", "gather, noise", "dense, noise_level",
-                              "gather, evidence_dof"])
+                              "gather, evidence_dof", "gather, noise_level and evidence_dof"])
 def test_auto_agents_alone_equal_engine(neighbours, auto):
     """Every agent a batch of one (as in an agent process): the engine's
     bits; with ``noise_level`` too (the own measurement at each level is
@@ -542,9 +545,33 @@ def test_a_students_evidence_by_hand():
     assert (E_y, k) == (pytest.approx(y @ Ri @ y, rel=1e-9), 2.0)
 
 
+def test_a_students_evidence_at_a_noise_level_by_hand():
+    """With ``noise_level`` and ``evidence_dof`` together, a model at level
+    r reads the measurement as a Student-t of scale H P H^T + r R: its
+    log-likelihood (``information_loglik`` on the level's (U / r, u / r),
+    the energy E / r, plus ``_at_levels``'s part) less the stated model's
+    is the difference of the two t densities' logs."""
+    rng = np.random.default_rng(6)
+    H, R, y = rng.normal(size=(2, 3)), np.diag([0.5, 2.0]), 3.0 * rng.normal(size=2)
+    Ri = np.linalg.inv(R)
+    U, u = H.T @ Ri @ H, H.T @ Ri @ y
+    x, P, nu = rng.normal(size=3), np.diag([3.0, 1.0, 0.2]), 4.0
+    levels = SimpleNamespace(r=np.array([1.0, 10.0]), dof=nu)
+    E, k = im.information_energy(U, u)
+    U_m, u_m, level, (E_m, k_m, _) = DISKFAuto._at_levels(levels, np.array(E), np.array(k), U, u)
+    Y = np.linalg.inv(P)
+    got, want = [], []
+    for j, r in enumerate(levels.r):
+        got.append(im.information_loglik(x, P, Y, np.linalg.inv(Y + U_m[j]), U_m[j], u_m[j], (E_m[j], k_m[0], nu))
+                   + level[j])
+        S = H @ P @ H.T + r * R
+        e = y - H @ x
+        want.append(-0.5 * (nu + 2) * np.log1p(e @ np.linalg.solve(S, e) / nu) - 0.5 * np.linalg.slogdet(S)[1])
+    assert got[1] - got[0] == pytest.approx(want[1] - want[0], rel=1e-9)
+
+
 def test_a_students_evidence_setting():
     assert AutoOptions(evidence_dof=4).evidence_dof == 4
-    for bad in ({"evidence_dof": -1.0}, {"evidence_dof": float("inf")}, {"evidence_dof": True},
-                {"evidence_dof": 4.0, "noise_level": 10.0}):
+    for bad in ({"evidence_dof": -1.0}, {"evidence_dof": float("inf")}, {"evidence_dof": True}):
         with pytest.raises(ValueError, match="auto.evidence_dof"):
             AutoOptions(**bad)

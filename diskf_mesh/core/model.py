@@ -203,7 +203,8 @@ class AutoOptions:
                (``input_models.information_loglik``): an innovation far
                beyond every model's spread (a burst, a sensor noisier than
                its R) moves the probabilities by the log of its size, not
-               its square (0: Gaussian; not with noise_level)
+               its square (0: Gaussian; with noise_level, each model's
+               energy at its own level)
     noise:     each agent learns the scale of its own measurement noise,
                above or below the stated R (``core.noise``), and weighs its
                measurement by it (off by default: with poor sensors and no
@@ -237,5 +238,3 @@ class AutoOptions:
             raise ValueError("auto.noise_level: give either noise_level or noise = true, not both")
         if isinstance(self.evidence_dof, bool) or not np.isfinite(self.evidence_dof) or self.evidence_dof < 0:
             raise ValueError(f"auto.evidence_dof: must be 0 (Gaussian) or a positive number, got {self.evidence_dof!r}")
-        if self.evidence_dof and self.noise_level:
-            raise ValueError("auto.evidence_dof: give either evidence_dof or noise_level, not both")

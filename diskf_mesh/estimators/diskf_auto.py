@@ -278,11 +278,12 @@ class DISKFAuto(Estimator):
         x_s, P_s, C_s = eq.input_to_state(v, Pv, B, e1, S1, self.G_pair)
         # 4. the measurement: likelihoods and the joint update
         if self.levels:  # the neighbourhood's information under each model's noise level
-            U, u, level_ll = self._at_levels(dY, dy, nb, U, u)
-            x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=True)
+            U, u, level_ll, heavy = self._at_levels(*self._energies(dY, dy, nb), U, u)
+            x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=True,
+                                                      heavy=heavy)
             loglik = loglik + np.where(informed[..., None], level_ll, 0.0)
         else:  # with evidence_dof, a Student-t's evidence from the senders' measurement energies
-            heavy = None if not self.dof else (*self._energies(dY, dy, nb), self.dof)
+            heavy = None if not self.dof else (*(a[..., None] for a in self._energies(dY, dy, nb)), self.dof)
             x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed, heavy=heavy)
         mu = im.update_probabilities(c, loglik.reshape(c.shape), FLOOR)
         if self.banks > 1:
@@ -318,16 +319,23 @@ class DISKFAuto(Estimator):
         out[..., self.stated] = pooled * im.sum_last(mu[..., self.stated])[..., None]
         return out
 
-    def _at_levels(self, dY, dy, nb, U, u):
+    def _at_levels(self, E, k, U, u):
         """The neighbourhood's measurement information (U, u) under each
         model's noise level r_j (every sensor's noise r_j R): (U / r_j, u /
-        r_j) per model, (..., M, n, n) and (..., M, n), and the part of each
+        r_j) per model, (..., M, n, n) and (..., M, n); the part of each
         model's log-likelihood its level adds to ``information_loglik``'s,
         -E / (2 r_j) - k log(r_j) / 2, E and k the senders' measurement
-        energies and ranks summed (``input_models.information_energy``)."""
-        E, k = self._energies(dY, dy, nb)
-        return (U[..., None, :, :] / self.r[:, None, None], u[..., None, :] / self.r[:, None],
-                -0.5 * E[..., None] / self.r - 0.5 * k[..., None] * np.log(self.r))
+        energies and ranks summed (``input_models.information_energy``,
+        ``_energies``); and ``measure``'s ``heavy`` (None without
+        ``evidence_dof``). With a Student-t's evidence the energy is E / r_j
+        in the t (``heavy``) and the level's part -k log(r_j) / 2 alone
+        (log det(r_j R))."""
+        level = -0.5 * k[..., None] * np.log(self.r)
+        if not self.dof:
+            return U[..., None, :, :] / self.r[:, None, None], u[..., None, :] / self.r[:, None], \
+                level - 0.5 * E[..., None] / self.r, None
+        return U[..., None, :, :] / self.r[:, None, None], u[..., None, :] / self.r[:, None], level, \
+            (E[..., None] / self.r, k[..., None], self.dof)
 
     @staticmethod
     def _energies(dY, dy, nb):
@@ -429,8 +437,9 @@ def measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=False, heavy=None):
     log-likelihood 0 (no evidence for any model), so those agents' rows are
     neither computed nor rounded. ``per_model``: U (..., M, n, n) and u
     (..., M, n) each model's own (``noise_level``). ``heavy`` = (E, k, nu):
-    a Student-t's evidence (``information_loglik``), E and k (...,) per
-    agent. Returns (x, P, e, C, S, loglik)."""
+    a Student-t's evidence (``information_loglik``), E and k (..., 1) per
+    agent, or (..., M) per agent and model (``noise_level``'s E / r_j).
+    Returns (x, P, e, C, S, loglik)."""
     blank = np.zeros(x_s.shape[:-1])
     if not informed.any():
         return x_s, P_s, e1, C_s, S1, blank
@@ -445,7 +454,7 @@ def measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=False, heavy=None):
         E, k, nu = heavy
         if not every:
             E, k = E[informed], k[informed]
-        heavy = (E[..., None], k[..., None], nu)  # the same for every model
+        heavy = (E, k, nu)
     loglik = im.information_loglik(xs, Ps, Y, Ji, U_m, u_m, heavy)
     x_k, P_k = eq.local_update(xs, Ps, Y, Ji, u_m)
     post = (x_k, P_k) + eq.replace_marginal(xs, Ps, e, C, S, x_k, P_k) + (loglik,)
