@@ -111,7 +111,8 @@ def run(args: argparse.Namespace, spec, scn, out) -> tuple:
                "loss": args.net_loss, "lost": r.outcome.lost, "seed": net_seed, "virtual_s": r.outcome.end, "events": r.outcome.events,
                "wall_s": wall, "digest": r.outcome.digest}
     stages.say("checking the run: the engine replays what every agent fused")
-    code, results = finish_run(args, run, r.record, r.world.done, out, extra={"network": network})
+    code, results = finish_run(args, run, r.record, r.world.done, out, extra={"network": network},
+                               online=getattr(r.world, "online", None))
     rate = K / wall if wall > 0 else math.inf
     print(f"{scn.name}: {N} agents + world on a simulated network (delay {args.net_delay_ms:g} ms, jitter "
           f"{args.net_jitter_ms:g} ms, loss {args.net_loss:g}, network seed {net_seed}), {K} ticks, seed {args.seed}, "

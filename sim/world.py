@@ -266,14 +266,15 @@ def deadline_summary(rec: WorldRecord, clock: realtime.Clock) -> dict:
 
 
 def checked_status(rec: WorldRecord, trace: Trace, scn: Scenario, spec, seed: int, faults: FaultConfig,
-                   clock: realtime.Clock | None, collect_s: float = math.inf) -> RunStatus:
+                   clock: realtime.Clock | None, collect_s: float = math.inf, online=None) -> RunStatus:
     """The run checked by the engine (``mesh.protocol.run_status``): ``exact``, ``as
     planned``, ``degraded``, ``diverged`` or ``incomplete``, with its reason
     and evidence. The plan: a copy the link faults delay past the agents'
     deadline (real time's, else their ``collect_s``) is not planned to be
-    fused."""
+    fused. ``online``: the world's check as the run went, whose replay of
+    each tick is taken where it is the end's own (``run_status``)."""
     return run_status(rec, trace, spec.algorithm, scn.params, run_id=spec.run_id, seed=seed, faults=faults,
-                      deadline_s=realtime.agents_deadline(clock, collect_s), labels=scn.labels)
+                      deadline_s=realtime.agents_deadline(clock, collect_s), labels=scn.labels, online=online)
 
 
 def status_fields(status: RunStatus) -> dict:
@@ -374,7 +375,7 @@ def run_failed(error: MeshError, run: RunSetup, log: Log) -> int:
 
 
 def finish_run(args, run: RunSetup, rec: WorldRecord, done: bool, json_path=None, extra=None,
-               log: Log | None = None) -> tuple:
+               log: Log | None = None, online=None) -> tuple:
     """The end of a run, the world process's and ``up --network simulated``'s:
     the metrics, ``run_summary`` (and ``deadline_summary`` in real time,
     and ``extra``), the run checked (``checked_status`` with the agents'
@@ -388,7 +389,7 @@ def finish_run(args, run: RunSetup, rec: WorldRecord, done: bool, json_path=None
     row = result_metrics(trace, rec)
     timing = deadline_summary(rec, clock) if clock is not None else {}
     summary = {**run_summary(rec, run.faults), **timing}
-    status = checked_status(rec, trace, scn, spec, args.seed, run.faults, clock, args.collect_timeout)
+    status = checked_status(rec, trace, scn, spec, args.seed, run.faults, clock, args.collect_timeout, online)
     summary.update(status_fields(status), **(extra or {}))
     # the recording's result: a real-time run's deadline misses with the metrics (its replay accepts them)
     recording = run.recorder.finish("done" if done else "stopped", {**row, **timing}, status.to_json())
@@ -556,7 +557,7 @@ def _run(args, spec, scn: Scenario, started: str, signalled: list) -> int:
             online.close()
         if prof:
             prof.write(args.profile, "world")
-    code, results = finish_run(args, run, rec, world.done, args.json, log=log)
+    code, results = finish_run(args, run, rec, world.done, args.json, log=log, online=online)
     if args.progress != "lines":
         row = next(iter(next(iter(results.values())).values()))
         print(format_table(results))

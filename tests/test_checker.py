@@ -109,15 +109,24 @@ def test_the_check_in_its_own_thread_finds_what_the_check_on_the_worlds_timer_fi
             found.append(there.result(rec, k))
             assert found[-1] == here.tick(rec, k), k
         assert [q["tick"] for f in found for q in f][0] == FROM and {q["agent"] for f in found for q in f} == {LIAR}
+        assert there.kept(trace, "diskf", scn.params, RUN) is None  # its thread still runs: its ticks may change
     finally:
         there.close()
+    # the thread ended: the end of the run takes its replay, the status a replay of the whole run gives
+    kept = there.kept(trace, "diskf", scn.params, RUN)
+    assert kept is not None and kept.step is None and len(kept.kept) == rec.reported.shape[0]
+    assert there.kept(trace, "diskf", scn.params, "another run") is None
+    st, again = (run_status.run_status(rec, trace, "diskf", scn.params, run_id=RUN, seed=0, online=o)
+                 for o in (there, None))
+    assert st.evidence.pop("replayed_online") and not again.evidence.pop("replayed_online")
+    assert st.to_json() == again.to_json() and st.status == "diverged"
 
 
 def fake(seconds: float):
     """A check of 3 ticks of 2 agents that takes ``seconds`` a tick and finds
     the tick."""
     trace = SimpleNamespace(has=np.zeros((1, 3, 2), dtype=bool), model=SimpleNamespace(n=2, m=1))
-    return SimpleNamespace(trace=trace, tick=lambda rec, k, said: time.sleep(seconds) or [k])
+    return SimpleNamespace(trace=trace, tick=lambda rec, k, said: time.sleep(seconds) or [k], close=lambda: None)
 
 
 def record(K=3, N=2):
@@ -145,7 +154,7 @@ def test_a_check_that_fails_in_its_thread_fails_in_the_world():
 
     for made in (False, True):  # the check cannot be made, or its replay fails
         check = CheckThread(broken if not made else lambda: SimpleNamespace(
-            trace=fake(0).trace, tick=lambda rec, k, said: 1 / 0))
+            trace=fake(0).trace, tick=lambda rec, k, said: 1 / 0, close=lambda: None))
         try:
             with pytest.raises(CheckFailed, match="ZeroDivisionError"):
                 check.result(record(), 1)

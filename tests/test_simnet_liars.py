@@ -251,3 +251,20 @@ def test_in_real_time_the_world_names_a_liar_within_3_ticks_and_cuts_it_off(dyna
     assert q["agent"] == LIAR and q["tick"] == FROM and FROM < q["from"] <= FROM + 3, q
     assert not r.record.fused[q["from"] - 1:, :, LIAR - 1].any()
     assert r.status.status == "diverged", r.status.reason
+
+
+@pytest.mark.parametrize("withhold", [None, WITHHELD])
+def test_the_status_from_the_check_as_it_went_is_the_end_of_run_replays(dynamic, withhold):
+    """A run with a liar the world cut off (and one that withheld a report
+    first): its status, taken from the world's check as the run went
+    (``replayed_online``), is the status a second replay of the whole run
+    gives, reason and evidence."""
+    from diskf_mesh.mesh.protocol.run_status import run_status
+
+    r = run(dynamic, start=FROM, offset=OFFSET, withhold=withhold)
+    again = run_status(r.record, r.trace, r.algorithm, r.scn.params, run_id=r.run_id, seed=r.seed, faults=r.faults,
+                       deadline_s=r.deadline_s, labels=r.scn.labels)
+    st = r.status
+    assert st.evidence.pop("replayed_online") and not again.evidence.pop("replayed_online")
+    assert (st.status, st.reason, st.evidence) == (again.status, again.reason, again.evidence)
+    assert st.status == ("diverged" if withhold is None else "unverifiable"), st.reason

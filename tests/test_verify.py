@@ -315,3 +315,63 @@ def test_the_engines_digests_are_the_digests_of_the_messages_the_agents_encode(r
         for m, senders in ((msg, list(range(len(ids)))), (flipped, [4, 0, 7])):
             assert digests(k, senders, m) == [wire.message_digest(RUN, ids[s], k, m.take((slice(0, 1), slice(s, s + 1))),
                                                                   exchanged) for s in senders], (k, senders)
+
+
+def _checked_as_it_went(trace, scn, claims, planned=None):
+    """An ``Online`` fed ``claims`` tick by tick, as the world feeds it."""
+    N = trace.has.shape[2]
+    online = V.Online(trace, ALG, scn.params, digester(trace))
+    nominal = V.TickLinks(TICKS, trace, claims.live)
+    planned = nominal if planned is None else V.tick_links(planned, TICKS, trace, claims.live)
+    for k in range(1, TICKS + 1):
+        said = V.tick_digests(claims.digests, k)
+        online.tick(k, claims, lambda: planned.at(k - 1), said)
+    online.release()
+    assert len(online.kept) == TICKS and N
+    return online
+
+
+def test_the_end_of_run_check_takes_the_replay_the_check_as_it_went_made(run):
+    """A run with a restart from a neighbour's estimate and a missing
+    report: ``verify`` with the check that went with it takes its replay
+    (``replayed_online``), whose estimates and digests are the full
+    replay's bit for bit, and gives the same status and evidence."""
+    scn, trace = run
+    K, N = TICKS, trace.has.shape[2]
+    live = np.ones((K, N), bool)
+    live[14:16, 2] = False
+    claims = with_(claims_of(scn, trace, live=live, restarts=[V.Restart(17, 2, 0)]), reported=live.copy())
+    claims.reported[30, 5] = False
+    online = _checked_as_it_went(trace, scn, claims)
+    planned = V.TickLinks(K, trace, claims.live)
+    wanted = {(k, int(s)) for k in range(1, K + 1) for s in np.unique(V.tick_digests(claims.digests, k)[1])}
+    kept = online.replayed(trace, ALG, scn.params, claims, planned, online.message_digest, wanted)
+    full = V.replay(trace, ALG, scn.params, claims, planned, online.message_digest, wanted)
+    assert kept is not None and kept[1] == full[1] and len(full[1]) > 0
+    for a, b in zip(kept[0].__dict__.values(), full[0].__dict__.values()):
+        assert a.tobytes() == b.tobytes()
+    st, again = (V.verify(trace, ALG, scn.params, claims, message_digest=online.message_digest, online=o)
+                 for o in (online, None))
+    assert st.evidence.pop("replayed_online") and not again.evidence.pop("replayed_online")
+    assert (st.status, st.reason, st.evidence) == (again.status, again.reason, again.evidence)
+    assert st.status == "incomplete" and st.evidence["differing"] == 0
+
+
+def test_the_end_of_run_check_replays_again_what_changed_since_it_was_checked(run):
+    """Claims that differ from those the check saw as the run went (a link
+    dropped at tick 12 after it was checked; a restart it did not see):
+    ``verify`` replays the run itself, and finds what the claims say."""
+    scn, trace = run
+    claims = claims_of(scn, trace)
+    online = _checked_as_it_went(trace, scn, claims)
+    links = np.array(claims.fused)
+    r, s = next((r, s) for r, s in zip(*np.nonzero(links[11])) if r != s)
+    links[11, r, s] = False
+    dropped = claims_of(scn, trace, links=links)
+    st = V.verify(trace, ALG, scn.params, dropped, message_digest=online.message_digest, online=online)
+    assert not st.evidence["replayed_online"] and st.status == "degraded", st.reason
+    restarted = claims_of(scn, trace, restarts=[V.Restart(17, 2, 0)])
+    st = V.verify(trace, ALG, scn.params, restarted, message_digest=online.message_digest, online=online)
+    assert not st.evidence["replayed_online"] and st.status == "degraded" and st.evidence["differing"] == 0
+    same = V.verify(trace, ALG, scn.params, claims, message_digest=online.message_digest, online=online)
+    assert same.evidence["replayed_online"] and same.status == "exact"

@@ -49,6 +49,7 @@ May import: core, estimators, data (the engine layer).
 """
 from __future__ import annotations
 
+import hashlib
 from collections import Counter
 from dataclasses import dataclass, field, fields, replace
 
@@ -291,12 +292,7 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
     diagonal = np.arange(N), np.arange(N)
 
     def links_at(k):  # tick k's (1, N, N): what each agent fused, the planned row where it did not report
-        links = np.array(claims.fused[k - 1], dtype=bool)
-        missing = ~claims.reported[k - 1]
-        if missing.any():
-            links[missing] = planned.at(k - 1)[missing]
-        links[diagonal] = True
-        return links[None]
+        return replay_links(claims, k, planned.at, diagonal)[None]
 
     by_tick = {}
     for r in claims.restarts:
@@ -319,6 +315,35 @@ def replay(trace: Trace, algorithm: str, params, claims: RunClaims, planned: np.
     est = batch.run_batch(tr, algorithm, params, restart=restart if by_tick else None,
                           listen=listen if need else None, links_at=links_at)
     return est, digests
+
+
+def replay_links(claims: RunClaims, k: int, planned_at, diagonal) -> np.ndarray:
+    """Tick k's (N, N) links of the replay: what each agent fused, the
+    planned row (``planned_at(k - 1)``, asked only then) where it did not
+    report, the diagonal (``diagonal``: its indices) True."""
+    links = np.array(claims.fused[k - 1], dtype=bool)
+    missing = ~claims.reported[k - 1]
+    if missing.any():
+        links[missing] = planned_at(k - 1)[missing]
+    links[diagonal] = True
+    return links
+
+
+def replay_inputs(k: int, links: np.ndarray, restarts, claims: RunClaims) -> bytes:
+    """A digest of what the replay of tick k starts from besides the
+    trace and the state before it: its links, its ``restarts`` in order and
+    the reports of tick k - 1 a restart starts from (``restart_at``)."""
+    h = hashlib.blake2b(np.packbits(links).tobytes(), digest_size=16)
+    for r in restarts:
+        h.update(repr((int(r.tick), int(r.agent), None if r.source is None else int(r.source))).encode())
+        if r.x is not None:
+            h.update(np.asarray(r.x, dtype=float).tobytes() + np.asarray(r.P, dtype=float).tobytes())
+        elif r.source is not None:
+            known = bool(claims.reported[k - 2, r.source])
+            h.update(bytes([known]))
+            if known:
+                h.update(claims.x[k - 2, r.source].tobytes() + claims.P[k - 2, r.source].tobytes())
+    return h.digest()
 
 
 def differing(claims: RunClaims, est: Estimates) -> tuple:
@@ -432,16 +457,25 @@ class Online:
     numbers as ``verify``'s replay, bit for bit: the same engine step
     (``batch.Stepper``) on the same links, restarts and digests. Once the
     engine's own replay diverges (``ended``: that tick) nothing more is
-    checked."""
+    checked.
+
+    Each tick replayed is kept (its estimates, the digests of the engine's
+    messages it computed, and ``replay_inputs``' digest of its links and
+    restarts), so that ``verify`` at the run's end takes the replay from
+    here where the whole run's claims give every tick the same inputs
+    (``replayed``), instead of computing it a second time. ``release``
+    lets the engine's state go and keeps these."""
 
     def __init__(self, trace: Trace, algorithm: str, params, message_digest=None):
         B, K, N = trace.has.shape
         self.trace, self.message_digest = trace, message_digest
+        self.algorithm, self.params = algorithm, params
         self.step = batch.Stepper(trace.model, trace.sensors, algorithm, params, trace.seeds[:1], K)
         self.judge = Judge(N)
         self.links = None
         self.ended = 0
         self.diagonal = (np.arange(N), np.arange(N))
+        self.kept = []  # [tick - 1] -> (inputs digest, x, P, d, d_valid, {sender: engine digest})
 
     def tick(self, k: int, claims: RunClaims, planned, said: tuple) -> Judged | None:
         """Tick k's ``Judged``, or None after the engine's replay diverged.
@@ -449,14 +483,11 @@ class Online:
         called only if some report of tick k did not come; ``said``: the
         digests reported of tick k's fused messages, three (J,) arrays:
         receivers, senders, digests (``digest_values``)."""
-        if self.ended or k != self.step.k + 1:
+        if self.ended or self.step is None or k != self.step.k + 1:
             return None
         reported = claims.reported[k - 1]
         N = reported.shape[0]
-        links = np.array(claims.fused[k - 1], dtype=bool)
-        if not reported.all():
-            links[~reported] = planned()[~reported]
-        links[self.diagonal] = True
+        links = replay_links(claims, k, lambda _: planned(), self.diagonal)
         rows, cols, values = said
         checked = self.message_digest is not None and len(cols) > 0
         senders = np.unique(cols) if checked else None
@@ -466,6 +497,7 @@ class Online:
             engine[senders] = digest_values(self.message_digest(k, senders, msg))
 
         restarts = [r for r in claims.restarts if r.tick == k]
+        inputs = replay_inputs(k, links, restarts, claims)
         if restarts:
             self.step.state = restart_at(k, restarts, claims, self.step.est, self.step.state)
         changed = self.links is None or bool((links != self.links).any())
@@ -477,6 +509,9 @@ class Online:
         except batch.Diverged:
             self.ended = k
             return None
+        if len(self.kept) == k - 1:
+            computed = dict(zip(senders.tolist(), engine[senders].tolist())) if checked else {}
+            self.kept.append((inputs, *(np.array(a[0]) for a in (out.x, out.P, out.d, out.d_valid)), computed))
         bad, _ = compare(reported, claims.x[k - 1], claims.P[k - 1], claims.d[k - 1], claims.d_valid[k - 1],
                          out.x[0], out.P[0], out.d[0], out.d_valid[0], largest=False)
         has, wrong = np.zeros((N, N), dtype=bool), np.zeros((N, N), dtype=bool)
@@ -485,18 +520,56 @@ class Online:
             wrong[rows, cols] = engine[cols] != values
         return self.judge.tick(k, reported, bad, claims.fused[k - 1], has, wrong, [r.agent for r in restarts])
 
+    def release(self) -> None:
+        """The run is over: the engine's state and links go (no tick is
+        checked after); the ticks kept stay for ``replayed``."""
+        self.step = self.links = None
+
+    def replayed(self, trace: Trace, algorithm: str, params, claims: RunClaims, planned: "TickLinks",
+                 message_digest, wanted) -> tuple | None:
+        """``replay``'s (Estimates, digests) of ticks 1..K of ``claims``
+        from the ticks kept, or None where it would not be that replay bit
+        for bit: another run (trace, estimator, settings or digest), a tick
+        not kept (never checked, or after the replay diverged), a tick whose
+        links or restarts the whole run's claims give otherwise than they
+        were when it was checked, or a digest ``wanted`` it did not compute."""
+        K = claims.reported.shape[0]
+        if trace is not self.trace or algorithm != self.algorithm or params != self.params \
+                or message_digest is not self.message_digest or len(self.kept) < K:
+            return None
+        by_tick = {}
+        for r in claims.restarts:
+            by_tick.setdefault(int(r.tick), []).append(r)
+        need = {}
+        for k, s in wanted or ():
+            need.setdefault(k, set()).add(s)
+        digests = {}
+        for k in range(1, K + 1):
+            inputs, *_, computed = self.kept[k - 1]
+            links = replay_links(claims, k, planned.at, self.diagonal)
+            if replay_inputs(k, links, by_tick.get(k, ()), claims) != inputs:
+                return None
+            for s in need.get(k, ()):
+                if s not in computed:
+                    return None
+                digests[(k, s)] = computed[s]
+        x, P, d, dv = (np.stack([kept[i] for kept in self.kept[:K]])[None] for i in range(1, 5))
+        return Estimates(x, P, d, dv), digests
+
 
 # --------------------------------------------------------------------------
 # the verdict
 # --------------------------------------------------------------------------
 def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: np.ndarray | None = None,
-           message_digest=None, labels=None) -> RunStatus:
+           message_digest=None, labels=None, online: Online | None = None) -> RunStatus:
     """The run's status (module docstring). ``planned``: the fault plan's
     delivered sets (``planned_links``; None: no faults injected, the
     nominal links); ``message_digest(k, sender indices, the tick's Message
     batch) -> [bytes]``: the digests an agent reports of the messages it
     fused (``mesh.wire.codec.engine_digests``; None: digests are not checked); ``labels``: the agents' names in the evidence (default: the
-    trace's)."""
+    trace's); ``online``: the run's check as it went, whose replay of each
+    tick is taken where it is this replay bit for bit (``Online.replayed``;
+    the evidence's ``replayed_online`` says whether it was)."""
     whole = claims
     K_all, N = claims.reported.shape
     names = list(labels if labels is not None else trace.agent_labels)
@@ -514,8 +587,11 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
     wanted = None
     if message_digest is not None:
         wanted = {(k, int(s)) for k in range(1, K + 1) for s in np.unique(tick_digests(claims.digests, k)[1])}
+    kept = None if online is None else online.replayed(trace, algorithm, params, claims, planned, message_digest,
+                                                        wanted)
     try:
-        est, engine_digests = replay(trace, algorithm, params, claims, planned, message_digest, wanted)
+        est, engine_digests = kept if kept is not None else \
+            replay(trace, algorithm, params, claims, planned, message_digest, wanted)
         ended = None
     except batch.Diverged as e:  # the algorithm itself diverges on what was delivered: replay the ticks before
         ended = {"tick": e.tick, "reason": str(e),
@@ -554,7 +630,7 @@ def verify(trace: Trace, algorithm: str, params, claims: RunClaims, *, planned: 
           "differing": int(bad.sum()), "max_abs_difference": float(gap.max()) if gap.size else 0.0,
           "unverified": unverified,
           "digests_checked": sum(len(v[0]) for v in claims.digests.values()) if message_digest else 0,
-          "restarts": len(claims.restarts)}
+          "restarts": len(claims.restarts), "replayed_online": kept is not None}
     ev["missing_agent_ticks"] = int(missing.sum())
     ev["missing_fraction"] = float(missing.sum()) / (K_all * N) if K_all * N else 0.0
     if ended is not None:

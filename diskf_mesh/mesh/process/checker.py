@@ -58,6 +58,7 @@ class CheckThread:
         self._error = None   # the thread's traceback, if it failed
         self._sent = 0       # the last tick handed over
         self._prof = profile
+        self._check = None   # the thread's OnlineCheck, once made
         self._thread = threading.Thread(target=self._serve, args=(make,), daemon=True, name="online-check")
         self._thread.start()
 
@@ -81,14 +82,25 @@ class CheckThread:
             return self._found.pop(k)
 
     def close(self) -> None:
-        """End the thread: it leaves after the tick it is on (at most ``JOIN_S``)."""
+        """End the thread: it leaves after the tick it is on (at most
+        ``JOIN_S``); once it has, its check lets the engine's state go
+        (``OnlineCheck.close``) and keeps the ticks it replayed."""
         self._ticks.put(None)
         self._thread.join(JOIN_S)
+        if not self._thread.is_alive() and self._check is not None:
+            self._check.close()
+
+    def kept(self, trace, algorithm: str, params, run_id: str):
+        """``OnlineCheck.kept`` of the thread's check once the thread has
+        ended (None before: its ticks may still change)."""
+        if self._thread.is_alive() or self._check is None:
+            return None
+        return self._check.kept(trace, algorithm, params, run_id)
 
     def _serve(self, make) -> None:
         """The thread: make the check, then check each tick handed over, in order."""
         try:
-            check = make()
+            check = self._check = make()
             B, K, N = check.trace.has.shape
             rec = WorldRecord(**RunReports.empty(K, N, check.trace.model.n, check.trace.model.m, sparse=True),
                               live=np.zeros((K, N), dtype=bool))

@@ -86,7 +86,7 @@ def claims_of(rec, ids, restarts=None) -> RunClaims:
 
 def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: int,
                faults: FaultConfig | None = None, deadline_s: float = math.inf, labels=None,
-               restarts=None) -> RunStatus:
+               restarts=None, online: "OnlineCheck | None" = None) -> RunStatus:
     """The status of a run whose reports are ``rec`` (``claims_of``), on
     ``trace`` (the run's simulation; its agent axis the run's ids), with the
     run's estimator, run id (its messages' digests), seed and link faults;
@@ -94,7 +94,9 @@ def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: 
     planned to be fused). The evidence lists the ``restarts`` replayed
     (``restarts_to_json``), so a recording replays them. A run that ended
     before any report (``rec.ended_early``: a world that gave up at its
-    start) is incomplete, its reason first."""
+    start) is incomplete, its reason first. ``online``: the run's check as
+    it went (``OnlineCheck``), whose replay of each tick ``verify`` takes
+    where it is its own bit for bit, instead of replaying the run again."""
     ids = list(trace.sensors.ids)
     claims = claims_of(rec, ids, restarts)
     names = list(labels if labels is not None else trace.agent_labels)
@@ -102,8 +104,11 @@ def run_status(rec, trace: Trace, algorithm: str, params, *, run_id: str, seed: 
     planned = None
     if faults is not None and faults.active:
         planned = verify.planned_links(verify.nominal_links(trace, K, claims.live), ids, faults, seed, deadline_s)
-    digest = wire.engine_digests(run_id, ids, estimators.get(algorithm).exchanged)
-    st = verify.verify(trace, algorithm, params, claims, planned=planned, message_digest=digest, labels=names)
+    kept = None if online is None else online.kept(trace, algorithm, params, run_id)
+    digest = kept.message_digest if kept is not None else \
+        wire.engine_digests(run_id, ids, estimators.get(algorithm).exchanged)
+    st = verify.verify(trace, algorithm, params, claims, planned=planned, message_digest=digest, labels=names,
+                       online=kept)
     ended = getattr(rec, "ended_early", "")
     if ended and not claims.reported.any():  # the world gave up before any report (a start-up failure): why
         st = RunStatus(st.status, f"{ended}; {st.reason}", st.evidence)
@@ -137,7 +142,7 @@ class OnlineCheck:
     def __init__(self, trace: Trace, estimator: type[Estimator], params, *, run_id: str, seed: int,
                  faults: FaultConfig | None = None, deadline_s: float = math.inf):
         self.ids = list(trace.sensors.ids)
-        self.trace, self.seed, self.deadline_s = trace, seed, deadline_s
+        self.trace, self.seed, self.deadline_s, self.run_id = trace, seed, deadline_s, run_id
         self.faults = faults if faults is not None and faults.active else None
         self.online = verify.Online(trace, estimator.name, params,
                                     wire.engine_digests(run_id, self.ids, estimator.exchanged))
@@ -170,8 +175,19 @@ class OnlineCheck:
 
     def close(self) -> None:
         """The run is over: the replay's state (its agents, its links, 100 MB
-        each at 10,000 agents) is let go; no tick is checked after."""
-        self.online = None
+        each at 10,000 agents) is let go; no tick is checked after. The
+        ticks it replayed stay for ``kept``."""
+        if self.online is not None:
+            self.online.release()
+
+    def kept(self, trace: Trace, algorithm: str, params, run_id: str) -> verify.Online | None:
+        """The check's ``verify.Online`` (its ticks kept) if it checked this
+        run: the same trace, estimator, settings and run id (None else)."""
+        on = self.online
+        if on is None or trace is not self.trace or run_id != self.run_id or algorithm != on.algorithm \
+                or params != on.params:
+            return None
+        return on
 
     def planned(self, rec, k: int) -> np.ndarray:
         """(N, N) tick k's planned links: the range links between the agents

@@ -173,7 +173,8 @@ class SimRun:
         if not self.finished:
             return None
         return run_status(self.record, self.trace, self.algorithm, self.scn.params, run_id=self.run_id,
-                          seed=self.seed, faults=self.faults, deadline_s=self.deadline_s, labels=self.scn.labels)
+                          seed=self.seed, faults=self.faults, deadline_s=self.deadline_s, labels=self.scn.labels,
+                          online=getattr(self.world, "online", None))
 
 
 def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_seed: int | None = None,
@@ -240,7 +241,7 @@ def simulate_run(scn: Scenario, trace: Trace, algorithm: str, seed: int, *, net_
     worlds = [pid for pid in out.machines if pid == WORLD or pid.startswith(WORLD + "~")]
     stayed = lambda p: getattr(out.finishes.get(p), "status", None) != "duplicate"  # noqa: E731
     pid = max(worlds, key=lambda p: (int(out.machines[p].record.reported.sum()), stayed(p), p == WORLD))
-    for p in worlds:  # the run is over: its status replays it whole (``SimRun.status``), not from these
+    for p in worlds:  # the run is over: the checks let the engine go and keep their ticks (``SimRun.status``)
         if getattr(out.machines[p], "online", None) is not None:
             out.machines[p].online.close()
     return SimRun(out, out.machines[pid], pid in out.finishes, stream.getvalue() if stream is not None else "",
