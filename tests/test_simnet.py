@@ -277,6 +277,53 @@ def test_the_access_rules_of_the_credentials_hold():
     assert out.refused == {"declare_subscriber": 3, "liveliness_token": 3, "put": 4}
 
 
+def test_a_subscription_reaches_only_the_keys_the_receivers_rules_let_it_receive():
+    """A process whose rules let it subscribe to everything but receive only
+    the world's keys: a put its subscription matches on another key is
+    refused at it, whichever expression its subscription is."""
+    rule = lambda rid, messages, keys, flows=("ingress",): {  # noqa: E731
+        "id": rid, "permission": "allow", "flows": list(flows), "messages": list(messages), "key_exprs": keys}
+    policy = {"enabled": True, "default_permission": "deny",
+              "rules": [rule("sub", ["declare_subscriber"], ["diskf/r/**"]),
+                        rule("recv", ["put"], ["diskf/r/world/**"], ("egress",)),
+                        rule("speak", ["put"], ["diskf/r/**"])],
+              "subjects": [{"id": s, "cert_common_names": [s]} for s in ("listener", "speaker")],
+              "policies": [{"id": "l", "subjects": ["listener"], "rules": ["sub", "recv"]},
+                           {"id": "s", "subjects": ["speaker"], "rules": ["speak"]}]}
+
+    class Listener:
+        read = ev.Sample
+
+        def __init__(self, boot):
+            self.got = []
+
+        def start(self, now):
+            return [ev.Subscribe("diskf/r/**"), ev.Subscribe("diskf/r/agent/*/msg/$*_2_$*")]
+
+        def handle(self, e, now):
+            self.got.append(e.key)
+            return []
+
+    class Speaker:
+        read = ev.Sample
+
+        def __init__(self, boot):
+            pass
+
+        def start(self, now):
+            return [ev.SetTimer("go", now + 0.1)]
+
+        def handle(self, e, now):
+            return [ev.Publish("diskf/r/agent/1/msg/_2_", b"m"), ev.Publish("diskf/r/world/tick", b"t")]
+
+    net = SimNet(0, policy=policy)
+    net.add("listener", Listener, identity="listener")
+    net.add("speaker", Speaker, identity="speaker")
+    out = net.run()
+    assert out.machines["listener"].got == ["diskf/r/world/tick"]  # once: one subscription matches it
+    assert out.refused == {"put": 2}  # the message, at each of its two matching subscriptions
+
+
 def test_a_machine_that_raises_names_the_seed():
     class Bad(Pong):
         def handle(self, e, now):

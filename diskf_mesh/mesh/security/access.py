@@ -12,7 +12,8 @@ declarer's rules allow that message on that expression. ``Access(None)``
 
 An identity that is no subject of the policy (no certificate of the run)
 may do nothing. The expressions that allow one (identity, message, flow)
-are gathered once, as compiled matchers; answers are remembered per
+are gathered once (each compiled as a matcher when a key is not one of
+them; ``keys.matcher`` keeps it); answers are remembered per
 (identity, message, key, flow), ``MEMO`` of them (a run's puts repeat
 their keys every tick: every pair of linked agents' is one).
 
@@ -51,19 +52,31 @@ class Access:
         hit = self._memo.get(memo)
         if hit is not None:
             return hit
-        grant = self._grants.get((identity, message, flow))
-        if grant is None:
-            exprs = tuple(dict.fromkeys(e for flows, messages, es in self._rules.get(identity, ())
-                                        if flow in flows and message in messages for e in es))
-            grant = self._grants[(identity, message, flow)] = (frozenset(exprs), tuple(map(matcher, exprs)))
         # a rule covers a key, or an expression its own wildcards match chunk for chunk (or itself)
-        exprs, matchers = grant
-        hit = key in exprs or any(m(key) is not None for m in matchers)
+        exprs = self._exprs(identity, message, flow)
+        hit = key in exprs or any(matcher(e)(key) is not None for e in exprs)
         if len(self._memo) >= MEMO:
             self._memo.clear()
         self._memo[memo] = hit
         return hit
 
-    def put(self, sender: str | None, receiver: str | None, key: str) -> bool:
-        """A put of ``sender`` on ``key`` reaches ``receiver``."""
-        return self.allowed(sender, "put", key) and self.allowed(receiver, "put", key, "egress")
+    def _exprs(self, identity: str | None, message: str, flow: str) -> frozenset:
+        """The key expressions that allow ``identity`` ``message`` on ``flow``
+        (their matchers are compiled when a key is not one of them)."""
+        grant = self._grants.get((identity, message, flow))
+        if grant is None:
+            grant = self._grants[(identity, message, flow)] = frozenset(
+                e for flows, messages, es in self._rules.get(identity, ()) if flow in flows and message in messages
+                for e in es)
+        return grant
+
+    def put(self, sender: str | None, receiver: str | None, key: str, via: str | None = None) -> bool:
+        """A put of ``sender`` on ``key`` reaches ``receiver``; ``via``: an
+        expression ``key`` is known to match (the receiver's subscription
+        that matched it), which allows it at once where one of the
+        receiver's rules is that expression."""
+        if not self.allowed(sender, "put", key):
+            return False
+        if via is not None and self.enabled and via in self._exprs(receiver, "put", "egress"):
+            return True
+        return self.allowed(receiver, "put", key, "egress")

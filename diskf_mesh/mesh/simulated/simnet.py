@@ -879,7 +879,7 @@ class SimNet:
                 if len(self._put_memo) > 100_000:
                     self._put_memo.clear()
                 access = self.access
-                may = [access.put(proc.identity, q.identity, key) if access.enabled else True for q, _ in hit]
+                may = [access.put(proc.identity, q.identity, key, expr) if access.enabled else True for q, expr in hit]
                 memo = self._put_memo[(proc.identity, key)] = (hit, [q for (q, _), ok in zip(hit, may) if ok],
                                                                 [q for (q, _), ok in zip(hit, may) if not ok])
             refused = sum(1 for q in memo[2] if q is not proc and q.attached)
@@ -890,10 +890,10 @@ class SimNet:
                 self._reach(self._arrival(proc, proc, self.link), receivers, event)
             return
         access = self.access
-        for q, _expr in hit:
+        for q, expr in hit:
             if q is proc or not q.attached:
                 continue
-            if access.enabled and not access.put(proc.identity, q.identity, key):
+            if access.enabled and not access.put(proc.identity, q.identity, key, expr):
                 self.refused["put"] = self.refused.get("put", 0) + 1
                 continue
             link = self._link(proc, q)
