@@ -602,8 +602,10 @@ class AgentMachine:
         fused_ids, not_fused = self.verdicts.of_tick(k, self.linked[k], heard, rejected, fused, failed)
         prof.begin()
         received = self.receiver.digests(k)
-        digests = [received.get(s) or wire.message_digest(self.keys.run_id, s, k, fused[s], self.exchanged)
-                   for s in fused_ids]
+        digests = list(map(received.get, fused_ids))
+        if not all(digests):  # a message this agent did not receive as a copy (fused again alone): its digest
+            digests = [g or wire.message_digest(self.keys.run_id, s, k, fused[s], self.exchanged)
+                       for s, g in zip(fused_ids, digests)]
         report = wire.encode_report(self.keys.run_id, self.id, k, out.x[0, 0], out.P[0, 0], out.d[0, 0],
                                     out.d_valid[0, 0], counters, fused_ids, not_fused, self.own_digest, digests,
                                     self.rejoins[-1] if self.rejoins else None)

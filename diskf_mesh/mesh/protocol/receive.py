@@ -92,6 +92,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from operator import attrgetter
 
 from diskf_mesh.data.faults import PERFECT, FaultConfig, FaultModel
 from diskf_mesh.mesh.protocol.delayline import DelayLine
@@ -99,6 +100,8 @@ from diskf_mesh.mesh.protocol.events import MessageArrived
 from diskf_mesh.mesh.protocol.guard import Guard
 from diskf_mesh.mesh.wire import codec as wire
 from diskf_mesh.mesh.wire.counters import Counters
+
+_DIGEST, _MESSAGE = attrgetter("digest"), attrgetter("message")  # of a ``wire.WireMessage``
 
 
 class Receiver:
@@ -303,8 +306,9 @@ class Receiver:
             for t in [t for t in book if t <= tick]:
                 del book[t]
         taken = self.inbox.take(tick, linked)
-        self._taken = (tick, tuple(s for s, _ in taken), tuple(wm.digest for _, wm in taken))
-        return [(s, wm.message) for s, wm in taken]
+        senders, wms = tuple(zip(*taken)) or ((), ())
+        self._taken = (tick, senders, tuple(map(_DIGEST, wms)))
+        return list(zip(senders, map(_MESSAGE, wms)))
 
     def digests(self, tick: int) -> dict:
         """{sender: ``wire.WireMessage.digest``} of the copies fused at
@@ -422,7 +426,8 @@ class Inbox:
             self._unheld(t, held)
         held = self._held.pop(tick, {})
         linked = frozenset(linked)
-        out = sorted((s, msg) for s, msg in held.items() if s in linked) if held else []
+        fused = sorted(held.keys() & linked) if held else []
+        out = list(zip(fused, map(held.__getitem__, fused)))
         c.fused += len(out)
         c.unlinked += len(held) - len(out)
         if len(out) < len(held):
