@@ -17,10 +17,11 @@ agent      one agent as an agent process runs it (``mesh.protocol.estimator.lock
            agents), where ``diskf-auto`` runs a bank per channel; a last line gives
            it with one bank for both channels (``[estimator.auto] per_channel = false``)
 
-Two last lines give ``diskf-auto`` with ``[estimator.auto] noise_level = 10``
-(three more filters, ``input_models.at_noise_level``) and with
-``evidence_dof = 4`` (a Student-t's evidence) on engine S1, engine S2 and one
-agent, against ``diskf-auto`` without them.
+Three last lines give ``diskf-auto`` with ``[estimator.auto] noise_level = 10``
+(three more filters, ``input_models.at_noise_level``), with
+``evidence_dof = 4`` (a Student-t's evidence) and with ``noise_span = 10``
+(the noise weighed at three levels, ``input_models.level_posterior``) on
+engine S1, engine S2 and one agent, against ``diskf-auto`` without them.
 
     .venv/bin/python benchmarks/auto_cost.py [--repeat 3]
 
@@ -64,7 +65,8 @@ def main(argv=None) -> int:
     s5, tr5 = next(c for c in heldout.selected(None) if c.label == "m=2 all, step | sine fast").simulate(range(20), None)
     one_bank = replace(s5.params, auto=AutoOptions(per_channel=False))
     # diskf-auto with one of its opt-in settings, on engine S1, engine S2 and one agent
-    variants = {"noise_level = 10": {"noise_level": 10.0}, "evidence_dof = 4": {"evidence_dof": 4.0}}
+    variants = {"noise_level = 10": {"noise_level": 10.0}, "evidence_dof = 4": {"evidence_dof": 4.0},
+                "noise_span = 10": {"noise_span": 10.0}}
 
     def with_variant(fields):
         v1, v2, v3 = (s.with_overrides(params=s.params.with_setting("auto", **fields)) for s in (s1, s2, s3))

@@ -86,9 +86,11 @@ def test_auto_matches_oracle_isolated_shipped():
 @pytest.mark.parametrize("neighbours,auto", [("dense", {}), ("gather", {}), ("dense", {"noise": True}),
                                              ("gather", {"noise": True}), ("dense", {"noise_level": 10.0}),
                                              ("gather", {"evidence_dof": 4.0}),
-                                             ("gather", {"noise_level": 10.0, "evidence_dof": 4.0})],
+                                             ("gather", {"noise_level": 10.0, "evidence_dof": 4.0}),
+                                             ("dense", {"noise_span": 10.0}), ("gather", {"noise_span": 10.0})],
                          ids=["dense", "gather", "dense, noise", "gather, noise", "dense, noise_level",
-                              "gather, evidence_dof", "gather, noise_level and evidence_dof"])
+                              "gather, evidence_dof", "gather, noise_level and evidence_dof", "dense, noise_span",
+                              "gather, noise_span"])
 def test_auto_agents_alone_equal_engine(neighbours, auto):
     """Every agent a batch of one (as in an agent process): the engine's
     bits; with ``noise_level`` too (the own measurement at each level is
@@ -568,6 +570,56 @@ def test_a_students_evidence_at_a_noise_level_by_hand():
         e = y - H @ x
         want.append(-0.5 * (nu + 2) * np.log1p(e @ np.linalg.solve(S, e) / nu) - 0.5 * np.linalg.slogdet(S)[1])
     assert got[1] - got[0] == pytest.approx(want[1] - want[0], rel=1e-9)
+
+
+def test_the_noise_levels_and_the_models_evidence_by_hand():
+    """``level_posterior``: each model's likelihood with the level summed
+    out, the levels' probabilities weighed by the models' mixture, and each
+    model's level given the measurement, against the sums written out."""
+    rng = np.random.default_rng(7)
+    loglik, c, nu = rng.normal(size=(3, 4)) * 3.0, rng.dirichlet(np.ones(4)), rng.dirichlet(np.ones(3))
+    got_ll, got_nu, got_resp = im.level_posterior(loglik, c, nu, 1e-6)
+    p = nu[:, None] * np.exp(loglik)                       # p_lj
+    want_ll = np.log(p.sum(axis=0))
+    assert np.allclose(got_ll - got_ll[0], want_ll - want_ll[0], rtol=0, atol=1e-12)
+    want_nu = (c[None, :] * p).sum(axis=1)
+    assert np.allclose(got_nu, want_nu / want_nu.sum(), rtol=1e-12)
+    assert np.allclose(got_resp, p / p.sum(axis=0), rtol=1e-12)
+    # a batch of two rows gives each row's own bits
+    both = im.level_posterior(np.stack([loglik, 2 * loglik]), np.stack([c, c]), np.stack([nu, nu]), 1e-6)
+    assert all(np.array_equal(a[0], b) for a, b in zip(both, (got_ll, got_nu, got_resp)))
+
+
+def test_weighing_the_noise_levels_keeps_a_noisy_sensor_from_reading_as_an_input():
+    """A ring of sensors 10 times noisier than stated, no input: with the
+    levels weighed (``noise_span``) the bank no longer takes the noise for
+    an input, the error falls below 0.5 of what it is without them, and
+    each model's update at its level's precision brings the NEES from
+    above the band into it."""
+    case = next(c for c in heldout.selected(None) if c.label == "true R×10 S1 ring, zero")
+    scn, tr = case.simulate([0, 1, 2, 3], None)
+    rows = {v: heldout.case_row(tr, "diskf-auto", scn.params.with_setting("auto", noise_span=v)) for v in (0.0, 10.0)}
+    lo, hi = heldout.chi2_band(tr.model.n, 4)
+    assert rows[10.0]["mae_state"] < 0.5 * rows[0.0]["mae_state"], rows
+    assert rows[0.0]["nees"] > hi and lo <= rows[10.0]["nees"] <= hi, (rows, lo, hi)
+
+
+def test_weighing_the_noise_levels_runs_exact_on_the_simulated_network():
+    """Bursts of noise in a ring, 30 ticks, with ``noise_span``: each
+    agent's level probabilities are its own (not on the wire), and the
+    simulated network gives the engine's bits."""
+    case = next(c for c in heldout.selected(None) if c.label == "bursts S1 ring, step")
+    scn, tr = case.simulate([0], 30)
+    run = simulate_run(scn.with_overrides(params=scn.params.with_setting("auto", noise_span=10.0)), tr, "diskf-auto", 0)
+    assert run.status.status == "exact", run.status.reason
+
+
+def test_a_noise_span_setting():
+    assert AutoOptions(noise_span=10).noise_span == 10
+    for bad in ({"noise_span": 1.0}, {"noise_span": 0.5}, {"noise_span": float("nan")}, {"noise_span": True},
+                {"noise_span": 10.0, "noise_level": 10.0}, {"noise_span": 10.0, "noise": True}):
+        with pytest.raises(ValueError, match="auto.noise_span"):
+            AutoOptions(**bad)
 
 
 def test_a_students_evidence_setting():

@@ -98,15 +98,16 @@ def local_update(x_pred: np.ndarray, P_pred: np.ndarray, Y: np.ndarray, Ji: np.n
     return x_upd, P_upd
 
 
-def information_pair(P_pred: np.ndarray, U: np.ndarray):
+def information_pair(P_pred: np.ndarray, U: np.ndarray, Y: np.ndarray | None = None):
     """(Y, Ji) = (P^^-1, (P^^-1 + H^T R^-1 H)^-1): the information form of a
     prediction and of its update (eq. info_kf_update0), inverted once for
-    ``local_update`` and ``input_estimate``."""
-    Y = inv_spd(P_pred)
+    ``local_update`` and ``input_estimate``; ``Y``: P^^-1 already inverted
+    (for several U of one prediction)."""
+    Y = inv_spd(P_pred) if Y is None else Y
     return Y, inv_spd(Y + U)
 
 
-def information_pair_psd(P_pred: np.ndarray, U: np.ndarray):
+def information_pair_psd(P_pred: np.ndarray, U: np.ndarray, Y: np.ndarray | None = None):
     """``information_pair`` for a neighbourhood's information U summed from
     messages: U = sum_j (P~_j^-1 - P^_j^-1) is positive semidefinite, but
     where a prediction's covariance is 10^9 or more on an axis nobody
@@ -115,11 +116,12 @@ def information_pair_psd(P_pred: np.ndarray, U: np.ndarray):
     matrices (each tried alone, so the choice never depends on the batch),
     U is replaced by its nearest positive-semidefinite matrix
     (``linalg.psd_part``). A prediction without a factor still raises.
-    Returns (Y, Ji, U), U broadcast to Y's shape where it was replaced."""
+    ``Y``: as ``information_pair``'s. Returns (Y, Ji, U), U broadcast to
+    Y's shape where it was replaced."""
     try:
-        return information_pair(P_pred, U) + (U,)
+        return information_pair(P_pred, U, Y) + (U,)
     except np.linalg.LinAlgError:
-        Y = inv_spd(P_pred)
+        Y = inv_spd(P_pred) if Y is None else Y
         U = np.broadcast_to(U, Y.shape).copy()
         bad = ~factorable(Y + U)
         U[bad] = psd_part(U[bad])

@@ -429,6 +429,32 @@ def update_probabilities(c, loglik, floor: float):
     return mu / sum_last(mu)[..., None]
 
 
+def level_posterior(loglik, c, nu, floor: float):
+    """The noise levels' and the models' evidence together
+    (``[estimator.auto] noise_span``): ``loglik`` (..., L, M) each model j's
+    log-likelihood under each noise level l (``information_loglik`` at
+    (U / r_l, u / r_l) with the level's -E / (2 r_l) - k log(r_l) / 2),
+    ``c`` (..., M) the models' predicted probabilities, ``nu`` (..., L) the
+    levels' predicted ones. With p_lj = nu_l exp(loglik_lj):
+
+        model j's log-likelihood   log sum_l p_lj           (the level summed out)
+        nu_l                       proportional to  sum_j c_j p_lj   (floored at ``floor``)
+        resp_lj                    p_lj / sum_l p_lj         (model j's level, given the measurement)
+
+    each up to a constant per row. Returns (loglik (..., M), nu (..., L),
+    resp (..., L, M)); every sum in order (the same bits for any batch)."""
+    top = loglik.max(axis=-1, keepdims=True).max(axis=-2, keepdims=True)
+    p = nu[..., :, None] * np.exp(loglik - top)                            # (..., L, M)
+    per_model = p[..., 0, :]
+    for level in range(1, p.shape[-2]):
+        per_model = per_model + p[..., level, :]
+    tiny = np.finfo(float).tiny
+    resp = p / np.maximum(per_model, tiny)[..., None, :]
+    levels = sum_last(c[..., None, :] * p)
+    levels = np.maximum(levels / sum_last(levels)[..., None], floor)
+    return np.log(np.maximum(per_model, tiny)), levels / sum_last(levels)[..., None], resp
+
+
 def sum_last(a):
     """The sum over the last axis, entry after entry in order: a few rows
     (an agent's) in one ``add.accumulate``, many one column at a time (the

@@ -205,6 +205,13 @@ class AutoOptions:
                its R) moves the probabilities by the log of its size, not
                its square (0: Gaussian; with noise_level, each model's
                energy at its own level)
+    noise_span: s > 1: each agent weighs the measurement noise of its
+               neighbourhood at three levels, R, sqrt(s) R and s R, by their
+               evidence (``input_models.level_posterior``): each model's
+               likelihood at each level, a probability per level carried
+               from tick to tick (the chain's ``switch``), and each model's
+               update at its posterior mean precision (0: not; not with
+               noise_level or noise)
     noise:     each agent learns the scale of its own measurement noise,
                above or below the stated R (``core.noise``), and weighs its
                measurement by it (off by default: with poor sensors and no
@@ -222,6 +229,7 @@ class AutoOptions:
     per_channel: bool = True
     noise_level: float = 0.0
     evidence_dof: float = 0.0
+    noise_span: float = 0.0
 
     def __post_init__(self):
         if not (self.none or self.walk or self.zero_mean or self.oscillating):
@@ -236,5 +244,10 @@ class AutoOptions:
                              f"got {self.noise_level!r}")
         if self.noise_level and self.noise:
             raise ValueError("auto.noise_level: give either noise_level or noise = true, not both")
+        if isinstance(self.noise_span, bool) or not np.isfinite(self.noise_span) or not (
+                self.noise_span == 0 or self.noise_span > 1):
+            raise ValueError(f"auto.noise_span: must be 0 (none) or a number above 1, got {self.noise_span!r}")
+        if self.noise_span and (self.noise_level or self.noise):
+            raise ValueError("auto.noise_span: give one of noise_span, noise_level and noise = true")
         if isinstance(self.evidence_dof, bool) or not np.isfinite(self.evidence_dof) or self.evidence_dof < 0:
             raise ValueError(f"auto.evidence_dof: must be 0 (Gaussian) or a positive number, got {self.evidence_dof!r}")

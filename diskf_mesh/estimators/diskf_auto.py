@@ -143,6 +143,7 @@ class AutoState(State):
     e_last: np.ndarray | None = None  # (..., p_max) the innovation of the last measured tick (``noise.track``)
     S_last: np.ndarray | None = None  # (..., p_max, p_max) its covariance
     seen: np.ndarray | None = None    # (...,) a tick was measured
+    nu: np.ndarray | None = None      # (..., 3) the noise levels' probabilities (``noise_span``)
     # this tick's own measurement and sensor (H, R, rows, chi-square median), held from the local step to the
     # fusion, each with the agents' batch axes (so that a receiver fused apart is given its own)
     y: np.ndarray | None = None
@@ -199,6 +200,10 @@ class DISKFAuto(Estimator):
         self.learn = o.noise
         self.levels = bool(o.noise_level)
         self.dof = float(o.evidence_dof)  # 0: Gaussian evidence
+        # the neighbourhood's measurement noise weighed at R, sqrt(s) R and s R (``noise_span``), the stated level
+        # as likely as the other two together before any evidence
+        self.grid = None if not o.noise_span else np.array([1.0, float(np.sqrt(o.noise_span)), float(o.noise_span)])
+        self.nu0, self.level_switch = np.array([0.5, 0.25, 0.25]), float(o.switch)
         self.median = chi2_median(sensors.p)  # (N,) m_p of (NL1)
 
     @classmethod
@@ -221,6 +226,7 @@ class DISKFAuto(Estimator):
                          z=np.repeat(z[..., None, :], B * M, axis=-2), Z=np.repeat(Z[..., None, :, :], B * M, axis=-3),
                          d_hold=np.zeros(batch + (m,)), S_hold=S0[..., :m, :m].copy(),
                          held=np.zeros(batch, dtype=bool), theta=np.zeros(batch),
+                         nu=None if self.grid is None else np.broadcast_to(self.nu0, batch + (3,)).copy(),
                          **(dict(zip(("e_last", "S_last", "seen"),
                                      noise.first_innovation(batch, self.sensors.H.shape[-2]))) if self.learn else {}))
 
@@ -235,7 +241,7 @@ class DISKFAuto(Estimator):
                        median=np.broadcast_to(self.median, batch))
         st = AutoState(state.x, state.P, np.where(has, 0, state.since + 1), Y_pred=loc.Y, mu=state.mu, z=state.z,
                        Z=state.Z, d_hold=state.d_hold, S_hold=state.S_hold, held=state.held, theta=state.theta,
-                       e_last=state.e_last, S_last=state.S_last, seen=state.seen, tick=k, **own)
+                       e_last=state.e_last, S_last=state.S_last, seen=state.seen, nu=state.nu, tick=k, **own)
         # the message's w: the bank's probabilities (a new array every tick, never changed), the banks' mean
         # with one per channel
         mu = state.mu[..., 0, :] if self.banks == 1 else state.mu.mean(axis=-2)
@@ -277,7 +283,13 @@ class DISKFAuto(Estimator):
         v, Pv, e1, S1, B, relayed = self._relay(senders, nb, v_c, Pv_c, e1, S1, B)
         x_s, P_s, C_s = eq.input_to_state(v, Pv, B, e1, S1, self.G_pair)
         # 4. the measurement: likelihoods and the joint update
-        if self.levels:  # the neighbourhood's information under each model's noise level
+        nu = state.nu
+        if self.grid is not None:  # the neighbourhood's noise weighed at three levels, with the models
+            E, k = self._energies(dY, dy, nb)
+            x_k, P_k, e_k, C_k, S_k, loglik, nu = measure_levels(
+                x_s, P_s, e1, C_s, S1, U, u, informed, E, k, self.grid, self._over_banks(c), state.nu,
+                self.level_switch)
+        elif self.levels:  # the neighbourhood's information under each model's noise level
             U, u, level_ll, heavy = self._at_levels(*self._energies(dY, dy, nb), U, u)
             x_k, P_k, e_k, C_k, S_k, loglik = measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=True,
                                                       heavy=heavy)
@@ -301,7 +313,7 @@ class DISKFAuto(Estimator):
         x, P, d, S = xc[..., 0, :], Pc[..., 0, :, :], dc[..., 0, :], Sc[..., 0, :, :]
         held = state.held | informed | relayed
         st = AutoState(x, P, state.since, mu=mu, z=z, Z=Z, d_hold=d, S_hold=S, held=held, theta=theta,
-                       e_last=last[0], S_last=last[1], seen=last[2], tick=state.tick)
+                       e_last=last[0], S_last=last[1], seen=last[2], nu=nu, tick=state.tick)
         return st, Output(x, P, d, held)
 
     def _pool(self, mu, senders, nb):
@@ -462,6 +474,51 @@ def measure(x_s, P_s, e1, C_s, S1, U, u, informed, per_model=False, heavy=None):
         return post
     out = []
     for whole, part in zip(prior + (blank,), post):
+        whole = whole.copy()
+        whole[informed] = part
+        out.append(whole)
+    return tuple(out)
+
+
+def measure_levels(x_s, P_s, e1, C_s, S1, U, u, informed, E, k, grid, c, nu, switch: float):
+    """``measure`` with the neighbourhood's measurement noise weighed at the
+    levels of ``grid`` (L,) (``[estimator.auto] noise_span``): each model's
+    log-likelihood at each level r (``information_loglik`` at (U / r,
+    u / r), with the level's -E / (2 r) - k log(r) / 2; E, k (...,) the
+    senders' measurement energies and ranks), the levels' probabilities
+    ``nu`` (..., L) one step of their chain (stay with 1 - ``switch``)
+    then weighed by the models' mixture ``c`` (..., M)
+    (``input_models.level_posterior``), and each model's update at its
+    posterior mean precision, sum_l resp_lj / r_l. Where nothing was
+    measured: the prediction, log-likelihood 0 and ``nu`` as it was.
+    Returns (x, P, e, C, S, loglik, nu)."""
+    blank = np.zeros(x_s.shape[:-1])
+    if not informed.any():
+        return x_s, P_s, e1, C_s, S1, blank, nu
+    every = bool(informed.all())
+    prior = (x_s, P_s, e1, C_s, S1)
+    xs, Ps, e, C, S = prior if every else (a[informed] for a in prior)
+    U_i, u_i, E_i, k_i, c_i, nu_i = (U, u, E, k, c, nu) if every else \
+        (a[informed] for a in (U, u, E, k, c, nu))
+    U_i, u_i = U_i[..., None, :, :], u_i[..., None, :]
+    lls, Y = [], None
+    for r in grid.tolist():
+        Y, Ji, U_r = eq.information_pair_psd(Ps, U_i / r, Y)
+        lls.append(im.information_loglik(xs, Ps, Y, Ji, U_r, u_i / r) - 0.5 * E_i[..., None] / r
+                   - 0.5 * k_i[..., None] * np.log(r))
+    L = len(grid)
+    nu_pred = (1.0 - switch) * nu_i + switch * (1.0 - nu_i) / (L - 1)
+    loglik, nu_post, resp = im.level_posterior(np.stack(lls, axis=-2), c_i, nu_pred, FLOOR)
+    rho = resp[..., 0, :] / grid[0]
+    for level in range(1, L):
+        rho = rho + resp[..., level, :] / grid[level]
+    Y, Ji, U_m = eq.information_pair_psd(Ps, U_i * rho[..., None, None], Y)
+    x_k, P_k = eq.local_update(xs, Ps, Y, Ji, u_i * rho[..., None])
+    post = (x_k, P_k) + eq.replace_marginal(xs, Ps, e, C, S, x_k, P_k) + (loglik, nu_post)
+    if every:
+        return post
+    out = []
+    for whole, part in zip(prior + (blank, nu), post):
         whole = whole.copy()
         whole[informed] = part
         out.append(whole)

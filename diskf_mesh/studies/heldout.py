@@ -539,14 +539,16 @@ def selected(select=None) -> list[Case]:
 
 
 def run(seeds: int = 20, steps: int | None = None, names=None, select=None, progress=True, bank=False,
-        first: int = 0, jobs: int = 1, noise_level: float = 0.0, evidence_dof: float = 0.0) -> dict:
+        first: int = 0, jobs: int = 1, noise_level: float = 0.0, evidence_dof: float = 0.0,
+        noise_span: float = 0.0) -> dict:
     """The whole suite (or the cases ``selected(select)``) on seeds
     ``first`` .. ``first + seeds - 1``; ``names``: only these estimators;
     ``bank``: each result also holds ``run_bank``'s ``bank``; ``jobs``:
     the cases in that many processes (the same rows, in the same order);
-    ``noise_level``, ``evidence_dof``: ``[estimator.auto]``'s, set on every
-    case (``with_auto``; 0: as the case has it)."""
-    all_cases = [with_auto(c, noise_level=noise_level, evidence_dof=evidence_dof) for c in selected(select)]
+    ``noise_level``, ``evidence_dof``, ``noise_span``: ``[estimator.auto]``'s,
+    set on every case (``with_auto``; 0: as the case has it)."""
+    all_cases = [with_auto(c, noise_level=noise_level, evidence_dof=evidence_dof, noise_span=noise_span)
+                 for c in selected(select)]
     t0 = time.monotonic()
     work = [(c, seeds, steps, names, first, bank) for c in all_cases]
 
@@ -822,6 +824,9 @@ def main(argv=None) -> int:
                     help="run diskf-auto with [estimator.auto] noise_level = X on every case of one input channel")
     ap.add_argument("--evidence-dof", type=float, default=0.0, metavar="NU",
                     help="run diskf-auto with [estimator.auto] evidence_dof = NU (a Student-t's evidence) on every case")
+    ap.add_argument("--noise-span", type=float, default=0.0, metavar="S",
+                    help="run diskf-auto with [estimator.auto] noise_span = S (the noise weighed at R, sqrt(S) R and S R) "
+                         "on every case")
     ap.add_argument("--by-silence", metavar="CASE", default=None,
                     help="only this case (its label): the state MAE of diskf-auto and of each bank model alone, by "
                          "ticks since the agent's own last measurement")
@@ -868,13 +873,13 @@ def main(argv=None) -> int:
     if a.figure:
         choice_figure(a.figure)
     try:
-        AutoOptions(noise_level=a.noise_level, evidence_dof=a.evidence_dof)
+        AutoOptions(noise_level=a.noise_level, evidence_dof=a.evidence_dof, noise_span=a.noise_span)
     except ValueError as e:  # "auto.<field>: <message>": named by its flag
         field, _, msg = str(e).partition(": ")
         print(f"error: --{field.rpartition('.')[2].replace('_', '-')}: {msg}", file=sys.stderr)
         return 2
     doc = run(a.seeds, a.ticks, names=names, select=a.select, bank=a.bank, first=a.first_seed, jobs=a.jobs,
-              noise_level=a.noise_level, evidence_dof=a.evidence_dof)
+              noise_level=a.noise_level, evidence_dof=a.evidence_dof, noise_span=a.noise_span)
     if old is not None:
         doc = merge(doc, old)
     if a.json:
