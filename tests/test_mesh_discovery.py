@@ -3,18 +3,22 @@ timeout, naming the agent; the launcher stops everything and says which
 child failed and why; the protocol itself, in-process."""
 from __future__ import annotations
 
+import re
 import sys
 import threading
 import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from agents.agent import Agent
 from diskf_mesh.core import exits
 from diskf_mesh.mesh.wire.keys import Keys
 from diskf_mesh.mesh.process.runspec import RunSpec
-from diskf_mesh.mesh.wire.keys import key_matches
+from diskf_mesh.mesh.wire import keys as keys_module
+from diskf_mesh.mesh.wire.keys import key_matches, matcher
 from local_bus import LocalBus
 from sim.launcher import Child, ChildFailed, Launcher
 from sim.world import World, WorldTiming
@@ -143,3 +147,16 @@ def test_protocol_in_process_equals_engine():
     assert rec.reported.all()
     np.testing.assert_allclose(rec.x, ref.x[0], rtol=0, atol=1e-9)
     assert all(not t.is_alive() for t in threads)
+
+
+@settings(max_examples=400, deadline=None)
+@given(head=st.lists(st.sampled_from(["a", "b", "7", "x_1"]), min_size=1, max_size=3),
+       key=st.lists(st.sampled_from(["a", "b", "7", "x_1", "", "**"]), min_size=0, max_size=5))
+def test_an_expression_below_a_head_matches_as_its_pattern(head, key):
+    """``matcher("head/**")`` (matched without a pattern) agrees with the
+    compiled pattern of the same expression on keys of any chunks, empty
+    ones included."""
+    expr = "/".join(head) + "/**"
+    k = "/".join(key)
+    pattern = re.compile(keys_module._pattern(expr)).fullmatch
+    assert (matcher(expr)(k) is not None) == (pattern(k) is not None), (expr, k)

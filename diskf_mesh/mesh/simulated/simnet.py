@@ -209,7 +209,7 @@ class _Routes:
 
     def __init__(self):
         self.exact = {}       # expr -> {proc: how many times it declared it}
-        self.wild = {}        # expr -> (matcher, {proc: how many times})
+        self.wild = {}        # expr -> {proc: how many times}
         self.pieces = {}      # (head expr, delimiter) -> (matcher of the head, {piece: [expr]})
         self.scan = {}        # the other wildcard expressions -> matcher
         self.by_proc = {}     # proc -> its expressions
@@ -222,7 +222,7 @@ class _Routes:
         self.by_match.clear()
         if "*" in expr:
             fresh = expr not in self.wild
-            ps = self.wild.setdefault(expr, (matcher(expr), {}))[1]
+            ps = self.wild.setdefault(expr, {})
             ps[proc] = ps.get(proc, 0) + 1
             piece = _piece(expr)
             if fresh and piece is not None:
@@ -244,10 +244,9 @@ class _Routes:
             self.by_match.clear()
         for e in exprs:
             table = self.wild if "*" in e else self.exact
-            entry = table.get(e)
-            if entry is None:
+            ps = table.get(e)
+            if ps is None:
                 continue
-            ps = entry[1] if table is self.wild else entry
             ps.pop(proc, None)
             if not ps:
                 del table[e]
@@ -274,7 +273,7 @@ class _Routes:
             if hit is None:
                 pair = lambda pe: self.pairs.setdefault(pe, pe)  # noqa: E731
                 hit = [pair((p, key)) for p, n in self.exact.get(key, {}).items() for _ in range(n)]
-                hit += [pair((p, e)) for e in wild for p, n in self.wild[e][1].items() for _ in range(n)]
+                hit += [pair((p, e)) for e in wild for p, n in self.wild[e].items() for _ in range(n)]
                 hit.sort(key=lambda pe: pe[0].order)
                 self.by_match[sig] = hit
             if len(self.memo) > 100_000:

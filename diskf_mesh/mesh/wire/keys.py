@@ -246,8 +246,25 @@ def _pattern(expr: str) -> str:
 def matcher(expr: str):
     """``fullmatch`` of a key expression's compiled pattern: ``matcher(e)(key)``
     is truthy where zenoh's ``KeyExpr(e).includes(key)`` is (for keys and
-    for expressions matched chunk for chunk)."""
+    for expressions matched chunk for chunk), None where not. An
+    expression ``head/**`` whose head has no wildcard (each agent's own
+    keys) is matched as the head and the non-empty chunks after it, without
+    compiling a pattern."""
+    head, _, last = expr.rpartition("/")
+    if last == "**" and head and "*" not in head and "$" not in head:
+        return functools.partial(_below, head, head + "/")
     return re.compile(_pattern(expr)).fullmatch
+
+
+def _below(head: str, prefix: str, key: str):
+    """True where ``key`` is ``head`` or ``head`` then non-empty chunks (the
+    pattern of ``head/**``), None where not."""
+    if key == head:
+        return True
+    if not key.startswith(prefix):
+        return None
+    rest = key[len(prefix):]
+    return True if rest and not rest.endswith("/") and "//" not in rest else None
 
 
 def key_matches(expr: str, key: str) -> bool:
