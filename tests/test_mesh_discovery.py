@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from agents.agent import Agent
@@ -151,12 +151,14 @@ def test_protocol_in_process_equals_engine():
 
 @settings(max_examples=400, deadline=None)
 @given(head=st.lists(st.sampled_from(["a", "b", "7", "x_1"]), min_size=1, max_size=3),
-       key=st.lists(st.sampled_from(["a", "b", "7", "x_1", "", "**"]), min_size=0, max_size=5))
-def test_an_expression_below_a_head_matches_as_its_pattern(head, key):
-    """``matcher("head/**")`` (matched without a pattern) agrees with the
-    compiled pattern of the same expression on keys of any chunks, empty
-    ones included."""
-    expr = "/".join(head) + "/**"
+       key=st.lists(st.sampled_from(["a", "b", "7", "x_1", "", "**"]), min_size=0, max_size=5),
+       last=st.sampled_from(["**", "*"]))
+@example(head=["a"], key=["a", "", "a"], last="**")  # an empty chunk right after the head: a//a
+def test_an_expression_below_a_head_matches_as_its_pattern(head, key, last):
+    """``matcher("head/**")`` and ``matcher("head/*")`` (matched without a
+    pattern) agree with the compiled pattern of the same expression on keys
+    of any chunks, empty ones included."""
+    expr = "/".join(head) + "/" + last
     k = "/".join(key)
     pattern = re.compile(keys_module._pattern(expr)).fullmatch
     assert (matcher(expr)(k) is not None) == (pattern(k) is not None), (expr, k)

@@ -247,12 +247,12 @@ def matcher(expr: str):
     """``fullmatch`` of a key expression's compiled pattern: ``matcher(e)(key)``
     is truthy where zenoh's ``KeyExpr(e).includes(key)`` is (for keys and
     for expressions matched chunk for chunk), None where not. An
-    expression ``head/**`` whose head has no wildcard (each agent's own
-    keys) is matched as the head and the non-empty chunks after it, without
-    compiling a pattern."""
+    expression ``head/**`` or ``head/*`` whose head has no wildcard (each
+    agent's own keys and tokens) is matched as the head and what follows
+    it, without compiling a pattern."""
     head, _, last = expr.rpartition("/")
-    if last == "**" and head and "*" not in head and "$" not in head:
-        return functools.partial(_below, head, head + "/")
+    if last in ("**", "*") and head and "*" not in head and "$" not in head:
+        return functools.partial(_below if last == "**" else _one_below, head, head + "/")
     return re.compile(_pattern(expr)).fullmatch
 
 
@@ -264,7 +264,13 @@ def _below(head: str, prefix: str, key: str):
     if not key.startswith(prefix):
         return None
     rest = key[len(prefix):]
-    return True if rest and not rest.endswith("/") and "//" not in rest else None
+    return True if rest and rest[0] != "/" and rest[-1] != "/" and "//" not in rest else None
+
+
+def _one_below(head: str, prefix: str, key: str):
+    """True where ``key`` is ``head`` and one chunk more (the pattern of
+    ``head/*``), None where not."""
+    return True if key.startswith(prefix) and "/" not in key[len(prefix):] else None
 
 
 def key_matches(expr: str, key: str) -> bool:
