@@ -35,6 +35,7 @@ def test_the_world_names_a_liar_within_3_ticks_and_cuts_it_off(tmp_path):
     done, row, doc = up(tmp_path, "--lie", LIE, "--allow-missing", "0.5", "--allow-degraded")
     assert done.returncode == exits.DIVERGED, done.stderr
     assert row["status"] == "diverged", row["reason"]
+    assert row["evidence"]["replayed_online"]  # the world's check in its thread replayed the run once, for both
     [q] = row["evidence"]["quarantined"]
     assert q["agent"] == LIAR and q["why"] == "lied" and FROM <= q["named_at"] < FROM + 3, q
     assert q["named_at"] < q["from"] <= q["named_at"] + 2
