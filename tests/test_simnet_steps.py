@@ -30,7 +30,7 @@ def _fields(x):
     return [np.asarray(v).tobytes() for v in dataclasses.astuple(x)]
 
 
-def lockstep_both(scn, trace, name, steps, start=None):
+def lockstep_both(scn, trace, name, steps, start=None, liars=(), agents=None):
     """Every agent twice, alone and together, tick by tick over ``trace``:
     yields (alone's outputs, together's outputs) per tick, with each
     receiver fusing the message objects it received (one object per
@@ -41,6 +41,8 @@ def lockstep_both(scn, trace, name, steps, start=None):
     est = estimators.get(name)
     alone = {i: AgentEstimator(scn, i, est, K, SEED, start=start) for i in ids}
     together = {i: AgentEstimator(scn, i, est, K, SEED, start=start) for i in ids}
+    if agents is not None:
+        agents.update(alone=alone, together=together)
     for k in range(1, K + 1):
         args = {i: (k, bool(trace.has[0, k - 1, j]), trace.y[0, k - 1, j, :alone[i].p]) for j, i in enumerate(ids)}
         own_a = {i: alone[i].local(*args[i]) for i in ids}
@@ -49,6 +51,8 @@ def lockstep_both(scn, trace, name, steps, start=None):
         for i in ids:
             assert _fields(own_a[i]) == _fields(own_t[i]), (name, k, i)
         sent = {i: own_t[i].take((0, 0)) for i in ids}
+        for i in liars:
+            sent[i] = dataclasses.replace(sent[i], x_pred=sent[i].x_pred + 40.0)
         heard = {i: {o: sent[o] for jj, o in enumerate(ids) if trace.links[0, k - 1, j, jj] and (o != i or j % 3 == 0)}
                  for j, i in enumerate(ids)}
         outs_a = [alone[i].fuse(k, own_a[i], heard[i]) for i in ids]
@@ -70,6 +74,46 @@ def test_steps_together_equal_each_alone_bit_for_bit(run, name, defence):
     for k, outs_a, outs_t in lockstep_both(scn, trace, name, Steps()):
         for a, t in zip(outs_a, outs_t):
             assert _fields(a) == _fields(t), (name, k)
+
+
+def test_steps_together_with_liars_equal_each_alone(run):
+    """With the defence on and two liars, the evidence each receiver keeps
+    against each sender, at that sender's place, and what it then fuses, are
+    the same together as alone (the liars are cut by some receivers)."""
+    scn, trace = run
+    scn = dataclasses.replace(scn, params=dataclasses.replace(scn.params, defence=True))
+    ids = list(scn.ids)
+    agents, grew = {}, 0.0
+    for k, outs_a, outs_t in lockstep_both(scn, trace, estimators.DEFAULT, Steps(), liars=(ids[4], ids[31]),
+                                           agents=agents):
+        for a, t in zip(outs_a, outs_t):
+            assert _fields(a) == _fields(t), k
+        for i in ids:
+            alone, together = agents["alone"][i].state.evidence, agents["together"][i].state.evidence
+            assert alone.tobytes() == together.tobytes(), (k, i)
+            grew = max(grew, float(alone.max()))
+    assert grew > 0.0
+
+
+@pytest.mark.parametrize("name", ["diskf-auto", "diskf-r"])
+def test_steps_in_parts_equal_each_alone(run, name, monkeypatch):
+    """Receivers fused in parts of a few (a working set past
+    ``BLOCK_BYTES_MAX``), each part as wide as its busiest receiver: the
+    same bits as each alone."""
+    from diskf_mesh.mesh.protocol import estimator as agent_estimator
+
+    scn, trace = run
+    monkeypatch.setattr(agent_estimator, "BLOCK_BYTES_MAX", 5 * 10 * 3000)
+    parts = []
+    fuse = type(estimators.get(name)).__dict__.get("screened_fuse", estimators.get(name).screened_fuse)
+    monkeypatch.setattr(estimators.get(name), "screened_fuse",
+                        lambda self, state, own, senders, nb: parts.append(senders.x_pred.shape[1:3])
+                        or fuse(self, state, own, senders, nb))
+    for k, outs_a, outs_t in lockstep_both(scn, trace, name, Steps()):
+        for a, t in zip(outs_a, outs_t):
+            assert _fields(a) == _fields(t), (name, k)
+    together = [p for p in parts if p[0] > 1]
+    assert len(together) > 2 * K and len({p[1] for p in together}) > 2  # many parts, of several widths
 
 
 def test_steps_together_from_a_rejoin_equal_each_alone(run):

@@ -265,8 +265,7 @@ class DISKFAuto(Estimator):
         # 2. mixing: the senders' model probabilities pooled where the neighbourhood measured nothing this tick,
         # the agent's own where it did
         informed = np.trace(U, axis1=-2, axis2=-1) > 0
-        pooled = state.mu if informed.all() else np.where(informed[..., None, None], state.mu,
-                                                          self._pool(state.mu, senders, nb))
+        pooled = state.mu if informed.all() else self._pool(state.mu, senders, nb, ~informed)
         c, w = im.model_weights(pooled, self.Pi, PRUNE)                               # per bank
         z0, Z0 = self._flat(*im.mix(w, *self._banked(state.z, state.Z), bounded=True))
         x0, P0, e0, S0, C0 = im.split(z0, Z0, n)
@@ -316,19 +315,25 @@ class DISKFAuto(Estimator):
                        e_last=last[0], S_last=last[1], seen=last[2], nu=nu, tick=state.tick)
         return st, Output(x, P, d, held)
 
-    def _pool(self, mu, senders, nb):
-        """The senders' probabilities of the models at the stated noise,
-        pooled (``input_models.pool_probabilities``), for a receiver whose
-        neighbourhood measured nothing: they take the share the receiver's
-        own probabilities give those models, and the models at another
-        noise level keep the receiver's own (the message carries the
-        stated models' alone).
-        Returns (..., 1, M)."""
-        pooled = im.pool_probabilities(nb.adj, senders.w[..., self.slots], FLOOR)[..., None, :]
-        if not self.levels:
-            return pooled
+    def _pool(self, mu, senders, nb, blind):
+        """``mu`` with the rows of ``blind`` (the receivers whose
+        neighbourhood measured nothing) given their senders' probabilities
+        of the models at the stated noise, pooled
+        (``input_models.pool_probabilities``, each receiver's row alone: the
+        same bits as over the whole batch): they take the share the
+        receiver's own probabilities give those models, and the models at
+        another noise level keep the receiver's own (the message carries
+        the stated models' alone)."""
+        adj = nb.adj[blind]                                                            # (K, S)
+        w = np.broadcast_to(senders.w[..., None, :, :], nb.adj.shape + senders.w.shape[-1:])[blind]
+        pooled = im.pool_probabilities(adj[:, None, :], w[..., self.slots], FLOOR)  # (K, 1, M): one for every bank
         out = mu.copy()
-        out[..., self.stated] = pooled * im.sum_last(mu[..., self.stated])[..., None]
+        if not self.levels:
+            out[blind] = pooled
+        else:
+            own = mu[blind]
+            own[..., self.stated] = pooled * im.sum_last(own[..., self.stated])[..., None]
+            out[blind] = own
         return out
 
     def _at_levels(self, E, k, U, u):

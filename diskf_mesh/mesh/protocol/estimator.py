@@ -26,7 +26,8 @@ import numpy as np
 from diskf_mesh import estimators
 from diskf_mesh.estimators.base import Estimator
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
-from diskf_mesh.data.scenario import Scenario, links_for
+from diskf_mesh.data.scenario import BLOCK_BYTES_MAX, Scenario, links_for
+from diskf_mesh.engine.batch import slot_bytes
 
 
 class AgentEstimator:
@@ -134,7 +135,6 @@ def lockstep(scn: Scenario, algorithm: str, trace, seed: int = 0):
         yield k, msgs, outputs
 
 
-CELLS = 1 << 22  # receivers x senders of one batched fusion at most (its adjacency, 32 MB); more: in parts
 
 
 class Steps:
@@ -195,25 +195,22 @@ class Steps:
         return out
 
     def _fuse(self, batch: list) -> list:
-        """``AgentEstimator.fuse`` of each, in parts of at most ``CELLS``
-        receiver-sender pairs."""
-        out, part, cells = [], [], 0
-        for w in batch:
-            cols = len(w.args[2]) + 1
-            if part and (len(part) + 1) * (cells + cols) > CELLS:
-                out += self._fuse_part(part)
-                part, cells = [], 0
-            part.append(w)
-            cells += cols
-        return out + self._fuse_part(part)
-
-    def _fuse_part(self, batch: list) -> list:
+        """``AgentEstimator.fuse`` of each, laid out as the engine's gathered
+        layout lays out its agents (``engine.batch.GatheredLinks``): receiver
+        b a batch row of its own, (1, B, 1, ...), its senders (its own
+        message as it fuses it included) in scenario order in the slots
+        (1, B, D, ...), the slots past its last sender zero weights (holding
+        its own message). Every message object is laid out once for all its
+        receivers, then taken into their slots: arrays, not a Python step per
+        delivery. The receivers run in parts whose working set (about
+        ``slot_bytes`` per receiver and slot) stays under ``BLOCK_BYTES_MAX``,
+        as the engine's blocks."""
         ests = [w.est for w in batch]
         B, k = len(batch), batch[0].args[0]
         scn = ests[0].scenario
         owns = [w.args[1] for w in batch]
-        # every (receiver, received message) pair but a receiver's own: one column per message object, in
-        # the order first received, at its sender's place (arrays, not a Python step per delivery)
+        # every (receiver, received message) pair but a receiver's own: one row per message object, in the order
+        # first received
         senders, msgs, counts = [], [], []
         for w in batch:
             received = w.args[2]
@@ -221,8 +218,9 @@ class Steps:
             msgs += received.values()
             counts.append(len(received))
         at = np.fromiter(map(scn.places.__getitem__, senders), dtype=np.intp, count=len(senders))
+        mine = np.array([e.index for e in ests], dtype=np.intp)
         recv = np.repeat(np.arange(B), counts)
-        keep = np.flatnonzero(at != np.array([e.index for e in ests], dtype=np.intp)[recv])
+        keep = np.flatnonzero(at != mine[recv])
         objects = np.fromiter(map(id, msgs), dtype=np.int64, count=len(msgs))[keep]
         _, first, inverse = np.unique(objects, return_index=True, return_inverse=True)
         by_first = np.argsort(first, kind="stable")
@@ -230,37 +228,53 @@ class Steps:
         rank[by_first] = np.arange(len(by_first))
         heads = keep[first[by_first]]
         rows = [_row(msgs[i]) for i in heads.tolist()]
-        places = at[heads].tolist()
-        cells = (recv[keep], rank[inverse.reshape(-1)])
-        own_cols = []
-        for b, e in enumerate(ests):  # each receiver's own message, as it fuses it (not as sent)
-            own_cols.append(len(rows))
-            rows.append(tuple(a[0, 0] for a in _row(owns[b])))
-            places.append(e.index)
-        order = np.argsort(np.array(places), kind="stable")  # scenario order, as each agent alone
-        where = np.empty(len(order), dtype=np.intp)
-        where[order] = np.arange(len(order))
-        columns = [np.array([c]) for c in zip(*(rows[c] for c in order.tolist()))]
+        own_rows = np.arange(len(rows), len(rows) + B)  # each receiver's own message, as it fuses it (not as sent)
+        rows += [tuple(a[0, 0] for a in _row(o)) for o in owns]
+        columns = [np.array(c) for c in zip(*rows)]                          # (messages, ...) per field
         if not all(np.isfinite(a).all() for a in columns):
             raise _NotFinite
-        senders = Message(*columns)
-        S = len(order)
-        adj, self_mask = np.zeros((1, B, S)), np.zeros((1, B, S), dtype=bool)
-        if len(cells[0]):
-            adj[0, cells[0], where[cells[1]]] = 1.0
-        mine = where[np.array(own_cols)]
-        adj[0, np.arange(B), mine] = 1.0
-        self_mask[0, np.arange(B), mine] = True
+        row_place = np.concatenate([at[heads], mine])
+        # the slots: each receiver's pairs (its own last) sorted by sender place
+        pair_recv = np.concatenate([recv[keep], np.arange(B)])
+        pair_row = np.concatenate([rank[inverse.reshape(-1)], own_rows])
+        order = np.lexsort((row_place[pair_row], pair_recv))
+        count = np.bincount(pair_recv, minlength=B)
+        start = np.cumsum(count) - count
+        slot = np.arange(len(order)) - np.repeat(start, count)
+        at_slot = np.empty_like(order)
+        at_slot[order] = slot
+        own_slot = at_slot[len(keep):]                                       # the own pairs are the last B
+        recv_sorted, row_sorted = pair_recv[order], pair_row[order]
         alg = self._alg(ests)
-        draws = None if ests[0].draws is None else np.array([[e.draws[k - 1] for e in ests]])
-        place_of = np.broadcast_to(np.array(places)[order], (1, B, S)) if alg.defends else None
-        nb = Neighbourhood(adj, self_mask, draws, place_of)
-        own = Message(*(np.concatenate(f, axis=1) for f in zip(*(_row(o) for o in owns))))
-        state, out = alg.screened_fuse(_stack_states([e.state for e in ests]), own, senders, nb)
-        result = []
-        for b, e in enumerate(ests):
-            e.state = _state_of(state, b)
-            result.append(Output(*(a[:, b:b + 1] for a in (out.x, out.P, out.d, out.d_valid))))
+        draws = None if ests[0].draws is None else np.array([[e.draws[k - 1] for e in ests]])[..., None]
+        own = Message(*(np.concatenate(f, axis=1)[:, :, None] for f in zip(*(_row(o) for o in owns))))
+        state = _stack_states([e.state for e in ests])
+        per_slot = slot_bytes(alg.model.n, owns[0])
+        result, b0 = [], 0
+        while b0 < B:  # a part of receivers b0 .. b1 - 1
+            b1, D = b0 + 1, int(count[b0])
+            while b1 < B and (b1 - b0 + 1) * max(D, int(count[b1])) * per_slot <= BLOCK_BYTES_MAX:
+                D = max(D, int(count[b1]))
+                b1 += 1
+            R, cut = b1 - b0, slice(start[b0], start[b1 - 1] + count[b1 - 1])
+            r, sl = recv_sorted[cut] - b0, slot[cut]
+            idx = np.repeat(own_rows[b0:b1, None], D, axis=1)               # (R, D) message rows
+            idx[r, sl] = row_sorted[cut]
+            adj, self_mask = np.zeros((1, R, 1, D)), np.zeros((1, R, 1, D), dtype=bool)
+            adj[0, r, 0, sl] = 1.0
+            self_mask[0, np.arange(R), 0, own_slot[b0:b1]] = True
+            place_of = row_place[idx][None, :, None] if alg.defends else None
+            nb = Neighbourhood(adj, self_mask, None if draws is None else draws[:, b0:b1], place_of)
+            part = slice(b0, b1)
+            st, out = alg.screened_fuse(
+                replace(state, **{n: v[:, part, None] for n, v in vars(state).items() if isinstance(v, np.ndarray)}),
+                Message(*(a[:, part] for a in _row(own))),
+                Message(*(np.take(a, idx, axis=0)[None] for a in columns)), nb)
+            st = replace(st, **{n: v[:, :, 0] for n, v in vars(st).items() if isinstance(v, np.ndarray)})
+            for b in range(R):
+                ests[b0 + b].state = _state_of(st, b)
+                result.append(Output(*(a[:, b:b + 1, 0] for a in (out.x, out.P, out.d, out.d_valid))))
+            b0 = b1
         return result
 
 
