@@ -149,13 +149,16 @@ class Steps:
 
     def __init__(self):
         self._algs = {}  # (class, scenario, ticks, params, agent places) -> estimator over those agents
+        # id(state) -> (state, its layout) of the states the last two calls made: a layout is found once per batch
+        self._layouts, self._older = {}, {}
 
     def carry_out(self, works: list) -> list:
         """Each ``Work``'s result, in order (``Work.alone``'s)."""
+        self._older, self._layouts = self._layouts, {}
         results = [None] * len(works)
         groups = {}
         for i, w in enumerate(works):
-            groups.setdefault(_group(w), []).append(i)
+            groups.setdefault(self._group(w), []).append(i)
         for key, idx in groups.items():
             if key is None or len(idx) == 1:
                 for i in idx:
@@ -169,6 +172,28 @@ class Steps:
             for i, r in zip(idx, out):
                 results[i] = r
         return results
+
+    def _group(self, w) -> tuple | None:
+        """What the works stepped together share: the step, the tick, the
+        estimator and its run, the layout of the state (None: alone)."""
+        e = w.est
+        if w.step not in ("local", "fuse") or not isinstance(e, AgentEstimator):
+            return None
+        state = e.state
+        known = self._older.get(id(state))
+        layout = known[1] if known is not None and known[0] is state else _layout(state)
+        if layout is None:
+            return None
+        return (w.step, w.args[0], type(e.alg), id(e.scenario), e.ticks, id(e.alg.params), e.draws is None,
+                type(state), layout)
+
+    def _share(self, ests: list, state, first: int = 0) -> None:
+        """Give agents ``ests`` their shares of the stacked ``state``, from
+        its ``first`` row on, their layout noted once for all."""
+        layout, made = _layout(state, stacked=True), self._layouts
+        for b, e in enumerate(ests):
+            e.state = mine = _state_of(state, first + b)
+            made[id(mine)] = (mine, layout)
 
     def _alg(self, ests: list) -> Estimator:
         e = ests[0]
@@ -188,11 +213,8 @@ class Steps:
                        for e, w in zip(ests, batch)]])
         has = np.array([[bool(w.args[1]) for w in batch]])
         state, msg = self._alg(ests).local(_stack_states([e.state for e in ests]), k, y, has)
-        out = []
-        for b, e in enumerate(ests):
-            e.state = _state_of(state, b)
-            out.append(Message(*(a[:, b:b + 1] for a in _row(msg))))
-        return out
+        self._share(ests, state)
+        return [Message(*(a[:, b:b + 1] for a in _row(msg))) for b in range(len(ests))]
 
     def _fuse(self, batch: list) -> list:
         """``AgentEstimator.fuse`` of each, laid out as the engine's gathered
@@ -271,9 +293,8 @@ class Steps:
                 Message(*(a[:, part] for a in _row(own))),
                 Message(*(np.take(a, idx, axis=0)[None] for a in columns)), nb)
             st = replace(st, **{n: v[:, :, 0] for n, v in vars(st).items() if isinstance(v, np.ndarray)})
-            for b in range(R):
-                ests[b0 + b].state = _state_of(st, b)
-                result.append(Output(*(a[:, b:b + 1, 0] for a in (out.x, out.P, out.d, out.d_valid))))
+            self._share(ests[b0:b1], st)
+            result += [Output(*(a[:, b:b + 1, 0] for a in (out.x, out.P, out.d, out.d_valid))) for b in range(R)]
             b0 = b1
         return result
 
@@ -282,27 +303,26 @@ class _NotFinite(Exception):
     """A batch's message holds an infinity or a NaN: its steps run one by one."""
 
 
-def _group(w) -> tuple | None:
-    """What the works stepped together share: the step, the tick, the
-    estimator and its run, the layout of the state (None: alone)."""
-    e = w.est
-    if w.step not in ("local", "fuse") or not isinstance(e, AgentEstimator):
-        return None
+def _layout(state, stacked: bool = False) -> tuple | None:
+    """The layout of an agent's state: each array's shape and type, every
+    other field (a tick) as it is; None where an array is not (1, 1, ...).
+    ``stacked``: that of each agent's share of a stacked state (1, B, ...)
+    (``_state_of``)."""
     layout = []
-    for v in vars(e.state).values():
+    for v in vars(state).values():
         if isinstance(v, np.ndarray):
-            if v.shape[:2] != (1, 1):
+            shape = v.shape[:1] + (1,) + v.shape[2:] if stacked else v.shape
+            if shape[:2] != (1, 1):
                 return None
-            layout.append((v.shape, v.dtype.char))
+            layout.append((shape, v.dtype.char))
         else:
             layout.append(v)
-    return (w.step, w.args[0], type(e.alg), id(e.scenario), e.ticks, id(e.alg.params), e.draws is None,
-            type(e.state), tuple(layout))
+    return tuple(layout)
 
 
 def _stack_states(states: list):
     """States of single agents (1, 1, ...) as one (1, B, ...); every other
-    field (a tick) is the same in all (``_group``)."""
+    field (a tick) is the same in all (``Steps._group``)."""
     s0 = states[0]
     return replace(s0, **{name: np.concatenate([vars(s)[name] for s in states], axis=1)
                           for name, v in vars(s0).items() if isinstance(v, np.ndarray)})

@@ -68,7 +68,8 @@ from diskf_mesh.mesh.wire.keys import matcher
 from diskf_mesh.mesh.simulated.schedule import Schedule, Trace, payload_digest
 
 NO_LOSS = "**"
-SUMS_KEPT = 1 << 13  # payload digests kept for the trace (a few ticks' samples; one evicted is made again)
+SUMS_KEPT = 1 << 13  # payload digests of a generation kept for the trace (two kept: a few ticks' samples; one
+# evicted is made again)
 
 
 @dataclass(frozen=True)
@@ -396,6 +397,7 @@ class SimNet:
         self._holders = {}        # processes holding tokens (their order -> proc)
         self._labels = {}         # id(TokenBatch) -> (it, the digest of its keys for the trace)
         self._sums = {}           # id(Sample) -> (it, its payload's digest for the trace), while in flight
+        self._sums_older = {}     # the generation before (``SUMS_KEPT``)
         self._steps = Steps() if batch_steps else None
         self._work = []           # (proc, Work) held at this instant, in the order they were handed out
         self._working = set()     # the processes waiting for their Worked
@@ -583,7 +585,7 @@ class SimNet:
 
     def _sum(self, event: ev.Sample) -> bytes:
         """The digest of a sample's payload, made once for all its receivers."""
-        hit = self._sums.get(id(event))
+        hit = self._sums.get(id(event)) or self._sums_older.get(id(event))
         return hit[1] if hit is not None and hit[0] is event else payload_digest(event.payload)
 
     # -- processes --------------------------------------------------------------
@@ -868,8 +870,8 @@ class SimNet:
         event = ev.Sample(key, bytes(payload))
         digest = payload_digest(event.payload)
         self.trace.add(self.sched.now, repr(proc), "put", key, event.payload, digest)
-        if len(self._sums) > SUMS_KEPT:
-            self._sums.clear()
+        if len(self._sums) > SUMS_KEPT:  # a new generation; the one before is kept for the samples still in flight
+            self._sums_older, self._sums = self._sums, {}
         self._sums[id(event)] = (event, digest)
         hit = self._subs.match(key)
         if self._links is None and not self.link.faults and not self.link.jitter:  # one link for all: at once
