@@ -12,9 +12,10 @@ An agent machine hands its steps to its shell (``Work``, its result back as
 ``Worked``: ``mesh.protocol.events``). A process's shell carries out its one
 agent's at once (``Work.alone``); the simulated network's collects those due
 at one virtual instant and ``Steps.carry_out`` runs each step of one tick as
-one call over the agents, laid out as the engine lays out its agents (each
-receiver's senders in scenario order, zero weights elsewhere): the same
-bits as one by one (``tests/test_simnet_steps.py``).
+one call over the agents, laid out as the engine's gathered layout lays out
+its agents (each receiver a row of its own, its senders in scenario order in
+its slots, zero weights past them): the same bits as one by one
+(``tests/test_simnet_steps.py``).
 """
 from __future__ import annotations
 
