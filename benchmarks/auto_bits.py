@@ -18,6 +18,11 @@ run on Table II and every eighth case.
     git archive BASE | tar -x -C /tmp/base
     PYTHONPATH=/tmp/base python benchmarks/auto_bits.py --save /tmp/auto.npz
     python benchmarks/auto_bits.py --check /tmp/auto.npz
+
+``--auto NAME=VALUE`` (repeatable) sets ``[estimator.auto]`` options on every
+``diskf-auto`` run, to check an opt-in mode (``--auto noise_span=10``,
+``--auto noise_level=10``); where an option may not go with the noise
+learning, the settings with it are left out.
 """
 from __future__ import annotations
 
@@ -38,8 +43,16 @@ NAME = "diskf-auto"
 SETTINGS = {"": (False, False), "noise": (True, False), "defence": (False, True), "noise+defence": (True, True)}
 
 
-def with_settings(params, noise: bool, defence: bool):
-    return replace(params.with_setting("auto", noise=noise), defence=defence)
+def with_settings(params, noise: bool, defence: bool, auto: dict):
+    return replace(params.with_setting("auto", noise=noise, **auto), defence=defence)
+
+
+def settings(auto: dict) -> dict:
+    """The (noise, defence) settings to run: those the options ``auto``
+    allow (``noise_level`` and ``noise_span`` go without the noise
+    learning)."""
+    alone = "noise_level" in auto or "noise_span" in auto
+    return {tag: s for tag, s in SETTINGS.items() if not (alone and s[0])}
 
 
 def engine_outputs(tr, params, name: str = NAME) -> list:
@@ -68,26 +81,32 @@ def robust(label: str, scn, tr):
     yield f"{label} centre", [est.x, est.P, est.d, est.d_valid]
 
 
-def outputs(ticks: int):
-    """Yields (label, [arrays]) for every case."""
+def outputs(ticks: int, auto: dict | None = None):
+    """Yields (label, [arrays]) for every case; ``auto``: ``[estimator.auto]``
+    options for every ``diskf-auto`` run."""
+    auto = auto or {}
+    runs = settings(auto)
+    both = [tag for tag in ("", "noise+defence", "defence") if tag in runs][:2]
     q = load_scenario("quadrants")
     for topology in ("all", "ring", "none"):
         scn = q.with_overrides(topology=topology)
         tr = simulate(scn, range(20))
-        for tag in ("", "noise+defence"):
-            yield f"Table II {topology} {tag}", engine_outputs(tr, with_settings(scn.params, *SETTINGS[tag]))
+        for tag in both:
+            yield f"Table II {topology} {tag}", engine_outputs(tr, with_settings(scn.params, *SETTINGS[tag], auto))
         yield from robust(f"Table II {topology}", scn, tr)
     for i, case in enumerate(heldout.cases()):
         scn, tr = case.simulate(range(2), ticks)
-        for tag, (noise, defence) in SETTINGS.items():
+        for tag, (noise, defence) in runs.items():
             if tag and i % 4:
                 continue
-            yield f"{case.label} {tag}", engine_outputs(tr, with_settings(scn.params, noise, defence))
+            if auto and scn.model(ticks).m > 1 and "noise_level" in auto:
+                continue  # noise_level needs one bank (DISKFAuto.refuse)
+            yield f"{case.label} {tag}", engine_outputs(tr, with_settings(scn.params, noise, defence, auto))
         if i % 8 == 0:
             yield from robust(case.label, scn, tr)
         if i % 16 == 0 and len(scn.agents) <= 9:
-            for tag in ("", "noise+defence"):
-                p = with_settings(scn.params, *SETTINGS[tag])
+            for tag in both:
+                p = with_settings(scn.params, *SETTINGS[tag], auto)
                 yield f"{case.label} {tag} agent", agent_outputs(scn.with_overrides(params=p), tr)
 
 
@@ -97,10 +116,22 @@ def main(argv=None) -> int:
     what.add_argument("--save", metavar="FILE")
     what.add_argument("--check", metavar="FILE")
     ap.add_argument("--ticks", type=int, default=60)
+    ap.add_argument("--auto", action="append", default=[], metavar="NAME=VALUE",
+                    help="an [estimator.auto] option for every diskf-auto run (repeatable)")
     a = ap.parse_args(argv)
+    auto = {}
+    for item in a.auto:
+        name, sep, value = item.partition("=")
+        try:
+            auto[name] = float(value)
+        except ValueError:
+            sep = ""
+        if not sep:
+            print(f"error: --auto {item!r}: expected NAME=NUMBER", file=sys.stderr)
+            return 2
     saved = None if a.check is None else np.load(a.check)
     found, differ, t0 = {}, [], time.process_time()
-    for n, (label, arrays) in enumerate(outputs(a.ticks)):
+    for n, (label, arrays) in enumerate(outputs(a.ticks, auto)):
         for j, arr in enumerate(arrays):
             key = f"{label} #{j}"
             found[key] = arr

@@ -117,7 +117,7 @@ def information_energy(U, u, rtol: float = 1e-9):
     return E, np.sum(kept, axis=-1).astype(float)
 
 
-def information_loglik(x, P, Y, Ji, U, u, heavy=None):
+def information_loglik(x, P, Y, Ji, U, u, heavy=None, logdet_Y=None):
     """The log-likelihood of the neighbourhood's measurement given the prior
     N(x, P), up to a term the same for every prior (for the model weights
     of ``diskf-auto``), from the measurement information alone:
@@ -142,12 +142,17 @@ def information_loglik(x, P, Y, Ji, U, u, heavy=None):
 
     E the innovation's Mahalanobis energy; c(k, nu) collects log det R
     and the gamma functions, the same for every prior.
+
+    ``logdet_Y``: log det Y where the caller has it (one Y for several
+    (U, u)), the same bits as computed here.
     """
     Ux = mv(U, x)
     g = u - Ux
     quad = 2.0 * _dot(x, u) - _dot(x, Ux) + _dot(g, mv(Ji, g))
     # log det(I + P U) = log det(P (Y + U)) = -log det(Y) - log det(Ji)
-    if Y.shape == Ji.shape:  # both in one call (each matrix's own, bit for bit)
+    if logdet_Y is not None:
+        logdet_Ji = np.linalg.slogdet(Ji)[1]
+    elif Y.shape == Ji.shape:  # both in one call (each matrix's own, bit for bit)
         logdet_Y, logdet_Ji = np.linalg.slogdet(np.stack([Y, Ji]))[1]
     else:
         logdet_Y, logdet_Ji = np.linalg.slogdet(Y)[1], np.linalg.slogdet(Ji)[1]

@@ -506,10 +506,12 @@ def measure_levels(x_s, P_s, e1, C_s, S1, U, u, informed, E, k, grid, c, nu, swi
     U_i, u_i, E_i, k_i, c_i, nu_i = (U, u, E, k, c, nu) if every else \
         (a[informed] for a in (U, u, E, k, c, nu))
     U_i, u_i = U_i[..., None, :, :], u_i[..., None, :]
-    lls, Y = [], None
+    lls, Y, logdet_Y = [], None, None
     for r in grid.tolist():
         Y, Ji, U_r = eq.information_pair_psd(Ps, U_i / r, Y)
-        lls.append(im.information_loglik(xs, Ps, Y, Ji, U_r, u_i / r) - 0.5 * E_i[..., None] / r
+        if logdet_Y is None:  # one prediction for every level: its log det once
+            logdet_Y = np.linalg.slogdet(Y)[1]
+        lls.append(im.information_loglik(xs, Ps, Y, Ji, U_r, u_i / r, logdet_Y=logdet_Y) - 0.5 * E_i[..., None] / r
                    - 0.5 * k_i[..., None] * np.log(r))
     L = len(grid)
     nu_pred = (1.0 - switch) * nu_i + switch * (1.0 - nu_i) / (L - 1)
