@@ -28,7 +28,7 @@ from diskf_mesh import estimators
 from diskf_mesh.estimators.base import Estimator
 from diskf_mesh.core.messages import Message, Neighbourhood, Output
 from diskf_mesh.data.scenario import BLOCK_BYTES_MAX, Scenario, links_for
-from diskf_mesh.engine.batch import slot_bytes
+from diskf_mesh.engine.batch import per_receiver, slot_bytes
 
 
 class AgentEstimator:
@@ -188,12 +188,12 @@ class Steps:
         return (w.step, w.args[0], type(e.alg), id(e.scenario), e.ticks, id(e.alg.params), e.draws is None,
                 type(state), layout)
 
-    def _share(self, ests: list, state, first: int = 0) -> None:
-        """Give agents ``ests`` their shares of the stacked ``state``, from
-        its ``first`` row on, their layout noted once for all."""
+    def _share(self, ests: list, state) -> None:
+        """Give agents ``ests`` their shares of the stacked ``state``, their
+        layout noted once for all."""
         layout, made = _layout(state, stacked=True), self._layouts
         for b, e in enumerate(ests):
-            e.state = mine = _state_of(state, first + b)
+            e.state = mine = _state_of(state, b)
             made[id(mine)] = (mine, layout)
 
     def _alg(self, ests: list) -> Estimator:
@@ -289,12 +289,10 @@ class Steps:
             place_of = row_place[idx][None, :, None] if alg.defends else None
             nb = Neighbourhood(adj, self_mask, None if draws is None else draws[:, b0:b1], place_of)
             part = slice(b0, b1)
-            st, out = alg.screened_fuse(
-                replace(state, **{n: v[:, part, None] for n, v in vars(state).items() if isinstance(v, np.ndarray)}),
-                Message(*(a[:, part] for a in _row(own))),
-                Message(*(np.take(a, idx, axis=0)[None] for a in columns)), nb)
-            st = replace(st, **{n: v[:, :, 0] for n, v in vars(st).items() if isinstance(v, np.ndarray)})
-            self._share(ests[b0:b1], st)
+            st, out = alg.screened_fuse(per_receiver(state, lambda a: a[:, part, None]),
+                                        Message(*(a[:, part] for a in _row(own))),
+                                        Message(*(np.take(a, idx, axis=0)[None] for a in columns)), nb)
+            self._share(ests[b0:b1], per_receiver(st, lambda a: a[:, :, 0]))
             result += [Output(*(a[:, b:b + 1, 0] for a in (out.x, out.P, out.d, out.d_valid))) for b in range(R)]
             b0 = b1
         return result
